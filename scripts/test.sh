@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# The README's test command: set-up, then every test of the workspace.
+#
+# Real-data tests (named real_data_*) read ../shared (or $MAC_EGO3D_SHARED): 7-Scenes redkitchen
+# frames, LPIPS weights, reference trajectories. When that data is present they run. When it is
+# missing they are not run and this script lists them and says why; under CI (CI=true) missing data
+# is a failure. Extra arguments go to `cargo test` (e.g. a test name filter).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+
+repo_root=$(pwd)
+export MAC_EGO3D_SHARED="${MAC_EGO3D_SHARED:-$repo_root/../shared}"
+required=(
+  datasets/7scenes-redkitchen/camera-intrinsics.txt
+  datasets/7scenes-redkitchen/groundtruth_tum.txt
+  weights/lpips/alexnet.npz
+  weights/lpips/imgs/ex_ref.png
+  reference/tum-trajectories/freiburg1_xyz-groundtruth.txt
+)
+missing=()
+for rel in "${required[@]}"; do
+  [[ -e "$MAC_EGO3D_SHARED/$rel" ]] || missing+=("$MAC_EGO3D_SHARED/$rel")
+done
+
+if ((${#missing[@]} == 0)); then
+  echo "[test] real data found at $MAC_EGO3D_SHARED: running all tests"
+  cargo test --workspace "$@"
+  exit 0
+fi
+
+if [[ "${CI:-}" == "true" ]]; then
+  echo "[test] CI=true but real data is missing:" >&2
+  printf '[test]   %s\n' "${missing[@]}" >&2
+  echo "[test] set MAC_EGO3D_SHARED to the shared data folder" >&2
+  exit 1
+fi
+
+cargo test --workspace "$@" -- --skip real_data_
+echo
+echo "[test] NOT RUN: real-data tests, because this data is missing:"
+printf '[test]   %s\n' "${missing[@]}"
+echo "[test] (set MAC_EGO3D_SHARED to the folder holding datasets/, weights/, reference/)"
+cargo test --workspace -q -- --list 2>/dev/null | sed -n 's/: test$//p' | grep 'real_data_' | sed 's/^/[test]   not run: /' || true

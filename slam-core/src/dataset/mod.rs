@@ -1,0 +1,420 @@
+//! Dataset readers. Every layout yields the same [`Frame`]: RGB u8, depth in metres (invalid = 0),
+//! a timestamp in seconds, the ground-truth `world_from_camera` pose when the dataset has one, and
+//! the intrinsics.
+//!
+//! Layouts (SPEC section 6): 7-Scenes ([`seven_scenes`]), Replica / Multi-agent Replica
+//! ([`replica`]), TUM RGB-D ([`tum`]) and the embedded procedural scene ([`synthetic`]), which
+//! needs no files at all. [`open`] picks the reader from a path or a `synthetic:` spec string;
+//! [`prefetch::Prefetcher`] decodes frames on worker threads so disk I/O overlaps compute.
+
+pub mod noise;
+pub mod prefetch;
+pub mod replica;
+pub mod seven_scenes;
+pub mod synthetic;
+pub mod tum;
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+use image::RgbImage;
+use nalgebra::Isometry3;
+
+use crate::camera::Intrinsics;
+
+/// Frame rate assumed for layouts that have no clock (7-Scenes, Replica, `kitti-c2w` trajectory
+/// files): frame number `n` has timestamp `n / 30` s, as the shared groundtruth_tum.txt files use.
+pub const NO_CLOCK_FRAMES_PER_SECOND: f64 = 30.0;
+
+/// A depth image in metres, row-major. Invalid pixels are exactly `0.0`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DepthImage {
+    pub width: u32,
+    pub height: u32,
+    pub data: Vec<f32>,
+}
+
+impl DepthImage {
+    pub fn new(width: u32, height: u32) -> Self {
+        Self { width, height, data: vec![0.0; width as usize * height as usize] }
+    }
+
+    /// Builds a depth image from raw 16-bit sensor units: `metres = raw / units_per_metre`.
+    /// `invalid_raw` values (besides 0) are also mapped to invalid (7-Scenes marks holes 65535).
+    pub fn from_raw_u16(
+        width: u32,
+        height: u32,
+        raw: &[u16],
+        units_per_metre: f64,
+        invalid_raw: Option<u16>,
+    ) -> Self {
+        let scale = (1.0 / units_per_metre) as f32;
+        let data = raw
+            .iter()
+            .map(|&r| if r == 0 || Some(r) == invalid_raw { 0.0 } else { r as f32 * scale })
+            .collect();
+        Self { width, height, data }
+    }
+
+    #[inline]
+    pub fn get(&self, x: u32, y: u32) -> f32 {
+        self.data[y as usize * self.width as usize + x as usize]
+    }
+
+    /// Replaces NaN, infinite and negative values by 0 (invalid). Returns how many were replaced.
+    pub fn sanitize(&mut self) -> usize {
+        let mut replaced = 0;
+        for d in &mut self.data {
+            if !d.is_finite() || *d < 0.0 {
+                *d = 0.0;
+                replaced += 1;
+            }
+        }
+        replaced
+    }
+
+    /// Number of valid (> 0) pixels.
+    pub fn valid_count(&self) -> usize {
+        self.data.iter().filter(|&&d| d > 0.0).count()
+    }
+
+    /// Converts to 16-bit units (`raw = round(metres * units_per_metre)`, saturating), 0 = invalid.
+    pub fn to_raw_u16(&self, units_per_metre: f64) -> Vec<u16> {
+        self.data
+            .iter()
+            .map(|&d| if d > 0.0 { (d as f64 * units_per_metre).round().clamp(1.0, 65534.0) as u16 } else { 0 })
+            .collect()
+    }
+}
+
+/// One RGB-D frame as every part of the system sees it.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    /// Frame number in its sequence (the number in the file name for 7-Scenes and Replica, the
+    /// row of the association for TUM, the render index for the synthetic scene).
+    pub index: usize,
+    /// Seconds. 7-Scenes and Replica have no clock: `index / fps` (30 Hz), as the shared
+    /// groundtruth_tum.txt files use.
+    pub timestamp: f64,
+    pub rgb: RgbImage,
+    pub depth: DepthImage,
+    /// Ground-truth camera-to-world pose, when the dataset has one.
+    pub world_from_camera_gt: Option<Isometry3<f64>>,
+    pub intrinsics: Intrinsics,
+}
+
+/// Errors of the dataset layer. Each names the file and, where there is one, the line.
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: cannot decode image: {reason}")]
+    Decode { path: PathBuf, reason: String },
+    #[error("{path}{}: {reason}", line.map(|l| format!(" line {l}")).unwrap_or_default())]
+    Format { path: PathBuf, line: Option<usize>, reason: String },
+    #[error("{path}: missing frame {index} (file not found)")]
+    MissingFrame { path: PathBuf, index: usize },
+    #[error("{path}: image is {found_w}x{found_h}, expected {expected_w}x{expected_h} like the other images of this dataset")]
+    SizeMismatch { path: PathBuf, expected_w: u32, expected_h: u32, found_w: u32, found_h: u32 },
+    #[error("{0}")]
+    Invalid(String),
+}
+
+impl DatasetError {
+    pub fn io(path: &Path, source: std::io::Error) -> Self {
+        Self::Io { path: path.to_path_buf(), source }
+    }
+    pub fn format(path: &Path, line: Option<usize>, reason: impl Into<String>) -> Self {
+        Self::Format { path: path.to_path_buf(), line, reason: reason.into() }
+    }
+    pub fn decode(path: &Path, reason: impl fmt::Display) -> Self {
+        Self::Decode { path: path.to_path_buf(), reason: reason.to_string() }
+    }
+    /// True when the error means "this frame is not there" rather than "this frame is broken";
+    /// callers may skip such frames with a warning.
+    pub fn is_missing_frame(&self) -> bool {
+        matches!(self, Self::MissingFrame { .. })
+    }
+}
+
+/// A source of frames with random access. Implementations are cheap to share between threads:
+/// the prefetcher calls [`Dataset::load`] from several workers at once.
+pub trait Dataset: Send + Sync {
+    /// Human-readable description (layout and path).
+    fn describe(&self) -> String;
+    /// Intrinsics shared by all frames.
+    fn intrinsics(&self) -> Intrinsics;
+    /// Number of frames in the (range-selected) sequence.
+    fn len(&self) -> usize;
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Frame number of the `position`-th frame of the sequence.
+    fn frame_index(&self, position: usize) -> usize;
+    /// Timestamp of the `position`-th frame, without decoding images.
+    fn timestamp(&self, position: usize) -> f64;
+    /// Ground-truth pose of the `position`-th frame, without decoding images. `Ok(None)` when the
+    /// dataset has no ground truth for it.
+    fn ground_truth(&self, position: usize) -> Result<Option<Isometry3<f64>>, DatasetError>;
+    /// Decodes the `position`-th frame.
+    fn load(&self, position: usize) -> Result<Frame, DatasetError>;
+}
+
+/// A half-open range of frame numbers, written `A..B` (B excluded), `A..` (to the end) or `..B`.
+/// `0..600` and `400..1000` split a 1000-frame sequence into two overlapping agents.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct FrameRange {
+    pub first: usize,
+    pub end: Option<usize>,
+}
+
+impl FrameRange {
+    pub const ALL: FrameRange = FrameRange { first: 0, end: None };
+
+    pub fn contains(&self, frame: usize) -> bool {
+        frame >= self.first && self.end.is_none_or(|end| frame < end)
+    }
+}
+
+impl FromStr for FrameRange {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let bad = || format!("invalid frame range {s:?}: expected FIRST..END (END excluded), FIRST.. or ..END");
+        let (a, b) = s.trim().split_once("..").ok_or_else(bad)?;
+        let first = if a.is_empty() { 0 } else { a.trim().parse().map_err(|_| bad())? };
+        let end = if b.is_empty() { None } else { Some(b.trim().parse().map_err(|_| bad())?) };
+        if let Some(end) = end
+            && end <= first
+        {
+            return Err(format!("invalid frame range {s:?}: END must be greater than FIRST"));
+        }
+        Ok(Self { first, end })
+    }
+}
+
+impl fmt::Display for FrameRange {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.end {
+            Some(end) => write!(f, "{}..{}", self.first, end),
+            None => write!(f, "{}..", self.first),
+        }
+    }
+}
+
+/// Parses whitespace-separated floats; the error names the token that is not a number.
+pub fn parse_floats(line: &str) -> Result<Vec<f64>, String> {
+    line.split_whitespace()
+        .map(|tok| {
+            let v: f64 = tok.parse().map_err(|_| format!("{tok:?} is not a number"))?;
+            if v.is_finite() { Ok(v) } else { Err(format!("{tok:?} is not a finite number")) }
+        })
+        .collect()
+}
+
+/// Row-major 4x4 matrix (16 numbers) -> rigid pose, refusing matrices that are not rigid.
+pub fn pose_from_row_major(values: &[f64]) -> Result<Isometry3<f64>, String> {
+    if values.len() != 16 && values.len() != 12 {
+        return Err(format!("expected 12 or 16 numbers for a pose matrix, found {}", values.len()));
+    }
+    let m = nalgebra::Matrix3x4::from_row_slice(&values[..12]);
+    if values.len() == 16 {
+        let last = &values[12..16];
+        if (last[0].abs() + last[1].abs() + last[2].abs()) > 1e-6 || (last[3] - 1.0).abs() > 1e-6 {
+            return Err(format!("last row of the pose matrix must be 0 0 0 1, found {last:?}"));
+        }
+    }
+    crate::se3::isometry_from_rt(&m.fixed_view::<3, 3>(0, 0).into_owned(), &m.column(3).into_owned())
+}
+
+/// Reads an 8-bit RGB image (PNG or JPEG; grey and RGBA are converted), naming the file on error.
+pub fn read_rgb(path: &Path, index: usize) -> Result<RgbImage, DatasetError> {
+    let bytes = std::fs::read(path).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            DatasetError::MissingFrame { path: path.to_path_buf(), index }
+        } else {
+            DatasetError::io(path, e)
+        }
+    })?;
+    let img = image::load_from_memory(&bytes).map_err(|e| DatasetError::decode(path, e))?;
+    match img {
+        image::DynamicImage::ImageRgb8(rgb) => Ok(rgb),
+        image::DynamicImage::ImageRgba8(_) | image::DynamicImage::ImageLuma8(_) | image::DynamicImage::ImageLumaA8(_) => {
+            Ok(img.to_rgb8())
+        }
+        other => Err(DatasetError::decode(
+            path,
+            format!("expected an 8-bit colour image, found {:?}", other.color()),
+        )),
+    }
+}
+
+/// Reads a 16-bit single-channel depth PNG as raw units, refusing 8-bit or colour PNGs (a common
+/// mistake that would silently scale depth by 256).
+pub fn read_depth_u16(path: &Path, index: usize) -> Result<(u32, u32, Vec<u16>), DatasetError> {
+    let bytes = std::fs::read(path).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            DatasetError::MissingFrame { path: path.to_path_buf(), index }
+        } else {
+            DatasetError::io(path, e)
+        }
+    })?;
+    let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+        .map_err(|e| DatasetError::decode(path, e))?;
+    match img {
+        image::DynamicImage::ImageLuma16(buf) => {
+            let (w, h) = buf.dimensions();
+            Ok((w, h, buf.into_raw()))
+        }
+        other => Err(DatasetError::decode(
+            path,
+            format!("depth must be a 16-bit single-channel PNG, found {:?}", other.color()),
+        )),
+    }
+}
+
+/// Writes a depth image as a 16-bit PNG in `units_per_metre` (1000 = millimetres).
+pub fn write_depth_png(path: &Path, depth: &DepthImage, units_per_metre: f64) -> Result<(), DatasetError> {
+    let raw = depth.to_raw_u16(units_per_metre);
+    let buf: image::ImageBuffer<image::Luma<u16>, Vec<u16>> =
+        image::ImageBuffer::from_raw(depth.width, depth.height, raw)
+            .ok_or_else(|| DatasetError::Invalid("depth buffer size does not match its dimensions".into()))?;
+    buf.save(path).map_err(|e| DatasetError::decode(path, e))
+}
+
+/// Checks an image against the dataset's expected size.
+pub fn check_size(path: &Path, intrinsics: &Intrinsics, w: u32, h: u32) -> Result<(), DatasetError> {
+    if (w, h) != (intrinsics.width, intrinsics.height) {
+        return Err(DatasetError::SizeMismatch {
+            path: path.to_path_buf(),
+            expected_w: intrinsics.width,
+            expected_h: intrinsics.height,
+            found_w: w,
+            found_h: h,
+        });
+    }
+    Ok(())
+}
+
+/// Opens a dataset from a path or a synthetic spec, detecting the layout:
+/// - `synthetic` or `synthetic:agents=3,agent=1,frames=300,seed=7`: the embedded scene, streamed
+///   without touching disk (see [`synthetic::SyntheticSpec`]);
+/// - a folder with `results/` and `traj.txt`: Replica (NICE-SLAM layout) or one agent of
+///   Multi-agent Replica;
+/// - a folder with `rgb.txt` and `depth.txt`: TUM RGB-D;
+/// - a folder with `frame-XXXXXX.color.{png,jpg}` files: 7-Scenes (also what `mac-ego3d synth`
+///   writes).
+///
+/// `range` selects frame numbers (see [`FrameRange`]).
+pub fn open(spec: &str, range: FrameRange) -> Result<Box<dyn Dataset>, DatasetError> {
+    if spec == "synthetic" || spec.starts_with("synthetic:") {
+        let parsed: synthetic::SyntheticSpec = spec.parse().map_err(DatasetError::Invalid)?;
+        return Ok(Box::new(synthetic::SyntheticDataset::new(parsed, range)?));
+    }
+    let dir = Path::new(spec);
+    match detect_layout(dir)? {
+        Layout::Replica => Ok(Box::new(replica::Replica::open(dir, range)?)),
+        Layout::Tum => Ok(Box::new(tum::Tum::open(dir, range)?)),
+        Layout::SevenScenes => Ok(Box::new(seven_scenes::SevenScenes::open(dir, range)?)),
+    }
+}
+
+/// On-disk layouts [`open`] recognises.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Layout {
+    SevenScenes,
+    Replica,
+    Tum,
+}
+
+/// Recognises the layout of a dataset folder from the files it holds.
+pub fn detect_layout(dir: &Path) -> Result<Layout, DatasetError> {
+    if !dir.is_dir() {
+        return Err(DatasetError::io(
+            dir,
+            std::io::Error::new(std::io::ErrorKind::NotFound, "dataset folder not found"),
+        ));
+    }
+    if dir.join("results").is_dir() && dir.join("traj.txt").is_file() {
+        return Ok(Layout::Replica);
+    }
+    if dir.join("rgb.txt").is_file() && dir.join("depth.txt").is_file() {
+        return Ok(Layout::Tum);
+    }
+    let entries = std::fs::read_dir(dir).map_err(|e| DatasetError::io(dir, e))?;
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let name = name.to_string_lossy();
+        if name.starts_with("frame-") && (name.ends_with(".color.png") || name.ends_with(".color.jpg")) {
+            return Ok(Layout::SevenScenes);
+        }
+    }
+    Err(DatasetError::Invalid(format!(
+        "{}: unknown dataset layout: expected 7-Scenes (frame-XXXXXX.color.png/jpg), Replica \
+         (results/ + traj.txt) or TUM RGB-D (rgb.txt + depth.txt)",
+        dir.display()
+    )))
+}
+
+/// Sub-folders of `dir` that are datasets themselves, sorted by name: the agents of a
+/// multi-agent collection such as Multi-agent Replica (`Apart-0/part_1`, `part_2`, ...) or the
+/// output of `mac-ego3d synth` (`agent_0`, `agent_1`, ...).
+pub fn agent_folders(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
+    let mut found = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(|e| DatasetError::io(dir, e))?.flatten() {
+        let path = entry.path();
+        if path.is_dir() && detect_layout(&path).is_ok() {
+            found.push(path);
+        }
+    }
+    found.sort();
+    Ok(found)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_range_parses_and_refuses() {
+        assert_eq!("0..600".parse::<FrameRange>().unwrap(), FrameRange { first: 0, end: Some(600) });
+        assert_eq!("400..".parse::<FrameRange>().unwrap(), FrameRange { first: 400, end: None });
+        assert_eq!("..10".parse::<FrameRange>().unwrap(), FrameRange { first: 0, end: Some(10) });
+        assert!("5..5".parse::<FrameRange>().is_err());
+        assert!("a..5".parse::<FrameRange>().is_err());
+        assert!("12".parse::<FrameRange>().is_err());
+        let r: FrameRange = "400..1000".parse().unwrap();
+        assert!(r.contains(400) && r.contains(999) && !r.contains(1000) && !r.contains(399));
+        assert_eq!(r.to_string(), "400..1000");
+    }
+
+    #[test]
+    fn depth_from_raw_marks_invalid() {
+        let d = DepthImage::from_raw_u16(2, 2, &[0, 1000, 65535, 2500], 1000.0, Some(65535));
+        assert_eq!(d.data, vec![0.0, 1.0, 0.0, 2.5]);
+        assert_eq!(d.valid_count(), 2);
+        assert_eq!(d.to_raw_u16(1000.0), vec![0, 1000, 0, 2500]);
+    }
+
+    #[test]
+    fn sanitize_replaces_nan_inf_negative() {
+        let mut d = DepthImage { width: 4, height: 1, data: vec![f32::NAN, f32::INFINITY, -1.0, 2.0] };
+        assert_eq!(d.sanitize(), 3);
+        assert_eq!(d.data, vec![0.0, 0.0, 0.0, 2.0]);
+    }
+
+    #[test]
+    fn pose_matrix_must_be_rigid() {
+        let id = [1., 0., 0., 1., 0., 1., 0., 2., 0., 0., 1., 3., 0., 0., 0., 1.];
+        let p = pose_from_row_major(&id).unwrap();
+        assert_eq!(p.translation.vector, nalgebra::Vector3::new(1.0, 2.0, 3.0));
+        let mut scaled = id;
+        scaled[0] = 2.0;
+        assert!(pose_from_row_major(&scaled).is_err());
+        assert!(pose_from_row_major(&id[..15]).is_err());
+    }
+}

@@ -1,0 +1,17 @@
+//! One module per subcommand.
+
+pub mod bench;
+pub mod dataset;
+pub mod eval;
+pub mod synth;
+
+/// Prints `value` as one JSON object on stdout.
+pub fn print_json(value: &impl serde::Serialize) -> anyhow::Result<()> {
+    println!("{}", serde_json::to_string_pretty(value)?);
+    Ok(())
+}
+
+/// Formats a number for a table, showing non-finite values plainly.
+pub fn fmt_num(v: f64, decimals: usize) -> String {
+    if v.is_finite() { format!("{v:.decimals$}") } else { format!("{v}") }
+}

@@ -1,0 +1,54 @@
+//! `mac-ego3d`: the user-facing command line of mac-ego3d (multi-agent Gaussian-splat RGB-D SLAM).
+//!
+//! Subcommands: `synth` writes the embedded synthetic multi-agent dataset, `dataset info`
+//! describes a dataset, `eval` computes metrics (ATE, PSNR/SSIM, LPIPS, depth L1), `bench`
+//! measures reader throughput and metric timings.
+
+mod cmd;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "mac-ego3d", version, about = "Multi-agent Gaussian-splat RGB-D SLAM: data, evaluation, benchmarks")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Write the embedded synthetic multi-agent dataset in the 7-Scenes layout.
+    Synth(cmd::synth::SynthArgs),
+    /// Inspect datasets.
+    #[command(subcommand)]
+    Dataset(cmd::dataset::DatasetCommand),
+    /// Evaluation metrics.
+    #[command(subcommand)]
+    Eval(cmd::eval::EvalCommand),
+    /// Benchmarks (print a table, or JSON with --json).
+    #[command(subcommand)]
+    Bench(cmd::bench::BenchCommand),
+}
+
+fn main() -> std::process::ExitCode {
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .init();
+    let cli = Cli::parse();
+    let result = match &cli.command {
+        Command::Synth(args) => cmd::synth::run(args),
+        Command::Dataset(c) => cmd::dataset::run(c),
+        Command::Eval(c) => cmd::eval::run(c),
+        Command::Bench(c) => cmd::bench::run(c),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
