@@ -49,10 +49,10 @@ impl DepthImage {
         units_per_metre: f64,
         invalid_raw: Option<u16>,
     ) -> Self {
-        let scale = (1.0 / units_per_metre) as f32;
+        // Divide in f64 so that e.g. 1234 mm becomes exactly the f32 nearest 1.234 m.
         let data = raw
             .iter()
-            .map(|&r| if r == 0 || Some(r) == invalid_raw { 0.0 } else { r as f32 * scale })
+            .map(|&r| if r == 0 || Some(r) == invalid_raw { 0.0 } else { (r as f64 / units_per_metre) as f32 })
             .collect();
         Self { width, height, data }
     }

@@ -71,9 +71,9 @@ impl SevenScenes {
         }
         let intrinsics_path = dir.join(INTRINSICS_FILE);
         let intrinsics = if intrinsics_path.is_file() {
-            // The K file has no image size; take it from the first frame's depth image header.
-            let first = by_number.keys().next().copied().unwrap_or_default();
-            let (w, h) = image_size(&depth_path(dir, first))?;
+            // The K file has no image size; take it from the first colour image's header.
+            let first = by_number.values().next().expect("at least one frame");
+            let (w, h) = image_size(first)?;
             Intrinsics::read_k_file(&intrinsics_path, w, h)?
         } else {
             DEFAULT_INTRINSICS
