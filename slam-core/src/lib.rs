@@ -11,6 +11,7 @@
 //!   nalgebra `UnitQuaternion`s.
 
 pub mod camera;
+pub mod config;
 pub mod dataset;
 pub mod metrics;
 pub mod se3;

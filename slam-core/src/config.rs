@@ -1,0 +1,337 @@
+//! Typed configuration of the whole system, loaded from `configs/*.toml`. Every parameter of the
+//! method (SPEC sections 3 and 4) lives here with the SPEC default; algorithm code reads it from
+//! these structs and never repeats the numbers. Unknown keys are refused so a typo does not
+//! silently fall back to a default.
+//!
+//! Defaults are those of a 640x480 sensor (7-Scenes, TUM, the synthetic scene). Replica-like
+//! 1200x680 data overrides `pixel_stride`, `truncation_m`, `prune_max_scale_m` and `t_comm`
+//! (configs/replica.toml).
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::dataset::noise::NoiseConfig;
+
+/// Tracking: point selection, per-point covariances, map-candidate selection and G-ICP.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrackingConfig {
+    /// Back-project every `pixel_stride`-th pixel in x and y (5 for 640x480, 10 for 1200x680).
+    pub pixel_stride: usize,
+    /// Depth at or beyond this is dropped (metres; 10 for 7-Scenes, 12 for Replica).
+    pub truncation_m: f64,
+    /// Neighbours used to estimate each point's covariance.
+    pub covariance_neighbours: usize,
+    /// G-ICP regularisation: singular values become (1, 1, epsilon) (a plane-like ellipse).
+    pub covariance_epsilon: f64,
+    /// Map Gaussians with opacity above this can be tracked against.
+    pub trackable_min_opacity: f64,
+    /// Largest point-to-Gaussian distance accepted as a correspondence (metres).
+    pub max_correspondence_m: f64,
+    /// Levenberg-Marquardt iterations at most.
+    pub max_iterations: usize,
+    /// Converged when the rotation update is below this (radians)...
+    pub rotation_epsilon_rad: f64,
+    /// ...and the translation update below this (metres).
+    pub translation_epsilon_m: f64,
+    /// Predict the next pose with a constant-velocity model instead of the previous pose.
+    pub constant_velocity: bool,
+}
+
+impl Default for TrackingConfig {
+    fn default() -> Self {
+        Self {
+            pixel_stride: 5,
+            truncation_m: 10.0,
+            covariance_neighbours: 10,
+            covariance_epsilon: 1e-3,
+            trackable_min_opacity: 0.05,
+            max_correspondence_m: 0.02,
+            max_iterations: 64,
+            rotation_epsilon_rad: 2e-3,
+            translation_epsilon_m: 5e-4,
+            constant_velocity: true,
+        }
+    }
+}
+
+/// Keyframe selection and Gaussian seeding.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct KeyframeConfig {
+    /// A source point overlaps the map when a map neighbour is closer than sqrt(this) (m^2).
+    pub overlap_distance_sq_m2: f64,
+    /// Overlapping fraction below this makes a tracking keyframe.
+    pub min_overlap_fraction: f64,
+    /// Otherwise every n-th frame since the last tracking keyframe is a mapping keyframe.
+    pub mapping_keyframe_every: usize,
+    /// At a tracking keyframe, new Gaussians farther than sqrt(this) from the map (m^2) are
+    /// trackable.
+    pub trackable_new_distance_sq_m2: f64,
+    /// Opacity of a new Gaussian (before the logit).
+    pub initial_opacity: f64,
+}
+
+impl Default for KeyframeConfig {
+    fn default() -> Self {
+        Self {
+            overlap_distance_sq_m2: 5e-4,
+            min_overlap_fraction: 0.7,
+            mapping_keyframe_every: 10,
+            trackable_new_distance_sq_m2: 5e-5,
+            initial_opacity: 0.1,
+        }
+    }
+}
+
+/// Map optimisation and pruning.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MappingConfig {
+    pub weight_l1: f64,
+    pub weight_ssim: f64,
+    /// Weight of L1(depth / truncation).
+    pub weight_depth: f64,
+    /// Learning rate of means, multiplied by the scene scale.
+    pub lr_means: f64,
+    pub lr_colours: f64,
+    pub lr_opacity: f64,
+    pub lr_log_scales: f64,
+    pub lr_rotations: f64,
+    /// Prune every n mapper iterations.
+    pub prune_every: usize,
+    pub prune_min_opacity: f64,
+    /// tau_s: largest allowed scale (metres; 1.0, or 0.25 for Replica-like scenes).
+    pub prune_max_scale_m: f64,
+    /// Largest allowed max scale / (sum of the other two).
+    pub prune_max_elongation: f64,
+}
+
+impl Default for MappingConfig {
+    fn default() -> Self {
+        Self {
+            weight_l1: 0.8,
+            weight_ssim: 0.2,
+            weight_depth: 2.0,
+            lr_means: 5e-6,
+            lr_colours: 2.5e-3,
+            lr_opacity: 0.05,
+            lr_log_scales: 0.01,
+            lr_rotations: 0.0,
+            prune_every: 200,
+            prune_min_opacity: 0.005,
+            prune_max_scale_m: 1.0,
+            prune_max_elongation: 10.0,
+        }
+    }
+}
+
+/// Inter-agent consensus (SPEC section 4).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ConsensusConfig {
+    /// Agents publish a keyframe descriptor every T_comm frames (60 for 7-Scenes, 150 Replica).
+    pub t_comm: usize,
+    /// Descriptor score above which two keyframes of the same agent propose a loop closure.
+    pub tau_same_agent: f64,
+    /// Descriptor score above which keyframes of different agents propose a loop closure.
+    pub tau_other_agent: f64,
+    /// Coarse-to-fine correspondence distances for inter-agent G-ICP (metres, largest first).
+    pub association_distances_m: Vec<f64>,
+    /// Joint refinement weights.
+    pub weight_l1: f64,
+    pub weight_ssim: f64,
+    pub weight_depth: f64,
+    /// alpha: weight of the pose-consistency term.
+    pub weight_pose_consistency: f64,
+    /// AlexNet weights for the global descriptor; without them a classical descriptor is used.
+    pub descriptor_weights: Option<PathBuf>,
+}
+
+impl Default for ConsensusConfig {
+    fn default() -> Self {
+        Self {
+            t_comm: 60,
+            tau_same_agent: 0.80,
+            tau_other_agent: 0.85,
+            association_distances_m: vec![0.1, 0.05, 0.02],
+            weight_l1: 0.8,
+            weight_ssim: 0.2,
+            weight_depth: 0.1,
+            weight_pose_consistency: 1.0,
+            descriptor_weights: None,
+        }
+    }
+}
+
+/// The whole configuration file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    pub tracking: TrackingConfig,
+    pub keyframes: KeyframeConfig,
+    pub mapping: MappingConfig,
+    pub consensus: ConsensusConfig,
+    /// Sensor noise for robustness runs; absent = clean data.
+    pub noise: Option<NoiseConfig>,
+}
+
+/// A configuration file that cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("{path}: {field}: {reason}")]
+    Invalid { path: PathBuf, field: &'static str, reason: String },
+}
+
+impl Config {
+    /// Loads and validates a TOML file; errors name the file and the field.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io { path: path.to_path_buf(), source })?;
+        let config: Config =
+            toml::from_str(&text).map_err(|e| ConfigError::Parse { path: path.to_path_buf(), message: e.to_string() })?;
+        config.validate().map_err(|(field, reason)| ConfigError::Invalid { path: path.to_path_buf(), field, reason })?;
+        Ok(config)
+    }
+
+    /// Checks ranges; returns the offending field and why.
+    pub fn validate(&self) -> Result<(), (&'static str, String)> {
+        fn positive(field: &'static str, v: f64) -> Result<(), (&'static str, String)> {
+            if v.is_finite() && v > 0.0 { Ok(()) } else { Err((field, format!("must be a positive number, got {v}"))) }
+        }
+        fn non_negative(field: &'static str, v: f64) -> Result<(), (&'static str, String)> {
+            if v.is_finite() && v >= 0.0 { Ok(()) } else { Err((field, format!("must be >= 0, got {v}"))) }
+        }
+        fn fraction(field: &'static str, v: f64) -> Result<(), (&'static str, String)> {
+            if (0.0..=1.0).contains(&v) { Ok(()) } else { Err((field, format!("must be in [0, 1], got {v}"))) }
+        }
+        fn at_least_one(field: &'static str, v: usize) -> Result<(), (&'static str, String)> {
+            if v >= 1 { Ok(()) } else { Err((field, "must be at least 1".to_string())) }
+        }
+        let t = &self.tracking;
+        at_least_one("tracking.pixel_stride", t.pixel_stride)?;
+        positive("tracking.truncation_m", t.truncation_m)?;
+        if t.covariance_neighbours < 3 {
+            return Err(("tracking.covariance_neighbours", "a covariance needs at least 3 neighbours".into()));
+        }
+        positive("tracking.covariance_epsilon", t.covariance_epsilon)?;
+        fraction("tracking.trackable_min_opacity", t.trackable_min_opacity)?;
+        positive("tracking.max_correspondence_m", t.max_correspondence_m)?;
+        at_least_one("tracking.max_iterations", t.max_iterations)?;
+        positive("tracking.rotation_epsilon_rad", t.rotation_epsilon_rad)?;
+        positive("tracking.translation_epsilon_m", t.translation_epsilon_m)?;
+        let k = &self.keyframes;
+        positive("keyframes.overlap_distance_sq_m2", k.overlap_distance_sq_m2)?;
+        fraction("keyframes.min_overlap_fraction", k.min_overlap_fraction)?;
+        at_least_one("keyframes.mapping_keyframe_every", k.mapping_keyframe_every)?;
+        positive("keyframes.trackable_new_distance_sq_m2", k.trackable_new_distance_sq_m2)?;
+        if !(k.initial_opacity > 0.0 && k.initial_opacity < 1.0) {
+            return Err(("keyframes.initial_opacity", format!("must be in (0, 1), got {}", k.initial_opacity)));
+        }
+        let m = &self.mapping;
+        for (field, v) in [
+            ("mapping.weight_l1", m.weight_l1),
+            ("mapping.weight_ssim", m.weight_ssim),
+            ("mapping.weight_depth", m.weight_depth),
+            ("mapping.lr_means", m.lr_means),
+            ("mapping.lr_colours", m.lr_colours),
+            ("mapping.lr_opacity", m.lr_opacity),
+            ("mapping.lr_log_scales", m.lr_log_scales),
+            ("mapping.lr_rotations", m.lr_rotations),
+        ] {
+            non_negative(field, v)?;
+        }
+        at_least_one("mapping.prune_every", m.prune_every)?;
+        fraction("mapping.prune_min_opacity", m.prune_min_opacity)?;
+        positive("mapping.prune_max_scale_m", m.prune_max_scale_m)?;
+        positive("mapping.prune_max_elongation", m.prune_max_elongation)?;
+        let c = &self.consensus;
+        at_least_one("consensus.t_comm", c.t_comm)?;
+        fraction("consensus.tau_same_agent", c.tau_same_agent)?;
+        fraction("consensus.tau_other_agent", c.tau_other_agent)?;
+        if c.association_distances_m.is_empty() || c.association_distances_m.iter().any(|d| !(d.is_finite() && *d > 0.0)) {
+            return Err(("consensus.association_distances_m", "must be a non-empty list of positive distances".into()));
+        }
+        if c.association_distances_m.windows(2).any(|w| w[1] > w[0]) {
+            return Err(("consensus.association_distances_m", "must go from coarse to fine (decreasing)".into()));
+        }
+        for (field, v) in [
+            ("consensus.weight_l1", c.weight_l1),
+            ("consensus.weight_ssim", c.weight_ssim),
+            ("consensus.weight_depth", c.weight_depth),
+            ("consensus.weight_pose_consistency", c.weight_pose_consistency),
+        ] {
+            non_negative(field, v)?;
+        }
+        if let Some(n) = &self.noise {
+            non_negative("noise.rgb_sigma", n.rgb_sigma)?;
+            non_negative("noise.depth_sigma_m", n.depth_sigma_m)?;
+        }
+        Ok(())
+    }
+
+    /// Stable 64-bit hash of the configuration (FNV-1a over its canonical TOML), announced by agents
+    /// so the consensus can refuse agents running with different parameters.
+    pub fn hash(&self) -> u64 {
+        const FNV_OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
+        const FNV_PRIME: u64 = 0x0000_0100_0000_01b3;
+        let canonical = toml::to_string(self).expect("a Config always serialises");
+        canonical.bytes().fold(FNV_OFFSET, |h, b| (h ^ b as u64).wrapping_mul(FNV_PRIME))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn configs_dir() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs")
+    }
+
+    #[test]
+    fn every_shipped_config_loads() {
+        let mut count = 0;
+        for entry in std::fs::read_dir(configs_dir()).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                Config::load(&path).unwrap_or_else(|e| panic!("{e}"));
+                count += 1;
+            }
+        }
+        assert!(count >= 4, "expected the per-dataset configs, found {count}");
+    }
+
+    #[test]
+    fn dataset_configs_carry_the_spec_values() {
+        let seven = Config::load(&configs_dir().join("7scenes.toml")).unwrap();
+        assert_eq!(seven, Config::default(), "7-Scenes uses the SPEC defaults");
+        let replica = Config::load(&configs_dir().join("replica.toml")).unwrap();
+        assert_eq!(replica.tracking.pixel_stride, 10);
+        assert_eq!(replica.tracking.truncation_m, 12.0);
+        assert_eq!(replica.mapping.prune_max_scale_m, 0.25);
+        assert_eq!(replica.consensus.t_comm, 150);
+        assert_ne!(replica.hash(), seven.hash());
+    }
+
+    #[test]
+    fn errors_name_the_file_and_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bad.toml");
+        std::fs::write(&path, "[tracking]\npixel_strde = 3\n").unwrap();
+        let err = Config::load(&path).unwrap_err().to_string();
+        assert!(err.contains("bad.toml") && err.contains("pixel_strde"), "{err}");
+        std::fs::write(&path, "[keyframes]\nmin_overlap_fraction = 1.5\n").unwrap();
+        let err = Config::load(&path).unwrap_err().to_string();
+        assert!(err.contains("keyframes.min_overlap_fraction"), "{err}");
+        std::fs::write(&path, "[consensus]\nassociation_distances_m = [0.02, 0.1]\n").unwrap();
+        assert!(Config::load(&path).unwrap_err().to_string().contains("coarse to fine"));
+    }
+}
