@@ -295,12 +295,8 @@ impl Lpips {
         let mut linear_heads = Vec::with_capacity(FEATURE_LAYER_COUNT);
         for (tap_index, conv) in ALEXNET_CONVS.iter().enumerate() {
             let kernel = load_array(&conv.weight_key(), &conv.weight_shape())?;
-            let bias = load_array(&conv.bias_key(), &[conv.out_channels])?.reshape((
-                1,
-                conv.out_channels,
-                1,
-                1,
-            ))?;
+            let bias = load_array(&conv.bias_key(), &[conv.out_channels])?;
+            let bias = bias.reshape((1, conv.out_channels, 1, 1))?;
             convs.push(ConvWeights { kernel, bias });
             linear_heads.push(load_array(
                 &linear_head_key(tap_index),
@@ -477,34 +473,47 @@ mod tests {
         })
     }
 
-    /// Writes an npz with every expected key (small deterministic values), except that `omit`
-    /// is left out and `reshape` replaces one array's shape.
-    fn write_synthetic_weights(
-        path: &Path,
-        omit: Option<&str>,
-        reshape: Option<(&str, Vec<usize>)>,
-    ) {
-        let mut arrays = Vec::new();
-        for (key, mut shape) in expected_weight_arrays() {
-            if omit == Some(key.as_str()) {
-                continue;
-            }
-            if let Some((reshaped_key, new_shape)) = &reshape
-                && *reshaped_key == key
-            {
-                shape = new_shape.clone();
-            }
-            let count: usize = shape.iter().product();
-            let values: Vec<f32> = (0..count).map(|i| ((i % 13) as f32 - 6.0) * 1e-3).collect();
-            arrays.push((key, Tensor::from_vec(values, shape, &Device::Cpu).unwrap()));
-        }
-        Tensor::write_npz(&arrays, path).unwrap();
+    /// Small deterministic values of the given shape (not a trained network).
+    fn synthetic_array(shape: &[usize]) -> Tensor {
+        let count: usize = shape.iter().product();
+        let values: Vec<f32> = (0..count).map(|i| ((i % 13) as f32 - 6.0) * 1e-3).collect();
+        Tensor::from_vec(values, shape, &Device::Cpu).unwrap()
     }
 
-    fn synthetic_lpips(dir: &Path) -> Lpips {
-        let path = dir.join("synthetic.npz");
-        write_synthetic_weights(&path, None, None);
-        Lpips::load(&path).expect("synthetic weights have every key with the right shape")
+    /// The first `count` arrays `load` reads, with synthetic values. Test files hold only a few
+    /// arrays because candle's npz writer issues one write per element: a full 2.5M-parameter
+    /// file takes seconds to write.
+    fn leading_weight_arrays(count: usize) -> Vec<(String, Tensor)> {
+        expected_weight_arrays()
+            .into_iter()
+            .take(count)
+            .map(|(key, shape)| (key, synthetic_array(&shape)))
+            .collect()
+    }
+
+    /// A network with synthetic weights, built in memory, for tests of the forward pass and its
+    /// input checks.
+    fn synthetic_lpips() -> Lpips {
+        let convs = ALEXNET_CONVS
+            .iter()
+            .map(|conv| ConvWeights {
+                kernel: synthetic_array(&conv.weight_shape()),
+                bias: synthetic_array(&[1, conv.out_channels, 1, 1]),
+            })
+            .collect();
+        let linear_heads = ALEXNET_CONVS
+            .iter()
+            .map(|conv| {
+                synthetic_array(&[1, conv.out_channels, 1, 1])
+                    .abs()
+                    .unwrap()
+            })
+            .collect();
+        Lpips {
+            convs,
+            linear_heads,
+            device: Device::Cpu,
+        }
     }
 
     #[test]
@@ -557,14 +566,15 @@ mod tests {
     fn load_names_the_missing_key() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("missing.npz");
-        write_synthetic_weights(&path, Some("features.8.bias"), None);
+        // features.0.{weight,bias} and lin0 are present; features.3.weight, read next, is not.
+        Tensor::write_npz(&leading_weight_arrays(3), &path).unwrap();
         let error = Lpips::load(&path).unwrap_err();
         assert!(
-            matches!(&error, LpipsError::MissingKey { key, .. } if key == "features.8.bias"),
+            matches!(&error, LpipsError::MissingKey { key, .. } if key == "features.3.weight"),
             "{error:?}"
         );
         let message = error.to_string();
-        assert!(message.contains("features.8.bias"), "{message}");
+        assert!(message.contains("`features.3.weight`"), "{message}");
         assert!(message.contains("missing.npz"), "{message}");
     }
 
@@ -572,11 +582,12 @@ mod tests {
     fn load_names_the_mis_shaped_key() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("misshaped.npz");
-        write_synthetic_weights(
-            &path,
-            None,
-            Some(("lin2.model.1.weight", vec![1, 383, 1, 1])),
-        );
+        let mut arrays = leading_weight_arrays(2);
+        arrays.push((
+            "lin0.model.1.weight".to_owned(),
+            synthetic_array(&[1, 63, 1, 1]),
+        ));
+        Tensor::write_npz(&arrays, &path).unwrap();
         let error = Lpips::load(&path).unwrap_err();
         match &error {
             LpipsError::WrongShape {
@@ -585,24 +596,24 @@ mod tests {
                 found,
                 ..
             } => {
-                assert_eq!(key, "lin2.model.1.weight");
-                assert_eq!(expected, &[1, 384, 1, 1]);
-                assert_eq!(found, &[1, 383, 1, 1]);
+                assert_eq!(key, "lin0.model.1.weight");
+                assert_eq!(expected, &[1, 64, 1, 1]);
+                assert_eq!(found, &[1, 63, 1, 1]);
             }
             other => panic!("expected WrongShape, got {other:?}"),
         }
-        assert!(error.to_string().contains("lin2.model.1.weight"));
+        let message = error.to_string();
+        assert!(message.contains("`lin0.model.1.weight`"), "{message}");
+        assert!(message.contains("misshaped.npz"), "{message}");
     }
 
     #[test]
     fn load_rejects_integer_arrays() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("integers.npz");
-        let arrays: Vec<(String, Tensor)> = expected_weight_arrays()
-            .into_iter()
-            .map(|(key, shape)| (key, Tensor::zeros(shape, DType::U8, &Device::Cpu).unwrap()))
-            .collect();
-        Tensor::write_npz(&arrays, &path).unwrap();
+        let (key, shape) = expected_weight_arrays().swap_remove(0);
+        let integers = Tensor::zeros(shape, DType::U8, &Device::Cpu).unwrap();
+        Tensor::write_npz(&[(key, integers)], &path).unwrap();
         let error = Lpips::load(&path).unwrap_err();
         assert!(
             matches!(&error, LpipsError::WrongElementType { key, .. } if key == "features.0.weight"),
@@ -618,22 +629,20 @@ mod tests {
         std::fs::write(&garbage, b"this is not a zip archive at all").unwrap();
         let error = Lpips::load(&garbage).unwrap_err();
         assert!(matches!(error, LpipsError::ReadWeights { .. }), "{error:?}");
-        assert!(error.to_string().contains("garbage.npz"));
+        assert!(error.to_string().contains("garbage.npz"), "{error}");
 
         // A valid archive cut short: the directory at the end of the zip is gone.
         let complete = dir.path().join("complete.npz");
-        write_synthetic_weights(&complete, None, None);
+        Tensor::write_npz(&leading_weight_arrays(3), &complete).unwrap();
         let bytes = std::fs::read(&complete).unwrap();
         let truncated = dir.path().join("truncated.npz");
         std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
         let error = Lpips::load(&truncated).unwrap_err();
         assert!(matches!(error, LpipsError::ReadWeights { .. }), "{error:?}");
 
-        // Damaged array data behind an intact zip directory.
+        // Damaged array headers and data behind an intact zip directory.
         let mut scrambled_bytes = bytes.clone();
-        for byte in &mut scrambled_bytes[64..4096] {
-            *byte = 0xA5;
-        }
+        scrambled_bytes[40..4096].fill(0xA5);
         let scrambled = dir.path().join("scrambled.npz");
         std::fs::write(&scrambled, &scrambled_bytes).unwrap();
         assert!(Lpips::load(&scrambled).is_err());
@@ -641,7 +650,7 @@ mod tests {
         let absent = dir.path().join("absent.npz");
         let error = Lpips::load(&absent).unwrap_err();
         assert!(matches!(error, LpipsError::ReadWeights { .. }), "{error:?}");
-        assert!(error.to_string().contains("absent.npz"));
+        assert!(error.to_string().contains("absent.npz"), "{error}");
     }
 
     #[test]
@@ -653,8 +662,7 @@ mod tests {
 
     #[test]
     fn distance_rejects_images_of_different_sizes() {
-        let dir = tempfile::tempdir().unwrap();
-        let lpips = synthetic_lpips(dir.path());
+        let lpips = synthetic_lpips();
         let error = lpips
             .distance(&pattern_image(64, 48, 1), &pattern_image(48, 64, 1))
             .unwrap_err();
@@ -667,8 +675,7 @@ mod tests {
 
     #[test]
     fn distance_rejects_images_smaller_than_the_receptive_field() {
-        let dir = tempfile::tempdir().unwrap();
-        let lpips = synthetic_lpips(dir.path());
+        let lpips = synthetic_lpips();
         let narrow = pattern_image(MIN_IMAGE_SIDE - 1, 64, 1);
         let error = lpips.distance(&narrow, &narrow).unwrap_err();
         assert!(
@@ -685,8 +692,7 @@ mod tests {
 
     #[test]
     fn conv_features_have_alexnet_shapes_and_reject_unknown_layers() {
-        let dir = tempfile::tempdir().unwrap();
-        let lpips = synthetic_lpips(dir.path());
+        let lpips = synthetic_lpips();
         let image = pattern_image(64, 64, 3);
         let expected = [
             [1, 64, 15, 15],
