@@ -1,0 +1,241 @@
+//! The wgpu backward pass: per-Gaussian gradients and the camera-pose gradient of a scalar
+//! loss, given dL/d(image) on the device.
+//!
+//! rasterize_backward accumulates screen-space gradients per Gaussian with atomics (native
+//! f32 atomics or a compare-exchange fallback, see [`crate::gpu::GradientAtomics`]); project_backward
+//! chains them to the parameters and writes one pose contribution per Gaussian, which reduce
+//! sums deterministically. Nothing is read back unless the caller downloads.
+
+use crate::context::{GpuContext, GpuError};
+use crate::gpu::{
+    DeviceFrame, DeviceGaussians, GpuRenderer, U32_BYTES, VEC4_BYTES, WORKGROUP_SIZE, bind_group,
+    dispatch_linear, four_u32,
+};
+use crate::types::{Camera, GaussianGradients, ImageGradients, PoseGradient};
+
+/// Floats of screen-space gradient per Gaussian (mean2d 2, conic 3, opacity, colour 3, depth).
+const SCREEN_GRADIENT_STRIDE: u64 = 10;
+
+/// dL/d(image) on the device: per pixel (r, g, b, depth) and alpha.
+pub struct DeviceImageGradients {
+    pub width: u32,
+    pub height: u32,
+    pub v_rgbd: wgpu::Buffer,
+    pub v_alpha: wgpu::Buffer,
+}
+
+impl DeviceImageGradients {
+    /// Zero gradients for an image of `camera`'s size (loss kernels write into them).
+    pub fn zeros(context: &GpuContext, camera: &Camera) -> Result<Self, GpuError> {
+        let pixels = camera.pixel_count() as u64;
+        Ok(Self {
+            width: camera.width,
+            height: camera.height,
+            v_rgbd: context.storage_buffer("v_rgbd", pixels * VEC4_BYTES)?,
+            v_alpha: context.storage_buffer("v_alpha", pixels * U32_BYTES)?,
+        })
+    }
+
+    /// Uploads host gradients; empty vectors mean zero.
+    pub fn upload(
+        context: &GpuContext,
+        camera: &Camera,
+        gradients: &ImageGradients,
+    ) -> Result<Self, GpuError> {
+        let pixels = camera.pixel_count();
+        for (name, len) in [
+            ("v_rgb", gradients.v_rgb.len()),
+            ("v_depth", gradients.v_depth.len()),
+            ("v_alpha", gradients.v_alpha.len()),
+        ] {
+            if len != 0 && len != pixels {
+                return Err(GpuError::InvalidInput(format!(
+                    "{name} has {len} entries for {pixels} pixels"
+                )));
+            }
+        }
+        let v_rgbd: Vec<[f32; 4]> = (0..pixels)
+            .map(|i| {
+                let rgb = gradients.v_rgb.get(i).copied().unwrap_or([0.0; 3]);
+                [
+                    rgb[0],
+                    rgb[1],
+                    rgb[2],
+                    gradients.v_depth.get(i).copied().unwrap_or(0.0),
+                ]
+            })
+            .collect();
+        let v_alpha: Vec<f32> = (0..pixels)
+            .map(|i| gradients.v_alpha.get(i).copied().unwrap_or(0.0))
+            .collect();
+        let min = VEC4_BYTES as usize;
+        Ok(Self {
+            width: camera.width,
+            height: camera.height,
+            v_rgbd: context.storage_buffer_init("v_rgbd", bytemuck::cast_slice(&v_rgbd), min),
+            v_alpha: context.storage_buffer_init("v_alpha", bytemuck::cast_slice(&v_alpha), min),
+        })
+    }
+}
+
+/// Gradients on the device, packed like [`DeviceGaussians`]; `v_pose` holds two vec4:
+/// (translation, 0) and (rotation, 0), see [`PoseGradient`] for the convention.
+pub struct DeviceGradients {
+    count: u32,
+    pub v_means: wgpu::Buffer,
+    pub v_log_scales: wgpu::Buffer,
+    pub v_quaternions: wgpu::Buffer,
+    pub v_opacity_logits: wgpu::Buffer,
+    pub v_colours: wgpu::Buffer,
+    pub v_pose: wgpu::Buffer,
+}
+
+impl DeviceGradients {
+    pub fn download(&self, context: &GpuContext) -> Result<GaussianGradients, GpuError> {
+        let n = self.count as usize;
+        let pose: Vec<[f32; 4]> = context.read_vec(&self.v_pose, 2)?;
+        Ok(GaussianGradients {
+            v_means: context.read_vec(&self.v_means, n)?,
+            v_log_scales: context.read_vec(&self.v_log_scales, n)?,
+            v_quaternions: context.read_vec(&self.v_quaternions, n)?,
+            v_opacity_logits: context.read_vec(&self.v_opacity_logits, n)?,
+            v_colours: context.read_vec(&self.v_colours, n)?,
+            v_pose: PoseGradient {
+                v_translation: [pose[0][0], pose[0][1], pose[0][2]],
+                v_rotation: [pose[1][0], pose[1][1], pose[1][2]],
+            },
+        })
+    }
+}
+
+impl GpuRenderer {
+    /// Backward pass of `frame`, which must have been rendered from `gaussians` (unchanged
+    /// since). Returns device-resident gradients; submits work but reads nothing back.
+    pub fn backward(
+        &self,
+        context: &GpuContext,
+        gaussians: &DeviceGaussians,
+        frame: &DeviceFrame,
+        image_gradients: &DeviceImageGradients,
+    ) -> Result<DeviceGradients, GpuError> {
+        if gaussians.len() != frame.gaussian_count as usize {
+            return Err(GpuError::InvalidInput(format!(
+                "frame was rendered from {} Gaussians, got {}",
+                frame.gaussian_count,
+                gaussians.len()
+            )));
+        }
+        if (image_gradients.width, image_gradients.height)
+            != (frame.camera.width, frame.camera.height)
+        {
+            return Err(GpuError::InvalidInput(
+                "image gradients and frame differ in size".into(),
+            ));
+        }
+        let n = frame.gaussian_count;
+        let count = u64::from(n);
+        let gradients = DeviceGradients {
+            count: n,
+            v_means: context.storage_buffer("v_means", count * 3 * U32_BYTES)?,
+            v_log_scales: context.storage_buffer("v_log_scales", count * 3 * U32_BYTES)?,
+            v_quaternions: context.storage_buffer("v_quaternions", count * VEC4_BYTES)?,
+            v_opacity_logits: context.storage_buffer("v_opacity_logits", count * U32_BYTES)?,
+            v_colours: context.storage_buffer("v_colours", count * 3 * U32_BYTES)?,
+            v_pose: context.storage_buffer("v_pose", 2 * VEC4_BYTES)?,
+        };
+        if n == 0 {
+            return Ok(gradients);
+        }
+        let screen_gradients = context.storage_buffer(
+            "screen_gradients",
+            count * SCREEN_GRADIENT_STRIDE * U32_BYTES,
+        )?;
+        let pose_translation = context.storage_buffer("pose_translation", count * VEC4_BYTES)?;
+        let pose_rotation = context.storage_buffer("pose_rotation", count * VEC4_BYTES)?;
+        let p = &self.pipelines;
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let raster_group = bind_group(
+            context,
+            &p.rasterize_backward,
+            &[
+                (0, &frame.params_buffer),
+                (1, &frame.tile_ranges),
+                (2, &frame.intersection_gaussians),
+                (3, &frame.splat_position),
+                (4, &frame.splat_conic),
+                (5, &frame.splat_colour),
+                (6, &frame.transmittance),
+                (7, &frame.last_entry),
+                (8, &image_gradients.v_rgbd),
+                (9, &image_gradients.v_alpha),
+                (10, &screen_gradients),
+            ],
+        );
+        let (tiles_x, tiles_y) = frame.camera.tile_counts();
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&p.rasterize_backward);
+            pass.set_bind_group(0, &raster_group, &[]);
+            pass.dispatch_workgroups(tiles_x, tiles_y, 1);
+        }
+        let project_group = bind_group(
+            context,
+            &p.project_backward,
+            &[
+                (0, &frame.params_buffer),
+                (1, &gaussians.means),
+                (2, &gaussians.log_scales),
+                (3, &gaussians.quaternions),
+                (4, &gaussians.opacity_logits),
+                (5, &frame.splat_conic),
+                (6, &screen_gradients),
+                (7, &gradients.v_means),
+                (8, &gradients.v_log_scales),
+                (9, &gradients.v_quaternions),
+                (10, &gradients.v_opacity_logits),
+                (11, &gradients.v_colours),
+                (12, &pose_translation),
+                (13, &pose_rotation),
+            ],
+        );
+        dispatch_linear(
+            &mut encoder,
+            &p.project_backward,
+            &project_group,
+            n.div_ceil(WORKGROUP_SIZE),
+        );
+        let translation_sum = self.reduce_vec4(context, &mut encoder, pose_translation, n)?;
+        let rotation_sum = self.reduce_vec4(context, &mut encoder, pose_rotation, n)?;
+        encoder.copy_buffer_to_buffer(&translation_sum, 0, &gradients.v_pose, 0, VEC4_BYTES);
+        encoder.copy_buffer_to_buffer(&rotation_sum, 0, &gradients.v_pose, VEC4_BYTES, VEC4_BYTES);
+        context.queue.submit([encoder.finish()]);
+        Ok(gradients)
+    }
+
+    /// Sums `count` vec4 of `input`; returns a buffer whose first vec4 is the total.
+    pub(crate) fn reduce_vec4(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        input: wgpu::Buffer,
+        count: u32,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let mut current = input;
+        let mut remaining = count;
+        while remaining > 1 {
+            let blocks = remaining.div_ceil(WORKGROUP_SIZE);
+            let output =
+                context.storage_buffer("reduce partial sums", u64::from(blocks) * VEC4_BYTES)?;
+            let params = context.uniform_buffer("reduce params", &four_u32([remaining, 0, 0, 0]));
+            let group = bind_group(
+                context,
+                &self.pipelines.reduce,
+                &[(0, &params), (1, &current), (2, &output)],
+            );
+            dispatch_linear(encoder, &self.pipelines.reduce, &group, blocks);
+            current = output;
+            remaining = blocks;
+        }
+        Ok(current)
+    }
+}

@@ -1,0 +1,218 @@
+//! wgpu adapter, device and the capabilities the kernels care about.
+
+use std::sync::mpsc;
+
+use wgpu::util::DeviceExt;
+
+/// Errors of the wgpu path.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    #[error("no wgpu adapter available: {0}")]
+    NoAdapter(String),
+    #[error("wgpu device request failed: {0}")]
+    RequestDevice(String),
+    #[error("adapter limit too small: {0}")]
+    Limits(String),
+    #[error("scene too large for this adapter: {0}")]
+    TooLarge(String),
+    #[error("invalid input: {0}")]
+    InvalidInput(String),
+    #[error("reading back a device buffer failed: {0}")]
+    Readback(String),
+}
+
+/// Storage buffers the widest kernel (project) binds at once.
+pub const REQUIRED_STORAGE_BUFFERS_PER_STAGE: u32 = 12;
+
+/// An adapter, its device and queue, and what the kernels may rely on.
+pub struct GpuContext {
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub adapter_info: wgpu::AdapterInfo,
+    /// The limits the device was created with (the adapter's own limits).
+    pub limits: wgpu::Limits,
+    /// `SHADER_FLOAT32_ATOMIC` is enabled on the device.
+    pub has_float_atomics: bool,
+    /// The adapter supports subgroup operations (reported only: no kernel requires them).
+    pub has_subgroups: bool,
+}
+
+impl GpuContext {
+    /// Creates a context on the default adapter, blocking until it is ready.
+    pub fn new() -> Result<Self, GpuError> {
+        pollster::block_on(Self::new_async())
+    }
+
+    pub async fn new_async() -> Result<Self, GpuError> {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
+        let adapter = instance
+            .request_adapter(&wgpu::RequestAdapterOptions {
+                power_preference: wgpu::PowerPreference::HighPerformance,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let adapter_features = adapter.features();
+        let limits = adapter.limits();
+        if limits.max_storage_buffers_per_shader_stage < REQUIRED_STORAGE_BUFFERS_PER_STAGE {
+            return Err(GpuError::Limits(format!(
+                "max_storage_buffers_per_shader_stage is {}, the kernels need {}",
+                limits.max_storage_buffers_per_shader_stage, REQUIRED_STORAGE_BUFFERS_PER_STAGE
+            )));
+        }
+        let has_float_atomics = adapter_features.contains(wgpu::Features::SHADER_FLOAT32_ATOMIC);
+        let has_subgroups = adapter_features.contains(wgpu::Features::SUBGROUP);
+        let mut required_features = wgpu::Features::empty();
+        if has_float_atomics {
+            required_features |= wgpu::Features::SHADER_FLOAT32_ATOMIC;
+        }
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("render-core"),
+                required_features,
+                required_limits: limits.clone(),
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| GpuError::RequestDevice(e.to_string()))?;
+        Ok(Self {
+            device,
+            queue,
+            adapter_info: adapter.get_info(),
+            limits,
+            has_float_atomics,
+            has_subgroups,
+        })
+    }
+
+    /// Largest size in bytes of one storage binding.
+    pub fn max_storage_binding_bytes(&self) -> u64 {
+        self.limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size)
+    }
+
+    /// A one-line description: adapter name, backend and capabilities.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} ({:?}), float atomics: {}, subgroups: {}, max storage binding: {} MiB",
+            self.adapter_info.name,
+            self.adapter_info.backend,
+            self.has_float_atomics,
+            self.has_subgroups,
+            self.max_storage_binding_bytes() >> 20
+        )
+    }
+
+    /// A storage buffer holding `contents` (padded to at least `min_bytes`, since zero-sized
+    /// bindings are invalid).
+    pub(crate) fn storage_buffer_init(
+        &self,
+        label: &str,
+        contents: &[u8],
+        min_bytes: usize,
+    ) -> wgpu::Buffer {
+        let usage = wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST;
+        if contents.len() >= min_bytes {
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents,
+                    usage,
+                })
+        } else {
+            let mut padded = contents.to_vec();
+            padded.resize(min_bytes, 0);
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents: &padded,
+                    usage,
+                })
+        }
+    }
+
+    /// An uninitialised (zeroed) storage buffer of at least `bytes` (minimum 16).
+    pub(crate) fn storage_buffer(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
+        /// Smallest buffer we create: one vec4, so every binding is valid.
+        const MIN_BUFFER_BYTES: u64 = 16;
+        let size = bytes.max(MIN_BUFFER_BYTES);
+        if size > self.max_storage_binding_bytes() {
+            return Err(GpuError::TooLarge(format!(
+                "buffer `{label}` needs {size} bytes, the adapter binds at most {}",
+                self.max_storage_binding_bytes()
+            )));
+        }
+        Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        }))
+    }
+
+    pub(crate) fn uniform_buffer(&self, label: &str, contents: &[u8]) -> wgpu::Buffer {
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+    }
+
+    /// Copies `bytes` bytes from `offset` in `buffer` to the host (blocks until done).
+    pub(crate) fn read_bytes(
+        &self,
+        buffer: &wgpu::Buffer,
+        offset: u64,
+        bytes: u64,
+    ) -> Result<Vec<u8>, GpuError> {
+        if bytes == 0 {
+            return Ok(Vec::new());
+        }
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback staging"),
+            size: bytes,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        encoder.copy_buffer_to_buffer(buffer, offset, &staging, 0, bytes);
+        self.queue.submit([encoder.finish()]);
+        let (sender, receiver) = mpsc::channel();
+        staging
+            .slice(..)
+            .map_async(wgpu::MapMode::Read, move |result| {
+                // The receiver outlives the poll below; a failed send only means it was dropped.
+                let _ = sender.send(result);
+            });
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        receiver
+            .recv()
+            .map_err(|e| GpuError::Readback(e.to_string()))?
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        let view = staging
+            .slice(..)
+            .get_mapped_range()
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        let data = view.to_vec();
+        drop(view);
+        staging.unmap();
+        Ok(data)
+    }
+
+    pub(crate) fn read_vec<T: bytemuck::Pod>(
+        &self,
+        buffer: &wgpu::Buffer,
+        count: usize,
+    ) -> Result<Vec<T>, GpuError> {
+        let bytes = self.read_bytes(buffer, 0, (count * std::mem::size_of::<T>()) as u64)?;
+        Ok(bytemuck::pod_collect_to_vec(&bytes))
+    }
+}

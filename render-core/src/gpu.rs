@@ -1,0 +1,727 @@
+//! The wgpu forward renderer: project -> depth sort -> tile binning -> tile sort -> rasterize.
+//!
+//! Everything stays on the device except one `u32` read back per frame (the number of
+//! tile/Gaussian intersections, needed to size the binning buffers). Kernels live in
+//! `src/kernels/*.wgsl`; each opens with a comment on its thread mapping and invariants.
+//!
+//! Limits: every storage binding must fit `max_storage_buffer_binding_size` (128 MiB on
+//! lavapipe). The widest per-Gaussian buffer holds 16 bytes per Gaussian and the binning
+//! buffers 4 bytes per intersection, so one frame handles up to
+//! `max_binding / 16` Gaussians (8.4 M on lavapipe) and `max_binding / 4` intersections; beyond
+//! that [`GpuError::TooLarge`] is returned (no chunked bindings yet).
+
+use bytemuck::{Pod, Zeroable};
+
+use crate::context::{GpuContext, GpuError};
+use crate::types::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput, constants};
+
+/// Invocations per workgroup of the 1D kernels (project, scan, sort, bin).
+pub(crate) const WORKGROUP_SIZE: u32 = 256;
+/// WebGPU's limit on workgroups per dispatch dimension; larger 1D grids spill into y.
+const MAX_WORKGROUPS_PER_DIMENSION: u32 = 65_535;
+/// Digit width of the radix sort (must match RADIX_BITS in sort.wgsl).
+const RADIX_BITS: u32 = 4;
+const RADIX: u32 = 1 << RADIX_BITS;
+/// Depth keys are full f32 bit patterns.
+const DEPTH_KEY_BITS: u32 = 32;
+pub(crate) const U32_BYTES: u64 = 4;
+pub(crate) const VEC4_BYTES: u64 = 16;
+
+pub(crate) const COMMON_WGSL: &str = include_str!("kernels/common.wgsl");
+const PROJECT_WGSL: &str = include_str!("kernels/project.wgsl");
+const SCAN_WGSL: &str = include_str!("kernels/scan.wgsl");
+const SORT_WGSL: &str = include_str!("kernels/sort.wgsl");
+const BIN_WGSL: &str = include_str!("kernels/bin.wgsl");
+const RASTERIZE_WGSL: &str = include_str!("kernels/rasterize.wgsl");
+
+/// Mirrors `RenderParams` in common.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct RenderParams {
+    camera_row0: [f32; 4],
+    camera_row1: [f32; 4],
+    camera_row2: [f32; 4],
+    intrinsics: [f32; 4],
+    image_size: [u32; 4],
+    counts: [u32; 4],
+    thresholds: [f32; 4],
+    culling: [f32; 4],
+}
+
+impl RenderParams {
+    fn new(camera: &Camera, gaussian_count: u32, config: &RasterConfig) -> Self {
+        let rotation = camera.camera_from_world.rotation;
+        let translation = camera.camera_from_world.translation;
+        let row = |i: usize| {
+            [
+                rotation[i][0],
+                rotation[i][1],
+                rotation[i][2],
+                translation[i],
+            ]
+        };
+        let (tiles_x, tiles_y) = camera.tile_counts();
+        Self {
+            camera_row0: row(0),
+            camera_row1: row(1),
+            camera_row2: row(2),
+            intrinsics: [camera.fx, camera.fy, camera.cx, camera.cy],
+            image_size: [camera.width, camera.height, tiles_x, tiles_y],
+            counts: [gaussian_count, 0, 0, 0],
+            thresholds: [
+                config.min_splat_alpha,
+                config.max_splat_alpha,
+                config.min_transmittance,
+                constants::LOW_PASS_VARIANCE,
+            ],
+            culling: [
+                constants::NEAR_PLANE,
+                constants::MAX_LOG_SCALE,
+                constants::MIN_QUATERNION_NORM_SQUARED,
+                constants::SPLAT_EXTENT_SIGMAS,
+            ],
+        }
+    }
+}
+
+/// Gaussian parameters resident on the device (same layout and conventions as
+/// [`GaussianCloud`]: means/log-scales/colours as packed f32 triples, quaternions `[w, x, y, z]`).
+pub struct DeviceGaussians {
+    count: u32,
+    pub(crate) means: wgpu::Buffer,
+    pub(crate) log_scales: wgpu::Buffer,
+    pub(crate) quaternions: wgpu::Buffer,
+    pub(crate) opacity_logits: wgpu::Buffer,
+    pub(crate) colours: wgpu::Buffer,
+}
+
+impl DeviceGaussians {
+    pub fn upload(context: &GpuContext, cloud: &GaussianCloud) -> Result<Self, GpuError> {
+        cloud.validate_lengths().map_err(GpuError::InvalidInput)?;
+        let count = u32::try_from(cloud.len())
+            .map_err(|_| GpuError::TooLarge(format!("{} Gaussians exceed u32", cloud.len())))?;
+        let widest = cloud.len() as u64 * VEC4_BYTES;
+        if widest > context.max_storage_binding_bytes() {
+            return Err(GpuError::TooLarge(format!(
+                "{} Gaussians need {widest}-byte bindings, the adapter allows {}",
+                cloud.len(),
+                context.max_storage_binding_bytes()
+            )));
+        }
+        let min = VEC4_BYTES as usize;
+        Ok(Self {
+            count,
+            means: context.storage_buffer_init("means", bytemuck::cast_slice(&cloud.means), min),
+            log_scales: context.storage_buffer_init(
+                "log_scales",
+                bytemuck::cast_slice(&cloud.log_scales),
+                min,
+            ),
+            quaternions: context.storage_buffer_init(
+                "quaternions",
+                bytemuck::cast_slice(&cloud.quaternions),
+                min,
+            ),
+            opacity_logits: context.storage_buffer_init(
+                "opacity_logits",
+                bytemuck::cast_slice(&cloud.opacity_logits),
+                min,
+            ),
+            colours: context.storage_buffer_init(
+                "colours",
+                bytemuck::cast_slice(&cloud.colours),
+                min,
+            ),
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.count as usize
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    /// Copies the parameters back to the host.
+    pub fn download(&self, context: &GpuContext) -> Result<GaussianCloud, GpuError> {
+        let n = self.len();
+        Ok(GaussianCloud {
+            means: context.read_vec(&self.means, n)?,
+            log_scales: context.read_vec(&self.log_scales, n)?,
+            quaternions: context.read_vec(&self.quaternions, n)?,
+            opacity_logits: context.read_vec(&self.opacity_logits, n)?,
+            colours: context.read_vec(&self.colours, n)?,
+        })
+    }
+}
+
+/// The device-side result of one forward render (kept for a backward pass).
+pub struct DeviceFrame {
+    pub camera: Camera,
+    /// The `RenderParams` uniform the frame was rendered with (reused by the backward pass).
+    pub(crate) params_buffer: wgpu::Buffer,
+    pub gaussian_count: u32,
+    pub intersection_count: u32,
+    /// Per Gaussian: mean2d.xy, opacity, camera z.
+    pub splat_position: wgpu::Buffer,
+    /// Per Gaussian: conic a, b, c, radius.
+    pub splat_conic: wgpu::Buffer,
+    /// Per Gaussian: rgb, unused.
+    pub splat_colour: wgpu::Buffer,
+    /// Per tile: [start, end) into `intersection_gaussians`.
+    pub tile_ranges: wgpu::Buffer,
+    /// Gaussian indices, grouped by tile, front to back within a tile.
+    pub intersection_gaussians: wgpu::Buffer,
+    /// Per pixel: r, g, b, depth.
+    pub rgbd: wgpu::Buffer,
+    pub alpha: wgpu::Buffer,
+    pub transmittance: wgpu::Buffer,
+    /// Per pixel: number of tile-list entries consumed up to the last contributing splat.
+    pub last_entry: wgpu::Buffer,
+}
+
+pub(crate) struct Pipelines {
+    pub(crate) project: wgpu::ComputePipeline,
+    pub(crate) scan_blocks: wgpu::ComputePipeline,
+    pub(crate) scan_add: wgpu::ComputePipeline,
+    pub(crate) sort_histogram: wgpu::ComputePipeline,
+    pub(crate) sort_scatter: wgpu::ComputePipeline,
+    pub(crate) gather_counts: wgpu::ComputePipeline,
+    pub(crate) emit: wgpu::ComputePipeline,
+    pub(crate) tile_ranges: wgpu::ComputePipeline,
+    pub(crate) rasterize: wgpu::ComputePipeline,
+    pub(crate) rasterize_backward: wgpu::ComputePipeline,
+    pub(crate) project_backward: wgpu::ComputePipeline,
+    pub(crate) reduce: wgpu::ComputePipeline,
+}
+
+/// How the backward pass accumulates per-Gaussian gradients across pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GradientAtomics {
+    /// Native f32 atomic adds when the device has them, compare-exchange otherwise.
+    Auto,
+    /// Always the compare-exchange loop (the path for adapters without float atomics).
+    CompareExchange,
+}
+
+pub(crate) fn compute_pipeline(
+    device: &wgpu::Device,
+    label: &str,
+    source: &str,
+    entry: &str,
+) -> wgpu::ComputePipeline {
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(source.into()),
+    });
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(label),
+        layout: None,
+        module: &module,
+        entry_point: Some(entry),
+        compilation_options: Default::default(),
+        cache: None,
+    })
+}
+
+/// Bind group 0 of `pipeline` with the given (binding, buffer) pairs; the pipelines use
+/// automatic layouts, so exactly the bindings an entry point uses must be listed.
+pub(crate) fn bind_group(
+    context: &GpuContext,
+    pipeline: &wgpu::ComputePipeline,
+    entries: &[(u32, &wgpu::Buffer)],
+) -> wgpu::BindGroup {
+    let entries: Vec<wgpu::BindGroupEntry> = entries
+        .iter()
+        .map(|(binding, buffer)| wgpu::BindGroupEntry {
+            binding: *binding,
+            resource: buffer.as_entire_binding(),
+        })
+        .collect();
+    context
+        .device
+        .create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        })
+}
+
+/// Dispatches `workgroups` workgroups of a 1D kernel, spilling into y past the per-axis limit.
+pub(crate) fn dispatch_linear(
+    encoder: &mut wgpu::CommandEncoder,
+    pipeline: &wgpu::ComputePipeline,
+    bind_group: &wgpu::BindGroup,
+    workgroups: u32,
+) {
+    if workgroups == 0 {
+        return;
+    }
+    let x = workgroups.min(MAX_WORKGROUPS_PER_DIMENSION);
+    let y = workgroups.div_ceil(MAX_WORKGROUPS_PER_DIMENSION);
+    let mut pass = encoder.begin_compute_pass(&Default::default());
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, bind_group, &[]);
+    pass.dispatch_workgroups(x, y, 1);
+}
+
+pub(crate) fn four_u32(values: [u32; 4]) -> [u8; 16] {
+    bytemuck::cast(values)
+}
+
+/// Compiled kernels of the forward path.
+pub struct GpuRenderer {
+    pub(crate) pipelines: Pipelines,
+    /// True when the backward pass uses native float atomics.
+    pub uses_float_atomics: bool,
+}
+
+const RASTERIZE_BACKWARD_WGSL: &str = include_str!("kernels/rasterize_backward.wgsl");
+const ATOMICS_FLOAT_WGSL: &str = include_str!("kernels/atomics_float.wgsl");
+const ATOMICS_CAS_WGSL: &str = include_str!("kernels/atomics_cas.wgsl");
+const PROJECT_BACKWARD_WGSL: &str = include_str!("kernels/project_backward.wgsl");
+const REDUCE_WGSL: &str = include_str!("kernels/reduce.wgsl");
+/// Line of rasterize_backward.wgsl replaced by one of the atomics snippets.
+const GRADIENT_ATOMICS_MARKER: &str = "\n#gradient_atomics\n";
+
+impl GpuRenderer {
+    pub fn new(context: &GpuContext) -> Self {
+        Self::with_atomics(context, GradientAtomics::Auto)
+    }
+
+    pub fn with_atomics(context: &GpuContext, atomics: GradientAtomics) -> Self {
+        let device = &context.device;
+        let uses_float_atomics = atomics == GradientAtomics::Auto && context.has_float_atomics;
+        let atomics_source = if uses_float_atomics {
+            ATOMICS_FLOAT_WGSL
+        } else {
+            ATOMICS_CAS_WGSL
+        };
+        let rasterize_backward_source = format!(
+            "{COMMON_WGSL}\n{}",
+            RASTERIZE_BACKWARD_WGSL
+                .replace(GRADIENT_ATOMICS_MARKER, &format!("\n{atomics_source}\n"))
+        );
+        let with_common = |source: &str| format!("{COMMON_WGSL}\n{source}");
+        let pipelines = Pipelines {
+            project: compute_pipeline(device, "project", &with_common(PROJECT_WGSL), "main"),
+            scan_blocks: compute_pipeline(device, "scan_blocks", SCAN_WGSL, "scan_blocks"),
+            scan_add: compute_pipeline(device, "scan_add", SCAN_WGSL, "add_block_offsets"),
+            sort_histogram: compute_pipeline(device, "sort_histogram", SORT_WGSL, "histogram"),
+            sort_scatter: compute_pipeline(device, "sort_scatter", SORT_WGSL, "scatter"),
+            gather_counts: compute_pipeline(device, "gather_counts", BIN_WGSL, "gather_counts"),
+            emit: compute_pipeline(device, "emit", BIN_WGSL, "emit"),
+            tile_ranges: compute_pipeline(
+                device,
+                "tile_ranges",
+                BIN_WGSL,
+                "tile_ranges_from_sorted",
+            ),
+            rasterize: compute_pipeline(device, "rasterize", &with_common(RASTERIZE_WGSL), "main"),
+            rasterize_backward: compute_pipeline(
+                device,
+                "rasterize_backward",
+                &rasterize_backward_source,
+                "main",
+            ),
+            project_backward: compute_pipeline(
+                device,
+                "project_backward",
+                &with_common(PROJECT_BACKWARD_WGSL),
+                "main",
+            ),
+            reduce: compute_pipeline(device, "reduce", REDUCE_WGSL, "main"),
+        };
+        Self {
+            pipelines,
+            uses_float_atomics,
+        }
+    }
+
+    /// Renders and reads the images back to the host.
+    pub fn render(
+        &self,
+        context: &GpuContext,
+        gaussians: &DeviceGaussians,
+        camera: &Camera,
+        mode: RenderMode,
+    ) -> Result<RenderOutput, GpuError> {
+        let frame = self.render_frame(context, gaussians, camera, &RasterConfig::default())?;
+        self.read_output(context, &frame, mode)
+    }
+
+    /// Reads the images of `frame` selected by `mode` back to the host.
+    pub fn read_output(
+        &self,
+        context: &GpuContext,
+        frame: &DeviceFrame,
+        mode: RenderMode,
+    ) -> Result<RenderOutput, GpuError> {
+        let pixels = frame.camera.pixel_count();
+        let alpha: Vec<f32> = context.read_vec(&frame.alpha, pixels)?;
+        let rgbd: Vec<[f32; 4]> = context.read_vec(&frame.rgbd, pixels)?;
+        Ok(RenderOutput {
+            width: frame.camera.width,
+            height: frame.camera.height,
+            rgb: mode
+                .has_rgb()
+                .then(|| rgbd.iter().map(|v| [v[0], v[1], v[2]]).collect()),
+            depth: mode
+                .has_depth()
+                .then(|| rgbd.iter().map(|v| v[3]).collect()),
+            alpha,
+        })
+    }
+
+    /// Runs the forward pipeline, leaving every intermediate on the device. `config` supplies
+    /// the thresholds; the GPU always restricts splats to their tiles.
+    pub fn render_frame(
+        &self,
+        context: &GpuContext,
+        gaussians: &DeviceGaussians,
+        camera: &Camera,
+        config: &RasterConfig,
+    ) -> Result<DeviceFrame, GpuError> {
+        if camera.width == 0 || camera.height == 0 {
+            return Err(GpuError::InvalidInput(format!(
+                "image size {}x{}",
+                camera.width, camera.height
+            )));
+        }
+        if !config.restrict_to_tiles {
+            return Err(GpuError::InvalidInput(
+                "the GPU path always bins splats into tiles".into(),
+            ));
+        }
+        let n = gaussians.count;
+        let count = u64::from(n);
+        let (tiles_x, tiles_y) = camera.tile_counts();
+        let tile_count = tiles_x * tiles_y;
+        let pixels = camera.pixel_count() as u64;
+        let params = RenderParams::new(camera, n, config);
+        let params_buffer = context.uniform_buffer("render params", bytemuck::bytes_of(&params));
+
+        let splat_position = context.storage_buffer("splat_position", count * VEC4_BYTES)?;
+        let splat_conic = context.storage_buffer("splat_conic", count * VEC4_BYTES)?;
+        let splat_colour = context.storage_buffer("splat_colour", count * VEC4_BYTES)?;
+        let tile_rects = context.storage_buffer("tile_rects", count * VEC4_BYTES)?;
+        let tile_counts = context.storage_buffer("tile_counts", count * U32_BYTES)?;
+        let depth_keys = [
+            context.storage_buffer("depth_keys", count * U32_BYTES)?,
+            context.storage_buffer("depth_keys_scratch", count * U32_BYTES)?,
+        ];
+        let depth_values = [
+            context.storage_buffer("depth_order", count * U32_BYTES)?,
+            context.storage_buffer("depth_order_scratch", count * U32_BYTES)?,
+        ];
+        let sorted_tile_counts = context.storage_buffer("sorted_tile_counts", count * U32_BYTES)?;
+
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let p = &self.pipelines;
+        let mut sorted_gaussians = &depth_values[0];
+        let bin_params = context.uniform_buffer("bin params", &four_u32([n, 0, tiles_x, 0]));
+        if n > 0 {
+            let project_group = bind_group(
+                context,
+                &p.project,
+                &[
+                    (0, &params_buffer),
+                    (1, &gaussians.means),
+                    (2, &gaussians.log_scales),
+                    (3, &gaussians.quaternions),
+                    (4, &gaussians.opacity_logits),
+                    (5, &gaussians.colours),
+                    (6, &splat_position),
+                    (7, &splat_conic),
+                    (8, &splat_colour),
+                    (9, &tile_rects),
+                    (10, &tile_counts),
+                    (11, &depth_keys[0]),
+                    (12, &depth_values[0]),
+                ],
+            );
+            dispatch_linear(
+                &mut encoder,
+                &p.project,
+                &project_group,
+                n.div_ceil(WORKGROUP_SIZE),
+            );
+            let current = self.radix_sort(
+                context,
+                &mut encoder,
+                [&depth_keys[0], &depth_keys[1]],
+                [&depth_values[0], &depth_values[1]],
+                n,
+                DEPTH_KEY_BITS,
+            )?;
+            sorted_gaussians = &depth_values[current];
+            let gather_group = bind_group(
+                context,
+                &p.gather_counts,
+                &[
+                    (0, &bin_params),
+                    (1, sorted_gaussians),
+                    (2, &tile_counts),
+                    (3, &sorted_tile_counts),
+                ],
+            );
+            dispatch_linear(
+                &mut encoder,
+                &p.gather_counts,
+                &gather_group,
+                n.div_ceil(WORKGROUP_SIZE),
+            );
+            self.inclusive_scan(context, &mut encoder, &sorted_tile_counts, n)?;
+        }
+        context.queue.submit([encoder.finish()]);
+        let intersection_count = if n > 0 {
+            let bytes =
+                context.read_bytes(&sorted_tile_counts, (count - 1) * U32_BYTES, U32_BYTES)?;
+            u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]])
+        } else {
+            0
+        };
+
+        let intersections = u64::from(intersection_count);
+        let intersection_tiles = [
+            context.storage_buffer("intersection_tiles", intersections * U32_BYTES)?,
+            context.storage_buffer("intersection_tiles_scratch", intersections * U32_BYTES)?,
+        ];
+        let intersection_gaussians = [
+            context.storage_buffer("intersection_gaussians", intersections * U32_BYTES)?,
+            context.storage_buffer("intersection_gaussians_scratch", intersections * U32_BYTES)?,
+        ];
+        // Fresh wgpu buffers are zero-filled, so tiles without splats read as [0, 0).
+        let tile_ranges =
+            context.storage_buffer("tile_ranges", u64::from(tile_count) * 2 * U32_BYTES)?;
+        let rgbd = context.storage_buffer("rgbd", pixels * VEC4_BYTES)?;
+        let alpha = context.storage_buffer("alpha", pixels * U32_BYTES)?;
+        let transmittance = context.storage_buffer("transmittance", pixels * U32_BYTES)?;
+        let last_entry = context.storage_buffer("last_entry", pixels * U32_BYTES)?;
+
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let mut current = 0;
+        if intersection_count > 0 {
+            let bin_params = context
+                .uniform_buffer("bin params", &four_u32([n, intersection_count, tiles_x, 0]));
+            let emit_group = bind_group(
+                context,
+                &p.emit,
+                &[
+                    (0, &bin_params),
+                    (1, sorted_gaussians),
+                    (2, &tile_counts),
+                    (3, &sorted_tile_counts),
+                    (4, &tile_rects),
+                    (5, &intersection_tiles[0]),
+                    (6, &intersection_gaussians[0]),
+                ],
+            );
+            dispatch_linear(
+                &mut encoder,
+                &p.emit,
+                &emit_group,
+                n.div_ceil(WORKGROUP_SIZE),
+            );
+            let tile_id_bits = u32::BITS - (tile_count - 1).leading_zeros();
+            current = self.radix_sort(
+                context,
+                &mut encoder,
+                [&intersection_tiles[0], &intersection_tiles[1]],
+                [&intersection_gaussians[0], &intersection_gaussians[1]],
+                intersection_count,
+                tile_id_bits,
+            )?;
+            let ranges_group = bind_group(
+                context,
+                &p.tile_ranges,
+                &[
+                    (0, &bin_params),
+                    (7, &intersection_tiles[current]),
+                    (8, &tile_ranges),
+                ],
+            );
+            dispatch_linear(
+                &mut encoder,
+                &p.tile_ranges,
+                &ranges_group,
+                intersection_count.div_ceil(WORKGROUP_SIZE),
+            );
+        }
+        let [intersection_gaussians_a, intersection_gaussians_b] = intersection_gaussians;
+        let intersection_gaussians = if current == 0 {
+            intersection_gaussians_a
+        } else {
+            intersection_gaussians_b
+        };
+        let raster_group = bind_group(
+            context,
+            &p.rasterize,
+            &[
+                (0, &params_buffer),
+                (1, &tile_ranges),
+                (2, &intersection_gaussians),
+                (3, &splat_position),
+                (4, &splat_conic),
+                (5, &splat_colour),
+                (6, &rgbd),
+                (7, &alpha),
+                (8, &transmittance),
+                (9, &last_entry),
+            ],
+        );
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&p.rasterize);
+            pass.set_bind_group(0, &raster_group, &[]);
+            pass.dispatch_workgroups(tiles_x, tiles_y, 1);
+        }
+        context.queue.submit([encoder.finish()]);
+        Ok(DeviceFrame {
+            camera: *camera,
+            params_buffer,
+            gaussian_count: n,
+            intersection_count,
+            splat_position,
+            splat_conic,
+            splat_colour,
+            tile_ranges,
+            intersection_gaussians,
+            rgbd,
+            alpha,
+            transmittance,
+            last_entry,
+        })
+    }
+
+    /// In-place inclusive prefix sum of the first `count` u32 of `values`.
+    fn inclusive_scan(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        values: &wgpu::Buffer,
+        count: u32,
+    ) -> Result<(), GpuError> {
+        if count == 0 {
+            return Ok(());
+        }
+        let blocks = count.div_ceil(WORKGROUP_SIZE);
+        let block_sums =
+            context.storage_buffer("scan block sums", u64::from(blocks) * U32_BYTES)?;
+        let params = context.uniform_buffer("scan params", &four_u32([count, 0, 0, 0]));
+        let entries = [(0, &params), (1, values), (2, &block_sums)];
+        let group = bind_group(context, &self.pipelines.scan_blocks, &entries);
+        dispatch_linear(encoder, &self.pipelines.scan_blocks, &group, blocks);
+        if blocks > 1 {
+            self.inclusive_scan(context, encoder, &block_sums, blocks)?;
+            let group = bind_group(context, &self.pipelines.scan_add, &entries);
+            dispatch_linear(encoder, &self.pipelines.scan_add, &group, blocks);
+        }
+        Ok(())
+    }
+
+    /// Stable LSD radix sort of `count` (key, value) pairs on the low `key_bits` bits, ping-
+    /// ponging between the two buffers of each pair. Returns which buffer (0 or 1) holds the
+    /// sorted result.
+    fn radix_sort(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        keys: [&wgpu::Buffer; 2],
+        values: [&wgpu::Buffer; 2],
+        count: u32,
+        key_bits: u32,
+    ) -> Result<usize, GpuError> {
+        let blocks = count.div_ceil(WORKGROUP_SIZE);
+        let table_entries = RADIX * blocks;
+        let histograms =
+            context.storage_buffer("sort histograms", u64::from(table_entries) * U32_BYTES)?;
+        let mut current = 0;
+        for pass in 0..key_bits.div_ceil(RADIX_BITS) {
+            let params = context.uniform_buffer(
+                "sort params",
+                &four_u32([pass * RADIX_BITS, count, blocks, 0]),
+            );
+            let histogram_group = bind_group(
+                context,
+                &self.pipelines.sort_histogram,
+                &[(0, &params), (1, keys[current]), (3, &histograms)],
+            );
+            dispatch_linear(
+                encoder,
+                &self.pipelines.sort_histogram,
+                &histogram_group,
+                blocks,
+            );
+            self.inclusive_scan(context, encoder, &histograms, table_entries)?;
+            let scatter_group = bind_group(
+                context,
+                &self.pipelines.sort_scatter,
+                &[
+                    (0, &params),
+                    (1, keys[current]),
+                    (2, values[current]),
+                    (3, &histograms),
+                    (4, keys[1 - current]),
+                    (5, values[1 - current]),
+                ],
+            );
+            dispatch_linear(
+                encoder,
+                &self.pipelines.sort_scatter,
+                &scatter_group,
+                blocks,
+            );
+            current = 1 - current;
+        }
+        Ok(current)
+    }
+
+    /// Sorts (key, value) pairs on the device by the low `key_bits` bits of the key, stably.
+    /// A host-facing entry to the device radix sort (tests, tools).
+    pub fn sort_pairs(
+        &self,
+        context: &GpuContext,
+        keys: &[u32],
+        values: &[u32],
+        key_bits: u32,
+    ) -> Result<(Vec<u32>, Vec<u32>), GpuError> {
+        if keys.len() != values.len() {
+            return Err(GpuError::InvalidInput(format!(
+                "{} keys but {} values",
+                keys.len(),
+                values.len()
+            )));
+        }
+        let count = u32::try_from(keys.len())
+            .map_err(|_| GpuError::TooLarge("more than u32::MAX pairs".into()))?;
+        let min = VEC4_BYTES as usize;
+        let key_buffers = [
+            context.storage_buffer_init("keys", bytemuck::cast_slice(keys), min),
+            context.storage_buffer("keys scratch", u64::from(count) * U32_BYTES)?,
+        ];
+        let value_buffers = [
+            context.storage_buffer_init("values", bytemuck::cast_slice(values), min),
+            context.storage_buffer("values scratch", u64::from(count) * U32_BYTES)?,
+        ];
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let current = if count > 0 {
+            self.radix_sort(
+                context,
+                &mut encoder,
+                [&key_buffers[0], &key_buffers[1]],
+                [&value_buffers[0], &value_buffers[1]],
+                count,
+                key_bits.min(u32::BITS),
+            )?
+        } else {
+            0
+        };
+        context.queue.submit([encoder.finish()]);
+        Ok((
+            context.read_vec(&key_buffers[current], keys.len())?,
+            context.read_vec(&value_buffers[current], keys.len())?,
+        ))
+    }
+}

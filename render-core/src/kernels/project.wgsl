@@ -1,0 +1,145 @@
+// project: one invocation per Gaussian (256 per workgroup, linear id over a 2D grid).
+// Transforms the Gaussian into the camera, builds its 2D covariance J W J^T + low-pass, inverts
+// it (conic), and its 3-sigma tile rectangle. Invariants: every Gaussian index < count writes
+// all outputs; a culled Gaussian (non-finite input or result, zero quaternion, behind the near
+// plane, degenerate footprint, no tile overlap) gets tile_count 0 and depth key 0xffffffff so
+// it sorts last and is never binned. sort_values is initialised to the identity permutation.
+
+@group(0) @binding(0) var<uniform> params: RenderParams;
+@group(0) @binding(1) var<storage, read> means: array<f32>;
+@group(0) @binding(2) var<storage, read> log_scales: array<f32>;
+@group(0) @binding(3) var<storage, read> quaternions: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read> opacity_logits: array<f32>;
+@group(0) @binding(5) var<storage, read> colours: array<f32>;
+// mean2d.x, mean2d.y, opacity, camera z
+@group(0) @binding(6) var<storage, read_write> splat_position: array<vec4<f32>>;
+// conic a, b, c (matrix [[a, b], [b, c]]), radius in pixels
+@group(0) @binding(7) var<storage, read_write> splat_conic: array<vec4<f32>>;
+@group(0) @binding(8) var<storage, read_write> splat_colour: array<vec4<f32>>;
+// inclusive tile rectangle x0, y0, x1, y1
+@group(0) @binding(9) var<storage, read_write> tile_rects: array<vec4<u32>>;
+@group(0) @binding(10) var<storage, read_write> tile_counts: array<u32>;
+@group(0) @binding(11) var<storage, read_write> depth_keys: array<u32>;
+@group(0) @binding(12) var<storage, read_write> sort_values: array<u32>;
+
+const CULLED_DEPTH_KEY: u32 = 0xffffffffu;
+// exp() of larger magnitudes overflows f32; the sigmoid is saturated long before.
+const MAX_ABS_OPACITY_LOGIT: f32 = 80.0;
+
+fn cull(index: u32) {
+    splat_position[index] = vec4<f32>(0.0);
+    splat_conic[index] = vec4<f32>(0.0);
+    splat_colour[index] = vec4<f32>(0.0);
+    tile_rects[index] = vec4<u32>(0u);
+    tile_counts[index] = 0u;
+    depth_keys[index] = CULLED_DEPTH_KEY;
+}
+
+fn quaternion_to_rotation(q: vec4<f32>) -> mat3x3<f32> {
+    let n = q / sqrt(dot(q, q));
+    let w = n.x;
+    let x = n.y;
+    let y = n.z;
+    let z = n.w;
+    // Column-major constructor: each vec3 is a column.
+    return mat3x3<f32>(
+        vec3<f32>(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)),
+        vec3<f32>(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
+        vec3<f32>(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
+    );
+}
+
+@compute @workgroup_size(256)
+fn main(
+    @builtin(workgroup_id) workgroup_id: vec3<u32>,
+    @builtin(num_workgroups) workgroup_count: vec3<u32>,
+    @builtin(local_invocation_index) local_index: u32,
+) {
+    let index = linear_workgroup(workgroup_id, workgroup_count) * 256u + local_index;
+    if index >= params.counts.x {
+        return;
+    }
+    sort_values[index] = index;
+    let mean = vec3<f32>(means[3u * index], means[3u * index + 1u], means[3u * index + 2u]);
+    let log_scale = vec3<f32>(
+        log_scales[3u * index], log_scales[3u * index + 1u], log_scales[3u * index + 2u]);
+    let quaternion = quaternions[index];
+    let opacity_logit = opacity_logits[index];
+    let colour = vec3<f32>(colours[3u * index], colours[3u * index + 1u], colours[3u * index + 2u]);
+    var inputs_finite = is_finite(opacity_logit);
+    for (var k = 0u; k < 3u; k++) {
+        inputs_finite = inputs_finite && is_finite(mean[k]) && is_finite(log_scale[k])
+            && is_finite(colour[k]) && is_finite(quaternion[k]);
+    }
+    inputs_finite = inputs_finite && is_finite(quaternion.w);
+    if !inputs_finite {
+        cull(index);
+        return;
+    }
+    let max_log_scale = params.culling.y;
+    if dot(quaternion, quaternion) < params.culling.z || log_scale.x > max_log_scale
+        || log_scale.y > max_log_scale || log_scale.z > max_log_scale {
+        cull(index);
+        return;
+    }
+    let camera_rotation = transpose(mat3x3<f32>(
+        params.camera_row0.xyz, params.camera_row1.xyz, params.camera_row2.xyz));
+    let camera_translation = vec3<f32>(params.camera_row0.w, params.camera_row1.w, params.camera_row2.w);
+    let p = camera_rotation * mean + camera_translation;
+    if !(is_finite(p.x) && is_finite(p.y) && is_finite(p.z)) || p.z < params.culling.x {
+        cull(index);
+        return;
+    }
+    let rotation = quaternion_to_rotation(quaternion);
+    let scale = exp(log_scale);
+    let scaled_rotation = mat3x3<f32>(rotation[0] * scale.x, rotation[1] * scale.y, rotation[2] * scale.z);
+    let world_covariance = scaled_rotation * transpose(scaled_rotation);
+    let camera_covariance = camera_rotation * world_covariance * transpose(camera_rotation);
+    let fx = params.intrinsics.x;
+    let fy = params.intrinsics.y;
+    // J is 2x3; as a WGSL mat3x2 it has 3 columns of vec2.
+    let jacobian = mat3x2<f32>(
+        vec2<f32>(fx / p.z, 0.0),
+        vec2<f32>(0.0, fy / p.z),
+        vec2<f32>(-fx * p.x / (p.z * p.z), -fy * p.y / (p.z * p.z)),
+    );
+    let cov2d = jacobian * camera_covariance * transpose(jacobian);
+    let low_pass = params.thresholds.w;
+    let cov_xx = cov2d[0][0] + low_pass;
+    let cov_xy = cov2d[1][0];
+    let cov_yy = cov2d[1][1] + low_pass;
+    let det = cov_xx * cov_yy - cov_xy * cov_xy;
+    if !(is_finite(det) && det > 0.0) {
+        cull(index);
+        return;
+    }
+    let conic = vec3<f32>(cov_yy / det, -cov_xy / det, cov_xx / det);
+    let mid = 0.5 * (cov_xx + cov_yy);
+    let largest_eigenvalue = mid + sqrt(max(mid * mid - det, 0.0));
+    let radius = ceil(params.culling.w * sqrt(largest_eigenvalue));
+    let mean2d = vec2<f32>(fx * p.x / p.z + params.intrinsics.z, fy * p.y / p.z + params.intrinsics.w);
+    if !(is_finite(mean2d.x) && is_finite(mean2d.y) && is_finite(radius) && is_finite(conic.x)
+        && is_finite(conic.y) && is_finite(conic.z)) {
+        cull(index);
+        return;
+    }
+    // Tile t covers pixel centres t*16 ..= t*16 + 15 (pixel centres at integer coordinates).
+    let tile = f32(TILE_SIZE);
+    let last_tile = vec2<f32>(f32(params.image_size.z) - 1.0, f32(params.image_size.w) - 1.0);
+    let rect_min = max(ceil((mean2d - radius - (tile - 1.0)) / tile), vec2<f32>(0.0));
+    let rect_max = min(floor((mean2d + radius) / tile), last_tile);
+    if rect_min.x > rect_max.x || rect_min.y > rect_max.y {
+        cull(index);
+        return;
+    }
+    let rect = vec4<u32>(u32(rect_min.x), u32(rect_min.y), u32(rect_max.x), u32(rect_max.y));
+    let clamped_logit = clamp(opacity_logit, -MAX_ABS_OPACITY_LOGIT, MAX_ABS_OPACITY_LOGIT);
+    let opacity = 1.0 / (1.0 + exp(-clamped_logit));
+    splat_position[index] = vec4<f32>(mean2d, opacity, p.z);
+    splat_conic[index] = vec4<f32>(conic, radius);
+    splat_colour[index] = vec4<f32>(colour, 0.0);
+    tile_rects[index] = rect;
+    tile_counts[index] = (rect.z - rect.x + 1u) * (rect.w - rect.y + 1u);
+    // Positive floats order like their bit patterns, so the depth sorts as a u32.
+    depth_keys[index] = bitcast<u32>(p.z);
+}

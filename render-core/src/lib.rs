@@ -1,0 +1,33 @@
+//! render-core: the wgpu Gaussian-splat kernels shared by agents (mapping) and the consensus
+//! (joint refinement). Depends on nothing else of this workspace.
+//!
+//! - [`types`]: the CPU scene description ([`GaussianCloud`], [`Camera`], [`RenderMode`], ...)
+//!   and the conventions every boundary follows (quaternions `[w, x, y, z]`, OpenCV camera axes,
+//!   pixel centres at integer coordinates, colours as RGB in `[0, 1]`, pose gradients as a left
+//!   perturbation of `camera_from_world` ordered `[translation, rotation]`).
+//! - [`reference`]: the scalar CPU renderer (forward and backward), the test oracle.
+//! - [`ply`]: 3DGS PLY import/export.
+//! - [`context`]: the wgpu adapter/device and its capabilities (float atomics, subgroups,
+//!   storage-binding limit).
+//! - [`gpu`]: device-resident Gaussians and the forward pipeline (project, radix sort, tile
+//!   binning, rasterize).
+//! - [`backward`]: per-Gaussian and camera-pose gradients on the device.
+//! - [`training`]: L1 / SSIM / depth-L1 loss with gradients and Adam on the device, plus the CPU
+//!   reference loss.
+//!
+//! Typical iteration (no host read-back besides the forward pass's one `u32`, see [`gpu`]):
+//! `render_frame` -> `TrainingKernels::image_loss` -> `GpuRenderer::backward` ->
+//! `TrainingKernels::adam_step`.
+
+pub mod backward;
+pub mod context;
+pub mod gpu;
+pub mod ply;
+pub mod reference;
+pub mod training;
+pub mod types;
+
+pub use types::{
+    Camera, GaussianCloud, GaussianGradients, ImageGradients, PoseGradient, RasterConfig,
+    RenderMode, RenderOutput, RigidTransform, constants,
+};

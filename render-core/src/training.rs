@@ -1,0 +1,514 @@
+//! Image losses (L1, SSIM, depth L1) with gradients, and Adam, on the device; plus the CPU
+//! reference of the loss used as the test oracle.
+//!
+//! Loss (SPEC sections 3 and 4):
+//! `w_l1 * mean|rgb - target| + w_ssim * (1 - mean SSIM) + w_depth * mean_valid |d - d*| / truncation`
+//! where rgb and d are the rendered (alpha-composited) colour and depth, the means run over
+//! pixels and channels, and the depth mean over pixels whose target depth is > 0 (the validity
+//! mask). SSIM uses an 11x11 Gaussian window (sigma 1.5), C1 = 0.01^2, C2 = 0.03^2, and ZERO
+//! padding at the image border (the 3DGS convention: windows are not renormalised).
+
+use crate::backward::{DeviceGradients, DeviceImageGradients};
+use crate::context::{GpuContext, GpuError};
+use crate::gpu::{
+    DeviceFrame, DeviceGaussians, GpuRenderer, U32_BYTES, VEC4_BYTES, WORKGROUP_SIZE, bind_group,
+    compute_pipeline, dispatch_linear,
+};
+use crate::types::{Camera, ImageGradients, RenderOutput};
+use bytemuck::{Pod, Zeroable};
+
+/// SSIM window half-width (11x11 window) and standard deviation.
+pub const SSIM_WINDOW_RADIUS: i32 = 5;
+pub const SSIM_WINDOW_SIGMA: f64 = 1.5;
+/// SSIM stabilisers for data range 1: (0.01)^2 and (0.03)^2.
+pub const SSIM_C1: f64 = 0.0001;
+pub const SSIM_C2: f64 = 0.0009;
+const SSIM_COEFFICIENTS_PER_PIXEL: u64 = 9;
+const TILE_SIZE: u32 = crate::types::constants::TILE_SIZE;
+
+/// Loss weights; [`Default`] is the mapping loss of SPEC section 3.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LossWeights {
+    pub l1: f32,
+    pub ssim: f32,
+    pub depth: f32,
+    /// Depth errors are divided by this (metres; 12 Replica, 10 7-Scenes).
+    pub depth_truncation: f32,
+}
+
+impl Default for LossWeights {
+    fn default() -> Self {
+        Self {
+            l1: 0.8,
+            ssim: 0.2,
+            depth: 2.0,
+            depth_truncation: 10.0,
+        }
+    }
+}
+
+/// A ground-truth image. `depth` entries `<= 0` (or a missing depth image) are invalid.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TargetImage {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<[f32; 3]>,
+    pub depth: Option<Vec<f32>>,
+}
+
+impl TargetImage {
+    fn valid_depth_count(&self) -> usize {
+        self.depth
+            .as_ref()
+            .map_or(0, |d| d.iter().filter(|&&v| v > 0.0).count())
+    }
+}
+
+fn window_weights() -> Vec<f64> {
+    let raw: Vec<f64> = (-SSIM_WINDOW_RADIUS..=SSIM_WINDOW_RADIUS)
+        .map(|d| (-(f64::from(d * d)) / (2.0 * SSIM_WINDOW_SIGMA * SSIM_WINDOW_SIGMA)).exp())
+        .collect();
+    let total: f64 = raw.iter().sum();
+    raw.iter().map(|w| w / total).collect()
+}
+
+/// CPU reference of the loss and of dL/d(rendered rgb, depth) (alpha gradient is zero).
+pub fn reference_image_loss(
+    rendered: &RenderOutput,
+    target: &TargetImage,
+    weights: &LossWeights,
+) -> (f64, ImageGradients) {
+    let (width, height) = (target.width as usize, target.height as usize);
+    let pixels = width * height;
+    let rgb = rendered.rgb.as_ref().expect("loss needs the rendered rgb");
+    let zero_depth = vec![0.0f32; pixels];
+    let depth = rendered.depth.as_ref().unwrap_or(&zero_depth);
+    let window = window_weights();
+    let radius = SSIM_WINDOW_RADIUS as isize;
+    let colour_normaliser = 1.0 / (3.0 * pixels as f64);
+    let mut loss = 0.0;
+    let mut v_rgb = vec![[0.0f64; 3]; pixels];
+    for c in 0..3 {
+        let x: Vec<f64> = rgb.iter().map(|v| f64::from(v[c])).collect();
+        let y: Vec<f64> = target.rgb.iter().map(|v| f64::from(v[c])).collect();
+        // SSIM gradient coefficients per pixel (see loss.wgsl for the derivation).
+        let mut coefficients = vec![[0.0f64; 3]; pixels];
+        for py in 0..height as isize {
+            for px in 0..width as isize {
+                let (mut mu_x, mut mu_y, mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                for dy in -radius..=radius {
+                    for dx in -radius..=radius {
+                        let (qx, qy) = (px + dx, py + dy);
+                        if qx < 0 || qy < 0 || qx >= width as isize || qy >= height as isize {
+                            continue;
+                        }
+                        let w = window[(dy + radius) as usize] * window[(dx + radius) as usize];
+                        let q = qy as usize * width + qx as usize;
+                        mu_x += w * x[q];
+                        mu_y += w * y[q];
+                        xx += w * x[q] * x[q];
+                        yy += w * y[q] * y[q];
+                        xy += w * x[q] * y[q];
+                    }
+                }
+                let sigma_xx = xx - mu_x * mu_x;
+                let sigma_yy = yy - mu_y * mu_y;
+                let sigma_xy = xy - mu_x * mu_y;
+                let (n1, n2) = (2.0 * mu_x * mu_y + SSIM_C1, 2.0 * sigma_xy + SSIM_C2);
+                let (d1, d2) = (
+                    mu_x * mu_x + mu_y * mu_y + SSIM_C1,
+                    sigma_xx + sigma_yy + SSIM_C2,
+                );
+                let ssim = n1 * n2 / (d1 * d2);
+                loss += f64::from(weights.ssim) * (1.0 - ssim) * colour_normaliser;
+                let v = -f64::from(weights.ssim) * colour_normaliser;
+                let d_mu = 2.0 * mu_y * n2 / (d1 * d2) - 2.0 * mu_x * ssim / d1;
+                let d_sigma_xx = -ssim / d2;
+                let d_sigma_xy = 2.0 * n1 / (d1 * d2);
+                let p = py as usize * width + px as usize;
+                coefficients[p] = [
+                    v * (d_mu - 2.0 * d_sigma_xx * mu_x - d_sigma_xy * mu_y),
+                    v * 2.0 * d_sigma_xx,
+                    v * d_sigma_xy,
+                ];
+                let difference = x[p] - y[p];
+                loss += f64::from(weights.l1) * difference.abs() * colour_normaliser;
+                v_rgb[p][c] += f64::from(weights.l1) * colour_normaliser * sign_or_zero(difference);
+            }
+        }
+        for py in 0..height as isize {
+            for px in 0..width as isize {
+                let q = py as usize * width + px as usize;
+                let mut sums = [0.0f64; 3];
+                for dy in -radius..=radius {
+                    for dx in -radius..=radius {
+                        let (sx, sy) = (px + dx, py + dy);
+                        if sx < 0 || sy < 0 || sx >= width as isize || sy >= height as isize {
+                            continue;
+                        }
+                        let w = window[(dy + radius) as usize] * window[(dx + radius) as usize];
+                        let p = sy as usize * width + sx as usize;
+                        for k in 0..3 {
+                            sums[k] += w * coefficients[p][k];
+                        }
+                    }
+                }
+                v_rgb[q][c] += x[q] * sums[1] + y[q] * sums[2] + sums[0];
+            }
+        }
+    }
+    let mut v_depth = vec![0.0f32; pixels];
+    let valid = target.valid_depth_count();
+    if let (Some(target_depth), true) = (&target.depth, valid > 0) {
+        let scale = f64::from(weights.depth) / (f64::from(weights.depth_truncation) * valid as f64);
+        for p in 0..pixels {
+            if target_depth[p] > 0.0 {
+                let difference = f64::from(depth[p]) - f64::from(target_depth[p]);
+                loss += scale * difference.abs();
+                v_depth[p] = (scale * sign_or_zero(difference)) as f32;
+            }
+        }
+    }
+    let gradients = ImageGradients {
+        v_rgb: v_rgb.iter().map(|v| v.map(|g| g as f32)).collect(),
+        v_depth,
+        v_alpha: vec![0.0; pixels],
+    };
+    (loss, gradients)
+}
+
+fn sign_or_zero(value: f64) -> f64 {
+    if value > 0.0 {
+        1.0
+    } else if value < 0.0 {
+        -1.0
+    } else {
+        0.0
+    }
+}
+
+/// A target image on the device: per pixel (r, g, b, depth), depth 0 where invalid.
+pub struct DeviceTarget {
+    pub width: u32,
+    pub height: u32,
+    pub rgbd: wgpu::Buffer,
+    /// Number of pixels with valid depth (computed on upload, so no read-back later).
+    pub valid_depth_pixels: u32,
+}
+
+impl DeviceTarget {
+    pub fn upload(context: &GpuContext, target: &TargetImage) -> Result<Self, GpuError> {
+        let pixels = target.width as usize * target.height as usize;
+        if target.rgb.len() != pixels || target.depth.as_ref().is_some_and(|d| d.len() != pixels) {
+            return Err(GpuError::InvalidInput(
+                "target image sizes do not match width x height".into(),
+            ));
+        }
+        let rgbd: Vec<[f32; 4]> = (0..pixels)
+            .map(|p| {
+                let [r, g, b] = target.rgb[p];
+                let d = target.depth.as_ref().map_or(0.0, |d| d[p]);
+                [r, g, b, if d > 0.0 { d } else { 0.0 }]
+            })
+            .collect();
+        Ok(Self {
+            width: target.width,
+            height: target.height,
+            rgbd: context.storage_buffer_init(
+                "target rgbd",
+                bytemuck::cast_slice(&rgbd),
+                VEC4_BYTES as usize,
+            ),
+            valid_depth_pixels: target.valid_depth_count() as u32,
+        })
+    }
+}
+
+/// Mirrors `LossParams` in loss.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct LossParams {
+    image_size: [u32; 4],
+    weights: [f32; 4],
+    normalisers: [f32; 4],
+}
+
+/// Mirrors `AdamParams` in adam.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct AdamParams {
+    count: [u32; 4],
+    rates: [f32; 4],
+    corrections: [f32; 4],
+}
+
+/// A loss evaluated on the device; the value stays there until [`DeviceLoss::read`].
+pub struct DeviceLoss {
+    /// vec4: (L1 term, SSIM term, depth term, 0), already weighted.
+    pub terms: wgpu::Buffer,
+}
+
+impl DeviceLoss {
+    /// Reads the weighted terms (l1, ssim, depth) back; their sum is the loss.
+    pub fn read(&self, context: &GpuContext) -> Result<[f32; 3], GpuError> {
+        let terms: Vec<[f32; 4]> = context.read_vec(&self.terms, 1)?;
+        Ok([terms[0][0], terms[0][1], terms[0][2]])
+    }
+}
+
+/// Learning rates per parameter group (a rate of 0 freezes the group) and Adam constants.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdamConfig {
+    pub means: f32,
+    pub log_scales: f32,
+    pub quaternions: f32,
+    pub opacity_logits: f32,
+    pub colours: f32,
+    pub beta1: f32,
+    pub beta2: f32,
+    pub epsilon: f32,
+}
+
+impl Default for AdamConfig {
+    /// SPEC section 3 mapping rates (the mean rate is to be multiplied by the scene scale).
+    fn default() -> Self {
+        Self {
+            means: 5e-6,
+            log_scales: 0.01,
+            quaternions: 0.0,
+            opacity_logits: 0.05,
+            colours: 2.5e-3,
+            beta1: 0.9,
+            beta2: 0.999,
+            epsilon: 1e-15,
+        }
+    }
+}
+
+/// Adam moments for every parameter group of one [`DeviceGaussians`].
+pub struct DeviceAdam {
+    pub config: AdamConfig,
+    step: u32,
+    moments: [(wgpu::Buffer, wgpu::Buffer); 5],
+    /// Floats per Gaussian of each group: means, log-scales, quaternions, opacity, colours.
+    group_widths: [u32; 5],
+    count: u32,
+}
+
+impl DeviceAdam {
+    pub fn new(
+        context: &GpuContext,
+        gaussians: &DeviceGaussians,
+        config: AdamConfig,
+    ) -> Result<Self, GpuError> {
+        let group_widths = [3, 3, 4, 1, 3];
+        let count = gaussians.len() as u32;
+        let make = |width: u32| -> Result<(wgpu::Buffer, wgpu::Buffer), GpuError> {
+            let bytes = u64::from(count) * u64::from(width) * U32_BYTES;
+            Ok((
+                context.storage_buffer("adam m", bytes)?,
+                context.storage_buffer("adam v", bytes)?,
+            ))
+        };
+        let moments = [
+            make(group_widths[0])?,
+            make(group_widths[1])?,
+            make(group_widths[2])?,
+            make(group_widths[3])?,
+            make(group_widths[4])?,
+        ];
+        Ok(Self {
+            config,
+            step: 0,
+            moments,
+            group_widths,
+            count,
+        })
+    }
+
+    pub fn step_count(&self) -> u32 {
+        self.step
+    }
+}
+
+/// Compiled loss and Adam kernels.
+pub struct TrainingKernels {
+    loss_forward: wgpu::ComputePipeline,
+    loss_backward: wgpu::ComputePipeline,
+    adam: wgpu::ComputePipeline,
+}
+
+const LOSS_WGSL: &str = include_str!("kernels/loss.wgsl");
+const ADAM_WGSL: &str = include_str!("kernels/adam.wgsl");
+
+impl TrainingKernels {
+    pub fn new(context: &GpuContext) -> Self {
+        let device = &context.device;
+        Self {
+            loss_forward: compute_pipeline(device, "loss_forward", LOSS_WGSL, "loss_forward"),
+            loss_backward: compute_pipeline(device, "loss_backward", LOSS_WGSL, "loss_backward"),
+            adam: compute_pipeline(device, "adam", ADAM_WGSL, "main"),
+        }
+    }
+
+    /// Evaluates the loss of `frame` against `target` and writes dL/d(image) into
+    /// `image_gradients`. Submits work; reads nothing back.
+    pub fn image_loss(
+        &self,
+        context: &GpuContext,
+        renderer: &GpuRenderer,
+        frame: &DeviceFrame,
+        target: &DeviceTarget,
+        weights: &LossWeights,
+        image_gradients: &DeviceImageGradients,
+    ) -> Result<DeviceLoss, GpuError> {
+        let camera: &Camera = &frame.camera;
+        if (target.width, target.height) != (camera.width, camera.height)
+            || (image_gradients.width, image_gradients.height) != (camera.width, camera.height)
+        {
+            return Err(GpuError::InvalidInput(
+                "target, gradients and frame differ in size".into(),
+            ));
+        }
+        let pixels = camera.pixel_count() as u64;
+        let valid_normaliser = if target.valid_depth_pixels > 0 {
+            1.0 / target.valid_depth_pixels as f32
+        } else {
+            0.0
+        };
+        let params = LossParams {
+            image_size: [camera.width, camera.height, 0, 0],
+            weights: [
+                weights.l1,
+                weights.ssim,
+                weights.depth,
+                1.0 / weights.depth_truncation,
+            ],
+            normalisers: [1.0 / (3.0 * pixels as f32), valid_normaliser, 0.0, 0.0],
+        };
+        let params_buffer = context.uniform_buffer("loss params", bytemuck::bytes_of(&params));
+        let coefficients = context.storage_buffer(
+            "ssim coefficients",
+            pixels * SSIM_COEFFICIENTS_PER_PIXEL * U32_BYTES,
+        )?;
+        let pixel_losses = context.storage_buffer("pixel losses", pixels * VEC4_BYTES)?;
+        let workgroups = (
+            camera.width.div_ceil(TILE_SIZE),
+            camera.height.div_ceil(TILE_SIZE),
+        );
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let forward_group = bind_group(
+            context,
+            &self.loss_forward,
+            &[
+                (0, &params_buffer),
+                (1, &frame.rgbd),
+                (2, &target.rgbd),
+                (3, &coefficients),
+                (4, &pixel_losses),
+            ],
+        );
+        let backward_group = bind_group(
+            context,
+            &self.loss_backward,
+            &[
+                (0, &params_buffer),
+                (1, &frame.rgbd),
+                (2, &target.rgbd),
+                (3, &coefficients),
+                (5, &image_gradients.v_rgbd),
+                (6, &image_gradients.v_alpha),
+            ],
+        );
+        for (pipeline, group) in [
+            (&self.loss_forward, &forward_group),
+            (&self.loss_backward, &backward_group),
+        ] {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, group, &[]);
+            pass.dispatch_workgroups(workgroups.0, workgroups.1, 1);
+        }
+        let terms = renderer.reduce_vec4(context, &mut encoder, pixel_losses, pixels as u32)?;
+        context.queue.submit([encoder.finish()]);
+        Ok(DeviceLoss { terms })
+    }
+
+    /// One Adam step on every group with a non-zero learning rate. Submits work; reads
+    /// nothing back.
+    pub fn adam_step(
+        &self,
+        context: &GpuContext,
+        adam: &mut DeviceAdam,
+        gaussians: &DeviceGaussians,
+        gradients: &DeviceGradients,
+    ) -> Result<(), GpuError> {
+        if gaussians.len() as u32 != adam.count {
+            return Err(GpuError::InvalidInput(
+                "Adam state and Gaussians differ in count".into(),
+            ));
+        }
+        adam.step += 1;
+        let config = adam.config;
+        let t = adam.step as i32;
+        let corrections = [
+            1.0 / (1.0 - config.beta1.powi(t)),
+            1.0 / (1.0 - config.beta2.powi(t)),
+            0.0,
+            0.0,
+        ];
+        let groups = [
+            (config.means, &gaussians.means, &gradients.v_means),
+            (
+                config.log_scales,
+                &gaussians.log_scales,
+                &gradients.v_log_scales,
+            ),
+            (
+                config.quaternions,
+                &gaussians.quaternions,
+                &gradients.v_quaternions,
+            ),
+            (
+                config.opacity_logits,
+                &gaussians.opacity_logits,
+                &gradients.v_opacity_logits,
+            ),
+            (config.colours, &gaussians.colours, &gradients.v_colours),
+        ];
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        for (group, (learning_rate, parameters, group_gradients)) in groups.into_iter().enumerate()
+        {
+            let elements = adam.count * adam.group_widths[group];
+            if learning_rate == 0.0 || elements == 0 {
+                continue;
+            }
+            let params = AdamParams {
+                count: [elements, 0, 0, 0],
+                rates: [learning_rate, config.beta1, config.beta2, config.epsilon],
+                corrections,
+            };
+            let params_buffer = context.uniform_buffer("adam params", bytemuck::bytes_of(&params));
+            let (m, v) = &adam.moments[group];
+            let bind = bind_group(
+                context,
+                &self.adam,
+                &[
+                    (0, &params_buffer),
+                    (1, parameters),
+                    (2, group_gradients),
+                    (3, m),
+                    (4, v),
+                ],
+            );
+            dispatch_linear(
+                &mut encoder,
+                &self.adam,
+                &bind,
+                elements.div_ceil(WORKGROUP_SIZE),
+            );
+        }
+        context.queue.submit([encoder.finish()]);
+        Ok(())
+    }
+}

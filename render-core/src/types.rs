@@ -1,0 +1,385 @@
+//! CPU-side scene description shared by the CPU reference and the wgpu renderer.
+//!
+//! Conventions (they hold at every public boundary of this crate):
+//! - Quaternions are `[w, x, y, z]` (w first). They need not be unit length; the renderer
+//!   normalises them. A quaternion of (near) zero length culls its Gaussian.
+//! - Camera frame is the OpenCV one: x right, y down, z forward (the viewing direction).
+//! - Pixel `(col, row)` has its centre at image coordinate `(col, row)`, so a principal point
+//!   `cx = (width - 1) / 2` is the image centre (Replica: `cx = 599.5` for width 1200).
+//! - Colours are SH degree 0 already converted to linear RGB in `[0, 1]` (not `f_dc`); see
+//!   [`crate::ply`] for the `f_dc` conversion used in files.
+
+/// Activation and rasterisation constants from SPEC section 2 and the 3DGS reference.
+pub mod constants {
+    /// Side of a square screen tile in pixels.
+    pub const TILE_SIZE: u32 = 16;
+    /// Largest alpha a single splat may contribute (keeps `1 - alpha` invertible in backward).
+    pub const MAX_SPLAT_ALPHA: f32 = 0.99;
+    /// Splats whose alpha at a pixel falls below this are skipped there.
+    pub const MIN_SPLAT_ALPHA: f32 = 1.0 / 255.0;
+    /// A pixel stops compositing once its transmittance would drop below this.
+    pub const MIN_TRANSMITTANCE: f32 = 1e-4;
+    /// Isotropic variance (pixels^2) added to every projected 2D covariance: a low-pass filter
+    /// so that a splat covers at least about one pixel (standard 3DGS value).
+    pub const LOW_PASS_VARIANCE: f32 = 0.3;
+    /// Gaussians closer to the camera than this (camera z, metres) are culled.
+    pub const NEAR_PLANE: f32 = 0.01;
+    /// Screen-space extent of a splat, in standard deviations of its largest axis.
+    pub const SPLAT_EXTENT_SIGMAS: f32 = 3.0;
+    /// Quaternions with squared norm below this are treated as invalid and culled.
+    pub const MIN_QUATERNION_NORM_SQUARED: f32 = 1e-12;
+    /// Largest log-scale accepted; larger values (exp overflow territory) cull the Gaussian.
+    pub const MAX_LOG_SCALE: f32 = 20.0;
+}
+
+/// A set of 3D Gaussians in structure-of-arrays layout, all vectors of equal length.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GaussianCloud {
+    /// World-space centres.
+    pub means: Vec<[f32; 3]>,
+    /// Natural-log standard deviations along the Gaussian's local axes.
+    pub log_scales: Vec<[f32; 3]>,
+    /// Rotations as quaternions `[w, x, y, z]`, not necessarily normalised.
+    pub quaternions: Vec<[f32; 4]>,
+    /// Opacities before the sigmoid (`opacity = 1 / (1 + exp(-logit))`).
+    pub opacity_logits: Vec<f32>,
+    /// Linear RGB colours in `[0, 1]` (SH degree 0 after `0.5 + C0 * f_dc`).
+    pub colours: Vec<[f32; 3]>,
+}
+
+impl GaussianCloud {
+    /// Number of Gaussians.
+    pub fn len(&self) -> usize {
+        self.means.len()
+    }
+
+    /// True when there are no Gaussians.
+    pub fn is_empty(&self) -> bool {
+        self.means.is_empty()
+    }
+
+    /// Appends one Gaussian.
+    pub fn push(
+        &mut self,
+        mean: [f32; 3],
+        log_scale: [f32; 3],
+        quaternion: [f32; 4],
+        opacity_logit: f32,
+        colour: [f32; 3],
+    ) {
+        self.means.push(mean);
+        self.log_scales.push(log_scale);
+        self.quaternions.push(quaternion);
+        self.opacity_logits.push(opacity_logit);
+        self.colours.push(colour);
+    }
+
+    /// Checks that all attribute vectors have the same length.
+    pub fn validate_lengths(&self) -> Result<(), String> {
+        let n = self.means.len();
+        let lengths = [
+            ("log_scales", self.log_scales.len()),
+            ("quaternions", self.quaternions.len()),
+            ("opacity_logits", self.opacity_logits.len()),
+            ("colours", self.colours.len()),
+        ];
+        for (name, len) in lengths {
+            if len != n {
+                return Err(format!(
+                    "GaussianCloud: {name} has {len} entries, means has {n}"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A rigid transform `p_to = rotation * p_from + translation`; `rotation` is row-major.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RigidTransform {
+    pub rotation: [[f32; 3]; 3],
+    pub translation: [f32; 3],
+}
+
+impl RigidTransform {
+    pub const IDENTITY: Self = Self {
+        rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        translation: [0.0, 0.0, 0.0],
+    };
+
+    /// Builds a transform from a quaternion `[w, x, y, z]` (normalised here) and a translation.
+    pub fn from_quaternion_translation(quaternion: [f32; 4], translation: [f32; 3]) -> Self {
+        let q = quaternion.map(f64::from);
+        let rotation = rotation_from_quaternion_f64(q).map(|row| row.map(|v| v as f32));
+        Self {
+            rotation,
+            translation,
+        }
+    }
+
+    /// The inverse transform.
+    pub fn inverse(&self) -> Self {
+        let r = &self.rotation;
+        let rotation_t = [
+            [r[0][0], r[1][0], r[2][0]],
+            [r[0][1], r[1][1], r[2][1]],
+            [r[0][2], r[1][2], r[2][2]],
+        ];
+        let t = self.translation;
+        let translation = [0, 1, 2].map(|i| {
+            -(rotation_t[i][0] * t[0] + rotation_t[i][1] * t[1] + rotation_t[i][2] * t[2])
+        });
+        Self {
+            rotation: rotation_t,
+            translation,
+        }
+    }
+
+    /// Applies the transform to a point.
+    pub fn transform_point(&self, p: [f32; 3]) -> [f32; 3] {
+        let r = &self.rotation;
+        [0, 1, 2].map(|i| r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2] + self.translation[i])
+    }
+
+    /// Left perturbation `exp(xi) * self` with `xi = [translation (3), rotation (3)]` (see
+    /// [`PoseGradient`]); used by finite-difference tests and by pose optimisers.
+    pub fn left_perturbed(&self, xi: [f64; 6]) -> Self {
+        let (delta_rotation, delta_translation) = se3_exp(xi);
+        let r = self.rotation.map(|row| row.map(f64::from));
+        let t = self.translation.map(f64::from);
+        let mut rotation = [[0.0f32; 3]; 3];
+        let mut translation = [0.0f32; 3];
+        for i in 0..3 {
+            for j in 0..3 {
+                rotation[i][j] = (0..3).map(|k| delta_rotation[i][k] * r[k][j]).sum::<f64>() as f32;
+            }
+            translation[i] = ((0..3).map(|k| delta_rotation[i][k] * t[k]).sum::<f64>()
+                + delta_translation[i]) as f32;
+        }
+        Self {
+            rotation,
+            translation,
+        }
+    }
+}
+
+/// Rotation matrix (row-major) of a quaternion `[w, x, y, z]`, normalised here.
+pub(crate) fn rotation_from_quaternion_f64(q: [f64; 4]) -> [[f64; 3]; 3] {
+    let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+    let [w, x, y, z] = q.map(|v| v / norm);
+    [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+        ],
+        [
+            2.0 * (x * y + w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - w * x),
+        ],
+        [
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ]
+}
+
+/// SE(3) exponential with `xi = [rho, phi]`: returns (rotation, translation) where the
+/// translation is `V(phi) * rho` (the exact group exponential).
+pub(crate) fn se3_exp(xi: [f64; 6]) -> ([[f64; 3]; 3], [f64; 3]) {
+    let rho = [xi[0], xi[1], xi[2]];
+    let phi = [xi[3], xi[4], xi[5]];
+    let theta = (phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]).sqrt();
+    let skew = [
+        [0.0, -phi[2], phi[1]],
+        [phi[2], 0.0, -phi[0]],
+        [-phi[1], phi[0], 0.0],
+    ];
+    let mut skew2 = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            skew2[i][j] = (0..3).map(|k| skew[i][k] * skew[k][j]).sum();
+        }
+    }
+    // Taylor expansions below this angle avoid 0/0 in the closed forms.
+    const SMALL_ANGLE: f64 = 1e-8;
+    let (a, b, c) = if theta < SMALL_ANGLE {
+        (1.0, 0.5, 1.0 / 6.0)
+    } else {
+        (
+            theta.sin() / theta,
+            (1.0 - theta.cos()) / (theta * theta),
+            (theta - theta.sin()) / (theta * theta * theta),
+        )
+    };
+    let mut rotation = [[0.0; 3]; 3];
+    let mut v = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            let identity = if i == j { 1.0 } else { 0.0 };
+            rotation[i][j] = identity + a * skew[i][j] + b * skew2[i][j];
+            v[i][j] = identity + b * skew[i][j] + c * skew2[i][j];
+        }
+    }
+    let translation = [0, 1, 2].map(|i| (0..3).map(|k| v[i][k] * rho[k]).sum());
+    (rotation, translation)
+}
+
+/// A pinhole camera (OpenCV axes, no distortion).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Camera {
+    /// Maps world points into the camera frame (the "view" matrix).
+    pub camera_from_world: RigidTransform,
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Camera {
+    /// Camera from its pose in the world (`world_from_camera`, i.e. camera-to-world).
+    pub fn from_world_from_camera(
+        world_from_camera: RigidTransform,
+        intrinsics: [f32; 4],
+        width: u32,
+        height: u32,
+    ) -> Self {
+        let [fx, fy, cx, cy] = intrinsics;
+        Self {
+            camera_from_world: world_from_camera.inverse(),
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+        }
+    }
+
+    /// The camera's pose in the world (camera-to-world).
+    pub fn world_from_camera(&self) -> RigidTransform {
+        self.camera_from_world.inverse()
+    }
+
+    /// Number of 16x16 tiles horizontally and vertically.
+    pub fn tile_counts(&self) -> (u32, u32) {
+        (
+            self.width.div_ceil(constants::TILE_SIZE),
+            self.height.div_ceil(constants::TILE_SIZE),
+        )
+    }
+
+    pub fn pixel_count(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+}
+
+/// Which images a render produces. Alpha is always produced (it is needed to interpret depth:
+/// expected depth = depth / alpha).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum RenderMode {
+    Rgb,
+    Depth,
+    #[default]
+    RgbD,
+}
+
+impl RenderMode {
+    pub fn has_rgb(self) -> bool {
+        matches!(self, RenderMode::Rgb | RenderMode::RgbD)
+    }
+    pub fn has_depth(self) -> bool {
+        matches!(self, RenderMode::Depth | RenderMode::RgbD)
+    }
+}
+
+/// Rendered images, row-major, `width * height` pixels.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct RenderOutput {
+    pub width: u32,
+    pub height: u32,
+    /// Alpha-composited colour (not divided by alpha; background is black). `None` in Depth mode.
+    pub rgb: Option<Vec<[f32; 3]>>,
+    /// Alpha-composited camera z (metres). `None` in Rgb mode. Expected depth = depth / alpha.
+    pub depth: Option<Vec<f32>>,
+    /// Accumulated opacity `1 - final transmittance`.
+    pub alpha: Vec<f32>,
+}
+
+/// Tangent-space gradient of a scalar loss w.r.t. the camera pose, for the LEFT perturbation
+/// of `camera_from_world`: `camera_from_world' = exp(xi) * camera_from_world` with
+/// `xi = [translation (3), rotation (3)]` (rotation as an axis-angle vector in the camera
+/// frame), evaluated at `xi = 0`.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct PoseGradient {
+    pub v_translation: [f32; 3],
+    pub v_rotation: [f32; 3],
+}
+
+impl PoseGradient {
+    /// As one vector `[translation, rotation]`.
+    pub fn as_array(&self) -> [f32; 6] {
+        let t = self.v_translation;
+        let r = self.v_rotation;
+        [t[0], t[1], t[2], r[0], r[1], r[2]]
+    }
+}
+
+/// Gradients of a scalar loss w.r.t. every Gaussian parameter and the camera pose.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct GaussianGradients {
+    pub v_means: Vec<[f32; 3]>,
+    pub v_log_scales: Vec<[f32; 3]>,
+    /// W.r.t. the raw (unnormalised) quaternion `[w, x, y, z]`.
+    pub v_quaternions: Vec<[f32; 4]>,
+    pub v_opacity_logits: Vec<f32>,
+    pub v_colours: Vec<[f32; 3]>,
+    pub v_pose: PoseGradient,
+}
+
+/// Gradient of a loss w.r.t. the rendered images (same layout as [`RenderOutput`]).
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct ImageGradients {
+    pub v_rgb: Vec<[f32; 3]>,
+    pub v_depth: Vec<f32>,
+    pub v_alpha: Vec<f32>,
+}
+
+/// Rasterisation thresholds. [`RasterConfig::default`] is SPEC section 2 and is what the
+/// wgpu renderer uses; the smooth variant exists for finite-difference tests only.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RasterConfig {
+    pub min_splat_alpha: f32,
+    pub max_splat_alpha: f32,
+    pub min_transmittance: f32,
+    /// Restrict each splat to the tiles its 3-sigma box overlaps (as the GPU binning does).
+    pub restrict_to_tiles: bool,
+}
+
+impl Default for RasterConfig {
+    fn default() -> Self {
+        Self {
+            min_splat_alpha: constants::MIN_SPLAT_ALPHA,
+            max_splat_alpha: constants::MAX_SPLAT_ALPHA,
+            min_transmittance: constants::MIN_TRANSMITTANCE,
+            restrict_to_tiles: true,
+        }
+    }
+}
+
+impl RasterConfig {
+    /// No alpha skip, no early termination, no tile cut-off: the image is then a smooth
+    /// function of every parameter, so central differences converge (test-only use).
+    pub fn smooth_for_gradient_checks() -> Self {
+        Self {
+            min_splat_alpha: 0.0,
+            max_splat_alpha: constants::MAX_SPLAT_ALPHA,
+            min_transmittance: 0.0,
+            restrict_to_tiles: false,
+        }
+    }
+}

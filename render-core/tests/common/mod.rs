@@ -1,0 +1,92 @@
+//! Shared scenes and the shared wgpu context for the integration tests.
+#![allow(dead_code)]
+
+use std::sync::OnceLock;
+
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use render_core::context::GpuContext;
+use render_core::gpu::GpuRenderer;
+use render_core::{Camera, GaussianCloud, RigidTransform};
+
+pub struct Gpu {
+    pub context: GpuContext,
+    pub renderer: GpuRenderer,
+}
+
+/// One device for all tests of a binary (lavapipe device creation is slow).
+pub fn gpu() -> &'static Gpu {
+    static GPU: OnceLock<Gpu> = OnceLock::new();
+    GPU.get_or_init(|| {
+        let context = GpuContext::new().expect("a wgpu adapter (lavapipe in CI) is required");
+        eprintln!("adapter: {}", context.describe());
+        let renderer = GpuRenderer::new(&context);
+        Gpu { context, renderer }
+    })
+}
+
+pub const WIDTH: u32 = 64;
+pub const HEIGHT: u32 = 48;
+
+pub fn camera(width: u32, height: u32, cx: f32, cy: f32) -> Camera {
+    let world_from_camera =
+        RigidTransform::from_quaternion_translation([0.97, 0.08, -0.15, 0.12], [0.3, -0.2, -0.5]);
+    Camera::from_world_from_camera(world_from_camera, [55.0, 52.0, cx, cy], width, height)
+}
+
+pub fn default_camera() -> Camera {
+    camera(
+        WIDTH,
+        HEIGHT,
+        (WIDTH as f32 - 1.0) / 2.0,
+        (HEIGHT as f32 - 1.0) / 2.0,
+    )
+}
+
+/// Random Gaussians in front of `camera`; `log_scale_range` controls footprint sizes and
+/// `logit_range` the opacities.
+pub fn random_scene(
+    camera: &Camera,
+    count: usize,
+    seed: u64,
+    log_scale_range: (f32, f32),
+    logit_range: (f32, f32),
+) -> GaussianCloud {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let world_from_camera = camera.world_from_camera();
+    let mut cloud = GaussianCloud::default();
+    // Spill a little outside the image so border tiles see partial splats.
+    const MARGIN_PIXELS: f32 = 10.0;
+    for _ in 0..count {
+        let z = rng.random_range(1.0f32..4.0);
+        let u = rng.random_range(-MARGIN_PIXELS..camera.width as f32 + MARGIN_PIXELS);
+        let v = rng.random_range(-MARGIN_PIXELS..camera.height as f32 + MARGIN_PIXELS);
+        let point = [
+            (u - camera.cx) * z / camera.fx,
+            (v - camera.cy) * z / camera.fy,
+            z,
+        ];
+        let mut log_scale = [0.0; 3];
+        for s in &mut log_scale {
+            *s = rng.random_range(log_scale_range.0..log_scale_range.1);
+        }
+        let quaternion = [
+            rng.random_range(-1.0f32..1.0),
+            rng.random_range(-1.0f32..1.0),
+            rng.random_range(-1.0f32..1.0),
+            rng.random_range(-1.0f32..1.0),
+        ];
+        cloud.push(
+            world_from_camera.transform_point(point),
+            log_scale,
+            quaternion,
+            rng.random_range(logit_range.0..logit_range.1),
+            [
+                rng.random_range(0.0f32..1.0),
+                rng.random_range(0.0f32..1.0),
+                rng.random_range(0.0f32..1.0),
+            ],
+        );
+    }
+    cloud
+}

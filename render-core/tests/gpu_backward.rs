@@ -1,0 +1,213 @@
+//! The wgpu backward pass against the CPU reference backward (itself checked by finite
+//! differences in src/reference.rs).
+
+mod common;
+
+use common::{default_camera, gpu, random_scene};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use render_core::backward::DeviceImageGradients;
+use render_core::gpu::{DeviceGaussians, GpuRenderer, GradientAtomics};
+use render_core::reference;
+use render_core::{Camera, GaussianCloud, GaussianGradients, ImageGradients, RasterConfig};
+
+/// Relative error allowed per entry, plus this fraction of the group's largest magnitude
+/// (f32 device arithmetic and atomic summation order against the f64 reference).
+const RELATIVE_TOLERANCE: f32 = 2e-3;
+const GROUP_TOLERANCE: f32 = 2e-4;
+
+fn random_image_gradients(camera: &Camera, seed: u64) -> ImageGradients {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let pixels = camera.pixel_count();
+    ImageGradients {
+        v_rgb: (0..pixels)
+            .map(|_| {
+                [
+                    rng.random_range(-1.0f32..1.0),
+                    rng.random_range(-1.0f32..1.0),
+                    rng.random_range(-1.0f32..1.0),
+                ]
+            })
+            .collect(),
+        v_depth: (0..pixels)
+            .map(|_| rng.random_range(-1.0f32..1.0))
+            .collect(),
+        v_alpha: (0..pixels)
+            .map(|_| rng.random_range(-1.0f32..1.0))
+            .collect(),
+    }
+}
+
+fn compare(name: &str, actual: &[f32], expected: &[f32]) {
+    assert_eq!(actual.len(), expected.len(), "{name}: length");
+    let scale = expected.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    assert!(
+        scale > 1e-3,
+        "{name}: reference gradients vanish; the comparison would be vacuous"
+    );
+    let mut worst = 0.0f32;
+    for (i, (a, e)) in actual.iter().zip(expected).enumerate() {
+        let tolerance = RELATIVE_TOLERANCE * e.abs() + GROUP_TOLERANCE * scale;
+        assert!(
+            (a - e).abs() <= tolerance,
+            "{name}[{i}]: gpu {a} vs reference {e} (scale {scale})"
+        );
+        worst = worst.max((a - e).abs() / scale);
+    }
+    eprintln!("{name}: worst error {worst:.1e} of scale {scale:.2e}");
+}
+
+fn flatten<const N: usize>(values: &[[f32; N]]) -> Vec<f32> {
+    values.iter().flatten().copied().collect()
+}
+
+fn check_backward(renderer: &GpuRenderer, cloud: &GaussianCloud, camera: &Camera, seed: u64) {
+    let context = &gpu().context;
+    let image_gradients = random_image_gradients(camera, seed);
+    let expected =
+        reference::render_backward(cloud, camera, &RasterConfig::default(), &image_gradients);
+    let gaussians = DeviceGaussians::upload(context, cloud).unwrap();
+    let frame = renderer
+        .render_frame(context, &gaussians, camera, &RasterConfig::default())
+        .unwrap();
+    let device_image_gradients =
+        DeviceImageGradients::upload(context, camera, &image_gradients).unwrap();
+    let actual: GaussianGradients = renderer
+        .backward(context, &gaussians, &frame, &device_image_gradients)
+        .unwrap()
+        .download(context)
+        .unwrap();
+    compare(
+        "v_means",
+        &flatten(&actual.v_means),
+        &flatten(&expected.v_means),
+    );
+    compare(
+        "v_log_scales",
+        &flatten(&actual.v_log_scales),
+        &flatten(&expected.v_log_scales),
+    );
+    compare(
+        "v_quaternions",
+        &flatten(&actual.v_quaternions),
+        &flatten(&expected.v_quaternions),
+    );
+    compare(
+        "v_opacity_logits",
+        &actual.v_opacity_logits,
+        &expected.v_opacity_logits,
+    );
+    compare(
+        "v_colours",
+        &flatten(&actual.v_colours),
+        &flatten(&expected.v_colours),
+    );
+    compare(
+        "v_pose",
+        &actual.v_pose.as_array(),
+        &expected.v_pose.as_array(),
+    );
+}
+
+#[test]
+fn backward_matches_reference_with_default_atomics() {
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 40, 21, (-3.0, -1.8), (-1.0, 2.0));
+    check_backward(&gpu().renderer, &cloud, &camera, 1);
+}
+
+#[test]
+fn backward_matches_reference_with_compare_exchange_atomics() {
+    let gpu = gpu();
+    let renderer = GpuRenderer::with_atomics(&gpu.context, GradientAtomics::CompareExchange);
+    assert!(!renderer.uses_float_atomics);
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 40, 22, (-3.0, -1.8), (-1.0, 2.0));
+    check_backward(&renderer, &cloud, &camera, 2);
+}
+
+#[test]
+fn backward_matches_reference_on_dense_opaque_scene() {
+    // Clamped alphas, early termination and several batches per tile.
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 400, 23, (-2.6, -1.8), (1.0, 6.0));
+    check_backward(&gpu().renderer, &cloud, &camera, 3);
+}
+
+#[test]
+fn backward_of_empty_scene_is_empty() {
+    let gpu = gpu();
+    let camera = default_camera();
+    let gaussians = DeviceGaussians::upload(&gpu.context, &GaussianCloud::default()).unwrap();
+    let frame = gpu
+        .renderer
+        .render_frame(&gpu.context, &gaussians, &camera, &RasterConfig::default())
+        .unwrap();
+    let image_gradients =
+        DeviceImageGradients::upload(&gpu.context, &camera, &random_image_gradients(&camera, 4))
+            .unwrap();
+    let gradients = gpu
+        .renderer
+        .backward(&gpu.context, &gaussians, &frame, &image_gradients)
+        .unwrap();
+    let host = gradients.download(&gpu.context).unwrap();
+    assert!(host.v_means.is_empty());
+    assert_eq!(host.v_pose.as_array(), [0.0; 6]);
+}
+
+#[test]
+fn culled_gaussians_get_zero_gradients_and_all_gradients_stay_finite() {
+    let gpu = gpu();
+    let camera = default_camera();
+    let mut cloud = random_scene(&camera, 30, 24, (-3.0, -1.8), (-1.0, 2.0));
+    let behind = camera.world_from_camera().transform_point([0.0, 0.0, -2.0]);
+    let first_hostile = cloud.len();
+    cloud.push(behind, [-2.0; 3], [1.0, 0.0, 0.0, 0.0], 1.0, [0.5; 3]);
+    cloud.push(
+        cloud.means[0],
+        [f32::NAN; 3],
+        [1.0, 0.0, 0.0, 0.0],
+        1.0,
+        [0.5; 3],
+    );
+    cloud.push(cloud.means[1], [-2.0; 3], [0.0; 4], 1.0, [0.5; 3]);
+    cloud.push(
+        cloud.means[2],
+        [-2.0; 3],
+        [1.0, 0.0, 0.0, 0.0],
+        f32::INFINITY,
+        [0.5; 3],
+    );
+    let gaussians = DeviceGaussians::upload(&gpu.context, &cloud).unwrap();
+    let frame = gpu
+        .renderer
+        .render_frame(&gpu.context, &gaussians, &camera, &RasterConfig::default())
+        .unwrap();
+    let image_gradients =
+        DeviceImageGradients::upload(&gpu.context, &camera, &random_image_gradients(&camera, 5))
+            .unwrap();
+    let host = gpu
+        .renderer
+        .backward(&gpu.context, &gaussians, &frame, &image_gradients)
+        .unwrap()
+        .download(&gpu.context)
+        .unwrap();
+    for i in first_hostile..cloud.len() {
+        assert_eq!(host.v_means[i], [0.0; 3], "culled Gaussian {i}");
+        assert_eq!(host.v_opacity_logits[i], 0.0, "culled Gaussian {i}");
+        assert_eq!(host.v_quaternions[i], [0.0; 4], "culled Gaussian {i}");
+    }
+    let all_finite = host.v_means.iter().flatten().all(|v| v.is_finite())
+        && host.v_log_scales.iter().flatten().all(|v| v.is_finite())
+        && host.v_quaternions.iter().flatten().all(|v| v.is_finite())
+        && host.v_colours.iter().flatten().all(|v| v.is_finite())
+        && host.v_opacity_logits.iter().all(|v| v.is_finite())
+        && host.v_pose.as_array().iter().all(|v| v.is_finite());
+    assert!(all_finite, "non-finite gradients: {host:?}");
+    assert!(
+        host.v_means[..first_hostile]
+            .iter()
+            .flatten()
+            .any(|&v| v != 0.0)
+    );
+}

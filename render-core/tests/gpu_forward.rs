@@ -1,0 +1,335 @@
+//! The wgpu forward path against the CPU reference, plus determinism and robustness.
+
+mod common;
+
+use common::{HEIGHT, WIDTH, camera, default_camera, gpu, random_scene};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use render_core::gpu::DeviceGaussians;
+use render_core::reference;
+use render_core::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput};
+
+/// f32 GPU arithmetic against the f64 reference: colours and alpha are in [0, 1].
+const COLOUR_TOLERANCE: f32 = 1e-5;
+/// Depth is alpha-weighted metres (scenes sit at 1-4 m).
+const DEPTH_TOLERANCE: f32 = 1e-4;
+
+fn render_gpu(cloud: &GaussianCloud, camera: &Camera) -> RenderOutput {
+    let gpu = gpu();
+    let gaussians = DeviceGaussians::upload(&gpu.context, cloud).unwrap();
+    gpu.renderer
+        .render(&gpu.context, &gaussians, camera, RenderMode::RgbD)
+        .unwrap()
+}
+
+fn max_abs_difference(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+fn assert_matches_reference(name: &str, cloud: &GaussianCloud, camera: &Camera) {
+    let expected = reference::render(cloud, camera, RenderMode::RgbD, &RasterConfig::default());
+    let actual = render_gpu(cloud, camera);
+    let flat = |rgb: &Option<Vec<[f32; 3]>>| {
+        rgb.as_ref()
+            .unwrap()
+            .iter()
+            .flatten()
+            .copied()
+            .collect::<Vec<f32>>()
+    };
+    let rgb_error = max_abs_difference(&flat(&actual.rgb), &flat(&expected.rgb));
+    let depth_error = max_abs_difference(
+        actual.depth.as_ref().unwrap(),
+        expected.depth.as_ref().unwrap(),
+    );
+    let alpha_error = max_abs_difference(&actual.alpha, &expected.alpha);
+    let covered = expected.alpha.iter().filter(|&&a| a > 0.5).count();
+    eprintln!(
+        "{name}: max |rgb| {rgb_error:.2e}, |depth| {depth_error:.2e}, |alpha| {alpha_error:.2e}, {covered} covered pixels"
+    );
+    assert!(
+        covered > 0,
+        "{name}: scene renders nothing, the comparison would be vacuous"
+    );
+    assert!(
+        rgb_error <= COLOUR_TOLERANCE,
+        "{name}: rgb differs by {rgb_error}"
+    );
+    assert!(
+        alpha_error <= COLOUR_TOLERANCE,
+        "{name}: alpha differs by {alpha_error}"
+    );
+    assert!(
+        depth_error <= DEPTH_TOLERANCE,
+        "{name}: depth differs by {depth_error}"
+    );
+}
+
+#[test]
+fn matches_reference_on_a_sparse_scene() {
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 40, 1, (-3.5, -2.0), (-1.0, 2.0));
+    assert_matches_reference("sparse", &cloud, &camera);
+}
+
+#[test]
+fn matches_reference_with_large_splats_across_tiles() {
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 12, 2, (-1.8, -0.8), (-2.0, 1.0));
+    assert_matches_reference("large splats", &cloud, &camera);
+}
+
+#[test]
+fn matches_reference_with_dense_opaque_layers_and_early_termination() {
+    // Hundreds of nearly opaque splats: exercises the 0.99 cap, early termination, and more
+    // than one 256-splat batch per tile.
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 700, 3, (-2.6, -1.8), (3.0, 6.0));
+    assert_matches_reference("dense opaque", &cloud, &camera);
+}
+
+#[test]
+fn matches_reference_with_off_centre_principal_point_and_odd_size() {
+    let camera = camera(37, 29, 9.0, 21.5);
+    let cloud = random_scene(&camera, 30, 4, (-3.2, -2.0), (-0.5, 2.0));
+    assert_matches_reference("off-centre", &cloud, &camera);
+}
+
+#[test]
+fn renders_are_bit_identical() {
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 300, 5, (-3.0, -1.5), (-1.0, 3.0));
+    let first = render_gpu(&cloud, &camera);
+    let second = render_gpu(&cloud, &camera);
+    let bits = |o: &RenderOutput| {
+        let mut bits: Vec<u32> = o
+            .rgb
+            .as_ref()
+            .unwrap()
+            .iter()
+            .flatten()
+            .map(|v| v.to_bits())
+            .collect();
+        bits.extend(o.depth.as_ref().unwrap().iter().map(|v| v.to_bits()));
+        bits.extend(o.alpha.iter().map(|v| v.to_bits()));
+        bits
+    };
+    assert_eq!(bits(&first), bits(&second));
+}
+
+#[test]
+fn empty_scene_renders_black_and_transparent() {
+    let camera = default_camera();
+    let out = render_gpu(&GaussianCloud::default(), &camera);
+    assert_eq!(out.alpha.len(), (WIDTH * HEIGHT) as usize);
+    assert!(out.alpha.iter().all(|&a| a == 0.0));
+    assert!(out.depth.unwrap().iter().all(|&d| d == 0.0));
+    assert!(out.rgb.unwrap().iter().flatten().all(|&c| c == 0.0));
+}
+
+#[test]
+fn render_modes_select_outputs() {
+    let gpu = gpu();
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 10, 6, (-3.0, -2.0), (0.0, 2.0));
+    let gaussians = DeviceGaussians::upload(&gpu.context, &cloud).unwrap();
+    let rgb_only = gpu
+        .renderer
+        .render(&gpu.context, &gaussians, &camera, RenderMode::Rgb)
+        .unwrap();
+    assert!(rgb_only.rgb.is_some() && rgb_only.depth.is_none());
+    let depth_only = gpu
+        .renderer
+        .render(&gpu.context, &gaussians, &camera, RenderMode::Depth)
+        .unwrap();
+    assert!(depth_only.rgb.is_none() && depth_only.depth.is_some());
+    assert_eq!(rgb_only.alpha, depth_only.alpha);
+}
+
+/// Gaussians that must all be culled or rendered harmlessly.
+fn hostile_gaussians(camera: &Camera) -> GaussianCloud {
+    let world_from_camera = camera.world_from_camera();
+    let in_front = world_from_camera.transform_point([0.0, 0.0, 2.0]);
+    let camera_centre = world_from_camera.transform_point([0.0, 0.0, 0.0]);
+    let behind = world_from_camera.transform_point([0.0, 0.0, -2.0]);
+    let grazing = world_from_camera.transform_point([1e-3, 0.0, 1e-7]);
+    let special = [
+        f32::NAN,
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        f32::MIN_POSITIVE / 8.0,
+        f32::MAX,
+        -f32::MAX,
+    ];
+    let mut cloud = GaussianCloud::default();
+    let unit = [1.0, 0.0, 0.0, 0.0];
+    for &value in &special {
+        cloud.push(
+            [value, in_front[1], in_front[2]],
+            [-2.0; 3],
+            unit,
+            1.0,
+            [0.5; 3],
+        );
+        cloud.push(in_front, [value, -2.0, -2.0], unit, 1.0, [0.5; 3]);
+        cloud.push(in_front, [-2.0; 3], [value, 0.0, 0.0, 0.0], 1.0, [0.5; 3]);
+        cloud.push(in_front, [-2.0; 3], unit, value, [0.5; 3]);
+        cloud.push(in_front, [-2.0; 3], unit, 1.0, [value, 0.2, 0.2]);
+    }
+    cloud.push(in_front, [-2.0; 3], [0.0; 4], 1.0, [0.5; 3]);
+    cloud.push(in_front, [-2.0; 3], [1e-30, 0.0, 0.0, 0.0], 1.0, [0.5; 3]);
+    cloud.push(camera_centre, [-2.0; 3], unit, 1.0, [0.5; 3]);
+    cloud.push(behind, [-2.0; 3], unit, 1.0, [0.5; 3]);
+    cloud.push(grazing, [-2.0; 3], unit, 1.0, [0.5; 3]);
+    cloud.push(in_front, [9.9; 3], unit, 1.0, [0.5; 3]);
+    cloud.push(in_front, [30.0; 3], unit, 1.0, [0.5; 3]);
+    cloud.push(in_front, [-80.0; 3], unit, 1.0, [0.5; 3]);
+    cloud.push(in_front, [-2.0, 8.0, -30.0], unit, 1.0, [0.5; 3]);
+    cloud.push(in_front, [-2.0; 3], unit, 1e4, [0.5; 3]);
+    cloud.push(in_front, [-2.0; 3], unit, -1e4, [0.5; 3]);
+    cloud.push([1e30, 1e30, 1e30], [-2.0; 3], unit, 1.0, [0.5; 3]);
+    cloud
+}
+
+fn assert_finite(output: &RenderOutput) {
+    assert!(
+        output
+            .rgb
+            .as_ref()
+            .unwrap()
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite())
+    );
+    assert!(output.depth.as_ref().unwrap().iter().all(|v| v.is_finite()));
+    assert!(
+        output
+            .alpha
+            .iter()
+            .all(|v| v.is_finite() && (0.0..=1.0).contains(v))
+    );
+}
+
+#[test]
+fn hostile_values_give_finite_output() {
+    let camera = default_camera();
+    let out = render_gpu(&hostile_gaussians(&camera), &camera);
+    assert_finite(&out);
+    // The reference agrees that these render (almost) nothing harmful: same finiteness.
+    let expected = reference::render(
+        &hostile_gaussians(&camera),
+        &camera,
+        RenderMode::RgbD,
+        &RasterConfig::default(),
+    );
+    assert!(expected.alpha.iter().all(|v| v.is_finite()));
+}
+
+#[test]
+fn random_fuzz_gives_finite_output() {
+    let camera = default_camera();
+    let mut rng = ChaCha8Rng::seed_from_u64(99);
+    let specials = [
+        f32::NAN,
+        f32::INFINITY,
+        -f32::INFINITY,
+        0.0,
+        -0.0,
+        1e-40,
+        1e30,
+        -1e30,
+        1e-3,
+    ];
+    for round in 0..3 {
+        let mut cloud = random_scene(&camera, 60, 100 + round, (-4.0, 1.0), (-5.0, 8.0));
+        for _ in 0..40 {
+            let i = rng.random_range(0..cloud.len());
+            let value = specials[rng.random_range(0..specials.len())];
+            match rng.random_range(0..5) {
+                0 => cloud.means[i][rng.random_range(0..3)] = value,
+                1 => cloud.log_scales[i][rng.random_range(0..3)] = value,
+                2 => cloud.quaternions[i][rng.random_range(0..4)] = value,
+                3 => cloud.opacity_logits[i] = value,
+                _ => cloud.colours[i][rng.random_range(0..3)] = value,
+            }
+        }
+        assert_finite(&render_gpu(&cloud, &camera));
+    }
+}
+
+#[test]
+fn culled_gaussians_change_nothing() {
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 50, 7, (-3.0, -1.8), (-1.0, 2.0));
+    let baseline = render_gpu(&cloud, &camera);
+    let mut polluted = GaussianCloud::default();
+    let hostile = hostile_gaussians(&camera);
+    // Interleave culled Gaussians with the valid ones, keeping the valid ones' relative order.
+    let culled_indices: Vec<usize> = (0..hostile.len())
+        .filter(|&i| reference::project_gaussian(&hostile, i, &camera).is_none())
+        .collect();
+    assert!(
+        culled_indices.len() > 20,
+        "only {} hostile Gaussians are culled",
+        culled_indices.len()
+    );
+    for i in 0..cloud.len() {
+        let h = culled_indices[i % culled_indices.len()];
+        polluted.push(
+            hostile.means[h],
+            hostile.log_scales[h],
+            hostile.quaternions[h],
+            hostile.opacity_logits[h],
+            hostile.colours[h],
+        );
+        polluted.push(
+            cloud.means[i],
+            cloud.log_scales[i],
+            cloud.quaternions[i],
+            cloud.opacity_logits[i],
+            cloud.colours[i],
+        );
+    }
+    let with_culled = render_gpu(&polluted, &camera);
+    assert_eq!(baseline, with_culled);
+}
+
+#[test]
+fn device_radix_sort_is_stable_and_correct() {
+    let gpu = gpu();
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    // Several scan levels (more than 256 * 256 histogram entries would be slow; 70k pairs
+    // give 16 * 274 table entries: two levels) and many duplicate keys.
+    let count = 70_000;
+    let keys: Vec<u32> = (0..count)
+        .map(|_| rng.random_range(0..5000u32) * 0x1_0001)
+        .collect();
+    let values: Vec<u32> = (0..count as u32).collect();
+    let (sorted_keys, sorted_values) = gpu
+        .renderer
+        .sort_pairs(&gpu.context, &keys, &values, 32)
+        .unwrap();
+    let mut expected: Vec<(u32, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
+    expected.sort_by_key(|&(k, _)| k); // std's sort_by_key is stable
+    let (expected_keys, expected_values): (Vec<u32>, Vec<u32>) = expected.into_iter().unzip();
+    assert_eq!(sorted_keys, expected_keys);
+    assert_eq!(sorted_values, expected_values);
+    let (low_keys, _) = gpu
+        .renderer
+        .sort_pairs(&gpu.context, &[7, 0x10, 3], &[0, 1, 2], 4)
+        .unwrap();
+    assert_eq!(low_keys, vec![0x10, 3, 7], "sorting on the low 4 bits only");
+}
+
+#[test]
+fn gaussians_round_trip_through_the_device() {
+    let gpu = gpu();
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 17, 9, (-3.0, -2.0), (0.0, 1.0));
+    let gaussians = DeviceGaussians::upload(&gpu.context, &cloud).unwrap();
+    assert_eq!(gaussians.download(&gpu.context).unwrap(), cloud);
+}
