@@ -23,7 +23,14 @@ pub struct Intrinsics {
 
 impl Intrinsics {
     pub fn new(fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32) -> Self {
-        Self { fx, fy, cx, cy, width, height }
+        Self {
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+        }
     }
 
     /// Camera-frame point -> pixel coordinates. `None` for points at or behind the camera.
@@ -67,15 +74,23 @@ impl Intrinsics {
 
     /// Checks that every parameter is finite and positive where it must be.
     pub fn validate(&self) -> Result<(), String> {
-        let finite = [self.fx, self.fy, self.cx, self.cy].iter().all(|v| v.is_finite());
+        let finite = [self.fx, self.fy, self.cx, self.cy]
+            .iter()
+            .all(|v| v.is_finite());
         if !finite {
             return Err(format!("non-finite intrinsics {self:?}"));
         }
         if self.fx <= 0.0 || self.fy <= 0.0 {
-            return Err(format!("focal lengths must be positive, got fx={} fy={}", self.fx, self.fy));
+            return Err(format!(
+                "focal lengths must be positive, got fx={} fy={}",
+                self.fx, self.fy
+            ));
         }
         if self.width == 0 || self.height == 0 {
-            return Err(format!("image size must be positive, got {}x{}", self.width, self.height));
+            return Err(format!(
+                "image size must be positive, got {}x{}",
+                self.width, self.height
+            ));
         }
         Ok(())
     }
@@ -108,8 +123,11 @@ impl Intrinsics {
                 format!("expected a 3x3 matrix K, found {} rows", rows.len()),
             ));
         }
-        let k = Self::new(rows[0][0], rows[1][1], rows[0][2], rows[1][2], width, height);
-        k.validate().map_err(|reason| DatasetError::format(path, None, reason))?;
+        let k = Self::new(
+            rows[0][0], rows[1][1], rows[0][2], rows[1][2], width, height,
+        );
+        k.validate()
+            .map_err(|reason| DatasetError::format(path, None, reason))?;
         Ok(k)
     }
 }
@@ -133,8 +151,13 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("camera-intrinsics.txt");
         std::fs::write(&path, "585 0 320\n0 585 x\n0 0 1\n").unwrap();
-        let err = Intrinsics::read_k_file(&path, 640, 480).unwrap_err().to_string();
-        assert!(err.contains("camera-intrinsics.txt") && err.contains("line 2"), "{err}");
+        let err = Intrinsics::read_k_file(&path, 640, 480)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("camera-intrinsics.txt") && err.contains("line 2"),
+            "{err}"
+        );
         std::fs::write(&path, "585 0 320\n0 585 240\n0 0 1\n").unwrap();
         let k = Intrinsics::read_k_file(&path, 640, 480).unwrap();
         assert_eq!((k.fx, k.fy, k.cx, k.cy), (585.0, 585.0, 320.0, 240.0));

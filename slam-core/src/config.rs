@@ -189,38 +189,72 @@ pub enum ConfigError {
     #[error("{path}: {message}")]
     Parse { path: PathBuf, message: String },
     #[error("{path}: {field}: {reason}")]
-    Invalid { path: PathBuf, field: &'static str, reason: String },
+    Invalid {
+        path: PathBuf,
+        field: &'static str,
+        reason: String,
+    },
 }
 
 impl Config {
     /// Loads and validates a TOML file; errors name the file and the field.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io { path: path.to_path_buf(), source })?;
-        let config: Config =
-            toml::from_str(&text).map_err(|e| ConfigError::Parse { path: path.to_path_buf(), message: e.to_string() })?;
-        config.validate().map_err(|(field, reason)| ConfigError::Invalid { path: path.to_path_buf(), field, reason })?;
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let config: Config = toml::from_str(&text).map_err(|e| ConfigError::Parse {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+        config
+            .validate()
+            .map_err(|(field, reason)| ConfigError::Invalid {
+                path: path.to_path_buf(),
+                field,
+                reason,
+            })?;
         Ok(config)
     }
 
     /// Checks ranges; returns the offending field and why.
     pub fn validate(&self) -> Result<(), (&'static str, String)> {
         fn positive(field: &'static str, v: f64) -> Result<(), (&'static str, String)> {
-            if v.is_finite() && v > 0.0 { Ok(()) } else { Err((field, format!("must be a positive number, got {v}"))) }
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err((field, format!("must be a positive number, got {v}")))
+            }
         }
         fn non_negative(field: &'static str, v: f64) -> Result<(), (&'static str, String)> {
-            if v.is_finite() && v >= 0.0 { Ok(()) } else { Err((field, format!("must be >= 0, got {v}"))) }
+            if v.is_finite() && v >= 0.0 {
+                Ok(())
+            } else {
+                Err((field, format!("must be >= 0, got {v}")))
+            }
         }
         fn fraction(field: &'static str, v: f64) -> Result<(), (&'static str, String)> {
-            if (0.0..=1.0).contains(&v) { Ok(()) } else { Err((field, format!("must be in [0, 1], got {v}"))) }
+            if (0.0..=1.0).contains(&v) {
+                Ok(())
+            } else {
+                Err((field, format!("must be in [0, 1], got {v}")))
+            }
         }
         fn at_least_one(field: &'static str, v: usize) -> Result<(), (&'static str, String)> {
-            if v >= 1 { Ok(()) } else { Err((field, "must be at least 1".to_string())) }
+            if v >= 1 {
+                Ok(())
+            } else {
+                Err((field, "must be at least 1".to_string()))
+            }
         }
         let t = &self.tracking;
         at_least_one("tracking.pixel_stride", t.pixel_stride)?;
         positive("tracking.truncation_m", t.truncation_m)?;
         if t.covariance_neighbours < 3 {
-            return Err(("tracking.covariance_neighbours", "a covariance needs at least 3 neighbours".into()));
+            return Err((
+                "tracking.covariance_neighbours",
+                "a covariance needs at least 3 neighbours".into(),
+            ));
         }
         positive("tracking.covariance_epsilon", t.covariance_epsilon)?;
         fraction("tracking.trackable_min_opacity", t.trackable_min_opacity)?;
@@ -232,9 +266,15 @@ impl Config {
         positive("keyframes.overlap_distance_sq_m2", k.overlap_distance_sq_m2)?;
         fraction("keyframes.min_overlap_fraction", k.min_overlap_fraction)?;
         at_least_one("keyframes.mapping_keyframe_every", k.mapping_keyframe_every)?;
-        positive("keyframes.trackable_new_distance_sq_m2", k.trackable_new_distance_sq_m2)?;
+        positive(
+            "keyframes.trackable_new_distance_sq_m2",
+            k.trackable_new_distance_sq_m2,
+        )?;
         if !(k.initial_opacity > 0.0 && k.initial_opacity < 1.0) {
-            return Err(("keyframes.initial_opacity", format!("must be in (0, 1), got {}", k.initial_opacity)));
+            return Err((
+                "keyframes.initial_opacity",
+                format!("must be in (0, 1), got {}", k.initial_opacity),
+            ));
         }
         let m = &self.mapping;
         for (field, v) in [
@@ -257,17 +297,30 @@ impl Config {
         at_least_one("consensus.t_comm", c.t_comm)?;
         fraction("consensus.tau_same_agent", c.tau_same_agent)?;
         fraction("consensus.tau_other_agent", c.tau_other_agent)?;
-        if c.association_distances_m.is_empty() || c.association_distances_m.iter().any(|d| !(d.is_finite() && *d > 0.0)) {
-            return Err(("consensus.association_distances_m", "must be a non-empty list of positive distances".into()));
+        if c.association_distances_m.is_empty()
+            || c.association_distances_m
+                .iter()
+                .any(|d| !(d.is_finite() && *d > 0.0))
+        {
+            return Err((
+                "consensus.association_distances_m",
+                "must be a non-empty list of positive distances".into(),
+            ));
         }
         if c.association_distances_m.windows(2).any(|w| w[1] > w[0]) {
-            return Err(("consensus.association_distances_m", "must go from coarse to fine (decreasing)".into()));
+            return Err((
+                "consensus.association_distances_m",
+                "must go from coarse to fine (decreasing)".into(),
+            ));
         }
         for (field, v) in [
             ("consensus.weight_l1", c.weight_l1),
             ("consensus.weight_ssim", c.weight_ssim),
             ("consensus.weight_depth", c.weight_depth),
-            ("consensus.weight_pose_consistency", c.weight_pose_consistency),
+            (
+                "consensus.weight_pose_consistency",
+                c.weight_pose_consistency,
+            ),
         ] {
             non_negative(field, v)?;
         }
@@ -284,7 +337,9 @@ impl Config {
         const FNV_OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
         const FNV_PRIME: u64 = 0x0000_0100_0000_01b3;
         let canonical = toml::to_string(self).expect("a Config always serialises");
-        canonical.bytes().fold(FNV_OFFSET, |h, b| (h ^ b as u64).wrapping_mul(FNV_PRIME))
+        canonical
+            .bytes()
+            .fold(FNV_OFFSET, |h, b| (h ^ b as u64).wrapping_mul(FNV_PRIME))
     }
 }
 
@@ -306,7 +361,10 @@ mod tests {
                 count += 1;
             }
         }
-        assert!(count >= 4, "expected the per-dataset configs, found {count}");
+        assert!(
+            count >= 4,
+            "expected the per-dataset configs, found {count}"
+        );
     }
 
     #[test]
@@ -327,11 +385,23 @@ mod tests {
         let path = dir.path().join("bad.toml");
         std::fs::write(&path, "[tracking]\npixel_strde = 3\n").unwrap();
         let err = Config::load(&path).unwrap_err().to_string();
-        assert!(err.contains("bad.toml") && err.contains("pixel_strde"), "{err}");
+        assert!(
+            err.contains("bad.toml") && err.contains("pixel_strde"),
+            "{err}"
+        );
         std::fs::write(&path, "[keyframes]\nmin_overlap_fraction = 1.5\n").unwrap();
         let err = Config::load(&path).unwrap_err().to_string();
         assert!(err.contains("keyframes.min_overlap_fraction"), "{err}");
-        std::fs::write(&path, "[consensus]\nassociation_distances_m = [0.02, 0.1]\n").unwrap();
-        assert!(Config::load(&path).unwrap_err().to_string().contains("coarse to fine"));
+        std::fs::write(
+            &path,
+            "[consensus]\nassociation_distances_m = [0.02, 0.1]\n",
+        )
+        .unwrap();
+        assert!(
+            Config::load(&path)
+                .unwrap_err()
+                .to_string()
+                .contains("coarse to fine")
+        );
     }
 }

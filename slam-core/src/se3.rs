@@ -1,7 +1,9 @@
 //! SE(3) / Sim(3) helpers on nalgebra types (f64). Poses are `Isometry3<f64>`; names say which
 //! frames they map between (`world_from_camera` maps camera-frame points into the world).
 
-use nalgebra::{Isometry3, Matrix3, Matrix4, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{
+    Isometry3, Matrix3, Matrix4, Point3, Rotation3, Translation3, UnitQuaternion, Vector3,
+};
 
 /// How far a 3x3 matrix may be from orthonormal before it is refused as a rotation.
 const ROTATION_TOLERANCE: f64 = 1e-3;
@@ -9,14 +11,23 @@ const ROTATION_TOLERANCE: f64 = 1e-3;
 /// Builds a rigid pose from a rotation matrix and a translation. The rotation is re-orthonormalised
 /// (files store rounded decimals) but refused when it is clearly not a rotation (scaled, sheared,
 /// reflected).
-pub fn isometry_from_rt(rotation: &Matrix3<f64>, translation: &Vector3<f64>) -> Result<Isometry3<f64>, String> {
+pub fn isometry_from_rt(
+    rotation: &Matrix3<f64>,
+    translation: &Vector3<f64>,
+) -> Result<Isometry3<f64>, String> {
     let should_be_identity = rotation.transpose() * rotation;
     let error = (should_be_identity - Matrix3::identity()).abs().max();
     if !error.is_finite() || error > ROTATION_TOLERANCE || rotation.determinant() <= 0.0 {
-        return Err(format!("rotation part is not orthonormal (|R^T R - I| = {error:.2e}, det = {:.4})", rotation.determinant()));
+        return Err(format!(
+            "rotation part is not orthonormal (|R^T R - I| = {error:.2e}, det = {:.4})",
+            rotation.determinant()
+        ));
     }
     let rot = Rotation3::from_matrix_eps(rotation, 1e-12, 100, Rotation3::identity());
-    Ok(Isometry3::from_parts(Translation3::from(*translation), UnitQuaternion::from_rotation_matrix(&rot)))
+    Ok(Isometry3::from_parts(
+        Translation3::from(*translation),
+        UnitQuaternion::from_rotation_matrix(&rot),
+    ))
 }
 
 /// Pose from TUM's `tx ty tz qx qy qz qw` (Hamilton quaternion, normalised here).
@@ -25,9 +36,14 @@ pub fn isometry_from_tum(values: &[f64; 7]) -> Result<Isometry3<f64>, String> {
     let q = nalgebra::Quaternion::new(qw, qx, qy, qz);
     let norm = q.norm();
     if !norm.is_finite() || norm < 1e-6 {
-        return Err(format!("quaternion ({qx} {qy} {qz} {qw}) has zero or non-finite norm"));
+        return Err(format!(
+            "quaternion ({qx} {qy} {qz} {qw}) has zero or non-finite norm"
+        ));
     }
-    Ok(Isometry3::from_parts(Translation3::new(tx, ty, tz), UnitQuaternion::from_quaternion(q)))
+    Ok(Isometry3::from_parts(
+        Translation3::new(tx, ty, tz),
+        UnitQuaternion::from_quaternion(q),
+    ))
 }
 
 /// Pose -> TUM's `tx ty tz qx qy qz qw`, with qw >= 0 for a canonical sign.
@@ -60,7 +76,11 @@ pub struct Similarity {
 
 impl Similarity {
     pub fn identity() -> Self {
-        Self { rotation: UnitQuaternion::identity(), translation: Vector3::zeros(), scale: 1.0 }
+        Self {
+            rotation: UnitQuaternion::identity(),
+            translation: Vector3::zeros(),
+            scale: 1.0,
+        }
     }
 
     pub fn transform_point(&self, p: &Point3<f64>) -> Point3<f64> {
@@ -70,7 +90,10 @@ impl Similarity {
     /// Applies the similarity to a pose: rotation composed, position transformed.
     pub fn transform_pose(&self, pose: &Isometry3<f64>) -> Isometry3<f64> {
         let position = self.transform_point(&Point3::from(pose.translation.vector));
-        Isometry3::from_parts(Translation3::from(position.coords), self.rotation * pose.rotation)
+        Isometry3::from_parts(
+            Translation3::from(position.coords),
+            self.rotation * pose.rotation,
+        )
     }
 
     /// The rigid part (scale dropped), as an isometry.
@@ -83,14 +106,24 @@ impl Similarity {
 /// minimises sum |target_i - (s R source_i + t)|^2. With `with_scale = false` s is fixed to 1
 /// (SE(3) alignment, right for metric RGB-D trajectories). Needs at least 3 non-collinear pairs
 /// for a unique rotation; returns `None` with fewer than 2 pairs or degenerate input.
-pub fn umeyama(source: &[Point3<f64>], target: &[Point3<f64>], with_scale: bool) -> Option<Similarity> {
+pub fn umeyama(
+    source: &[Point3<f64>],
+    target: &[Point3<f64>],
+    with_scale: bool,
+) -> Option<Similarity> {
     let n = source.len();
     if n < 2 || n != target.len() {
         return None;
     }
     let inv_n = 1.0 / n as f64;
-    let mean_s = source.iter().fold(Vector3::zeros(), |acc, p| acc + p.coords) * inv_n;
-    let mean_t = target.iter().fold(Vector3::zeros(), |acc, p| acc + p.coords) * inv_n;
+    let mean_s = source
+        .iter()
+        .fold(Vector3::zeros(), |acc, p| acc + p.coords)
+        * inv_n;
+    let mean_t = target
+        .iter()
+        .fold(Vector3::zeros(), |acc, p| acc + p.coords)
+        * inv_n;
     let mut cov = Matrix3::zeros();
     let mut var_s = 0.0;
     for (s, t) in source.iter().zip(target) {
@@ -121,7 +154,11 @@ pub fn umeyama(source: &[Point3<f64>], target: &[Point3<f64>], with_scale: bool)
         return None;
     }
     let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r));
-    Some(Similarity { rotation, translation: t, scale })
+    Some(Similarity {
+        rotation,
+        translation: t,
+        scale,
+    })
 }
 
 #[cfg(test)]
@@ -146,7 +183,12 @@ mod tests {
         assert!((est.scale - 1.7).abs() < 1e-9);
         assert!(est.rotation.angle_to(&truth.rotation) < 1e-9);
         assert!((est.translation - truth.translation).norm() < 1e-9);
-        let rigid = umeyama(&source, &source.iter().map(|p| truth.rigid() * p).collect::<Vec<_>>(), false).unwrap();
+        let rigid = umeyama(
+            &source,
+            &source.iter().map(|p| truth.rigid() * p).collect::<Vec<_>>(),
+            false,
+        )
+        .unwrap();
         assert_eq!(rigid.scale, 1.0);
         assert!(rigid.rotation.angle_to(&truth.rotation) < 1e-9);
         assert!(umeyama(&source[..1], &target[..1], false).is_none());
@@ -156,14 +198,19 @@ mod tests {
     fn refuses_non_rotations() {
         let t = Vector3::zeros();
         assert!(isometry_from_rt(&(Matrix3::identity() * 2.0), &t).is_err());
-        assert!(isometry_from_rt(&Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, -1.0)), &t).is_err());
+        assert!(
+            isometry_from_rt(&Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, -1.0)), &t).is_err()
+        );
         assert!(isometry_from_rt(&Matrix3::identity(), &t).is_ok());
         assert!(isometry_from_tum(&[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]).is_err());
     }
 
     #[test]
     fn tum_round_trip() {
-        let pose = Isometry3::from_parts(Translation3::new(1.0, 2.0, 3.0), UnitQuaternion::from_euler_angles(0.1, 0.2, 2.9));
+        let pose = Isometry3::from_parts(
+            Translation3::new(1.0, 2.0, 3.0),
+            UnitQuaternion::from_euler_angles(0.1, 0.2, 2.9),
+        );
         let back = isometry_from_tum(&isometry_to_tum(&pose)).unwrap();
         assert!((back.to_homogeneous() - pose.to_homogeneous()).abs().max() < 1e-12);
     }

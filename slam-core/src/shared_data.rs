@@ -18,7 +18,10 @@ pub fn shared_dir() -> PathBuf {
         return PathBuf::from(dir);
     }
     // slam-core sits one level below the workspace root.
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join("..").join("shared")
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join("..")
+        .join("shared")
 }
 
 /// Path of `relative` inside the shared folder, or a panic that says what is missing and how to

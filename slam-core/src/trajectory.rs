@@ -9,7 +9,7 @@ use std::path::Path;
 
 use nalgebra::Isometry3;
 
-use crate::dataset::{NO_CLOCK_FRAMES_PER_SECOND, DatasetError, parse_floats, pose_from_row_major};
+use crate::dataset::{DatasetError, NO_CLOCK_FRAMES_PER_SECOND, parse_floats, pose_from_row_major};
 use crate::se3::{isometry_from_tum, isometry_to_tum};
 
 /// File formats of [`Trajectory`].
@@ -26,7 +26,9 @@ impl std::str::FromStr for TrajectoryFormat {
         match s {
             "tum" => Ok(Self::Tum),
             "kitti-c2w" => Ok(Self::KittiC2w),
-            other => Err(format!("unknown trajectory format {other:?}: expected tum or kitti-c2w")),
+            other => Err(format!(
+                "unknown trajectory format {other:?}: expected tum or kitti-c2w"
+            )),
         }
     }
 }
@@ -59,7 +61,10 @@ impl Trajectory {
 
     /// Sum of distances between consecutive camera positions, metres.
     pub fn path_length(&self) -> f64 {
-        self.poses.windows(2).map(|w| (w[1].translation.vector - w[0].translation.vector).norm()).sum()
+        self.poses
+            .windows(2)
+            .map(|w| (w[1].translation.vector - w[0].translation.vector).norm())
+            .sum()
     }
 
     pub fn read(path: &Path, format: TrajectoryFormat) -> Result<Self, DatasetError> {
@@ -81,10 +86,15 @@ impl Trajectory {
             let err = |reason: String| DatasetError::format(path, Some(line_no + 1), reason);
             let values = parse_floats(&line.replace(',', " ")).map_err(err)?;
             if values.len() != 8 {
-                return Err(err(format!("expected 8 numbers (t tx ty tz qx qy qz qw), found {}", values.len())));
+                return Err(err(format!(
+                    "expected 8 numbers (t tx ty tz qx qy qz qw), found {}",
+                    values.len()
+                )));
             }
-            let pose = isometry_from_tum(&[values[1], values[2], values[3], values[4], values[5], values[6], values[7]])
-                .map_err(err)?;
+            let pose = isometry_from_tum(&[
+                values[1], values[2], values[3], values[4], values[5], values[6], values[7],
+            ])
+            .map_err(err)?;
             traj.push(values[0], pose);
         }
         if traj.is_empty() {
@@ -118,14 +128,21 @@ impl Trajectory {
         writeln!(out, "# timestamp tx ty tz qx qy qz qw (camera-to-world)")?;
         for (stamp, pose) in self.stamps.iter().zip(&self.poses) {
             let v = isometry_to_tum(pose);
-            writeln!(out, "{stamp:.6} {} {} {} {} {} {} {}", v[0], v[1], v[2], v[3], v[4], v[5], v[6])?;
+            writeln!(
+                out,
+                "{stamp:.6} {} {} {} {} {} {} {}",
+                v[0], v[1], v[2], v[3], v[4], v[5], v[6]
+            )?;
         }
         Ok(())
     }
 
     pub fn write_tum(&self, path: &Path) -> Result<(), DatasetError> {
-        let mut file = std::io::BufWriter::new(std::fs::File::create(path).map_err(|e| DatasetError::io(path, e))?);
-        self.write_tum_to(&mut file).map_err(|e| DatasetError::io(path, e))?;
+        let mut file = std::io::BufWriter::new(
+            std::fs::File::create(path).map_err(|e| DatasetError::io(path, e))?,
+        );
+        self.write_tum_to(&mut file)
+            .map_err(|e| DatasetError::io(path, e))?;
         file.flush().map_err(|e| DatasetError::io(path, e))
     }
 }
@@ -141,7 +158,13 @@ mod tests {
         let path = dir.path().join("t.txt");
         let traj = Trajectory::from_pairs((0..5).map(|i| {
             let f = i as f64;
-            (f / 30.0, Isometry3::from_parts(Translation3::new(f, -f, 0.5), UnitQuaternion::from_euler_angles(0.1 * f, 0.2, -0.3)))
+            (
+                f / 30.0,
+                Isometry3::from_parts(
+                    Translation3::new(f, -f, 0.5),
+                    UnitQuaternion::from_euler_angles(0.1 * f, 0.2, -0.3),
+                ),
+            )
         }));
         traj.write_tum(&path).unwrap();
         let back = Trajectory::read_tum(&path).unwrap();
@@ -153,7 +176,12 @@ mod tests {
         let err = Trajectory::read_tum(&path).unwrap_err().to_string();
         assert!(err.contains("t.txt line 3"), "{err}");
         std::fs::write(&path, "0 1 2 3 0 0 0\n").unwrap();
-        assert!(Trajectory::read_tum(&path).unwrap_err().to_string().contains("line 1"));
+        assert!(
+            Trajectory::read_tum(&path)
+                .unwrap_err()
+                .to_string()
+                .contains("line 1")
+        );
         std::fs::write(&path, "").unwrap();
         assert!(Trajectory::read_tum(&path).is_err());
     }
@@ -162,7 +190,11 @@ mod tests {
     fn kitti_c2w_reads_rows() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("traj.txt");
-        std::fs::write(&path, "1 0 0 1 0 1 0 2 0 0 1 3 0 0 0 1\n1 0 0 4 0 1 0 5 0 0 1 6 0 0 0 1\n").unwrap();
+        std::fs::write(
+            &path,
+            "1 0 0 1 0 1 0 2 0 0 1 3 0 0 0 1\n1 0 0 4 0 1 0 5 0 0 1 6 0 0 0 1\n",
+        )
+        .unwrap();
         let t = Trajectory::read_kitti_c2w(&path).unwrap();
         assert_eq!(t.stamps, vec![0.0, 1.0 / 30.0]);
         assert_eq!(t.poses[1].translation.vector.z, 6.0);

@@ -56,7 +56,10 @@ pub struct MetricsArgs {
 
 fn default_dataset(given: &Option<String>) -> String {
     given.clone().unwrap_or_else(|| {
-        slam_core::shared_data::shared_dir().join("datasets/7scenes-redkitchen").to_string_lossy().into_owned()
+        slam_core::shared_data::shared_dir()
+            .join("datasets/7scenes-redkitchen")
+            .to_string_lossy()
+            .into_owned()
     })
 }
 
@@ -73,7 +76,8 @@ struct ReadersReport {
 
 fn run_readers(args: &ReadersArgs) -> anyhow::Result<()> {
     let spec = default_dataset(&args.dataset);
-    let ds: Arc<dyn Dataset> = Arc::from(dataset::open(&spec, args.frames).with_context(|| format!("opening {spec}"))?);
+    let ds: Arc<dyn Dataset> =
+        Arc::from(dataset::open(&spec, args.frames).with_context(|| format!("opening {spec}"))?);
     let n = ds.len();
     // Warm the page cache once so both runs measure decoding, not the first disk read.
     for i in 0..n {
@@ -102,10 +106,21 @@ fn run_readers(args: &ReadersArgs) -> anyhow::Result<()> {
     if args.json {
         return print_json(&report);
     }
-    println!("reader throughput: {} ({} frames, {}x{})", report.dataset, n, k.width, k.height);
+    println!(
+        "reader throughput: {} ({} frames, {}x{})",
+        report.dataset, n, k.width, k.height
+    );
     println!("  {:<34} {:>10}", "source", "frames/s");
-    println!("  {:<34} {:>10}", "sequential decode (1 thread)", fmt_num(sequential_fps, 1));
-    println!("  {:<34} {:>10}", format!("prefetching source ({} workers)", args.workers), fmt_num(prefetch_fps, 1));
+    println!(
+        "  {:<34} {:>10}",
+        "sequential decode (1 thread)",
+        fmt_num(sequential_fps, 1)
+    );
+    println!(
+        "  {:<34} {:>10}",
+        format!("prefetching source ({} workers)", args.workers),
+        fmt_num(prefetch_fps, 1)
+    );
     Ok(())
 }
 
@@ -145,20 +160,43 @@ fn run_metrics(args: &MetricsArgs) -> anyhow::Result<()> {
             gt.push(ds.timestamp(i), p);
         }
     }
-    anyhow::ensure!(gt.len() >= 3, "{spec}: needs ground-truth poses to time ATE");
-    let est = Trajectory::from_pairs(gt.stamps.iter().zip(&gt.poses).enumerate().map(|(i, (t, p))| {
-        let wobble = 0.01 * (i as f64 * 0.37).sin();
-        (*t, Isometry3::from_parts(Translation3::new(wobble, -wobble, 0.0), Default::default()) * p)
-    }));
-    let ate_ms = time_ms(args.repeats, || Ok(ate(&gt, &est, Alignment::Se3, DEFAULT_MAX_DT).map(|_| ())?))?;
-    let psnr_ssim_ms = time_ms(args.repeats, || Ok(image_quality(&a.rgb, &b.rgb).map(|_| ())?))?;
-    let depth_l1_ms = time_ms(args.repeats, || Ok(depth_l1_cm(&a.depth, &b.depth).map(|_| ())?))?;
-    let weights = args.weights.clone().unwrap_or_else(|| slam_core::shared_data::shared_dir().join("weights/lpips/alexnet.npz"));
+    anyhow::ensure!(
+        gt.len() >= 3,
+        "{spec}: needs ground-truth poses to time ATE"
+    );
+    let est = Trajectory::from_pairs(gt.stamps.iter().zip(&gt.poses).enumerate().map(
+        |(i, (t, p))| {
+            let wobble = 0.01 * (i as f64 * 0.37).sin();
+            (
+                *t,
+                Isometry3::from_parts(Translation3::new(wobble, -wobble, 0.0), Default::default())
+                    * p,
+            )
+        },
+    ));
+    let ate_ms = time_ms(args.repeats, || {
+        Ok(ate(&gt, &est, Alignment::Se3, DEFAULT_MAX_DT).map(|_| ())?)
+    })?;
+    let psnr_ssim_ms = time_ms(args.repeats, || {
+        Ok(image_quality(&a.rgb, &b.rgb).map(|_| ())?)
+    })?;
+    let depth_l1_ms = time_ms(args.repeats, || {
+        Ok(depth_l1_cm(&a.depth, &b.depth).map(|_| ())?)
+    })?;
+    let weights = args
+        .weights
+        .clone()
+        .unwrap_or_else(|| slam_core::shared_data::shared_dir().join("weights/lpips/alexnet.npz"));
     let lpips_ms = if weights.is_file() {
         let lpips = Lpips::load(&weights)?;
-        Some(time_ms(args.repeats, || Ok(lpips.distance(&a.rgb, &b.rgb).map(|_| ())?))?)
+        Some(time_ms(args.repeats, || {
+            Ok(lpips.distance(&a.rgb, &b.rgb).map(|_| ())?)
+        })?)
     } else {
-        eprintln!("LPIPS skipped: no weights at {} (scripts/get_lpips_weights.sh)", weights.display());
+        eprintln!(
+            "LPIPS skipped: no weights at {} (scripts/get_lpips_weights.sh)",
+            weights.display()
+        );
         None
     };
     let k = ds.intrinsics();
@@ -175,13 +213,32 @@ fn run_metrics(args: &MetricsArgs) -> anyhow::Result<()> {
     if args.json {
         return print_json(&report);
     }
-    println!("metric timings (median of {} runs): {}", args.repeats, report.dataset);
+    println!(
+        "metric timings (median of {} runs): {}",
+        args.repeats, report.dataset
+    );
     println!("  {:<40} {:>10}", "metric", "ms");
-    println!("  {:<40} {:>10}", format!("ATE, {} poses, SE(3) alignment", gt.len()), fmt_num(ate_ms, 3));
-    println!("  {:<40} {:>10}", format!("PSNR + SSIM (both), {}x{}", k.width, k.height), fmt_num(psnr_ssim_ms, 3));
-    println!("  {:<40} {:>10}", format!("depth L1, {}x{}", k.width, k.height), fmt_num(depth_l1_ms, 3));
+    println!(
+        "  {:<40} {:>10}",
+        format!("ATE, {} poses, SE(3) alignment", gt.len()),
+        fmt_num(ate_ms, 3)
+    );
+    println!(
+        "  {:<40} {:>10}",
+        format!("PSNR + SSIM (both), {}x{}", k.width, k.height),
+        fmt_num(psnr_ssim_ms, 3)
+    );
+    println!(
+        "  {:<40} {:>10}",
+        format!("depth L1, {}x{}", k.width, k.height),
+        fmt_num(depth_l1_ms, 3)
+    );
     match lpips_ms {
-        Some(ms) => println!("  {:<40} {:>10}", format!("LPIPS AlexNet, {}x{}", k.width, k.height), fmt_num(ms, 3)),
+        Some(ms) => println!(
+            "  {:<40} {:>10}",
+            format!("LPIPS AlexNet, {}x{}", k.width, k.height),
+            fmt_num(ms, 3)
+        ),
         None => println!("  {:<40} {:>10}", "LPIPS AlexNet", "skipped"),
     }
     Ok(())

@@ -128,10 +128,16 @@ fn info(ds: &dyn Dataset, samples: usize) -> anyhow::Result<DatasetInfo> {
 
 fn print_info(i: &DatasetInfo) {
     println!("{}", i.source);
-    println!("  frames            {} (numbers {}..={}, {:.2} s)", i.frames, i.first_frame, i.last_frame, i.duration_s);
+    println!(
+        "  frames            {} (numbers {}..={}, {:.2} s)",
+        i.frames, i.first_frame, i.last_frame, i.duration_s
+    );
     println!("  resolution        {}x{}", i.width, i.height);
     let k = &i.intrinsics;
-    println!("  intrinsics        fx {} fy {} cx {} cy {}", k.fx, k.fy, k.cx, k.cy);
+    println!(
+        "  intrinsics        fx {} fy {} cx {} cy {}",
+        k.fx, k.fy, k.cx, k.cy
+    );
     println!(
         "  depth             {:.1}% valid, {}..{} m, median {} m ({} frames sampled)",
         100.0 * i.depth_valid_fraction,
@@ -141,17 +147,32 @@ fn print_info(i: &DatasetInfo) {
         i.sampled_frames
     );
     match i.trajectory_length_m {
-        Some(len) => println!("  ground truth      {} poses, path length {len:.3} m", i.ground_truth_poses),
+        Some(len) => println!(
+            "  ground truth      {} poses, path length {len:.3} m",
+            i.ground_truth_poses
+        ),
         None => println!("  ground truth      none"),
     }
 }
 
 fn export_frame(args: &FrameArgs) -> anyhow::Result<()> {
-    let range = FrameRange { first: args.frame, end: Some(args.frame + 1) };
-    let ds = dataset::open(&args.path, range).with_context(|| format!("opening dataset {}", args.path))?;
-    anyhow::ensure!(!ds.is_empty() && ds.frame_index(0) == args.frame, "{}: no frame {}", args.path, args.frame);
+    let range = FrameRange {
+        first: args.frame,
+        end: Some(args.frame + 1),
+    };
+    let ds = dataset::open(&args.path, range)
+        .with_context(|| format!("opening dataset {}", args.path))?;
+    anyhow::ensure!(
+        !ds.is_empty() && ds.frame_index(0) == args.frame,
+        "{}: no frame {}",
+        args.path,
+        args.frame
+    );
     let frame = ds.load(0)?;
-    frame.rgb.save(&args.rgb).with_context(|| format!("writing {}", args.rgb.display()))?;
+    frame
+        .rgb
+        .save(&args.rgb)
+        .with_context(|| format!("writing {}", args.rgb.display()))?;
     if let Some(depth) = &args.depth {
         dataset::write_depth_png(depth, &frame.depth, MILLIMETRES_PER_METRE)?;
     }
@@ -172,17 +193,27 @@ pub fn run(command: &DatasetCommand) -> anyhow::Result<()> {
         if agents.is_empty() {
             dataset::detect_layout(path)?; // reports the unknown layout
         }
-        agents.iter().map(|p| p.to_string_lossy().into_owned()).collect()
+        agents
+            .iter()
+            .map(|p| p.to_string_lossy().into_owned())
+            .collect()
     } else {
         vec![args.path.clone()]
     };
     let mut infos = Vec::new();
     for source in &sources {
-        let ds = dataset::open(source, args.frames).with_context(|| format!("opening dataset {source}"))?;
-        infos.push(info(ds.as_ref(), args.samples).with_context(|| format!("reading dataset {source}"))?);
+        let ds = dataset::open(source, args.frames)
+            .with_context(|| format!("opening dataset {source}"))?;
+        infos.push(
+            info(ds.as_ref(), args.samples).with_context(|| format!("reading dataset {source}"))?,
+        );
     }
     if args.json {
-        return if infos.len() == 1 { print_json(&infos[0]) } else { print_json(&infos) };
+        return if infos.len() == 1 {
+            print_json(&infos[0])
+        } else {
+            print_json(&infos)
+        };
     }
     for i in &infos {
         print_info(i);

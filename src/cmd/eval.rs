@@ -108,21 +108,35 @@ fn stats_row(name: &str, s: &AteStats) -> String {
 
 fn run_ate(args: &AteArgs) -> anyhow::Result<()> {
     if args.gt.len() != args.est.len() {
-        bail!("--gt was given {} times and --est {} times: give one of each per agent", args.gt.len(), args.est.len());
+        bail!(
+            "--gt was given {} times and --est {} times: give one of each per agent",
+            args.gt.len(),
+            args.est.len()
+        );
     }
-    let read = |p: &Path| Trajectory::read(p, args.format).with_context(|| format!("reading trajectory {}", p.display()));
+    let read = |p: &Path| {
+        Trajectory::read(p, args.format)
+            .with_context(|| format!("reading trajectory {}", p.display()))
+    };
     let mut agents = Vec::new();
     for (gt, est) in args.gt.iter().zip(&args.est) {
         agents.push((read(gt)?, read(est)?));
     }
     if agents.len() == 1 {
         let (gt, est) = &agents[0];
-        let r = ate(gt, est, args.align, args.max_dt).with_context(|| format!("{} vs {}", args.gt[0].display(), args.est[0].display()))?;
+        let r = ate(gt, est, args.align, args.max_dt)
+            .with_context(|| format!("{} vs {}", args.gt[0].display(), args.est[0].display()))?;
         if args.json {
             return print_json(&r.stats);
         }
-        println!("ATE (translation, metres; alignment {:?}, max dt {} s)", args.align, args.max_dt);
-        println!("{:<22} {:>10} {:>10} {:>10} {:>10} {:>7}", "", "rmse", "mean", "median", "max", "pairs");
+        println!(
+            "ATE (translation, metres; alignment {:?}, max dt {} s)",
+            args.align, args.max_dt
+        );
+        println!(
+            "{:<22} {:>10} {:>10} {:>10} {:>10} {:>7}",
+            "", "rmse", "mean", "median", "max", "pairs"
+        );
         println!("{}", stats_row("trajectory", &r.stats));
         return Ok(());
     }
@@ -154,40 +168,82 @@ fn run_ate(args: &AteArgs) -> anyhow::Result<()> {
         };
         return print_json(&out);
     }
-    println!("Joint ATE over {} agents (translation, metres; one {:?} alignment for all)", agents.len(), args.align);
-    println!("{:<22} {:>10} {:>10} {:>10} {:>10} {:>7}", "", "rmse", "mean", "median", "max", "pairs");
+    println!(
+        "Joint ATE over {} agents (translation, metres; one {:?} alignment for all)",
+        agents.len(),
+        args.align
+    );
+    println!(
+        "{:<22} {:>10} {:>10} {:>10} {:>10} {:>7}",
+        "", "rmse", "mean", "median", "max", "pairs"
+    );
     println!("{}", stats_row("joint", &j.joint));
     for k in 0..agents.len() {
-        println!("{}", stats_row(&format!("agent {k} (joint align)"), &j.per_agent_joint_aligned[k]));
-        println!("{}", stats_row(&format!("agent {k} (own align)"), &j.per_agent_self_aligned[k]));
+        println!(
+            "{}",
+            stats_row(
+                &format!("agent {k} (joint align)"),
+                &j.per_agent_joint_aligned[k]
+            )
+        );
+        println!(
+            "{}",
+            stats_row(
+                &format!("agent {k} (own align)"),
+                &j.per_agent_self_aligned[k]
+            )
+        );
     }
     Ok(())
 }
 
 fn open_rgb(path: &Path) -> anyhow::Result<image::RgbImage> {
-    Ok(image::open(path).with_context(|| format!("reading image {}", path.display()))?.to_rgb8())
+    Ok(image::open(path)
+        .with_context(|| format!("reading image {}", path.display()))?
+        .to_rgb8())
 }
 
 fn run_image(args: &ImageArgs) -> anyhow::Result<()> {
     let reference = open_rgb(&args.reference)?;
     let rendered = open_rgb(&args.rendered)?;
-    let q = image_quality(&reference, &rendered)
-        .with_context(|| format!("{} vs {}", args.reference.display(), args.rendered.display()))?;
+    let q = image_quality(&reference, &rendered).with_context(|| {
+        format!(
+            "{} vs {}",
+            args.reference.display(),
+            args.rendered.display()
+        )
+    })?;
     if args.json {
         return print_json(&q);
     }
     println!("PSNR  {} dB (data range 1)", fmt_num(q.psnr, 4));
-    println!("SSIM  {} (11x11 Gaussian, zero-padded, 3DGS style)", fmt_num(q.ssim, 6));
-    println!("SSIM  {} (valid region, scikit-image style)", fmt_num(q.ssim_valid, 6));
+    println!(
+        "SSIM  {} (11x11 Gaussian, zero-padded, 3DGS style)",
+        fmt_num(q.ssim, 6)
+    );
+    println!(
+        "SSIM  {} (valid region, scikit-image style)",
+        fmt_num(q.ssim_valid, 6)
+    );
     Ok(())
 }
 
 fn run_lpips(args: &LpipsArgs) -> anyhow::Result<()> {
-    let weights = args.weights.clone().unwrap_or_else(|| slam_core::shared_data::shared_dir().join("weights/lpips/alexnet.npz"));
-    let lpips = Lpips::load(&weights).with_context(|| format!("loading LPIPS weights {} (see scripts/get_lpips_weights.sh)", weights.display()))?;
+    let weights = args
+        .weights
+        .clone()
+        .unwrap_or_else(|| slam_core::shared_data::shared_dir().join("weights/lpips/alexnet.npz"));
+    let lpips = Lpips::load(&weights).with_context(|| {
+        format!(
+            "loading LPIPS weights {} (see scripts/get_lpips_weights.sh)",
+            weights.display()
+        )
+    })?;
     let a = open_rgb(&args.a)?;
     let b = open_rgb(&args.b)?;
-    let d = lpips.distance(&a, &b).with_context(|| format!("{} vs {}", args.a.display(), args.b.display()))?;
+    let d = lpips
+        .distance(&a, &b)
+        .with_context(|| format!("{} vs {}", args.a.display(), args.b.display()))?;
     if args.json {
         return print_json(&serde_json::json!({ "lpips": d }));
     }
@@ -202,7 +258,10 @@ fn read_depth(path: &Path, units_per_metre: f64) -> anyhow::Result<DepthImage> {
 
 fn run_depth(args: &DepthArgs) -> anyhow::Result<()> {
     if !(args.units_per_metre.is_finite() && args.units_per_metre > 0.0) {
-        bail!("--units-per-metre must be positive, got {}", args.units_per_metre);
+        bail!(
+            "--units-per-metre must be positive, got {}",
+            args.units_per_metre
+        );
     }
     let reference = read_depth(&args.reference, args.units_per_metre)?;
     let rendered = read_depth(&args.rendered, args.units_per_metre)?;
@@ -211,6 +270,9 @@ fn run_depth(args: &DepthArgs) -> anyhow::Result<()> {
     if args.json {
         return print_json(&serde_json::json!({ "depth_l1_cm": l1 }));
     }
-    println!("depth L1 {} cm (over valid reference pixels)", fmt_num(l1, 4));
+    println!(
+        "depth L1 {} cm (over valid reference pixels)",
+        fmt_num(l1, 4)
+    );
     Ok(())
 }

@@ -13,5 +13,9 @@ pub fn print_json(value: &impl serde::Serialize) -> anyhow::Result<()> {
 
 /// Formats a number for a table, showing non-finite values plainly.
 pub fn fmt_num(v: f64, decimals: usize) -> String {
-    if v.is_finite() { format!("{v:.decimals$}") } else { format!("{v}") }
+    if v.is_finite() {
+        format!("{v:.decimals$}")
+    } else {
+        format!("{v}")
+    }
 }

@@ -37,7 +37,11 @@ pub struct DepthImage {
 
 impl DepthImage {
     pub fn new(width: u32, height: u32) -> Self {
-        Self { width, height, data: vec![0.0; width as usize * height as usize] }
+        Self {
+            width,
+            height,
+            data: vec![0.0; width as usize * height as usize],
+        }
     }
 
     /// Builds a depth image from raw 16-bit sensor units: `metres = raw / units_per_metre`.
@@ -52,9 +56,19 @@ impl DepthImage {
         // Divide in f64 so that e.g. 1234 mm becomes exactly the f32 nearest 1.234 m.
         let data = raw
             .iter()
-            .map(|&r| if r == 0 || Some(r) == invalid_raw { 0.0 } else { (r as f64 / units_per_metre) as f32 })
+            .map(|&r| {
+                if r == 0 || Some(r) == invalid_raw {
+                    0.0
+                } else {
+                    (r as f64 / units_per_metre) as f32
+                }
+            })
             .collect();
-        Self { width, height, data }
+        Self {
+            width,
+            height,
+            data,
+        }
     }
 
     #[inline]
@@ -83,7 +97,13 @@ impl DepthImage {
     pub fn to_raw_u16(&self, units_per_metre: f64) -> Vec<u16> {
         self.data
             .iter()
-            .map(|&d| if d > 0.0 { (d as f64 * units_per_metre).round().clamp(1.0, 65534.0) as u16 } else { 0 })
+            .map(|&d| {
+                if d > 0.0 {
+                    (d as f64 * units_per_metre).round().clamp(1.0, 65534.0) as u16
+                } else {
+                    0
+                }
+            })
             .collect()
     }
 }
@@ -116,24 +136,46 @@ pub enum DatasetError {
     #[error("{path}: cannot decode image: {reason}")]
     Decode { path: PathBuf, reason: String },
     #[error("{path}{}: {reason}", line.map(|l| format!(" line {l}")).unwrap_or_default())]
-    Format { path: PathBuf, line: Option<usize>, reason: String },
+    Format {
+        path: PathBuf,
+        line: Option<usize>,
+        reason: String,
+    },
     #[error("{path}: missing frame {index} (file not found)")]
     MissingFrame { path: PathBuf, index: usize },
-    #[error("{path}: image is {found_w}x{found_h}, expected {expected_w}x{expected_h} like the other images of this dataset")]
-    SizeMismatch { path: PathBuf, expected_w: u32, expected_h: u32, found_w: u32, found_h: u32 },
+    #[error(
+        "{path}: image is {found_w}x{found_h}, expected {expected_w}x{expected_h} like the other images of this dataset"
+    )]
+    SizeMismatch {
+        path: PathBuf,
+        expected_w: u32,
+        expected_h: u32,
+        found_w: u32,
+        found_h: u32,
+    },
     #[error("{0}")]
     Invalid(String),
 }
 
 impl DatasetError {
     pub fn io(path: &Path, source: std::io::Error) -> Self {
-        Self::Io { path: path.to_path_buf(), source }
+        Self::Io {
+            path: path.to_path_buf(),
+            source,
+        }
     }
     pub fn format(path: &Path, line: Option<usize>, reason: impl Into<String>) -> Self {
-        Self::Format { path: path.to_path_buf(), line, reason: reason.into() }
+        Self::Format {
+            path: path.to_path_buf(),
+            line,
+            reason: reason.into(),
+        }
     }
     pub fn decode(path: &Path, reason: impl fmt::Display) -> Self {
-        Self::Decode { path: path.to_path_buf(), reason: reason.to_string() }
+        Self::Decode {
+            path: path.to_path_buf(),
+            reason: reason.to_string(),
+        }
     }
     /// True when the error means "this frame is not there" rather than "this frame is broken";
     /// callers may skip such frames with a warning.
@@ -174,7 +216,10 @@ pub struct FrameRange {
 }
 
 impl FrameRange {
-    pub const ALL: FrameRange = FrameRange { first: 0, end: None };
+    pub const ALL: FrameRange = FrameRange {
+        first: 0,
+        end: None,
+    };
 
     pub fn contains(&self, frame: usize) -> bool {
         frame >= self.first && self.end.is_none_or(|end| frame < end)
@@ -184,14 +229,28 @@ impl FrameRange {
 impl FromStr for FrameRange {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        let bad = || format!("invalid frame range {s:?}: expected FIRST..END (END excluded), FIRST.. or ..END");
+        let bad = || {
+            format!(
+                "invalid frame range {s:?}: expected FIRST..END (END excluded), FIRST.. or ..END"
+            )
+        };
         let (a, b) = s.trim().split_once("..").ok_or_else(bad)?;
-        let first = if a.is_empty() { 0 } else { a.trim().parse().map_err(|_| bad())? };
-        let end = if b.is_empty() { None } else { Some(b.trim().parse().map_err(|_| bad())?) };
+        let first = if a.is_empty() {
+            0
+        } else {
+            a.trim().parse().map_err(|_| bad())?
+        };
+        let end = if b.is_empty() {
+            None
+        } else {
+            Some(b.trim().parse().map_err(|_| bad())?)
+        };
         if let Some(end) = end
             && end <= first
         {
-            return Err(format!("invalid frame range {s:?}: END must be greater than FIRST"));
+            return Err(format!(
+                "invalid frame range {s:?}: END must be greater than FIRST"
+            ));
         }
         Ok(Self { first, end })
     }
@@ -210,8 +269,14 @@ impl fmt::Display for FrameRange {
 pub fn parse_floats(line: &str) -> Result<Vec<f64>, String> {
     line.split_whitespace()
         .map(|tok| {
-            let v: f64 = tok.parse().map_err(|_| format!("{tok:?} is not a number"))?;
-            if v.is_finite() { Ok(v) } else { Err(format!("{tok:?} is not a finite number")) }
+            let v: f64 = tok
+                .parse()
+                .map_err(|_| format!("{tok:?} is not a number"))?;
+            if v.is_finite() {
+                Ok(v)
+            } else {
+                Err(format!("{tok:?} is not a finite number"))
+            }
         })
         .collect()
 }
@@ -219,23 +284,34 @@ pub fn parse_floats(line: &str) -> Result<Vec<f64>, String> {
 /// Row-major 4x4 matrix (16 numbers) -> rigid pose, refusing matrices that are not rigid.
 pub fn pose_from_row_major(values: &[f64]) -> Result<Isometry3<f64>, String> {
     if values.len() != 16 && values.len() != 12 {
-        return Err(format!("expected 12 or 16 numbers for a pose matrix, found {}", values.len()));
+        return Err(format!(
+            "expected 12 or 16 numbers for a pose matrix, found {}",
+            values.len()
+        ));
     }
     let m = nalgebra::Matrix3x4::from_row_slice(&values[..12]);
     if values.len() == 16 {
         let last = &values[12..16];
         if (last[0].abs() + last[1].abs() + last[2].abs()) > 1e-6 || (last[3] - 1.0).abs() > 1e-6 {
-            return Err(format!("last row of the pose matrix must be 0 0 0 1, found {last:?}"));
+            return Err(format!(
+                "last row of the pose matrix must be 0 0 0 1, found {last:?}"
+            ));
         }
     }
-    crate::se3::isometry_from_rt(&m.fixed_view::<3, 3>(0, 0).into_owned(), &m.column(3).into_owned())
+    crate::se3::isometry_from_rt(
+        &m.fixed_view::<3, 3>(0, 0).into_owned(),
+        &m.column(3).into_owned(),
+    )
 }
 
 /// Reads an 8-bit RGB image (PNG or JPEG; grey and RGBA are converted), naming the file on error.
 pub fn read_rgb(path: &Path, index: usize) -> Result<RgbImage, DatasetError> {
     let bytes = std::fs::read(path).map_err(|e| {
         if e.kind() == std::io::ErrorKind::NotFound {
-            DatasetError::MissingFrame { path: path.to_path_buf(), index }
+            DatasetError::MissingFrame {
+                path: path.to_path_buf(),
+                index,
+            }
         } else {
             DatasetError::io(path, e)
         }
@@ -243,9 +319,9 @@ pub fn read_rgb(path: &Path, index: usize) -> Result<RgbImage, DatasetError> {
     let img = image::load_from_memory(&bytes).map_err(|e| DatasetError::decode(path, e))?;
     match img {
         image::DynamicImage::ImageRgb8(rgb) => Ok(rgb),
-        image::DynamicImage::ImageRgba8(_) | image::DynamicImage::ImageLuma8(_) | image::DynamicImage::ImageLumaA8(_) => {
-            Ok(img.to_rgb8())
-        }
+        image::DynamicImage::ImageRgba8(_)
+        | image::DynamicImage::ImageLuma8(_)
+        | image::DynamicImage::ImageLumaA8(_) => Ok(img.to_rgb8()),
         other => Err(DatasetError::decode(
             path,
             format!("expected an 8-bit colour image, found {:?}", other.color()),
@@ -258,7 +334,10 @@ pub fn read_rgb(path: &Path, index: usize) -> Result<RgbImage, DatasetError> {
 pub fn read_depth_u16(path: &Path, index: usize) -> Result<(u32, u32, Vec<u16>), DatasetError> {
     let bytes = std::fs::read(path).map_err(|e| {
         if e.kind() == std::io::ErrorKind::NotFound {
-            DatasetError::MissingFrame { path: path.to_path_buf(), index }
+            DatasetError::MissingFrame {
+                path: path.to_path_buf(),
+                index,
+            }
         } else {
             DatasetError::io(path, e)
         }
@@ -272,22 +351,35 @@ pub fn read_depth_u16(path: &Path, index: usize) -> Result<(u32, u32, Vec<u16>),
         }
         other => Err(DatasetError::decode(
             path,
-            format!("depth must be a 16-bit single-channel PNG, found {:?}", other.color()),
+            format!(
+                "depth must be a 16-bit single-channel PNG, found {:?}",
+                other.color()
+            ),
         )),
     }
 }
 
 /// Writes a depth image as a 16-bit PNG in `units_per_metre` (1000 = millimetres).
-pub fn write_depth_png(path: &Path, depth: &DepthImage, units_per_metre: f64) -> Result<(), DatasetError> {
+pub fn write_depth_png(
+    path: &Path,
+    depth: &DepthImage,
+    units_per_metre: f64,
+) -> Result<(), DatasetError> {
     let raw = depth.to_raw_u16(units_per_metre);
     let buf: image::ImageBuffer<image::Luma<u16>, Vec<u16>> =
-        image::ImageBuffer::from_raw(depth.width, depth.height, raw)
-            .ok_or_else(|| DatasetError::Invalid("depth buffer size does not match its dimensions".into()))?;
+        image::ImageBuffer::from_raw(depth.width, depth.height, raw).ok_or_else(|| {
+            DatasetError::Invalid("depth buffer size does not match its dimensions".into())
+        })?;
     buf.save(path).map_err(|e| DatasetError::decode(path, e))
 }
 
 /// Checks an image against the dataset's expected size.
-pub fn check_size(path: &Path, intrinsics: &Intrinsics, w: u32, h: u32) -> Result<(), DatasetError> {
+pub fn check_size(
+    path: &Path,
+    intrinsics: &Intrinsics,
+    w: u32,
+    h: u32,
+) -> Result<(), DatasetError> {
     if (w, h) != (intrinsics.width, intrinsics.height) {
         return Err(DatasetError::SizeMismatch {
             path: path.to_path_buf(),
@@ -349,7 +441,9 @@ pub fn detect_layout(dir: &Path) -> Result<Layout, DatasetError> {
     for entry in entries.flatten() {
         let name = entry.file_name();
         let name = name.to_string_lossy();
-        if name.starts_with("frame-") && (name.ends_with(".color.png") || name.ends_with(".color.jpg")) {
+        if name.starts_with("frame-")
+            && (name.ends_with(".color.png") || name.ends_with(".color.jpg"))
+        {
             return Ok(Layout::SevenScenes);
         }
     }
@@ -365,7 +459,10 @@ pub fn detect_layout(dir: &Path) -> Result<Layout, DatasetError> {
 /// output of `mac-ego3d synth` (`agent_0`, `agent_1`, ...).
 pub fn agent_folders(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
     let mut found = Vec::new();
-    for entry in std::fs::read_dir(dir).map_err(|e| DatasetError::io(dir, e))?.flatten() {
+    for entry in std::fs::read_dir(dir)
+        .map_err(|e| DatasetError::io(dir, e))?
+        .flatten()
+    {
         let path = entry.path();
         if path.is_dir() && detect_layout(&path).is_ok() {
             found.push(path);
@@ -381,9 +478,27 @@ mod tests {
 
     #[test]
     fn frame_range_parses_and_refuses() {
-        assert_eq!("0..600".parse::<FrameRange>().unwrap(), FrameRange { first: 0, end: Some(600) });
-        assert_eq!("400..".parse::<FrameRange>().unwrap(), FrameRange { first: 400, end: None });
-        assert_eq!("..10".parse::<FrameRange>().unwrap(), FrameRange { first: 0, end: Some(10) });
+        assert_eq!(
+            "0..600".parse::<FrameRange>().unwrap(),
+            FrameRange {
+                first: 0,
+                end: Some(600)
+            }
+        );
+        assert_eq!(
+            "400..".parse::<FrameRange>().unwrap(),
+            FrameRange {
+                first: 400,
+                end: None
+            }
+        );
+        assert_eq!(
+            "..10".parse::<FrameRange>().unwrap(),
+            FrameRange {
+                first: 0,
+                end: Some(10)
+            }
+        );
         assert!("5..5".parse::<FrameRange>().is_err());
         assert!("a..5".parse::<FrameRange>().is_err());
         assert!("12".parse::<FrameRange>().is_err());
@@ -402,14 +517,20 @@ mod tests {
 
     #[test]
     fn sanitize_replaces_nan_inf_negative() {
-        let mut d = DepthImage { width: 4, height: 1, data: vec![f32::NAN, f32::INFINITY, -1.0, 2.0] };
+        let mut d = DepthImage {
+            width: 4,
+            height: 1,
+            data: vec![f32::NAN, f32::INFINITY, -1.0, 2.0],
+        };
         assert_eq!(d.sanitize(), 3);
         assert_eq!(d.data, vec![0.0, 0.0, 0.0, 2.0]);
     }
 
     #[test]
     fn pose_matrix_must_be_rigid() {
-        let id = [1., 0., 0., 1., 0., 1., 0., 2., 0., 0., 1., 3., 0., 0., 0., 1.];
+        let id = [
+            1., 0., 0., 1., 0., 1., 0., 2., 0., 0., 1., 3., 0., 0., 0., 1.,
+        ];
         let p = pose_from_row_major(&id).unwrap();
         assert_eq!(p.translation.vector, nalgebra::Vector3::new(1.0, 2.0, 3.0));
         let mut scaled = id;

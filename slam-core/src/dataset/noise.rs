@@ -26,7 +26,9 @@ impl std::str::FromStr for NoiseTarget {
             "rgb" => Ok(Self::Rgb),
             "depth" => Ok(Self::Depth),
             "rgbd" => Ok(Self::Rgbd),
-            other => Err(format!("unknown noise target {other:?}: expected rgb, depth or rgbd")),
+            other => Err(format!(
+                "unknown noise target {other:?}: expected rgb, depth or rgbd"
+            )),
         }
     }
 }
@@ -45,13 +47,21 @@ pub struct NoiseConfig {
 
 impl Default for NoiseConfig {
     fn default() -> Self {
-        Self { target: NoiseTarget::Rgbd, rgb_sigma: 10.0 / 255.0, depth_sigma_m: 0.005, seed: 0 }
+        Self {
+            target: NoiseTarget::Rgbd,
+            rgb_sigma: 10.0 / 255.0,
+            depth_sigma_m: 0.005,
+            seed: 0,
+        }
     }
 }
 
 impl NoiseConfig {
     pub fn with_target(target: NoiseTarget) -> Self {
-        Self { target, ..Self::default() }
+        Self {
+            target,
+            ..Self::default()
+        }
     }
 
     /// Adds noise to a frame in place. RGB values are rounded and clamped to 0..=255. Depth noise
@@ -68,7 +78,8 @@ impl NoiseConfig {
                 *v = noisy.round().clamp(0.0, 255.0) as u8;
             }
         }
-        if matches!(self.target, NoiseTarget::Depth | NoiseTarget::Rgbd) && self.depth_sigma_m > 0.0 {
+        if matches!(self.target, NoiseTarget::Depth | NoiseTarget::Rgbd) && self.depth_sigma_m > 0.0
+        {
             let normal = Normal::new(0.0, self.depth_sigma_m).expect("finite positive sigma");
             for d in frame.depth.data.iter_mut().filter(|d| **d > 0.0) {
                 let noisy = *d as f64 + normal.sample(&mut rng);
@@ -87,7 +98,11 @@ mod tests {
     fn flat_frame(index: usize) -> Frame {
         let (w, h) = (64, 64);
         let mut depth = DepthImage::new(w, h);
-        depth.data.iter_mut().enumerate().for_each(|(i, d)| *d = if i % 10 == 0 { 0.0 } else { 2.0 });
+        depth
+            .data
+            .iter_mut()
+            .enumerate()
+            .for_each(|(i, d)| *d = if i % 10 == 0 { 0.0 } else { 2.0 });
         Frame {
             index,
             timestamp: 0.0,

@@ -54,7 +54,13 @@ impl Prefetcher {
                 .expect("spawning a prefetch thread");
             handles.push(handle);
         }
-        Self { receivers, next_position: 0, len, stop, workers: handles }
+        Self {
+            receivers,
+            next_position: 0,
+            len,
+            stop,
+            workers: handles,
+        }
     }
 
     /// Number of frames the stream yields in total.
@@ -80,7 +86,10 @@ impl Iterator for Prefetcher {
             // A worker only hangs up early if it panicked inside Dataset::load.
             Err(_) => (
                 self.next_position,
-                Err(DatasetError::Invalid(format!("frame decoder thread died at position {}", self.next_position))),
+                Err(DatasetError::Invalid(format!(
+                    "frame decoder thread died at position {}",
+                    self.next_position
+                ))),
             ),
         };
         self.next_position += 1;

@@ -10,15 +10,21 @@ use std::path::{Path, PathBuf};
 use nalgebra::Isometry3;
 
 use super::{
-    Dataset, DatasetError, DepthImage, Frame, FrameRange, NO_CLOCK_FRAMES_PER_SECOND, check_size, read_depth_u16,
-    read_rgb,
+    Dataset, DatasetError, DepthImage, Frame, FrameRange, NO_CLOCK_FRAMES_PER_SECOND, check_size,
+    read_depth_u16, read_rgb,
 };
 use crate::camera::Intrinsics;
 use crate::trajectory::Trajectory;
 
 /// Replica renders of NICE-SLAM: 1200x680, fx = fy = 600, principal point at the image centre.
-pub const DEFAULT_INTRINSICS: Intrinsics =
-    Intrinsics { fx: 600.0, fy: 600.0, cx: 599.5, cy: 339.5, width: 1200, height: 680 };
+pub const DEFAULT_INTRINSICS: Intrinsics = Intrinsics {
+    fx: 600.0,
+    fy: 600.0,
+    cx: 599.5,
+    cy: 339.5,
+    width: 1200,
+    height: 680,
+};
 /// Depth PNG units: raw / 6553.5 = metres (so 65535 = 10 m).
 pub const DEPTH_UNITS_PER_METRE: f64 = 6553.5;
 
@@ -39,13 +45,21 @@ impl Replica {
             let entry = entry.map_err(|e| DatasetError::io(&results, e))?;
             let name = entry.file_name();
             let name = name.to_string_lossy();
-            let Some(rest) = name.strip_prefix("frame") else { continue };
-            let Some((number, ext)) = rest.rsplit_once('.') else { continue };
+            let Some(rest) = name.strip_prefix("frame") else {
+                continue;
+            };
+            let Some((number, ext)) = rest.rsplit_once('.') else {
+                continue;
+            };
             if !matches!(ext, "jpg" | "png") {
                 continue;
             }
             let number: usize = number.parse().map_err(|_| {
-                DatasetError::format(&entry.path(), None, format!("frame number {number:?} is not an integer"))
+                DatasetError::format(
+                    &entry.path(),
+                    None,
+                    format!("frame number {number:?} is not an integer"),
+                )
             })?;
             if range.contains(number) {
                 frames.insert(number, entry.path());
@@ -65,18 +79,28 @@ impl Replica {
             return Err(DatasetError::format(
                 &traj_path,
                 None,
-                format!("has {} poses but {} is frame {last}", poses.len(), path.display()),
+                format!(
+                    "has {} poses but {} is frame {last}",
+                    poses.len(),
+                    path.display()
+                ),
             ));
         }
         let k_path = dir.join(super::seven_scenes::INTRINSICS_FILE);
         let intrinsics = if k_path.is_file() {
             let first = frames.values().next().expect("frames is not empty");
-            let (w, h) = image::image_dimensions(first).map_err(|e| DatasetError::decode(first, e))?;
+            let (w, h) =
+                image::image_dimensions(first).map_err(|e| DatasetError::decode(first, e))?;
             Intrinsics::read_k_file(&k_path, w, h)?
         } else {
             DEFAULT_INTRINSICS
         };
-        Ok(Self { dir: dir.to_path_buf(), frames: frames.into_iter().collect(), poses, intrinsics })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            frames: frames.into_iter().collect(),
+            poses,
+            intrinsics,
+        })
     }
 }
 
@@ -103,7 +127,10 @@ impl Dataset for Replica {
         let (number, color) = &self.frames[position];
         let rgb = read_rgb(color, *number)?;
         check_size(color, &self.intrinsics, rgb.width(), rgb.height())?;
-        let depth_file = self.dir.join("results").join(format!("depth{number:06}.png"));
+        let depth_file = self
+            .dir
+            .join("results")
+            .join(format!("depth{number:06}.png"));
         let (w, h, raw) = read_depth_u16(&depth_file, *number)?;
         check_size(&depth_file, &self.intrinsics, w, h)?;
         Ok(Frame {
@@ -126,10 +153,16 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let results = dir.path().join("results");
         std::fs::create_dir(&results).unwrap();
-        std::fs::write(dir.path().join("camera-intrinsics.txt"), "600 0 3.5\n0 600 2.5\n0 0 1\n").unwrap();
+        std::fs::write(
+            dir.path().join("camera-intrinsics.txt"),
+            "600 0 3.5\n0 600 2.5\n0 0 1\n",
+        )
+        .unwrap();
         let mut traj = String::new();
         for i in 0..3 {
-            image::RgbImage::from_pixel(8, 6, image::Rgb([i as u8, 0, 0])).save(results.join(format!("frame{i:06}.png"))).unwrap();
+            image::RgbImage::from_pixel(8, 6, image::Rgb([i as u8, 0, 0]))
+                .save(results.join(format!("frame{i:06}.png")))
+                .unwrap();
             image::ImageBuffer::<image::Luma<u16>, _>::from_pixel(8, 6, image::Luma([6554u16]))
                 .save(results.join(format!("depth{i:06}.png")))
                 .unwrap();
@@ -144,8 +177,15 @@ mod tests {
         assert_eq!(f.world_from_camera_gt.unwrap().translation.vector.x, 2.0);
         assert_eq!(f.intrinsics.width, 8);
         // traj.txt shorter than the frames -> an error naming traj.txt.
-        std::fs::write(dir.path().join("traj.txt"), "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n").unwrap();
-        let err = Replica::open(dir.path(), FrameRange::ALL).err().unwrap().to_string();
+        std::fs::write(
+            dir.path().join("traj.txt"),
+            "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n",
+        )
+        .unwrap();
+        let err = Replica::open(dir.path(), FrameRange::ALL)
+            .err()
+            .unwrap()
+            .to_string();
         assert!(err.contains("traj.txt"), "{err}");
     }
 }

@@ -10,11 +10,21 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Isometry3;
 
-use super::{NO_CLOCK_FRAMES_PER_SECOND, Dataset, DatasetError, DepthImage, Frame, FrameRange, check_size, parse_floats, pose_from_row_major, read_depth_u16, read_rgb};
+use super::{
+    Dataset, DatasetError, DepthImage, Frame, FrameRange, NO_CLOCK_FRAMES_PER_SECOND, check_size,
+    parse_floats, pose_from_row_major, read_depth_u16, read_rgb,
+};
 use crate::camera::Intrinsics;
 
 /// Kinect v1 defaults of the 7-Scenes release.
-pub const DEFAULT_INTRINSICS: Intrinsics = Intrinsics { fx: 585.0, fy: 585.0, cx: 320.0, cy: 240.0, width: 640, height: 480 };
+pub const DEFAULT_INTRINSICS: Intrinsics = Intrinsics {
+    fx: 585.0,
+    fy: 585.0,
+    cx: 320.0,
+    cy: 240.0,
+    width: 640,
+    height: 480,
+};
 /// Depth PNG units: millimetres.
 pub const DEPTH_UNITS_PER_METRE: f64 = 1000.0;
 /// Raw depth value the 7-Scenes release uses for holes (besides 0).
@@ -44,13 +54,21 @@ impl SevenScenes {
             let entry = entry.map_err(|e| DatasetError::io(dir, e))?;
             let name = entry.file_name();
             let name = name.to_string_lossy();
-            let Some(rest) = name.strip_prefix("frame-") else { continue };
-            let Some((number, ext)) = rest.split_once(".color.") else { continue };
+            let Some(rest) = name.strip_prefix("frame-") else {
+                continue;
+            };
+            let Some((number, ext)) = rest.split_once(".color.") else {
+                continue;
+            };
             if ext != "png" && ext != "jpg" {
                 continue;
             }
             let number: usize = number.parse().map_err(|_| {
-                DatasetError::format(&entry.path(), None, format!("frame number {number:?} is not an integer"))
+                DatasetError::format(
+                    &entry.path(),
+                    None,
+                    format!("frame number {number:?} is not an integer"),
+                )
             })?;
             if !range.contains(number) {
                 continue;
@@ -78,8 +96,15 @@ impl SevenScenes {
         } else {
             DEFAULT_INTRINSICS
         };
-        let frames = by_number.into_iter().map(|(number, color)| FrameFiles { number, color }).collect();
-        Ok(Self { dir: dir.to_path_buf(), frames, intrinsics })
+        let frames = by_number
+            .into_iter()
+            .map(|(number, color)| FrameFiles { number, color })
+            .collect();
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            frames,
+            intrinsics,
+        })
     }
 
     pub fn dir(&self) -> &Path {
@@ -111,15 +136,24 @@ pub fn read_pose_file(path: &Path) -> Result<Isometry3<f64>, DatasetError> {
         if line.trim().is_empty() {
             continue;
         }
-        let row = parse_floats(line).map_err(|r| DatasetError::format(path, Some(line_no + 1), r))?;
+        let row =
+            parse_floats(line).map_err(|r| DatasetError::format(path, Some(line_no + 1), r))?;
         if row.len() != 4 {
-            return Err(DatasetError::format(path, Some(line_no + 1), format!("expected 4 numbers, found {}", row.len())));
+            return Err(DatasetError::format(
+                path,
+                Some(line_no + 1),
+                format!("expected 4 numbers, found {}", row.len()),
+            ));
         }
         values.extend(row);
         rows += 1;
     }
     if rows != 4 {
-        return Err(DatasetError::format(path, None, format!("expected a 4x4 matrix, found {rows} rows")));
+        return Err(DatasetError::format(
+            path,
+            None,
+            format!("expected a 4x4 matrix, found {rows} rows"),
+        ));
     }
     pose_from_row_major(&values).map_err(|r| DatasetError::format(path, None, r))
 }
@@ -154,7 +188,8 @@ impl Dataset for SevenScenes {
         let depth_file = depth_path(&self.dir, files.number);
         let (w, h, raw) = read_depth_u16(&depth_file, files.number)?;
         check_size(&depth_file, &self.intrinsics, w, h)?;
-        let depth = DepthImage::from_raw_u16(w, h, &raw, DEPTH_UNITS_PER_METRE, Some(INVALID_DEPTH_RAW));
+        let depth =
+            DepthImage::from_raw_u16(w, h, &raw, DEPTH_UNITS_PER_METRE, Some(INVALID_DEPTH_RAW));
         Ok(Frame {
             index: files.number,
             timestamp: self.timestamp(position),
@@ -182,13 +217,23 @@ impl SevenScenesWriter {
             intrinsics.fx, intrinsics.cx, intrinsics.fy, intrinsics.cy
         );
         std::fs::write(&k_path, k).map_err(|e| DatasetError::io(&k_path, e))?;
-        Ok(Self { dir: dir.to_path_buf(), tum_lines: Vec::new() })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            tum_lines: Vec::new(),
+        })
     }
 
     pub fn write(&mut self, frame: &Frame) -> Result<(), DatasetError> {
         let color = self.dir.join(format!("frame-{:06}.color.png", frame.index));
-        frame.rgb.save(&color).map_err(|e| DatasetError::decode(&color, e))?;
-        super::write_depth_png(&depth_path(&self.dir, frame.index), &frame.depth, DEPTH_UNITS_PER_METRE)?;
+        frame
+            .rgb
+            .save(&color)
+            .map_err(|e| DatasetError::decode(&color, e))?;
+        super::write_depth_png(
+            &depth_path(&self.dir, frame.index),
+            &frame.depth,
+            DEPTH_UNITS_PER_METRE,
+        )?;
         if let Some(pose) = &frame.world_from_camera_gt {
             let path = pose_path(&self.dir, frame.index);
             let m = pose.to_homogeneous();
@@ -209,7 +254,8 @@ impl SevenScenesWriter {
         let path = self.dir.join("groundtruth_tum.txt");
         let mut file = std::fs::File::create(&path).map_err(|e| DatasetError::io(&path, e))?;
         let traj = crate::trajectory::Trajectory::from_pairs(self.tum_lines);
-        traj.write_tum_to(&mut file).map_err(|e| DatasetError::io(&path, e))?;
+        traj.write_tum_to(&mut file)
+            .map_err(|e| DatasetError::io(&path, e))?;
         file.flush().map_err(|e| DatasetError::io(&path, e))?;
         Ok(path)
     }
@@ -226,7 +272,9 @@ mod tests {
         Frame {
             index,
             timestamp: index as f64 / NO_CLOCK_FRAMES_PER_SECOND,
-            rgb: RgbImage::from_fn(4, 3, |x, y| image::Rgb([x as u8 * 10, y as u8 * 20, index as u8])),
+            rgb: RgbImage::from_fn(4, 3, |x, y| {
+                image::Rgb([x as u8 * 10, y as u8 * 20, index as u8])
+            }),
             depth,
             world_from_camera_gt: Some(Isometry3::translation(0.1 * index as f64, 0.0, 1.0)),
             intrinsics: Intrinsics::new(5.0, 5.0, 1.5, 1.0, 4, 3),
@@ -266,14 +314,26 @@ mod tests {
         }
         // 0: depth missing, 1: depth is 8-bit, 2: corrupt colour, 3: malformed pose line.
         std::fs::remove_file(dir.path().join("frame-000000.depth.png")).unwrap();
-        image::GrayImage::new(4, 3).save(dir.path().join("frame-000001.depth.png")).unwrap();
+        image::GrayImage::new(4, 3)
+            .save(dir.path().join("frame-000001.depth.png"))
+            .unwrap();
         std::fs::write(dir.path().join("frame-000002.color.png"), b"not a png").unwrap();
-        std::fs::write(dir.path().join("frame-000003.pose.txt"), "1 0 0 0\n0 1 0 0\n0 0 1 zz\n0 0 0 1\n").unwrap();
+        std::fs::write(
+            dir.path().join("frame-000003.pose.txt"),
+            "1 0 0 0\n0 1 0 0\n0 0 1 zz\n0 0 0 1\n",
+        )
+        .unwrap();
         let ds = SevenScenes::open(dir.path(), FrameRange::ALL).unwrap();
         let e0 = ds.load(0).unwrap_err();
-        assert!(e0.is_missing_frame() && e0.to_string().contains("frame-000000.depth.png"), "{e0}");
+        assert!(
+            e0.is_missing_frame() && e0.to_string().contains("frame-000000.depth.png"),
+            "{e0}"
+        );
         let e1 = ds.load(1).unwrap_err().to_string();
-        assert!(e1.contains("frame-000001.depth.png") && e1.contains("16-bit"), "{e1}");
+        assert!(
+            e1.contains("frame-000001.depth.png") && e1.contains("16-bit"),
+            "{e1}"
+        );
         let e2 = ds.load(2).unwrap_err().to_string();
         assert!(e2.contains("frame-000002.color.png"), "{e2}");
         let e3 = ds.load(3).unwrap_err().to_string();
@@ -287,10 +347,44 @@ mod tests {
         let mut writer = SevenScenesWriter::create(dir.path(), &k).unwrap();
         writer.write(&tiny_frame(0)).unwrap();
         writer.write(&tiny_frame(1)).unwrap();
-        RgbImage::new(5, 3).save(dir.path().join("frame-000001.color.png")).unwrap();
+        RgbImage::new(5, 3)
+            .save(dir.path().join("frame-000001.color.png"))
+            .unwrap();
         let ds = SevenScenes::open(dir.path(), FrameRange::ALL).unwrap();
         assert!(ds.load(0).is_ok());
         let err = ds.load(1).unwrap_err().to_string();
-        assert!(err.contains("frame-000001.color.png") && err.contains("5x3"), "{err}");
+        assert!(
+            err.contains("frame-000001.color.png") && err.contains("5x3"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn real_data_redkitchen_clock_and_poses_match_groundtruth_tum() {
+        use crate::metrics::ate::{Alignment, ate};
+        let dir = crate::shared_data::require("datasets/7scenes-redkitchen");
+        let ds = SevenScenes::open(&dir, FrameRange::ALL).unwrap();
+        assert_eq!(ds.len(), 1000);
+        assert_eq!(ds.intrinsics(), DEFAULT_INTRINSICS);
+        let mut from_reader = crate::trajectory::Trajectory::default();
+        for i in 0..ds.len() {
+            from_reader.push(ds.timestamp(i), ds.ground_truth(i).unwrap().unwrap());
+        }
+        let tum =
+            crate::trajectory::Trajectory::read_tum(&dir.join("groundtruth_tum.txt")).unwrap();
+        let r = ate(&tum, &from_reader, Alignment::None, 1e-4).unwrap();
+        assert_eq!(r.stats.pairs, 1000);
+        assert!(
+            r.stats.max < 1e-5,
+            "reader poses differ from groundtruth_tum.txt by {} m",
+            r.stats.max
+        );
+        let frame = ds.load(500).unwrap();
+        assert_eq!((frame.rgb.width(), frame.depth.height), (640, 480));
+        let valid = frame.depth.valid_count() as f64 / frame.depth.data.len() as f64;
+        assert!(
+            valid > 0.5 && frame.depth.data.iter().all(|d| *d < 65.0),
+            "valid {valid}"
+        );
     }
 }

@@ -12,7 +12,9 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Isometry3;
 
-use super::{Dataset, DatasetError, DepthImage, Frame, FrameRange, check_size, read_depth_u16, read_rgb};
+use super::{
+    Dataset, DatasetError, DepthImage, Frame, FrameRange, check_size, read_depth_u16, read_rgb,
+};
 use crate::camera::Intrinsics;
 use crate::trajectory::Trajectory;
 
@@ -21,10 +23,38 @@ pub const MAX_ASSOCIATION_DT: f64 = 0.02;
 /// Depth PNG units: raw / 5000 = metres.
 pub const DEPTH_UNITS_PER_METRE: f64 = 5000.0;
 /// TUM's published pinhole calibrations (640x480) per Freiburg sensor, and the ROS default.
-pub const FREIBURG1: Intrinsics = Intrinsics { fx: 517.3, fy: 516.5, cx: 318.6, cy: 255.3, width: 640, height: 480 };
-pub const FREIBURG2: Intrinsics = Intrinsics { fx: 520.9, fy: 521.0, cx: 325.1, cy: 249.7, width: 640, height: 480 };
-pub const FREIBURG3: Intrinsics = Intrinsics { fx: 535.4, fy: 539.2, cx: 320.1, cy: 247.6, width: 640, height: 480 };
-pub const ROS_DEFAULT: Intrinsics = Intrinsics { fx: 525.0, fy: 525.0, cx: 319.5, cy: 239.5, width: 640, height: 480 };
+pub const FREIBURG1: Intrinsics = Intrinsics {
+    fx: 517.3,
+    fy: 516.5,
+    cx: 318.6,
+    cy: 255.3,
+    width: 640,
+    height: 480,
+};
+pub const FREIBURG2: Intrinsics = Intrinsics {
+    fx: 520.9,
+    fy: 521.0,
+    cx: 325.1,
+    cy: 249.7,
+    width: 640,
+    height: 480,
+};
+pub const FREIBURG3: Intrinsics = Intrinsics {
+    fx: 535.4,
+    fy: 539.2,
+    cx: 320.1,
+    cy: 247.6,
+    width: 640,
+    height: 480,
+};
+pub const ROS_DEFAULT: Intrinsics = Intrinsics {
+    fx: 525.0,
+    fy: 525.0,
+    cx: 319.5,
+    cy: 239.5,
+    width: 640,
+    height: 480,
+};
 
 struct TumFrame {
     timestamp: f64,
@@ -51,13 +81,23 @@ fn read_list(path: &Path) -> Result<Vec<(f64, PathBuf)>, DatasetError> {
         }
         let mut parts = line.split_whitespace();
         let (Some(stamp), Some(file), None) = (parts.next(), parts.next(), parts.next()) else {
-            return Err(DatasetError::format(path, Some(line_no + 1), "expected `timestamp filename`"));
+            return Err(DatasetError::format(
+                path,
+                Some(line_no + 1),
+                "expected `timestamp filename`",
+            ));
         };
         let stamp: f64 = stamp
             .parse()
             .ok()
             .filter(|t: &f64| t.is_finite())
-            .ok_or_else(|| DatasetError::format(path, Some(line_no + 1), format!("{stamp:?} is not a timestamp")))?;
+            .ok_or_else(|| {
+                DatasetError::format(
+                    path,
+                    Some(line_no + 1),
+                    format!("{stamp:?} is not a timestamp"),
+                )
+            })?;
         out.push((stamp, dir.join(file)));
     }
     if out.windows(2).any(|w| w[1].0 < w[0].0) {
@@ -83,13 +123,29 @@ impl Tum {
         let depth = read_list(&dir.join("depth.txt"))?;
         let depth_stamps: Vec<f64> = depth.iter().map(|d| d.0).collect();
         let gt_path = dir.join("groundtruth.txt");
-        let gt = if gt_path.is_file() { Some(Trajectory::read_tum(&gt_path)?) } else { None };
+        let gt = if gt_path.is_file() {
+            Some(Trajectory::read_tum(&gt_path)?)
+        } else {
+            None
+        };
         let mut frames = Vec::new();
         for (t, rgb_path) in rgb {
-            let Some(d) = nearest(&depth_stamps, t, MAX_ASSOCIATION_DT) else { continue };
-            let pose = gt.as_ref().and_then(|g| nearest(&g.stamps, t, MAX_ASSOCIATION_DT).map(|j| g.poses[j]));
+            let Some(d) = nearest(&depth_stamps, t, MAX_ASSOCIATION_DT) else {
+                continue;
+            };
+            let pose = gt
+                .as_ref()
+                .and_then(|g| nearest(&g.stamps, t, MAX_ASSOCIATION_DT).map(|j| g.poses[j]));
             let number = frames.len();
-            frames.push((number, TumFrame { timestamp: t, rgb: rgb_path, depth: depth[d].1.clone(), world_from_camera_gt: pose }));
+            frames.push((
+                number,
+                TumFrame {
+                    timestamp: t,
+                    rgb: rgb_path,
+                    depth: depth[d].1.clone(),
+                    world_from_camera_gt: pose,
+                },
+            ));
         }
         frames.retain(|(number, _)| range.contains(*number));
         if frames.is_empty() {
@@ -112,7 +168,11 @@ impl Tum {
         if k_path.is_file() {
             intrinsics = Intrinsics::read_k_file(&k_path, intrinsics.width, intrinsics.height)?;
         }
-        Ok(Self { dir: dir.to_path_buf(), frames, intrinsics })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            frames,
+            intrinsics,
+        })
     }
 }
 
@@ -170,14 +230,20 @@ mod tests {
             // Frame 2 has no depth close enough: it must be left out.
             let td = if i == 2 { t + 0.05 } else { t + 0.004 };
             depth_list.push_str(&format!("{td:.6} depth/{i}.png\n"));
-            image::RgbImage::new(640, 480).save(root.join(format!("rgb/{i}.png"))).unwrap();
+            image::RgbImage::new(640, 480)
+                .save(root.join(format!("rgb/{i}.png")))
+                .unwrap();
             image::ImageBuffer::<image::Luma<u16>, _>::from_pixel(640, 480, image::Luma([5000u16]))
                 .save(root.join(format!("depth/{i}.png")))
                 .unwrap();
         }
         std::fs::write(root.join("rgb.txt"), rgb_list).unwrap();
         std::fs::write(root.join("depth.txt"), depth_list).unwrap();
-        std::fs::write(root.join("groundtruth.txt"), "100.0 1 2 3 0 0 0 1\n100.099 4 5 6 0 0 0 1\n").unwrap();
+        std::fs::write(
+            root.join("groundtruth.txt"),
+            "100.0 1 2 3 0 0 0 1\n100.099 4 5 6 0 0 0 1\n",
+        )
+        .unwrap();
         let ds = Tum::open(&root, FrameRange::ALL).unwrap();
         assert_eq!(ds.len(), 3);
         assert_eq!(ds.intrinsics(), FREIBURG1);
@@ -185,7 +251,10 @@ mod tests {
         let f = ds.load(0).unwrap();
         assert_eq!(f.depth.data[0], 1.0);
         assert_eq!(f.world_from_camera_gt.unwrap().translation.vector.x, 1.0);
-        assert_eq!(ds.ground_truth(2).unwrap().unwrap().translation.vector.x, 4.0);
+        assert_eq!(
+            ds.ground_truth(2).unwrap().unwrap().translation.vector.x,
+            4.0
+        );
         assert!(ds.ground_truth(1).unwrap().is_none());
         std::fs::write(root.join("rgb.txt"), "100.0\n").unwrap();
         let err = Tum::open(&root, FrameRange::ALL).err().unwrap().to_string();

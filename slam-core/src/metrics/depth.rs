@@ -8,9 +8,17 @@ const CENTIMETRES_PER_METRE: f64 = 100.0;
 
 /// Mean |estimate - ground truth| in cm over valid ground-truth pixels; `None` when the ground
 /// truth has no valid pixel.
-pub fn depth_l1_cm(ground_truth: &DepthImage, estimate: &DepthImage) -> Result<Option<f64>, MetricError> {
+pub fn depth_l1_cm(
+    ground_truth: &DepthImage,
+    estimate: &DepthImage,
+) -> Result<Option<f64>, MetricError> {
     if (ground_truth.width, ground_truth.height) != (estimate.width, estimate.height) {
-        return Err(MetricError::SizeMismatch(ground_truth.width, ground_truth.height, estimate.width, estimate.height));
+        return Err(MetricError::SizeMismatch(
+            ground_truth.width,
+            ground_truth.height,
+            estimate.width,
+            estimate.height,
+        ));
     }
     let (mut sum, mut count) = (0.0f64, 0usize);
     for (&g, &e) in ground_truth.data.iter().zip(&estimate.data) {
@@ -29,8 +37,16 @@ mod tests {
 
     #[test]
     fn only_valid_ground_truth_counts() {
-        let gt = DepthImage { width: 4, height: 1, data: vec![1.0, 2.0, 0.0, 3.0] };
-        let est = DepthImage { width: 4, height: 1, data: vec![1.01, 1.98, 5.0, 0.0] };
+        let gt = DepthImage {
+            width: 4,
+            height: 1,
+            data: vec![1.0, 2.0, 0.0, 3.0],
+        };
+        let est = DepthImage {
+            width: 4,
+            height: 1,
+            data: vec![1.01, 1.98, 5.0, 0.0],
+        };
         let l1 = depth_l1_cm(&gt, &est).unwrap().unwrap();
         assert!((l1 - (1.0 + 2.0 + 300.0) / 3.0).abs() < 1e-4, "{l1}");
         assert_eq!(depth_l1_cm(&DepthImage::new(4, 1), &est).unwrap(), None);

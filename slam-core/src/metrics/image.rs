@@ -45,14 +45,27 @@ fn check_sizes(a: (u32, u32), b: (u32, u32)) -> Result<(), MetricError> {
 }
 
 /// PSNR and SSIM of 8-bit images.
-pub fn image_quality(reference: &RgbImage, rendered: &RgbImage) -> Result<ImageQuality, MetricError> {
+pub fn image_quality(
+    reference: &RgbImage,
+    rendered: &RgbImage,
+) -> Result<ImageQuality, MetricError> {
     check_sizes(reference.dimensions(), rendered.dimensions())?;
     let (w, h) = reference.dimensions();
-    image_quality_unit(&to_unit(reference), &to_unit(rendered), w as usize, h as usize)
+    image_quality_unit(
+        &to_unit(reference),
+        &to_unit(rendered),
+        w as usize,
+        h as usize,
+    )
 }
 
 /// PSNR and SSIM of interleaved RGB images with values in [0, 1] (renders, before quantisation).
-pub fn image_quality_unit(reference: &[f64], rendered: &[f64], width: usize, height: usize) -> Result<ImageQuality, MetricError> {
+pub fn image_quality_unit(
+    reference: &[f64],
+    rendered: &[f64],
+    width: usize,
+    height: usize,
+) -> Result<ImageQuality, MetricError> {
     check_sizes((width as u32, height as u32), (width as u32, height as u32))?;
     let n = width * height * CHANNELS;
     if reference.len() != n || rendered.len() != n {
@@ -63,12 +76,21 @@ pub fn image_quality_unit(reference: &[f64], rendered: &[f64], width: usize, hei
         )));
     }
     let (ssim, ssim_valid) = ssim(reference, rendered, width, height);
-    Ok(ImageQuality { psnr: psnr(reference, rendered), ssim, ssim_valid })
+    Ok(ImageQuality {
+        psnr: psnr(reference, rendered),
+        ssim,
+        ssim_valid,
+    })
 }
 
 /// PSNR in dB with data range 1.
 pub fn psnr(reference: &[f64], rendered: &[f64]) -> f64 {
-    let mse = reference.iter().zip(rendered).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / reference.len() as f64;
+    let mse = reference
+        .iter()
+        .zip(rendered)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        / reference.len() as f64;
     -10.0 * mse.log10()
 }
 
@@ -129,9 +151,24 @@ fn ssim(a: &[f64], b: &[f64], width: usize, height: usize) -> (f64, f64) {
         let pb: Vec<f64> = b.iter().skip(c).step_by(CHANNELS).copied().collect();
         let mu_a = blur(&pa, width, height, &window);
         let mu_b = blur(&pb, width, height, &window);
-        let aa = blur(&pa.iter().map(|v| v * v).collect::<Vec<_>>(), width, height, &window);
-        let bb = blur(&pb.iter().map(|v| v * v).collect::<Vec<_>>(), width, height, &window);
-        let ab = blur(&pa.iter().zip(&pb).map(|(x, y)| x * y).collect::<Vec<_>>(), width, height, &window);
+        let aa = blur(
+            &pa.iter().map(|v| v * v).collect::<Vec<_>>(),
+            width,
+            height,
+            &window,
+        );
+        let bb = blur(
+            &pb.iter().map(|v| v * v).collect::<Vec<_>>(),
+            width,
+            height,
+            &window,
+        );
+        let ab = blur(
+            &pa.iter().zip(&pb).map(|(x, y)| x * y).collect::<Vec<_>>(),
+            width,
+            height,
+            &window,
+        );
         for y in 0..height {
             for x in 0..width {
                 let i = y * width + x;
@@ -139,7 +176,8 @@ fn ssim(a: &[f64], b: &[f64], width: usize, height: usize) -> (f64, f64) {
                 let var_a = aa[i] - ma * ma;
                 let var_b = bb[i] - mb * mb;
                 let cov = ab[i] - ma * mb;
-                let s = ((2.0 * ma * mb + c1) * (2.0 * cov + c2)) / ((ma * ma + mb * mb + c1) * (var_a + var_b + c2));
+                let s = ((2.0 * ma * mb + c1) * (2.0 * cov + c2))
+                    / ((ma * ma + mb * mb + c1) * (var_a + var_b + c2));
                 sum_all += s;
                 if x >= r && y >= r && x < width - r && y < height - r {
                     sum_valid += s;
@@ -148,7 +186,10 @@ fn ssim(a: &[f64], b: &[f64], width: usize, height: usize) -> (f64, f64) {
         }
     }
     let valid_pixels = (width - 2 * r) * (height - 2 * r);
-    (sum_all / (width * height * CHANNELS) as f64, sum_valid / (valid_pixels * CHANNELS) as f64)
+    (
+        sum_all / (width * height * CHANNELS) as f64,
+        sum_valid / (valid_pixels * CHANNELS) as f64,
+    )
 }
 
 #[cfg(test)]
@@ -158,7 +199,11 @@ mod tests {
     fn pattern(w: u32, h: u32, seed: u32) -> RgbImage {
         RgbImage::from_fn(w, h, |x, y| {
             let v = (x * 7 + y * 13 + seed * 31) ^ (x * y + seed);
-            image::Rgb([(v % 256) as u8, ((v / 3) % 256) as u8, ((v * 5) % 256) as u8])
+            image::Rgb([
+                (v % 256) as u8,
+                ((v / 3) % 256) as u8,
+                ((v * 5) % 256) as u8,
+            ])
         })
     }
 
@@ -180,7 +225,11 @@ mod tests {
         // Constant images: SSIM reduces to the luminance term in the valid region.
         let (ma, mb) = (100.0 / 255.0, 110.0 / 255.0);
         let lum = (2.0 * ma * mb + 1e-4) / (ma * ma + mb * mb + 1e-4);
-        assert!((q.ssim_valid - lum).abs() < 1e-9, "{} vs {lum}", q.ssim_valid);
+        assert!(
+            (q.ssim_valid - lum).abs() < 1e-9,
+            "{} vs {lum}",
+            q.ssim_valid
+        );
     }
 
     #[test]
@@ -189,23 +238,49 @@ mod tests {
         let b = pattern(64, 48, 3);
         let q = image_quality(&a, &b).unwrap();
         assert!(q.ssim < 0.9 && q.ssim_valid < 0.9);
-        assert_eq!(image_quality(&a, &pattern(64, 47, 2)).unwrap_err(), MetricError::SizeMismatch(64, 48, 64, 47));
+        assert_eq!(
+            image_quality(&a, &pattern(64, 47, 2)).unwrap_err(),
+            MetricError::SizeMismatch(64, 48, 64, 47)
+        );
         assert!(image_quality(&pattern(8, 8, 0), &pattern(8, 8, 0)).is_err());
     }
 
     /// scikit-image 0.26.0 (ssim_valid, psnr) and scipy.ndimage (zero-padded ssim) on redkitchen
     /// frames 0 and 10 as decoded by our reader (scripts/golden_image_metrics.py).
-    const GOLDEN_REDKITCHEN_0_10: ImageQuality = ImageQuality { psnr: 19.2064414110, ssim: 0.5279206426, ssim_valid: 0.5194726662 };
+    const GOLDEN_REDKITCHEN_0_10: ImageQuality = ImageQuality {
+        psnr: 19.2064414110,
+        ssim: 0.5279206426,
+        ssim_valid: 0.5194726662,
+    };
 
     #[test]
     fn real_data_psnr_ssim_match_scikit_image() {
         let dir = crate::shared_data::require("datasets/7scenes-redkitchen");
-        let a = image::open(dir.join("frame-000000.color.jpg")).unwrap().to_rgb8();
-        let b = image::open(dir.join("frame-000010.color.jpg")).unwrap().to_rgb8();
+        let a = image::open(dir.join("frame-000000.color.jpg"))
+            .unwrap()
+            .to_rgb8();
+        let b = image::open(dir.join("frame-000010.color.jpg"))
+            .unwrap()
+            .to_rgb8();
         let q = image_quality(&a, &b).unwrap();
         let golden = GOLDEN_REDKITCHEN_0_10;
-        assert!((q.psnr - golden.psnr).abs() < 1e-6, "psnr {} vs {}", q.psnr, golden.psnr);
-        assert!((q.ssim_valid - golden.ssim_valid).abs() < 1e-6, "ssim_valid {} vs {}", q.ssim_valid, golden.ssim_valid);
-        assert!((q.ssim - golden.ssim).abs() < 1e-6, "ssim {} vs {}", q.ssim, golden.ssim);
+        assert!(
+            (q.psnr - golden.psnr).abs() < 1e-6,
+            "psnr {} vs {}",
+            q.psnr,
+            golden.psnr
+        );
+        assert!(
+            (q.ssim_valid - golden.ssim_valid).abs() < 1e-6,
+            "ssim_valid {} vs {}",
+            q.ssim_valid,
+            golden.ssim_valid
+        );
+        assert!(
+            (q.ssim - golden.ssim).abs() < 1e-6,
+            "ssim {} vs {}",
+            q.ssim,
+            golden.ssim
+        );
     }
 }

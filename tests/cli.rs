@@ -1,0 +1,252 @@
+//! End-to-end tests of the `mac-ego3d` command line: the binary is run as a user would run it.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn mac_ego3d(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_mac-ego3d"))
+        .args(args)
+        .output()
+        .expect("running mac-ego3d")
+}
+
+fn stdout_json(out: &Output) -> serde_json::Value {
+    assert!(
+        out.status.success(),
+        "command failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("not JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
+}
+
+#[test]
+fn synth_then_dataset_info_and_ate_round_trip() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("synthetic");
+    let out_s = out.to_str().unwrap();
+    let synth = mac_ego3d(&[
+        "synth", "--agents", "2", "--frames", "6", "--width", "160", "--height", "120", "--out",
+        out_s,
+    ]);
+    assert!(
+        synth.status.success(),
+        "{}",
+        String::from_utf8_lossy(&synth.stderr)
+    );
+
+    let info = stdout_json(&mac_ego3d(&["dataset", "info", out_s, "--json"]));
+    let agents = info.as_array().expect("one entry per agent");
+    assert_eq!(agents.len(), 2);
+    for agent in agents {
+        assert_eq!(agent["frames"], 6);
+        assert_eq!(agent["width"], 160);
+        assert!(agent["depth_valid_fraction"].as_f64().unwrap() > 0.9);
+        assert!(agent["trajectory_length_m"].as_f64().unwrap() > 0.0);
+    }
+    let ranged = stdout_json(&mac_ego3d(&[
+        "dataset",
+        "info",
+        &format!("{out_s}/agent_1"),
+        "--frames",
+        "2..5",
+        "--json",
+    ]));
+    assert_eq!(ranged["frames"], 3);
+    assert_eq!(ranged["first_frame"], 2);
+
+    // The written ground truth against itself: zero error, every pose paired.
+    let gt = format!("{out_s}/agent_0/groundtruth_tum.txt");
+    let ate = stdout_json(&mac_ego3d(&[
+        "eval", "ate", "--gt", &gt, "--est", &gt, "--json",
+    ]));
+    assert_eq!(ate["pairs"], 6);
+    assert!(ate["rmse"].as_f64().unwrap() < 1e-9);
+
+    // Joint ATE over both agents: agents live in one world frame, so also zero.
+    let gt1 = format!("{out_s}/agent_1/groundtruth_tum.txt");
+    let joint = stdout_json(&mac_ego3d(&[
+        "eval", "ate", "--gt", &gt, "--est", &gt, "--gt", &gt1, "--est", &gt1, "--json",
+    ]));
+    assert_eq!(joint["pairs"], 12);
+    assert_eq!(joint["agents"].as_array().unwrap().len(), 2);
+
+    // A decoded frame exported and compared with itself.
+    let png = dir.path().join("f.png");
+    let exported = mac_ego3d(&[
+        "dataset",
+        "frame",
+        &format!("{out_s}/agent_0"),
+        "--frame",
+        "3",
+        "--rgb",
+        png.to_str().unwrap(),
+    ]);
+    assert!(
+        exported.status.success(),
+        "{}",
+        String::from_utf8_lossy(&exported.stderr)
+    );
+    let q = stdout_json(&mac_ego3d(&[
+        "eval",
+        "image",
+        "--reference",
+        png.to_str().unwrap(),
+        "--rendered",
+        png.to_str().unwrap(),
+        "--json",
+    ]));
+    assert_eq!(q["ssim"], 1.0);
+    assert_eq!(q["ssim_valid"], 1.0);
+}
+
+#[test]
+fn synthetic_spec_streams_without_files() {
+    let info = stdout_json(&mac_ego3d(&[
+        "dataset",
+        "info",
+        "synthetic:agents=2,agent=1,frames=4,width=160,height=120",
+        "--json",
+    ]));
+    assert_eq!(info["frames"], 4);
+    assert_eq!(info["height"], 120);
+}
+
+#[test]
+fn bad_input_gives_a_clear_error_not_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("missing.txt");
+    let out = mac_ego3d(&[
+        "eval",
+        "ate",
+        "--gt",
+        missing.to_str().unwrap(),
+        "--est",
+        missing.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("missing.txt") && !err.contains("panicked"),
+        "{err}"
+    );
+
+    let bad = dir.path().join("bad.txt");
+    std::fs::write(&bad, "0 0 0 0 0 0 0 1\n1 0 0 zero 0 0 0 1\n").unwrap();
+    let out = mac_ego3d(&[
+        "eval",
+        "ate",
+        "--gt",
+        bad.to_str().unwrap(),
+        "--est",
+        bad.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("bad.txt line 2"),
+        "{err}"
+    );
+
+    let out = mac_ego3d(&["dataset", "info", dir.path().to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("unknown dataset layout"),
+        "{err}"
+    );
+
+    let out = mac_ego3d(&["dataset", "info", "synthetic:agents=2,agnt=1"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("agnt"), "{err}");
+}
+
+fn shared(relative: &str) -> String {
+    let dir = std::env::var_os("MAC_EGO3D_SHARED")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"));
+    let path = dir.join(relative);
+    assert!(
+        path.exists(),
+        "real data missing: {} (set MAC_EGO3D_SHARED)",
+        path.display()
+    );
+    path.to_string_lossy().into_owned()
+}
+
+#[test]
+fn real_data_eval_ate_reproduces_evo() {
+    let gt = shared("reference/tum-trajectories/freiburg1_xyz-groundtruth.txt");
+    let est = shared("reference/tum-trajectories/freiburg1_xyz-rgbdslam.txt");
+    let ate = stdout_json(&mac_ego3d(&[
+        "eval", "ate", "--gt", &gt, "--est", &est, "--json",
+    ]));
+    assert_eq!(ate["pairs"], 785);
+    assert!(
+        (ate["rmse"].as_f64().unwrap() - 0.013470).abs() < 5e-7,
+        "{ate}"
+    );
+    // Sim(3) can only lower the error; no alignment at all must raise it.
+    let sim3 = stdout_json(&mac_ego3d(&[
+        "eval", "ate", "--gt", &gt, "--est", &est, "--align", "sim3", "--json",
+    ]));
+    assert!(sim3["rmse"].as_f64().unwrap() <= ate["rmse"].as_f64().unwrap() + 1e-12);
+    let none = stdout_json(&mac_ego3d(&[
+        "eval", "ate", "--gt", &gt, "--est", &est, "--align", "none", "--json",
+    ]));
+    assert!(none["rmse"].as_f64().unwrap() > ate["rmse"].as_f64().unwrap());
+}
+
+#[test]
+fn real_data_eval_lpips_reproduces_golden_values() {
+    let weights = shared("weights/lpips/alexnet.npz");
+    let reference = shared("weights/lpips/imgs/ex_ref.png");
+    for (other, golden) in [("ex_p0.png", 0.722), ("ex_p1.png", 0.138)] {
+        let img = shared(&format!("weights/lpips/imgs/{other}"));
+        let v = stdout_json(&mac_ego3d(&[
+            "eval",
+            "lpips",
+            &reference,
+            &img,
+            "--weights",
+            &weights,
+            "--json",
+        ]));
+        assert!(
+            (v["lpips"].as_f64().unwrap() - golden).abs() < 5e-4,
+            "{other}: {v}"
+        );
+    }
+}
+
+#[test]
+fn real_data_redkitchen_reads_through_the_cli() {
+    let dir = shared("datasets/7scenes-redkitchen");
+    let info = stdout_json(&mac_ego3d(&[
+        "dataset",
+        "info",
+        &dir,
+        "--frames",
+        "400..1000",
+        "--samples",
+        "5",
+        "--json",
+    ]));
+    assert_eq!(info["frames"], 600);
+    assert_eq!(info["first_frame"], 400);
+    assert_eq!(info["width"], 640);
+    assert_eq!(info["intrinsics"]["fx"], 585.0);
+    let valid = info["depth_valid_fraction"].as_f64().unwrap();
+    assert!(valid > 0.7 && valid < 1.0, "valid depth fraction {valid}");
+    // The shared groundtruth_tum.txt uses timestamp = frame / 30: the reader's clock must match it.
+    let whole = stdout_json(&mac_ego3d(&[
+        "dataset",
+        "info",
+        &dir,
+        "--samples",
+        "1",
+        "--json",
+    ]));
+    assert!(
+        (whole["trajectory_length_m"].as_f64().unwrap() - 7.4).abs() < 0.1,
+        "{whole}"
+    );
+}
