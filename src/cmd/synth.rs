@@ -47,35 +47,56 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         width: args.width,
         height: args.height,
     };
-    spec.validate().map_err(|reason| anyhow::anyhow!("invalid synthetic dataset options: {reason}"))?;
+    spec.validate()
+        .map_err(|reason| anyhow::anyhow!("invalid synthetic dataset options: {reason}"))?;
     if args.overwrite {
-        let removed = synthetic::remove_written(&args.out)
-            .with_context(|| format!("removing an earlier synthetic dataset from {}", args.out.display()))?;
+        let removed = synthetic::remove_written(&args.out).with_context(|| {
+            format!(
+                "removing an earlier synthetic dataset from {}",
+                args.out.display()
+            )
+        })?;
         if removed > 0 {
-            tracing::info!("removed {removed} files of an earlier run from {}", args.out.display());
+            tracing::info!(
+                "removed {removed} files of an earlier run from {}",
+                args.out.display()
+            );
         }
     }
 
     let total = (spec.agents * spec.frames) as u64;
     // Draw only for a person watching; logs and CI get the summary alone.
-    let bar = if std::io::stderr().is_terminal() { ProgressBar::new(total) } else { ProgressBar::hidden() };
+    let bar = if std::io::stderr().is_terminal() {
+        ProgressBar::new(total)
+    } else {
+        ProgressBar::hidden()
+    };
     bar.set_style(
-        ProgressStyle::with_template("{spinner} rendering [{bar:40}] {pos}/{len} frames ({per_sec}, eta {eta})")
-            .context("progress bar template")?
-            .progress_chars("=> "),
+        ProgressStyle::with_template(
+            "{spinner} rendering [{bar:40}] {pos}/{len} frames ({per_sec}, eta {eta})",
+        )
+        .context("progress bar template")?
+        .progress_chars("=> "),
     );
     let started = Instant::now();
-    let folders = synthetic::write_seven_scenes(&spec, &args.out, |done, _| bar.set_position(done as u64))
-        .with_context(|| format!("writing the synthetic dataset to {}", args.out.display()))?;
+    let folders =
+        synthetic::write_seven_scenes(&spec, &args.out, |done, _| bar.set_position(done as u64))
+            .with_context(|| format!("writing the synthetic dataset to {}", args.out.display()))?;
     bar.finish_and_clear();
     let seconds = started.elapsed().as_secs_f64();
 
     let k = spec.intrinsics();
-    println!("synthetic dataset ({spec}) written to {}", args.out.display());
+    println!(
+        "synthetic dataset ({spec}) written to {}",
+        args.out.display()
+    );
     for folder in &folders {
         println!("  {}  {} frames", folder.display(), spec.frames);
     }
-    println!("  {}  (scene description)", args.out.join(synthetic::SCENE_FILE).display());
+    println!(
+        "  {}  (scene description)",
+        args.out.join(synthetic::SCENE_FILE).display()
+    );
     println!(
         "frames: {} agents x {} = {} in {:.1} s ({:.1} frames/s, rendering and PNG encoding)",
         spec.agents,
@@ -88,6 +109,8 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         "intrinsics: {}x{} fx={} fy={} cx={} cy={} (also in each folder's camera-intrinsics.txt)",
         k.width, k.height, k.fx, k.fy, k.cx, k.cy
     );
-    println!("depth: 16-bit PNG in millimetres (0 = invalid); poses: camera-to-world in the room frame");
+    println!(
+        "depth: 16-bit PNG in millimetres (0 = invalid); poses: camera-to-world in the room frame"
+    );
     Ok(())
 }

@@ -18,9 +18,10 @@
 //!
 //! Depth is the camera-frame z in metres (not the ray length), quantised to whole millimetres
 //! exactly as the 7-Scenes depth PNG reader decodes them (`raw_mm as f32 * (1/1000 as f32)`), so
-//! a frame written with [`write_seven_scenes`] and read back is bit-identical to the streamed one.
-//! Depth beyond 65.534 m, or rays that leave the scene, is 0 (invalid); inside the closed room
-//! every pixel has valid depth.
+//! a frame written with [`write_seven_scenes`] and read back has bit-identical colour, depth,
+//! timestamp and pose translation; the pose rotation differs by ~1e-13 rad because the pose
+//! reader re-orthonormalises the stored matrix. Depth beyond 65.534 m, or rays that leave the
+//! scene, is 0 (invalid); inside the closed room every pixel has valid depth.
 //!
 //! Everything is a pure function of [`SyntheticSpec`]: textures, object placement and trajectory
 //! jitter come from ChaCha RNGs seeded from `seed`, and pixels are computed independently, so the
@@ -121,7 +122,10 @@ impl SyntheticSpec {
     /// Checks every field; the message names the offending key.
     pub fn validate(&self) -> Result<(), String> {
         if self.agents == 0 || self.agents > MAX_AGENTS {
-            return Err(format!("agents={} is out of range 1..={MAX_AGENTS}", self.agents));
+            return Err(format!(
+                "agents={} is out of range 1..={MAX_AGENTS}",
+                self.agents
+            ));
         }
         if self.agent >= self.agents {
             return Err(format!(
@@ -132,11 +136,16 @@ impl SyntheticSpec {
             ));
         }
         if self.frames == 0 || self.frames > MAX_FRAMES {
-            return Err(format!("frames={} is out of range 1..={MAX_FRAMES}", self.frames));
+            return Err(format!(
+                "frames={} is out of range 1..={MAX_FRAMES}",
+                self.frames
+            ));
         }
         for (key, value) in [("width", self.width), ("height", self.height)] {
             if !(MIN_IMAGE_SIDE..=MAX_IMAGE_SIDE).contains(&value) {
-                return Err(format!("{key}={value} is out of range {MIN_IMAGE_SIDE}..={MAX_IMAGE_SIDE}"));
+                return Err(format!(
+                    "{key}={value} is out of range {MIN_IMAGE_SIDE}..={MAX_IMAGE_SIDE}"
+                ));
             }
         }
         Ok(())
@@ -155,24 +164,42 @@ impl FromStr for SyntheticSpec {
         let options = match rest.strip_prefix(':') {
             Some(options) => options,
             None if rest.is_empty() => "",
-            None => return Err(format!("{text:?} is not a synthetic spec: expected `:` after `{SPEC_PREFIX}`")),
+            None => {
+                return Err(format!(
+                    "{text:?} is not a synthetic spec: expected `:` after `{SPEC_PREFIX}`"
+                ));
+            }
         };
         let mut seen: Vec<&str> = Vec::new();
-        for item in options.split(',').map(str::trim).filter(|item| !item.is_empty()) {
+        for item in options
+            .split(',')
+            .map(str::trim)
+            .filter(|item| !item.is_empty())
+        {
             let (key, value) = item
                 .split_once('=')
                 .map(|(k, v)| (k.trim(), v.trim()))
                 .ok_or_else(|| format!("{item:?} in synthetic spec {text:?} is not key=value"))?;
             if seen.contains(&key) {
-                return Err(format!("key {key:?} appears twice in synthetic spec {text:?}"));
+                return Err(format!(
+                    "key {key:?} appears twice in synthetic spec {text:?}"
+                ));
             }
             seen.push(key);
-            let bad = |expected: &str| format!("bad value {value:?} for key {key:?} in synthetic spec {text:?}: expected {expected}");
+            let bad = |expected: &str| {
+                format!(
+                    "bad value {value:?} for key {key:?} in synthetic spec {text:?}: expected {expected}"
+                )
+            };
             match key {
                 "agents" => spec.agents = value.parse().map_err(|_| bad("a positive integer"))?,
                 "agent" => spec.agent = value.parse().map_err(|_| bad("an agent number from 0"))?,
                 "frames" => spec.frames = value.parse().map_err(|_| bad("a positive integer"))?,
-                "seed" => spec.seed = value.parse().map_err(|_| bad("an unsigned 64-bit integer"))?,
+                "seed" => {
+                    spec.seed = value
+                        .parse()
+                        .map_err(|_| bad("an unsigned 64-bit integer"))?
+                }
                 "width" => spec.width = value.parse().map_err(|_| bad("a width in pixels"))?,
                 "height" => spec.height = value.parse().map_err(|_| bad("a height in pixels"))?,
                 _ => {
@@ -182,7 +209,8 @@ impl FromStr for SyntheticSpec {
                 }
             }
         }
-        spec.validate().map_err(|reason| format!("synthetic spec {text:?}: {reason}"))?;
+        spec.validate()
+            .map_err(|reason| format!("synthetic spec {text:?}: {reason}"))?;
         Ok(spec)
     }
 }
@@ -242,31 +270,59 @@ struct Hit {
 #[derive(Debug, Clone, Copy)]
 enum Shape {
     /// A box rotated by `yaw` about the vertical axis.
-    Cuboid { center: Vector3<f64>, half_size: Vector3<f64>, cos_yaw: f64, sin_yaw: f64 },
-    Sphere { center: Vector3<f64>, radius: f64 },
+    Cuboid {
+        center: Vector3<f64>,
+        half_size: Vector3<f64>,
+        cos_yaw: f64,
+        sin_yaw: f64,
+    },
+    Sphere {
+        center: Vector3<f64>,
+        radius: f64,
+    },
     /// A vertical cylinder standing on `base` (centre of its bottom cap), caps included.
-    Cylinder { base: Vector3<f64>, radius: f64, height: f64 },
+    Cylinder {
+        base: Vector3<f64>,
+        radius: f64,
+        height: f64,
+    },
 }
 
 #[derive(Debug, Clone, Copy)]
 struct Primitive {
     shape: Shape,
     material: usize,
+    /// Bounding sphere: most rays miss most objects, and a sphere test rejects them in a few
+    /// multiplications before the exact test.
+    bound_center: Vector3<f64>,
+    bound_radius_squared: f64,
 }
 
 /// Rotates a world-frame vector into a box's yawed frame.
 fn to_yawed(v: &Vector3<f64>, cos_yaw: f64, sin_yaw: f64) -> Vector3<f64> {
-    Vector3::new(cos_yaw * v.x + sin_yaw * v.y, -sin_yaw * v.x + cos_yaw * v.y, v.z)
+    Vector3::new(
+        cos_yaw * v.x + sin_yaw * v.y,
+        -sin_yaw * v.x + cos_yaw * v.y,
+        v.z,
+    )
 }
 
 /// Rotates a vector from a box's yawed frame into the world frame.
 fn from_yawed(v: &Vector3<f64>, cos_yaw: f64, sin_yaw: f64) -> Vector3<f64> {
-    Vector3::new(cos_yaw * v.x - sin_yaw * v.y, sin_yaw * v.x + cos_yaw * v.y, v.z)
+    Vector3::new(
+        cos_yaw * v.x - sin_yaw * v.y,
+        sin_yaw * v.x + cos_yaw * v.y,
+        v.z,
+    )
 }
 
 /// Slab test of a ray against an axis-aligned box centred at the origin. Returns
 /// (t_enter, t_exit, axis of the entry face, axis of the exit face), or None when the ray misses.
-fn slabs(origin: &Vector3<f64>, direction: &Vector3<f64>, half_size: &Vector3<f64>) -> Option<(f64, f64, usize, usize)> {
+fn slabs(
+    origin: &Vector3<f64>,
+    direction: &Vector3<f64>,
+    half_size: &Vector3<f64>,
+) -> Option<(f64, f64, usize, usize)> {
     let (mut t_enter, mut t_exit) = (f64::NEG_INFINITY, f64::INFINITY);
     let (mut enter_axis, mut exit_axis) = (0, 0);
     for axis in 0..3 {
@@ -303,9 +359,52 @@ fn face_uv(point: &Vector3<f64>, axis: usize, positive_side: bool) -> [f64; 2] {
 }
 
 impl Primitive {
+    fn new(shape: Shape, material: usize) -> Self {
+        let (bound_center, bound_radius) = match shape {
+            Shape::Cuboid {
+                center, half_size, ..
+            } => (center, half_size.norm()),
+            Shape::Sphere { center, radius } => (center, radius),
+            Shape::Cylinder {
+                base,
+                radius,
+                height,
+            } => (
+                base + Vector3::new(0.0, 0.0, height / 2.0),
+                radius.hypot(height / 2.0),
+            ),
+        };
+        Self {
+            shape,
+            material,
+            bound_center,
+            bound_radius_squared: bound_radius * bound_radius,
+        }
+    }
+
+    /// False when the ray certainly misses the primitive, or can only hit it at or beyond
+    /// `t_limit`.
+    fn may_hit(&self, ray: &Ray, t_limit: f64) -> bool {
+        let to_center = self.bound_center - ray.origin;
+        let direction_length = ray.direction.norm();
+        // Distance along the ray (metres) to the point closest to the bounding sphere's centre.
+        let along = to_center.dot(&ray.direction) / direction_length;
+        let miss_distance_squared = to_center.norm_squared() - along * along;
+        if miss_distance_squared > self.bound_radius_squared {
+            return false;
+        }
+        let half_chord = (self.bound_radius_squared - miss_distance_squared).sqrt();
+        along + half_chord > 0.0 && (along - half_chord) / direction_length < t_limit
+    }
+
     fn intersect(&self, ray: &Ray) -> Option<Hit> {
         match self.shape {
-            Shape::Cuboid { center, half_size, cos_yaw, sin_yaw } => {
+            Shape::Cuboid {
+                center,
+                half_size,
+                cos_yaw,
+                sin_yaw,
+            } => {
                 let origin = to_yawed(&(ray.origin - center), cos_yaw, sin_yaw);
                 let direction = to_yawed(&ray.direction, cos_yaw, sin_yaw);
                 let (t_enter, _, axis, _) = slabs(&origin, &direction, &half_size)?;
@@ -342,9 +441,18 @@ impl Primitive {
                 // Longitude/latitude in metres of arc, so texture scale matches the other surfaces.
                 let longitude = normal.y.atan2(normal.x) * radius;
                 let colatitude = normal.z.clamp(-1.0, 1.0).acos() * radius;
-                Some(Hit { t, normal, uv: [longitude, colatitude], material: self.material })
+                Some(Hit {
+                    t,
+                    normal,
+                    uv: [longitude, colatitude],
+                    material: self.material,
+                })
             }
-            Shape::Cylinder { base, radius, height } => {
+            Shape::Cylinder {
+                base,
+                radius,
+                height,
+            } => {
                 let o = ray.origin - base;
                 let d = ray.direction;
                 let mut best: Option<Hit> = None;
@@ -363,7 +471,12 @@ impl Primitive {
                         let p = o + d * t;
                         if (0.0..=height).contains(&p.z) {
                             let normal = Vector3::new(p.x / radius, p.y / radius, 0.0);
-                            consider(Hit { t, normal, uv: [p.y.atan2(p.x) * radius, p.z], material: self.material });
+                            consider(Hit {
+                                t,
+                                normal,
+                                uv: [p.y.atan2(p.x) * radius, p.z],
+                                material: self.material,
+                            });
                         }
                     }
                 }
@@ -373,7 +486,12 @@ impl Primitive {
                         let p = o + d * t;
                         if p.x * p.x + p.y * p.y <= radius * radius {
                             let uv = [p.x + FACE_UV_OFFSET * normal_z, p.y];
-                            consider(Hit { t, normal: Vector3::new(0.0, 0.0, normal_z), uv, material: self.material });
+                            consider(Hit {
+                                t,
+                                normal: Vector3::new(0.0, 0.0, normal_z),
+                                uv,
+                                material: self.material,
+                            });
                         }
                     }
                 }
@@ -392,15 +510,25 @@ impl Primitive {
                 (q.y.abs() - half_size.y).max(0.0),
                 (q.z.abs() - half_size.z).max(0.0),
             );
-            let inside = (q.x.abs() - half_size.x).max(q.y.abs() - half_size.y).max(q.z.abs() - half_size.z).min(0.0);
+            let inside = (q.x.abs() - half_size.x)
+                .max(q.y.abs() - half_size.y)
+                .max(q.z.abs() - half_size.z)
+                .min(0.0);
             outside.norm() + inside
         }
         match self.shape {
-            Shape::Cuboid { center, half_size, cos_yaw, sin_yaw } => {
-                box_distance(&to_yawed(&(p - center), cos_yaw, sin_yaw), &half_size)
-            }
+            Shape::Cuboid {
+                center,
+                half_size,
+                cos_yaw,
+                sin_yaw,
+            } => box_distance(&to_yawed(&(p - center), cos_yaw, sin_yaw), &half_size),
             Shape::Sphere { center, radius } => (p - center).norm() - radius,
-            Shape::Cylinder { base, radius, height } => {
+            Shape::Cylinder {
+                base,
+                radius,
+                height,
+            } => {
                 let q = p - base;
                 let radial = (q.x * q.x + q.y * q.y).sqrt() - radius;
                 let vertical = (q.z - height / 2.0).abs() - height / 2.0;
@@ -415,21 +543,26 @@ impl Primitive {
 // Procedural textures
 // ---------------------------------------------------------------------------------------------
 
-/// Octaves of the value-noise sum; each doubles the frequency and scales the amplitude by
-/// [`NOISE_GAIN`].
-const NOISE_OCTAVES: usize = 6;
+/// Octaves of the value-noise sum (see [`fbm_bands`]); each doubles the frequency and scales the
+/// amplitude by [`NOISE_GAIN`].
+const COARSE_OCTAVES: usize = 4;
+const FINE_OCTAVES: usize = 4;
 const NOISE_GAIN: f64 = 0.55;
 /// Texture detail whose period spans fewer than `FADE_END` pixels on screen is replaced by its
 /// mean (fully so below [`FADE_START`] pixels): a cheap pre-filter that keeps far or grazing
 /// surfaces from aliasing into flicker, which would break photometric consistency between views.
 const FADE_START_PX: f64 = 2.0;
 const FADE_END_PX: f64 = 5.0;
-/// Fine-noise frequency relative to a material's base noise frequency.
-const DETAIL_FREQUENCY_RATIO: f64 = 5.7;
 /// How far value-noise contrast is stretched around 0.5 (raw sums cluster near the middle).
 const NOISE_CONTRAST: f64 = 2.6;
 /// Warm/cool colour shift driven by the base noise, for colour variation inside a pattern.
 const COLOUR_SHIFT: f64 = 0.22;
+/// Floor planks: half width of the joints (m), their relative brightness, the wood grain's line
+/// spacing (m) and how many grain periods the noise bends it by.
+const PLANK_GAP_HALF_WIDTH: f64 = 0.004;
+const PLANK_GAP_BRIGHTNESS: f64 = 0.45;
+const WOOD_GRAIN_PERIOD: f64 = 0.02;
+const WOOD_GRAIN_WARP: f64 = 6.0;
 /// Smallest cosine between the viewing ray and a surface used to stretch the pixel footprint
 /// (grazing angles would otherwise blow it up without bound).
 const MIN_FOOTPRINT_COSINE: f64 = 0.15;
@@ -443,7 +576,13 @@ fn mix64(mut z: u64) -> u64 {
 
 /// Uniform value in [0, 1) for an integer lattice point.
 fn lattice_value(ix: i64, iy: i64, seed: u64) -> f64 {
-    let h = mix64(seed ^ (ix as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ mix64((iy as u64).wrapping_add(0x632B_E59B_D9B4_E019)));
+    // Distinct odd multipliers and a rotation keep (ix, iy) and (iy, ix) apart; one finaliser
+    // round then mixes every input bit into the output.
+    let key = (ix as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ (iy as u64)
+            .wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+            .rotate_left(29);
+    let h = mix64(seed ^ key);
     (h >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
 }
 
@@ -452,8 +591,19 @@ fn fade(t: f64) -> f64 {
     t * t * t * (t * (t * 6.0 - 15.0) + 10.0)
 }
 
+/// `x.floor()` without the libm call (x86-64's baseline has no rounding instruction); exact for
+/// |x| < 2^53, far beyond any texture coordinate here.
+fn fast_floor(x: f64) -> f64 {
+    let truncated = x as i64 as f64;
+    if truncated > x {
+        truncated - 1.0
+    } else {
+        truncated
+    }
+}
+
 fn value_noise(x: f64, y: f64, seed: u64) -> f64 {
-    let (fx, fy) = (x.floor(), y.floor());
+    let (fx, fy) = (fast_floor(x), fast_floor(y));
     let (ix, iy) = (fx as i64, fy as i64);
     let (sx, sy) = (fade(x - fx), fade(y - fy));
     let v00 = lattice_value(ix, iy, seed);
@@ -472,41 +622,56 @@ fn visibility(period: f64, footprint: f64) -> f64 {
     ((pixels - FADE_START_PX) / (FADE_END_PX - FADE_START_PX)).clamp(0.0, 1.0)
 }
 
-/// Multi-octave value noise in [0, 1], band-limited to the pixel footprint (same units as x, y).
-fn fbm(x: f64, y: f64, seed: u64, footprint: f64) -> f64 {
-    let (mut sum, mut norm, mut amplitude, mut frequency) = (0.0, 0.0, 1.0, 1.0);
-    for octave in 0..NOISE_OCTAVES {
+/// Multi-octave value noise, band-limited to the pixel footprint (same units as x, y), split
+/// into two bands that are each normalised to [0, 1] around 0.5: the first [`COARSE_OCTAVES`]
+/// (large blotches that modulate patterns and colour) and the next [`FINE_OCTAVES`] (grain that
+/// modulates brightness). One pass for both bands costs less than two separate sums.
+fn fbm_bands(x: f64, y: f64, seed: u64, footprint: f64) -> (f64, f64) {
+    let mut bands = [(0.0, 0.0); 2];
+    let (mut amplitude, mut frequency) = (1.0, 1.0);
+    for octave in 0..COARSE_OCTAVES + FINE_OCTAVES {
+        if octave == COARSE_OCTAVES {
+            amplitude = 1.0;
+        }
+        let band = &mut bands[usize::from(octave >= COARSE_OCTAVES)];
         let weight = visibility(1.0 / frequency, footprint);
         let value = if weight > 0.0 {
             // Offsets decorrelate octaves that share lattice points at the origin.
-            0.5 + weight * (value_noise(x * frequency + 31.7 * octave as f64, y * frequency - 17.3 * octave as f64, seed.wrapping_add(octave as u64)) - 0.5)
+            let noise = value_noise(
+                x * frequency + 31.7 * octave as f64,
+                y * frequency - 17.3 * octave as f64,
+                seed.wrapping_add(octave as u64),
+            );
+            0.5 + weight * (noise - 0.5)
         } else {
             0.5
         };
-        sum += amplitude * value;
-        norm += amplitude;
+        band.0 += amplitude * value;
+        band.1 += amplitude;
         amplitude *= NOISE_GAIN;
         frequency *= 2.0;
     }
-    sum / norm
+    (bands[0].0 / bands[0].1, bands[1].0 / bands[1].1)
 }
 
 /// Anti-aliased square wave of `period` in [-1, 1]: +1 on the first half-period, -1 on the
 /// second, ramping linearly over one footprint at each edge and fading to its mean 0 when the
 /// period is too small to resolve.
 fn square_wave(x: f64, period: f64, footprint: f64) -> f64 {
-    let phase = x / period - (x / period).floor();
+    let phase = x / period - fast_floor(x / period);
     let sign = if phase < 0.5 { 1.0 } else { -1.0 };
     let edge_distance = period * phase.min((phase - 0.5).abs()).min(1.0 - phase);
-    sign * (edge_distance / footprint.max(f64::MIN_POSITIVE)).min(1.0) * visibility(period, footprint)
+    sign * (edge_distance / footprint.max(f64::MIN_POSITIVE)).min(1.0)
+        * visibility(period, footprint)
 }
 
 /// Anti-aliased grid line mask: 1 within `half_width` of a multiple of `period`, 0 elsewhere,
 /// fading to the line's area fraction when the period is too small to resolve.
 fn grid_line(x: f64, period: f64, half_width: f64, footprint: f64) -> f64 {
-    let phase = x / period - (x / period).floor();
+    let phase = x / period - fast_floor(x / period);
     let distance = period * phase.min(1.0 - phase);
-    let sharp = ((half_width + footprint - distance) / (2.0 * footprint).max(f64::MIN_POSITIVE)).clamp(0.0, 1.0);
+    let sharp = ((half_width + footprint - distance) / (2.0 * footprint).max(f64::MIN_POSITIVE))
+        .clamp(0.0, 1.0);
     let mean = (2.0 * half_width / period).min(1.0);
     mean + (sharp - mean) * visibility(period, footprint)
 }
@@ -514,7 +679,11 @@ fn grid_line(x: f64, period: f64, half_width: f64, footprint: f64) -> f64 {
 type Rgb = [f64; 3];
 
 fn mix_rgb(a: &Rgb, b: &Rgb, t: f64) -> Rgb {
-    [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
+    [
+        a[0] + (b[0] - a[0]) * t,
+        a[1] + (b[1] - a[1]) * t,
+        a[2] + (b[2] - a[2]) * t,
+    ]
 }
 
 fn hsv_to_rgb(hue: f64, saturation: f64, value: f64) -> Rgb {
@@ -540,7 +709,11 @@ enum Pattern {
     /// Two-colour checkerboard of `period` (one light and one dark square per period).
     Checker { period: f64 },
     /// Stripes of `period` along direction `angle` (wallpaper).
-    Stripes { period: f64, cos_angle: f64, sin_angle: f64 },
+    Stripes {
+        period: f64,
+        cos_angle: f64,
+        sin_angle: f64,
+    },
     /// Square tiles with grout lines; each tile gets its own tint.
     Tiles { period: f64, grout_half_width: f64 },
     /// Floor planks with wood grain, staggered joints and a tint per plank.
@@ -568,9 +741,7 @@ impl Material {
     fn albedo(&self, uv: [f64; 2], footprint: f64) -> Rgb {
         let [u, v] = uv;
         let f = self.noise_frequency;
-        let base = fbm(u * f, v * f, self.noise_seed, footprint * f);
-        let detail_f = f * DETAIL_FREQUENCY_RATIO;
-        let detail = fbm(u * detail_f, v * detail_f, self.noise_seed ^ 0xD1B5_4A32_D192_ED03, footprint * detail_f);
+        let (base, detail) = fbm_bands(u * f, v * f, self.noise_seed, footprint * f);
         let stretched = ((base - 0.5) * NOISE_CONTRAST + 0.5).clamp(0.0, 1.0);
         let (mix, cell_brightness) = match self.pattern {
             Pattern::Marble => (stretched, 1.0),
@@ -578,34 +749,69 @@ impl Material {
                 let checker = square_wave(u, period, footprint) * square_wave(v, period, footprint);
                 (0.5 + 0.4 * checker + 0.2 * (stretched - 0.5), 1.0)
             }
-            Pattern::Stripes { period, cos_angle, sin_angle } => {
+            Pattern::Stripes {
+                period,
+                cos_angle,
+                sin_angle,
+            } => {
                 let along = u * cos_angle + v * sin_angle;
                 let stripe = square_wave(along, period, footprint);
                 // A thinner stripe at a third of the period makes the pattern non-repetitive within
                 // one period, which helps matching along the stripes.
                 let fine = square_wave(along + 0.37 * period, period / 3.0, footprint);
-                (0.5 + 0.3 * stripe + 0.1 * fine + 0.25 * (stretched - 0.5), 1.0)
+                (
+                    0.5 + 0.3 * stripe + 0.1 * fine + 0.25 * (stretched - 0.5),
+                    1.0,
+                )
             }
-            Pattern::Tiles { period, grout_half_width } => {
-                let grout = grid_line(u, period, grout_half_width, footprint).max(grid_line(v, period, grout_half_width, footprint));
-                let cell = lattice_value((u / period).floor() as i64, (v / period).floor() as i64, self.noise_seed ^ 0x7A11);
+            Pattern::Tiles {
+                period,
+                grout_half_width,
+            } => {
+                let grout = grid_line(u, period, grout_half_width, footprint).max(grid_line(
+                    v,
+                    period,
+                    grout_half_width,
+                    footprint,
+                ));
+                let cell = lattice_value(
+                    (u / period).floor() as i64,
+                    (v / period).floor() as i64,
+                    self.noise_seed ^ 0x7A11,
+                );
                 // The per-tile tint jumps at tile edges, which the grout hides; fade it with the
                 // grout's own visibility so far tiles do not shimmer.
-                let tint = 1.0 + self.cell_tint * (cell - 0.5) * 2.0 * visibility(period, footprint);
-                (grout + (1.0 - grout) * 0.35 * stretched, tint * (1.0 - grout) + grout)
+                let tint =
+                    1.0 + self.cell_tint * (cell - 0.5) * 2.0 * visibility(period, footprint);
+                (
+                    grout + (1.0 - grout) * 0.35 * stretched,
+                    tint * (1.0 - grout) + grout,
+                )
             }
             Pattern::Planks { width, length } => {
                 let row = (v / width).floor();
                 let stagger = lattice_value(row as i64, 0, self.noise_seed ^ 0x9A4C) * length;
                 let plank = ((u + stagger) / length).floor();
-                let gap = grid_line(v, width, 0.004, footprint).max(grid_line(u + stagger, length, 0.004, footprint));
+                let gap = grid_line(v, width, PLANK_GAP_HALF_WIDTH, footprint).max(grid_line(
+                    u + stagger,
+                    length,
+                    PLANK_GAP_HALF_WIDTH,
+                    footprint,
+                ));
                 let cell = lattice_value(row as i64, plank as i64, self.noise_seed ^ 0x51D3);
                 let tint = 1.0 + self.cell_tint * (cell - 0.5) * 2.0 * visibility(width, footprint);
-                // Grain: rings along u, warped by the noise; fades out when below pixel size.
-                let grain_period = 0.02;
-                let grain = 0.5 + 0.5 * (TAU * (v / grain_period + 6.0 * base)).sin() * visibility(grain_period, footprint);
-                let wood = 0.25 + 0.5 * grain * 0.6 + 0.5 * stretched * 0.4;
-                (wood * (1.0 - gap), tint * (1.0 - gap) + 0.45 * gap)
+                // Grain: lines along the plank, warped by the noise; fades out below pixel size.
+                let grain = 0.5
+                    + 0.5
+                        * (TAU * (v / WOOD_GRAIN_PERIOD + WOOD_GRAIN_WARP * base)).sin()
+                        * visibility(WOOD_GRAIN_PERIOD, footprint);
+                // Mostly grain, some blotches, kept away from both ends of the colour ramp.
+                let wood = 0.25 + 0.3 * grain + 0.2 * stretched;
+                // Gaps are dark: the mix goes to the primary colour at reduced brightness.
+                (
+                    wood * (1.0 - gap),
+                    tint * (1.0 - gap) + PLANK_GAP_BRIGHTNESS * gap,
+                )
             }
         };
         let mut colour = mix_rgb(&self.primary, &self.secondary, mix.clamp(0.0, 1.0));
@@ -669,16 +875,24 @@ fn random_material(rng: &mut ChaCha8Rng, pattern: Pattern, value_range: (f64, f6
     // The second colour differs in hue and clearly in brightness, so patterns have contrast in
     // grey-level too (trackers often work on intensity).
     let hsv_hue_shift = rng.random_range(0.08..0.5);
-    let secondary_value = if rng.random_bool(0.5) { value_range.0 * 0.45 } else { (value_range.1 * 1.15).min(1.0) };
+    let secondary_value = if rng.random_bool(0.5) {
+        value_range.0 * 0.45
+    } else {
+        (value_range.1 * 1.15).min(1.0)
+    };
     let base_hue = rng.random_range(0.0..1.0);
-    let secondary = hsv_to_rgb(base_hue + hsv_hue_shift, rng.random_range(0.2..0.8), secondary_value);
+    let secondary = hsv_to_rgb(
+        base_hue + hsv_hue_shift,
+        rng.random_range(0.2..0.8),
+        secondary_value,
+    );
     Material {
         pattern,
         primary,
         secondary,
         noise_seed: rng.random(),
-        noise_frequency: rng.random_range(1.2..3.0),
-        detail_strength: rng.random_range(0.12..0.25),
+        noise_frequency: rng.random_range(1.5..3.5),
+        detail_strength: rng.random_range(0.18..0.32),
         cell_tint: rng.random_range(0.08..0.2),
     }
 }
@@ -686,12 +900,21 @@ fn random_material(rng: &mut ChaCha8Rng, pattern: Pattern, value_range: (f64, f6
 fn random_object_pattern(rng: &mut ChaCha8Rng) -> Pattern {
     match rng.random_range(0..4u32) {
         0 => Pattern::Marble,
-        1 => Pattern::Checker { period: rng.random_range(0.08..0.2) },
+        1 => Pattern::Checker {
+            period: rng.random_range(0.08..0.2),
+        },
         2 => {
             let angle: f64 = rng.random_range(0.0..PI);
-            Pattern::Stripes { period: rng.random_range(0.06..0.16), cos_angle: angle.cos(), sin_angle: angle.sin() }
+            Pattern::Stripes {
+                period: rng.random_range(0.06..0.16),
+                cos_angle: angle.cos(),
+                sin_angle: angle.sin(),
+            }
         }
-        _ => Pattern::Tiles { period: rng.random_range(0.06..0.15), grout_half_width: 0.005 },
+        _ => Pattern::Tiles {
+            period: rng.random_range(0.06..0.15),
+            grout_half_width: 0.005,
+        },
     }
 }
 
@@ -709,20 +932,49 @@ impl Scene {
         let west = add_material(random_material(&mut rng, Pattern::Marble, wall_value));
         let east = add_material(random_material(
             &mut rng,
-            Pattern::Stripes { period: 0.21, cos_angle: stripe_angle.cos(), sin_angle: stripe_angle.sin() },
+            Pattern::Stripes {
+                period: 0.21,
+                cos_angle: stripe_angle.cos(),
+                sin_angle: stripe_angle.sin(),
+            },
             wall_value,
         ));
-        let south = add_material(random_material(&mut rng, Pattern::Checker { period: 0.5 }, wall_value));
-        let north = add_material(random_material(&mut rng, Pattern::Tiles { period: 0.3, grout_half_width: 0.008 }, wall_value));
-        let floor = add_material(random_material(&mut rng, Pattern::Planks { width: 0.16, length: 1.1 }, (0.45, 0.75)));
-        let ceiling = add_material(random_material(&mut rng, Pattern::Tiles { period: 0.6, grout_half_width: 0.012 }, (0.7, 0.95)));
+        let south = add_material(random_material(
+            &mut rng,
+            Pattern::Checker { period: 0.5 },
+            wall_value,
+        ));
+        let north = add_material(random_material(
+            &mut rng,
+            Pattern::Tiles {
+                period: 0.3,
+                grout_half_width: 0.008,
+            },
+            wall_value,
+        ));
+        let floor = add_material(random_material(
+            &mut rng,
+            Pattern::Planks {
+                width: 0.16,
+                length: 1.1,
+            },
+            (0.45, 0.75),
+        ));
+        let ceiling = add_material(random_material(
+            &mut rng,
+            Pattern::Tiles {
+                period: 0.6,
+                grout_half_width: 0.012,
+            },
+            (0.7, 0.95),
+        ));
         let room_materials = [west, east, south, north, floor, ceiling];
 
         let mut primitives = Vec::new();
         let mut add = |shape: Shape, rng: &mut ChaCha8Rng, materials: &mut Vec<Material>| {
             let pattern = random_object_pattern(rng);
             materials.push(random_material(rng, pattern, (0.35, 0.9)));
-            primitives.push(Primitive { shape, material: materials.len() - 1 });
+            primitives.push(Primitive::new(shape, materials.len() - 1));
         };
         let cuboid = |center: Vector3<f64>, half_size: Vector3<f64>, yaw: f64| Shape::Cuboid {
             center,
@@ -734,51 +986,134 @@ impl Scene {
         // Table in the middle of the room, with a box, a ball and a vase on it.
         let table_center = Vector3::new(symmetric(&mut rng, 0.15), symmetric(&mut rng, 0.1), 0.0);
         let table_yaw = symmetric(&mut rng, 0.25);
-        let (top_half, top_height, top_thickness) = (Vector3::new(0.6, 0.4, 0.02), rng.random_range(0.72..0.78), 0.04);
-        let on_table = |x: f64, y: f64, z: f64| table_center + from_yawed(&Vector3::new(x, y, 0.0), table_yaw.cos(), table_yaw.sin()) + Vector3::new(0.0, 0.0, z);
-        add(cuboid(on_table(0.0, 0.0, top_height - top_half.z), top_half, table_yaw), &mut rng, &mut materials);
+        let (top_half, top_height, top_thickness) = (
+            Vector3::new(0.6, 0.4, 0.02),
+            rng.random_range(0.72..0.78),
+            0.04,
+        );
+        let on_table = |x: f64, y: f64, z: f64| {
+            table_center
+                + from_yawed(&Vector3::new(x, y, 0.0), table_yaw.cos(), table_yaw.sin())
+                + Vector3::new(0.0, 0.0, z)
+        };
+        add(
+            cuboid(
+                on_table(0.0, 0.0, top_height - top_half.z),
+                top_half,
+                table_yaw,
+            ),
+            &mut rng,
+            &mut materials,
+        );
         let leg_half = Vector3::new(0.03, 0.03, (top_height - top_thickness) / 2.0);
         let leg_material_shape = |sx: f64, sy: f64| {
-            cuboid(on_table(sx * (top_half.x - 0.07), sy * (top_half.y - 0.07), leg_half.z), leg_half, table_yaw)
+            cuboid(
+                on_table(
+                    sx * (top_half.x - 0.07),
+                    sy * (top_half.y - 0.07),
+                    leg_half.z,
+                ),
+                leg_half,
+                table_yaw,
+            )
         };
         for (sx, sy) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
             add(leg_material_shape(sx, sy), &mut rng, &mut materials);
         }
         let box_half = Vector3::new(0.16, 0.12, 0.1);
-        let box_center = on_table(-0.25 + symmetric(&mut rng, 0.05), 0.1 + symmetric(&mut rng, 0.05), top_height + box_half.z);
-        add(cuboid(box_center, box_half, table_yaw + symmetric(&mut rng, 0.6)), &mut rng, &mut materials);
+        let box_center = on_table(
+            -0.25 + symmetric(&mut rng, 0.05),
+            0.1 + symmetric(&mut rng, 0.05),
+            top_height + box_half.z,
+        );
+        add(
+            cuboid(box_center, box_half, table_yaw + symmetric(&mut rng, 0.6)),
+            &mut rng,
+            &mut materials,
+        );
         let ball_radius = 0.11;
         add(
-            Shape::Sphere { center: on_table(0.3 + symmetric(&mut rng, 0.05), -0.12, top_height + ball_radius), radius: ball_radius },
+            Shape::Sphere {
+                center: on_table(
+                    0.3 + symmetric(&mut rng, 0.05),
+                    -0.12,
+                    top_height + ball_radius,
+                ),
+                radius: ball_radius,
+            },
             &mut rng,
             &mut materials,
         );
         add(
-            Shape::Cylinder { base: on_table(0.05, -0.22 + symmetric(&mut rng, 0.04), top_height), radius: 0.06, height: 0.22 },
+            Shape::Cylinder {
+                base: on_table(0.05, -0.22 + symmetric(&mut rng, 0.04), top_height),
+                radius: 0.06,
+                height: 0.22,
+            },
             &mut rng,
             &mut materials,
         );
 
         // Furniture along the walls, outside the agents' walking loop.
         let cabinet_y = -0.2 + symmetric(&mut rng, 0.2);
-        add(cuboid(Vector3::new(2.775, cabinet_y, 0.95), Vector3::new(0.225, 0.7, 0.95), 0.0), &mut rng, &mut materials);
+        add(
+            cuboid(
+                Vector3::new(2.775, cabinet_y, 0.95),
+                Vector3::new(0.225, 0.7, 0.95),
+                0.0,
+            ),
+            &mut rng,
+            &mut materials,
+        );
         let shelf_x = -0.6 + symmetric(&mut rng, 0.2);
-        add(cuboid(Vector3::new(shelf_x, -2.3, 0.6), Vector3::new(0.8, 0.2, 0.6), 0.0), &mut rng, &mut materials);
+        add(
+            cuboid(
+                Vector3::new(shelf_x, -2.3, 0.6),
+                Vector3::new(0.8, 0.2, 0.6),
+                0.0,
+            ),
+            &mut rng,
+            &mut materials,
+        );
         let bench_y = 0.3 + symmetric(&mut rng, 0.2);
-        add(cuboid(Vector3::new(-2.75, bench_y, 0.22), Vector3::new(0.25, 0.6, 0.22), 0.0), &mut rng, &mut materials);
+        add(
+            cuboid(
+                Vector3::new(-2.75, bench_y, 0.22),
+                Vector3::new(0.25, 0.6, 0.22),
+                0.0,
+            ),
+            &mut rng,
+            &mut materials,
+        );
         let big_ball_radius = 0.4;
         add(
             Shape::Sphere {
-                center: Vector3::new(2.35 + symmetric(&mut rng, 0.1), 1.85 + symmetric(&mut rng, 0.1), big_ball_radius),
+                center: Vector3::new(
+                    2.35 + symmetric(&mut rng, 0.1),
+                    1.85 + symmetric(&mut rng, 0.1),
+                    big_ball_radius,
+                ),
                 radius: big_ball_radius,
             },
             &mut rng,
             &mut materials,
         );
-        add(Shape::Cylinder { base: Vector3::new(-2.6, -2.1, 0.0), radius: 0.22, height: ROOM_MAX[2] }, &mut rng, &mut materials);
         add(
             Shape::Cylinder {
-                base: Vector3::new(-2.45 + symmetric(&mut rng, 0.08), 1.95 + symmetric(&mut rng, 0.08), 0.0),
+                base: Vector3::new(-2.6, -2.1, 0.0),
+                radius: 0.22,
+                height: ROOM_MAX[2],
+            },
+            &mut rng,
+            &mut materials,
+        );
+        add(
+            Shape::Cylinder {
+                base: Vector3::new(
+                    -2.45 + symmetric(&mut rng, 0.08),
+                    1.95 + symmetric(&mut rng, 0.08),
+                    0.0,
+                ),
                 radius: 0.22,
                 height: 0.65,
             },
@@ -787,25 +1122,72 @@ impl Scene {
         );
         let stack_x = 0.8 + symmetric(&mut rng, 0.2);
         let lower_half = Vector3::new(0.4, 0.25, 0.25);
-        add(cuboid(Vector3::new(stack_x, 2.2, lower_half.z), lower_half, symmetric(&mut rng, 0.15)), &mut rng, &mut materials);
+        add(
+            cuboid(
+                Vector3::new(stack_x, 2.2, lower_half.z),
+                lower_half,
+                symmetric(&mut rng, 0.15),
+            ),
+            &mut rng,
+            &mut materials,
+        );
         let upper_half = Vector3::new(0.25, 0.2, 0.18);
         add(
-            cuboid(Vector3::new(stack_x + symmetric(&mut rng, 0.1), 2.22, 2.0 * lower_half.z + upper_half.z), upper_half, symmetric(&mut rng, 0.4)),
+            cuboid(
+                Vector3::new(
+                    stack_x + symmetric(&mut rng, 0.1),
+                    2.22,
+                    2.0 * lower_half.z + upper_half.z,
+                ),
+                upper_half,
+                symmetric(&mut rng, 0.4),
+            ),
             &mut rng,
             &mut materials,
         );
         // Posters: thin boards on three walls.
-        add(cuboid(Vector3::new(-2.99, bench_y, 1.5), Vector3::new(0.01, 0.5, 0.35), 0.0), &mut rng, &mut materials);
-        add(cuboid(Vector3::new(-0.8, 2.49, 1.55), Vector3::new(0.45, 0.01, 0.3), 0.0), &mut rng, &mut materials);
-        add(cuboid(Vector3::new(1.5, -2.49, 1.6), Vector3::new(0.4, 0.01, 0.5), 0.0), &mut rng, &mut materials);
+        add(
+            cuboid(
+                Vector3::new(-2.99, bench_y, 1.5),
+                Vector3::new(0.01, 0.5, 0.35),
+                0.0,
+            ),
+            &mut rng,
+            &mut materials,
+        );
+        add(
+            cuboid(
+                Vector3::new(-0.8, 2.49, 1.55),
+                Vector3::new(0.45, 0.01, 0.3),
+                0.0,
+            ),
+            &mut rng,
+            &mut materials,
+        );
+        add(
+            cuboid(
+                Vector3::new(1.5, -2.49, 1.6),
+                Vector3::new(0.4, 0.01, 0.5),
+                0.0,
+            ),
+            &mut rng,
+            &mut materials,
+        );
 
-        Self { room_materials, primitives, materials }
+        Self {
+            room_materials,
+            primitives,
+            materials,
+        }
     }
 
     /// Nearest surface along the ray: the closest object, else the room shell.
     fn intersect(&self, ray: &Ray) -> Option<Hit> {
         let mut best = self.intersect_room(ray);
         for primitive in &self.primitives {
+            if !primitive.may_hit(ray, best.map_or(f64::INFINITY, |b| b.t)) {
+                continue;
+            }
             if let Some(hit) = primitive.intersect(ray)
                 && best.is_none_or(|b| hit.t < b.t)
             {
@@ -844,7 +1226,11 @@ impl Scene {
         let ray_length_per_t = ray.direction.norm();
         let view = ray.direction / ray_length_per_t;
         // Two-sided surfaces: face the normal towards the viewer.
-        let normal = if hit.normal.dot(&view) > 0.0 { -hit.normal } else { hit.normal };
+        let normal = if hit.normal.dot(&view) > 0.0 {
+            -hit.normal
+        } else {
+            hit.normal
+        };
         let cosine = (-normal.dot(&view)).max(MIN_FOOTPRINT_COSINE);
         // Pixel footprint on the surface: lateral size at this depth, stretched by obliquity. Off-axis
         // pixels subtend a smaller angle by the factor 1/|direction|^2, and the ray is |direction|
@@ -866,8 +1252,22 @@ impl Scene {
     }
 }
 
+/// Entries of the linear-to-display table: fine enough that the 8-bit output matches an exact
+/// `powf` to within one level for radiance above 1e-4 (the ambient light keeps every pixel
+/// well above that).
+const GAMMA_TABLE_SIZE: usize = 1 << 16;
+
+/// Linear radiance -> 8-bit display value by table lookup (three `powf` per pixel were a
+/// noticeable share of the rendering time).
 fn to_display_u8(linear: f64) -> u8 {
-    (linear.clamp(0.0, 1.0).powf(1.0 / DISPLAY_GAMMA) * 255.0).round() as u8
+    static TABLE: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
+    let table = TABLE.get_or_init(|| {
+        let last = (GAMMA_TABLE_SIZE - 1) as f64;
+        (0..GAMMA_TABLE_SIZE)
+            .map(|i| ((i as f64 / last).powf(1.0 / DISPLAY_GAMMA) * 255.0).round() as u8)
+            .collect()
+    });
+    table[(linear.clamp(0.0, 1.0) * (GAMMA_TABLE_SIZE - 1) as f64).round() as usize]
 }
 
 /// Largest depth the 16-bit millimetre format can hold (65535 is the 7-Scenes hole marker).
@@ -885,28 +1285,47 @@ fn depth_to_raw(z: f64) -> u16 {
 
 /// Ray-casts one view: 8-bit RGB and millimetre-quantised depth decoded exactly as the 7-Scenes
 /// reader decodes a depth PNG.
-fn render(scene: &Scene, intrinsics: &Intrinsics, world_from_camera: &Isometry3<f64>) -> (RgbImage, DepthImage) {
+fn render(
+    scene: &Scene,
+    intrinsics: &Intrinsics,
+    world_from_camera: &Isometry3<f64>,
+) -> (RgbImage, DepthImage) {
     let (width, height) = (intrinsics.width as usize, intrinsics.height as usize);
     let rotation = world_from_camera.rotation.to_rotation_matrix();
     let origin = world_from_camera.translation.vector;
     let pixel_angle = 1.0 / intrinsics.fx.min(intrinsics.fy);
     let mut rgb = vec![0u8; width * height * 3];
     let mut raw_depth = vec![0u16; width * height];
-    rgb.par_chunks_mut(width * 3).zip(raw_depth.par_chunks_mut(width)).enumerate().for_each(|(row, (rgb_row, depth_row))| {
-        let y = (row as f64 - intrinsics.cy) / intrinsics.fy;
-        for column in 0..width {
-            let x = (column as f64 - intrinsics.cx) / intrinsics.fx;
-            let ray = Ray { origin, direction: rotation * Vector3::new(x, y, 1.0) };
-            let Some(hit) = scene.intersect(&ray) else { continue };
-            depth_row[column] = depth_to_raw(hit.t);
-            let radiance = scene.shade(&ray, &hit, pixel_angle);
-            for channel in 0..3 {
-                rgb_row[3 * column + channel] = to_display_u8(radiance[channel]);
+    rgb.par_chunks_mut(width * 3)
+        .zip(raw_depth.par_chunks_mut(width))
+        .enumerate()
+        .for_each(|(row, (rgb_row, depth_row))| {
+            let y = (row as f64 - intrinsics.cy) / intrinsics.fy;
+            for column in 0..width {
+                let x = (column as f64 - intrinsics.cx) / intrinsics.fx;
+                let ray = Ray {
+                    origin,
+                    direction: rotation * Vector3::new(x, y, 1.0),
+                };
+                let Some(hit) = scene.intersect(&ray) else {
+                    continue;
+                };
+                depth_row[column] = depth_to_raw(hit.t);
+                let radiance = scene.shade(&ray, &hit, pixel_angle);
+                for channel in 0..3 {
+                    rgb_row[3 * column + channel] = to_display_u8(radiance[channel]);
+                }
             }
-        }
-    });
-    let rgb = RgbImage::from_raw(intrinsics.width, intrinsics.height, rgb).expect("buffer sized width * height * 3");
-    let depth = DepthImage::from_raw_u16(intrinsics.width, intrinsics.height, &raw_depth, DEPTH_UNITS_PER_METRE, Some(INVALID_DEPTH_RAW));
+        });
+    let rgb = RgbImage::from_raw(intrinsics.width, intrinsics.height, rgb)
+        .expect("buffer sized width * height * 3");
+    let depth = DepthImage::from_raw_u16(
+        intrinsics.width,
+        intrinsics.height,
+        &raw_depth,
+        DEPTH_UNITS_PER_METRE,
+        Some(INVALID_DEPTH_RAW),
+    );
     (rgb, depth)
 }
 
@@ -930,7 +1349,11 @@ const EYE_HEIGHT_PERIOD_FRAMES: f64 = 420.0;
 const HEAD_BOB: f64 = 0.006;
 const HEAD_BOB_PERIOD_FRAMES: f64 = 16.0;
 /// The gaze point wanders around the table so views sweep over different parts of the room.
-const GAZE_CENTER_HEIGHT: f64 = 0.9;
+const GAZE_CENTER_HEIGHT: f64 = 0.8;
+/// The gaze point lies beyond the room's centre by this fraction of the camera's horizontal
+/// distance to the centre: the camera looks across the room (more walls in view) and, the gaze
+/// point being farther, walking turns the view more gently.
+const GAZE_BEYOND_CENTER: f64 = 0.4;
 const GAZE_WANDER: [f64; 3] = [0.55, 0.45, 0.3];
 const GAZE_PERIOD_FRAMES: [f64; 3] = [400.0, 330.0, 280.0];
 /// Slow camera roll (radians) of a hand-held camera.
@@ -961,17 +1384,33 @@ impl Walk {
         let mut rng = stream_rng(seed, TRAJECTORY_STREAM.wrapping_add(agent as u64));
         let mut phase = || rng.random_range(0.0..TAU);
         let gaze_phases = [phase(), phase(), phase()];
-        let (wobble_phase, speed_phase, height_phase, bob_phase, roll_phase) = (phase(), phase(), phase(), phase(), phase());
-        let start_angle = TAU * agent as f64 / agents as f64 + symmetric(&mut rng, START_ANGLE_JITTER);
+        let (wobble_phase, speed_phase, height_phase, bob_phase, roll_phase) =
+            (phase(), phase(), phase(), phase(), phase());
+        let start_angle =
+            TAU * agent as f64 / agents as f64 + symmetric(&mut rng, START_ANGLE_JITTER);
         let scale = 1.0 + symmetric(&mut rng, LOOP_SCALE_JITTER);
-        let direction = if agent % 2 == 0 { 1.0 } else { -1.0 };
-        Self { start_angle, direction, scale, wobble_phase, speed_phase, height_phase, bob_phase, gaze_phases, roll_phase }
+        let direction = if agent.is_multiple_of(2) { 1.0 } else { -1.0 };
+        Self {
+            start_angle,
+            direction,
+            scale,
+            wobble_phase,
+            speed_phase,
+            height_phase,
+            bob_phase,
+            gaze_phases,
+            roll_phase,
+        }
     }
 
     /// Horizontal position on the loop at `angle`.
     fn loop_point(&self, angle: f64) -> [f64; 2] {
-        let radius_scale = self.scale * (1.0 + LOOP_WOBBLE * (2.0 * angle + self.wobble_phase).sin());
-        [radius_scale * LOOP_RADII[0] * angle.cos(), radius_scale * LOOP_RADII[1] * angle.sin()]
+        let radius_scale =
+            self.scale * (1.0 + LOOP_WOBBLE * (2.0 * angle + self.wobble_phase).sin());
+        [
+            radius_scale * LOOP_RADII[0] * angle.cos(),
+            radius_scale * LOOP_RADII[1] * angle.sin(),
+        ]
     }
 
     /// Metres walked per radian of loop angle at `angle`.
@@ -987,10 +1426,20 @@ impl Walk {
             + EYE_HEIGHT_SWAY * (TAU * frame / EYE_HEIGHT_PERIOD_FRAMES + self.height_phase).sin()
             + HEAD_BOB * (TAU * frame / HEAD_BOB_PERIOD_FRAMES + self.bob_phase).sin();
         let position = Vector3::new(x, y, z);
-        let wander = |axis: usize| GAZE_WANDER[axis] * (TAU * frame / GAZE_PERIOD_FRAMES[axis] + self.gaze_phases[axis]).sin();
-        let gaze = Vector3::new(wander(0), wander(1), GAZE_CENTER_HEIGHT + wander(2));
+        let wander = |axis: usize| {
+            GAZE_WANDER[axis]
+                * (TAU * frame / GAZE_PERIOD_FRAMES[axis] + self.gaze_phases[axis]).sin()
+        };
+        let gaze = Vector3::new(
+            wander(0) - GAZE_BEYOND_CENTER * x,
+            wander(1) - GAZE_BEYOND_CENTER * y,
+            GAZE_CENTER_HEIGHT + wander(2),
+        );
         let roll = ROLL_AMPLITUDE * (TAU * frame / ROLL_PERIOD_FRAMES + self.roll_phase).sin();
-        Isometry3::from_parts(Translation3::from(position), look_at(&position, &gaze, roll))
+        Isometry3::from_parts(
+            Translation3::from(position),
+            look_at(&position, &gaze, roll),
+        )
     }
 }
 
@@ -1001,14 +1450,9 @@ fn look_at(eye: &Vector3<f64>, target: &Vector3<f64>, roll: f64) -> UnitQuaterni
     let right = forward.cross(&Vector3::z()).normalize();
     let down = forward.cross(&right);
     let world_from_camera = Matrix3::from_columns(&[right, down, forward]);
-    let rolled = world_from_camera * Rotation3::from_axis_angle(&Vector3::z_axis(), roll).into_inner();
+    let rolled =
+        world_from_camera * Rotation3::from_axis_angle(&Vector3::z_axis(), roll).into_inner();
     UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(rolled))
-}
-
-/// Passes a pose through the rotation-matrix form the 7-Scenes pose file stores, so the pose
-/// read back from disk equals the streamed one (the reader re-orthonormalises the matrix).
-fn canonical_pose(pose: &Isometry3<f64>) -> Isometry3<f64> {
-    crate::se3::isometry_from_rt(pose.rotation.to_rotation_matrix().matrix(), &pose.translation.vector).unwrap_or(*pose)
 }
 
 /// Ground-truth `world_from_camera` of every frame of one agent.
@@ -1018,8 +1462,10 @@ fn trajectory(spec: &SyntheticSpec) -> Vec<Isometry3<f64>> {
     let mut poses = Vec::with_capacity(spec.frames);
     for frame in 0..spec.frames {
         let frame = frame as f64;
-        poses.push(canonical_pose(&walk.pose(angle, frame)));
-        let step = STEP_LENGTH * (1.0 + SPEED_VARIATION * (TAU * frame / SPEED_PERIOD_FRAMES + walk.speed_phase).sin());
+        poses.push(walk.pose(angle, frame));
+        let step = STEP_LENGTH
+            * (1.0
+                + SPEED_VARIATION * (TAU * frame / SPEED_PERIOD_FRAMES + walk.speed_phase).sin());
         angle += walk.direction * step / walk.loop_speed(angle);
     }
     poses
@@ -1042,7 +1488,8 @@ pub struct SyntheticDataset {
 
 impl SyntheticDataset {
     pub fn new(spec: SyntheticSpec, range: FrameRange) -> Result<Self, DatasetError> {
-        spec.validate().map_err(|reason| DatasetError::Invalid(format!("synthetic spec {spec}: {reason}")))?;
+        spec.validate()
+            .map_err(|reason| DatasetError::Invalid(format!("synthetic spec {spec}: {reason}")))?;
         let numbers: Vec<usize> = (0..spec.frames).filter(|&n| range.contains(n)).collect();
         if numbers.is_empty() {
             return Err(DatasetError::Invalid(format!(
@@ -1050,7 +1497,13 @@ impl SyntheticDataset {
                 spec.frames
             )));
         }
-        Ok(Self { spec, intrinsics: spec.intrinsics(), scene: Scene::generate(spec.seed), trajectory: trajectory(&spec), numbers })
+        Ok(Self {
+            spec,
+            intrinsics: spec.intrinsics(),
+            scene: Scene::generate(spec.seed),
+            trajectory: trajectory(&spec),
+            numbers,
+        })
     }
 
     pub fn spec(&self) -> &SyntheticSpec {
@@ -1132,10 +1585,17 @@ const WRITE_QUEUE_DEPTH: usize = 4;
 /// `groundtruth_tum.txt`) plus `out_dir/scene.json`. `progress(done, total)` is called after each
 /// frame. Refuses to write into an agent folder that already holds files, so frames of an
 /// earlier, longer run cannot mix in (see [`remove_written`]). Returns the agent folders.
-pub fn write_seven_scenes(spec: &SyntheticSpec, out_dir: &Path, mut progress: impl FnMut(usize, usize)) -> Result<Vec<PathBuf>, DatasetError> {
+pub fn write_seven_scenes(
+    spec: &SyntheticSpec,
+    out_dir: &Path,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<Vec<PathBuf>, DatasetError> {
     let spec = spec.with_agent(0);
-    spec.validate().map_err(|reason| DatasetError::Invalid(format!("synthetic spec {spec}: {reason}")))?;
-    let folders: Vec<PathBuf> = (0..spec.agents).map(|agent| agent_folder(out_dir, agent)).collect();
+    spec.validate()
+        .map_err(|reason| DatasetError::Invalid(format!("synthetic spec {spec}: {reason}")))?;
+    let folders: Vec<PathBuf> = (0..spec.agents)
+        .map(|agent| agent_folder(out_dir, agent))
+        .collect();
     for folder in &folders {
         if let Ok(mut entries) = std::fs::read_dir(folder)
             && entries.next().is_some()
@@ -1158,14 +1618,24 @@ pub fn write_seven_scenes(spec: &SyntheticSpec, out_dir: &Path, mut progress: im
         depth_units_per_metre: DEPTH_UNITS_PER_METRE,
         room_min: ROOM_MIN,
         room_max: ROOM_MAX,
-        agent_folders: folders.iter().map(|f| f.file_name().unwrap_or_default().to_string_lossy().into_owned()).collect(),
+        agent_folders: folders
+            .iter()
+            .map(|f| {
+                f.file_name()
+                    .unwrap_or_default()
+                    .to_string_lossy()
+                    .into_owned()
+            })
+            .collect(),
     };
     let scene_path = out_dir.join(SCENE_FILE);
-    let json = serde_json::to_string_pretty(&description).map_err(|e| DatasetError::Invalid(format!("{}: {e}", scene_path.display())))?;
+    let json = serde_json::to_string_pretty(&description)
+        .map_err(|e| DatasetError::Invalid(format!("{}: {e}", scene_path.display())))?;
     std::fs::write(&scene_path, json + "\n").map_err(|e| DatasetError::io(&scene_path, e))?;
 
     let total = spec.agents * spec.frames;
-    let (sender, receiver) = std::sync::mpsc::sync_channel::<Result<(usize, Frame), DatasetError>>(WRITE_QUEUE_DEPTH);
+    let (sender, receiver) =
+        std::sync::mpsc::sync_channel::<Result<(usize, Frame), DatasetError>>(WRITE_QUEUE_DEPTH);
     std::thread::scope(|scope| {
         scope.spawn(move || {
             for agent in 0..spec.agents {
@@ -1178,7 +1648,10 @@ pub fn write_seven_scenes(spec: &SyntheticSpec, out_dir: &Path, mut progress: im
                 };
                 for position in 0..dataset.len() {
                     // A send error means the writer stopped on an error of its own: stop too.
-                    if sender.send(dataset.load(position).map(|frame| (agent, frame))).is_err() {
+                    if sender
+                        .send(dataset.load(position).map(|frame| (agent, frame)))
+                        .is_err()
+                    {
                         return;
                     }
                 }
@@ -1192,7 +1665,10 @@ pub fn write_seven_scenes(spec: &SyntheticSpec, out_dir: &Path, mut progress: im
                 if let Some((_, finished)) = writer.take() {
                     finished.finish()?;
                 }
-                writer = Some((agent, SevenScenesWriter::create(&folders[agent], &frame.intrinsics)?));
+                writer = Some((
+                    agent,
+                    SevenScenesWriter::create(&folders[agent], &frame.intrinsics)?,
+                ));
             }
             if let Some((_, current)) = writer.as_mut() {
                 current.write(&frame)?;
@@ -1213,18 +1689,27 @@ pub fn write_seven_scenes(spec: &SyntheticSpec, out_dir: &Path, mut progress: im
 /// Returns the number of files removed.
 pub fn remove_written(out_dir: &Path) -> Result<usize, DatasetError> {
     let mut removed = 0;
-    let Ok(entries) = std::fs::read_dir(out_dir) else { return Ok(0) };
+    let Ok(entries) = std::fs::read_dir(out_dir) else {
+        return Ok(0);
+    };
     for entry in entries.flatten() {
         let folder = entry.path();
         let name = entry.file_name().to_string_lossy().into_owned();
-        let is_agent_folder = name.strip_prefix("agent_").is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()));
+        let is_agent_folder = name
+            .strip_prefix("agent_")
+            .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()));
         if !is_agent_folder || !folder.is_dir() {
             continue;
         }
-        for file in std::fs::read_dir(&folder).map_err(|e| DatasetError::io(&folder, e))?.flatten() {
+        for file in std::fs::read_dir(&folder)
+            .map_err(|e| DatasetError::io(&folder, e))?
+            .flatten()
+        {
             let file_name = file.file_name().to_string_lossy().into_owned();
             let ours = (file_name.starts_with("frame-")
-                && (file_name.ends_with(".color.png") || file_name.ends_with(".depth.png") || file_name.ends_with(".pose.txt")))
+                && (file_name.ends_with(".color.png")
+                    || file_name.ends_with(".depth.png")
+                    || file_name.ends_with(".pose.txt")))
                 || file_name == super::seven_scenes::INTRINSICS_FILE
                 || file_name == "groundtruth_tum.txt";
             if ours {
@@ -1243,3 +1728,575 @@ pub fn remove_written(out_dir: &Path) -> Result<usize, DatasetError> {
     Ok(removed)
 }
 
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Point3;
+
+    /// Small images keep the rendering tests fast in the lightly optimised test build.
+    const TEST_WIDTH: u32 = 160;
+    const TEST_HEIGHT: u32 = 120;
+
+    /// How far a rotation may move through the pose file's re-orthonormalisation.
+    const POSE_FILE_ROTATION_TOLERANCE_RAD: f64 = 1e-10;
+
+    fn small_spec(agents: usize, agent: usize, frames: usize, seed: u64) -> SyntheticSpec {
+        SyntheticSpec {
+            agents,
+            agent,
+            frames,
+            seed,
+            width: TEST_WIDTH,
+            height: TEST_HEIGHT,
+        }
+    }
+
+    fn camera_looking(eye: Vector3<f64>, target: Vector3<f64>) -> Isometry3<f64> {
+        Isometry3::from_parts(Translation3::from(eye), look_at(&eye, &target, 0.0))
+    }
+
+    #[test]
+    fn spec_parses_defaults_keys_and_round_trips() {
+        let default: SyntheticSpec = "synthetic".parse().unwrap();
+        assert_eq!(default, SyntheticSpec::default());
+        assert_eq!(
+            (default.agents, default.agent, default.frames, default.seed),
+            (3, 0, 300, 0)
+        );
+        assert_eq!((default.width, default.height), (640, 480));
+        let spec: SyntheticSpec =
+            "synthetic:agents=3,agent=1,frames=300,seed=7,width=320,height=240"
+                .parse()
+                .unwrap();
+        assert_eq!(
+            spec,
+            SyntheticSpec {
+                agents: 3,
+                agent: 1,
+                frames: 300,
+                seed: 7,
+                width: 320,
+                height: 240
+            }
+        );
+        assert_eq!(
+            spec.to_string(),
+            "synthetic:agents=3,agent=1,frames=300,seed=7,width=320,height=240"
+        );
+        assert_eq!(spec.to_string().parse::<SyntheticSpec>().unwrap(), spec);
+        let partial: SyntheticSpec = "synthetic: seed=9 , agent=2".parse().unwrap();
+        assert_eq!(
+            (partial.seed, partial.agent, partial.frames),
+            (9, 2, DEFAULT_FRAMES)
+        );
+    }
+
+    #[test]
+    fn spec_errors_name_the_bad_key() {
+        let cases = [
+            ("synthetic:agnets=3", "agnets"),
+            ("synthetic:frames=many", "frames"),
+            ("synthetic:seed=-1", "seed"),
+            ("synthetic:width=12", "width"),
+            ("synthetic:height=0", "height"),
+            ("synthetic:agents=2,agent=2", "agent=2"),
+            ("synthetic:agents=0", "agents=0"),
+            ("synthetic:frames=0", "frames=0"),
+            ("synthetic:seed=1,seed=2", "seed"),
+            ("synthetic:seed", "seed"),
+        ];
+        for (text, key) in cases {
+            let err = text.parse::<SyntheticSpec>().unwrap_err();
+            assert!(
+                err.contains(key),
+                "{text}: error {err:?} does not name {key:?}"
+            );
+        }
+        assert!("synthetics".parse::<SyntheticSpec>().is_err());
+        assert!("replica".parse::<SyntheticSpec>().is_err());
+    }
+
+    #[test]
+    fn intrinsics_follow_the_resolution() {
+        let k = SyntheticSpec::default().intrinsics();
+        assert_eq!(
+            (k.fx, k.fy, k.cx, k.cy, k.width, k.height),
+            (525.0, 525.0, 319.5, 239.5, 640, 480)
+        );
+        let half = small_spec(1, 0, 1, 0).intrinsics();
+        let expected = k.scaled(0.25);
+        assert!(
+            (half.fx - expected.fx).abs() < 1e-12
+                && (half.cx - expected.cx).abs() < 1e-12
+                && (half.cy - expected.cy).abs() < 1e-12
+        );
+    }
+
+    #[test]
+    fn frames_are_deterministic_for_a_seed_and_thread_count() {
+        let spec = small_spec(2, 1, 40, 5);
+        let a = SyntheticDataset::new(spec, FrameRange::ALL)
+            .unwrap()
+            .load(17)
+            .unwrap();
+        let single_thread = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let b = single_thread.install(|| {
+            SyntheticDataset::new(spec, FrameRange::ALL)
+                .unwrap()
+                .load(17)
+                .unwrap()
+        });
+        assert_eq!(a.rgb, b.rgb);
+        assert_eq!(a.depth, b.depth);
+        assert_eq!(a.world_from_camera_gt, b.world_from_camera_gt);
+        let other_seed = SyntheticDataset::new(SyntheticSpec { seed: 6, ..spec }, FrameRange::ALL)
+            .unwrap()
+            .load(17)
+            .unwrap();
+        assert_ne!(a.rgb, other_seed.rgb);
+        assert_ne!(a.world_from_camera_gt, other_seed.world_from_camera_gt);
+    }
+
+    #[test]
+    fn range_selects_frame_numbers_and_timestamps() {
+        let ds = SyntheticDataset::new(small_spec(3, 2, 50, 0), "10..20".parse().unwrap()).unwrap();
+        assert_eq!(ds.len(), 10);
+        assert_eq!(ds.frame_index(0), 10);
+        assert_eq!(ds.timestamp(3), 13.0 / 30.0);
+        let all = SyntheticDataset::new(small_spec(3, 2, 50, 0), FrameRange::ALL).unwrap();
+        assert_eq!(ds.ground_truth(3).unwrap(), all.ground_truth(13).unwrap());
+        let err = SyntheticDataset::new(small_spec(3, 2, 50, 0), "60..".parse().unwrap())
+            .err()
+            .unwrap();
+        assert!(err.to_string().contains("60.."), "{err}");
+        assert!(SyntheticDataset::new(small_spec(3, 3, 50, 0), FrameRange::ALL).is_err());
+    }
+
+    #[test]
+    fn depth_is_exact_camera_z_on_known_planes() {
+        let scene = Scene::generate(0);
+        let k = small_spec(1, 0, 1, 0).intrinsics();
+        let eye = Vector3::new(0.1, -0.2, 1.5);
+        let ceiling = ROOM_MAX[2];
+        // Straight up at the ceiling: every pixel's camera z is the height difference.
+        // The identity rotation looks along world +z: camera x = east, y = north, z = up.
+        let up = Isometry3::translation(eye.x, eye.y, eye.z);
+        let (_, depth) = render(&scene, &k, &up);
+        let expected = ((ceiling - eye.z) * 1000.0).round() as f32 / 1000.0;
+        assert!(
+            depth.data.iter().all(|&d| (d - expected).abs() < 1e-6),
+            "ceiling depth should be {expected} everywhere"
+        );
+
+        // Obliquely at the ceiling: z = (ceiling - eye_z) / (world-z component of the ray with
+        // unit camera z), exact up to millimetre quantisation.
+        let oblique = camera_looking(eye, eye + Vector3::new(1.0, 0.6, 1.2));
+        let (_, depth) = render(&scene, &k, &oblique);
+        let rotation = oblique.rotation.to_rotation_matrix();
+        let mut checked = 0;
+        for v in 0..k.height {
+            for u in 0..k.width {
+                let ray = rotation
+                    * Vector3::new((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy, 1.0);
+                if ray.z <= 0.0 {
+                    continue;
+                }
+                let z = (ceiling - eye.z) / ray.z;
+                let hit = eye + ray * z;
+                // Only rays that reach the ceiling well inside the walls.
+                let margin = 0.05;
+                if hit.x.abs() > ROOM_MAX[0] - margin || hit.y.abs() > ROOM_MAX[1] - margin {
+                    continue;
+                }
+                let got = depth.get(u, v) as f64;
+                assert!(
+                    (got - z).abs() <= 0.0005 + 1e-6,
+                    "pixel ({u}, {v}): depth {got}, expected {z}"
+                );
+                checked += 1;
+            }
+        }
+        assert!(
+            checked > (k.width * k.height / 2) as usize,
+            "only {checked} pixels reached the ceiling"
+        );
+
+        // The optical axis through the centre of a sphere hits it at distance - radius.
+        let (center, radius) = scene
+            .primitives
+            .iter()
+            .find_map(|p| match p.shape {
+                Shape::Sphere { center, radius } if radius > 0.3 => Some((center, radius)),
+                _ => None,
+            })
+            .unwrap();
+        let square = SyntheticSpec {
+            width: 81,
+            height: 61,
+            ..small_spec(1, 0, 1, 0)
+        }
+        .intrinsics();
+        let viewer = Vector3::new(0.5, 0.3, 1.2);
+        let (_, depth) = render(&scene, &square, &camera_looking(viewer, center));
+        let expected = (center - viewer).norm() - radius;
+        let got = depth.get(40, 30) as f64;
+        assert!(
+            (got - expected).abs() <= 0.0005 + 1e-6,
+            "sphere depth {got}, expected {expected}"
+        );
+    }
+
+    #[test]
+    fn depth_quantisation_matches_the_png_reader() {
+        for z in [
+            0.0004,
+            0.0006,
+            1.2344,
+            1.2346,
+            3.0,
+            65.534,
+            65.5346,
+            f64::INFINITY,
+            f64::NAN,
+            -1.0,
+        ] {
+            let raw = depth_to_raw(z);
+            let streamed = DepthImage::from_raw_u16(
+                1,
+                1,
+                &[raw],
+                DEPTH_UNITS_PER_METRE,
+                Some(INVALID_DEPTH_RAW),
+            );
+            let written = streamed.to_raw_u16(DEPTH_UNITS_PER_METRE);
+            assert_eq!(written, vec![raw], "z = {z}");
+            let valid = z.is_finite() && (0.0005..65.5345).contains(&z);
+            assert_eq!(raw > 0, valid, "z = {z} gave raw {raw}");
+        }
+    }
+
+    #[test]
+    fn frames_have_valid_depth_and_texture() {
+        let ds = SyntheticDataset::new(small_spec(3, 0, 300, 0), FrameRange::ALL).unwrap();
+        for position in [0, 150, 299] {
+            let frame = ds.load(position).unwrap();
+            let pixels = frame.depth.data.len();
+            assert!(frame.depth.valid_count() as f64 >= 0.95 * pixels as f64);
+            let min_depth = frame
+                .depth
+                .data
+                .iter()
+                .copied()
+                .filter(|&d| d > 0.0)
+                .fold(f32::INFINITY, f32::min);
+            assert!(
+                min_depth > 0.3,
+                "frame {position}: something {min_depth} m from the camera"
+            );
+            // Texture: grey-level gradients are present over most of the image.
+            let grey: Vec<f64> = frame
+                .rgb
+                .pixels()
+                .map(|p| (p[0] as f64 + p[1] as f64 + p[2] as f64) / 3.0)
+                .collect();
+            let w = frame.rgb.width() as usize;
+            let textured = (0..grey.len() - w - 1)
+                .filter(|&i| (grey[i + 1] - grey[i]).abs() + (grey[i + w] - grey[i]).abs() > 2.0)
+                .count();
+            assert!(
+                textured as f64 > 0.3 * pixels as f64,
+                "frame {position}: only {textured} textured pixels"
+            );
+            let mean = grey.iter().sum::<f64>() / grey.len() as f64;
+            assert!(
+                (50.0..210.0).contains(&mean),
+                "frame {position}: mean grey {mean}"
+            );
+        }
+    }
+
+    /// Per-frame translation (m) and rotation (rad) of a trajectory, maxima.
+    fn max_steps(poses: &[Isometry3<f64>]) -> (f64, f64) {
+        poses.windows(2).fold((0.0, 0.0), |(t, r), w| {
+            let delta = w[0].inverse() * w[1];
+            (
+                t.max(delta.translation.vector.norm()),
+                r.max(delta.rotation.angle()),
+            )
+        })
+    }
+
+    #[test]
+    fn trajectories_are_smooth_and_stay_clear_of_walls_and_objects() {
+        const MAX_STEP_M: f64 = 0.03;
+        const MAX_TURN_RAD: f64 = 2.0 * PI / 180.0;
+        const CLEARANCE_M: f64 = 0.3;
+        for seed in 0..4 {
+            let scene = Scene::generate(seed);
+            for agents in [1, 3, 5] {
+                for agent in 0..agents {
+                    let spec = SyntheticSpec {
+                        agents,
+                        agent,
+                        frames: 1200,
+                        seed,
+                        ..SyntheticSpec::default()
+                    };
+                    let poses = trajectory(&spec);
+                    let (step, turn) = max_steps(&poses);
+                    assert!(
+                        step <= MAX_STEP_M,
+                        "seed {seed} agent {agent}/{agents}: step {step} m"
+                    );
+                    assert!(
+                        turn <= MAX_TURN_RAD,
+                        "seed {seed} agent {agent}/{agents}: turn {} deg",
+                        turn.to_degrees()
+                    );
+                    for (frame, pose) in poses.iter().enumerate() {
+                        let p = pose.translation.vector;
+                        for axis in 0..3 {
+                            assert!(
+                                p[axis] > ROOM_MIN[axis] + CLEARANCE_M
+                                    && p[axis] < ROOM_MAX[axis] - CLEARANCE_M,
+                                "seed {seed} agent {agent} frame {frame}: {p:?} too close to the room's walls"
+                            );
+                        }
+                        for primitive in &scene.primitives {
+                            let distance = primitive.distance(&p);
+                            assert!(
+                                distance > CLEARANCE_M,
+                                "seed {seed} agent {agent} frame {frame}: {distance} m from {primitive:?}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn agents_start_apart_and_revisit_each_others_places() {
+        const NEAR_M: f64 = 0.5;
+        const SIMILAR_VIEW_RAD: f64 = 30.0 * PI / 180.0;
+        let agents = 3;
+        let trajectories: Vec<Vec<Isometry3<f64>>> = (0..agents)
+            .map(|agent| {
+                trajectory(&SyntheticSpec {
+                    agent,
+                    ..SyntheticSpec::default()
+                })
+            })
+            .collect();
+        for a in 0..agents {
+            for b in a + 1..agents {
+                let start_gap = (trajectories[a][0].translation.vector
+                    - trajectories[b][0].translation.vector)
+                    .norm();
+                assert!(
+                    start_gap > 1.0,
+                    "agents {a} and {b} start only {start_gap} m apart"
+                );
+            }
+        }
+        // Every agent shares at least one place (near, looking the same way) with another agent.
+        let mut best_pair = None;
+        for a in 0..agents {
+            let mut overlaps = 0;
+            for b in (0..agents).filter(|&b| b != a) {
+                for (i, pa) in trajectories[a].iter().enumerate() {
+                    for (j, pb) in trajectories[b].iter().enumerate() {
+                        let gap = (pa.translation.vector - pb.translation.vector).norm();
+                        let view_angle =
+                            (pa.rotation * Vector3::z()).angle(&(pb.rotation * Vector3::z()));
+                        if gap < NEAR_M && view_angle < SIMILAR_VIEW_RAD {
+                            overlaps += 1;
+                            if best_pair.is_none() {
+                                best_pair = Some((a, i, b, j));
+                            }
+                        }
+                    }
+                }
+            }
+            assert!(overlaps > 0, "agent {a} never sees what another agent sees");
+        }
+
+        // Geometric and photometric consistency of one such pair: agent a's depth, moved into
+        // agent b's camera with the ground-truth poses, agrees with b's depth, and the colours of
+        // corresponding pixels agree (Lambertian shading is view independent).
+        let (a, i, b, j) = best_pair.unwrap();
+        let frame_a = SyntheticDataset::new(small_spec(agents, a, 300, 0), FrameRange::ALL)
+            .unwrap()
+            .load(i)
+            .unwrap();
+        let frame_b = SyntheticDataset::new(small_spec(agents, b, 300, 0), FrameRange::ALL)
+            .unwrap()
+            .load(j)
+            .unwrap();
+        let k = frame_a.intrinsics;
+        let b_from_a =
+            frame_b.world_from_camera_gt.unwrap().inverse() * frame_a.world_from_camera_gt.unwrap();
+        let (mut visible, mut consistent, mut colour_error) = (0usize, 0usize, 0.0);
+        for v in 0..k.height {
+            for u in 0..k.width {
+                let z = frame_a.depth.get(u, v) as f64;
+                if z <= 0.0 {
+                    continue;
+                }
+                let p_b = b_from_a * Point3::from(k.back_project(u as f64, v as f64, z).coords);
+                let Some(pixel) = k.project(&p_b) else {
+                    continue;
+                };
+                if !k.contains(&pixel) {
+                    continue;
+                }
+                visible += 1;
+                let (ub, vb) = (pixel.x.round() as u32, pixel.y.round() as u32);
+                // One pixel of rounding at a slanted surface moves depth by up to a few cm.
+                if (frame_b.depth.get(ub, vb) as f64 - p_b.z).abs() < 0.03 * p_b.z {
+                    consistent += 1;
+                    let (ca, cb) = (frame_a.rgb.get_pixel(u, v), frame_b.rgb.get_pixel(ub, vb));
+                    colour_error += (0..3)
+                        .map(|c| (ca[c] as f64 - cb[c] as f64).abs())
+                        .sum::<f64>()
+                        / 3.0;
+                }
+            }
+        }
+        let pixels = (k.width * k.height) as usize;
+        assert!(
+            visible as f64 > 0.5 * pixels as f64,
+            "agents {a}/{b}: only {visible} of {pixels} pixels co-visible"
+        );
+        assert!(
+            consistent as f64 > 0.85 * visible as f64,
+            "agents {a}/{b}: {consistent} of {visible} depths agree"
+        );
+        let mean_colour_error = colour_error / consistent as f64;
+        assert!(
+            mean_colour_error < 12.0,
+            "agents {a}/{b}: mean colour difference {mean_colour_error}"
+        );
+    }
+
+    #[test]
+    fn written_dataset_reads_back_identical() {
+        let dir = tempfile::tempdir().unwrap();
+        let spec = SyntheticSpec {
+            width: 64,
+            height: 48,
+            ..small_spec(2, 0, 4, 3)
+        };
+        let mut calls = Vec::new();
+        let folders =
+            write_seven_scenes(&spec, dir.path(), |done, total| calls.push((done, total))).unwrap();
+        assert_eq!(
+            folders,
+            vec![dir.path().join("agent_0"), dir.path().join("agent_1")]
+        );
+        assert_eq!(calls.last(), Some(&(8, 8)));
+        assert!(dir.path().join(SCENE_FILE).is_file());
+        for (agent, folder) in folders.iter().enumerate() {
+            let streamed = SyntheticDataset::new(spec.with_agent(agent), FrameRange::ALL).unwrap();
+            let read = crate::dataset::open(folder.to_str().unwrap(), FrameRange::ALL).unwrap();
+            assert_eq!(read.len(), streamed.len());
+            let (ki, ks) = (read.intrinsics(), streamed.intrinsics());
+            assert_eq!((ki.width, ki.height), (ks.width, ks.height));
+            for (x, y) in [
+                (ki.fx, ks.fx),
+                (ki.fy, ks.fy),
+                (ki.cx, ks.cx),
+                (ki.cy, ks.cy),
+            ] {
+                assert!(
+                    (x - y).abs() <= 1e-12 * y.abs().max(1.0),
+                    "intrinsics {ki:?} vs {ks:?}"
+                );
+            }
+            for position in 0..streamed.len() {
+                let (a, b) = (
+                    streamed.load(position).unwrap(),
+                    read.load(position).unwrap(),
+                );
+                assert_eq!(a.index, b.index);
+                assert_eq!(a.timestamp, b.timestamp);
+                assert_eq!(
+                    a.rgb, b.rgb,
+                    "agent {agent} frame {position}: colour differs"
+                );
+                assert_eq!(
+                    a.depth, b.depth,
+                    "agent {agent} frame {position}: depth differs"
+                );
+                // Translations survive the 17-digit pose file exactly; the reader re-orthonormalises
+                // the rotation matrix iteratively (to 1e-12), which moves the last bits.
+                let (pa, pb) = (
+                    a.world_from_camera_gt.unwrap(),
+                    b.world_from_camera_gt.unwrap(),
+                );
+                assert_eq!(
+                    pa.translation, pb.translation,
+                    "agent {agent} frame {position}"
+                );
+                let rotation_error = pa.rotation.angle_to(&pb.rotation);
+                assert!(
+                    rotation_error < POSE_FILE_ROTATION_TOLERANCE_RAD,
+                    "agent {agent} frame {position}: rotation differs by {rotation_error} rad"
+                );
+            }
+        }
+        // A second write into the same folder is refused; after remove_written it works again.
+        let err = write_seven_scenes(&spec, dir.path(), |_, _| {})
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("agent_0") && err.contains("not empty"),
+            "{err}"
+        );
+        let removed = remove_written(dir.path()).unwrap();
+        assert_eq!(removed, 2 * (4 * 3 + 2) + 1);
+        assert!(!dir.path().join("agent_0").exists());
+        write_seven_scenes(&spec, dir.path(), |_, _| {}).unwrap();
+    }
+
+    #[test]
+    fn open_streams_the_synthetic_spec() {
+        let ds = crate::dataset::open(
+            "synthetic:agents=2,agent=1,frames=5,width=32,height=24",
+            "2..".parse().unwrap(),
+        )
+        .unwrap();
+        assert_eq!(ds.len(), 3);
+        assert_eq!(ds.frame_index(0), 2);
+        let frame = ds.load(0).unwrap();
+        assert_eq!((frame.rgb.width(), frame.depth.height), (32, 24));
+        assert!(ds.describe().contains("agent=1"));
+    }
+}
+
+/// Rendering throughput, for the record: `cargo test --release -p slam-core render_speed --
+/// --ignored --nocapture`.
+#[cfg(test)]
+mod speed {
+    use super::*;
+
+    #[test]
+    #[ignore = "timing, not a check; run with --release"]
+    fn render_speed() {
+        let ds = SyntheticDataset::new(SyntheticSpec::default(), FrameRange::ALL).unwrap();
+        let frames = 30;
+        let started = std::time::Instant::now();
+        for position in 0..frames {
+            std::hint::black_box(ds.load(position * 10).unwrap());
+        }
+        let seconds = started.elapsed().as_secs_f64();
+        println!(
+            "rendered {frames} frames at 640x480 in {seconds:.2} s: {:.1} frames/s on {} threads",
+            frames as f64 / seconds,
+            rayon::current_num_threads()
+        );
+    }
+}
