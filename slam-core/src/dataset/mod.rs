@@ -468,8 +468,16 @@ pub fn agent_folders(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
             found.push(path);
         }
     }
-    found.sort();
+    // Natural order: agent_2 before agent_10.
+    found.sort_by_key(|p| natural_key(&p.file_name().unwrap_or_default().to_string_lossy()));
     Ok(found)
+}
+
+/// Sort key that orders a trailing number numerically: ("agent_", 10) after ("agent_", 2).
+fn natural_key(name: &str) -> (String, u64, String) {
+    let digits_start = name.trim_end_matches(|c: char| c.is_ascii_digit()).len();
+    let number = name[digits_start..].parse().unwrap_or(0);
+    (name[..digits_start].to_string(), number, name.to_string())
 }
 
 #[cfg(test)]
@@ -505,6 +513,23 @@ mod tests {
         let r: FrameRange = "400..1000".parse().unwrap();
         assert!(r.contains(400) && r.contains(999) && !r.contains(1000) && !r.contains(399));
         assert_eq!(r.to_string(), "400..1000");
+    }
+
+    #[test]
+    fn agent_folders_sort_naturally() {
+        let dir = tempfile::tempdir().unwrap();
+        for k in [10, 2, 1] {
+            let agent = dir.path().join(format!("agent_{k}"));
+            std::fs::create_dir(&agent).unwrap();
+            std::fs::write(agent.join("frame-000000.color.png"), b"").unwrap();
+        }
+        std::fs::create_dir(dir.path().join("not_a_dataset")).unwrap();
+        let names: Vec<_> = agent_folders(dir.path())
+            .unwrap()
+            .iter()
+            .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names, ["agent_1", "agent_2", "agent_10"]);
     }
 
     #[test]
