@@ -139,57 +139,71 @@ fn blur(plane: &[f64], width: usize, height: usize, window: &[f64; SSIM_WINDOW])
     out
 }
 
-/// (zero-padded mean SSIM, valid-region mean SSIM) over all channels.
+/// (zero-padded mean SSIM, valid-region mean SSIM) over all channels; channels in parallel.
 fn ssim(a: &[f64], b: &[f64], width: usize, height: usize) -> (f64, f64) {
-    let window = gaussian_window();
-    let c1 = SSIM_K1 * SSIM_K1;
-    let c2 = SSIM_K2 * SSIM_K2;
+    use rayon::prelude::*;
     let r = SSIM_WINDOW / 2;
-    let (mut sum_all, mut sum_valid) = (0.0, 0.0);
-    for c in 0..CHANNELS {
-        let pa: Vec<f64> = a.iter().skip(c).step_by(CHANNELS).copied().collect();
-        let pb: Vec<f64> = b.iter().skip(c).step_by(CHANNELS).copied().collect();
-        let mu_a = blur(&pa, width, height, &window);
-        let mu_b = blur(&pb, width, height, &window);
-        let aa = blur(
-            &pa.iter().map(|v| v * v).collect::<Vec<_>>(),
-            width,
-            height,
-            &window,
-        );
-        let bb = blur(
-            &pb.iter().map(|v| v * v).collect::<Vec<_>>(),
-            width,
-            height,
-            &window,
-        );
-        let ab = blur(
-            &pa.iter().zip(&pb).map(|(x, y)| x * y).collect::<Vec<_>>(),
-            width,
-            height,
-            &window,
-        );
-        for y in 0..height {
-            for x in 0..width {
-                let i = y * width + x;
-                let (ma, mb) = (mu_a[i], mu_b[i]);
-                let var_a = aa[i] - ma * ma;
-                let var_b = bb[i] - mb * mb;
-                let cov = ab[i] - ma * mb;
-                let s = ((2.0 * ma * mb + c1) * (2.0 * cov + c2))
-                    / ((ma * ma + mb * mb + c1) * (var_a + var_b + c2));
-                sum_all += s;
-                if x >= r && y >= r && x < width - r && y < height - r {
-                    sum_valid += s;
-                }
-            }
-        }
-    }
+    let sums: Vec<(f64, f64)> = (0..CHANNELS)
+        .into_par_iter()
+        .map(|c| {
+            let pa: Vec<f64> = a.iter().skip(c).step_by(CHANNELS).copied().collect();
+            let pb: Vec<f64> = b.iter().skip(c).step_by(CHANNELS).copied().collect();
+            ssim_channel_sums(&pa, &pb, width, height)
+        })
+        .collect();
+    let (sum_all, sum_valid) = sums
+        .iter()
+        .fold((0.0, 0.0), |acc, s| (acc.0 + s.0, acc.1 + s.1));
     let valid_pixels = (width - 2 * r) * (height - 2 * r);
     (
         sum_all / (width * height * CHANNELS) as f64,
         sum_valid / (valid_pixels * CHANNELS) as f64,
     )
+}
+
+/// Sums of the SSIM map of one channel plane: (over every pixel, over the valid region).
+fn ssim_channel_sums(pa: &[f64], pb: &[f64], width: usize, height: usize) -> (f64, f64) {
+    let window = gaussian_window();
+    let c1 = SSIM_K1 * SSIM_K1;
+    let c2 = SSIM_K2 * SSIM_K2;
+    let r = SSIM_WINDOW / 2;
+    let mu_a = blur(pa, width, height, &window);
+    let mu_b = blur(pb, width, height, &window);
+    let aa = blur(
+        &pa.iter().map(|v| v * v).collect::<Vec<_>>(),
+        width,
+        height,
+        &window,
+    );
+    let bb = blur(
+        &pb.iter().map(|v| v * v).collect::<Vec<_>>(),
+        width,
+        height,
+        &window,
+    );
+    let ab = blur(
+        &pa.iter().zip(pb).map(|(x, y)| x * y).collect::<Vec<_>>(),
+        width,
+        height,
+        &window,
+    );
+    let (mut sum_all, mut sum_valid) = (0.0, 0.0);
+    for y in 0..height {
+        for x in 0..width {
+            let i = y * width + x;
+            let (ma, mb) = (mu_a[i], mu_b[i]);
+            let var_a = aa[i] - ma * ma;
+            let var_b = bb[i] - mb * mb;
+            let cov = ab[i] - ma * mb;
+            let s = ((2.0 * ma * mb + c1) * (2.0 * cov + c2))
+                / ((ma * ma + mb * mb + c1) * (var_a + var_b + c2));
+            sum_all += s;
+            if x >= r && y >= r && x < width - r && y < height - r {
+                sum_valid += s;
+            }
+        }
+    }
+    (sum_all, sum_valid)
 }
 
 #[cfg(test)]
