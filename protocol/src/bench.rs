@@ -1,0 +1,614 @@
+//! Two-process IPC benchmark (`mac-ego3d bench ipc`): one-way latency and throughput of the real
+//! transport for a keyframe descriptor and for Gaussian patches of 10k and 100k records.
+//!
+//! The driver (this process) is agent 0: it sends one message, the peer process (a
+//! [`ConsumerLink`]) receives it, notes the receive time, checksums what it read in place, and
+//! answers with an acknowledgement on the correction topic carrying `[receive time, checksum]`.
+//! Latency = peer receive time - driver time just before the send call; both are
+//! `CLOCK_MONOTONIC`, which is one clock for all processes of a machine. So a latency sample
+//! includes loaning, writing the records into shared memory, sending, the wake-up and the
+//! consumer's receive. Throughput runs keep `window` patches in flight (credit = acks), so the
+//! consumer's queue never overflows and every patch is read and checksummed.
+//!
+//! Copies are counted by the transport (bytes it copied from caller memory into shared memory),
+//! not asserted: the copying path (`send_patch` from the agent's Vec) is 1 copy, the in-place
+//! path (`send_patch_with`, records built directly in the loaned sample) is 0; the consumer reads
+//! the sample where it lies (0 copies).
+
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+
+use crate::messages::{
+    CoordinateFrame, GaussianRecord, Intrinsics, KeyframeDescriptor, KeyframePose, LifecycleKind,
+    Pose,
+};
+use crate::services::Topic;
+use crate::transport::{
+    AgentLink, ConsumerLink, Direction, Incoming, TransportConfig, TransportError,
+};
+
+/// Agent id the benchmark driver uses.
+const BENCH_AGENT_ID: u32 = 0;
+/// Patch sizes of the report's keys.
+pub const SMALL_PATCH_RECORDS: usize = 10_000;
+pub const LARGE_PATCH_RECORDS: usize = 100_000;
+/// Patch publisher sizing: the next power of two above the largest patch, so no data segment
+/// grows (and is zeroed) during timing.
+const BENCH_INITIAL_PATCH_RECORDS: usize = 131_072;
+/// Per-consumer patch queue in the benchmark; also the throughput window.
+const BENCH_PATCH_QUEUE_DEPTH: usize = 4;
+/// Longest wait for one acknowledgement before the peer is declared lost.
+const ACK_TIMEOUT: Duration = Duration::from_secs(10);
+/// Longest idle wait of the peer between two messages.
+const PEER_IDLE_TIMEOUT: Duration = Duration::from_secs(30);
+/// Longest wait for the peer process to exit after the driver's goodbye.
+const PEER_EXIT_TIMEOUT: Duration = Duration::from_secs(5);
+const PEER_EXIT_POLL: Duration = Duration::from_millis(10);
+/// Fixed content seed, so the driver knows the checksum the peer must report.
+const CONTENT_SEED: u64 = 0x6d61_6365_676f_3364;
+/// Percentile reported besides the median.
+const TAIL_PERCENTILE: f64 = 0.99;
+const NS_PER_US: f64 = 1e3;
+
+/// FNV-1a 64-bit parameters (a simple, dependency-free integrity checksum).
+const FNV_OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
+const FNV_PRIME: u64 = 0x0000_0100_0000_01b3;
+
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    #[error("could not start the benchmark peer '{program}': {reason}")]
+    PeerSpawn { program: String, reason: String },
+    #[error("the benchmark peer sent no acknowledgement within {0:?}")]
+    PeerTimeout(Duration),
+    #[error("the benchmark peer exited with {status}")]
+    PeerFailed { status: String },
+    #[error("acknowledgement is malformed: {0}")]
+    BadAck(String),
+    #[error(
+        "message content was corrupted in transit: {case} checksum {received:#x}, expected {expected:#x}"
+    )]
+    Corrupted {
+        case: &'static str,
+        received: u64,
+        expected: u64,
+    },
+    #[error("invalid benchmark configuration: {0}")]
+    InvalidConfig(String),
+}
+
+/// Benchmark settings.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct IpcBenchConfig {
+    /// Timed one-way samples per latency case.
+    pub latency_samples: usize,
+    /// Untimed messages before each case (page faults of fresh shared memory, caches).
+    pub warmup: usize,
+    /// Patches per throughput case.
+    pub throughput_messages: usize,
+    /// Service-name namespace; unique per run so runs never share services.
+    pub namespace: String,
+}
+
+impl Default for IpcBenchConfig {
+    fn default() -> Self {
+        Self {
+            latency_samples: 1000,
+            warmup: 50,
+            throughput_messages: 500,
+            namespace: format!("mac-bench-{}", std::process::id()),
+        }
+    }
+}
+
+/// How to start the peer process: `program args... --namespace NS`.
+#[derive(Debug, Clone)]
+pub struct PeerCommand {
+    pub program: PathBuf,
+    pub args: Vec<String>,
+}
+
+/// Median and tail of one latency case, microseconds.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct LatencySummary {
+    pub median_us: f64,
+    pub p99_us: f64,
+    pub max_us: f64,
+    pub samples: usize,
+}
+
+impl LatencySummary {
+    fn from_ns(mut samples_ns: Vec<u64>) -> Self {
+        samples_ns.sort_unstable();
+        let n = samples_ns.len();
+        let at = |q: f64| {
+            samples_ns
+                .get(((n as f64 - 1.0) * q).round() as usize)
+                .copied()
+                .unwrap_or(0) as f64
+                / NS_PER_US
+        };
+        Self {
+            median_us: at(0.5),
+            p99_us: at(TAIL_PERCENTILE),
+            max_us: at(1.0),
+            samples: n,
+        }
+    }
+}
+
+/// The benchmark's result (`--json` prints it).
+#[derive(Debug, Clone, Serialize)]
+pub struct IpcBenchReport {
+    pub descriptor_median_us: f64,
+    pub descriptor_p99_us: f64,
+    /// 10k-record patch copied from the agent's buffer (`send_patch`).
+    pub patch_10k_median_us: f64,
+    pub patch_10k_p99_us: f64,
+    pub patch_10k_msgs_per_s: f64,
+    /// 10k-record patch built in place in shared memory (`send_patch_with`); includes building.
+    pub patch_10k_in_place_median_us: f64,
+    pub patch_10k_in_place_p99_us: f64,
+    pub patch_100k_median_us: f64,
+    pub patch_100k_p99_us: f64,
+    pub patch_100k_msgs_per_s: f64,
+    /// Copies of the records from the agent's buffer to the consumer, measured by the
+    /// transport's byte counters for the `patch_10k` path (`send_patch`).
+    pub copies_per_patch: f64,
+    /// Same for the in-place path.
+    pub copies_per_patch_in_place: f64,
+    /// The consumer reads records in shared memory.
+    pub receiver_copies_per_patch: f64,
+    pub descriptor: LatencySummary,
+    pub patch_10k: LatencySummary,
+    pub patch_10k_in_place: LatencySummary,
+    pub patch_100k: LatencySummary,
+    pub record_bytes: usize,
+    pub descriptor_bytes: usize,
+}
+
+/// Deterministic record `index` of a synthetic patch (plausible values, distinct per index).
+pub fn synthetic_record(seed: u64, index: usize) -> GaussianRecord {
+    let base = (seed as f32).fract() + index as f32 * 1e-3;
+    GaussianRecord {
+        mean: [base, base * 0.5, -base],
+        log_scale: [-4.0, -4.5, -5.0 + (index % 7) as f32 * 0.1],
+        rotation_wxyz: [1.0, 0.0, 0.0, 0.0],
+        opacity_logit: (index % 97) as f32 * 0.01 - 2.0,
+        colour: [
+            (index % 255) as f32 / 255.0,
+            0.5,
+            ((seed as usize ^ index) % 255) as f32 / 255.0,
+        ],
+    }
+}
+
+/// Order-sensitive FNV-1a checksum over every field of every record.
+pub fn records_checksum(records: &[GaussianRecord]) -> u64 {
+    let mut hash = FNV_OFFSET;
+    for r in records {
+        let fields = r
+            .mean
+            .iter()
+            .chain(&r.log_scale)
+            .chain(&r.rotation_wxyz)
+            .chain([&r.opacity_logit])
+            .chain(&r.colour);
+        for v in fields {
+            hash = (hash ^ u64::from(v.to_bits())).wrapping_mul(FNV_PRIME);
+        }
+    }
+    hash
+}
+
+/// FNV-1a checksum of a descriptor vector.
+pub fn descriptor_checksum(descriptor: &[f32]) -> u64 {
+    descriptor.iter().fold(FNV_OFFSET, |h, v| {
+        (h ^ u64::from(v.to_bits())).wrapping_mul(FNV_PRIME)
+    })
+}
+
+/// A unit-norm synthetic descriptor.
+pub fn synthetic_descriptor(keyframe_id: u64) -> KeyframeDescriptor {
+    let mut d = KeyframeDescriptor::new(keyframe_id, keyframe_id, keyframe_id as f64);
+    for (i, v) in d.descriptor.iter_mut().enumerate() {
+        *v = ((i as u64 + keyframe_id) % 13) as f32 + 1.0;
+    }
+    d.normalise_descriptor();
+    d.intrinsics = Intrinsics {
+        fx: 585.0,
+        fy: 585.0,
+        cx: 320.0,
+        cy: 240.0,
+        width: 640,
+        height: 480,
+    };
+    d
+}
+
+/// `CLOCK_MONOTONIC` in nanoseconds: comparable between processes of one machine, unlike
+/// `Instant`, which cannot leave its process.
+pub fn monotonic_ns() -> u64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec into the valid pointer; CLOCK_MONOTONIC exists
+    // on every Linux kernel, so the call cannot fail.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}
+
+/// Transport settings of both benchmark processes (they must agree).
+pub fn bench_transport_config(namespace: &str) -> TransportConfig {
+    TransportConfig {
+        max_agents: 1,
+        max_consumers: 1,
+        required_consumers: 1,
+        patch_queue_depth: BENCH_PATCH_QUEUE_DEPTH,
+        initial_patch_records: BENCH_INITIAL_PATCH_RECORDS,
+        ..TransportConfig::with_namespace(namespace)
+    }
+}
+
+/// The peer role: acknowledges every descriptor and patch with `[receive time, checksum]` until
+/// the driver says goodbye.
+pub fn run_peer(namespace: &str) -> Result<(), BenchError> {
+    let config = bench_transport_config(namespace);
+    let mut consumer = ConsumerLink::open(&config)?;
+    loop {
+        let incoming = consumer
+            .recv_timeout(PEER_IDLE_TIMEOUT)?
+            .ok_or(BenchError::PeerTimeout(PEER_IDLE_TIMEOUT))?;
+        let received_ns = monotonic_ns();
+        let checksum = match &incoming {
+            Incoming::Lifecycle(l) if l.kind() == Ok(LifecycleKind::Goodbye) => return Ok(()),
+            Incoming::Lifecycle(_) => continue,
+            Incoming::Descriptor(d) => descriptor_checksum(&d.descriptor),
+            Incoming::Patch(p) => records_checksum(p.records()),
+        };
+        // Release the shared-memory sample before answering, as a real consumer would.
+        drop(incoming);
+        let ack = [
+            KeyframePose {
+                keyframe_id: received_ns,
+                camera_to_world: Pose::IDENTITY,
+            },
+            KeyframePose {
+                keyframe_id: checksum,
+                camera_to_world: Pose::IDENTITY,
+            },
+        ];
+        consumer.send_correction(BENCH_AGENT_ID, Pose::IDENTITY, &ack)?;
+    }
+}
+
+/// What the driver sends in one case.
+#[derive(Clone, Copy)]
+enum Case {
+    Descriptor,
+    PatchCopy(usize),
+    PatchInPlace(usize),
+}
+
+struct Driver {
+    agent: AgentLink,
+    descriptor: KeyframeDescriptor,
+    small_patch: Vec<GaussianRecord>,
+    large_patch: Vec<GaussianRecord>,
+}
+
+impl Driver {
+    fn expected_checksum(&self, case: Case) -> u64 {
+        match case {
+            Case::Descriptor => descriptor_checksum(&self.descriptor.descriptor),
+            Case::PatchCopy(n) | Case::PatchInPlace(n) => {
+                records_checksum(if n == SMALL_PATCH_RECORDS {
+                    &self.small_patch
+                } else {
+                    &self.large_patch
+                })
+            }
+        }
+    }
+
+    fn send(&mut self, case: Case) -> Result<(), BenchError> {
+        match case {
+            Case::Descriptor => self.agent.send_descriptor(&self.descriptor)?,
+            Case::PatchCopy(n) => {
+                let records = if n == SMALL_PATCH_RECORDS {
+                    &self.small_patch
+                } else {
+                    &self.large_patch
+                };
+                self.agent
+                    .send_patch(0, CoordinateFrame::AgentWorld, records)?
+            }
+            Case::PatchInPlace(n) => {
+                self.agent
+                    .send_patch_with(0, CoordinateFrame::AgentWorld, n, |i| {
+                        synthetic_record(CONTENT_SEED, i)
+                    })?
+            }
+        };
+        Ok(())
+    }
+
+    /// Waits for one acknowledgement; returns (peer receive time, checksum).
+    fn ack(&mut self) -> Result<(u64, u64), BenchError> {
+        let ack = self
+            .agent
+            .recv_correction_timeout(ACK_TIMEOUT)?
+            .ok_or(BenchError::PeerTimeout(ACK_TIMEOUT))?;
+        match ack.poses() {
+            [time, checksum] => Ok((time.keyframe_id, checksum.keyframe_id)),
+            other => Err(BenchError::BadAck(format!(
+                "{} poses, expected 2",
+                other.len()
+            ))),
+        }
+    }
+
+    fn latency(
+        &mut self,
+        case: Case,
+        name: &'static str,
+        warmup: usize,
+        samples: usize,
+    ) -> Result<LatencySummary, BenchError> {
+        let expected = self.expected_checksum(case);
+        let mut latencies = Vec::with_capacity(samples);
+        for i in 0..warmup + samples {
+            let sent_ns = monotonic_ns();
+            self.send(case)?;
+            let (received_ns, checksum) = self.ack()?;
+            if checksum != expected {
+                return Err(BenchError::Corrupted {
+                    case: name,
+                    received: checksum,
+                    expected,
+                });
+            }
+            if i >= warmup {
+                latencies.push(received_ns.saturating_sub(sent_ns));
+            }
+        }
+        Ok(LatencySummary::from_ns(latencies))
+    }
+
+    /// Messages per second with `window` patches in flight.
+    fn throughput(
+        &mut self,
+        case: Case,
+        name: &'static str,
+        messages: usize,
+        window: usize,
+    ) -> Result<f64, BenchError> {
+        let expected = self.expected_checksum(case);
+        let start = Instant::now();
+        let (mut sent, mut acked) = (0, 0);
+        while acked < messages {
+            if sent < messages && sent - acked < window {
+                self.send(case)?;
+                sent += 1;
+                continue;
+            }
+            let (_, checksum) = self.ack()?;
+            if checksum != expected {
+                return Err(BenchError::Corrupted {
+                    case: name,
+                    received: checksum,
+                    expected,
+                });
+            }
+            acked += 1;
+        }
+        Ok(messages as f64 / start.elapsed().as_secs_f64())
+    }
+
+    /// Copies per patch record byte sent since `before` (bytes copied / record bytes).
+    fn copies_since(&self, before: (u64, u64)) -> f64 {
+        let (copied, bytes) = self.patch_counters();
+        let messages_bytes = bytes - before.1;
+        if messages_bytes == 0 {
+            0.0
+        } else {
+            (copied - before.0) as f64 / messages_bytes as f64
+        }
+    }
+
+    /// (bytes copied, record bytes) of the patch topic so far (header bytes excluded).
+    fn patch_counters(&self) -> (u64, u64) {
+        let report = self.agent.bandwidth();
+        report
+            .get(BENCH_AGENT_ID, Topic::Patch, Direction::Sent)
+            .map(|t| {
+                (
+                    t.bytes_copied,
+                    t.bytes - t.messages * size_of::<crate::messages::PatchHeader>() as u64,
+                )
+            })
+            .unwrap_or((0, 0))
+    }
+}
+
+fn spawn_peer(peer: &PeerCommand, namespace: &str) -> Result<Child, BenchError> {
+    Command::new(&peer.program)
+        .args(&peer.args)
+        .args(["--namespace", namespace])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .spawn()
+        .map_err(|e| BenchError::PeerSpawn {
+            program: peer.program.display().to_string(),
+            reason: e.to_string(),
+        })
+}
+
+fn wait_for_exit(child: &mut Child) -> Result<(), BenchError> {
+    let start = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().map_err(|e| BenchError::PeerFailed {
+            status: e.to_string(),
+        })? {
+            return if status.success() {
+                Ok(())
+            } else {
+                Err(BenchError::PeerFailed {
+                    status: status.to_string(),
+                })
+            };
+        }
+        if start.elapsed() > PEER_EXIT_TIMEOUT {
+            let _ = child.kill();
+            return Err(BenchError::PeerFailed {
+                status: format!("no exit within {PEER_EXIT_TIMEOUT:?}; killed"),
+            });
+        }
+        std::thread::sleep(PEER_EXIT_POLL);
+    }
+}
+
+/// Runs the benchmark against a freshly spawned peer process.
+pub fn run_ipc_bench(
+    config: &IpcBenchConfig,
+    peer: &PeerCommand,
+) -> Result<IpcBenchReport, BenchError> {
+    if config.latency_samples == 0 || config.throughput_messages == 0 {
+        return Err(BenchError::InvalidConfig(
+            "latency_samples and throughput_messages must be positive".into(),
+        ));
+    }
+    let transport = bench_transport_config(&config.namespace);
+    let agent = AgentLink::open(&transport, BENCH_AGENT_ID)?;
+    let mut child = spawn_peer(peer, &config.namespace)?;
+    let result = drive(config, agent);
+    match result {
+        Ok(report) => {
+            wait_for_exit(&mut child)?;
+            Ok(report)
+        }
+        Err(e) => {
+            let _ = child.kill();
+            let _ = child.wait();
+            Err(e)
+        }
+    }
+}
+
+fn drive(config: &IpcBenchConfig, mut agent: AgentLink) -> Result<IpcBenchReport, BenchError> {
+    // Blocks until the peer's subscribers are attached: the delivery handshake.
+    agent.announce(Intrinsics::default(), 0)?;
+    let mut driver = Driver {
+        agent,
+        descriptor: synthetic_descriptor(1),
+        small_patch: (0..SMALL_PATCH_RECORDS)
+            .map(|i| synthetic_record(CONTENT_SEED, i))
+            .collect(),
+        large_patch: (0..LARGE_PATCH_RECORDS)
+            .map(|i| synthetic_record(CONTENT_SEED, i))
+            .collect(),
+    };
+    let (warmup, samples) = (config.warmup, config.latency_samples);
+    let descriptor = driver.latency(Case::Descriptor, "descriptor", warmup, samples)?;
+
+    let before_copy = driver.patch_counters();
+    let patch_10k = driver.latency(
+        Case::PatchCopy(SMALL_PATCH_RECORDS),
+        "patch_10k",
+        warmup,
+        samples,
+    )?;
+    let copies_per_patch = driver.copies_since(before_copy);
+
+    let before_in_place = driver.patch_counters();
+    let in_place = SMALL_PATCH_RECORDS;
+    let patch_10k_in_place = driver.latency(
+        Case::PatchInPlace(in_place),
+        "patch_10k_in_place",
+        warmup,
+        samples,
+    )?;
+    let copies_per_patch_in_place = driver.copies_since(before_in_place);
+
+    let patch_100k = driver.latency(
+        Case::PatchCopy(LARGE_PATCH_RECORDS),
+        "patch_100k",
+        warmup,
+        samples,
+    )?;
+    let window = BENCH_PATCH_QUEUE_DEPTH;
+    let patch_10k_msgs_per_s = driver.throughput(
+        Case::PatchCopy(SMALL_PATCH_RECORDS),
+        "patch_10k",
+        config.throughput_messages,
+        window,
+    )?;
+    let patch_100k_msgs_per_s = driver.throughput(
+        Case::PatchCopy(LARGE_PATCH_RECORDS),
+        "patch_100k",
+        config.throughput_messages,
+        window,
+    )?;
+    driver.agent.close()?;
+
+    Ok(IpcBenchReport {
+        descriptor_median_us: descriptor.median_us,
+        descriptor_p99_us: descriptor.p99_us,
+        patch_10k_median_us: patch_10k.median_us,
+        patch_10k_p99_us: patch_10k.p99_us,
+        patch_10k_msgs_per_s,
+        patch_10k_in_place_median_us: patch_10k_in_place.median_us,
+        patch_10k_in_place_p99_us: patch_10k_in_place.p99_us,
+        patch_100k_median_us: patch_100k.median_us,
+        patch_100k_p99_us: patch_100k.p99_us,
+        patch_100k_msgs_per_s,
+        copies_per_patch,
+        copies_per_patch_in_place,
+        receiver_copies_per_patch: 0.0,
+        descriptor,
+        patch_10k,
+        patch_10k_in_place,
+        patch_100k,
+        record_bytes: size_of::<GaussianRecord>(),
+        descriptor_bytes: size_of::<KeyframeDescriptor>(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::messages::DESCRIPTOR_LEN;
+
+    #[test]
+    fn checksum_sees_order_and_content() {
+        let a: Vec<_> = (0..100).map(|i| synthetic_record(1, i)).collect();
+        let mut b = a.clone();
+        assert_eq!(records_checksum(&a), records_checksum(&b));
+        b.swap(3, 4);
+        assert_ne!(records_checksum(&a), records_checksum(&b));
+        let mut c = a.clone();
+        c[50].colour[2] += 1e-6;
+        assert_ne!(records_checksum(&a), records_checksum(&c));
+    }
+
+    #[test]
+    fn latency_summary_percentiles() {
+        let s = LatencySummary::from_ns((1..=100).map(|v| v * 1000).collect());
+        assert_eq!(s.samples, 100);
+        assert!((s.median_us - 51.0).abs() <= 1.0, "{}", s.median_us);
+        assert!((s.p99_us - 99.0).abs() <= 1.0, "{}", s.p99_us);
+        assert_eq!(s.max_us, 100.0);
+    }
+
+    #[test]
+    fn synthetic_descriptor_is_normalised() {
+        let d = synthetic_descriptor(7);
+        assert!((d.descriptor_norm() - 1.0).abs() < 1e-5);
+        assert_eq!(d.descriptor.len(), DESCRIPTOR_LEN);
+    }
+}

@@ -1,0 +1,405 @@
+//! Wire payloads shared by every mac-ego3d process.
+//!
+//! Every type here is `#[repr(C)]` and derives iceoryx2's `ZeroCopySend`, so it is written once
+//! into shared memory by the sender and read in place by the receiver. Rules kept at this
+//! boundary:
+//! - Quaternions are stored **w first**: `[w, x, y, z]` (field names end in `_wxyz`).
+//! - Poses are rigid transforms `p_target = R(q) * p_source + t` stored as [`Pose`].
+//! - Enumerations travel as `u32` tags with checked accessors, never as Rust enums, so a corrupt
+//!   or newer tag is reported as an error instead of being undefined behaviour.
+//! - Every message carries a [`Stamp`] (agent id, incarnation epoch, sequence number); the
+//!   transport fills it in, receivers use it for gap and restart detection.
+//! - Type names carry [`WIRE_VERSION`] (`mac.v1.*`): iceoryx2 refuses to connect a process built
+//!   with another layout version to the same service (`IncompatibleTypes`).
+
+use iceoryx2::prelude::ZeroCopySend;
+use serde::{Deserialize, Serialize};
+
+/// Version of the shared-memory layouts below. Baked into every `type_name` as `v1`; bump both
+/// together when a layout changes.
+pub const WIRE_VERSION: u32 = 1;
+
+/// Length of the global keyframe descriptor: AlexNet's last convolution has 256 channels, and
+/// GeM pooling keeps one value per channel. The classical thumbnail fallback is resampled to the
+/// same length so both kinds share one wire type.
+pub const DESCRIPTOR_LEN: usize = 256;
+
+/// Tolerance on `| ||d|| - 1 |` accepted for an "L2-normalised" descriptor: f32 summation over
+/// 256 entries loses about 1e-6 relative; 1e-3 still catches a forgotten normalisation.
+pub const DESCRIPTOR_NORM_TOLERANCE: f32 = 1e-3;
+
+/// Agent id used in the [`Stamp`] of messages sent by the consensus (or another consumer).
+pub const CONSUMER_AGENT_ID: u32 = u32::MAX;
+
+/// Sender identity and ordering, carried by every message.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Serialize, Deserialize)]
+#[repr(C)]
+#[type_name("mac.v1.Stamp")]
+pub struct Stamp {
+    /// Sending agent, or [`CONSUMER_AGENT_ID`] for the consensus.
+    pub agent_id: u32,
+    /// Explicit padding so the layout has no implicit holes.
+    pub reserved: u32,
+    /// Incarnation of the sending process (nanoseconds since the Unix epoch at start-up): a
+    /// restarted process has a larger epoch and its sequence numbers start again at 0.
+    pub epoch: u64,
+    /// Per (sender, topic) counter starting at 0 in every epoch; a jump is a lost message.
+    pub sequence: u64,
+}
+
+/// Rigid transform. `translation` in metres; `rotation_wxyz` a unit quaternion, w first.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Serialize, Deserialize)]
+#[repr(C)]
+#[type_name("mac.v1.Pose")]
+pub struct Pose {
+    pub translation: [f64; 3],
+    /// Unit quaternion `[w, x, y, z]`.
+    pub rotation_wxyz: [f64; 4],
+}
+
+impl Pose {
+    pub const IDENTITY: Pose = Pose {
+        translation: [0.0; 3],
+        rotation_wxyz: [1.0, 0.0, 0.0, 0.0],
+    };
+
+    /// Finite values and a quaternion of unit norm (within `tolerance`).
+    pub fn is_valid(&self, tolerance: f64) -> bool {
+        let finite = self
+            .translation
+            .iter()
+            .chain(&self.rotation_wxyz)
+            .all(|v| v.is_finite());
+        let norm = self.rotation_wxyz.iter().map(|v| v * v).sum::<f64>().sqrt();
+        finite && (norm - 1.0).abs() <= tolerance
+    }
+}
+
+impl Default for Pose {
+    fn default() -> Self {
+        Self::IDENTITY
+    }
+}
+
+/// Pinhole intrinsics of the camera that produced a keyframe, in pixels.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
+#[repr(C)]
+#[type_name("mac.v1.Intrinsics")]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// Inter-agent selection input (SPEC 4.1): the latest keyframe's global descriptor and pose.
+/// Topic `mac/agent/{id}/descriptor`, agent -> consensus.
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[repr(C)]
+#[type_name("mac.v1.KeyframeDescriptor")]
+pub struct KeyframeDescriptor {
+    pub stamp: Stamp,
+    pub keyframe_id: u64,
+    /// Index of the frame in the agent's input sequence.
+    pub frame_index: u64,
+    /// Capture time of the frame, seconds (dataset clock).
+    pub timestamp_s: f64,
+    /// Camera-to-agent-world transform of the keyframe (agent's own world frame).
+    pub camera_to_agent_world: Pose,
+    pub intrinsics: Intrinsics,
+    /// L2-normalised global image descriptor (scores are dot products).
+    pub descriptor: [f32; DESCRIPTOR_LEN],
+}
+
+impl KeyframeDescriptor {
+    /// A descriptor with zeroed fields and an identity pose; callers fill what they know.
+    pub fn new(keyframe_id: u64, frame_index: u64, timestamp_s: f64) -> Self {
+        Self {
+            stamp: Stamp::default(),
+            keyframe_id,
+            frame_index,
+            timestamp_s,
+            camera_to_agent_world: Pose::IDENTITY,
+            intrinsics: Intrinsics::default(),
+            descriptor: [0.0; DESCRIPTOR_LEN],
+        }
+    }
+
+    /// Euclidean norm of the descriptor (1 for a well-formed message).
+    pub fn descriptor_norm(&self) -> f32 {
+        self.descriptor.iter().map(|v| v * v).sum::<f32>().sqrt()
+    }
+
+    /// Divides the descriptor by its norm. Returns false (and leaves it unchanged) when the norm
+    /// is zero or not finite, since such a vector has no direction to keep.
+    pub fn normalise_descriptor(&mut self) -> bool {
+        let norm = self.descriptor_norm();
+        if !norm.is_finite() || norm == 0.0 {
+            return false;
+        }
+        self.descriptor.iter_mut().for_each(|v| *v /= norm);
+        true
+    }
+
+    /// Dot-product similarity of two descriptors (SPEC 4.1 score).
+    pub fn score(&self, other: &KeyframeDescriptor) -> f32 {
+        self.descriptor
+            .iter()
+            .zip(&other.descriptor)
+            .map(|(a, b)| a * b)
+            .sum()
+    }
+}
+
+/// One Gaussian of the map (SPEC 2). 14 f32 = 56 bytes, no padding.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
+#[repr(C)]
+#[type_name("mac.v1.GaussianRecord")]
+pub struct GaussianRecord {
+    /// Mean position, metres, in the frame named by the patch header.
+    pub mean: [f32; 3],
+    /// Natural log of the three axis standard deviations (metres).
+    pub log_scale: [f32; 3],
+    /// Unit quaternion `[w, x, y, z]` of the principal axes.
+    pub rotation_wxyz: [f32; 4],
+    /// Opacity before the sigmoid.
+    pub opacity_logit: f32,
+    /// RGB colour in [0, 1] (SH degree 0).
+    pub colour: [f32; 3],
+}
+
+/// Frame in which the records of a patch are expressed (a `u32` tag on the wire).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[repr(u32)]
+pub enum CoordinateFrame {
+    /// The agent's own world frame (its first camera pose).
+    AgentWorld = 0,
+    /// The shared world frame (agent 0's first pose), after a correction.
+    World = 1,
+}
+
+impl TryFrom<u32> for CoordinateFrame {
+    type Error = UnknownTag;
+    fn try_from(tag: u32) -> Result<Self, UnknownTag> {
+        match tag {
+            0 => Ok(Self::AgentWorld),
+            1 => Ok(Self::World),
+            _ => Err(UnknownTag {
+                field: "coordinate frame",
+                tag,
+            }),
+        }
+    }
+}
+
+/// A `u32` tag on the wire that names no known variant (corrupt, or from a newer sender).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("unknown {field} tag {tag}")]
+pub struct UnknownTag {
+    pub field: &'static str,
+    pub tag: u32,
+}
+
+/// User header of a Gaussian patch (topic `mac/agent/{id}/patch`, agent -> consensus); the
+/// payload is a slice of `count` [`GaussianRecord`]s.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("mac.v1.PatchHeader")]
+pub struct PatchHeader {
+    pub stamp: Stamp,
+    /// Keyframe whose Gaussians these are.
+    pub keyframe_id: u64,
+    /// Number of records in the slice (checked against the slice length on receive).
+    pub count: u64,
+    /// [`CoordinateFrame`] tag.
+    pub frame: u32,
+    /// Explicit padding.
+    pub reserved: u32,
+}
+
+impl PatchHeader {
+    pub fn frame(&self) -> Result<CoordinateFrame, UnknownTag> {
+        CoordinateFrame::try_from(self.frame)
+    }
+}
+
+/// An updated keyframe pose inside a correction.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
+#[repr(C)]
+#[type_name("mac.v1.KeyframePose")]
+pub struct KeyframePose {
+    pub keyframe_id: u64,
+    /// Corrected camera-to-world pose (shared world frame).
+    pub camera_to_world: Pose,
+}
+
+/// User header of a correction (topic `mac/agent/{id}/correction`, consensus -> agent `id`); the
+/// payload is a slice of `count` [`KeyframePose`]s.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("mac.v1.CorrectionHeader")]
+pub struct CorrectionHeader {
+    pub stamp: Stamp,
+    /// Agent the correction is for (the service is per agent; repeated for logging and checks).
+    pub target_agent_id: u32,
+    /// Explicit padding.
+    pub reserved: u32,
+    /// Agent-world-to-world transform estimated by the consensus.
+    pub agent_world_to_world: Pose,
+    /// Number of keyframe poses in the slice.
+    pub count: u64,
+}
+
+/// Kind of a lifecycle message (a `u32` tag on the wire).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[repr(u32)]
+pub enum LifecycleKind {
+    /// First message of an incarnation: intrinsics and configuration hash are valid.
+    Hello = 1,
+    /// Periodic heartbeat.
+    Alive = 2,
+    /// Orderly shutdown; no more messages from this epoch.
+    Goodbye = 3,
+}
+
+impl TryFrom<u32> for LifecycleKind {
+    type Error = UnknownTag;
+    fn try_from(tag: u32) -> Result<Self, UnknownTag> {
+        match tag {
+            1 => Ok(Self::Hello),
+            2 => Ok(Self::Alive),
+            3 => Ok(Self::Goodbye),
+            _ => Err(UnknownTag {
+                field: "lifecycle kind",
+                tag,
+            }),
+        }
+    }
+}
+
+/// Heartbeat / lifecycle message (topic `mac/lifecycle`, every process -> every consumer).
+/// A tagged struct rather than an enum so that unknown tags are detectable (see module doc).
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[repr(C)]
+#[type_name("mac.v1.Lifecycle")]
+pub struct Lifecycle {
+    pub stamp: Stamp,
+    /// [`LifecycleKind`] tag.
+    pub kind: u32,
+    /// [`WIRE_VERSION`] of the sender (informative; the type names already enforce it).
+    pub wire_version: u32,
+    /// Hello only: the agent's camera.
+    pub intrinsics: Intrinsics,
+    /// Hello only: hash of the agent's configuration, so the consensus can refuse a swarm whose
+    /// agents run with different settings.
+    pub config_hash: u64,
+}
+
+impl Lifecycle {
+    pub fn hello(intrinsics: Intrinsics, config_hash: u64) -> Self {
+        Self::with_kind(LifecycleKind::Hello, intrinsics, config_hash)
+    }
+
+    pub fn alive() -> Self {
+        Self::with_kind(LifecycleKind::Alive, Intrinsics::default(), 0)
+    }
+
+    pub fn goodbye() -> Self {
+        Self::with_kind(LifecycleKind::Goodbye, Intrinsics::default(), 0)
+    }
+
+    fn with_kind(kind: LifecycleKind, intrinsics: Intrinsics, config_hash: u64) -> Self {
+        Self {
+            stamp: Stamp::default(),
+            kind: kind as u32,
+            wire_version: WIRE_VERSION,
+            intrinsics,
+            config_hash,
+        }
+    }
+
+    pub fn kind(&self) -> Result<LifecycleKind, UnknownTag> {
+        LifecycleKind::try_from(self.kind)
+    }
+}
+
+/// Control messages with heap data. They travel through [`crate::codec`] (serde + bincode 2),
+/// never as shared-memory layouts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum ControlMessage {
+    /// An agent's full configuration (TOML text) for the swarm record; `Lifecycle::Hello` only
+    /// carries its hash.
+    AgentConfig { agent_id: u32, config_toml: String },
+    /// Orderly stop of the whole swarm, with the reason shown to the user.
+    Shutdown { reason: String },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gaussian_record_is_fourteen_packed_floats() {
+        assert_eq!(std::mem::size_of::<GaussianRecord>(), 14 * 4);
+        assert_eq!(std::mem::align_of::<GaussianRecord>(), 4);
+    }
+
+    #[test]
+    fn headers_have_no_implicit_padding() {
+        // Sum of field sizes == struct size means no hidden holes.
+        assert_eq!(std::mem::size_of::<Stamp>(), 4 + 4 + 8 + 8);
+        assert_eq!(std::mem::size_of::<PatchHeader>(), 24 + 8 + 8 + 4 + 4);
+        assert_eq!(std::mem::size_of::<Pose>(), 7 * 8);
+        assert_eq!(std::mem::size_of::<Intrinsics>(), 4 * 8 + 2 * 4);
+        assert_eq!(std::mem::size_of::<CorrectionHeader>(), 24 + 8 + 56 + 8);
+        assert_eq!(std::mem::size_of::<KeyframePose>(), 8 + 56);
+        assert_eq!(std::mem::size_of::<Lifecycle>(), 24 + 8 + 40 + 8);
+        assert_eq!(
+            std::mem::size_of::<KeyframeDescriptor>(),
+            24 + 8 + 8 + 8 + 56 + 40 + 4 * DESCRIPTOR_LEN
+        );
+    }
+
+    #[test]
+    fn tags_round_trip_and_unknown_tags_are_errors() {
+        for kind in [
+            LifecycleKind::Hello,
+            LifecycleKind::Alive,
+            LifecycleKind::Goodbye,
+        ] {
+            assert_eq!(LifecycleKind::try_from(kind as u32), Ok(kind));
+        }
+        assert_eq!(LifecycleKind::try_from(0).unwrap_err().tag, 0);
+        assert_eq!(CoordinateFrame::try_from(1), Ok(CoordinateFrame::World));
+        assert!(CoordinateFrame::try_from(7).is_err());
+        assert_eq!(
+            Lifecycle::hello(Intrinsics::default(), 9).kind(),
+            Ok(LifecycleKind::Hello)
+        );
+    }
+
+    #[test]
+    fn descriptor_normalisation() {
+        let mut d = KeyframeDescriptor::new(1, 2, 0.5);
+        assert!(!d.normalise_descriptor(), "a zero vector has no direction");
+        d.descriptor[0] = 3.0;
+        d.descriptor[1] = 4.0;
+        assert!(d.normalise_descriptor());
+        assert!((d.descriptor_norm() - 1.0).abs() < 1e-6);
+        assert!((d.score(&d) - 1.0).abs() < 1e-6);
+        assert!((d.descriptor[0] - 0.6).abs() < 1e-6);
+    }
+
+    #[test]
+    fn pose_validity() {
+        assert!(Pose::IDENTITY.is_valid(1e-9));
+        let mut p = Pose::IDENTITY;
+        p.rotation_wxyz = [2.0, 0.0, 0.0, 0.0];
+        assert!(!p.is_valid(1e-6));
+        p = Pose::IDENTITY;
+        p.translation[1] = f64::NAN;
+        assert!(!p.is_valid(1e-6));
+    }
+}

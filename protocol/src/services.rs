@@ -1,0 +1,142 @@
+//! Service names, defined once.
+//!
+//! Data topics (one service per agent and topic):
+//! - `{ns}/agent/{id}/descriptor`  agent -> consumers, [`crate::messages::KeyframeDescriptor`]
+//! - `{ns}/agent/{id}/patch`       agent -> consumers, `[GaussianRecord]` + `PatchHeader`
+//! - `{ns}/agent/{id}/correction`  consumer -> agent, `[KeyframePose]` + `CorrectionHeader`
+//! - `{ns}/lifecycle`              everyone -> consumers, [`crate::messages::Lifecycle`]
+//!
+//! Wake-up event services (iceoryx2 event pattern; they carry no data, only "look now"):
+//! - `{ns}/agent/{id}/wake`        consumers -> agent: a correction arrived, a consumer attached
+//! - `{ns}/consumers/wake`         agents -> consumers: new data on topic `event id`
+//!
+//! `{ns}` is [`DEFAULT_NAMESPACE`] in production; tests and benchmarks use their own namespace
+//! (e.g. with the process id) so that parallel runs never share services.
+
+/// Namespace of a production swarm.
+pub const DEFAULT_NAMESPACE: &str = "mac";
+
+/// The data topics of one agent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Topic {
+    Descriptor,
+    Patch,
+    Correction,
+    Lifecycle,
+}
+
+impl Topic {
+    pub const ALL: [Topic; 4] = [
+        Topic::Descriptor,
+        Topic::Patch,
+        Topic::Correction,
+        Topic::Lifecycle,
+    ];
+
+    /// Small dense index, used for per-topic tables and wake-up event ids.
+    pub const fn index(self) -> usize {
+        match self {
+            Topic::Descriptor => 0,
+            Topic::Patch => 1,
+            Topic::Correction => 2,
+            Topic::Lifecycle => 3,
+        }
+    }
+
+    pub const fn name(self) -> &'static str {
+        match self {
+            Topic::Descriptor => "descriptor",
+            Topic::Patch => "patch",
+            Topic::Correction => "correction",
+            Topic::Lifecycle => "lifecycle",
+        }
+    }
+}
+
+impl std::fmt::Display for Topic {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Builds every service name of one namespace.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ServiceNames {
+    namespace: String,
+}
+
+impl Default for ServiceNames {
+    fn default() -> Self {
+        Self::new(DEFAULT_NAMESPACE)
+    }
+}
+
+impl ServiceNames {
+    pub fn new(namespace: impl Into<String>) -> Self {
+        Self {
+            namespace: namespace.into(),
+        }
+    }
+
+    pub fn namespace(&self) -> &str {
+        &self.namespace
+    }
+
+    /// Name of an agent's data topic; [`Topic::Lifecycle`] is shared by all agents.
+    pub fn topic(&self, agent_id: u32, topic: Topic) -> String {
+        match topic {
+            Topic::Lifecycle => self.lifecycle(),
+            other => format!("{}/agent/{agent_id}/{}", self.namespace, other.name()),
+        }
+    }
+
+    pub fn descriptor(&self, agent_id: u32) -> String {
+        self.topic(agent_id, Topic::Descriptor)
+    }
+
+    pub fn patch(&self, agent_id: u32) -> String {
+        self.topic(agent_id, Topic::Patch)
+    }
+
+    pub fn correction(&self, agent_id: u32) -> String {
+        self.topic(agent_id, Topic::Correction)
+    }
+
+    pub fn lifecycle(&self) -> String {
+        format!("{}/lifecycle", self.namespace)
+    }
+
+    /// Event service that wakes agent `agent_id`.
+    pub fn agent_wake(&self, agent_id: u32) -> String {
+        format!("{}/agent/{agent_id}/wake", self.namespace)
+    }
+
+    /// Event service that wakes the consumers (consensus, observers).
+    pub fn consumers_wake(&self) -> String {
+        format!("{}/consumers/wake", self.namespace)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn production_names_match_the_spec() {
+        let names = ServiceNames::default();
+        assert_eq!(names.descriptor(3), "mac/agent/3/descriptor");
+        assert_eq!(names.patch(0), "mac/agent/0/patch");
+        assert_eq!(names.correction(12), "mac/agent/12/correction");
+        assert_eq!(names.lifecycle(), "mac/lifecycle");
+        assert_eq!(names.topic(5, Topic::Lifecycle), "mac/lifecycle");
+        assert_eq!(names.agent_wake(1), "mac/agent/1/wake");
+    }
+
+    #[test]
+    fn topic_indices_are_dense() {
+        for (i, t) in Topic::ALL.iter().enumerate() {
+            assert_eq!(t.index(), i);
+        }
+    }
+}

@@ -1,0 +1,1938 @@
+//! Typed transport over iceoryx2 0.10 (`ipc::Service`) between agents and consumers.
+//!
+//! Two endpoints: [`AgentLink`] (one per agent process: publishes descriptors, patches and
+//! lifecycle messages, receives corrections) and [`ConsumerLink`] (the consensus or an
+//! observer: receives from every agent id `0..max_agents`, publishes corrections).
+//!
+//! Design choices, and why:
+//! - **Service limits from the config.** iceoryx2's defaults (2 publishers, 20 nodes per service)
+//!   break a swarm; every service is opened with limits derived from [`TransportConfig`], so all
+//!   processes of a swarm must use the same config (a mismatch is a clear `Service` error).
+//! - **Duplicate agent ids.** Each agent-owned topic admits exactly one publisher, so a second
+//!   live process with the same id cannot create its publisher: [`TransportError::DuplicateAgent`].
+//! - **Delivery handshake.** iceoryx2 silently drops a sample sent before a subscriber is
+//!   connected. History buffers were rejected (they pin large patches in shared memory and only
+//!   replay the last few). Instead a publisher waits, before each send, until the service counts
+//!   at least `required_consumers` subscribers. The wait is event-driven: a consumer notifies
+//!   the agent's wake service right after its subscribers exist, so a waiting agent wakes at
+//!   once; the wait is sliced by `wait_slice` to notice shutdown, and bounded by
+//!   `delivery_timeout` ([`TransportError::NoConsumer`]). After `send()` the recipient count is
+//!   checked ([`TransportError::Undelivered`]).
+//! - **Sequence numbers and restarts.** Every message carries a [`Stamp`]: an incarnation epoch
+//!   (start time in ns) and a per-topic sequence from 0. Receivers report gaps and accept a
+//!   larger epoch as a restart (sequence from 0 again); messages of an older epoch are dropped.
+//! - **Crash safety.** Each link creates its own node with dead-node clean-up on creation and
+//!   also calls `try_cleanup_dead_nodes()` explicitly (and on every heartbeat), so shared memory
+//!   left by a SIGKILLed process (/dev/shm/iox2_*, /tmp/iceoryx2) is reclaimed by the next start.
+//! - **Large patches.** Patch and correction publishers use dynamic data segments with
+//!   power-of-two growth from `initial_patch_records`, so any size that fits in memory can be
+//!   sent (tested with 1,000,000 records). Note that iceoryx2 zeroes a new segment, and a segment
+//!   holds `max_consumers * (queue depth + held samples) + 1` samples of the largest slice.
+//! - **No busy waiting.** Receivers block on an iceoryx2 event listener (`timed_wait`), woken by
+//!   the sender's notification after each send; every wait is bounded by `wait_slice` so the
+//!   shutdown flag is seen promptly.
+//! - **Full queues.** Queues never overwrite (no silent loss): a sample that finds a consumer's
+//!   queue full is not delivered there (`DiscardData`), `send()` reports fewer recipients, and
+//!   the agent re-sends the same message (same sequence number; receivers drop duplicates) in
+//!   1 ms slices until `required_consumers` have it or `delivery_timeout` passes. This only
+//!   happens when a consumer falls behind by a whole queue.
+//! - **Orderly goodbye.** iceoryx2 loses samples of a publisher that is gone before the
+//!   subscriber mapped its memory. So [`AgentLink::close`] sends `Goodbye` and waits until every
+//!   consumer that got it acknowledges, and a consumer holds back an agent's `Goodbye` until it
+//!   has drained that agent's data topics: once acknowledged, nothing sent before is lost.
+
+use std::collections::BTreeMap;
+use std::fmt::Debug;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use iceoryx2::config::Config;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::{
+    AllocationStrategy, BackpressureStrategy, EventId, IceoryxSend, Node, NodeBuilder, NodeName,
+    ServiceName, SignalHandlingMode, ZeroCopySend, ipc,
+};
+use iceoryx2::sample::Sample;
+use iceoryx2::service::builder::publish_subscribe::Builder as PubSubBuilder;
+use iceoryx2::service::port_factory::PortFactory as _;
+use iceoryx2::service::port_factory::event::PortFactory as EventService;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubService;
+use serde::{Deserialize, Serialize};
+
+use crate::messages::{
+    CONSUMER_AGENT_ID, CoordinateFrame, CorrectionHeader, DESCRIPTOR_NORM_TOLERANCE,
+    GaussianRecord, Intrinsics, KeyframeDescriptor, KeyframePose, Lifecycle, LifecycleKind,
+    PatchHeader, Pose, Stamp,
+};
+use crate::services::{ServiceNames, Topic};
+
+type Ipc = ipc::Service;
+
+/// Nodes of crashed processes may hold a service slot until they are cleaned up; this many
+/// extra slots let a restarted process in even before the clean-up ran.
+const NODE_SLACK: usize = 2;
+
+/// Samples a publisher loans at once: every send path here loans, fills and sends one sample.
+const PUBLISHER_MAX_LOANS: usize = 1;
+
+/// Quaternion norm tolerance for poses accepted on send.
+const POSE_NORM_TOLERANCE: f64 = 1e-6;
+
+/// Event ids on an agent's wake service.
+const WAKE_CORRECTION: usize = 0;
+const WAKE_CONSUMER_ATTACHED: usize = 1;
+const WAKE_GOODBYE_SEEN: usize = 2;
+const AGENT_WAKE_EVENT_IDS: usize = 3;
+
+/// Re-send interval while a consumer's queue is full. Consumers do not signal freed space (that
+/// would cost a syscall per received message), so an overloaded sender polls at this rate; it is
+/// a sleep, not a spin.
+const FULL_QUEUE_RETRY: Duration = Duration::from_millis(1);
+
+/// Number of topics, for dense per-agent event ids on the consumers' wake service.
+const TOPIC_COUNT: usize = Topic::ALL.len();
+
+/// Settings shared by every process of one swarm (they size the shared services).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct TransportConfig {
+    /// Service-name prefix; `mac` in production, unique per test run.
+    pub namespace: String,
+    /// Agent ids are `0..max_agents`.
+    pub max_agents: u32,
+    /// Consumer processes (consensus + observers) that may attach to each topic.
+    pub max_consumers: usize,
+    /// Subscribers a publisher waits for before sending, and that `send()` must reach.
+    /// 0 makes sends fire-and-forget (an agent running without consensus).
+    pub required_consumers: usize,
+    /// Longest wait for `required_consumers` to attach before a send fails.
+    pub delivery_timeout: Duration,
+    /// Longest single blocking wait, so a shutdown request is noticed within this time.
+    pub wait_slice: Duration,
+    /// Per-consumer queue length of each topic (oldest sample overwritten when full).
+    pub descriptor_queue_depth: usize,
+    pub patch_queue_depth: usize,
+    pub correction_queue_depth: usize,
+    pub lifecycle_queue_depth: usize,
+    /// Samples a receiver may hold (borrow) at once per topic.
+    pub max_held_samples: usize,
+    /// First data-segment sizing of the patch publisher, in records (grows by powers of two).
+    pub initial_patch_records: usize,
+    /// First data-segment sizing of the correction publisher, in keyframe poses.
+    pub initial_correction_poses: usize,
+}
+
+impl Default for TransportConfig {
+    fn default() -> Self {
+        Self {
+            namespace: crate::services::DEFAULT_NAMESPACE.to_string(),
+            max_agents: 8,
+            max_consumers: 2,
+            required_consumers: 1,
+            delivery_timeout: Duration::from_secs(10),
+            wait_slice: Duration::from_millis(50),
+            descriptor_queue_depth: 64,
+            patch_queue_depth: 2,
+            correction_queue_depth: 4,
+            lifecycle_queue_depth: 64,
+            max_held_samples: 2,
+            initial_patch_records: 16 * 1024,
+            initial_correction_poses: 1024,
+        }
+    }
+}
+
+impl TransportConfig {
+    /// A config for a private namespace (tests, benchmarks).
+    pub fn with_namespace(namespace: impl Into<String>) -> Self {
+        Self {
+            namespace: namespace.into(),
+            ..Self::default()
+        }
+    }
+
+    fn validate(&self) -> Result<(), TransportError> {
+        let fail = |reason: &str| {
+            Err(TransportError::InvalidConfig {
+                reason: reason.to_string(),
+            })
+        };
+        if self.max_agents == 0 {
+            return fail("max_agents must be at least 1");
+        }
+        if self.max_consumers == 0 {
+            return fail("max_consumers must be at least 1");
+        }
+        if self.required_consumers > self.max_consumers {
+            return fail("required_consumers exceeds max_consumers");
+        }
+        if self.wait_slice.is_zero() {
+            return fail("wait_slice must be positive");
+        }
+        let depths = [
+            self.descriptor_queue_depth,
+            self.patch_queue_depth,
+            self.correction_queue_depth,
+            self.lifecycle_queue_depth,
+            self.max_held_samples,
+            self.initial_patch_records,
+            self.initial_correction_poses,
+        ];
+        if depths.contains(&0) {
+            return fail("queue depths, held samples and initial capacities must be at least 1");
+        }
+        if ServiceName::new(&ServiceNames::new(&self.namespace).patch(self.max_agents - 1)).is_err()
+        {
+            return fail("namespace does not form valid iceoryx2 service names");
+        }
+        Ok(())
+    }
+
+    fn names(&self) -> ServiceNames {
+        ServiceNames::new(&self.namespace)
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TransportError {
+    #[error("invalid transport configuration: {reason}")]
+    InvalidConfig { reason: String },
+    #[error("agent id {agent_id} is out of range: the swarm is configured for ids 0..{max_agents}")]
+    AgentIdOutOfRange { agent_id: u32, max_agents: u32 },
+    #[error(
+        "agent id {agent_id} is already used by a live process in namespace '{namespace}'; \
+         give every agent its own id"
+    )]
+    DuplicateAgent { agent_id: u32, namespace: String },
+    #[error("iceoryx2 node '{node}' could not be created: {reason}")]
+    Node { node: String, reason: String },
+    #[error("service '{service}' could not be opened or created: {reason}")]
+    Service { service: String, reason: String },
+    #[error("{port} port on '{service}' could not be created: {reason}")]
+    Port {
+        service: String,
+        port: &'static str,
+        reason: String,
+    },
+    #[error(
+        "no consumer on '{service}' after {waited:?}: {attached} attached, {required} required \
+         (is the consensus running with the same namespace?)"
+    )]
+    NoConsumer {
+        service: String,
+        attached: usize,
+        required: usize,
+        waited: Duration,
+    },
+    #[error(
+        "message {sequence} on '{service}' reached {delivered} of {required} required receivers"
+    )]
+    Undelivered {
+        service: String,
+        sequence: u64,
+        delivered: usize,
+        required: usize,
+    },
+    #[error("could not loan {elements} elements on '{service}': {reason}")]
+    Loan {
+        service: String,
+        elements: usize,
+        reason: String,
+    },
+    #[error("send on '{service}' failed: {reason}")]
+    Send { service: String, reason: String },
+    #[error("receive on '{service}' failed: {reason}")]
+    Receive { service: String, reason: String },
+    #[error("refusing to send on '{service}': {reason}")]
+    InvalidMessage { service: String, reason: String },
+    #[error("malformed message on '{service}': {reason}")]
+    Malformed { service: String, reason: String },
+    #[error("goodbye acknowledged by {acknowledged} of {expected} consumers within {waited:?}")]
+    GoodbyeUnacknowledged {
+        acknowledged: u64,
+        expected: usize,
+        waited: Duration,
+    },
+    #[error("waiting for wake-up events failed: {reason}")]
+    Wait { reason: String },
+    #[error("shutdown requested")]
+    ShutdownRequested,
+}
+
+/// Direction of counted traffic, seen from the reporting process.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Direction {
+    Sent,
+    Received,
+}
+
+/// Counters of one (agent, topic, direction).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct TopicTraffic {
+    pub messages: u64,
+    /// Payload plus user-header bytes.
+    pub bytes: u64,
+    /// Sent only: bytes the transport copied from caller memory into shared memory. Zero for
+    /// in-place builds ([`AgentLink::send_patch_with`]); receivers never copy.
+    pub bytes_copied: u64,
+    /// Received only: number of jumps in the sequence, and messages lost in them.
+    pub gaps: u64,
+    pub missed: u64,
+    /// Received only: incarnations (epochs) seen, 1 + restarts.
+    pub incarnations: u64,
+    /// Received only: messages dropped for belonging to an older epoch, or repeated.
+    pub stale_dropped: u64,
+    pub duplicates_dropped: u64,
+}
+
+/// One row of a [`BandwidthReport`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TrafficEntry {
+    pub agent_id: u32,
+    pub topic: Topic,
+    pub direction: Direction,
+    #[serde(flatten)]
+    pub traffic: TopicTraffic,
+}
+
+/// Bandwidth per agent and topic, for the swarm report.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BandwidthReport {
+    /// Seconds since the link was opened.
+    pub elapsed_s: f64,
+    pub entries: Vec<TrafficEntry>,
+}
+
+impl BandwidthReport {
+    pub fn get(&self, agent_id: u32, topic: Topic, direction: Direction) -> Option<&TopicTraffic> {
+        self.entries
+            .iter()
+            .find(|e| e.agent_id == agent_id && e.topic == topic && e.direction == direction)
+            .map(|e| &e.traffic)
+    }
+
+    /// Bytes per second of one agent over all topics in one direction.
+    pub fn bytes_per_second(&self, agent_id: u32, direction: Direction) -> f64 {
+        let bytes: u64 = self
+            .entries
+            .iter()
+            .filter(|e| e.agent_id == agent_id && e.direction == direction)
+            .map(|e| e.traffic.bytes)
+            .sum();
+        if self.elapsed_s > 0.0 {
+            bytes as f64 / self.elapsed_s
+        } else {
+            0.0
+        }
+    }
+}
+
+#[derive(Debug)]
+struct TrafficTable {
+    opened: Instant,
+    rows: BTreeMap<(u32, Topic, Direction), TopicTraffic>,
+}
+
+impl TrafficTable {
+    fn new() -> Self {
+        Self {
+            opened: Instant::now(),
+            rows: BTreeMap::new(),
+        }
+    }
+
+    fn row(&mut self, agent_id: u32, topic: Topic, direction: Direction) -> &mut TopicTraffic {
+        self.rows.entry((agent_id, topic, direction)).or_default()
+    }
+
+    fn report(&self) -> BandwidthReport {
+        BandwidthReport {
+            elapsed_s: self.opened.elapsed().as_secs_f64(),
+            entries: self
+                .rows
+                .iter()
+                .map(|(&(agent_id, topic, direction), &traffic)| TrafficEntry {
+                    agent_id,
+                    topic,
+                    direction,
+                    traffic,
+                })
+                .collect(),
+        }
+    }
+}
+
+/// How a received message relates to the ones before it from the same sender and topic.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Delivery {
+    /// The next sequence number of the current epoch.
+    InOrder,
+    /// `missed` messages of the current epoch were lost before this one.
+    Gap { missed: u64 },
+    /// First message seen of a (new) incarnation; `missed` earlier messages of it were not seen
+    /// (non-zero when a consumer attaches late).
+    NewIncarnation {
+        previous_epoch: Option<u64>,
+        missed: u64,
+    },
+}
+
+enum Verdict {
+    Deliver(Delivery),
+    Stale,
+    Duplicate,
+}
+
+/// Per (sender, topic) ordering state.
+#[derive(Debug, Default)]
+struct SequenceTracker {
+    last: Option<(u64, u64)>,
+}
+
+impl SequenceTracker {
+    fn observe(&mut self, epoch: u64, sequence: u64) -> Verdict {
+        let verdict = match self.last {
+            None => Verdict::Deliver(Delivery::NewIncarnation {
+                previous_epoch: None,
+                missed: sequence,
+            }),
+            Some((last_epoch, _)) if epoch > last_epoch => {
+                Verdict::Deliver(Delivery::NewIncarnation {
+                    previous_epoch: Some(last_epoch),
+                    missed: sequence,
+                })
+            }
+            Some((last_epoch, _)) if epoch < last_epoch => return Verdict::Stale,
+            Some((_, last_sequence)) if sequence <= last_sequence => return Verdict::Duplicate,
+            Some((_, last_sequence)) if sequence == last_sequence + 1 => {
+                Verdict::Deliver(Delivery::InOrder)
+            }
+            Some((_, last_sequence)) => Verdict::Deliver(Delivery::Gap {
+                missed: sequence - last_sequence - 1,
+            }),
+        };
+        self.last = Some((epoch, sequence));
+        verdict
+    }
+}
+
+/// Result of a successful send.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SendReport {
+    pub sequence: u64,
+    /// Subscribers the sample was delivered to.
+    pub recipients: usize,
+    /// Payload plus user-header bytes written to shared memory.
+    pub bytes: usize,
+}
+
+/// Incarnation number of this process: nanoseconds since the Unix epoch, so a restarted process
+/// always has a larger one.
+fn new_epoch() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(1)
+}
+
+/// Builds the iceoryx2 config explicitly so behaviour does not depend on a config file found on
+/// the machine; dead-node clean-up is what makes a SIGKILLed process harmless.
+fn iceoryx_config() -> Config {
+    let mut config = Config::default();
+    config.global.node.cleanup_dead_nodes_on_creation = true;
+    config.global.node.cleanup_dead_nodes_on_destruction = true;
+    config.global.service.cleanup_dead_nodes_on_open = true;
+    config
+}
+
+fn create_node(name: &str) -> Result<Node<Ipc>, TransportError> {
+    let node_error = |reason: String| TransportError::Node {
+        node: name.to_string(),
+        reason,
+    };
+    let node_name = NodeName::new(name).map_err(|e| node_error(format!("{e:?}")))?;
+    let node = NodeBuilder::new()
+        .name(&node_name)
+        .config(&iceoryx_config())
+        // The processes own their signal handling; the transport offers a shutdown flag.
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<Ipc>()
+        .map_err(|e| node_error(format!("{e:?}")))?;
+    let cleaned = node.try_cleanup_dead_nodes();
+    if cleaned.cleanups > 0 || cleaned.failed_cleanups > 0 {
+        tracing::info!(
+            cleaned = cleaned.cleanups,
+            failed = cleaned.failed_cleanups,
+            "removed shared-memory leftovers of dead iceoryx2 nodes"
+        );
+    }
+    Ok(node)
+}
+
+fn service_name(name: &str) -> Result<ServiceName, TransportError> {
+    ServiceName::new(name).map_err(|e| TransportError::Service {
+        service: name.to_string(),
+        reason: format!("invalid name: {e:?}"),
+    })
+}
+
+/// Limits of one publish-subscribe service.
+#[derive(Debug, Clone, Copy)]
+struct PubSubLimits {
+    publishers: usize,
+    subscribers: usize,
+    nodes: usize,
+    queue_depth: usize,
+    held_samples: usize,
+}
+
+fn with_limits<P: Debug + IceoryxSend + ?Sized, H: Debug + ZeroCopySend>(
+    builder: PubSubBuilder<P, H, Ipc>,
+    limits: PubSubLimits,
+) -> PubSubBuilder<P, H, Ipc> {
+    builder
+        .max_publishers(limits.publishers)
+        .max_subscribers(limits.subscribers)
+        .max_nodes(limits.nodes)
+        .subscriber_max_buffer_size(limits.queue_depth)
+        .subscriber_max_borrowed_samples(limits.held_samples)
+        .history_size(0)
+        .enable_safe_overflow(false)
+}
+
+fn open_event_service(
+    node: &Node<Ipc>,
+    name: &str,
+    notifiers: usize,
+    listeners: usize,
+    event_ids: usize,
+) -> Result<EventService<Ipc>, TransportError> {
+    node.service_builder(&service_name(name)?)
+        .event()
+        .max_notifiers(notifiers)
+        .max_listeners(listeners)
+        .max_nodes(notifiers + listeners + NODE_SLACK)
+        .event_id_max_value(event_ids)
+        .open_or_create()
+        .map_err(|e| TransportError::Service {
+            service: name.to_string(),
+            reason: format!("{e:?}"),
+        })
+}
+
+fn service_error(name: &str, error: impl Debug) -> TransportError {
+    TransportError::Service {
+        service: name.to_string(),
+        reason: format!("{error:?}"),
+    }
+}
+
+fn port_error(name: &str, port: &'static str, error: impl Debug) -> TransportError {
+    TransportError::Port {
+        service: name.to_string(),
+        port,
+        reason: format!("{error:?}"),
+    }
+}
+
+/// Limits of the services an agent publishes on (one publisher: the agent itself).
+fn agent_topic_limits(config: &TransportConfig, queue_depth: usize) -> PubSubLimits {
+    PubSubLimits {
+        publishers: 1,
+        subscribers: config.max_consumers,
+        nodes: 1 + config.max_consumers + NODE_SLACK,
+        queue_depth,
+        held_samples: config.max_held_samples,
+    }
+}
+
+fn correction_limits(config: &TransportConfig) -> PubSubLimits {
+    PubSubLimits {
+        publishers: config.max_consumers,
+        subscribers: 1,
+        nodes: 1 + config.max_consumers + NODE_SLACK,
+        queue_depth: config.correction_queue_depth,
+        held_samples: config.max_held_samples,
+    }
+}
+
+fn lifecycle_limits(config: &TransportConfig) -> PubSubLimits {
+    let processes = config.max_agents as usize + config.max_consumers;
+    PubSubLimits {
+        publishers: processes,
+        subscribers: config.max_consumers,
+        nodes: processes + NODE_SLACK,
+        queue_depth: config.lifecycle_queue_depth,
+        held_samples: config.max_held_samples,
+    }
+}
+
+struct DescriptorService;
+struct PatchService;
+struct CorrectionService;
+struct LifecycleService;
+
+impl DescriptorService {
+    fn open(
+        node: &Node<Ipc>,
+        config: &TransportConfig,
+        agent_id: u32,
+    ) -> Result<PubSubService<Ipc, KeyframeDescriptor, ()>, TransportError> {
+        let name = config.names().descriptor(agent_id);
+        let builder = node
+            .service_builder(&service_name(&name)?)
+            .publish_subscribe::<KeyframeDescriptor>();
+        with_limits(
+            builder,
+            agent_topic_limits(config, config.descriptor_queue_depth),
+        )
+        .open_or_create()
+        .map_err(|e| service_error(&name, e))
+    }
+}
+
+impl PatchService {
+    fn open(
+        node: &Node<Ipc>,
+        config: &TransportConfig,
+        agent_id: u32,
+    ) -> Result<PubSubService<Ipc, [GaussianRecord], PatchHeader>, TransportError> {
+        let name = config.names().patch(agent_id);
+        let builder = node
+            .service_builder(&service_name(&name)?)
+            .publish_subscribe::<[GaussianRecord]>()
+            .user_header::<PatchHeader>();
+        with_limits(
+            builder,
+            agent_topic_limits(config, config.patch_queue_depth),
+        )
+        .open_or_create()
+        .map_err(|e| service_error(&name, e))
+    }
+}
+
+impl CorrectionService {
+    fn open(
+        node: &Node<Ipc>,
+        config: &TransportConfig,
+        agent_id: u32,
+    ) -> Result<PubSubService<Ipc, [KeyframePose], CorrectionHeader>, TransportError> {
+        let name = config.names().correction(agent_id);
+        let builder = node
+            .service_builder(&service_name(&name)?)
+            .publish_subscribe::<[KeyframePose]>()
+            .user_header::<CorrectionHeader>();
+        with_limits(builder, correction_limits(config))
+            .open_or_create()
+            .map_err(|e| service_error(&name, e))
+    }
+}
+
+impl LifecycleService {
+    fn open(
+        node: &Node<Ipc>,
+        config: &TransportConfig,
+    ) -> Result<PubSubService<Ipc, Lifecycle, ()>, TransportError> {
+        let name = config.names().lifecycle();
+        let builder = node
+            .service_builder(&service_name(&name)?)
+            .publish_subscribe::<Lifecycle>();
+        with_limits(builder, lifecycle_limits(config))
+            .open_or_create()
+            .map_err(|e| service_error(&name, e))
+    }
+}
+
+fn open_agent_wake(
+    node: &Node<Ipc>,
+    config: &TransportConfig,
+    agent_id: u32,
+) -> Result<EventService<Ipc>, TransportError> {
+    open_event_service(
+        node,
+        &config.names().agent_wake(agent_id),
+        config.max_consumers,
+        1,
+        AGENT_WAKE_EVENT_IDS,
+    )
+}
+
+fn open_consumers_wake(
+    node: &Node<Ipc>,
+    config: &TransportConfig,
+) -> Result<EventService<Ipc>, TransportError> {
+    open_event_service(
+        node,
+        &config.names().consumers_wake(),
+        config.max_agents as usize,
+        config.max_consumers,
+        config.max_agents as usize * TOPIC_COUNT,
+    )
+}
+
+/// Waits on `listener` for at most `timeout`, in slices of `wait_slice`, returning early on any
+/// event. The events themselves are not needed: callers re-check the state they wait for.
+fn wait_for_event(
+    listener: &Listener<Ipc>,
+    timeout: Duration,
+    shutdown: &AtomicBool,
+) -> Result<(), TransportError> {
+    if shutdown.load(Ordering::Relaxed) {
+        return Err(TransportError::ShutdownRequested);
+    }
+    listener
+        .timed_wait(|_| {}, timeout)
+        .map(|_| ())
+        .map_err(|e| TransportError::Wait {
+            reason: format!("{e:?}"),
+        })
+}
+
+/// Sender side of one topic.
+struct Outbox<P: Debug + IceoryxSend + ?Sized + 'static, H: Debug + ZeroCopySend> {
+    name: String,
+    service: PubSubService<Ipc, P, H>,
+    publisher: Publisher<Ipc, P, H>,
+    next_sequence: u64,
+}
+
+impl<P: Debug + IceoryxSend + ?Sized + 'static, H: Debug + ZeroCopySend> Outbox<P, H> {
+    fn attached(&self) -> usize {
+        self.service.dynamic_config().number_of_subscribers()
+    }
+
+    fn take_sequence(&mut self) -> u64 {
+        let sequence = self.next_sequence;
+        self.next_sequence += 1;
+        sequence
+    }
+}
+
+fn loan_error(name: &str, elements: usize, error: impl Debug) -> TransportError {
+    TransportError::Loan {
+        service: name.to_string(),
+        elements,
+        reason: format!("{error:?}"),
+    }
+}
+
+fn send_error(name: &str, error: impl Debug) -> TransportError {
+    TransportError::Send {
+        service: name.to_string(),
+        reason: format!("{error:?}"),
+    }
+}
+
+fn check_recipients(
+    name: &str,
+    sequence: u64,
+    delivered: usize,
+    required: usize,
+) -> Result<(), TransportError> {
+    if delivered < required {
+        return Err(TransportError::Undelivered {
+            service: name.to_string(),
+            sequence,
+            delivered,
+            required,
+        });
+    }
+    Ok(())
+}
+
+fn validate_pose(name: &str, what: &str, pose: &Pose) -> Result<(), TransportError> {
+    if !pose.is_valid(POSE_NORM_TOLERANCE) {
+        return Err(TransportError::InvalidMessage {
+            service: name.to_string(),
+            reason: format!("{what} is not finite or its quaternion is not unit: {pose:?}"),
+        });
+    }
+    Ok(())
+}
+
+/// A received keyframe descriptor, read in place from shared memory.
+pub struct DescriptorSample {
+    sample: Sample<Ipc, KeyframeDescriptor, ()>,
+    pub delivery: Delivery,
+}
+
+impl std::ops::Deref for DescriptorSample {
+    type Target = KeyframeDescriptor;
+    fn deref(&self) -> &KeyframeDescriptor {
+        self.sample.payload()
+    }
+}
+
+/// A received Gaussian patch, read in place from shared memory (no copy).
+pub struct PatchSample {
+    sample: Sample<Ipc, [GaussianRecord], PatchHeader>,
+    pub delivery: Delivery,
+}
+
+impl PatchSample {
+    pub fn header(&self) -> &PatchHeader {
+        self.sample.user_header()
+    }
+
+    pub fn records(&self) -> &[GaussianRecord] {
+        self.sample.payload()
+    }
+}
+
+/// A received lifecycle message (copied out of shared memory: it is small, and a held-back
+/// goodbye must not pin a shared-memory sample).
+pub struct LifecycleSample {
+    message: Lifecycle,
+    pub delivery: Delivery,
+}
+
+impl std::ops::Deref for LifecycleSample {
+    type Target = Lifecycle;
+    fn deref(&self) -> &Lifecycle {
+        &self.message
+    }
+}
+
+/// A received correction, read in place from shared memory.
+pub struct CorrectionSample {
+    sample: Sample<Ipc, [KeyframePose], CorrectionHeader>,
+    pub delivery: Delivery,
+}
+
+impl CorrectionSample {
+    pub fn header(&self) -> &CorrectionHeader {
+        self.sample.user_header()
+    }
+
+    pub fn poses(&self) -> &[KeyframePose] {
+        self.sample.payload()
+    }
+}
+
+/// Anything a consumer receives.
+pub enum Incoming {
+    Descriptor(DescriptorSample),
+    Patch(PatchSample),
+    Lifecycle(LifecycleSample),
+}
+
+impl Incoming {
+    pub fn agent_id(&self) -> u32 {
+        self.stamp().agent_id
+    }
+
+    pub fn stamp(&self) -> Stamp {
+        match self {
+            Incoming::Descriptor(d) => d.stamp,
+            Incoming::Patch(p) => p.header().stamp,
+            Incoming::Lifecycle(l) => l.stamp,
+        }
+    }
+
+    pub fn delivery(&self) -> Delivery {
+        match self {
+            Incoming::Descriptor(d) => d.delivery,
+            Incoming::Patch(p) => p.delivery,
+            Incoming::Lifecycle(l) => l.delivery,
+        }
+    }
+
+    pub fn topic(&self) -> Topic {
+        match self {
+            Incoming::Descriptor(_) => Topic::Descriptor,
+            Incoming::Patch(_) => Topic::Patch,
+            Incoming::Lifecycle(_) => Topic::Lifecycle,
+        }
+    }
+}
+
+/// Ordering bookkeeping shared by both endpoints' receive paths.
+#[derive(Debug, Default)]
+struct ReceiveBook {
+    trackers: BTreeMap<(u32, Topic), SequenceTracker>,
+}
+
+impl ReceiveBook {
+    /// Records a received message under agent `account_as`; `None` means drop it (stale or
+    /// duplicate). Ordering is tracked per sender (`stamp.agent_id`) and topic.
+    fn admit(
+        &mut self,
+        traffic: &mut TrafficTable,
+        stamp: Stamp,
+        topic: Topic,
+        bytes: usize,
+        account_as: u32,
+    ) -> Option<Delivery> {
+        let verdict = self
+            .trackers
+            .entry((stamp.agent_id, topic))
+            .or_default()
+            .observe(stamp.epoch, stamp.sequence);
+        let row = traffic.row(account_as, topic, Direction::Received);
+        match verdict {
+            Verdict::Stale => {
+                row.stale_dropped += 1;
+                None
+            }
+            Verdict::Duplicate => {
+                row.duplicates_dropped += 1;
+                None
+            }
+            Verdict::Deliver(delivery) => {
+                row.messages += 1;
+                row.bytes += bytes as u64;
+                match delivery {
+                    Delivery::InOrder => {}
+                    Delivery::Gap { missed } => {
+                        row.gaps += 1;
+                        row.missed += missed;
+                    }
+                    Delivery::NewIncarnation { missed, .. } => {
+                        row.incarnations += 1;
+                        if missed > 0 {
+                            row.gaps += 1;
+                            row.missed += missed;
+                        }
+                    }
+                }
+                Some(delivery)
+            }
+        }
+    }
+}
+
+/// The transport endpoint of one agent process.
+pub struct AgentLink {
+    agent_id: u32,
+    epoch: u64,
+    config: TransportConfig,
+    descriptor: Outbox<KeyframeDescriptor, ()>,
+    patch: Outbox<[GaussianRecord], PatchHeader>,
+    lifecycle: Outbox<Lifecycle, ()>,
+    correction_name: String,
+    correction_subscriber: Subscriber<Ipc, [KeyframePose], CorrectionHeader>,
+    wake_listener: Listener<Ipc>,
+    consumers_notifier: Notifier<Ipc>,
+    traffic: TrafficTable,
+    book: ReceiveBook,
+    shutdown: Arc<AtomicBool>,
+    said_goodbye: bool,
+    // Kept last: ports above must be dropped before the node that owns them.
+    _correction_service: PubSubService<Ipc, [KeyframePose], CorrectionHeader>,
+    _wake_service: EventService<Ipc>,
+    _consumers_wake_service: EventService<Ipc>,
+    node: Node<Ipc>,
+}
+
+impl AgentLink {
+    /// Opens the agent's services and ports. Cleans up dead processes' leftovers first, and
+    /// refuses an id that a live agent already uses. Send [`AgentLink::announce`] next.
+    pub fn open(config: &TransportConfig, agent_id: u32) -> Result<Self, TransportError> {
+        config.validate()?;
+        if agent_id >= config.max_agents {
+            return Err(TransportError::AgentIdOutOfRange {
+                agent_id,
+                max_agents: config.max_agents,
+            });
+        }
+        let names = config.names();
+        let node = create_node(&format!("mac-agent-{agent_id}"))?;
+
+        let descriptor_service = DescriptorService::open(&node, config, agent_id)?;
+        let descriptor_name = names.descriptor(agent_id);
+        // The first exclusive port: failing here with "too many publishers" means a live twin.
+        let descriptor_publisher = descriptor_service
+            .publisher_builder()
+            .max_loaned_samples(PUBLISHER_MAX_LOANS)
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
+            .create()
+            .map_err(|e| match e {
+                PublisherCreateError::ExceedsMaxSupportedPublishers => {
+                    TransportError::DuplicateAgent {
+                        agent_id,
+                        namespace: config.namespace.clone(),
+                    }
+                }
+                other => port_error(&descriptor_name, "publisher", other),
+            })?;
+
+        let patch_service = PatchService::open(&node, config, agent_id)?;
+        let patch_name = names.patch(agent_id);
+        let patch_publisher = patch_service
+            .publisher_builder()
+            .max_loaned_samples(PUBLISHER_MAX_LOANS)
+            .initial_max_slice_len(config.initial_patch_records)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
+            .create()
+            .map_err(|e| match e {
+                PublisherCreateError::ExceedsMaxSupportedPublishers => {
+                    TransportError::DuplicateAgent {
+                        agent_id,
+                        namespace: config.namespace.clone(),
+                    }
+                }
+                other => port_error(&patch_name, "publisher", other),
+            })?;
+
+        let lifecycle_service = LifecycleService::open(&node, config)?;
+        let lifecycle_name = names.lifecycle();
+        let lifecycle_publisher = lifecycle_service
+            .publisher_builder()
+            .max_loaned_samples(PUBLISHER_MAX_LOANS)
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
+            .create()
+            .map_err(|e| port_error(&lifecycle_name, "publisher", e))?;
+
+        let correction_service = CorrectionService::open(&node, config, agent_id)?;
+        let correction_name = names.correction(agent_id);
+        let correction_subscriber = correction_service
+            .subscriber_builder()
+            .buffer_size(config.correction_queue_depth)
+            .create()
+            .map_err(|e| port_error(&correction_name, "subscriber", e))?;
+
+        let wake_service = open_agent_wake(&node, config, agent_id)?;
+        let wake_listener = wake_service
+            .listener_builder()
+            .create()
+            .map_err(|e| port_error(&names.agent_wake(agent_id), "listener", e))?;
+        let consumers_wake_service = open_consumers_wake(&node, config)?;
+        let consumers_notifier = consumers_wake_service
+            .notifier_builder()
+            .create()
+            .map_err(|e| port_error(&names.consumers_wake(), "notifier", e))?;
+
+        Ok(Self {
+            agent_id,
+            epoch: new_epoch(),
+            config: config.clone(),
+            descriptor: Outbox {
+                name: descriptor_name,
+                service: descriptor_service,
+                publisher: descriptor_publisher,
+                next_sequence: 0,
+            },
+            patch: Outbox {
+                name: patch_name,
+                service: patch_service,
+                publisher: patch_publisher,
+                next_sequence: 0,
+            },
+            lifecycle: Outbox {
+                name: lifecycle_name,
+                service: lifecycle_service,
+                publisher: lifecycle_publisher,
+                next_sequence: 0,
+            },
+            correction_name,
+            correction_subscriber,
+            wake_listener,
+            consumers_notifier,
+            traffic: TrafficTable::new(),
+            book: ReceiveBook::default(),
+            shutdown: Arc::new(AtomicBool::new(false)),
+            said_goodbye: false,
+            _correction_service: correction_service,
+            _wake_service: wake_service,
+            _consumers_wake_service: consumers_wake_service,
+            node,
+        })
+    }
+
+    pub fn agent_id(&self) -> u32 {
+        self.agent_id
+    }
+
+    /// This incarnation's epoch (see [`Stamp::epoch`]).
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// Setting this flag makes every blocking call return [`TransportError::ShutdownRequested`]
+    /// within `wait_slice`.
+    pub fn shutdown_handle(&self) -> Arc<AtomicBool> {
+        Arc::clone(&self.shutdown)
+    }
+
+    /// Consumers currently attached to this agent's patch topic.
+    pub fn attached_consumers(&self) -> usize {
+        self.patch.attached()
+    }
+
+    /// Subscribers attached to one of this agent's outgoing topics, and the service name.
+    fn attached(&self, topic: Topic) -> Option<(usize, &str)> {
+        match topic {
+            Topic::Descriptor => Some((self.descriptor.attached(), &self.descriptor.name)),
+            Topic::Patch => Some((self.patch.attached(), &self.patch.name)),
+            Topic::Lifecycle => Some((self.lifecycle.attached(), &self.lifecycle.name)),
+            Topic::Correction => None,
+        }
+    }
+
+    /// Blocks (event-driven) until `required_consumers` subscribers are attached to `topic`.
+    fn await_consumers(&self, topic: Topic) -> Result<(), TransportError> {
+        let required = self.config.required_consumers;
+        let start = Instant::now();
+        while let Some((attached, name)) = self.attached(topic) {
+            if attached >= required {
+                return Ok(());
+            }
+            let waited = start.elapsed();
+            if waited >= self.config.delivery_timeout {
+                return Err(TransportError::NoConsumer {
+                    service: name.to_string(),
+                    attached,
+                    required,
+                    waited,
+                });
+            }
+            let slice = self
+                .config
+                .wait_slice
+                .min(self.config.delivery_timeout - waited);
+            wait_for_event(&self.wake_listener, slice, &self.shutdown)?;
+        }
+        Ok(())
+    }
+
+    fn stamp(&self, sequence: u64) -> Stamp {
+        Stamp {
+            agent_id: self.agent_id,
+            reserved: 0,
+            epoch: self.epoch,
+            sequence,
+        }
+    }
+
+    fn notify_consumers(&self, topic: Topic) {
+        let event = EventId::new(self.agent_id as usize * TOPIC_COUNT + topic.index());
+        // A failed wake-up only delays the consumer to its next wait slice; the sample is queued.
+        if let Err(e) = self.consumers_notifier.notify_with_custom_event_id(event) {
+            tracing::warn!(error = ?e, "could not wake consumers");
+        }
+    }
+
+    fn account_sent(&mut self, topic: Topic, bytes: usize, copied: usize) {
+        let row = self.traffic.row(self.agent_id, topic, Direction::Sent);
+        row.messages += 1;
+        row.bytes += bytes as u64;
+        row.bytes_copied += copied as u64;
+    }
+
+    /// Announces this incarnation (first message after [`AgentLink::open`]).
+    pub fn announce(
+        &mut self,
+        intrinsics: Intrinsics,
+        config_hash: u64,
+    ) -> Result<SendReport, TransportError> {
+        self.send_lifecycle(Lifecycle::hello(intrinsics, config_hash))
+    }
+
+    /// Heartbeat; also reclaims leftovers of processes that died since the last one.
+    pub fn heartbeat(&mut self) -> Result<SendReport, TransportError> {
+        self.node.try_cleanup_dead_nodes();
+        self.send_lifecycle(Lifecycle::alive())
+    }
+
+    /// Orderly goodbye: waits until every consumer that received it has drained this agent's
+    /// topics and acknowledged, so nothing sent before is lost when the process exits.
+    pub fn close(mut self) -> Result<SendReport, TransportError> {
+        self.said_goodbye = true;
+        self.goodbye(self.config.delivery_timeout)
+    }
+
+    /// Sends `Goodbye` and waits up to `ack_timeout` for every recipient's acknowledgement.
+    fn goodbye(&mut self, ack_timeout: Duration) -> Result<SendReport, TransportError> {
+        let report = self.send_lifecycle(Lifecycle::goodbye())?;
+        let start = Instant::now();
+        let mut acknowledged = 0u64;
+        while acknowledged < report.recipients as u64 {
+            let waited = start.elapsed();
+            if waited >= ack_timeout {
+                return Err(TransportError::GoodbyeUnacknowledged {
+                    acknowledged,
+                    expected: report.recipients,
+                    waited,
+                });
+            }
+            let slice = self.config.wait_slice.min(ack_timeout - waited);
+            self.wake_listener
+                .timed_wait(
+                    |event| {
+                        if event.id.as_value() == WAKE_GOODBYE_SEEN {
+                            acknowledged += event.count;
+                        }
+                    },
+                    slice,
+                )
+                .map_err(|e| TransportError::Wait {
+                    reason: format!("{e:?}"),
+                })?;
+        }
+        Ok(report)
+    }
+
+    /// Sends with `send_once` until `required_consumers` received the message: waits for
+    /// consumers to attach first, then re-sends (same sequence) while their queues are full.
+    fn deliver(
+        &self,
+        topic: Topic,
+        sequence: u64,
+        mut send_once: impl FnMut() -> Result<usize, TransportError>,
+    ) -> Result<usize, TransportError> {
+        self.await_consumers(topic)?;
+        let required = self.config.required_consumers;
+        let start = Instant::now();
+        loop {
+            let delivered = send_once()?;
+            if delivered >= required {
+                self.notify_consumers(topic);
+                return Ok(delivered);
+            }
+            let waited = start.elapsed();
+            if waited >= self.config.delivery_timeout {
+                let name = self
+                    .attached(topic)
+                    .map_or("", |(_, name)| name)
+                    .to_string();
+                return Err(TransportError::Undelivered {
+                    service: name,
+                    sequence,
+                    delivered,
+                    required,
+                });
+            }
+            // Wake the consumers again: they may be asleep with a full queue of older data.
+            self.notify_consumers(topic);
+            wait_for_event(&self.wake_listener, FULL_QUEUE_RETRY, &self.shutdown)?;
+        }
+    }
+
+    fn send_lifecycle(&mut self, mut message: Lifecycle) -> Result<SendReport, TransportError> {
+        let sequence = self.lifecycle.take_sequence();
+        message.stamp = self.stamp(sequence);
+        let outbox = &self.lifecycle;
+        let delivered = self.deliver(Topic::Lifecycle, sequence, || {
+            let sample = outbox
+                .publisher
+                .loan_uninit()
+                .map_err(|e| loan_error(&outbox.name, 1, e))?;
+            sample
+                .write_payload(message)
+                .send()
+                .map_err(|e| send_error(&outbox.name, e))
+        })?;
+        let bytes = size_of::<Lifecycle>();
+        self.account_sent(Topic::Lifecycle, bytes, bytes);
+        Ok(SendReport {
+            sequence,
+            recipients: delivered,
+            bytes,
+        })
+    }
+
+    /// Publishes a keyframe descriptor. The stamp is filled in here; the descriptor must be
+    /// L2-normalised and the pose valid.
+    pub fn send_descriptor(
+        &mut self,
+        descriptor: &KeyframeDescriptor,
+    ) -> Result<SendReport, TransportError> {
+        let name = &self.descriptor.name;
+        let norm = descriptor.descriptor_norm();
+        if !norm.is_finite() || (norm - 1.0).abs() > DESCRIPTOR_NORM_TOLERANCE {
+            return Err(TransportError::InvalidMessage {
+                service: name.clone(),
+                reason: format!("descriptor norm is {norm}, expected 1 (L2-normalised)"),
+            });
+        }
+        validate_pose(
+            name,
+            "camera_to_agent_world",
+            &descriptor.camera_to_agent_world,
+        )?;
+        let sequence = self.descriptor.take_sequence();
+        let mut message = *descriptor;
+        message.stamp = self.stamp(sequence);
+        let outbox = &self.descriptor;
+        let delivered = self.deliver(Topic::Descriptor, sequence, || {
+            let sample = outbox
+                .publisher
+                .loan_uninit()
+                .map_err(|e| loan_error(&outbox.name, 1, e))?;
+            sample
+                .write_payload(message)
+                .send()
+                .map_err(|e| send_error(&outbox.name, e))
+        })?;
+        let bytes = size_of::<KeyframeDescriptor>();
+        self.account_sent(Topic::Descriptor, bytes, bytes);
+        Ok(SendReport {
+            sequence,
+            recipients: delivered,
+            bytes,
+        })
+    }
+
+    /// Publishes a patch by copying `records` into shared memory (one copy).
+    pub fn send_patch(
+        &mut self,
+        keyframe_id: u64,
+        frame: CoordinateFrame,
+        records: &[GaussianRecord],
+    ) -> Result<SendReport, TransportError> {
+        let (sequence, header) = self.next_patch_header(keyframe_id, frame, records.len());
+        let outbox = &self.patch;
+        let delivered = self.deliver(Topic::Patch, sequence, || {
+            let mut sample = outbox
+                .publisher
+                .loan_slice_uninit(records.len())
+                .map_err(|e| loan_error(&outbox.name, records.len(), e))?;
+            *sample.user_header_mut() = header;
+            sample
+                .write_from_slice(records)
+                .send()
+                .map_err(|e| send_error(&outbox.name, e))
+        })?;
+        Ok(self.account_patch(sequence, delivered, records.len(), size_of_val(records)))
+    }
+
+    /// Publishes a patch of `count` records built in place in shared memory by `build(i)`: no
+    /// copy of a finished buffer (zero-copy when the producer computes records on the fly).
+    /// `build` runs again for a re-send after a full queue, so it must be repeatable.
+    pub fn send_patch_with(
+        &mut self,
+        keyframe_id: u64,
+        frame: CoordinateFrame,
+        count: usize,
+        mut build: impl FnMut(usize) -> GaussianRecord,
+    ) -> Result<SendReport, TransportError> {
+        let (sequence, header) = self.next_patch_header(keyframe_id, frame, count);
+        let outbox = &self.patch;
+        let delivered = self.deliver(Topic::Patch, sequence, || {
+            let mut sample = outbox
+                .publisher
+                .loan_slice_uninit(count)
+                .map_err(|e| loan_error(&outbox.name, count, e))?;
+            *sample.user_header_mut() = header;
+            sample
+                .write_from_fn(&mut build)
+                .send()
+                .map_err(|e| send_error(&outbox.name, e))
+        })?;
+        Ok(self.account_patch(sequence, delivered, count, 0))
+    }
+
+    fn next_patch_header(
+        &mut self,
+        keyframe_id: u64,
+        frame: CoordinateFrame,
+        count: usize,
+    ) -> (u64, PatchHeader) {
+        let sequence = self.patch.take_sequence();
+        let header = PatchHeader {
+            stamp: self.stamp(sequence),
+            keyframe_id,
+            count: count as u64,
+            frame: frame as u32,
+            reserved: 0,
+        };
+        (sequence, header)
+    }
+
+    fn account_patch(
+        &mut self,
+        sequence: u64,
+        delivered: usize,
+        count: usize,
+        copied: usize,
+    ) -> SendReport {
+        let bytes = count * size_of::<GaussianRecord>() + size_of::<PatchHeader>();
+        self.account_sent(Topic::Patch, bytes, copied);
+        SendReport {
+            sequence,
+            recipients: delivered,
+            bytes,
+        }
+    }
+
+    /// Next pending correction, without blocking.
+    pub fn try_recv_correction(&mut self) -> Result<Option<CorrectionSample>, TransportError> {
+        loop {
+            let Some(sample) =
+                self.correction_subscriber
+                    .receive()
+                    .map_err(|e| TransportError::Receive {
+                        service: self.correction_name.clone(),
+                        reason: format!("{e:?}"),
+                    })?
+            else {
+                return Ok(None);
+            };
+            let header = *sample.user_header();
+            if header.count != sample.payload().len() as u64
+                || header.target_agent_id != self.agent_id
+            {
+                return Err(TransportError::Malformed {
+                    service: self.correction_name.clone(),
+                    reason: format!(
+                        "header says {} poses for agent {}, slice has {} (this is agent {})",
+                        header.count,
+                        header.target_agent_id,
+                        sample.payload().len(),
+                        self.agent_id
+                    ),
+                });
+            }
+            let bytes = size_of_val(sample.payload()) + size_of::<CorrectionHeader>();
+            if let Some(delivery) = self.book.admit(
+                &mut self.traffic,
+                header.stamp,
+                Topic::Correction,
+                bytes,
+                self.agent_id,
+            ) {
+                return Ok(Some(CorrectionSample { sample, delivery }));
+            }
+        }
+    }
+
+    /// Waits (event-driven) up to `timeout` for a correction.
+    pub fn recv_correction_timeout(
+        &mut self,
+        timeout: Duration,
+    ) -> Result<Option<CorrectionSample>, TransportError> {
+        let start = Instant::now();
+        loop {
+            if let Some(correction) = self.try_recv_correction()? {
+                return Ok(Some(correction));
+            }
+            let waited = start.elapsed();
+            if waited >= timeout {
+                return Ok(None);
+            }
+            wait_for_event(
+                &self.wake_listener,
+                self.config.wait_slice.min(timeout - waited),
+                &self.shutdown,
+            )?;
+        }
+    }
+
+    /// Bytes and messages per topic sent (and corrections received) since [`AgentLink::open`].
+    pub fn bandwidth(&self) -> BandwidthReport {
+        self.traffic.report()
+    }
+}
+
+impl Drop for AgentLink {
+    fn drop(&mut self) {
+        // Best effort and short (one wait slice), since drop must not hang: consumers learn of
+        // the stop. `close()` is the orderly path that also waits for them to drain.
+        if !self.said_goodbye
+            && self.lifecycle.attached() > 0
+            && let Err(e) = self.goodbye(self.config.wait_slice)
+        {
+            tracing::warn!(agent_id = self.agent_id, error = %e, "goodbye on drop failed");
+        }
+    }
+}
+
+/// Receive side of one agent's topics, held by a consumer.
+struct AgentInbox {
+    descriptor_name: String,
+    descriptor: Subscriber<Ipc, KeyframeDescriptor, ()>,
+    patch_name: String,
+    patch: Subscriber<Ipc, [GaussianRecord], PatchHeader>,
+    correction: Outbox<[KeyframePose], CorrectionHeader>,
+    wake: Notifier<Ipc>,
+    _descriptor_service: PubSubService<Ipc, KeyframeDescriptor, ()>,
+    _patch_service: PubSubService<Ipc, [GaussianRecord], PatchHeader>,
+    _wake_service: EventService<Ipc>,
+}
+
+/// The transport endpoint of the consensus (or any observer of the swarm).
+pub struct ConsumerLink {
+    config: TransportConfig,
+    epoch: u64,
+    agents: Vec<AgentInbox>,
+    lifecycle_name: String,
+    lifecycle: Subscriber<Ipc, Lifecycle, ()>,
+    wake_listener: Listener<Ipc>,
+    traffic: TrafficTable,
+    book: ReceiveBook,
+    /// Round-robin start of the next receive scan, so no agent starves the others.
+    cursor: usize,
+    /// Goodbyes held back until their agent's data topics are drained.
+    deferred_goodbyes: Vec<LifecycleSample>,
+    shutdown: Arc<AtomicBool>,
+    _lifecycle_service: PubSubService<Ipc, Lifecycle, ()>,
+    _wake_service: EventService<Ipc>,
+    _node: Node<Ipc>,
+}
+
+impl ConsumerLink {
+    /// Subscribes to every agent id `0..max_agents` and tells running agents that a consumer
+    /// attached (so their pending sends proceed).
+    pub fn open(config: &TransportConfig) -> Result<Self, TransportError> {
+        config.validate()?;
+        let names = config.names();
+        let node = create_node(&format!("mac-consumer-{}", std::process::id()))?;
+        let lifecycle_service = LifecycleService::open(&node, config)?;
+        let lifecycle_name = names.lifecycle();
+        let lifecycle = lifecycle_service
+            .subscriber_builder()
+            .buffer_size(config.lifecycle_queue_depth)
+            .create()
+            .map_err(|e| port_error(&lifecycle_name, "subscriber", e))?;
+        let wake_service = open_consumers_wake(&node, config)?;
+        let wake_listener = wake_service
+            .listener_builder()
+            .create()
+            .map_err(|e| port_error(&names.consumers_wake(), "listener", e))?;
+
+        let mut agents = Vec::with_capacity(config.max_agents as usize);
+        for agent_id in 0..config.max_agents {
+            let descriptor_service = DescriptorService::open(&node, config, agent_id)?;
+            let descriptor_name = names.descriptor(agent_id);
+            let descriptor = descriptor_service
+                .subscriber_builder()
+                .buffer_size(config.descriptor_queue_depth)
+                .create()
+                .map_err(|e| port_error(&descriptor_name, "subscriber", e))?;
+            let patch_service = PatchService::open(&node, config, agent_id)?;
+            let patch_name = names.patch(agent_id);
+            let patch = patch_service
+                .subscriber_builder()
+                .buffer_size(config.patch_queue_depth)
+                .create()
+                .map_err(|e| port_error(&patch_name, "subscriber", e))?;
+            let correction_service = CorrectionService::open(&node, config, agent_id)?;
+            let correction_name = names.correction(agent_id);
+            let correction_publisher = correction_service
+                .publisher_builder()
+                .max_loaned_samples(PUBLISHER_MAX_LOANS)
+                .initial_max_slice_len(config.initial_correction_poses)
+                .allocation_strategy(AllocationStrategy::PowerOfTwo)
+                .backpressure_strategy(BackpressureStrategy::DiscardData)
+                .create()
+                .map_err(|e| port_error(&correction_name, "publisher", e))?;
+            let agent_wake_service = open_agent_wake(&node, config, agent_id)?;
+            let wake = agent_wake_service
+                .notifier_builder()
+                .create()
+                .map_err(|e| port_error(&names.agent_wake(agent_id), "notifier", e))?;
+            agents.push(AgentInbox {
+                descriptor_name,
+                descriptor,
+                patch_name,
+                patch,
+                correction: Outbox {
+                    name: correction_name,
+                    service: correction_service,
+                    publisher: correction_publisher,
+                    next_sequence: 0,
+                },
+                wake,
+                _descriptor_service: descriptor_service,
+                _patch_service: patch_service,
+                _wake_service: agent_wake_service,
+            });
+        }
+        // Only now are all subscribers registered: wake agents blocked in their handshake.
+        for inbox in &agents {
+            if let Err(e) = inbox
+                .wake
+                .notify_with_custom_event_id(EventId::new(WAKE_CONSUMER_ATTACHED))
+            {
+                tracing::warn!(error = ?e, "could not wake an agent after attaching");
+            }
+        }
+        Ok(Self {
+            config: config.clone(),
+            epoch: new_epoch(),
+            agents,
+            lifecycle_name,
+            lifecycle,
+            wake_listener,
+            traffic: TrafficTable::new(),
+            book: ReceiveBook::default(),
+            cursor: 0,
+            deferred_goodbyes: Vec::new(),
+            shutdown: Arc::new(AtomicBool::new(false)),
+            _lifecycle_service: lifecycle_service,
+            _wake_service: wake_service,
+            _node: node,
+        })
+    }
+
+    /// See [`AgentLink::shutdown_handle`].
+    pub fn shutdown_handle(&self) -> Arc<AtomicBool> {
+        Arc::clone(&self.shutdown)
+    }
+
+    /// Next pending message of any agent, without blocking. Sources are scanned round-robin;
+    /// an agent's `Goodbye` comes after all data it sent before it.
+    pub fn try_recv(&mut self) -> Result<Option<Incoming>, TransportError> {
+        if let Some(goodbye) = self.take_drained_goodbye()? {
+            return Ok(Some(Incoming::Lifecycle(goodbye)));
+        }
+        // Sources: lifecycle, then (descriptor, patch) of each agent.
+        let sources = 1 + 2 * self.agents.len();
+        for step in 0..sources {
+            let source = (self.cursor + step) % sources;
+            let received = if source == 0 {
+                self.receive_lifecycle()?
+            } else {
+                let agent = (source - 1) / 2;
+                if (source - 1).is_multiple_of(2) {
+                    self.receive_descriptor(agent)?
+                } else {
+                    self.receive_patch(agent)?
+                }
+            };
+            if let Some(incoming) = received {
+                self.cursor = (source + 1) % sources;
+                return Ok(Some(incoming));
+            }
+        }
+        Ok(None)
+    }
+
+    /// Waits (event-driven) up to `timeout` for the next message.
+    pub fn recv_timeout(&mut self, timeout: Duration) -> Result<Option<Incoming>, TransportError> {
+        let start = Instant::now();
+        loop {
+            if let Some(incoming) = self.try_recv()? {
+                return Ok(Some(incoming));
+            }
+            let waited = start.elapsed();
+            if waited >= timeout {
+                return Ok(None);
+            }
+            wait_for_event(
+                &self.wake_listener,
+                self.config.wait_slice.min(timeout - waited),
+                &self.shutdown,
+            )?;
+        }
+    }
+
+    /// Whether agent `agent_id` still has queued data (this also maps the memory of its
+    /// publishers, after which their samples survive the publisher's exit).
+    fn agent_has_data(&self, agent_id: u32) -> Result<bool, TransportError> {
+        let inbox = &self.agents[agent_id as usize];
+        let pending = |name: &str, result: Result<bool, _>| {
+            result.map_err(|e| TransportError::Receive {
+                service: name.to_string(),
+                reason: format!("{e:?}"),
+            })
+        };
+        Ok(
+            pending(&inbox.descriptor_name, inbox.descriptor.has_samples())?
+                || pending(&inbox.patch_name, inbox.patch.has_samples())?,
+        )
+    }
+
+    /// Tells the agent its goodbye was seen after its data was drained (it may exit now).
+    fn acknowledge_goodbye(&self, agent_id: u32) {
+        let wake = &self.agents[agent_id as usize].wake;
+        if let Err(e) = wake.notify_with_custom_event_id(EventId::new(WAKE_GOODBYE_SEEN)) {
+            tracing::warn!(error = ?e, agent_id, "could not acknowledge a goodbye");
+        }
+    }
+
+    fn take_drained_goodbye(&mut self) -> Result<Option<LifecycleSample>, TransportError> {
+        for i in 0..self.deferred_goodbyes.len() {
+            let agent_id = self.deferred_goodbyes[i].stamp.agent_id;
+            if !self.agent_has_data(agent_id)? {
+                self.acknowledge_goodbye(agent_id);
+                return Ok(Some(self.deferred_goodbyes.remove(i)));
+            }
+        }
+        Ok(None)
+    }
+
+    fn receive_lifecycle(&mut self) -> Result<Option<Incoming>, TransportError> {
+        loop {
+            let Some(sample) = self
+                .lifecycle
+                .receive()
+                .map_err(|e| TransportError::Receive {
+                    service: self.lifecycle_name.clone(),
+                    reason: format!("{e:?}"),
+                })?
+            else {
+                return Ok(None);
+            };
+            let stamp = sample.payload().stamp;
+            if stamp.agent_id >= self.config.max_agents {
+                return Err(TransportError::Malformed {
+                    service: self.lifecycle_name.clone(),
+                    reason: format!(
+                        "sender agent id {} is outside 0..{}",
+                        stamp.agent_id, self.config.max_agents
+                    ),
+                });
+            }
+            let Some(delivery) = self.book.admit(
+                &mut self.traffic,
+                stamp,
+                Topic::Lifecycle,
+                size_of::<Lifecycle>(),
+                stamp.agent_id,
+            ) else {
+                continue;
+            };
+            let received = LifecycleSample {
+                message: *sample.payload(),
+                delivery,
+            };
+            drop(sample);
+            if received.kind() == Ok(LifecycleKind::Goodbye) {
+                if self.agent_has_data(stamp.agent_id)? {
+                    self.deferred_goodbyes.push(received);
+                    continue;
+                }
+                self.acknowledge_goodbye(stamp.agent_id);
+            }
+            return Ok(Some(Incoming::Lifecycle(received)));
+        }
+    }
+
+    fn receive_descriptor(&mut self, agent: usize) -> Result<Option<Incoming>, TransportError> {
+        let inbox = &self.agents[agent];
+        loop {
+            let Some(sample) = inbox
+                .descriptor
+                .receive()
+                .map_err(|e| TransportError::Receive {
+                    service: inbox.descriptor_name.clone(),
+                    reason: format!("{e:?}"),
+                })?
+            else {
+                return Ok(None);
+            };
+            let stamp = sample.payload().stamp;
+            if stamp.agent_id as usize != agent {
+                return Err(TransportError::Malformed {
+                    service: inbox.descriptor_name.clone(),
+                    reason: format!(
+                        "stamp names agent {} on agent {agent}'s topic",
+                        stamp.agent_id
+                    ),
+                });
+            }
+            let bytes = size_of::<KeyframeDescriptor>();
+            if let Some(delivery) = self.book.admit(
+                &mut self.traffic,
+                stamp,
+                Topic::Descriptor,
+                bytes,
+                stamp.agent_id,
+            ) {
+                return Ok(Some(Incoming::Descriptor(DescriptorSample {
+                    sample,
+                    delivery,
+                })));
+            }
+        }
+    }
+
+    fn receive_patch(&mut self, agent: usize) -> Result<Option<Incoming>, TransportError> {
+        let inbox = &self.agents[agent];
+        loop {
+            let Some(sample) = inbox.patch.receive().map_err(|e| TransportError::Receive {
+                service: inbox.patch_name.clone(),
+                reason: format!("{e:?}"),
+            })?
+            else {
+                return Ok(None);
+            };
+            let header = *sample.user_header();
+            let len = sample.payload().len();
+            if header.stamp.agent_id as usize != agent
+                || header.count != len as u64
+                || header.frame().is_err()
+            {
+                return Err(TransportError::Malformed {
+                    service: inbox.patch_name.clone(),
+                    reason: format!(
+                        "header (agent {}, count {}, frame tag {}) does not match agent {agent}'s slice of {len}",
+                        header.stamp.agent_id, header.count, header.frame
+                    ),
+                });
+            }
+            let bytes = size_of_val(sample.payload()) + size_of::<PatchHeader>();
+            if let Some(delivery) = self.book.admit(
+                &mut self.traffic,
+                header.stamp,
+                Topic::Patch,
+                bytes,
+                header.stamp.agent_id,
+            ) {
+                return Ok(Some(Incoming::Patch(PatchSample { sample, delivery })));
+            }
+        }
+    }
+
+    /// Sends a correction to agent `agent_id`. Never waits: the consensus must not block on an
+    /// agent; an agent that is not attached yields [`TransportError::Undelivered`].
+    pub fn send_correction(
+        &mut self,
+        agent_id: u32,
+        agent_world_to_world: Pose,
+        poses: &[KeyframePose],
+    ) -> Result<SendReport, TransportError> {
+        let max_agents = self.config.max_agents;
+        let epoch = self.epoch;
+        let inbox =
+            self.agents
+                .get_mut(agent_id as usize)
+                .ok_or(TransportError::AgentIdOutOfRange {
+                    agent_id,
+                    max_agents,
+                })?;
+        let outbox = &mut inbox.correction;
+        validate_pose(&outbox.name, "agent_world_to_world", &agent_world_to_world)?;
+        if let Some(bad) = poses
+            .iter()
+            .find(|p| !p.camera_to_world.is_valid(POSE_NORM_TOLERANCE))
+        {
+            validate_pose(
+                &outbox.name,
+                &format!("keyframe {} pose", bad.keyframe_id),
+                &bad.camera_to_world,
+            )?;
+        }
+        let sequence = outbox.take_sequence();
+        let header = CorrectionHeader {
+            stamp: Stamp {
+                agent_id: CONSUMER_AGENT_ID,
+                reserved: 0,
+                epoch,
+                sequence,
+            },
+            target_agent_id: agent_id,
+            reserved: 0,
+            agent_world_to_world,
+            count: poses.len() as u64,
+        };
+        let mut sample = outbox
+            .publisher
+            .loan_slice_uninit(poses.len())
+            .map_err(|e| TransportError::Loan {
+                service: outbox.name.clone(),
+                elements: poses.len(),
+                reason: format!("{e:?}"),
+            })?;
+        *sample.user_header_mut() = header;
+        let delivered =
+            sample
+                .write_from_slice(poses)
+                .send()
+                .map_err(|e| TransportError::Send {
+                    service: outbox.name.clone(),
+                    reason: format!("{e:?}"),
+                })?;
+        // The correction topic has exactly one subscriber: the agent.
+        check_recipients(&outbox.name, sequence, delivered, 1)?;
+        if let Err(e) = inbox
+            .wake
+            .notify_with_custom_event_id(EventId::new(WAKE_CORRECTION))
+        {
+            tracing::warn!(error = ?e, agent_id, "could not wake agent for a correction");
+        }
+        let bytes = size_of_val(poses) + size_of::<CorrectionHeader>();
+        let row = self
+            .traffic
+            .row(agent_id, Topic::Correction, Direction::Sent);
+        row.messages += 1;
+        row.bytes += bytes as u64;
+        row.bytes_copied += bytes as u64;
+        Ok(SendReport {
+            sequence,
+            recipients: delivered,
+            bytes,
+        })
+    }
+
+    /// Received traffic per agent and topic (and corrections sent) since [`ConsumerLink::open`].
+    pub fn bandwidth(&self) -> BandwidthReport {
+        self.traffic.report()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sequence_tracker_classifies_order_gaps_restarts_and_stale() {
+        let mut tracker = SequenceTracker::default();
+        assert!(matches!(
+            tracker.observe(10, 0),
+            Verdict::Deliver(Delivery::NewIncarnation {
+                previous_epoch: None,
+                missed: 0
+            })
+        ));
+        assert!(matches!(
+            tracker.observe(10, 1),
+            Verdict::Deliver(Delivery::InOrder)
+        ));
+        assert!(matches!(
+            tracker.observe(10, 4),
+            Verdict::Deliver(Delivery::Gap { missed: 2 })
+        ));
+        assert!(matches!(tracker.observe(10, 4), Verdict::Duplicate));
+        assert!(matches!(tracker.observe(10, 3), Verdict::Duplicate));
+        assert!(matches!(
+            tracker.observe(20, 0),
+            Verdict::Deliver(Delivery::NewIncarnation {
+                previous_epoch: Some(10),
+                missed: 0
+            })
+        ));
+        assert!(matches!(tracker.observe(10, 5), Verdict::Stale));
+        assert!(matches!(
+            tracker.observe(20, 1),
+            Verdict::Deliver(Delivery::InOrder)
+        ));
+    }
+
+    #[test]
+    fn config_validation_names_the_problem() {
+        let mut config = TransportConfig::with_namespace("unit");
+        config.required_consumers = config.max_consumers + 1;
+        let err = config.validate().unwrap_err();
+        assert!(err.to_string().contains("required_consumers"), "{err}");
+        let zero_agents = TransportConfig {
+            max_agents: 0,
+            ..TransportConfig::default()
+        };
+        assert!(zero_agents.validate().is_err());
+        assert!(TransportConfig::default().validate().is_ok());
+    }
+
+    #[test]
+    fn agent_id_out_of_range_is_refused_before_touching_shared_memory() {
+        let config = TransportConfig {
+            max_agents: 2,
+            ..TransportConfig::with_namespace("unit-range")
+        };
+        match AgentLink::open(&config, 2) {
+            Err(TransportError::AgentIdOutOfRange {
+                agent_id: 2,
+                max_agents: 2,
+            }) => {}
+            Err(other) => panic!("unexpected error {other}"),
+            Ok(_) => panic!("agent id 2 must be refused with max_agents 2"),
+        }
+    }
+}
