@@ -1,0 +1,12 @@
+//! The mac-ego3d consensus process (SPEC section 4): selection (place recognition over keyframe
+//! descriptors), association and alignment between agents, robust pose-graph and joint map
+//! optimisation, corrections back to the agents.
+//!
+//! Built so far: [`place_recognition`], the descriptor database that proposes loop closures.
+//! Registration, the pose graph, refinement and the process itself follow (issue 6).
+
+pub mod place_recognition;
+
+// The wire format and the extractor must agree on the descriptor length.
+const _: () =
+    assert!(protocol::messages::DESCRIPTOR_LEN == slam_core::descriptor::GLOBAL_DESCRIPTOR_LEN);
