@@ -37,6 +37,9 @@ pub struct TrackingConfig {
     pub translation_epsilon_m: f64,
     /// Predict the next pose with a constant-velocity model instead of the previous pose.
     pub constant_velocity: bool,
+    /// Tracking fails (too few correspondences) when fewer than this fraction of the frame's
+    /// points have a map point within `max_correspondence_m` after alignment.
+    pub min_inlier_fraction: f64,
 }
 
 impl Default for TrackingConfig {
@@ -52,6 +55,7 @@ impl Default for TrackingConfig {
             rotation_epsilon_rad: 2e-3,
             translation_epsilon_m: 5e-4,
             constant_velocity: true,
+            min_inlier_fraction: 0.2,
         }
     }
 }
@@ -137,6 +141,9 @@ pub struct ConsensusConfig {
     pub tau_same_agent: f64,
     /// Descriptor score above which keyframes of different agents propose a loop closure.
     pub tau_other_agent: f64,
+    /// Same-agent keyframes closer than this many frames are never proposed as loop closures:
+    /// odometry already links them and their images are trivially alike (SPEC is silent; 10 s).
+    pub same_agent_min_frame_gap: usize,
     /// Coarse-to-fine correspondence distances for inter-agent G-ICP (metres, largest first).
     pub association_distances_m: Vec<f64>,
     /// Joint refinement weights.
@@ -155,6 +162,7 @@ impl Default for ConsensusConfig {
             t_comm: 60,
             tau_same_agent: 0.80,
             tau_other_agent: 0.85,
+            same_agent_min_frame_gap: 300,
             association_distances_m: vec![0.1, 0.05, 0.02],
             weight_l1: 0.8,
             weight_ssim: 0.2,
@@ -262,6 +270,7 @@ impl Config {
         at_least_one("tracking.max_iterations", t.max_iterations)?;
         positive("tracking.rotation_epsilon_rad", t.rotation_epsilon_rad)?;
         positive("tracking.translation_epsilon_m", t.translation_epsilon_m)?;
+        fraction("tracking.min_inlier_fraction", t.min_inlier_fraction)?;
         let k = &self.keyframes;
         positive("keyframes.overlap_distance_sq_m2", k.overlap_distance_sq_m2)?;
         fraction("keyframes.min_overlap_fraction", k.min_overlap_fraction)?;

@@ -13,7 +13,9 @@
 pub mod camera;
 pub mod config;
 pub mod dataset;
+pub mod descriptor;
 pub mod metrics;
+pub mod registration;
 pub mod se3;
 pub mod shared_data;
 pub mod trajectory;
