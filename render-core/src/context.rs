@@ -92,6 +92,14 @@ impl GpuContext {
             .min(self.limits.max_buffer_size)
     }
 
+    /// Blocks until every submitted command has finished (used by benchmarks and read-backs).
+    pub fn wait_idle(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| GpuError::Readback(e.to_string()))
+    }
+
     /// A one-line description: adapter name, backend and capabilities.
     pub fn describe(&self) -> String {
         format!(

@@ -1,27 +1,40 @@
 //! The wgpu forward renderer: project -> depth sort -> tile binning -> tile sort -> rasterize.
 //!
-//! Everything stays on the device except one `u32` read back per frame (the number of
-//! tile/Gaussian intersections, needed to size the binning buffers). Kernels live in
-//! `src/kernels/*.wgsl`; each opens with a comment on its thread mapping and invariants.
+//! Nothing is read back to the host inside [`GpuRenderer::render_frame`]. The number of
+//! tile/Gaussian pairs is only known on the device, so the binning buffers are allocated with
+//! a capacity estimate ([`DeviceFrame::pair_capacity`]: at least 8 pairs per Gaussian, grown
+//! by [`GpuRenderer::check_pairs`]) and every pair kernel reads the real count from the
+//! device. Invariant: a frame whose pairs exceed its capacity keeps exactly the first
+//! `capacity` pairs in depth order, i.e. it drops the pairs of its farthest Gaussians and
+//! stays a valid (slightly incomplete) render; [`GpuRenderer::check_pairs`] reports it and
+//! makes later frames large enough. [`GpuRenderer::render`] checks and re-renders, so
+//! one-off renders are always complete; optimisation loops call `check_pairs` outside their
+//! inner loop. Kernels live in `src/kernels/*.wgsl`; each opens with a comment on its thread
+//! mapping and invariants.
 //!
 //! Limits: every storage binding must fit `max_storage_buffer_binding_size` (128 MiB on
 //! lavapipe). The widest per-Gaussian buffer holds 16 bytes per Gaussian and the binning
-//! buffers 4 bytes per intersection, so one frame handles up to
-//! `max_binding / 16` Gaussians (8.4 M on lavapipe) and `max_binding / 4` intersections; beyond
-//! that [`GpuError::TooLarge`] is returned (no chunked bindings yet).
+//! buffers 4 bytes per pair, so one frame handles up to `max_binding / 16` Gaussians (8.4 M
+//! on lavapipe) and `max_binding / 4` pairs (33.5 M); beyond that [`GpuError::TooLarge`] is
+//! returned (no chunked bindings yet).
+
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use bytemuck::{Pod, Zeroable};
 
 use crate::context::{GpuContext, GpuError};
 use crate::types::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput, constants};
 
-/// Invocations per workgroup of the 1D kernels (project, scan, sort, bin).
+/// Invocations per workgroup of the 1D kernels (project, scan, bin, reduce; the radix sort
+/// uses its own blocks of SORT_BLOCK_SIZE keys).
 pub(crate) const WORKGROUP_SIZE: u32 = 256;
 /// WebGPU's limit on workgroups per dispatch dimension; larger 1D grids spill into y.
 const MAX_WORKGROUPS_PER_DIMENSION: u32 = 65_535;
 /// Digit width of the radix sort (must match RADIX_BITS in sort.wgsl).
 const RADIX_BITS: u32 = 4;
 const RADIX: u32 = 1 << RADIX_BITS;
+/// Keys per radix-sort workgroup (must match BLOCK_SIZE in sort.wgsl).
+const SORT_BLOCK_SIZE: u32 = 1024;
 /// Depth keys are full f32 bit patterns.
 const DEPTH_KEY_BITS: u32 = 32;
 pub(crate) const U32_BYTES: u64 = 4;
@@ -81,6 +94,169 @@ impl RenderParams {
                 constants::SPLAT_EXTENT_SIGMAS,
             ],
         }
+    }
+}
+
+/// Pairs the binning buffers get per Gaussian before any frame has reported its real need.
+const INITIAL_PAIRS_PER_GAUSSIAN: u64 = 8;
+/// Smallest pair capacity of a frame.
+const MIN_PAIR_CAPACITY: u64 = 1024;
+/// Head-room added when a frame overflowed its pair capacity.
+const PAIR_CAPACITY_GROWTH_PERCENT: u64 = 50;
+
+/// Tile/Gaussian pairs a frame needed and could hold.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PairUsage {
+    pub pairs: u32,
+    pub capacity: u32,
+}
+
+impl PairUsage {
+    /// The frame dropped pairs (those of its farthest Gaussians, see the module docs).
+    pub fn overflowed(&self) -> bool {
+        self.pairs > self.capacity
+    }
+}
+
+/// Wall-clock milliseconds per forward stage, in pipeline order (see [`GpuRenderer::render_frame_profiled`]).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct StageTimes(pub Vec<(&'static str, f64)>);
+
+impl StageTimes {
+    /// Per-stage medians of several profiled runs (stages matched by position).
+    pub fn median_of(runs: &[StageTimes]) -> StageTimes {
+        let Some(first) = runs.first() else {
+            return StageTimes::default();
+        };
+        StageTimes(
+            first
+                .0
+                .iter()
+                .enumerate()
+                .map(|(stage, (name, _))| {
+                    let mut values: Vec<f64> = runs
+                        .iter()
+                        .filter_map(|run| run.0.get(stage).map(|(_, ms)| *ms))
+                        .collect();
+                    values.sort_by(f64::total_cmp);
+                    (*name, values[values.len() / 2])
+                })
+                .collect(),
+        )
+    }
+}
+
+/// Splits a frame into separately submitted and waited-for stages when profiling; a no-op
+/// otherwise (then the stages share command encoders as usual).
+struct StageProfiler<'a> {
+    times: Option<&'a mut StageTimes>,
+    last_mark: std::time::Instant,
+}
+
+impl<'a> StageProfiler<'a> {
+    fn new(context: &GpuContext, times: Option<&'a mut StageTimes>) -> Result<Self, GpuError> {
+        if times.is_some() {
+            context.wait_idle()?;
+        }
+        Ok(Self {
+            times,
+            last_mark: std::time::Instant::now(),
+        })
+    }
+
+    /// Ends stage `name`: when profiling, submits `encoder`, waits for the device and records
+    /// the elapsed time, leaving a fresh encoder in place.
+    fn mark(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        name: &'static str,
+    ) -> Result<(), GpuError> {
+        let Some(times) = self.times.as_deref_mut() else {
+            return Ok(());
+        };
+        let finished = std::mem::replace(
+            encoder,
+            context.device.create_command_encoder(&Default::default()),
+        );
+        context.queue.submit([finished.finish()]);
+        context.wait_idle()?;
+        let now = std::time::Instant::now();
+        times
+            .0
+            .push((name, (now - self.last_mark).as_secs_f64() * 1e3));
+        self.last_mark = now;
+        Ok(())
+    }
+}
+
+/// A device radix sort of fixed random input, for benchmarks: every [`DeviceSortBench::sort`]
+/// restores the unsorted input on the device and sorts it (nothing is read back).
+pub struct DeviceSortBench {
+    count: u32,
+    source_keys: wgpu::Buffer,
+    source_values: wgpu::Buffer,
+    keys: [wgpu::Buffer; 2],
+    values: [wgpu::Buffer; 2],
+}
+
+impl DeviceSortBench {
+    pub fn new(context: &GpuContext, keys: &[u32], values: &[u32]) -> Result<Self, GpuError> {
+        if keys.len() != values.len() {
+            return Err(GpuError::InvalidInput(format!(
+                "{} keys but {} values",
+                keys.len(),
+                values.len()
+            )));
+        }
+        let count = u32::try_from(keys.len())
+            .map_err(|_| GpuError::TooLarge("more than u32::MAX pairs".into()))?;
+        let bytes = u64::from(count) * U32_BYTES;
+        let min = VEC4_BYTES as usize;
+        Ok(Self {
+            count,
+            source_keys: context.storage_buffer_init("bench keys", bytemuck::cast_slice(keys), min),
+            source_values: context.storage_buffer_init(
+                "bench values",
+                bytemuck::cast_slice(values),
+                min,
+            ),
+            keys: [
+                context.storage_buffer("keys", bytes)?,
+                context.storage_buffer("keys scratch", bytes)?,
+            ],
+            values: [
+                context.storage_buffer("values", bytes)?,
+                context.storage_buffer("values scratch", bytes)?,
+            ],
+        })
+    }
+
+    /// Restores the input and submits a sort on the low `key_bits` bits (does not wait).
+    pub fn sort(
+        &self,
+        context: &GpuContext,
+        renderer: &GpuRenderer,
+        key_bits: u32,
+    ) -> Result<(), GpuError> {
+        if self.count == 0 {
+            return Ok(());
+        }
+        let bytes = u64::from(self.count) * U32_BYTES;
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        encoder.copy_buffer_to_buffer(&self.source_keys, 0, &self.keys[0], 0, bytes);
+        encoder.copy_buffer_to_buffer(&self.source_values, 0, &self.values[0], 0, bytes);
+        renderer.radix_sort(
+            context,
+            &mut encoder,
+            [&self.keys[0], &self.keys[1]],
+            [&self.values[0], &self.values[1]],
+            &count_buffer(context, self.count),
+            self.count,
+            key_bits.min(u32::BITS),
+        )?;
+        context.queue.submit([encoder.finish()]);
+        Ok(())
     }
 }
 
@@ -162,7 +338,10 @@ pub struct DeviceFrame {
     /// The `RenderParams` uniform the frame was rendered with (reused by the backward pass).
     pub(crate) params_buffer: wgpu::Buffer,
     pub gaussian_count: u32,
-    pub intersection_count: u32,
+    /// Tile/Gaussian pairs the frame's buffers hold at most (see [`GpuRenderer::check_pairs`]).
+    pub pair_capacity: u32,
+    /// `[pairs kept, pairs needed, 0, 0]`, written on the device.
+    pub(crate) pair_status: wgpu::Buffer,
     /// Per Gaussian: mean2d.xy, opacity, camera z.
     pub splat_position: wgpu::Buffer,
     /// Per Gaussian: conic a, b, c, radius.
@@ -186,8 +365,10 @@ pub(crate) struct Pipelines {
     pub(crate) scan_blocks: wgpu::ComputePipeline,
     pub(crate) scan_add: wgpu::ComputePipeline,
     pub(crate) sort_histogram: wgpu::ComputePipeline,
+    pub(crate) sort_scan: wgpu::ComputePipeline,
     pub(crate) sort_scatter: wgpu::ComputePipeline,
     pub(crate) gather_counts: wgpu::ComputePipeline,
+    pub(crate) pair_status: wgpu::ComputePipeline,
     pub(crate) emit: wgpu::ComputePipeline,
     pub(crate) tile_ranges: wgpu::ComputePipeline,
     pub(crate) rasterize: wgpu::ComputePipeline,
@@ -266,6 +447,12 @@ pub(crate) fn dispatch_linear(
     pass.dispatch_workgroups(x, y, 1);
 }
 
+/// A storage buffer holding one host-known element count (for kernels that read their count
+/// from the device, such as the radix sort).
+pub(crate) fn count_buffer(context: &GpuContext, count: u32) -> wgpu::Buffer {
+    context.storage_buffer_init("count", &four_u32([count, 0, 0, 0]), VEC4_BYTES as usize)
+}
+
 pub(crate) fn four_u32(values: [u32; 4]) -> [u8; 16] {
     bytemuck::cast(values)
 }
@@ -273,6 +460,8 @@ pub(crate) fn four_u32(values: [u32; 4]) -> [u8; 16] {
 /// Compiled kernels of the forward path.
 pub struct GpuRenderer {
     pub(crate) pipelines: Pipelines,
+    /// Pair capacity later frames allocate at least (grown by [`GpuRenderer::check_pairs`]).
+    pair_capacity_hint: AtomicU64,
     /// True when the backward pass uses native float atomics.
     pub uses_float_atomics: bool,
 }
@@ -309,8 +498,10 @@ impl GpuRenderer {
             scan_blocks: compute_pipeline(device, "scan_blocks", SCAN_WGSL, "scan_blocks"),
             scan_add: compute_pipeline(device, "scan_add", SCAN_WGSL, "add_block_offsets"),
             sort_histogram: compute_pipeline(device, "sort_histogram", SORT_WGSL, "histogram"),
+            sort_scan: compute_pipeline(device, "sort_scan", SORT_WGSL, "scan_histograms"),
             sort_scatter: compute_pipeline(device, "sort_scatter", SORT_WGSL, "scatter"),
             gather_counts: compute_pipeline(device, "gather_counts", BIN_WGSL, "gather_counts"),
+            pair_status: compute_pipeline(device, "pair_status", BIN_WGSL, "pair_status_from_scan"),
             emit: compute_pipeline(device, "emit", BIN_WGSL, "emit"),
             tile_ranges: compute_pipeline(
                 device,
@@ -335,6 +526,7 @@ impl GpuRenderer {
         };
         Self {
             pipelines,
+            pair_capacity_hint: AtomicU64::new(0),
             uses_float_atomics,
         }
     }
@@ -347,8 +539,53 @@ impl GpuRenderer {
         camera: &Camera,
         mode: RenderMode,
     ) -> Result<RenderOutput, GpuError> {
-        let frame = self.render_frame(context, gaussians, camera, &RasterConfig::default())?;
+        let mut frame = self.render_frame(context, gaussians, camera, &RasterConfig::default())?;
+        let usage = self.check_pairs(context, &frame)?;
+        if usage.overflowed() {
+            // check_pairs grew the capacity to fit: the second render holds every pair.
+            frame = self.render_frame(context, gaussians, camera, &RasterConfig::default())?;
+            let retry = self.check_pairs(context, &frame)?;
+            if retry.overflowed() {
+                return Err(GpuError::TooLarge(format!(
+                    "{} tile/Gaussian pairs, the adapter binds at most {}",
+                    retry.pairs, retry.capacity
+                )));
+            }
+        }
         self.read_output(context, &frame, mode)
+    }
+
+    /// Pair capacity of a frame of `gaussian_count` Gaussians: the grown estimate, at least
+    /// INITIAL_PAIRS_PER_GAUSSIAN per Gaussian, at most what one binding holds.
+    fn pair_capacity_for(&self, context: &GpuContext, gaussian_count: u32) -> u32 {
+        let wanted = self
+            .pair_capacity_hint
+            .load(Ordering::Relaxed)
+            .max(u64::from(gaussian_count) * INITIAL_PAIRS_PER_GAUSSIAN)
+            .max(MIN_PAIR_CAPACITY);
+        let binding_limit = context.max_storage_binding_bytes() / U32_BYTES;
+        wanted.min(binding_limit).min(u64::from(u32::MAX)) as u32
+    }
+
+    /// Reads back how many tile/Gaussian pairs `frame` needed (blocking: call it outside an
+    /// optimisation loop, e.g. every few hundred iterations, or after a one-off render). When
+    /// the frame overflowed its capacity, later frames get room for the count plus
+    /// PAIR_CAPACITY_GROWTH_PERCENT.
+    pub fn check_pairs(
+        &self,
+        context: &GpuContext,
+        frame: &DeviceFrame,
+    ) -> Result<PairUsage, GpuError> {
+        let status: Vec<u32> = context.read_vec(&frame.pair_status, 2)?;
+        let usage = PairUsage {
+            pairs: status[1],
+            capacity: frame.pair_capacity,
+        };
+        if usage.overflowed() {
+            let grown = u64::from(usage.pairs) * (100 + PAIR_CAPACITY_GROWTH_PERCENT) / 100;
+            self.pair_capacity_hint.fetch_max(grown, Ordering::Relaxed);
+        }
+        Ok(usage)
     }
 
     /// Reads the images of `frame` selected by `mode` back to the host.
@@ -383,6 +620,20 @@ impl GpuRenderer {
         camera: &Camera,
         config: &RasterConfig,
     ) -> Result<DeviceFrame, GpuError> {
+        self.render_frame_profiled(context, gaussians, camera, config, None)
+    }
+
+    /// [`GpuRenderer::render_frame`], optionally timing each stage (every stage is then
+    /// submitted and waited for on its own, which adds synchronisation: a benchmark tool).
+    pub fn render_frame_profiled(
+        &self,
+        context: &GpuContext,
+        gaussians: &DeviceGaussians,
+        camera: &Camera,
+        config: &RasterConfig,
+        stage_times: Option<&mut StageTimes>,
+    ) -> Result<DeviceFrame, GpuError> {
+        let mut profiler = StageProfiler::new(context, stage_times)?;
         if camera.width == 0 || camera.height == 0 {
             return Err(GpuError::InvalidInput(format!(
                 "image size {}x{}",
@@ -416,6 +667,27 @@ impl GpuRenderer {
             context.storage_buffer("depth_order_scratch", count * U32_BYTES)?,
         ];
         let sorted_tile_counts = context.storage_buffer("sorted_tile_counts", count * U32_BYTES)?;
+        // Tile/Gaussian pairs: sized from the capacity estimate, never from a read-back (see
+        // the module documentation for the overflow invariant).
+        let pair_capacity = self.pair_capacity_for(context, n);
+        let pair_bytes = u64::from(pair_capacity) * U32_BYTES;
+        let intersection_tiles = [
+            context.storage_buffer("intersection_tiles", pair_bytes)?,
+            context.storage_buffer("intersection_tiles_scratch", pair_bytes)?,
+        ];
+        let intersection_gaussians = [
+            context.storage_buffer("intersection_gaussians", pair_bytes)?,
+            context.storage_buffer("intersection_gaussians_scratch", pair_bytes)?,
+        ];
+        // [pairs kept, pairs needed]; zero-filled, which is right for an empty scene.
+        let pair_status = context.storage_buffer("pair_status", VEC4_BYTES)?;
+        // Fresh wgpu buffers are zero-filled, so tiles without splats read as [0, 0).
+        let tile_ranges =
+            context.storage_buffer("tile_ranges", u64::from(tile_count) * 2 * U32_BYTES)?;
+        let rgbd = context.storage_buffer("rgbd", pixels * VEC4_BYTES)?;
+        let alpha = context.storage_buffer("alpha", pixels * U32_BYTES)?;
+        let transmittance = context.storage_buffer("transmittance", pixels * U32_BYTES)?;
+        let last_entry = context.storage_buffer("last_entry", pixels * U32_BYTES)?;
 
         let mut encoder = context.device.create_command_encoder(&Default::default());
         let p = &self.pipelines;
@@ -447,15 +719,18 @@ impl GpuRenderer {
                 &project_group,
                 n.div_ceil(WORKGROUP_SIZE),
             );
+            profiler.mark(context, &mut encoder, "project")?;
             let current = self.radix_sort(
                 context,
                 &mut encoder,
                 [&depth_keys[0], &depth_keys[1]],
                 [&depth_values[0], &depth_values[1]],
+                &count_buffer(context, n),
                 n,
                 DEPTH_KEY_BITS,
             )?;
             sorted_gaussians = &depth_values[current];
+            profiler.mark(context, &mut encoder, "depth sort")?;
             let gather_group = bind_group(
                 context,
                 &p.gather_counts,
@@ -473,38 +748,22 @@ impl GpuRenderer {
                 n.div_ceil(WORKGROUP_SIZE),
             );
             self.inclusive_scan(context, &mut encoder, &sorted_tile_counts, n)?;
+            profiler.mark(context, &mut encoder, "tile count scan")?;
         }
-        context.queue.submit([encoder.finish()]);
-        let intersection_count = if n > 0 {
-            let bytes =
-                context.read_bytes(&sorted_tile_counts, (count - 1) * U32_BYTES, U32_BYTES)?;
-            u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]])
-        } else {
-            0
-        };
-
-        let intersections = u64::from(intersection_count);
-        let intersection_tiles = [
-            context.storage_buffer("intersection_tiles", intersections * U32_BYTES)?,
-            context.storage_buffer("intersection_tiles_scratch", intersections * U32_BYTES)?,
-        ];
-        let intersection_gaussians = [
-            context.storage_buffer("intersection_gaussians", intersections * U32_BYTES)?,
-            context.storage_buffer("intersection_gaussians_scratch", intersections * U32_BYTES)?,
-        ];
-        // Fresh wgpu buffers are zero-filled, so tiles without splats read as [0, 0).
-        let tile_ranges =
-            context.storage_buffer("tile_ranges", u64::from(tile_count) * 2 * U32_BYTES)?;
-        let rgbd = context.storage_buffer("rgbd", pixels * VEC4_BYTES)?;
-        let alpha = context.storage_buffer("alpha", pixels * U32_BYTES)?;
-        let transmittance = context.storage_buffer("transmittance", pixels * U32_BYTES)?;
-        let last_entry = context.storage_buffer("last_entry", pixels * U32_BYTES)?;
-
-        let mut encoder = context.device.create_command_encoder(&Default::default());
         let mut current = 0;
-        if intersection_count > 0 {
-            let bin_params = context
-                .uniform_buffer("bin params", &four_u32([n, intersection_count, tiles_x, 0]));
+        if n > 0 {
+            let bin_params =
+                context.uniform_buffer("bin params", &four_u32([n, pair_capacity, tiles_x, 0]));
+            let status_group = bind_group(
+                context,
+                &p.pair_status,
+                &[
+                    (0, &bin_params),
+                    (3, &sorted_tile_counts),
+                    (9, &pair_status),
+                ],
+            );
+            dispatch_linear(&mut encoder, &p.pair_status, &status_group, 1);
             let emit_group = bind_group(
                 context,
                 &p.emit,
@@ -524,30 +783,34 @@ impl GpuRenderer {
                 &emit_group,
                 n.div_ceil(WORKGROUP_SIZE),
             );
+            profiler.mark(context, &mut encoder, "pair count + emit pairs")?;
             let tile_id_bits = u32::BITS - (tile_count - 1).leading_zeros();
+            // The pair count stays on the device: pair_status[0] drives the sort and ranges.
             current = self.radix_sort(
                 context,
                 &mut encoder,
                 [&intersection_tiles[0], &intersection_tiles[1]],
                 [&intersection_gaussians[0], &intersection_gaussians[1]],
-                intersection_count,
+                &pair_status,
+                pair_capacity,
                 tile_id_bits,
             )?;
             let ranges_group = bind_group(
                 context,
                 &p.tile_ranges,
                 &[
-                    (0, &bin_params),
                     (7, &intersection_tiles[current]),
                     (8, &tile_ranges),
+                    (9, &pair_status),
                 ],
             );
             dispatch_linear(
                 &mut encoder,
                 &p.tile_ranges,
                 &ranges_group,
-                intersection_count.div_ceil(WORKGROUP_SIZE),
+                pair_capacity.div_ceil(WORKGROUP_SIZE),
             );
+            profiler.mark(context, &mut encoder, "tile sort + ranges")?;
         }
         let [intersection_gaussians_a, intersection_gaussians_b] = intersection_gaussians;
         let intersection_gaussians = if current == 0 {
@@ -577,12 +840,14 @@ impl GpuRenderer {
             pass.set_bind_group(0, &raster_group, &[]);
             pass.dispatch_workgroups(tiles_x, tiles_y, 1);
         }
+        profiler.mark(context, &mut encoder, "rasterize")?;
         context.queue.submit([encoder.finish()]);
         Ok(DeviceFrame {
             camera: *camera,
             params_buffer,
             gaussian_count: n,
-            intersection_count,
+            pair_capacity,
+            pair_status,
             splat_position,
             splat_conic,
             splat_colour,
@@ -621,40 +886,55 @@ impl GpuRenderer {
         Ok(())
     }
 
-    /// Stable LSD radix sort of `count` (key, value) pairs on the low `key_bits` bits, ping-
-    /// ponging between the two buffers of each pair. Returns which buffer (0 or 1) holds the
-    /// sorted result.
-    fn radix_sort(
+    /// Stable LSD radix sort of (key, value) pairs on the low `key_bits` bits, ping-ponging
+    /// between the two buffers of each pair. The number of pairs is read on the device from
+    /// `count_buffer[0]` (so it may come from an earlier kernel) and must not exceed
+    /// `max_count`, which sizes the dispatches and the histogram table. Returns which buffer
+    /// (0 or 1) holds the sorted result.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn radix_sort(
         &self,
         context: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         keys: [&wgpu::Buffer; 2],
         values: [&wgpu::Buffer; 2],
-        count: u32,
+        count_buffer: &wgpu::Buffer,
+        max_count: u32,
         key_bits: u32,
     ) -> Result<usize, GpuError> {
-        let blocks = count.div_ceil(WORKGROUP_SIZE);
-        let table_entries = RADIX * blocks;
+        let max_blocks = max_count.div_ceil(SORT_BLOCK_SIZE);
+        let table_entries = RADIX * max_blocks;
         let histograms =
             context.storage_buffer("sort histograms", u64::from(table_entries) * U32_BYTES)?;
+        let scan_group = bind_group(
+            context,
+            &self.pipelines.sort_scan,
+            &[(3, &histograms), (6, count_buffer)],
+        );
         let mut current = 0;
         for pass in 0..key_bits.div_ceil(RADIX_BITS) {
-            let params = context.uniform_buffer(
-                "sort params",
-                &four_u32([pass * RADIX_BITS, count, blocks, 0]),
-            );
+            let shift = pass * RADIX_BITS;
+            let digit_bits = RADIX_BITS.min(key_bits - shift);
+            let digit_mask = (1 << digit_bits) - 1;
+            let params =
+                context.uniform_buffer("sort params", &four_u32([shift, digit_mask, 0, 0]));
             let histogram_group = bind_group(
                 context,
                 &self.pipelines.sort_histogram,
-                &[(0, &params), (1, keys[current]), (3, &histograms)],
+                &[
+                    (0, &params),
+                    (1, keys[current]),
+                    (3, &histograms),
+                    (6, count_buffer),
+                ],
             );
             dispatch_linear(
                 encoder,
                 &self.pipelines.sort_histogram,
                 &histogram_group,
-                blocks,
+                max_blocks,
             );
-            self.inclusive_scan(context, encoder, &histograms, table_entries)?;
+            dispatch_linear(encoder, &self.pipelines.sort_scan, &scan_group, 1);
             let scatter_group = bind_group(
                 context,
                 &self.pipelines.sort_scatter,
@@ -665,13 +945,14 @@ impl GpuRenderer {
                     (3, &histograms),
                     (4, keys[1 - current]),
                     (5, values[1 - current]),
+                    (6, count_buffer),
                 ],
             );
             dispatch_linear(
                 encoder,
                 &self.pipelines.sort_scatter,
                 &scatter_group,
-                blocks,
+                max_blocks,
             );
             current = 1 - current;
         }
@@ -712,6 +993,7 @@ impl GpuRenderer {
                 &mut encoder,
                 [&key_buffers[0], &key_buffers[1]],
                 [&value_buffers[0], &value_buffers[1]],
+                &count_buffer(context, count),
                 count,
                 key_bits.min(u32::BITS),
             )?

@@ -12,14 +12,17 @@
 //! - [`gpu`]: device-resident Gaussians and the forward pipeline (project, radix sort, tile
 //!   binning, rasterize).
 //! - [`backward`]: per-Gaussian and camera-pose gradients on the device.
+//! - [`bench`]: the render benchmark behind `mac-ego3d bench render`.
 //! - [`training`]: L1 / SSIM / depth-L1 loss with gradients and Adam on the device, plus the CPU
 //!   reference loss.
 //!
-//! Typical iteration (no host read-back besides the forward pass's one `u32`, see [`gpu`]):
+//! Typical iteration (no host read-back; `GpuRenderer::check_pairs` outside the loop sizes
+//! the pair buffers, see [`gpu`]):
 //! `render_frame` -> `TrainingKernels::image_loss` -> `GpuRenderer::backward` ->
 //! `TrainingKernels::adam_step`.
 
 pub mod backward;
+pub mod bench;
 pub mod context;
 pub mod gpu;
 pub mod ply;

@@ -24,6 +24,8 @@ pub const SSIM_WINDOW_SIGMA: f64 = 1.5;
 pub const SSIM_C1: f64 = 0.0001;
 pub const SSIM_C2: f64 = 0.0009;
 const SSIM_COEFFICIENTS_PER_PIXEL: u64 = 9;
+/// vec4 of horizontal window sums per pixel (ROW_SUMS_PER_PIXEL in loss.wgsl).
+const ROW_SUMS_PER_PIXEL: u64 = 5;
 const TILE_SIZE: u32 = crate::types::constants::TILE_SIZE;
 
 /// Loss weights; [`Default`] is the mapping loss of SPEC section 3.
@@ -333,7 +335,9 @@ impl DeviceAdam {
 
 /// Compiled loss and Adam kernels.
 pub struct TrainingKernels {
+    ssim_rows: wgpu::ComputePipeline,
     loss_forward: wgpu::ComputePipeline,
+    coefficient_rows: wgpu::ComputePipeline,
     loss_backward: wgpu::ComputePipeline,
     adam: wgpu::ComputePipeline,
 }
@@ -345,7 +349,14 @@ impl TrainingKernels {
     pub fn new(context: &GpuContext) -> Self {
         let device = &context.device;
         Self {
+            ssim_rows: compute_pipeline(device, "ssim_rows", LOSS_WGSL, "ssim_rows"),
             loss_forward: compute_pipeline(device, "loss_forward", LOSS_WGSL, "loss_forward"),
+            coefficient_rows: compute_pipeline(
+                device,
+                "coefficient_rows",
+                LOSS_WGSL,
+                "coefficient_rows",
+            ),
             loss_backward: compute_pipeline(device, "loss_backward", LOSS_WGSL, "loss_backward"),
             adam: compute_pipeline(device, "adam", ADAM_WGSL, "main"),
         }
@@ -392,11 +403,23 @@ impl TrainingKernels {
             pixels * SSIM_COEFFICIENTS_PER_PIXEL * U32_BYTES,
         )?;
         let pixel_losses = context.storage_buffer("pixel losses", pixels * VEC4_BYTES)?;
+        let row_sums =
+            context.storage_buffer("ssim row sums", pixels * ROW_SUMS_PER_PIXEL * VEC4_BYTES)?;
         let workgroups = (
             camera.width.div_ceil(TILE_SIZE),
             camera.height.div_ceil(TILE_SIZE),
         );
         let mut encoder = context.device.create_command_encoder(&Default::default());
+        let ssim_rows_group = bind_group(
+            context,
+            &self.ssim_rows,
+            &[
+                (0, &params_buffer),
+                (1, &frame.rgbd),
+                (2, &target.rgbd),
+                (7, &row_sums),
+            ],
+        );
         let forward_group = bind_group(
             context,
             &self.loss_forward,
@@ -406,7 +429,13 @@ impl TrainingKernels {
                 (2, &target.rgbd),
                 (3, &coefficients),
                 (4, &pixel_losses),
+                (7, &row_sums),
             ],
+        );
+        let coefficient_rows_group = bind_group(
+            context,
+            &self.coefficient_rows,
+            &[(0, &params_buffer), (3, &coefficients), (7, &row_sums)],
         );
         let backward_group = bind_group(
             context,
@@ -415,13 +444,15 @@ impl TrainingKernels {
                 (0, &params_buffer),
                 (1, &frame.rgbd),
                 (2, &target.rgbd),
-                (3, &coefficients),
                 (5, &image_gradients.v_rgbd),
                 (6, &image_gradients.v_alpha),
+                (7, &row_sums),
             ],
         );
         for (pipeline, group) in [
+            (&self.ssim_rows, &ssim_rows_group),
             (&self.loss_forward, &forward_group),
+            (&self.coefficient_rows, &coefficient_rows_group),
             (&self.loss_backward, &backward_group),
         ] {
             let mut pass = encoder.begin_compute_pass(&Default::default());

@@ -5,7 +5,7 @@ mod common;
 use common::{HEIGHT, WIDTH, camera, default_camera, gpu, random_scene};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use render_core::gpu::DeviceGaussians;
+use render_core::gpu::{DeviceGaussians, GpuRenderer};
 use render_core::reference;
 use render_core::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput};
 
@@ -302,8 +302,7 @@ fn culled_gaussians_change_nothing() {
 fn device_radix_sort_is_stable_and_correct() {
     let gpu = gpu();
     let mut rng = ChaCha8Rng::seed_from_u64(8);
-    // Several scan levels (more than 256 * 256 histogram entries would be slow; 70k pairs
-    // give 16 * 274 table entries: two levels) and many duplicate keys.
+    // 69 sort blocks of 1024 keys (the last one partial) and many duplicate keys.
     let count = 70_000;
     let keys: Vec<u32> = (0..count)
         .map(|_| rng.random_range(0..5000u32) * 0x1_0001)
@@ -326,10 +325,106 @@ fn device_radix_sort_is_stable_and_correct() {
 }
 
 #[test]
+fn device_radix_sort_matches_a_stable_sort_for_every_size_and_key_width() {
+    let gpu = gpu();
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    // Sizes around the 1024-key block boundary; 11 bits is a 640x480 tile id.
+    for count in [1usize, 2, 1023, 1024, 1025, 4097] {
+        for key_bits in [11u32, 32] {
+            let keys: Vec<u32> = (0..count).map(|_| rng.random::<u32>()).collect();
+            let values: Vec<u32> = (0..count as u32).collect();
+            let (sorted_keys, sorted_values) = gpu
+                .renderer
+                .sort_pairs(&gpu.context, &keys, &values, key_bits)
+                .unwrap();
+            let mask = if key_bits == 32 {
+                u32::MAX
+            } else {
+                (1 << key_bits) - 1
+            };
+            let mut expected: Vec<(u32, u32)> =
+                keys.iter().copied().zip(values.iter().copied()).collect();
+            expected.sort_by_key(|&(k, _)| k & mask);
+            let (expected_keys, expected_values): (Vec<u32>, Vec<u32>) =
+                expected.into_iter().unzip();
+            assert_eq!(sorted_keys, expected_keys, "{count} keys, {key_bits} bits");
+            assert_eq!(
+                sorted_values, expected_values,
+                "{count} keys, {key_bits} bits"
+            );
+        }
+    }
+}
+
+#[test]
 fn gaussians_round_trip_through_the_device() {
     let gpu = gpu();
     let camera = default_camera();
     let cloud = random_scene(&camera, 17, 9, (-3.0, -2.0), (0.0, 1.0));
     let gaussians = DeviceGaussians::upload(&gpu.context, &cloud).unwrap();
     assert_eq!(gaussians.download(&gpu.context).unwrap(), cloud);
+}
+
+#[test]
+fn pair_overflow_is_reported_and_the_next_frame_fits() {
+    let gpu = gpu();
+    let context = &gpu.context;
+    const SIDE_TILES: (u32, u32) = (8, 6);
+    let (width, height) = (SIDE_TILES.0 * 16, SIDE_TILES.1 * 16);
+    let camera = camera(
+        width,
+        height,
+        (width as f32 - 1.0) / 2.0,
+        (height as f32 - 1.0) / 2.0,
+    );
+    // Large, fairly transparent splats: each covers many of the 48 tiles (more than the 8
+    // pairs per Gaussian a fresh renderer reserves) and the far ones stay visible.
+    let cloud = random_scene(&camera, 300, 11, (-1.2, -0.8), (-2.0, 0.0));
+    let gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
+    // A fresh renderer: the shared one may already have grown its pair capacity.
+    let renderer = GpuRenderer::new(context);
+    let config = RasterConfig::default();
+
+    let first = renderer
+        .render_frame(context, &gaussians, &camera, &config)
+        .unwrap();
+    let first_usage = renderer.check_pairs(context, &first).unwrap();
+    assert!(
+        first_usage.overflowed(),
+        "{first_usage:?}: the scene must need more pairs than a fresh renderer reserves"
+    );
+    let truncated = renderer
+        .read_output(context, &first, RenderMode::RgbD)
+        .unwrap();
+    assert!(truncated.alpha.iter().all(|a| a.is_finite()));
+
+    let second = renderer
+        .render_frame(context, &gaussians, &camera, &config)
+        .unwrap();
+    let second_usage = renderer.check_pairs(context, &second).unwrap();
+    assert!(!second_usage.overflowed(), "{second_usage:?}");
+    assert_eq!(second_usage.pairs, first_usage.pairs);
+    let full = renderer
+        .read_output(context, &second, RenderMode::RgbD)
+        .unwrap();
+    // Against the f64 reference: many translucent splats make a splat whose alpha sits right
+    // at the 1/255 cut-off likely, where f32 and f64 may decide differently; one such splat
+    // changes alpha by less than the cut-off itself.
+    let expected = reference::render(&cloud, &camera, RenderMode::RgbD, &config);
+    let alpha_error = max_abs_difference(&full.alpha, &expected.alpha);
+    assert!(
+        alpha_error <= render_core::constants::MIN_SPLAT_ALPHA,
+        "alpha differs by {alpha_error}"
+    );
+    assert_ne!(
+        truncated.alpha, full.alpha,
+        "the overflowing frame dropped its farthest pairs"
+    );
+
+    // The one-off `render` checks and re-renders by itself.
+    let fresh = GpuRenderer::new(context);
+    let output = fresh
+        .render(context, &gaussians, &camera, RenderMode::RgbD)
+        .unwrap();
+    assert_eq!(output.alpha, full.alpha);
 }

@@ -131,7 +131,11 @@ mod tests {
     fn textured(shift: u32) -> RgbImage {
         RgbImage::from_fn(160, 120, |x, y| {
             let x = x + shift;
-            let disc = if (x as i32 - 50).pow(2) + (y as i32 - 40).pow(2) < 400 { 120 } else { 0 };
+            let disc = if (x as i32 - 50).pow(2) + (y as i32 - 40).pow(2) < 400 {
+                120
+            } else {
+                0
+            };
             let v = (x + y) / 2 + disc;
             image::Rgb([v.min(255) as u8, (v / 2) as u8, 40])
         })

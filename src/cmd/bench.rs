@@ -23,6 +23,15 @@ pub enum BenchCommand {
     Readers(ReadersArgs),
     /// Timings of the evaluation metrics on frames of a dataset.
     Metrics(MetricsArgs),
+    /// Timings of the Gaussian-splat renderer (forward, backward, optimisation iteration).
+    Render(super::render::BenchRenderArgs),
+    /// G-ICP odometry: per-frame tracking time and ATE.
+    Tracking(super::tracking::TrackingArgs),
+    /// Latency and throughput of the agent <-> consensus IPC transport between two processes.
+    Ipc(super::ipc::IpcArgs),
+    /// Peer process of `bench ipc` (started by it).
+    #[command(hide = true)]
+    IpcPeer(super::ipc::IpcPeerArgs),
 }
 
 #[derive(Args)]
@@ -248,5 +257,9 @@ pub fn run(command: &BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Readers(a) => run_readers(a),
         BenchCommand::Metrics(a) => run_metrics(a),
+        BenchCommand::Render(a) => super::render::run_bench(a),
+        BenchCommand::Tracking(a) => super::tracking::run(a),
+        BenchCommand::Ipc(a) => super::ipc::run(a),
+        BenchCommand::IpcPeer(a) => super::ipc::run_peer(a),
     }
 }

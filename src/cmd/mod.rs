@@ -3,7 +3,10 @@
 pub mod bench;
 pub mod dataset;
 pub mod eval;
+pub mod ipc;
+pub mod render;
 pub mod synth;
+pub mod tracking;
 
 /// Prints `value` as one JSON object on stdout.
 pub fn print_json(value: &impl serde::Serialize) -> anyhow::Result<()> {

@@ -4,12 +4,17 @@
 // - `emit`: the k-th nearest Gaussian writes one (tile id, Gaussian index) pair per tile of its
 //   rectangle, at the offset given by the inclusive scan; pairs therefore come out in depth
 //   order, and the stable sort by tile id that follows keeps that order within each tile.
+// - `pair_status`: ONE invocation; pair_status = [pairs kept, pairs needed]: the needed count
+//   is the last inclusive-scan entry, the kept count is capped at the buffers' capacity. The
+//   sort and `tile_ranges` read the kept count on the device (no host read-back).
+// - `emit`: pairs at offsets >= capacity are dropped. Since pairs are emitted in depth order,
+//   an overflowing frame loses only the pairs of its farthest Gaussians.
 // - `tile_ranges`: for the tile-sorted pairs, records [start, end) of each tile's run. Tiles
 //   without pairs keep the [0, 0) the launcher cleared them to.
 
 struct BinParams {
     gaussian_count: u32,
-    intersection_count: u32,
+    pair_capacity: u32,
     tiles_x: u32,
     padding: u32,
 }
@@ -23,6 +28,18 @@ struct BinParams {
 @group(0) @binding(6) var<storage, read_write> intersection_gaussians: array<u32>;
 @group(0) @binding(7) var<storage, read> sorted_tiles: array<u32>;
 @group(0) @binding(8) var<storage, read_write> tile_ranges: array<vec2<u32>>;
+// [pairs kept, pairs needed]
+@group(0) @binding(9) var<storage, read_write> pair_status: array<u32>;
+
+@compute @workgroup_size(1)
+fn pair_status_from_scan() {
+    var needed = 0u;
+    if bin_params.gaussian_count > 0u {
+        needed = sorted_tile_counts[bin_params.gaussian_count - 1u];
+    }
+    pair_status[0] = min(needed, bin_params.pair_capacity);
+    pair_status[1] = needed;
+}
 
 fn element_index(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32) -> u32 {
     return (workgroup_id.y * workgroup_count.x + workgroup_id.x) * 256u + local_index;
@@ -60,6 +77,9 @@ fn emit(
     let rect = tile_rects[gaussian];
     for (var tile_y = rect.y; tile_y <= rect.w; tile_y++) {
         for (var tile_x = rect.x; tile_x <= rect.z; tile_x++) {
+            if cursor >= bin_params.pair_capacity {
+                return;
+            }
             intersection_tiles[cursor] = tile_y * bin_params.tiles_x + tile_x;
             intersection_gaussians[cursor] = gaussian;
             cursor += 1u;
@@ -74,7 +94,7 @@ fn tile_ranges_from_sorted(
     @builtin(local_invocation_index) local_index: u32,
 ) {
     let i = element_index(workgroup_id, workgroup_count, local_index);
-    let n = bin_params.intersection_count;
+    let n = pair_status[0];
     if i >= n {
         return;
     }

@@ -1,6 +1,9 @@
 // project: one invocation per Gaussian (256 per workgroup, linear id over a 2D grid).
 // Transforms the Gaussian into the camera, builds its 2D covariance J W J^T + low-pass, inverts
-// it (conic), and its 3-sigma tile rectangle. Invariants: every Gaussian index < count writes
+// it (conic), and its tile rectangle: the bounding box of the splat's support, i.e. of the
+// 3-sigma square of the reference (radius = 3 sqrt(largest eigenvalue)) intersected with the
+// ellipse outside which opacity * exp(-0.5 d^T conic d) < min splat alpha (those pixels skip
+// the splat anyway), so the tighter box changes no pixel, it only saves tile/splat pairs. Invariants: every Gaussian index < count writes
 // all outputs; a culled Gaussian (non-finite input or result, zero quaternion, behind the near
 // plane, degenerate footprint, no tile overlap) gets tile_count 0 and depth key 0xffffffff so
 // it sorts last and is never binned. sort_values is initialised to the identity permutation.
@@ -25,6 +28,9 @@
 const CULLED_DEPTH_KEY: u32 = 0xffffffffu;
 // exp() of larger magnitudes overflows f32; the sigmoid is saturated long before.
 const MAX_ABS_OPACITY_LOGIT: f32 = 80.0;
+// Added to the squared Mahalanobis radius of the visible ellipse: absorbs f32 rounding of the
+// alpha test so that the box never cuts a pixel the rasterizer would shade.
+const VISIBLE_RADIUS_SQUARED_MARGIN: f32 = 0.01;
 
 fn cull(index: u32) {
     splat_position[index] = vec4<f32>(0.0);
@@ -123,18 +129,32 @@ fn main(
         cull(index);
         return;
     }
+    let clamped_logit = clamp(opacity_logit, -MAX_ABS_OPACITY_LOGIT, MAX_ABS_OPACITY_LOGIT);
+    let opacity = 1.0 / (1.0 + exp(-clamped_logit));
+    // Half extents of the support per axis: the 3-sigma square, cut to the bounding box of the
+    // ellipse d^T conic d <= 2 ln(opacity / min_alpha) (half extent sqrt(r^2 * cov_xx) in x).
+    var half_extent = vec2<f32>(radius);
+    let min_alpha = params.thresholds.x;
+    if min_alpha > 0.0 {
+        if opacity < min_alpha {
+            cull(index);
+            return;
+        }
+        let visible_radius_squared =
+            2.0 * log(opacity / min_alpha) + VISIBLE_RADIUS_SQUARED_MARGIN;
+        half_extent = min(half_extent,
+            sqrt(visible_radius_squared * vec2<f32>(cov_xx, cov_yy)));
+    }
     // Tile t covers pixel centres t*16 ..= t*16 + 15 (pixel centres at integer coordinates).
     let tile = f32(TILE_SIZE);
     let last_tile = vec2<f32>(f32(params.image_size.z) - 1.0, f32(params.image_size.w) - 1.0);
-    let rect_min = max(ceil((mean2d - radius - (tile - 1.0)) / tile), vec2<f32>(0.0));
-    let rect_max = min(floor((mean2d + radius) / tile), last_tile);
+    let rect_min = max(ceil((mean2d - half_extent - (tile - 1.0)) / tile), vec2<f32>(0.0));
+    let rect_max = min(floor((mean2d + half_extent) / tile), last_tile);
     if rect_min.x > rect_max.x || rect_min.y > rect_max.y {
         cull(index);
         return;
     }
     let rect = vec4<u32>(u32(rect_min.x), u32(rect_min.y), u32(rect_max.x), u32(rect_max.y));
-    let clamped_logit = clamp(opacity_logit, -MAX_ABS_OPACITY_LOGIT, MAX_ABS_OPACITY_LOGIT);
-    let opacity = 1.0 / (1.0 + exp(-clamped_logit));
     splat_position[index] = vec4<f32>(mean2d, opacity, p.z);
     splat_conic[index] = vec4<f32>(conic, radius);
     splat_colour[index] = vec4<f32>(colour, 0.0);

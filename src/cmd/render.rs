@@ -1,0 +1,159 @@
+//! `mac-ego3d bench render`: timings of the render-core device pipeline (forward, forward +
+//! backward, full optimisation iteration, radix sort, forward stages) on a synthetic
+//! indoor-map-like scene. Figures are wall-clock on the machine it runs on.
+
+use anyhow::Context;
+use clap::Args;
+use render_core::bench::{BenchCase, BenchConfig, run_case};
+use render_core::context::GpuContext;
+use render_core::gpu::GpuRenderer;
+use render_core::training::TrainingKernels;
+use serde::Serialize;
+
+use super::{fmt_num, print_json};
+
+#[derive(Args)]
+pub struct BenchRenderArgs {
+    /// Scene sizes (number of Gaussians), comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = [10_000usize, 100_000, 1_000_000])]
+    gaussians: Vec<usize>,
+    #[arg(long, default_value_t = 640)]
+    width: u32,
+    #[arg(long, default_value_t = 480)]
+    height: u32,
+    /// Timed runs per measurement (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    repeats: usize,
+    /// Untimed warm-up runs per measurement.
+    #[arg(long, default_value_t = 1)]
+    warmup: usize,
+    /// Time the forward pass only (skip forward + backward and the optimisation iteration).
+    #[arg(long)]
+    forward_only: bool,
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Serialize)]
+struct StageReport {
+    stage: String,
+    ms: f64,
+}
+
+#[derive(Serialize)]
+struct CaseReport {
+    gaussians: usize,
+    width: u32,
+    height: u32,
+    intersections: u32,
+    forward_ms: f64,
+    forward_backward_ms: Option<f64>,
+    iteration_ms: Option<f64>,
+    sort_ms: f64,
+    forward_stages: Vec<StageReport>,
+}
+
+#[derive(Serialize)]
+struct BenchRenderReport {
+    adapter: String,
+    repeats: usize,
+    cases: Vec<CaseReport>,
+}
+
+impl From<BenchCase> for CaseReport {
+    fn from(case: BenchCase) -> Self {
+        Self {
+            gaussians: case.gaussians,
+            width: case.width,
+            height: case.height,
+            intersections: case.intersections,
+            forward_ms: case.forward_ms,
+            forward_backward_ms: case.forward_backward_ms,
+            iteration_ms: case.iteration_ms,
+            sort_ms: case.sort_ms,
+            forward_stages: case
+                .stages
+                .0
+                .into_iter()
+                .map(|(stage, ms)| StageReport {
+                    stage: stage.to_owned(),
+                    ms,
+                })
+                .collect(),
+        }
+    }
+}
+
+pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        args.width > 0 && args.height > 0,
+        "--width and --height must be positive"
+    );
+    anyhow::ensure!(
+        !args.gaussians.is_empty(),
+        "--gaussians needs at least one size"
+    );
+    let context = GpuContext::new().context("creating the wgpu device")?;
+    let renderer = GpuRenderer::new(&context);
+    let kernels = TrainingKernels::new(&context);
+    let config = BenchConfig {
+        gaussian_counts: args.gaussians.clone(),
+        width: args.width,
+        height: args.height,
+        warmup: args.warmup,
+        repeats: args.repeats.max(1),
+        iteration: !args.forward_only,
+        ..BenchConfig::default()
+    };
+    let mut cases = Vec::with_capacity(config.gaussian_counts.len());
+    for &count in &config.gaussian_counts {
+        if !args.json {
+            eprintln!(
+                "measuring {count} Gaussians at {}x{} ...",
+                args.width, args.height
+            );
+        }
+        let case = run_case(&context, &renderer, &kernels, &config, count)
+            .with_context(|| format!("benchmarking {count} Gaussians"))?;
+        cases.push(CaseReport::from(case));
+    }
+    let report = BenchRenderReport {
+        adapter: context.describe(),
+        repeats: config.repeats,
+        cases,
+    };
+    if args.json {
+        return print_json(&report);
+    }
+    let optional = |v: Option<f64>| v.map_or_else(|| "-".to_owned(), |ms| fmt_num(ms, 1));
+    println!(
+        "render benchmark (median of {} runs, ms): {}",
+        report.repeats, report.adapter
+    );
+    println!(
+        "  {:>10} {:>9} {:>11} {:>10} {:>12} {:>11} {:>9}",
+        "gaussians", "size", "pairs", "forward", "fwd+bwd", "iteration", "sort"
+    );
+    for case in &report.cases {
+        println!(
+            "  {:>10} {:>9} {:>11} {:>10} {:>12} {:>11} {:>9}",
+            case.gaussians,
+            format!("{}x{}", case.width, case.height),
+            case.intersections,
+            fmt_num(case.forward_ms, 1),
+            optional(case.forward_backward_ms),
+            optional(case.iteration_ms),
+            fmt_num(case.sort_ms, 1)
+        );
+    }
+    println!("forward stages (each submitted and waited for separately, ms):");
+    for case in &report.cases {
+        let stages: Vec<String> = case
+            .forward_stages
+            .iter()
+            .map(|s| format!("{} {}", s.stage, fmt_num(s.ms, 1)))
+            .collect();
+        println!("  {:>10}: {}", case.gaussians, stages.join(", "));
+    }
+    Ok(())
+}
