@@ -359,6 +359,32 @@ pub fn read_depth_u16(path: &Path, index: usize) -> Result<(u32, u32, Vec<u16>),
     }
 }
 
+/// Depth encoding of a layout's 16-bit depth PNGs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthEncoding {
+    /// `metres = raw / units_per_metre`.
+    pub units_per_metre: f64,
+    /// A raw value besides 0 that marks a hole (7-Scenes: 65535).
+    pub invalid_raw: Option<u16>,
+}
+
+/// Reads one frame's colour and depth images and checks both against the dataset's image size.
+pub fn read_rgbd(
+    color: &Path,
+    depth: &Path,
+    index: usize,
+    intrinsics: &Intrinsics,
+    encoding: DepthEncoding,
+) -> Result<(RgbImage, DepthImage), DatasetError> {
+    let rgb = read_rgb(color, index)?;
+    check_size(color, intrinsics, rgb.width(), rgb.height())?;
+    let (w, h, raw) = read_depth_u16(depth, index)?;
+    check_size(depth, intrinsics, w, h)?;
+    let depth =
+        DepthImage::from_raw_u16(w, h, &raw, encoding.units_per_metre, encoding.invalid_raw);
+    Ok((rgb, depth))
+}
+
 /// Writes a depth image as a 16-bit PNG in `units_per_metre` (1000 = millimetres).
 pub fn write_depth_png(
     path: &Path,

@@ -10,8 +10,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::Isometry3;
 
 use super::{
-    Dataset, DatasetError, DepthImage, Frame, FrameRange, NO_CLOCK_FRAMES_PER_SECOND, check_size,
-    read_depth_u16, read_rgb,
+    Dataset, DatasetError, DepthEncoding, Frame, FrameRange, NO_CLOCK_FRAMES_PER_SECOND, read_rgbd,
 };
 use crate::camera::Intrinsics;
 use crate::trajectory::Trajectory;
@@ -27,6 +26,10 @@ pub const DEFAULT_INTRINSICS: Intrinsics = Intrinsics {
 };
 /// Depth PNG units: raw / 6553.5 = metres (so 65535 = 10 m).
 pub const DEPTH_UNITS_PER_METRE: f64 = 6553.5;
+const DEPTH_ENCODING: DepthEncoding = DepthEncoding {
+    units_per_metre: DEPTH_UNITS_PER_METRE,
+    invalid_raw: None,
+};
 
 pub struct Replica {
     dir: PathBuf,
@@ -125,19 +128,22 @@ impl Dataset for Replica {
     }
     fn load(&self, position: usize) -> Result<Frame, DatasetError> {
         let (number, color) = &self.frames[position];
-        let rgb = read_rgb(color, *number)?;
-        check_size(color, &self.intrinsics, rgb.width(), rgb.height())?;
         let depth_file = self
             .dir
             .join("results")
             .join(format!("depth{number:06}.png"));
-        let (w, h, raw) = read_depth_u16(&depth_file, *number)?;
-        check_size(&depth_file, &self.intrinsics, w, h)?;
+        let (rgb, depth) = read_rgbd(
+            color,
+            &depth_file,
+            *number,
+            &self.intrinsics,
+            DEPTH_ENCODING,
+        )?;
         Ok(Frame {
             index: *number,
             timestamp: self.timestamp(position),
             rgb,
-            depth: DepthImage::from_raw_u16(w, h, &raw, DEPTH_UNITS_PER_METRE, None),
+            depth,
             world_from_camera_gt: self.ground_truth(position)?,
             intrinsics: self.intrinsics,
         })

@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 use nalgebra::Isometry3;
 
 use super::{
-    Dataset, DatasetError, DepthImage, Frame, FrameRange, NO_CLOCK_FRAMES_PER_SECOND, check_size,
-    parse_floats, pose_from_row_major, read_depth_u16, read_rgb,
+    Dataset, DatasetError, DepthEncoding, DepthImage, Frame, FrameRange,
+    NO_CLOCK_FRAMES_PER_SECOND, parse_floats, pose_from_row_major, read_rgbd,
 };
 use crate::camera::Intrinsics;
 
@@ -29,6 +29,10 @@ pub const DEFAULT_INTRINSICS: Intrinsics = Intrinsics {
 pub const DEPTH_UNITS_PER_METRE: f64 = 1000.0;
 /// Raw depth value the 7-Scenes release uses for holes (besides 0).
 pub const INVALID_DEPTH_RAW: u16 = 65535;
+const DEPTH_ENCODING: DepthEncoding = DepthEncoding {
+    units_per_metre: DEPTH_UNITS_PER_METRE,
+    invalid_raw: Some(INVALID_DEPTH_RAW),
+};
 /// File holding the 3x3 K that overrides [`DEFAULT_INTRINSICS`].
 pub const INTRINSICS_FILE: &str = "camera-intrinsics.txt";
 
@@ -183,13 +187,14 @@ impl Dataset for SevenScenes {
     }
     fn load(&self, position: usize) -> Result<Frame, DatasetError> {
         let files = &self.frames[position];
-        let rgb = read_rgb(&files.color, files.number)?;
-        check_size(&files.color, &self.intrinsics, rgb.width(), rgb.height())?;
         let depth_file = depth_path(&self.dir, files.number);
-        let (w, h, raw) = read_depth_u16(&depth_file, files.number)?;
-        check_size(&depth_file, &self.intrinsics, w, h)?;
-        let depth =
-            DepthImage::from_raw_u16(w, h, &raw, DEPTH_UNITS_PER_METRE, Some(INVALID_DEPTH_RAW));
+        let (rgb, depth) = read_rgbd(
+            &files.color,
+            &depth_file,
+            files.number,
+            &self.intrinsics,
+            DEPTH_ENCODING,
+        )?;
         Ok(Frame {
             index: files.number,
             timestamp: self.timestamp(position),

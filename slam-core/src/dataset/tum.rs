@@ -12,9 +12,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Isometry3;
 
-use super::{
-    Dataset, DatasetError, DepthImage, Frame, FrameRange, check_size, read_depth_u16, read_rgb,
-};
+use super::{Dataset, DatasetError, DepthEncoding, Frame, FrameRange, read_rgbd};
 use crate::camera::Intrinsics;
 use crate::trajectory::Trajectory;
 
@@ -22,6 +20,10 @@ use crate::trajectory::Trajectory;
 pub const MAX_ASSOCIATION_DT: f64 = 0.02;
 /// Depth PNG units: raw / 5000 = metres.
 pub const DEPTH_UNITS_PER_METRE: f64 = 5000.0;
+const DEPTH_ENCODING: DepthEncoding = DepthEncoding {
+    units_per_metre: DEPTH_UNITS_PER_METRE,
+    invalid_raw: None,
+};
 /// TUM's published pinhole calibrations (640x480) per Freiburg sensor, and the ROS default.
 pub const FREIBURG1: Intrinsics = Intrinsics {
     fx: 517.3,
@@ -197,15 +199,12 @@ impl Dataset for Tum {
     }
     fn load(&self, position: usize) -> Result<Frame, DatasetError> {
         let (number, f) = &self.frames[position];
-        let rgb = read_rgb(&f.rgb, *number)?;
-        check_size(&f.rgb, &self.intrinsics, rgb.width(), rgb.height())?;
-        let (w, h, raw) = read_depth_u16(&f.depth, *number)?;
-        check_size(&f.depth, &self.intrinsics, w, h)?;
+        let (rgb, depth) = read_rgbd(&f.rgb, &f.depth, *number, &self.intrinsics, DEPTH_ENCODING)?;
         Ok(Frame {
             index: *number,
             timestamp: f.timestamp,
             rgb,
-            depth: DepthImage::from_raw_u16(w, h, &raw, DEPTH_UNITS_PER_METRE, None),
+            depth,
             world_from_camera_gt: f.world_from_camera_gt,
             intrinsics: self.intrinsics,
         })
