@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 use nalgebra::Isometry3;
 
 use super::{
-    Dataset, DatasetError, DepthEncoding, DepthImage, Frame, FrameRange,
-    NO_CLOCK_FRAMES_PER_SECOND, parse_floats, pose_from_row_major, read_rgbd,
+    Dataset, DatasetError, DepthEncoding, Frame, FrameRange, NO_CLOCK_FRAMES_PER_SECOND,
+    parse_floats, pose_from_row_major, read_rgbd,
 };
 use crate::camera::Intrinsics;
 
@@ -269,6 +269,7 @@ impl SevenScenesWriter {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::dataset::DepthImage;
     use image::RgbImage;
 
     fn tiny_frame(index: usize) -> Frame {
