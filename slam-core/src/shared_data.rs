@@ -17,11 +17,12 @@ pub fn shared_dir() -> PathBuf {
     if let Some(dir) = std::env::var_os(SHARED_ENV) {
         return PathBuf::from(dir);
     }
-    // slam-core sits one level below the workspace root.
-    Path::new(env!("CARGO_MANIFEST_DIR"))
+    // slam-core sits one level below the workspace root; resolve the `..`s for readable messages.
+    let default = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("..")
         .join("..")
-        .join("shared")
+        .join("shared");
+    default.canonicalize().unwrap_or(default)
 }
 
 /// Path of `relative` inside the shared folder, or a panic that says what is missing and how to
