@@ -250,3 +250,85 @@ fn real_data_redkitchen_reads_through_the_cli() {
         "{whole}"
     );
 }
+
+#[test]
+fn render_command_renders_a_saved_map() {
+    use render_core::types::GaussianCloud;
+    let dir = tempfile::tempdir().unwrap();
+    let map = dir.path().join("map.ply");
+    let mut cloud = GaussianCloud::default();
+    // One wide, nearly opaque red Gaussian 2 m in front of a camera at the origin.
+    cloud.push(
+        [0.0, 0.0, 2.0],
+        [0.5f32.ln(); 3],
+        [1.0, 0.0, 0.0, 0.0],
+        6.0,
+        [0.9, 0.1, 0.1],
+    );
+    render_core::ply::save_ply(&map, &cloud).unwrap();
+    let rgb = dir.path().join("rgb.png");
+    let depth = dir.path().join("depth.png");
+    let out = mac_ego3d(&[
+        "render",
+        "--map",
+        map.to_str().unwrap(),
+        "--pose",
+        "0 0 0 0 0 0 1",
+        "--intrinsics",
+        "50,50,31.5,23.5",
+        "--size",
+        "64x48",
+        "--out-rgb",
+        rgb.to_str().unwrap(),
+        "--out-depth",
+        depth.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rgb = image::open(&rgb).unwrap().to_rgb8();
+    assert_eq!(rgb.dimensions(), (64, 48));
+    let centre = rgb.get_pixel(32, 24).0;
+    assert!(
+        centre[0] > 150 && centre[1] < 60 && centre[2] < 60,
+        "centre pixel {centre:?}"
+    );
+    let depth = image::open(&depth).unwrap().to_luma16();
+    let centre_mm = depth.get_pixel(32, 24).0[0];
+    assert!(
+        (1950..=2050).contains(&centre_mm),
+        "centre depth {centre_mm} mm"
+    );
+
+    let bad = mac_ego3d(&[
+        "render",
+        "--map",
+        map.to_str().unwrap(),
+        "--pose",
+        "0 0 0 0 0 0 0",
+        "--intrinsics",
+        "50,50,31.5,23.5",
+        "--out-rgb",
+        "/tmp/x.png",
+    ]);
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && err.contains("quaternion"), "{err}");
+    let missing = mac_ego3d(&[
+        "render",
+        "--map",
+        "/nonexistent/map.ply",
+        "--pose",
+        "0 0 0 0 0 0 1",
+        "--intrinsics",
+        "50,50,31.5,23.5",
+        "--out-rgb",
+        "/tmp/x.png",
+    ]);
+    let err = String::from_utf8_lossy(&missing.stderr);
+    assert!(
+        !missing.status.success() && err.contains("map.ply") && !err.contains("panicked"),
+        "{err}"
+    );
+}

@@ -5,6 +5,7 @@ pub mod dataset;
 pub mod eval;
 pub mod ipc;
 pub mod render;
+pub mod render_map;
 pub mod synth;
 pub mod tracking;
 
