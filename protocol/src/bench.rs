@@ -212,6 +212,17 @@ pub fn descriptor_checksum(descriptor: &[f32]) -> u64 {
     })
 }
 
+/// Camera of the sample messages the benchmark and the test peer send: a 640x480 Kinect-like
+/// sensor (the wire type needs plausible values; nothing is rendered with it).
+pub const SAMPLE_INTRINSICS: Intrinsics = Intrinsics {
+    fx: 585.0,
+    fy: 585.0,
+    cx: 320.0,
+    cy: 240.0,
+    width: 640,
+    height: 480,
+};
+
 /// A unit-norm synthetic descriptor.
 pub fn synthetic_descriptor(keyframe_id: u64) -> KeyframeDescriptor {
     let mut d = KeyframeDescriptor::new(keyframe_id, keyframe_id, keyframe_id as f64);
@@ -219,14 +230,7 @@ pub fn synthetic_descriptor(keyframe_id: u64) -> KeyframeDescriptor {
         *v = ((i as u64 + keyframe_id) % 13) as f32 + 1.0;
     }
     d.normalise_descriptor();
-    d.intrinsics = Intrinsics {
-        fx: 585.0,
-        fy: 585.0,
-        cx: 320.0,
-        cy: 240.0,
-        width: 640,
-        height: 480,
-    };
+    d.intrinsics = SAMPLE_INTRINSICS;
     d
 }
 

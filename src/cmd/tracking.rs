@@ -173,52 +173,38 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         "G-ICP tracking ({}, {} threads): {}",
         report.mode, report.threads, report.dataset
     );
-    println!("  {:<32} {:>10}", "frames", report.frames);
-    println!(
-        "  {:<32} {:>10}",
-        "points per frame",
-        fmt_num(report.points_per_frame, 0)
-    );
-    println!(
-        "  {:<32} {:>10}",
-        "tracking ms, median",
-        fmt_num(report.tracking_ms_median, 2)
-    );
-    println!(
-        "  {:<32} {:>10}",
-        "tracking ms, p90",
-        fmt_num(report.tracking_ms_p90, 2)
-    );
-    println!(
-        "  {:<32} {:>10}",
-        "tracking ms, max",
-        fmt_num(report.tracking_ms_max, 2)
-    );
-    for (name, value) in [
-        ("  points + covariances ms, median", report.points_ms_median),
-        ("  registration ms, median", report.registration_ms_median),
-        ("  map update ms, median", report.map_update_ms_median),
-    ] {
-        println!("  {name:<32} {:>10}", fmt_num(value, 2));
+    let rows: [(&str, String); 16] = [
+        ("frames", report.frames.to_string()),
+        ("points per frame", fmt_num(report.points_per_frame, 0)),
+        ("tracking ms, median", fmt_num(report.tracking_ms_median, 2)),
+        ("tracking ms, p90", fmt_num(report.tracking_ms_p90, 2)),
+        ("tracking ms, max", fmt_num(report.tracking_ms_max, 2)),
+        (
+            "  points + covariances ms, median",
+            fmt_num(report.points_ms_median, 2),
+        ),
+        (
+            "  registration ms, median",
+            fmt_num(report.registration_ms_median, 2),
+        ),
+        (
+            "  map update ms, median",
+            fmt_num(report.map_update_ms_median, 2),
+        ),
+        (
+            "G-ICP iterations, median",
+            fmt_num(report.iterations_median, 1),
+        ),
+        ("ATE RMSE cm (SE(3)-aligned)", cm(report.ate_rmse_m)),
+        ("ATE mean cm", cm(report.ate_mean_m)),
+        ("failures", report.failures.to_string()),
+        ("not converged", report.not_converged.to_string()),
+        ("re-initialisations", report.reinitialisations.to_string()),
+        ("keyframes", report.keyframes.to_string()),
+        ("map points", report.map_points.to_string()),
+    ];
+    for (name, value) in rows {
+        println!("  {name:<32} {value:>10}");
     }
-    println!(
-        "  {:<32} {:>10}",
-        "G-ICP iterations, median",
-        fmt_num(report.iterations_median, 1)
-    );
-    println!(
-        "  {:<32} {:>10}",
-        "ATE RMSE cm (SE(3)-aligned)",
-        cm(report.ate_rmse_m)
-    );
-    println!("  {:<32} {:>10}", "ATE mean cm", cm(report.ate_mean_m));
-    println!("  {:<32} {:>10}", "failures", report.failures);
-    println!("  {:<32} {:>10}", "not converged", report.not_converged);
-    println!(
-        "  {:<32} {:>10}",
-        "re-initialisations", report.reinitialisations
-    );
-    println!("  {:<32} {:>10}", "keyframes", report.keyframes);
-    println!("  {:<32} {:>10}", "map points", report.map_points);
     Ok(())
 }

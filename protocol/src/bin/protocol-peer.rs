@@ -19,7 +19,7 @@ use std::time::Duration;
 use protocol::bench::{
     IpcBenchConfig, PeerCommand, run_ipc_bench, run_peer, synthetic_descriptor, synthetic_record,
 };
-use protocol::messages::{CoordinateFrame, Intrinsics};
+use protocol::messages::CoordinateFrame;
 use protocol::transport::{AgentLink, TransportConfig, TransportError};
 
 const EXIT_FAILURE: u8 = 1;
@@ -79,15 +79,7 @@ fn run_agent(args: &AgentArgs) -> Result<(), TransportError> {
     let config = TransportConfig::with_namespace(namespace);
     let mut link = AgentLink::open(&config, args.agent_id)?;
     say(&format!("opened epoch={}", link.epoch()));
-    let intrinsics = Intrinsics {
-        fx: 585.0,
-        fy: 585.0,
-        cx: 320.0,
-        cy: 240.0,
-        width: 640,
-        height: 480,
-    };
-    link.announce(intrinsics, PEER_CONFIG_HASH)?;
+    link.announce(protocol::bench::SAMPLE_INTRINSICS, PEER_CONFIG_HASH)?;
     say("announced");
     let mut keyframe = 0u64;
     loop {
