@@ -1,8 +1,18 @@
 //! The mac-ego3d agent (SPEC section 3): one OS process per agent running
-//! frame source -> G-ICP tracking -> keyframes -> Gaussian map optimisation, publishing keyframe
-//! descriptors and Gaussian patches to the consensus and applying its corrections.
+//! frame source -> G-ICP tracking -> keyframes -> Gaussian map optimisation.
 //!
-//! Built so far: [`source`], the agent's frame source (prefetching, sanitising, noise, skipping
-//! missing frames with a count). Tracking, mapping and the process itself follow (issue 5).
+//! - [`source`]: frames in order, decoded ahead, sanitised, missing ones skipped and counted;
+//! - tracking: slam-core's frame-to-model G-ICP odometry (its map is the trackable Gaussians'
+//!   means with their G-ICP covariances);
+//! - [`seeding`]: new Gaussians from keyframe points;
+//! - [`mapper`]: the mapping thread (render-core on the device; render-core's `DeviceMap` keeps
+//!   Gaussians and Adam state together through appends and pruning);
+//! - [`evaluation`]: rendering quality at the estimated poses;
+//! - [`run`]: the standalone run and its outputs.
 
+pub mod evaluation;
+pub mod mapper;
+pub mod poses;
+pub mod run;
+pub mod seeding;
 pub mod source;

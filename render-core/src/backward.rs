@@ -8,8 +8,8 @@
 
 use crate::context::{GpuContext, GpuError};
 use crate::gpu::{
-    DeviceFrame, DeviceGaussians, GpuRenderer, U32_BYTES, VEC4_BYTES, WORKGROUP_SIZE, bind_group,
-    dispatch_linear, four_u32,
+    DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, U32_BYTES, VEC4_BYTES, WORKGROUP_SIZE,
+    bind_group, dispatch_linear, four_u32,
 };
 use crate::types::{Camera, GaussianGradients, ImageGradients, PoseGradient};
 
@@ -82,6 +82,8 @@ impl DeviceImageGradients {
 /// (translation, 0) and (rotation, 0), see [`PoseGradient`] for the convention.
 pub struct DeviceGradients {
     count: u32,
+    /// Layout of the Gaussians the gradients belong to (checked by the Adam step).
+    pub(crate) gaussian_layout: LayoutId,
     pub v_means: wgpu::Buffer,
     pub v_log_scales: wgpu::Buffer,
     pub v_quaternions: wgpu::Buffer,
@@ -118,6 +120,13 @@ impl GpuRenderer {
         frame: &DeviceFrame,
         image_gradients: &DeviceImageGradients,
     ) -> Result<DeviceGradients, GpuError> {
+        if gaussians.layout != frame.gaussian_layout {
+            return Err(GpuError::InvalidInput(
+                "the frame was rendered before the Gaussians were appended to, pruned or \
+                 reordered: render again"
+                    .into(),
+            ));
+        }
         if gaussians.len() != frame.gaussian_count as usize {
             return Err(GpuError::InvalidInput(format!(
                 "frame was rendered from {} Gaussians, got {}",
@@ -136,6 +145,7 @@ impl GpuRenderer {
         let count = u64::from(n);
         let gradients = DeviceGradients {
             count: n,
+            gaussian_layout: gaussians.layout,
             v_means: context.storage_buffer("v_means", count * 3 * U32_BYTES)?,
             v_log_scales: context.storage_buffer("v_log_scales", count * 3 * U32_BYTES)?,
             v_quaternions: context.storage_buffer("v_quaternions", count * VEC4_BYTES)?,

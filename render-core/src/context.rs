@@ -1,6 +1,8 @@
 //! wgpu adapter, device and the capabilities the kernels care about.
 
-use std::sync::mpsc;
+use std::sync::{OnceLock, mpsc};
+
+use crate::map::MapKernels;
 
 use wgpu::util::DeviceExt;
 
@@ -35,6 +37,9 @@ pub struct GpuContext {
     pub has_float_atomics: bool,
     /// The adapter supports subgroup operations (reported only: no kernel requires them).
     pub has_subgroups: bool,
+    /// Kernels of the map edits (prune, compaction, rigid transform), compiled on first use
+    /// so that the edit methods need no kernel object from the caller.
+    pub(crate) map_kernels: OnceLock<MapKernels>,
 }
 
 impl GpuContext {
@@ -82,6 +87,7 @@ impl GpuContext {
             limits,
             has_float_atomics,
             has_subgroups,
+            map_kernels: OnceLock::new(),
         })
     }
 

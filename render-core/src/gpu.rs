@@ -38,11 +38,15 @@ const SORT_BLOCK_SIZE: u32 = 1024;
 /// Depth keys are full f32 bit patterns.
 const DEPTH_KEY_BITS: u32 = 32;
 pub(crate) const U32_BYTES: u64 = 4;
+/// Parameter groups of a Gaussian: means, log-scales, quaternions, opacity logits, colours.
+pub(crate) const PARAMETER_GROUPS: usize = 5;
+/// f32 values per Gaussian of each parameter group, in the order of [`PARAMETER_GROUPS`].
+pub(crate) const PARAMETER_GROUP_WIDTHS: [u32; PARAMETER_GROUPS] = [3, 3, 4, 1, 3];
 pub(crate) const VEC4_BYTES: u64 = 16;
 
 pub(crate) const COMMON_WGSL: &str = include_str!("kernels/common.wgsl");
 const PROJECT_WGSL: &str = include_str!("kernels/project.wgsl");
-const SCAN_WGSL: &str = include_str!("kernels/scan.wgsl");
+pub(crate) const SCAN_WGSL: &str = include_str!("kernels/scan.wgsl");
 const SORT_WGSL: &str = include_str!("kernels/sort.wgsl");
 const BIN_WGSL: &str = include_str!("kernels/bin.wgsl");
 const RASTERIZE_WGSL: &str = include_str!("kernels/rasterize.wgsl");
@@ -262,8 +266,17 @@ impl DeviceSortBench {
 
 /// Gaussian parameters resident on the device (same layout and conventions as
 /// [`GaussianCloud`]: means/log-scales/colours as packed f32 triples, quaternions `[w, x, y, z]`).
+///
+/// The buffers hold `capacity()` Gaussians of which the first `len()` are live; every kernel
+/// works on the live count only. Structural edits (append, prune, retain, rigid transform)
+/// happen in place on the device, see [`crate::map`].
 pub struct DeviceGaussians {
-    count: u32,
+    pub(crate) count: u32,
+    /// Gaussians the buffers have room for (`>= count`).
+    pub(crate) capacity: u32,
+    /// Identifies the current order and number of Gaussians: renewed by every change of
+    /// either, so frames, gradients and Adam state built for an older layout are rejected.
+    pub(crate) layout: LayoutId,
     pub(crate) means: wgpu::Buffer,
     pub(crate) log_scales: wgpu::Buffer,
     pub(crate) quaternions: wgpu::Buffer,
@@ -287,6 +300,8 @@ impl DeviceGaussians {
         let min = VEC4_BYTES as usize;
         Ok(Self {
             count,
+            capacity: count,
+            layout: LayoutId::fresh(),
             means: context.storage_buffer_init("means", bytemuck::cast_slice(&cloud.means), min),
             log_scales: context.storage_buffer_init(
                 "log_scales",
@@ -319,6 +334,22 @@ impl DeviceGaussians {
         self.count == 0
     }
 
+    /// Gaussians the device buffers hold before [`DeviceGaussians::append`] must grow them.
+    pub fn capacity(&self) -> usize {
+        self.capacity as usize
+    }
+
+    /// The parameter buffers in [`PARAMETER_GROUP_WIDTHS`] order.
+    pub(crate) fn parameter_buffers(&self) -> [&wgpu::Buffer; PARAMETER_GROUPS] {
+        [
+            &self.means,
+            &self.log_scales,
+            &self.quaternions,
+            &self.opacity_logits,
+            &self.colours,
+        ]
+    }
+
     /// Copies the parameters back to the host.
     pub fn download(&self, context: &GpuContext) -> Result<GaussianCloud, GpuError> {
         let n = self.len();
@@ -332,9 +363,23 @@ impl DeviceGaussians {
     }
 }
 
+/// Identity of one arrangement (order and count) of a [`DeviceGaussians`]' entries; unique
+/// within the process.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct LayoutId(u64);
+
+impl LayoutId {
+    pub(crate) fn fresh() -> Self {
+        static NEXT: AtomicU64 = AtomicU64::new(0);
+        Self(NEXT.fetch_add(1, Ordering::Relaxed))
+    }
+}
+
 /// The device-side result of one forward render (kept for a backward pass).
 pub struct DeviceFrame {
     pub camera: Camera,
+    /// Layout of the Gaussians the frame was rendered from (checked by the backward pass).
+    pub(crate) gaussian_layout: LayoutId,
     /// The `RenderParams` uniform the frame was rendered with (reused by the backward pass).
     pub(crate) params_buffer: wgpu::Buffer,
     pub gaussian_count: u32,
@@ -445,6 +490,38 @@ pub(crate) fn dispatch_linear(
     pass.set_pipeline(pipeline);
     pass.set_bind_group(0, bind_group, &[]);
     pass.dispatch_workgroups(x, y, 1);
+}
+
+/// The two entry points of scan.wgsl.
+#[derive(Clone, Copy)]
+pub(crate) struct ScanPipelines<'a> {
+    pub(crate) blocks: &'a wgpu::ComputePipeline,
+    pub(crate) add_offsets: &'a wgpu::ComputePipeline,
+}
+
+/// Encodes an in-place inclusive prefix sum of the first `count` u32 of `values`.
+pub(crate) fn inclusive_scan(
+    context: &GpuContext,
+    encoder: &mut wgpu::CommandEncoder,
+    pipelines: ScanPipelines,
+    values: &wgpu::Buffer,
+    count: u32,
+) -> Result<(), GpuError> {
+    if count == 0 {
+        return Ok(());
+    }
+    let blocks = count.div_ceil(WORKGROUP_SIZE);
+    let block_sums = context.storage_buffer("scan block sums", u64::from(blocks) * U32_BYTES)?;
+    let params = context.uniform_buffer("scan params", &four_u32([count, 0, 0, 0]));
+    let entries = [(0, &params), (1, values), (2, &block_sums)];
+    let group = bind_group(context, pipelines.blocks, &entries);
+    dispatch_linear(encoder, pipelines.blocks, &group, blocks);
+    if blocks > 1 {
+        inclusive_scan(context, encoder, pipelines, &block_sums, blocks)?;
+        let group = bind_group(context, pipelines.add_offsets, &entries);
+        dispatch_linear(encoder, pipelines.add_offsets, &group, blocks);
+    }
+    Ok(())
 }
 
 /// A storage buffer holding one host-known element count (for kernels that read their count
@@ -844,6 +921,7 @@ impl GpuRenderer {
         context.queue.submit([encoder.finish()]);
         Ok(DeviceFrame {
             camera: *camera,
+            gaussian_layout: gaussians.layout,
             params_buffer,
             gaussian_count: n,
             pair_capacity,
@@ -868,22 +946,11 @@ impl GpuRenderer {
         values: &wgpu::Buffer,
         count: u32,
     ) -> Result<(), GpuError> {
-        if count == 0 {
-            return Ok(());
-        }
-        let blocks = count.div_ceil(WORKGROUP_SIZE);
-        let block_sums =
-            context.storage_buffer("scan block sums", u64::from(blocks) * U32_BYTES)?;
-        let params = context.uniform_buffer("scan params", &four_u32([count, 0, 0, 0]));
-        let entries = [(0, &params), (1, values), (2, &block_sums)];
-        let group = bind_group(context, &self.pipelines.scan_blocks, &entries);
-        dispatch_linear(encoder, &self.pipelines.scan_blocks, &group, blocks);
-        if blocks > 1 {
-            self.inclusive_scan(context, encoder, &block_sums, blocks)?;
-            let group = bind_group(context, &self.pipelines.scan_add, &entries);
-            dispatch_linear(encoder, &self.pipelines.scan_add, &group, blocks);
-        }
-        Ok(())
+        let pipelines = ScanPipelines {
+            blocks: &self.pipelines.scan_blocks,
+            add_offsets: &self.pipelines.scan_add,
+        };
+        inclusive_scan(context, encoder, pipelines, values, count)
     }
 
     /// Stable LSD radix sort of (key, value) pairs on the low `key_bits` bits, ping-ponging

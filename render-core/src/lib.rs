@@ -5,14 +5,17 @@
 //!   and the conventions every boundary follows (quaternions `[w, x, y, z]`, OpenCV camera axes,
 //!   pixel centres at integer coordinates, colours as RGB in `[0, 1]`, pose gradients as a left
 //!   perturbation of `camera_from_world` ordered `[translation, rotation]`).
-//! - [`reference`]: the scalar CPU renderer (forward and backward), the test oracle.
+//! - [`reference`](mod@reference): the scalar CPU renderer (forward and backward), the test oracle.
 //! - [`ply`]: 3DGS PLY import/export.
 //! - [`context`]: the wgpu adapter/device and its capabilities (float atomics, subgroups,
 //!   storage-binding limit).
 //! - [`gpu`]: device-resident Gaussians and the forward pipeline (project, radix sort, tile
 //!   binning, rasterize).
+//! - [`map`]: in-place edits of the device map (append with amortised growth, prune/retain by
+//!   stable compaction, rigid transform) and [`map::DeviceMap`], which keeps the Adam state in
+//!   step with them.
 //! - [`backward`]: per-Gaussian and camera-pose gradients on the device.
-//! - [`bench`]: the render benchmark behind `mac-ego3d bench render`.
+//! - [`bench`](mod@bench): the render benchmark behind `mac-ego3d bench render`.
 //! - [`training`]: L1 / SSIM / depth-L1 loss with gradients and Adam on the device, plus the CPU
 //!   reference loss.
 //!
@@ -25,6 +28,7 @@ pub mod backward;
 pub mod bench;
 pub mod context;
 pub mod gpu;
+pub mod map;
 pub mod ply;
 pub mod reference;
 pub mod training;

@@ -11,10 +11,10 @@
 use crate::backward::{DeviceGradients, DeviceImageGradients};
 use crate::context::{GpuContext, GpuError};
 use crate::gpu::{
-    DeviceFrame, DeviceGaussians, GpuRenderer, U32_BYTES, VEC4_BYTES, WORKGROUP_SIZE, bind_group,
-    compute_pipeline, dispatch_linear,
+    DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, PARAMETER_GROUP_WIDTHS, PARAMETER_GROUPS,
+    U32_BYTES, VEC4_BYTES, WORKGROUP_SIZE, bind_group, compute_pipeline, dispatch_linear,
 };
-use crate::types::{Camera, ImageGradients, RenderOutput};
+use crate::types::{Camera, GaussianCloud, ImageGradients, RenderOutput};
 use bytemuck::{Pod, Zeroable};
 
 /// SSIM window half-width (11x11 window) and standard deviation.
@@ -288,49 +288,102 @@ impl Default for AdamConfig {
 }
 
 /// Adam moments for every parameter group of one [`DeviceGaussians`].
+///
+/// The state follows one arrangement of the Gaussians: after an append, prune or retain done
+/// on the Gaussians alone, [`TrainingKernels::adam_step`] refuses the stale state. Edit the
+/// map through [`crate::map::DeviceMap`], which moves the moments with the Gaussians.
 pub struct DeviceAdam {
     pub config: AdamConfig,
     step: u32,
-    moments: [(wgpu::Buffer, wgpu::Buffer); 5],
-    /// Floats per Gaussian of each group: means, log-scales, quaternions, opacity, colours.
-    group_widths: [u32; 5],
-    count: u32,
+    /// (first, second) moments per parameter group, in `PARAMETER_GROUP_WIDTHS` order, each
+    /// with room for `capacity` Gaussians.
+    pub(crate) moments: [(wgpu::Buffer, wgpu::Buffer); PARAMETER_GROUPS],
+    pub(crate) count: u32,
+    pub(crate) capacity: u32,
+    /// Layout of the Gaussians the moments belong to.
+    pub(crate) gaussian_layout: LayoutId,
+}
+
+/// First and second Adam moments on the host, each laid out like the parameters it belongs
+/// to (e.g. `first.means[i]` is the first moment of Gaussian i's mean).
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct AdamMoments {
+    pub first: GaussianCloud,
+    pub second: GaussianCloud,
 }
 
 impl DeviceAdam {
+    /// Zero moments for every Gaussian of `gaussians` (step count 0).
     pub fn new(
         context: &GpuContext,
         gaussians: &DeviceGaussians,
         config: AdamConfig,
     ) -> Result<Self, GpuError> {
-        let group_widths = [3, 3, 4, 1, 3];
-        let count = gaussians.len() as u32;
-        let make = |width: u32| -> Result<(wgpu::Buffer, wgpu::Buffer), GpuError> {
-            let bytes = u64::from(count) * u64::from(width) * U32_BYTES;
-            Ok((
-                context.storage_buffer("adam m", bytes)?,
-                context.storage_buffer("adam v", bytes)?,
-            ))
-        };
-        let moments = [
-            make(group_widths[0])?,
-            make(group_widths[1])?,
-            make(group_widths[2])?,
-            make(group_widths[3])?,
-            make(group_widths[4])?,
-        ];
         Ok(Self {
             config,
             step: 0,
-            moments,
-            group_widths,
-            count,
+            moments: zero_moments(context, gaussians.capacity)?,
+            count: gaussians.count,
+            capacity: gaussians.capacity,
+            gaussian_layout: gaussians.layout,
         })
     }
 
     pub fn step_count(&self) -> u32 {
         self.step
     }
+
+    /// Number of Gaussians the moments describe.
+    pub fn len(&self) -> usize {
+        self.count as usize
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    /// Copies the moments back to the host (tests, checkpoints).
+    pub fn download_moments(&self, context: &GpuContext) -> Result<AdamMoments, GpuError> {
+        let n = self.len();
+        let read = |moment: usize| -> Result<GaussianCloud, GpuError> {
+            let buffer = |group: usize| {
+                let (first, second) = &self.moments[group];
+                if moment == 0 { first } else { second }
+            };
+            Ok(GaussianCloud {
+                means: context.read_vec(buffer(0), n)?,
+                log_scales: context.read_vec(buffer(1), n)?,
+                quaternions: context.read_vec(buffer(2), n)?,
+                opacity_logits: context.read_vec(buffer(3), n)?,
+                colours: context.read_vec(buffer(4), n)?,
+            })
+        };
+        Ok(AdamMoments {
+            first: read(0)?,
+            second: read(1)?,
+        })
+    }
+}
+
+/// Zeroed (first, second) moment buffers for `capacity` Gaussians.
+pub(crate) fn zero_moments(
+    context: &GpuContext,
+    capacity: u32,
+) -> Result<[(wgpu::Buffer, wgpu::Buffer); PARAMETER_GROUPS], GpuError> {
+    let make = |width: u32| -> Result<(wgpu::Buffer, wgpu::Buffer), GpuError> {
+        let bytes = u64::from(capacity) * u64::from(width) * U32_BYTES;
+        Ok((
+            context.storage_buffer("adam m", bytes)?,
+            context.storage_buffer("adam v", bytes)?,
+        ))
+    };
+    Ok([
+        make(PARAMETER_GROUP_WIDTHS[0])?,
+        make(PARAMETER_GROUP_WIDTHS[1])?,
+        make(PARAMETER_GROUP_WIDTHS[2])?,
+        make(PARAMETER_GROUP_WIDTHS[3])?,
+        make(PARAMETER_GROUP_WIDTHS[4])?,
+    ])
 }
 
 /// Compiled loss and Adam kernels.
@@ -474,9 +527,16 @@ impl TrainingKernels {
         gaussians: &DeviceGaussians,
         gradients: &DeviceGradients,
     ) -> Result<(), GpuError> {
-        if gaussians.len() as u32 != adam.count {
+        if adam.gaussian_layout != gaussians.layout || gaussians.count != adam.count {
             return Err(GpuError::InvalidInput(
-                "Adam state and Gaussians differ in count".into(),
+                "the Adam state does not follow the Gaussians (appended to, pruned or retained \
+                 without it): edit the map through DeviceMap"
+                    .into(),
+            ));
+        }
+        if gradients.gaussian_layout != gaussians.layout {
+            return Err(GpuError::InvalidInput(
+                "the gradients belong to an earlier arrangement of the Gaussians".into(),
             ));
         }
         adam.step += 1;
@@ -510,7 +570,7 @@ impl TrainingKernels {
         let mut encoder = context.device.create_command_encoder(&Default::default());
         for (group, (learning_rate, parameters, group_gradients)) in groups.into_iter().enumerate()
         {
-            let elements = adam.count * adam.group_widths[group];
+            let elements = adam.count * PARAMETER_GROUP_WIDTHS[group];
             if learning_rate == 0.0 || elements == 0 {
                 continue;
             }

@@ -74,6 +74,49 @@ impl GaussianCloud {
         self.colours.push(colour);
     }
 
+    /// Appends every Gaussian of `other` (same order).
+    pub fn extend_from(&mut self, other: &GaussianCloud) {
+        self.means.extend_from_slice(&other.means);
+        self.log_scales.extend_from_slice(&other.log_scales);
+        self.quaternions.extend_from_slice(&other.quaternions);
+        self.opacity_logits.extend_from_slice(&other.opacity_logits);
+        self.colours.extend_from_slice(&other.colours);
+    }
+
+    /// The Gaussians whose `keep` entry is true, in their original order (the host
+    /// counterpart of the device compaction). Panics if `keep` and the cloud differ in length.
+    pub fn select(&self, keep: &[bool]) -> GaussianCloud {
+        assert_eq!(keep.len(), self.len(), "one keep flag per Gaussian");
+        fn pick<T: Copy>(values: &[T], keep: &[bool]) -> Vec<T> {
+            values
+                .iter()
+                .zip(keep)
+                .filter_map(|(value, &kept)| kept.then_some(*value))
+                .collect()
+        }
+        GaussianCloud {
+            means: pick(&self.means, keep),
+            log_scales: pick(&self.log_scales, keep),
+            quaternions: pick(&self.quaternions, keep),
+            opacity_logits: pick(&self.opacity_logits, keep),
+            colours: pick(&self.colours, keep),
+        }
+    }
+
+    /// Applies `transform` to every Gaussian: means are mapped, quaternions left-multiplied
+    /// by the rotation's quaternion (so covariances become `R Sigma R^T`); scales, opacities
+    /// and colours are frame-independent and unchanged. The host counterpart of
+    /// `DeviceGaussians::transform_rigid`.
+    pub fn transform_rigid(&mut self, transform: &RigidTransform) {
+        let rotation = transform.rotation_quaternion();
+        for mean in &mut self.means {
+            *mean = transform.transform_point(*mean);
+        }
+        for quaternion in &mut self.quaternions {
+            *quaternion = quaternion_multiply(rotation, *quaternion);
+        }
+    }
+
     /// Checks that all attribute vectors have the same length.
     pub fn validate_lengths(&self) -> Result<(), String> {
         let n = self.means.len();
@@ -135,6 +178,63 @@ impl RigidTransform {
         }
     }
 
+    /// `self * inner`: applies `inner` first, then `self`.
+    pub fn compose(&self, inner: &RigidTransform) -> Self {
+        let (a, b) = (&self.rotation, &inner.rotation);
+        let rotation = std::array::from_fn(|i| {
+            std::array::from_fn(|j| (0..3).map(|k| a[i][k] * b[k][j]).sum())
+        });
+        Self {
+            rotation,
+            translation: self.transform_point(inner.translation),
+        }
+    }
+
+    /// The unit quaternion `[w, x, y, z]` of the rotation (with `w >= 0`), computed in f64
+    /// with Shepperd's method (stable for every angle) and normalised.
+    pub fn rotation_quaternion(&self) -> [f32; 4] {
+        let r = self.rotation.map(|row| row.map(f64::from));
+        let trace = r[0][0] + r[1][1] + r[2][2];
+        // Pivot on the largest of w^2, x^2, y^2, z^2 (times 4) so the division is well
+        // conditioned.
+        let q = if trace >= r[0][0] && trace >= r[1][1] && trace >= r[2][2] {
+            let s = 2.0 * (1.0 + trace).sqrt();
+            [
+                0.25 * s,
+                (r[2][1] - r[1][2]) / s,
+                (r[0][2] - r[2][0]) / s,
+                (r[1][0] - r[0][1]) / s,
+            ]
+        } else if r[0][0] >= r[1][1] && r[0][0] >= r[2][2] {
+            let s = 2.0 * (1.0 + r[0][0] - r[1][1] - r[2][2]).sqrt();
+            [
+                (r[2][1] - r[1][2]) / s,
+                0.25 * s,
+                (r[0][1] + r[1][0]) / s,
+                (r[0][2] + r[2][0]) / s,
+            ]
+        } else if r[1][1] >= r[2][2] {
+            let s = 2.0 * (1.0 + r[1][1] - r[0][0] - r[2][2]).sqrt();
+            [
+                (r[0][2] - r[2][0]) / s,
+                (r[0][1] + r[1][0]) / s,
+                0.25 * s,
+                (r[1][2] + r[2][1]) / s,
+            ]
+        } else {
+            let s = 2.0 * (1.0 + r[2][2] - r[0][0] - r[1][1]).sqrt();
+            [
+                (r[1][0] - r[0][1]) / s,
+                (r[0][2] + r[2][0]) / s,
+                (r[1][2] + r[2][1]) / s,
+                0.25 * s,
+            ]
+        };
+        let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
+        q.map(|v| (sign * v / norm) as f32)
+    }
+
     /// Applies the transform to a point.
     pub fn transform_point(&self, p: [f32; 3]) -> [f32; 3] {
         let r = &self.rotation;
@@ -161,6 +261,18 @@ impl RigidTransform {
             translation,
         }
     }
+}
+
+/// Hamilton product `a * b` of quaternions `[w, x, y, z]` (rotation `b` first, then `a`).
+pub fn quaternion_multiply(a: [f32; 4], b: [f32; 4]) -> [f32; 4] {
+    let [aw, ax, ay, az] = a;
+    let [bw, bx, by, bz] = b;
+    [
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ]
 }
 
 /// Rotation matrix (row-major) of a quaternion `[w, x, y, z]`, normalised here.

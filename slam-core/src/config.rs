@@ -75,6 +75,31 @@ pub struct KeyframeConfig {
     pub trackable_new_distance_sq_m2: f64,
     /// Opacity of a new Gaussian (before the logit).
     pub initial_opacity: f64,
+    /// How big a new Gaussian is (see [`SeedScale`]).
+    pub seed_scale: SeedScale,
+    /// At a mapping keyframe, points with a map Gaussian closer than sqrt(this) (m^2) are already
+    /// covered and seed nothing. The SPEC says mapping-keyframe Gaussians are never trackable but
+    /// not which points seed them; seeding every point of every 10th frame would grow the map by
+    /// ~11k Gaussians per keyframe on 640x480 input, almost all duplicates of what is there.
+    /// The default is the tracking overlap radius (sqrt(5e-4) m, ~2.2 cm).
+    pub mapping_seed_min_distance_sq_m2: f64,
+}
+
+/// Size of a newly seeded Gaussian. Both keep the orientation of the point's G-ICP covariance
+/// (wide along the surface, `sqrt(covariance_epsilon)` of that across it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum SeedScale {
+    /// SPEC section 3 literally: scale = sqrt(eigenvalues of the G-ICP covariance) /
+    /// max(1, 2 z^1.5). The G-ICP covariance is normalised (eigenvalues 1, 1, eps), so a point
+    /// 2 m away gets a disc of 0.18 m standard deviation: ~10x the spacing of the sampled
+    /// points, which on a CPU rasteriser costs tens of millions of tile/Gaussian pairs.
+    Spec,
+    /// The disc covers the point's own sample cell: standard deviation along the surface =
+    /// half the distance between neighbouring samples (pixel_stride * z / f / 2), so
+    /// neighbouring discs meet at about one sigma and the surface is closed.
+    #[default]
+    SampleFootprint,
 }
 
 impl Default for KeyframeConfig {
@@ -85,6 +110,8 @@ impl Default for KeyframeConfig {
             mapping_keyframe_every: 10,
             trackable_new_distance_sq_m2: 5e-5,
             initial_opacity: 0.1,
+            seed_scale: SeedScale::default(),
+            mapping_seed_min_distance_sq_m2: 5e-4,
         }
     }
 }
@@ -110,6 +137,15 @@ pub struct MappingConfig {
     pub prune_max_scale_m: f64,
     /// Largest allowed max scale / (sum of the other two).
     pub prune_max_elongation: f64,
+    /// Keyframes are optimised at their resolution divided by this (1 = full resolution, the
+    /// SPEC). On a CPU Vulkan device (lavapipe) a 640x480 iteration costs seconds; a factor of 2
+    /// or 4 buys 4x or 16x more iterations for the same time.
+    pub image_downscale: u32,
+    /// Seed of the mapper's choice of earlier keyframes (runs are repeatable).
+    pub random_seed: u64,
+    /// Read the pair count back every n iterations (one blocking read) to grow the binning
+    /// buffers when the map outgrows them.
+    pub check_pairs_every: usize,
 }
 
 impl Default for MappingConfig {
@@ -127,6 +163,9 @@ impl Default for MappingConfig {
             prune_min_opacity: 0.005,
             prune_max_scale_m: 1.0,
             prune_max_elongation: 10.0,
+            image_downscale: 1,
+            random_seed: 0,
+            check_pairs_every: 50,
         }
     }
 }
@@ -302,6 +341,12 @@ impl Config {
         fraction("mapping.prune_min_opacity", m.prune_min_opacity)?;
         positive("mapping.prune_max_scale_m", m.prune_max_scale_m)?;
         positive("mapping.prune_max_elongation", m.prune_max_elongation)?;
+        at_least_one("mapping.image_downscale", m.image_downscale as usize)?;
+        at_least_one("mapping.check_pairs_every", m.check_pairs_every)?;
+        non_negative(
+            "keyframes.mapping_seed_min_distance_sq_m2",
+            k.mapping_seed_min_distance_sq_m2,
+        )?;
         let c = &self.consensus;
         at_least_one("consensus.t_comm", c.t_comm)?;
         fraction("consensus.tau_same_agent", c.tau_same_agent)?;

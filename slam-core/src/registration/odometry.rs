@@ -108,6 +108,12 @@ pub struct TrackedFrame {
     pub points: usize,
     /// The frame added points to the map (frame-to-model tracking keyframe or initialisation).
     pub keyframe: bool,
+    /// The frame's points in its camera frame, with covariances and source pixels (the agent
+    /// seeds Gaussians from them).
+    pub frame_points: PointCloud,
+    /// At a keyframe: per point of `frame_points`, whether it joined the tracking map (the SPEC's
+    /// trackable flag). `None` on other frames.
+    pub trackable: Option<Vec<bool>>,
     pub timings: StageTimings,
 }
 
@@ -311,20 +317,20 @@ impl Odometry {
             self.velocity = world_from_previous.inverse() * world_from_camera;
         }
         let clock = Instant::now();
-        let keyframe = match self.mode {
+        let trackable = match self.mode {
             OdometryMode::FrameToFrame => {
                 // A frame with too few points cannot serve as the next target; keep the last one.
                 if frame.len() >= MIN_POINTS_FOR_A_POSE {
                     self.previous_frame = Some(self.frame_target(frame.cloud()));
                 }
-                false
+                None
             }
-            OdometryMode::FrameToModel => {
-                tracked
-                    && registration.overlap_fraction < self.keyframes.min_overlap_fraction
-                    && self.add_keyframe(frame.cloud(), &world_from_camera, false) > 0
-            }
+            OdometryMode::FrameToModel => (tracked
+                && registration.overlap_fraction < self.keyframes.min_overlap_fraction)
+                .then(|| self.add_keyframe(frame.cloud(), &world_from_camera, false))
+                .filter(|added| added.contains(&true)),
         };
+        let keyframe = trackable.is_some();
         if keyframe {
             self.stats.keyframes += 1;
         }
@@ -336,6 +342,8 @@ impl Odometry {
             registration: Some(registration),
             points,
             keyframe,
+            frame_points: frame.into_cloud(),
+            trackable,
             timings,
         }
     }
@@ -387,15 +395,19 @@ impl Odometry {
         self.consecutive_failures = 0;
         self.velocity = Isometry3::identity();
         self.world_from_previous = Some(world_from_camera);
-        let keyframe = match self.mode {
+        let trackable = match self.mode {
             OdometryMode::FrameToFrame => {
                 self.previous_frame = Some(self.frame_target(frame.cloud()));
-                false
+                None
             }
-            OdometryMode::FrameToModel => {
-                self.add_keyframe(frame.cloud(), &world_from_camera, true) > 0
-            }
+            OdometryMode::FrameToModel => Some(self.add_keyframe(
+                frame.cloud(),
+                &world_from_camera,
+                true,
+            ))
+            .filter(|added| added.contains(&true)),
         };
+        let keyframe = trackable.is_some();
         if keyframe {
             self.stats.keyframes += 1;
         }
@@ -405,27 +417,29 @@ impl Odometry {
             registration: None,
             points,
             keyframe,
+            frame_points: frame.into_cloud(),
+            trackable,
             timings: StageTimings::default(),
         }
     }
 
     /// Adds a keyframe's points (camera frame, with covariances) to the map at `world_from_camera`.
     /// Unless `all_points`, only points farther than the trackable-new distance from the current
-    /// map are added. Returns how many were added.
+    /// map are added. Returns, per point of `cloud`, whether it was added.
     fn add_keyframe(
         &mut self,
         cloud: &PointCloud,
         world_from_camera: &Isometry3<f64>,
         all_points: bool,
-    ) -> usize {
+    ) -> Vec<bool> {
         let rotation = world_from_camera.rotation.to_rotation_matrix().into_inner();
         let novelty_sq = self.keyframes.trackable_new_distance_sq_m2 as f32;
         let map = &self.map;
-        let new_points: Vec<(Point3<f32>, Covariance)> = cloud
+        let candidates: Vec<Option<(Point3<f32>, Covariance)>> = cloud
             .positions
             .par_iter()
             .zip(cloud.covariances.par_iter())
-            .filter_map(|(p, c)| {
+            .map(|(p, c)| {
                 let world = (world_from_camera * p.cast::<f64>()).cast::<f32>();
                 if !all_points && map.nearest_in_map(&world, novelty_sq).is_some() {
                     return None;
@@ -435,7 +449,8 @@ impl Odometry {
                 Some((world, covariance))
             })
             .collect();
-        for (position, covariance) in &new_points {
+        let added = candidates.iter().map(Option::is_some).collect();
+        for (position, covariance) in candidates.iter().flatten() {
             let point = MapPoint {
                 id: self.next_point_id,
                 position: *position,
@@ -445,7 +460,7 @@ impl Odometry {
             // Positions are finite (transformed finite points), so insertion cannot be refused.
             let _ = self.map.insert(point);
         }
-        new_points.len()
+        added
     }
 }
 

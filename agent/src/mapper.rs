@@ -1,0 +1,505 @@
+//! Optimisation step 2 of SPEC section 3: the mapping thread.
+//!
+//! The tracker hands every keyframe (its images, its pose and the Gaussians it seeds) to
+//! [`Mapper::spawn`]'s thread over a channel and never waits: the send is non-blocking and the
+//! mapper picks keyframes up between iterations. The mapper owns the device map and runs Adam over
+//! keyframes, new ones first (newest first), then random earlier ones, with the loss
+//! `0.8 L1 + 0.2 (1 - SSIM) + 2 L1(depth / truncation)` (weights from `[mapping]`); keyframe poses
+//! are fixed (the agent's poses come from tracking; the consensus refines them). Every
+//! `prune_every` iterations it prunes (opacity, scale, elongation).
+//!
+//! Nothing is read back inside an iteration except a wait for the device to finish it (so the
+//! host does not queue unbounded work), the pair-count check every `check_pairs_every`
+//! iterations, and the pruning mask.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use crossbeam_channel::{Receiver, Sender, TryRecvError};
+use image::RgbImage;
+use nalgebra::Isometry3;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use render_core::backward::DeviceImageGradients;
+use render_core::context::{GpuContext, GpuError};
+use render_core::gpu::GpuRenderer;
+use render_core::map::{DeviceMap, PruneCriteria};
+use render_core::training::{DeviceTarget, LossWeights, TargetImage, TrainingKernels};
+use render_core::types::{Camera, GaussianCloud, RasterConfig};
+use slam_core::camera::Intrinsics;
+use slam_core::config::{MappingConfig, TrackingConfig};
+use slam_core::dataset::DepthImage;
+
+use crate::poses::rigid_from_isometry;
+
+/// Why a keyframe was made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum KeyframeKind {
+    /// Too little overlap with the map: all points seed Gaussians, the new ones trackable.
+    Tracking,
+    /// Every n-th frame otherwise: uncovered points seed non-trackable Gaussians.
+    Mapping,
+}
+
+/// A keyframe as the mapper receives it.
+pub struct MappingKeyframe {
+    pub keyframe_id: usize,
+    pub frame_index: usize,
+    pub kind: KeyframeKind,
+    pub world_from_camera: Isometry3<f64>,
+    /// Full-resolution intrinsics of `rgb` and `depth`.
+    pub intrinsics: Intrinsics,
+    pub rgb: RgbImage,
+    pub depth: DepthImage,
+    /// Gaussians this keyframe adds to the map (world frame).
+    pub new_gaussians: GaussianCloud,
+}
+
+/// Counters of a mapping phase.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MappingStats {
+    pub iterations: usize,
+    /// Wall time of the phase, seconds.
+    pub seconds: f64,
+    pub pruned: usize,
+    pub keyframes: usize,
+    /// Loss of the last iteration whose loss was read back (weighted L1, SSIM, depth terms).
+    pub last_loss: Option<[f32; 3]>,
+}
+
+impl MappingStats {
+    pub fn iterations_per_second(&self) -> f64 {
+        if self.seconds > 0.0 {
+            self.iterations as f64 / self.seconds
+        } else {
+            0.0
+        }
+    }
+}
+
+/// What the mapping thread returns.
+pub struct MappingOutcome {
+    /// The map when the stream ended (real-time mapping only).
+    pub realtime_map: GaussianCloud,
+    pub realtime: MappingStats,
+    /// After the optional refinement pass.
+    pub refined: Option<(GaussianCloud, MappingStats)>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum MapperError {
+    #[error("mapping device: {0}")]
+    Gpu(#[from] GpuError),
+    #[error("the mapping thread panicked")]
+    Panicked,
+}
+
+enum Command {
+    Keyframe(Box<MappingKeyframe>),
+    Finish { refine_iterations: usize },
+}
+
+/// Live counters the tracker may read (progress display, logs).
+#[derive(Debug, Default)]
+pub struct MapperProgress {
+    pub iterations: AtomicUsize,
+    pub gaussians: AtomicUsize,
+}
+
+/// Handle of the mapping thread.
+pub struct Mapper {
+    commands: Sender<Command>,
+    thread: JoinHandle<Result<MappingOutcome, MapperError>>,
+    pub progress: Arc<MapperProgress>,
+}
+
+impl Mapper {
+    /// Starts the mapping thread on its own device context.
+    pub fn spawn(tracking: &TrackingConfig, mapping: &MappingConfig) -> Result<Self, MapperError> {
+        let context = GpuContext::new()?;
+        tracing::info!(adapter = %context.describe(), "mapping device");
+        let (commands, receiver) = crossbeam_channel::unbounded();
+        let progress = Arc::new(MapperProgress::default());
+        let state = MapperState::new(context, tracking, mapping, progress.clone());
+        let thread = std::thread::Builder::new()
+            .name("mapper".into())
+            .spawn(move || state.run(receiver))
+            .expect("spawning the mapping thread");
+        Ok(Self {
+            commands,
+            thread,
+            progress,
+        })
+    }
+
+    /// Queues a keyframe; never blocks.
+    pub fn add_keyframe(&self, keyframe: MappingKeyframe) {
+        // The receiver lives until Finish; a send error means the thread died, which `finish`
+        // reports.
+        let _ = self.commands.send(Command::Keyframe(Box::new(keyframe)));
+    }
+
+    /// Ends real-time mapping (after the queued keyframes are in the map), runs
+    /// `refine_iterations` more iterations over random keyframes, and returns the maps.
+    pub fn finish(self, refine_iterations: usize) -> Result<MappingOutcome, MapperError> {
+        let _ = self.commands.send(Command::Finish { refine_iterations });
+        self.thread.join().map_err(|_| MapperError::Panicked)?
+    }
+}
+
+/// A keyframe kept for optimisation, at mapping resolution.
+struct StoredKeyframe {
+    camera: Camera,
+    target: TargetImage,
+}
+
+struct MapperState {
+    context: GpuContext,
+    renderer: GpuRenderer,
+    kernels: TrainingKernels,
+    map: Option<DeviceMap>,
+    keyframes: Vec<StoredKeyframe>,
+    /// Keyframes not optimised yet, oldest first (popped from the back: newest first).
+    unvisited: Vec<usize>,
+    rng: ChaCha8Rng,
+    weights: LossWeights,
+    raster: RasterConfig,
+    prune_criteria: PruneCriteria,
+    config: MappingConfig,
+    /// Multiplies the mean learning rate (SPEC: "x scene scale"), fixed at the first keyframe.
+    scene_scale: Option<f64>,
+    progress: Arc<MapperProgress>,
+    stats: MappingStats,
+    /// Iterations since the last pair-count check.
+    since_pair_check: usize,
+}
+
+impl MapperState {
+    fn new(
+        context: GpuContext,
+        tracking: &TrackingConfig,
+        mapping: &MappingConfig,
+        progress: Arc<MapperProgress>,
+    ) -> Self {
+        let renderer = GpuRenderer::new(&context);
+        let kernels = TrainingKernels::new(&context);
+        Self {
+            context,
+            renderer,
+            kernels,
+            map: None,
+            keyframes: Vec::new(),
+            unvisited: Vec::new(),
+            rng: ChaCha8Rng::seed_from_u64(mapping.random_seed),
+            weights: LossWeights {
+                l1: mapping.weight_l1 as f32,
+                ssim: mapping.weight_ssim as f32,
+                depth: mapping.weight_depth as f32,
+                depth_truncation: tracking.truncation_m as f32,
+            },
+            raster: RasterConfig::default(),
+            prune_criteria: PruneCriteria {
+                min_opacity: mapping.prune_min_opacity as f32,
+                max_scale_m: mapping.prune_max_scale_m as f32,
+                max_elongation: mapping.prune_max_elongation as f32,
+            },
+            config: mapping.clone(),
+            scene_scale: None,
+            progress,
+            stats: MappingStats::default(),
+            since_pair_check: 0,
+        }
+    }
+
+    fn run(mut self, commands: Receiver<Command>) -> Result<MappingOutcome, MapperError> {
+        let _span = tracing::info_span!("mapping").entered();
+        let started = Instant::now();
+        let refine_iterations = loop {
+            // Take every queued keyframe before the next iteration; block only when there is
+            // nothing to optimise yet.
+            let command = if self.map_is_empty() {
+                match commands.recv() {
+                    Ok(command) => Some(command),
+                    Err(_) => break 0,
+                }
+            } else {
+                match commands.try_recv() {
+                    Ok(command) => Some(command),
+                    Err(TryRecvError::Empty) => None,
+                    Err(TryRecvError::Disconnected) => break 0,
+                }
+            };
+            match command {
+                Some(Command::Keyframe(keyframe)) => self.insert_keyframe(*keyframe)?,
+                Some(Command::Finish { refine_iterations }) => break refine_iterations,
+                None => self.iterate()?,
+            }
+        };
+        self.stats.seconds = started.elapsed().as_secs_f64();
+        let realtime = std::mem::take(&mut self.stats);
+        let realtime_map = self.download()?;
+        tracing::info!(
+            iterations = realtime.iterations,
+            per_second = format!("{:.2}", realtime.iterations_per_second()),
+            gaussians = realtime_map.len(),
+            "real-time mapping done"
+        );
+        let refined = if refine_iterations > 0 && !self.map_is_empty() {
+            let _span = tracing::info_span!("refinement", iterations = refine_iterations).entered();
+            let started = Instant::now();
+            self.unvisited.clear();
+            for _ in 0..refine_iterations {
+                self.iterate()?;
+            }
+            self.stats.seconds = started.elapsed().as_secs_f64();
+            self.stats.keyframes = self.keyframes.len();
+            Some((self.download()?, std::mem::take(&mut self.stats)))
+        } else {
+            None
+        };
+        Ok(MappingOutcome {
+            realtime_map,
+            realtime,
+            refined,
+        })
+    }
+
+    fn map_is_empty(&self) -> bool {
+        self.map.as_ref().is_none_or(|m| m.is_empty()) || self.keyframes.is_empty()
+    }
+
+    fn download(&self) -> Result<GaussianCloud, GpuError> {
+        match &self.map {
+            Some(map) => map.download(&self.context),
+            None => Ok(GaussianCloud::default()),
+        }
+    }
+
+    fn insert_keyframe(&mut self, keyframe: MappingKeyframe) -> Result<(), MapperError> {
+        let _span = tracing::debug_span!("insert_keyframe", id = keyframe.keyframe_id).entered();
+        let scale = *self
+            .scene_scale
+            .get_or_insert_with(|| scene_scale(&keyframe.new_gaussians));
+        let (camera, target) = keyframe_target(&keyframe, self.config.image_downscale);
+        if !keyframe.new_gaussians.is_empty() {
+            match &mut self.map {
+                Some(map) => {
+                    map.append(&self.context, &keyframe.new_gaussians)?;
+                }
+                None => {
+                    let adam = render_core::training::AdamConfig {
+                        means: (self.config.lr_means * scale) as f32,
+                        log_scales: self.config.lr_log_scales as f32,
+                        quaternions: self.config.lr_rotations as f32,
+                        opacity_logits: self.config.lr_opacity as f32,
+                        colours: self.config.lr_colours as f32,
+                        ..Default::default()
+                    };
+                    self.map = Some(DeviceMap::upload(
+                        &self.context,
+                        &keyframe.new_gaussians,
+                        adam,
+                    )?);
+                }
+            }
+            // New Gaussians may need more tile pairs than the buffers hold: check on the next
+            // iteration.
+            self.since_pair_check = self.config.check_pairs_every;
+        }
+        self.unvisited.push(self.keyframes.len());
+        self.keyframes.push(StoredKeyframe { camera, target });
+        self.stats.keyframes += 1;
+        self.progress.gaussians.store(
+            self.map.as_ref().map_or(0, |m| m.len()),
+            Ordering::Relaxed,
+        );
+        Ok(())
+    }
+
+    /// One Adam iteration on one keyframe.
+    fn iterate(&mut self) -> Result<(), MapperError> {
+        let Some(map) = self.map.as_mut() else {
+            return Ok(());
+        };
+        if map.is_empty() || self.keyframes.is_empty() {
+            return Ok(());
+        }
+        let index = match self.unvisited.pop() {
+            Some(index) => index,
+            None => self.rng.random_range(0..self.keyframes.len()),
+        };
+        let keyframe = &self.keyframes[index];
+        let context = &self.context;
+        let target = DeviceTarget::upload(context, &keyframe.target)?;
+        let image_gradients = DeviceImageGradients::zeros(context, &keyframe.camera)?;
+        let frame =
+            self.renderer
+                .render_frame(context, map.gaussians(), &keyframe.camera, &self.raster)?;
+        if self.since_pair_check >= self.config.check_pairs_every {
+            self.since_pair_check = 0;
+            let usage = self.renderer.check_pairs(context, &frame)?;
+            if usage.overflowed() {
+                tracing::debug!(
+                    pairs = usage.pairs,
+                    capacity = usage.capacity,
+                    "pair buffers grown; skipping this iteration"
+                );
+                return Ok(());
+            }
+        }
+        self.since_pair_check += 1;
+        let loss = self.kernels.image_loss(
+            context,
+            &self.renderer,
+            &frame,
+            &target,
+            &self.weights,
+            &image_gradients,
+        )?;
+        let gradients = self
+            .renderer
+            .backward(context, map.gaussians(), &frame, &image_gradients)?;
+        map.adam_step(context, &self.kernels, &gradients)?;
+        self.stats.iterations += 1;
+        if self.stats.iterations.is_multiple_of(self.config.check_pairs_every) {
+            self.stats.last_loss = Some(loss.read(context)?);
+            tracing::debug!(
+                iterations = self.stats.iterations,
+                loss = ?self.stats.last_loss,
+                gaussians = map.len(),
+                "mapping"
+            );
+        } else {
+            context.wait_idle()?;
+        }
+        if self.stats.iterations.is_multiple_of(self.config.prune_every) {
+            let removed = map.prune(context, &self.prune_criteria)?.removed;
+            self.stats.pruned += removed;
+            if removed > 0 {
+                tracing::debug!(removed, remaining = map.len(), "pruned");
+            }
+        }
+        self.progress
+            .iterations
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        self.progress.gaussians.store(map.len(), Ordering::Relaxed);
+        Ok(())
+    }
+}
+
+/// Radius of the first keyframe's Gaussians around their centroid: the scene scale the mean
+/// learning rate is multiplied by (3DGS normalises by the camera extent; a single RGB-D view's
+/// extent is the natural stand-in before any camera has moved). At least 1 mm.
+fn scene_scale(first: &GaussianCloud) -> f64 {
+    const MIN_SCENE_SCALE_M: f64 = 1e-3;
+    if first.is_empty() {
+        return 1.0;
+    }
+    let count = first.len() as f64;
+    let centroid = first.means.iter().fold([0.0f64; 3], |acc, m| {
+        [
+            acc[0] + f64::from(m[0]) / count,
+            acc[1] + f64::from(m[1]) / count,
+            acc[2] + f64::from(m[2]) / count,
+        ]
+    });
+    first
+        .means
+        .iter()
+        .map(|m| {
+            (0..3)
+                .map(|k| (f64::from(m[k]) - centroid[k]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
+        .fold(MIN_SCENE_SCALE_M, f64::max)
+}
+
+/// The keyframe's camera and target at mapping resolution (`downscale` x smaller).
+fn keyframe_target(keyframe: &MappingKeyframe, downscale: u32) -> (Camera, TargetImage) {
+    let target = downscale_target(&keyframe.rgb, &keyframe.depth, downscale);
+    let intrinsics = keyframe.intrinsics.scaled(1.0 / f64::from(downscale));
+    let camera = Camera::from_world_from_camera(
+        rigid_from_isometry(&keyframe.world_from_camera),
+        [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy].map(|v| v as f32),
+        target.width,
+        target.height,
+    );
+    (camera, target)
+}
+
+/// Box-filters RGB (u8 -> [0, 1]) and depth by `factor`; a depth block averages its valid pixels
+/// and is invalid (0) when none is valid. Partial blocks at the right and bottom edges are
+/// dropped, matching [`Intrinsics::scaled`]'s rounding for sizes divisible by the factor.
+pub fn downscale_target(rgb: &RgbImage, depth: &DepthImage, factor: u32) -> TargetImage {
+    let factor = factor.max(1);
+    let width = rgb.width() / factor;
+    let height = rgb.height() / factor;
+    let mut colours = Vec::with_capacity((width * height) as usize);
+    let mut depths = Vec::with_capacity((width * height) as usize);
+    let block = f32::from(u16::try_from(factor * factor).unwrap_or(u16::MAX));
+    for y in 0..height {
+        for x in 0..width {
+            let mut sum = [0.0f32; 3];
+            let (mut depth_sum, mut depth_count) = (0.0f32, 0u32);
+            for dy in 0..factor {
+                for dx in 0..factor {
+                    let (px, py) = (x * factor + dx, y * factor + dy);
+                    let pixel = rgb.get_pixel(px, py).0;
+                    for c in 0..3 {
+                        sum[c] += f32::from(pixel[c]);
+                    }
+                    if px < depth.width && py < depth.height {
+                        let d = depth.get(px, py);
+                        if d > 0.0 {
+                            depth_sum += d;
+                            depth_count += 1;
+                        }
+                    }
+                }
+            }
+            colours.push(sum.map(|s| s / (255.0 * block)));
+            depths.push(if depth_count > 0 {
+                depth_sum / depth_count as f32
+            } else {
+                0.0
+            });
+        }
+    }
+    TargetImage {
+        width,
+        height,
+        rgb: colours,
+        depth: Some(depths),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn downscaling_averages_colour_and_valid_depth_only() {
+        let rgb = RgbImage::from_fn(4, 2, |x, _| image::Rgb([(x * 50) as u8, 0, 255]));
+        let mut depth = DepthImage::new(4, 2);
+        depth.data = vec![1.0, 0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0];
+        let target = downscale_target(&rgb, &depth, 2);
+        assert_eq!((target.width, target.height), (2, 1));
+        assert!((target.rgb[0][0] - 25.0 / 255.0).abs() < 1e-6);
+        assert!((target.rgb[1][2] - 1.0).abs() < 1e-6);
+        // Block 0 has valid depths 1 and 3; block 1 has none.
+        assert_eq!(target.depth.unwrap(), vec![2.0, 0.0]);
+    }
+
+    #[test]
+    fn scene_scale_is_the_radius_around_the_centroid() {
+        let mut cloud = GaussianCloud::default();
+        for x in [-1.0, 1.0] {
+            cloud.push([x, 0.0, 2.0], [0.0; 3], [1.0, 0.0, 0.0, 0.0], 0.0, [0.0; 3]);
+        }
+        assert!((scene_scale(&cloud) - 1.0).abs() < 1e-12);
+        assert_eq!(scene_scale(&GaussianCloud::default()), 1.0);
+    }
+}

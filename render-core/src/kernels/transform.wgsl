@@ -1,0 +1,49 @@
+// transform: applies the rigid transform p -> R p + t to every live Gaussian in place, one
+// invocation per Gaussian (256 per workgroup, linear workgroup id over a 2D grid).
+// mean <- R mean + t; quaternion <- q_R * q (Hamilton product, [w, x, y, z]), which
+// left-multiplies the Gaussian's rotation by R so its covariance becomes R Sigma R^T.
+// Log-scales, opacity and colour do not depend on the frame and stay as they are. q_R is the
+// unit quaternion of R, computed on the host, so |q| is preserved.
+// Invariant: only indices < count are read or written.
+
+struct TransformParams {
+    // Rows of R; w holds the translation component of that row.
+    row0: vec4<f32>,
+    row1: vec4<f32>,
+    row2: vec4<f32>,
+    // q_R as (w, x, y, z)
+    rotation_quaternion: vec4<f32>,
+    // gaussian count, unused, unused, unused
+    counts: vec4<u32>,
+}
+
+@group(0) @binding(0) var<uniform> transform_params: TransformParams;
+@group(0) @binding(1) var<storage, read_write> means: array<f32>;
+@group(0) @binding(2) var<storage, read_write> quaternions: array<vec4<f32>>;
+
+// Hamilton product a * b of quaternions stored as (w, x, y, z).
+fn quaternion_multiply(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
+    let a_vector = a.yzw;
+    let b_vector = b.yzw;
+    let w = a.x * b.x - dot(a_vector, b_vector);
+    let vector = a.x * b_vector + b.x * a_vector + cross(a_vector, b_vector);
+    return vec4<f32>(w, vector);
+}
+
+@compute @workgroup_size(256)
+fn main(
+    @builtin(workgroup_id) workgroup_id: vec3<u32>,
+    @builtin(num_workgroups) workgroup_count: vec3<u32>,
+    @builtin(local_invocation_index) local_index: u32,
+) {
+    let index = linear_workgroup(workgroup_id, workgroup_count) * 256u + local_index;
+    if index >= transform_params.counts.x {
+        return;
+    }
+    let mean = vec4<f32>(means[3u * index], means[3u * index + 1u], means[3u * index + 2u], 1.0);
+    means[3u * index] = dot(transform_params.row0, mean);
+    means[3u * index + 1u] = dot(transform_params.row1, mean);
+    means[3u * index + 2u] = dot(transform_params.row2, mean);
+    quaternions[index] = quaternion_multiply(
+        transform_params.rotation_quaternion, quaternions[index]);
+}
