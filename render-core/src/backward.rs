@@ -1,18 +1,29 @@
 //! The wgpu backward pass: per-Gaussian gradients and the camera-pose gradient of a scalar
 //! loss, given dL/d(image) on the device.
 //!
-//! rasterize_backward accumulates screen-space gradients per Gaussian with atomics (native
-//! f32 atomics or a compare-exchange fallback, see [`crate::gpu::GradientAtomics`]); project_backward
-//! chains them to the parameters and writes one pose contribution per Gaussian, which reduce
-//! sums deterministically. Nothing is read back unless the caller downloads.
+//! rasterize_backward (rasterize_backward_pixels.wgsl + rasterize_backward_subgroup.wgsl, or
+//! rasterize_backward.wgsl without subgroups) accumulates screen-space gradients per Gaussian
+//! with atomics (native f32 atomics or a compare-exchange fallback, see
+//! [`crate::gpu::GradientAtomics`]): one add per component and subgroup (per invocation
+//! without subgroups) after summing over its pixels. project_backward chains them to the
+//! parameters, 16 Gaussians per invocation, and writes one pose contribution per 16
+//! Gaussians, which reduce sums deterministically. Nothing is read back unless the caller
+//! downloads.
 
 use crate::context::{GpuContext, GpuError};
 use crate::gpu::{
-    DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, U32_BYTES, VEC4_BYTES, WORKGROUP_SIZE,
-    bind_group, dispatch_linear, four_u32,
+    DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, StageProfiler, StageTimes, U32_BYTES,
+    VEC4_BYTES, bind_group, dispatch_linear, four_u32,
 };
 use crate::types::{Camera, GaussianGradients, ImageGradients, PoseGradient};
 
+/// Gaussians per invocation of project_backward.wgsl (GAUSSIANS_PER_INVOCATION there) and
+/// its workgroup size.
+const PROJECT_BACKWARD_CHUNK: u32 = 16;
+const PROJECT_BACKWARD_WORKGROUP_SIZE: u32 = 64;
+/// Elements each invocation of reduce.wgsl sums (CHUNK there) and its workgroup size.
+const REDUCE_CHUNK: u32 = 64;
+const REDUCE_WORKGROUP_SIZE: u32 = 64;
 /// Floats of screen-space gradient per Gaussian (mean2d 2, conic 3, opacity, colour 3, depth).
 const SCREEN_GRADIENT_STRIDE: u64 = 10;
 
@@ -120,6 +131,20 @@ impl GpuRenderer {
         frame: &DeviceFrame,
         image_gradients: &DeviceImageGradients,
     ) -> Result<DeviceGradients, GpuError> {
+        self.backward_profiled(context, gaussians, frame, image_gradients, None)
+    }
+
+    /// [`GpuRenderer::backward`], optionally timing each stage (each stage is then submitted
+    /// and waited for on its own: a benchmark tool).
+    pub fn backward_profiled(
+        &self,
+        context: &GpuContext,
+        gaussians: &DeviceGaussians,
+        frame: &DeviceFrame,
+        image_gradients: &DeviceImageGradients,
+        stage_times: Option<&mut StageTimes>,
+    ) -> Result<DeviceGradients, GpuError> {
+        let mut profiler = StageProfiler::new(context, stage_times)?;
         if gaussians.layout != frame.gaussian_layout {
             return Err(GpuError::InvalidInput(
                 "the frame was rendered before the Gaussians were appended to, pruned or \
@@ -160,8 +185,12 @@ impl GpuRenderer {
             "screen_gradients",
             count * SCREEN_GRADIENT_STRIDE * U32_BYTES,
         )?;
-        let pose_translation = context.storage_buffer("pose_translation", count * VEC4_BYTES)?;
-        let pose_rotation = context.storage_buffer("pose_rotation", count * VEC4_BYTES)?;
+        // One pose contribution per chunk of project_backward.
+        let pose_chunks = n.div_ceil(PROJECT_BACKWARD_CHUNK);
+        let pose_translation =
+            context.storage_buffer("pose_translation", u64::from(pose_chunks) * VEC4_BYTES)?;
+        let pose_rotation =
+            context.storage_buffer("pose_rotation", u64::from(pose_chunks) * VEC4_BYTES)?;
         let p = &self.pipelines;
         let mut encoder = context.device.create_command_encoder(&Default::default());
         let raster_group = bind_group(
@@ -188,6 +217,7 @@ impl GpuRenderer {
             pass.set_bind_group(0, &raster_group, &[]);
             pass.dispatch_workgroups(tiles_x, tiles_y, 1);
         }
+        profiler.mark(context, &mut encoder, "rasterize backward")?;
         let project_group = bind_group(
             context,
             &p.project_backward,
@@ -212,12 +242,15 @@ impl GpuRenderer {
             &mut encoder,
             &p.project_backward,
             &project_group,
-            n.div_ceil(WORKGROUP_SIZE),
+            pose_chunks.div_ceil(PROJECT_BACKWARD_WORKGROUP_SIZE),
         );
-        let translation_sum = self.reduce_vec4(context, &mut encoder, pose_translation, n)?;
-        let rotation_sum = self.reduce_vec4(context, &mut encoder, pose_rotation, n)?;
+        profiler.mark(context, &mut encoder, "project backward")?;
+        let translation_sum =
+            self.reduce_vec4(context, &mut encoder, pose_translation, pose_chunks)?;
+        let rotation_sum = self.reduce_vec4(context, &mut encoder, pose_rotation, pose_chunks)?;
         encoder.copy_buffer_to_buffer(&translation_sum, 0, &gradients.v_pose, 0, VEC4_BYTES);
         encoder.copy_buffer_to_buffer(&rotation_sum, 0, &gradients.v_pose, VEC4_BYTES, VEC4_BYTES);
+        profiler.mark(context, &mut encoder, "pose sum")?;
         context.queue.submit([encoder.finish()]);
         Ok(gradients)
     }
@@ -233,18 +266,23 @@ impl GpuRenderer {
         let mut current = input;
         let mut remaining = count;
         while remaining > 1 {
-            let blocks = remaining.div_ceil(WORKGROUP_SIZE);
+            let chunks = remaining.div_ceil(REDUCE_CHUNK);
             let output =
-                context.storage_buffer("reduce partial sums", u64::from(blocks) * VEC4_BYTES)?;
+                context.storage_buffer("reduce partial sums", u64::from(chunks) * VEC4_BYTES)?;
             let params = context.uniform_buffer("reduce params", &four_u32([remaining, 0, 0, 0]));
             let group = bind_group(
                 context,
                 &self.pipelines.reduce,
                 &[(0, &params), (1, &current), (2, &output)],
             );
-            dispatch_linear(encoder, &self.pipelines.reduce, &group, blocks);
+            dispatch_linear(
+                encoder,
+                &self.pipelines.reduce,
+                &group,
+                chunks.div_ceil(REDUCE_WORKGROUP_SIZE),
+            );
             current = output;
-            remaining = blocks;
+            remaining = chunks;
         }
         Ok(current)
     }

@@ -101,6 +101,9 @@ pub struct BenchCase {
     /// Forward stages, each submitted and waited for separately (sums exceed `forward_ms`
     /// by the extra synchronisation).
     pub stages: StageTimes,
+    /// Stages of the optimisation iteration (forward, loss, backward stages, Adam), each
+    /// submitted and waited for separately; empty when the iteration is not measured.
+    pub iteration_stages: StageTimes,
 }
 
 /// The benchmark camera: `width x height`, principal point at the image centre, at the
@@ -283,7 +286,7 @@ pub fn run_case(
     }
     let stages = StageTimes::median_of(&stage_runs);
 
-    let (forward_backward_ms, iteration_ms) = if config.iteration {
+    let (forward_backward_ms, iteration_ms, iteration_stages) = if config.iteration {
         let target = DeviceTarget::upload(context, &target_image(&camera))?;
         let image_gradients = DeviceImageGradients::zeros(context, &camera)?;
         let weights = LossWeights::default();
@@ -316,9 +319,50 @@ pub fn run_case(
             let gradients = renderer.backward(context, &gaussians, &frame, &image_gradients)?;
             kernels.adam_step(context, &mut adam, &gaussians, &gradients)
         })?;
-        (Some(forward_backward_ms), Some(iteration_ms))
+        let mut runs = Vec::with_capacity(repeats);
+        for _ in 0..repeats.max(1) {
+            let mut times = StageTimes::default();
+            context.wait_idle()?;
+            let mut mark = Instant::now();
+            let mut lap = |times: &mut StageTimes, name: &'static str| -> Result<(), GpuError> {
+                context.wait_idle()?;
+                let now = Instant::now();
+                times.0.push((name, (now - mark).as_secs_f64() * 1e3));
+                mark = now;
+                Ok(())
+            };
+            let frame = renderer.render_frame(context, &gaussians, &camera, &raster)?;
+            lap(&mut times, "forward")?;
+            kernels.image_loss(
+                context,
+                renderer,
+                &frame,
+                &target,
+                &weights,
+                &image_gradients,
+            )?;
+            lap(&mut times, "loss")?;
+            let mut backward_times = StageTimes::default();
+            let gradients = renderer.backward_profiled(
+                context,
+                &gaussians,
+                &frame,
+                &image_gradients,
+                Some(&mut backward_times),
+            )?;
+            lap(&mut StageTimes::default(), "backward")?;
+            times.0.extend(backward_times.0);
+            kernels.adam_step(context, &mut adam, &gaussians, &gradients)?;
+            lap(&mut times, "adam")?;
+            runs.push(times);
+        }
+        (
+            Some(forward_backward_ms),
+            Some(iteration_ms),
+            StageTimes::median_of(&runs),
+        )
     } else {
-        (None, None)
+        (None, None, StageTimes::default())
     };
 
     let sort_ms = time_sort(context, renderer, gaussian_count, config)?;
@@ -332,6 +376,7 @@ pub fn run_case(
         iteration_ms,
         sort_ms,
         stages,
+        iteration_stages,
     })
 }
 

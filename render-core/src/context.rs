@@ -35,7 +35,8 @@ pub struct GpuContext {
     pub limits: wgpu::Limits,
     /// `SHADER_FLOAT32_ATOMIC` is enabled on the device.
     pub has_float_atomics: bool,
-    /// The adapter supports subgroup operations (reported only: no kernel requires them).
+    /// `SUBGROUP` is enabled on the device: the rasterizers use subgroup operations (every
+    /// kernel has a variant without them, see [`crate::gpu::Subgroups`]).
     pub has_subgroups: bool,
     /// Kernels of the map edits (prune, compaction, rigid transform), compiled on first use
     /// so that the edit methods need no kernel object from the caller.
@@ -70,6 +71,9 @@ impl GpuContext {
         let mut required_features = wgpu::Features::empty();
         if has_float_atomics {
             required_features |= wgpu::Features::SHADER_FLOAT32_ATOMIC;
+        }
+        if has_subgroups {
+            required_features |= wgpu::Features::SUBGROUP;
         }
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {

@@ -1,4 +1,24 @@
-//! The wgpu forward renderer: project -> depth sort -> tile binning -> tile sort -> rasterize.
+//! The wgpu forward renderer: project -> depth sort -> pair binning -> rasterize.
+//!
+//! - project (project.wgsl): per Gaussian its splat (mean, conic, opacity, depth), its tile
+//!   rectangle and, for rectangles of up to 32 tiles, the mask of tiles its visible ellipse
+//!   reaches; depth keys.
+//! - depth sort (sort.wgsl, scan.wgsl): stable LSD radix sort of the depth keys, 8-bit digits,
+//!   one invocation walking a block of keys serially.
+//! - pair binning (bin.wgsl): the depth-ordered Gaussians are cut into blocks; a (tile, block)
+//!   counter table is filled by one serial walk per block, exclusive-scanned, and a second
+//!   walk writes every Gaussian into its tiles' lists. Each tile's list comes out in depth
+//!   order without sorting the pairs.
+//! - rasterize (rasterize_pixels.wgsl + rasterize_subgroup.wgsl, or rasterize.wgsl without
+//!   subgroups, see [`Subgroups`]): one workgroup of 16 invocations per 16x16 tile, 16 pixels
+//!   per invocation.
+//!
+//! Why the kernels look the way they do: on CPU adapters (lavapipe, the target of this crate
+//! in CI and on GPU-less machines) every load or store of a non-uniform address is a
+//! per-lane scalar loop costing as much as dozens of arithmetic operations, while workgroup
+//! barriers and cross-invocation cooperation are expensive. So kernels walk blocks serially
+//! per invocation (sort, scan, binning, reductions) and the rasterizers share splat loads
+//! between lanes with subgroup shuffles and between 16 pixels per invocation.
 //!
 //! Nothing is read back to the host inside [`GpuRenderer::render_frame`]. The number of
 //! tile/Gaussian pairs is only known on the device, so the binning buffers are allocated with
@@ -25,16 +45,30 @@ use bytemuck::{Pod, Zeroable};
 use crate::context::{GpuContext, GpuError};
 use crate::types::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput, constants};
 
-/// Invocations per workgroup of the 1D kernels (project, scan, bin, reduce; the radix sort
-/// uses its own blocks of SORT_BLOCK_SIZE keys).
+/// Invocations per workgroup of the 1D kernels (project, gather, tile ranges, reduce).
 pub(crate) const WORKGROUP_SIZE: u32 = 256;
+/// Invocations per workgroup of the kernels where one invocation walks a block or chunk
+/// serially (scan, radix sort, pair binning; WORKGROUP_SIZE / BLOCK_WORKGROUP_SIZE in their
+/// kernels).
+const SERIAL_WORKGROUP_SIZE: u32 = 64;
+/// Values per invocation of the prefix scan (CHUNK in scan.wgsl).
+const SCAN_CHUNK: u32 = 256;
 /// WebGPU's limit on workgroups per dispatch dimension; larger 1D grids spill into y.
 const MAX_WORKGROUPS_PER_DIMENSION: u32 = 65_535;
 /// Digit width of the radix sort (must match RADIX_BITS in sort.wgsl).
-const RADIX_BITS: u32 = 4;
+const RADIX_BITS: u32 = 8;
 const RADIX: u32 = 1 << RADIX_BITS;
-/// Keys per radix-sort workgroup (must match BLOCK_SIZE in sort.wgsl).
-const SORT_BLOCK_SIZE: u32 = 1024;
+/// Keys per radix-sort invocation: between these bounds, aiming at SORT_BLOCKS_TARGET blocks
+/// (enough invocations to keep every CPU thread busy, few enough that the digit table,
+/// RADIX entries per block, stays small next to the keys).
+const MIN_SORT_BLOCK_SIZE: u32 = 64;
+const MAX_SORT_BLOCK_SIZE: u32 = 1024;
+const SORT_BLOCKS_TARGET: u32 = 256;
+/// Pair-binning table entries per Gaussian the block size aims at (one (tile, block) counter
+/// per entry; the binning walks each block serially, so larger blocks mean a smaller table but
+/// fewer invocations).
+const BIN_TABLE_ENTRIES_PER_GAUSSIAN: u32 = 1;
+const MIN_BIN_BLOCK_SIZE: u32 = 32;
 /// Depth keys are full f32 bit patterns.
 const DEPTH_KEY_BITS: u32 = 32;
 pub(crate) const U32_BYTES: u64 = 4;
@@ -49,7 +83,9 @@ const PROJECT_WGSL: &str = include_str!("kernels/project.wgsl");
 pub(crate) const SCAN_WGSL: &str = include_str!("kernels/scan.wgsl");
 const SORT_WGSL: &str = include_str!("kernels/sort.wgsl");
 const BIN_WGSL: &str = include_str!("kernels/bin.wgsl");
+const RASTERIZE_PIXELS_WGSL: &str = include_str!("kernels/rasterize_pixels.wgsl");
 const RASTERIZE_WGSL: &str = include_str!("kernels/rasterize.wgsl");
+const RASTERIZE_SUBGROUP_WGSL: &str = include_str!("kernels/rasterize_subgroup.wgsl");
 
 /// Mirrors `RenderParams` in common.wgsl.
 #[repr(C)]
@@ -152,13 +188,16 @@ impl StageTimes {
 
 /// Splits a frame into separately submitted and waited-for stages when profiling; a no-op
 /// otherwise (then the stages share command encoders as usual).
-struct StageProfiler<'a> {
+pub(crate) struct StageProfiler<'a> {
     times: Option<&'a mut StageTimes>,
     last_mark: std::time::Instant,
 }
 
 impl<'a> StageProfiler<'a> {
-    fn new(context: &GpuContext, times: Option<&'a mut StageTimes>) -> Result<Self, GpuError> {
+    pub(crate) fn new(
+        context: &GpuContext,
+        times: Option<&'a mut StageTimes>,
+    ) -> Result<Self, GpuError> {
         if times.is_some() {
             context.wait_idle()?;
         }
@@ -170,7 +209,7 @@ impl<'a> StageProfiler<'a> {
 
     /// Ends stage `name`: when profiling, submits `encoder`, waits for the device and records
     /// the elapsed time, leaving a fresh encoder in place.
-    fn mark(
+    pub(crate) fn mark(
         &mut self,
         context: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
@@ -410,16 +449,42 @@ pub(crate) struct Pipelines {
     pub(crate) scan_blocks: wgpu::ComputePipeline,
     pub(crate) scan_add: wgpu::ComputePipeline,
     pub(crate) sort_histogram: wgpu::ComputePipeline,
-    pub(crate) sort_scan: wgpu::ComputePipeline,
     pub(crate) sort_scatter: wgpu::ComputePipeline,
     pub(crate) gather_counts: wgpu::ComputePipeline,
     pub(crate) pair_status: wgpu::ComputePipeline,
-    pub(crate) emit: wgpu::ComputePipeline,
+    pub(crate) count_pairs: wgpu::ComputePipeline,
+    pub(crate) emit_pairs: wgpu::ComputePipeline,
     pub(crate) tile_ranges: wgpu::ComputePipeline,
     pub(crate) rasterize: wgpu::ComputePipeline,
     pub(crate) rasterize_backward: wgpu::ComputePipeline,
     pub(crate) project_backward: wgpu::ComputePipeline,
     pub(crate) reduce: wgpu::ComputePipeline,
+}
+
+/// Whether the rasterizers use subgroup operations.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Subgroups {
+    /// Subgroup kernels when the device has them (`GpuContext::has_subgroups`), workgroup
+    /// memory otherwise.
+    Auto,
+    /// Always the workgroup-memory kernels (the path for adapters without subgroups).
+    Never,
+}
+
+/// Kernel choices of a [`GpuRenderer`]; [`Default`] picks the fastest the device supports.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RendererOptions {
+    pub atomics: GradientAtomics,
+    pub subgroups: Subgroups,
+}
+
+impl Default for RendererOptions {
+    fn default() -> Self {
+        Self {
+            atomics: GradientAtomics::Auto,
+            subgroups: Subgroups::Auto,
+        }
+    }
 }
 
 /// How the backward pass accumulates per-Gaussian gradients across pixels.
@@ -507,21 +572,55 @@ pub(crate) fn inclusive_scan(
     values: &wgpu::Buffer,
     count: u32,
 ) -> Result<(), GpuError> {
+    prefix_scan(context, encoder, pipelines, values, count, false)
+}
+
+/// Encodes an in-place prefix sum (inclusive, or exclusive: entry i = sum of entries < i) of
+/// the first `count` u32 of `values` (scan.wgsl: chunk sums, their inclusive scan by
+/// recursion, then a serial rescan of every chunk from its offset).
+pub(crate) fn prefix_scan(
+    context: &GpuContext,
+    encoder: &mut wgpu::CommandEncoder,
+    pipelines: ScanPipelines,
+    values: &wgpu::Buffer,
+    count: u32,
+    exclusive: bool,
+) -> Result<(), GpuError> {
     if count == 0 {
         return Ok(());
     }
-    let blocks = count.div_ceil(WORKGROUP_SIZE);
-    let block_sums = context.storage_buffer("scan block sums", u64::from(blocks) * U32_BYTES)?;
-    let params = context.uniform_buffer("scan params", &four_u32([count, 0, 0, 0]));
+    let chunks = count.div_ceil(SCAN_CHUNK);
+    let workgroups = chunks.div_ceil(SERIAL_WORKGROUP_SIZE);
+    let block_sums = context.storage_buffer("scan block sums", u64::from(chunks) * U32_BYTES)?;
+    let params = context.uniform_buffer(
+        "scan params",
+        &four_u32([count, u32::from(exclusive), 0, 0]),
+    );
     let entries = [(0, &params), (1, values), (2, &block_sums)];
-    let group = bind_group(context, pipelines.blocks, &entries);
-    dispatch_linear(encoder, pipelines.blocks, &group, blocks);
-    if blocks > 1 {
-        inclusive_scan(context, encoder, pipelines, &block_sums, blocks)?;
-        let group = bind_group(context, pipelines.add_offsets, &entries);
-        dispatch_linear(encoder, pipelines.add_offsets, &group, blocks);
+    if chunks > 1 {
+        let group = bind_group(context, pipelines.blocks, &entries);
+        dispatch_linear(encoder, pipelines.blocks, &group, workgroups);
+        prefix_scan(context, encoder, pipelines, &block_sums, chunks, false)?;
     }
+    let group = bind_group(context, pipelines.add_offsets, &entries);
+    dispatch_linear(encoder, pipelines.add_offsets, &group, workgroups);
     Ok(())
+}
+
+/// Block size and block count of the pair binning (bin.wgsl) for `gaussian_count`
+/// Gaussians and `tile_count` tiles: the (tile, block) table aims at
+/// BIN_TABLE_ENTRIES_PER_GAUSSIAN entries per Gaussian and always fits one binding.
+fn bin_blocks(context: &GpuContext, gaussian_count: u32, tile_count: u32) -> (u32, u32) {
+    let max_entries = context.max_storage_binding_bytes() / U32_BYTES;
+    let mut block_size = tile_count
+        .div_ceil(BIN_TABLE_ENTRIES_PER_GAUSSIAN)
+        .max(MIN_BIN_BLOCK_SIZE);
+    while u64::from(tile_count) * u64::from(gaussian_count.div_ceil(block_size).max(1))
+        > max_entries
+    {
+        block_size *= 2;
+    }
+    (block_size, gaussian_count.div_ceil(block_size).max(1))
 }
 
 /// A storage buffer holding one host-known element count (for kernels that read their count
@@ -541,9 +640,14 @@ pub struct GpuRenderer {
     pair_capacity_hint: AtomicU64,
     /// True when the backward pass uses native float atomics.
     pub uses_float_atomics: bool,
+    /// True when the rasterizers use subgroup operations.
+    pub uses_subgroups: bool,
 }
 
+const RASTERIZE_BACKWARD_PIXELS_WGSL: &str = include_str!("kernels/rasterize_backward_pixels.wgsl");
 const RASTERIZE_BACKWARD_WGSL: &str = include_str!("kernels/rasterize_backward.wgsl");
+const RASTERIZE_BACKWARD_SUBGROUP_WGSL: &str =
+    include_str!("kernels/rasterize_backward_subgroup.wgsl");
 const ATOMICS_FLOAT_WGSL: &str = include_str!("kernels/atomics_float.wgsl");
 const ATOMICS_CAS_WGSL: &str = include_str!("kernels/atomics_cas.wgsl");
 const PROJECT_BACKWARD_WGSL: &str = include_str!("kernels/project_backward.wgsl");
@@ -557,16 +661,34 @@ impl GpuRenderer {
     }
 
     pub fn with_atomics(context: &GpuContext, atomics: GradientAtomics) -> Self {
+        Self::with_options(
+            context,
+            RendererOptions {
+                atomics,
+                ..RendererOptions::default()
+            },
+        )
+    }
+
+    pub fn with_options(context: &GpuContext, options: RendererOptions) -> Self {
         let device = &context.device;
-        let uses_float_atomics = atomics == GradientAtomics::Auto && context.has_float_atomics;
+        let uses_float_atomics =
+            options.atomics == GradientAtomics::Auto && context.has_float_atomics;
+        let uses_subgroups = options.subgroups == Subgroups::Auto && context.has_subgroups;
         let atomics_source = if uses_float_atomics {
             ATOMICS_FLOAT_WGSL
         } else {
             ATOMICS_CAS_WGSL
         };
+        let (rasterize_main, rasterize_backward_main) = if uses_subgroups {
+            (RASTERIZE_SUBGROUP_WGSL, RASTERIZE_BACKWARD_SUBGROUP_WGSL)
+        } else {
+            (RASTERIZE_WGSL, RASTERIZE_BACKWARD_WGSL)
+        };
+        let rasterize_source = format!("{COMMON_WGSL}\n{RASTERIZE_PIXELS_WGSL}\n{rasterize_main}");
         let rasterize_backward_source = format!(
-            "{COMMON_WGSL}\n{}",
-            RASTERIZE_BACKWARD_WGSL
+            "{COMMON_WGSL}\n{}\n{rasterize_backward_main}",
+            RASTERIZE_BACKWARD_PIXELS_WGSL
                 .replace(GRADIENT_ATOMICS_MARKER, &format!("\n{atomics_source}\n"))
         );
         let with_common = |source: &str| format!("{COMMON_WGSL}\n{source}");
@@ -575,18 +697,18 @@ impl GpuRenderer {
             scan_blocks: compute_pipeline(device, "scan_blocks", SCAN_WGSL, "scan_blocks"),
             scan_add: compute_pipeline(device, "scan_add", SCAN_WGSL, "add_block_offsets"),
             sort_histogram: compute_pipeline(device, "sort_histogram", SORT_WGSL, "histogram"),
-            sort_scan: compute_pipeline(device, "sort_scan", SORT_WGSL, "scan_histograms"),
             sort_scatter: compute_pipeline(device, "sort_scatter", SORT_WGSL, "scatter"),
             gather_counts: compute_pipeline(device, "gather_counts", BIN_WGSL, "gather_counts"),
             pair_status: compute_pipeline(device, "pair_status", BIN_WGSL, "pair_status_from_scan"),
-            emit: compute_pipeline(device, "emit", BIN_WGSL, "emit"),
+            count_pairs: compute_pipeline(device, "count_pairs", BIN_WGSL, "count_pairs"),
+            emit_pairs: compute_pipeline(device, "emit_pairs", BIN_WGSL, "emit_pairs"),
             tile_ranges: compute_pipeline(
                 device,
                 "tile_ranges",
                 BIN_WGSL,
-                "tile_ranges_from_sorted",
+                "tile_ranges_from_table",
             ),
-            rasterize: compute_pipeline(device, "rasterize", &with_common(RASTERIZE_WGSL), "main"),
+            rasterize: compute_pipeline(device, "rasterize", &rasterize_source, "main"),
             rasterize_backward: compute_pipeline(
                 device,
                 "rasterize_backward",
@@ -605,6 +727,7 @@ impl GpuRenderer {
             pipelines,
             pair_capacity_hint: AtomicU64::new(0),
             uses_float_atomics,
+            uses_subgroups,
         }
     }
 
@@ -748,17 +871,15 @@ impl GpuRenderer {
         // the module documentation for the overflow invariant).
         let pair_capacity = self.pair_capacity_for(context, n);
         let pair_bytes = u64::from(pair_capacity) * U32_BYTES;
-        let intersection_tiles = [
-            context.storage_buffer("intersection_tiles", pair_bytes)?,
-            context.storage_buffer("intersection_tiles_scratch", pair_bytes)?,
-        ];
-        let intersection_gaussians = [
-            context.storage_buffer("intersection_gaussians", pair_bytes)?,
-            context.storage_buffer("intersection_gaussians_scratch", pair_bytes)?,
-        ];
+        let intersection_gaussians =
+            context.storage_buffer("intersection_gaussians", pair_bytes)?;
+        let (bin_block_size, bin_blocks) = bin_blocks(context, n, tile_count);
+        let bin_table_entries = u64::from(tile_count) * u64::from(bin_blocks);
+        let bin_table = context.storage_buffer("bin table", bin_table_entries * U32_BYTES)?;
         // [pairs kept, pairs needed]; zero-filled, which is right for an empty scene.
         let pair_status = context.storage_buffer("pair_status", VEC4_BYTES)?;
-        // Fresh wgpu buffers are zero-filled, so tiles without splats read as [0, 0).
+        // Fresh wgpu buffers are zero-filled, so tiles read as [0, 0) when there is nothing
+        // to bin.
         let tile_ranges =
             context.storage_buffer("tile_ranges", u64::from(tile_count) * 2 * U32_BYTES)?;
         let rgbd = context.storage_buffer("rgbd", pixels * VEC4_BYTES)?;
@@ -769,7 +890,19 @@ impl GpuRenderer {
         let mut encoder = context.device.create_command_encoder(&Default::default());
         let p = &self.pipelines;
         let mut sorted_gaussians = &depth_values[0];
-        let bin_params = context.uniform_buffer("bin params", &four_u32([n, 0, tiles_x, 0]));
+        let bin_params = context.uniform_buffer(
+            "bin params",
+            bytemuck::cast_slice(&[
+                n,
+                pair_capacity,
+                tiles_x,
+                tile_count,
+                bin_block_size,
+                bin_blocks,
+                0,
+                0,
+            ]),
+        );
         if n > 0 {
             let project_group = bind_group(
                 context,
@@ -827,10 +960,7 @@ impl GpuRenderer {
             self.inclusive_scan(context, &mut encoder, &sorted_tile_counts, n)?;
             profiler.mark(context, &mut encoder, "tile count scan")?;
         }
-        let mut current = 0;
         if n > 0 {
-            let bin_params =
-                context.uniform_buffer("bin params", &four_u32([n, pair_capacity, tiles_x, 0]));
             let status_group = bind_group(
                 context,
                 &p.pair_status,
@@ -841,60 +971,43 @@ impl GpuRenderer {
                 ],
             );
             dispatch_linear(&mut encoder, &p.pair_status, &status_group, 1);
-            let emit_group = bind_group(
-                context,
-                &p.emit,
-                &[
-                    (0, &bin_params),
-                    (1, sorted_gaussians),
-                    (2, &tile_counts),
-                    (3, &sorted_tile_counts),
-                    (4, &tile_rects),
-                    (5, &intersection_tiles[0]),
-                    (6, &intersection_gaussians[0]),
-                ],
-            );
-            dispatch_linear(
-                &mut encoder,
-                &p.emit,
-                &emit_group,
-                n.div_ceil(WORKGROUP_SIZE),
-            );
-            profiler.mark(context, &mut encoder, "pair count + emit pairs")?;
-            let tile_id_bits = u32::BITS - (tile_count - 1).leading_zeros();
-            // The pair count stays on the device: pair_status[0] drives the sort and ranges.
-            current = self.radix_sort(
+            let walk_entries = [
+                (0, &bin_params),
+                (1, sorted_gaussians),
+                (2, &tile_counts),
+                (3, &sorted_tile_counts),
+                (4, &tile_rects),
+                (5, &bin_table),
+                (6, &intersection_gaussians),
+            ];
+            let bin_workgroups = bin_blocks.div_ceil(SERIAL_WORKGROUP_SIZE);
+            encoder.clear_buffer(&bin_table, 0, None);
+            let count_group = bind_group(context, &p.count_pairs, &walk_entries);
+            dispatch_linear(&mut encoder, &p.count_pairs, &count_group, bin_workgroups);
+            prefix_scan(
                 context,
                 &mut encoder,
-                [&intersection_tiles[0], &intersection_tiles[1]],
-                [&intersection_gaussians[0], &intersection_gaussians[1]],
-                &pair_status,
-                pair_capacity,
-                tile_id_bits,
+                self.scan_pipelines(),
+                &bin_table,
+                tile_count * bin_blocks,
+                true,
             )?;
+            let emit_group = bind_group(context, &p.emit_pairs, &walk_entries);
+            dispatch_linear(&mut encoder, &p.emit_pairs, &emit_group, bin_workgroups);
+            profiler.mark(context, &mut encoder, "bin pairs")?;
             let ranges_group = bind_group(
                 context,
                 &p.tile_ranges,
-                &[
-                    (7, &intersection_tiles[current]),
-                    (8, &tile_ranges),
-                    (9, &pair_status),
-                ],
+                &[(0, &bin_params), (5, &bin_table), (8, &tile_ranges)],
             );
             dispatch_linear(
                 &mut encoder,
                 &p.tile_ranges,
                 &ranges_group,
-                pair_capacity.div_ceil(WORKGROUP_SIZE),
+                tile_count.div_ceil(WORKGROUP_SIZE),
             );
-            profiler.mark(context, &mut encoder, "tile sort + ranges")?;
+            profiler.mark(context, &mut encoder, "tile ranges")?;
         }
-        let [intersection_gaussians_a, intersection_gaussians_b] = intersection_gaussians;
-        let intersection_gaussians = if current == 0 {
-            intersection_gaussians_a
-        } else {
-            intersection_gaussians_b
-        };
         let raster_group = bind_group(
             context,
             &p.rasterize,
@@ -938,6 +1051,13 @@ impl GpuRenderer {
         })
     }
 
+    fn scan_pipelines(&self) -> ScanPipelines<'_> {
+        ScanPipelines {
+            blocks: &self.pipelines.scan_blocks,
+            add_offsets: &self.pipelines.scan_add,
+        }
+    }
+
     /// In-place inclusive prefix sum of the first `count` u32 of `values`.
     fn inclusive_scan(
         &self,
@@ -946,17 +1066,13 @@ impl GpuRenderer {
         values: &wgpu::Buffer,
         count: u32,
     ) -> Result<(), GpuError> {
-        let pipelines = ScanPipelines {
-            blocks: &self.pipelines.scan_blocks,
-            add_offsets: &self.pipelines.scan_add,
-        };
-        inclusive_scan(context, encoder, pipelines, values, count)
+        inclusive_scan(context, encoder, self.scan_pipelines(), values, count)
     }
 
     /// Stable LSD radix sort of (key, value) pairs on the low `key_bits` bits, ping-ponging
     /// between the two buffers of each pair. The number of pairs is read on the device from
     /// `count_buffer[0]` (so it may come from an earlier kernel) and must not exceed
-    /// `max_count`, which sizes the dispatches and the histogram table. Returns which buffer
+    /// `max_count`, which sizes the dispatches and the digit table. Returns which buffer
     /// (0 or 1) holds the sorted result.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn radix_sort(
@@ -969,29 +1085,29 @@ impl GpuRenderer {
         max_count: u32,
         key_bits: u32,
     ) -> Result<usize, GpuError> {
-        let max_blocks = max_count.div_ceil(SORT_BLOCK_SIZE);
-        let table_entries = RADIX * max_blocks;
-        let histograms =
-            context.storage_buffer("sort histograms", u64::from(table_entries) * U32_BYTES)?;
-        let scan_group = bind_group(
-            context,
-            &self.pipelines.sort_scan,
-            &[(3, &histograms), (6, count_buffer)],
-        );
+        let block_size = max_count
+            .div_ceil(SORT_BLOCKS_TARGET)
+            .clamp(MIN_SORT_BLOCK_SIZE, MAX_SORT_BLOCK_SIZE);
+        let block_count = max_count.div_ceil(block_size).max(1);
+        let table_entries = RADIX * block_count;
+        let table = context.storage_buffer("sort table", u64::from(table_entries) * U32_BYTES)?;
+        let workgroups = block_count.div_ceil(SERIAL_WORKGROUP_SIZE);
         let mut current = 0;
         for pass in 0..key_bits.div_ceil(RADIX_BITS) {
             let shift = pass * RADIX_BITS;
             let digit_bits = RADIX_BITS.min(key_bits - shift);
             let digit_mask = (1 << digit_bits) - 1;
-            let params =
-                context.uniform_buffer("sort params", &four_u32([shift, digit_mask, 0, 0]));
+            let params = context.uniform_buffer(
+                "sort params",
+                &four_u32([shift, digit_mask, block_size, block_count]),
+            );
             let histogram_group = bind_group(
                 context,
                 &self.pipelines.sort_histogram,
                 &[
                     (0, &params),
                     (1, keys[current]),
-                    (3, &histograms),
+                    (3, &table),
                     (6, count_buffer),
                 ],
             );
@@ -999,9 +1115,16 @@ impl GpuRenderer {
                 encoder,
                 &self.pipelines.sort_histogram,
                 &histogram_group,
-                max_blocks,
+                workgroups,
             );
-            dispatch_linear(encoder, &self.pipelines.sort_scan, &scan_group, 1);
+            prefix_scan(
+                context,
+                encoder,
+                self.scan_pipelines(),
+                &table,
+                table_entries,
+                true,
+            )?;
             let scatter_group = bind_group(
                 context,
                 &self.pipelines.sort_scatter,
@@ -1009,7 +1132,7 @@ impl GpuRenderer {
                     (0, &params),
                     (1, keys[current]),
                     (2, values[current]),
-                    (3, &histograms),
+                    (3, &table),
                     (4, keys[1 - current]),
                     (5, values[1 - current]),
                     (6, count_buffer),
@@ -1019,7 +1142,7 @@ impl GpuRenderer {
                 encoder,
                 &self.pipelines.sort_scatter,
                 &scatter_group,
-                max_blocks,
+                workgroups,
             );
             current = 1 - current;
         }

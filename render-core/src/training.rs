@@ -24,9 +24,12 @@ pub const SSIM_WINDOW_SIGMA: f64 = 1.5;
 pub const SSIM_C1: f64 = 0.0001;
 pub const SSIM_C2: f64 = 0.0009;
 const SSIM_COEFFICIENTS_PER_PIXEL: u64 = 9;
-/// vec4 of horizontal window sums per pixel (ROW_SUMS_PER_PIXEL in loss.wgsl).
-const ROW_SUMS_PER_PIXEL: u64 = 5;
-const TILE_SIZE: u32 = crate::types::constants::TILE_SIZE;
+/// f32 horizontal window sums per pixel (STATS_PER_PIXEL in loss.wgsl).
+const ROW_SUMS_PER_PIXEL: u64 = 15;
+/// Pixels per invocation of the loss kernels (RUN in loss.wgsl).
+const LOSS_RUN: u32 = 64;
+/// Invocations per workgroup of the loss kernels (WORKGROUP_SIZE in loss.wgsl).
+const LOSS_WORKGROUP_SIZE: u32 = 64;
 
 /// Loss weights; [`Default`] is the mapping loss of SPEC section 3.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -233,6 +236,7 @@ struct LossParams {
     image_size: [u32; 4],
     weights: [f32; 4],
     normalisers: [f32; 4],
+    partials: [u32; 4],
 }
 
 /// Mirrors `AdamParams` in adam.wgsl.
@@ -389,9 +393,8 @@ pub(crate) fn zero_moments(
 /// Compiled loss and Adam kernels.
 pub struct TrainingKernels {
     ssim_rows: wgpu::ComputePipeline,
-    loss_forward: wgpu::ComputePipeline,
-    coefficient_rows: wgpu::ComputePipeline,
-    loss_backward: wgpu::ComputePipeline,
+    ssim_columns: wgpu::ComputePipeline,
+    loss_rows: wgpu::ComputePipeline,
     adam: wgpu::ComputePipeline,
 }
 
@@ -403,14 +406,8 @@ impl TrainingKernels {
         let device = &context.device;
         Self {
             ssim_rows: compute_pipeline(device, "ssim_rows", LOSS_WGSL, "ssim_rows"),
-            loss_forward: compute_pipeline(device, "loss_forward", LOSS_WGSL, "loss_forward"),
-            coefficient_rows: compute_pipeline(
-                device,
-                "coefficient_rows",
-                LOSS_WGSL,
-                "coefficient_rows",
-            ),
-            loss_backward: compute_pipeline(device, "loss_backward", LOSS_WGSL, "loss_backward"),
+            ssim_columns: compute_pipeline(device, "ssim_columns", LOSS_WGSL, "ssim_columns"),
+            loss_rows: compute_pipeline(device, "loss_rows", LOSS_WGSL, "loss_rows"),
             adam: compute_pipeline(device, "adam", ADAM_WGSL, "main"),
         }
     }
@@ -440,8 +437,12 @@ impl TrainingKernels {
         } else {
             0.0
         };
+        let runs_per_row = camera.width.div_ceil(LOSS_RUN);
+        let runs_per_column = camera.height.div_ceil(LOSS_RUN);
+        let row_runs = runs_per_row * camera.height;
+        let column_runs = runs_per_column * camera.width;
         let params = LossParams {
-            image_size: [camera.width, camera.height, 0, 0],
+            image_size: [camera.width, camera.height, runs_per_row, runs_per_column],
             weights: [
                 weights.l1,
                 weights.ssim,
@@ -449,19 +450,18 @@ impl TrainingKernels {
                 1.0 / weights.depth_truncation,
             ],
             normalisers: [1.0 / (3.0 * pixels as f32), valid_normaliser, 0.0, 0.0],
+            partials: [column_runs, 0, 0, 0],
         };
         let params_buffer = context.uniform_buffer("loss params", bytemuck::bytes_of(&params));
         let coefficients = context.storage_buffer(
             "ssim coefficients",
             pixels * SSIM_COEFFICIENTS_PER_PIXEL * U32_BYTES,
         )?;
-        let pixel_losses = context.storage_buffer("pixel losses", pixels * VEC4_BYTES)?;
+        let partial_count = column_runs + row_runs;
+        let loss_partials =
+            context.storage_buffer("loss partials", u64::from(partial_count) * VEC4_BYTES)?;
         let row_sums =
-            context.storage_buffer("ssim row sums", pixels * ROW_SUMS_PER_PIXEL * VEC4_BYTES)?;
-        let workgroups = (
-            camera.width.div_ceil(TILE_SIZE),
-            camera.height.div_ceil(TILE_SIZE),
-        );
+            context.storage_buffer("ssim row sums", pixels * ROW_SUMS_PER_PIXEL * U32_BYTES)?;
         let mut encoder = context.device.create_command_encoder(&Default::default());
         let ssim_rows_group = bind_group(
             context,
@@ -473,47 +473,42 @@ impl TrainingKernels {
                 (7, &row_sums),
             ],
         );
-        let forward_group = bind_group(
+        let columns_group = bind_group(
             context,
-            &self.loss_forward,
+            &self.ssim_columns,
+            &[
+                (0, &params_buffer),
+                (3, &coefficients),
+                (4, &loss_partials),
+                (7, &row_sums),
+            ],
+        );
+        let rows_group = bind_group(
+            context,
+            &self.loss_rows,
             &[
                 (0, &params_buffer),
                 (1, &frame.rgbd),
                 (2, &target.rgbd),
                 (3, &coefficients),
-                (4, &pixel_losses),
-                (7, &row_sums),
-            ],
-        );
-        let coefficient_rows_group = bind_group(
-            context,
-            &self.coefficient_rows,
-            &[(0, &params_buffer), (3, &coefficients), (7, &row_sums)],
-        );
-        let backward_group = bind_group(
-            context,
-            &self.loss_backward,
-            &[
-                (0, &params_buffer),
-                (1, &frame.rgbd),
-                (2, &target.rgbd),
+                (4, &loss_partials),
                 (5, &image_gradients.v_rgbd),
                 (6, &image_gradients.v_alpha),
-                (7, &row_sums),
             ],
         );
-        for (pipeline, group) in [
-            (&self.ssim_rows, &ssim_rows_group),
-            (&self.loss_forward, &forward_group),
-            (&self.coefficient_rows, &coefficient_rows_group),
-            (&self.loss_backward, &backward_group),
+        for (pipeline, group, runs) in [
+            (&self.ssim_rows, &ssim_rows_group, row_runs),
+            (&self.ssim_columns, &columns_group, column_runs),
+            (&self.loss_rows, &rows_group, row_runs),
         ] {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(pipeline);
-            pass.set_bind_group(0, group, &[]);
-            pass.dispatch_workgroups(workgroups.0, workgroups.1, 1);
+            dispatch_linear(
+                &mut encoder,
+                pipeline,
+                group,
+                runs.div_ceil(LOSS_WORKGROUP_SIZE),
+            );
         }
-        let terms = renderer.reduce_vec4(context, &mut encoder, pixel_losses, pixels as u32)?;
+        let terms = renderer.reduce_vec4(context, &mut encoder, loss_partials, partial_count)?;
         context.queue.submit([encoder.finish()]);
         Ok(DeviceLoss { terms })
     }

@@ -7,7 +7,7 @@ use common::{default_camera, gpu, random_scene};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::backward::DeviceImageGradients;
-use render_core::gpu::{DeviceGaussians, GpuRenderer, GradientAtomics};
+use render_core::gpu::{DeviceGaussians, GpuRenderer, GradientAtomics, RendererOptions, Subgroups};
 use render_core::reference;
 use render_core::{Camera, GaussianCloud, GaussianGradients, ImageGradients, RasterConfig};
 
@@ -132,6 +132,35 @@ fn backward_matches_reference_on_dense_opaque_scene() {
     let camera = default_camera();
     let cloud = random_scene(&camera, 400, 23, (-2.6, -1.8), (1.0, 6.0));
     check_backward(&gpu().renderer, &cloud, &camera, 3);
+}
+
+#[test]
+fn backward_without_subgroups_matches_reference() {
+    // The workgroup-memory kernels (adapters without subgroups), with both atomics.
+    let gpu = gpu();
+    let camera = default_camera();
+    for atomics in [GradientAtomics::Auto, GradientAtomics::CompareExchange] {
+        let renderer = GpuRenderer::with_options(
+            &gpu.context,
+            RendererOptions {
+                atomics,
+                subgroups: Subgroups::Never,
+            },
+        );
+        assert!(!renderer.uses_subgroups);
+        let cloud = random_scene(&camera, 400, 25, (-2.6, -1.8), (1.0, 6.0));
+        check_backward(&renderer, &cloud, &camera, 6);
+        let cloud = random_scene(&camera, 40, 26, (-3.0, -1.8), (-1.0, 2.0));
+        check_backward(&renderer, &cloud, &camera, 7);
+    }
+}
+
+#[test]
+fn backward_matches_reference_on_long_translucent_lists() {
+    // Hundreds of entries per tile that all contribute: many subgroup steps or batches.
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 800, 27, (-2.8, -2.0), (-3.0, -1.0));
+    check_backward(&gpu().renderer, &cloud, &camera, 8);
 }
 
 #[test]

@@ -5,7 +5,7 @@ mod common;
 use common::{HEIGHT, WIDTH, camera, default_camera, gpu, random_scene};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use render_core::gpu::{DeviceGaussians, GpuRenderer};
+use render_core::gpu::{DeviceGaussians, GpuRenderer, RendererOptions, Subgroups};
 use render_core::reference;
 use render_core::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput};
 
@@ -15,11 +15,29 @@ const COLOUR_TOLERANCE: f32 = 1e-5;
 const DEPTH_TOLERANCE: f32 = 1e-4;
 
 fn render_gpu(cloud: &GaussianCloud, camera: &Camera) -> RenderOutput {
-    let gpu = gpu();
-    let gaussians = DeviceGaussians::upload(&gpu.context, cloud).unwrap();
-    gpu.renderer
-        .render(&gpu.context, &gaussians, camera, RenderMode::RgbD)
+    render_with(&gpu().renderer, cloud, camera)
+}
+
+fn render_with(renderer: &GpuRenderer, cloud: &GaussianCloud, camera: &Camera) -> RenderOutput {
+    let context = &gpu().context;
+    let gaussians = DeviceGaussians::upload(context, cloud).unwrap();
+    renderer
+        .render(context, &gaussians, camera, RenderMode::RgbD)
         .unwrap()
+}
+
+fn output_bits(o: &RenderOutput) -> Vec<u32> {
+    let mut bits: Vec<u32> = o
+        .rgb
+        .as_ref()
+        .unwrap()
+        .iter()
+        .flatten()
+        .map(|v| v.to_bits())
+        .collect();
+    bits.extend(o.depth.as_ref().unwrap().iter().map(|v| v.to_bits()));
+    bits.extend(o.alpha.iter().map(|v| v.to_bits()));
+    bits
 }
 
 fn max_abs_difference(a: &[f32], b: &[f32]) -> f32 {
@@ -31,8 +49,17 @@ fn max_abs_difference(a: &[f32], b: &[f32]) -> f32 {
 }
 
 fn assert_matches_reference(name: &str, cloud: &GaussianCloud, camera: &Camera) {
+    assert_renderer_matches_reference(&gpu().renderer, name, cloud, camera);
+}
+
+fn assert_renderer_matches_reference(
+    renderer: &GpuRenderer,
+    name: &str,
+    cloud: &GaussianCloud,
+    camera: &Camera,
+) {
     let expected = reference::render(cloud, camera, RenderMode::RgbD, &RasterConfig::default());
-    let actual = render_gpu(cloud, camera);
+    let actual = render_with(renderer, cloud, camera);
     let flat = |rgb: &Option<Vec<[f32; 3]>>| {
         rgb.as_ref()
             .unwrap()
@@ -93,6 +120,41 @@ fn matches_reference_with_dense_opaque_layers_and_early_termination() {
 }
 
 #[test]
+fn tile_masks_bin_fewer_pairs_than_the_rectangles_and_change_no_pixel() {
+    // Thin tilted splats spanning several tiles: their visible ellipses miss many tiles of
+    // their bounding rectangles, which project.wgsl leaves out of the binning.
+    let camera = camera(128, 96, 63.5, 47.5);
+    let mut cloud = random_scene(&camera, 150, 12, (-2.4, -1.6), (-1.0, 3.0));
+    for log_scale in &mut cloud.log_scales {
+        log_scale[1] = log_scale[0] - 2.5;
+    }
+    assert_matches_reference("thin tilted", &cloud, &camera);
+    let rectangle_pairs: u32 = reference::project_and_sort(&cloud, &camera)
+        .iter()
+        .map(|splat| {
+            let [x0, y0, x1, y1] = splat.tile_rect;
+            (x1 - x0 + 1) * (y1 - y0 + 1)
+        })
+        .sum();
+    let gpu = gpu();
+    let gaussians = DeviceGaussians::upload(&gpu.context, &cloud).unwrap();
+    let frame = gpu
+        .renderer
+        .render_frame(&gpu.context, &gaussians, &camera, &RasterConfig::default())
+        .unwrap();
+    let usage = gpu.renderer.check_pairs(&gpu.context, &frame).unwrap();
+    eprintln!(
+        "{} pairs binned, {rectangle_pairs} in the 3-sigma rectangles",
+        usage.pairs
+    );
+    assert!(
+        usage.pairs * 10 < rectangle_pairs * 9,
+        "{} pairs binned of {rectangle_pairs}",
+        usage.pairs
+    );
+}
+
+#[test]
 fn matches_reference_with_off_centre_principal_point_and_odd_size() {
     let camera = camera(37, 29, 9.0, 21.5);
     let cloud = random_scene(&camera, 30, 4, (-3.2, -2.0), (-0.5, 2.0));
@@ -105,20 +167,50 @@ fn renders_are_bit_identical() {
     let cloud = random_scene(&camera, 300, 5, (-3.0, -1.5), (-1.0, 3.0));
     let first = render_gpu(&cloud, &camera);
     let second = render_gpu(&cloud, &camera);
-    let bits = |o: &RenderOutput| {
-        let mut bits: Vec<u32> = o
-            .rgb
-            .as_ref()
-            .unwrap()
-            .iter()
-            .flatten()
-            .map(|v| v.to_bits())
-            .collect();
-        bits.extend(o.depth.as_ref().unwrap().iter().map(|v| v.to_bits()));
-        bits.extend(o.alpha.iter().map(|v| v.to_bits()));
-        bits
-    };
-    assert_eq!(bits(&first), bits(&second));
+    assert_eq!(output_bits(&first), output_bits(&second));
+}
+
+#[test]
+fn workgroup_memory_rasterizer_matches_reference_and_the_subgroup_one_bit_for_bit() {
+    // The kernels without subgroup operations (adapters without them); on an adapter without
+    // subgroups both renderers run them and the comparison is trivially equal.
+    let gpu = gpu();
+    let without = GpuRenderer::with_options(
+        &gpu.context,
+        RendererOptions {
+            subgroups: Subgroups::Never,
+            ..RendererOptions::default()
+        },
+    );
+    assert!(!without.uses_subgroups);
+    let default = default_camera();
+    let odd = camera(37, 29, 9.0, 21.5);
+    let scenes = [
+        (
+            "dense opaque",
+            random_scene(&default, 700, 3, (-2.6, -1.8), (3.0, 6.0)),
+            default,
+        ),
+        (
+            "large splats",
+            random_scene(&default, 12, 2, (-1.8, -0.8), (-2.0, 1.0)),
+            default,
+        ),
+        // Long lists: many batches per tile.
+        (
+            "many",
+            random_scene(&odd, 1500, 6, (-3.0, -2.0), (-1.0, 1.0)),
+            odd,
+        ),
+    ];
+    for (name, cloud, camera) in &scenes {
+        assert_renderer_matches_reference(&without, name, cloud, camera);
+        assert_eq!(
+            output_bits(&render_with(&without, cloud, camera)),
+            output_bits(&render_gpu(cloud, camera)),
+            "{name}: the two rasterizers differ"
+        );
+    }
 }
 
 #[test]

@@ -6,7 +6,7 @@ use anyhow::Context;
 use clap::Args;
 use render_core::bench::{BenchCase, BenchConfig, run_case};
 use render_core::context::GpuContext;
-use render_core::gpu::GpuRenderer;
+use render_core::gpu::{GpuRenderer, RendererOptions, StageTimes, Subgroups};
 use render_core::training::TrainingKernels;
 use serde::Serialize;
 
@@ -30,6 +30,9 @@ pub struct BenchRenderArgs {
     /// Time the forward pass only (skip forward + backward and the optimisation iteration).
     #[arg(long)]
     forward_only: bool,
+    /// Use the rasterizer kernels without subgroup operations even when the adapter has them.
+    #[arg(long)]
+    no_subgroups: bool,
     #[arg(long)]
     json: bool,
 }
@@ -51,6 +54,7 @@ struct CaseReport {
     iteration_ms: Option<f64>,
     sort_ms: f64,
     forward_stages: Vec<StageReport>,
+    iteration_stages: Vec<StageReport>,
 }
 
 #[derive(Serialize)]
@@ -71,17 +75,21 @@ impl From<BenchCase> for CaseReport {
             forward_backward_ms: case.forward_backward_ms,
             iteration_ms: case.iteration_ms,
             sort_ms: case.sort_ms,
-            forward_stages: case
-                .stages
-                .0
-                .into_iter()
-                .map(|(stage, ms)| StageReport {
-                    stage: stage.to_owned(),
-                    ms,
-                })
-                .collect(),
+            forward_stages: stage_reports(case.stages),
+            iteration_stages: stage_reports(case.iteration_stages),
         }
     }
+}
+
+fn stage_reports(stages: StageTimes) -> Vec<StageReport> {
+    stages
+        .0
+        .into_iter()
+        .map(|(stage, ms)| StageReport {
+            stage: stage.to_owned(),
+            ms,
+        })
+        .collect()
 }
 
 pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
@@ -94,7 +102,17 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
         "--gaussians needs at least one size"
     );
     let context = GpuContext::new().context("creating the wgpu device")?;
-    let renderer = GpuRenderer::new(&context);
+    let renderer = GpuRenderer::with_options(
+        &context,
+        RendererOptions {
+            subgroups: if args.no_subgroups {
+                Subgroups::Never
+            } else {
+                Subgroups::Auto
+            },
+            ..RendererOptions::default()
+        },
+    );
     let kernels = TrainingKernels::new(&context);
     let config = BenchConfig {
         gaussian_counts: args.gaussians.clone(),
@@ -118,7 +136,11 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
         cases.push(CaseReport::from(case));
     }
     let report = BenchRenderReport {
-        adapter: context.describe(),
+        adapter: if renderer.uses_subgroups {
+            context.describe()
+        } else {
+            format!("{}, rasterizers without subgroups", context.describe())
+        },
         repeats: config.repeats,
         cases,
     };
@@ -154,6 +176,17 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
             .map(|s| format!("{} {}", s.stage, fmt_num(s.ms, 1)))
             .collect();
         println!("  {:>10}: {}", case.gaussians, stages.join(", "));
+    }
+    if report.cases.iter().any(|c| !c.iteration_stages.is_empty()) {
+        println!("iteration stages (each submitted and waited for separately, ms):");
+        for case in &report.cases {
+            let stages: Vec<String> = case
+                .iteration_stages
+                .iter()
+                .map(|s| format!("{} {}", s.stage, fmt_num(s.ms, 1)))
+                .collect();
+            println!("  {:>10}: {}", case.gaussians, stages.join(", "));
+        }
     }
     Ok(())
 }

@@ -1,22 +1,40 @@
-// bin: turns depth-sorted Gaussians into per-tile lists. One invocation per element (256 per
-// workgroup, linear workgroup id over a 2D grid).
-// - `gather_counts`: sorted_tile_counts[k] = tile_counts[sorted_gaussians[k]] (scanned next).
-// - `emit`: the k-th nearest Gaussian writes one (tile id, Gaussian index) pair per tile of its
-//   rectangle, at the offset given by the inclusive scan; pairs therefore come out in depth
-//   order, and the stable sort by tile id that follows keeps that order within each tile.
-// - `pair_status`: ONE invocation; pair_status = [pairs kept, pairs needed]: the needed count
-//   is the last inclusive-scan entry, the kept count is capped at the buffers' capacity. The
-//   sort and `tile_ranges` read the kept count on the device (no host read-back).
-// - `emit`: pairs at offsets >= capacity are dropped. Since pairs are emitted in depth order,
-//   an overflowing frame loses only the pairs of its farthest Gaussians.
-// - `tile_ranges`: for the tile-sorted pairs, records [start, end) of each tile's run. Tiles
-//   without pairs keep the [0, 0) the launcher cleared them to.
+// bin: turns depth-sorted Gaussians into per-tile lists, front to back within each tile,
+// without sorting the tile/Gaussian pairs. The depth-sorted Gaussians are split into blocks
+// of bin_params.block_size; the table holds one counter per (tile, block), tile-major
+// (table[tile * block_count + block]).
+// - `gather_counts` (one invocation per element, 256 per workgroup):
+//   sorted_tile_counts[k] = tile_counts[sorted_gaussians[k]] (inclusive-scanned next, which
+//   gives every Gaussian the depth-order index of its first pair).
+// - `pair_status_from_scan` (ONE invocation): pair_status = [pairs kept, pairs needed]; the
+//   needed count is the last scan entry, the kept count is capped at the capacity.
+// - `count_pairs` (one invocation per block, 64 per workgroup, walking its block serially):
+//   adds 1 to (tile, block) for every kept pair of the block's Gaussians: the tiles of the
+//   Gaussian's rectangle (tile_rects: first tile, columns | rows << 16, and for rectangles
+//   of up to 32 tiles a row-major mask of the tiles the splat reaches, see project.wgsl).
+//   A pair is kept iff its depth-order index is below the capacity, so an overflowing frame
+//   keeps exactly its first `capacity` pairs in depth order (it loses the pairs of its
+//   farthest Gaussians).
+// - the launcher exclusive-scans the table: (tile, block) then holds the first list slot of
+//   the block's pairs in that tile, and tiles' lists are contiguous in tile order.
+// - `emit_pairs` (same walk): writes each kept pair's Gaussian at the next slot of its
+//   (tile, block) entry, so each tile's list is in depth order (blocks in order, Gaussians in
+//   order within a block). Afterwards (tile, last block) holds the end of the tile's list.
+// - `tile_ranges_from_table` (one invocation per tile, 256 per workgroup): [start, end) of each
+//   tile's list: end from (tile, last block), start from the previous tile's end (0 first).
+// On CPU adapters (lavapipe) one serial walk per block costs a few memory accesses per pair,
+// where a radix sort of the pairs costs dozens.
+// Invariants: only this block's invocation touches a (tile, block) entry (no atomics); the
+// table is zeroed by the launcher before `count_pairs`.
 
 struct BinParams {
     gaussian_count: u32,
     pair_capacity: u32,
     tiles_x: u32,
-    padding: u32,
+    tile_count: u32,
+    block_size: u32,
+    block_count: u32,
+    padding0: u32,
+    padding1: u32,
 }
 
 @group(0) @binding(0) var<uniform> bin_params: BinParams;
@@ -24,12 +42,15 @@ struct BinParams {
 @group(0) @binding(2) var<storage, read> tile_counts: array<u32>;
 @group(0) @binding(3) var<storage, read_write> sorted_tile_counts: array<u32>;
 @group(0) @binding(4) var<storage, read> tile_rects: array<vec4<u32>>;
-@group(0) @binding(5) var<storage, read_write> intersection_tiles: array<u32>;
+@group(0) @binding(5) var<storage, read_write> table: array<u32>;
 @group(0) @binding(6) var<storage, read_write> intersection_gaussians: array<u32>;
-@group(0) @binding(7) var<storage, read> sorted_tiles: array<u32>;
 @group(0) @binding(8) var<storage, read_write> tile_ranges: array<vec2<u32>>;
 // [pairs kept, pairs needed]
 @group(0) @binding(9) var<storage, read_write> pair_status: array<u32>;
+
+const BLOCK_WORKGROUP_SIZE: u32 = 64u;
+// Rectangles of at most this many tiles carry a mask of their binned tiles (project.wgsl).
+const MAX_MASKED_TILES: u32 = 32u;
 
 @compute @workgroup_size(1)
 fn pair_status_from_scan() {
@@ -41,8 +62,9 @@ fn pair_status_from_scan() {
     pair_status[1] = needed;
 }
 
-fn element_index(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32) -> u32 {
-    return (workgroup_id.y * workgroup_count.x + workgroup_id.x) * 256u + local_index;
+fn linear_index(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32,
+                workgroup_size: u32) -> u32 {
+    return (workgroup_id.y * workgroup_count.x + workgroup_id.x) * workgroup_size + local_index;
 }
 
 @compute @workgroup_size(256)
@@ -51,58 +73,89 @@ fn gather_counts(
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let k = element_index(workgroup_id, workgroup_count, local_index);
+    let k = linear_index(workgroup_id, workgroup_count, local_index, 256u);
     if k < bin_params.gaussian_count {
         sorted_tile_counts[k] = tile_counts[sorted_gaussians[k]];
     }
 }
 
-@compute @workgroup_size(256)
-fn emit(
-    @builtin(workgroup_id) workgroup_id: vec3<u32>,
-    @builtin(num_workgroups) workgroup_count: vec3<u32>,
-    @builtin(local_invocation_index) local_index: u32,
-) {
-    let k = element_index(workgroup_id, workgroup_count, local_index);
-    if k >= bin_params.gaussian_count {
-        return;
-    }
-    let gaussian = sorted_gaussians[k];
-    let count = tile_counts[gaussian];
-    if count == 0u {
-        return;
-    }
-    // The inclusive scan holds the end of this Gaussian's range.
-    var cursor = sorted_tile_counts[k] - count;
-    let rect = tile_rects[gaussian];
-    for (var tile_y = rect.y; tile_y <= rect.w; tile_y++) {
-        for (var tile_x = rect.x; tile_x <= rect.z; tile_x++) {
-            if cursor >= bin_params.pair_capacity {
-                return;
+// Walks the kept pairs of block `block` in depth order; `emit` selects the pass.
+fn walk_block(block: u32, emit: bool) {
+    let block_count = bin_params.block_count;
+    let first = block * bin_params.block_size;
+    let last = min(first + bin_params.block_size, bin_params.gaussian_count);
+    for (var k = first; k < last; k++) {
+        let gaussian = sorted_gaussians[k];
+        let count = tile_counts[gaussian];
+        if count == 0u {
+            continue;
+        }
+        // The inclusive scan holds the end of this Gaussian's pairs in depth order.
+        let first_pair = sorted_tile_counts[k] - count;
+        if first_pair >= bin_params.pair_capacity {
+            // Every later Gaussian of the block starts even later: nothing more is kept.
+            break;
+        }
+        let kept = min(count, bin_params.pair_capacity - first_pair);
+        let rect = tile_rects[gaussian];
+        let columns = rect.z & 0xffffu;
+        let area = columns * (rect.z >> 16u);
+        let masked = area <= MAX_MASKED_TILES;
+        var binned = 0u;
+        for (var i = 0u; i < area && binned < kept; i++) {
+            if masked && ((rect.w >> i) & 1u) == 0u {
+                continue;
             }
-            intersection_tiles[cursor] = tile_y * bin_params.tiles_x + tile_x;
-            intersection_gaussians[cursor] = gaussian;
-            cursor += 1u;
+            let tile = (rect.y + i / columns) * bin_params.tiles_x + rect.x + i % columns;
+            let entry = tile * block_count + block;
+            let slot = table[entry];
+            table[entry] = slot + 1u;
+            if emit {
+                intersection_gaussians[slot] = gaussian;
+            }
+            binned += 1u;
         }
     }
 }
 
-@compute @workgroup_size(256)
-fn tile_ranges_from_sorted(
+@compute @workgroup_size(BLOCK_WORKGROUP_SIZE)
+fn count_pairs(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let i = element_index(workgroup_id, workgroup_count, local_index);
-    let n = pair_status[0];
-    if i >= n {
+    let block = linear_index(workgroup_id, workgroup_count, local_index, BLOCK_WORKGROUP_SIZE);
+    if block < bin_params.block_count {
+        walk_block(block, false);
+    }
+}
+
+@compute @workgroup_size(BLOCK_WORKGROUP_SIZE)
+fn emit_pairs(
+    @builtin(workgroup_id) workgroup_id: vec3<u32>,
+    @builtin(num_workgroups) workgroup_count: vec3<u32>,
+    @builtin(local_invocation_index) local_index: u32,
+) {
+    let block = linear_index(workgroup_id, workgroup_count, local_index, BLOCK_WORKGROUP_SIZE);
+    if block < bin_params.block_count {
+        walk_block(block, true);
+    }
+}
+
+@compute @workgroup_size(256)
+fn tile_ranges_from_table(
+    @builtin(workgroup_id) workgroup_id: vec3<u32>,
+    @builtin(num_workgroups) workgroup_count: vec3<u32>,
+    @builtin(local_invocation_index) local_index: u32,
+) {
+    let tile = linear_index(workgroup_id, workgroup_count, local_index, 256u);
+    if tile >= bin_params.tile_count {
         return;
     }
-    let tile = sorted_tiles[i];
-    if i == 0u || sorted_tiles[i - 1u] != tile {
-        tile_ranges[tile].x = i;
+    let last_block = bin_params.block_count - 1u;
+    var start = 0u;
+    if tile > 0u {
+        start = table[(tile - 1u) * bin_params.block_count + last_block];
     }
-    if i + 1u == n || sorted_tiles[i + 1u] != tile {
-        tile_ranges[tile].y = i + 1u;
-    }
+    tile_ranges[tile] = vec2<u32>(start, table[tile * bin_params.block_count + last_block]);
 }

@@ -1,241 +1,422 @@
 // loss: image loss  w_l1 * L1(rgb) + w_ssim * (1 - SSIM(rgb)) + w_depth * L1(depth / truncation)
-// and its gradient w.r.t. the rendered rgb and depth. One invocation per pixel (16x16
-// workgroups over the image). The 11x11 Gaussian window (sigma 1.5) is separable and the
-// padding is ZERO (3DGS convention), so every windowed sum is a horizontal pass (`*_rows`,
-// writing per-pixel row sums to row_sums) followed by a vertical pass over those row sums;
-// this reads 22 instead of 121 neighbours per pixel.
-// - `ssim_rows`: row sums of x, y, x^2, y^2, xy (rgb each) -> row_sums[5 * pixel + k].
-// - `loss_forward`: per pixel and channel, the windowed statistics of rendered x and target y
-//   (vertical pass over row_sums), the SSIM value, and the three
-//   coefficient maps the SSIM gradient needs; per-pixel loss terms go to pixel_losses
-//   (l1, 1 - ssim, depth, 0), already divided by their normalisers so that their sum is the
-//   loss.
-// - `coefficient_rows`: row sums of the (a, b, c) coefficient maps -> row_sums[5 * pixel + k],
-//   k < 3 (a rgb, b rgb, c rgb).
-// - `loss_backward`: dL/dx(q) = x(q) * (G * b)(q) + y(q) * (G * c)(q) + (G * a)(q) for SSIM
-//   (G symmetric, same zero padding), plus the L1 and depth terms; writes v_rgbd and zeroes
-//   v_alpha. Depth pixels whose target depth is not > 0 are ignored (validity mask).
-// Invariants: every in-image pixel writes all of its outputs; no atomics (deterministic).
+// and its gradient w.r.t. the rendered rgb and depth. The 11x11 Gaussian window (sigma 1.5)
+// is separable and the padding is ZERO (3DGS convention), so every windowed sum is a
+// horizontal pass over rows and a vertical pass over columns, in either order.
+// Thread mapping: every kernel is one invocation per RUN = 64 consecutive pixels of one row
+// (horizontal passes) or one column (vertical pass), 64 invocations per workgroup, linear run
+// index over a 2D grid. An invocation streams its run through an 11-entry window held in
+// registers (s0 .. s10, shifted by one pixel per step), so each input is loaded about once per
+// output instead of 11 times: on CPU adapters (lavapipe) every load is a per-lane scalar
+// gather and dominates the cost.
+// - `ssim_rows`: row sums of x, y, x^2, y^2, xy (rgb each) -> row_sums (15 floats per pixel).
+// - `ssim_columns`: walks rows y0 - 5 .. y0 + RUN + 5 of its column: the windowed statistics
+//   of rendered x and target y (vertical pass over row_sums), the SSIM value and the three
+//   coefficient maps (a, b, c) the SSIM gradient needs, then at once the vertical pass of
+//   those coefficients (a second window over the coefficients just computed; the 5 rows on
+//   either side of the run are computed too, so no other invocation's output is needed) ->
+//   ssim_coefficients (9 floats per pixel: column sums of a rgb, b rgb, c rgb). The SSIM loss
+//   term of the run's own pixels goes to loss_partials[run].
+// - `loss_rows`: the horizontal pass of those coefficient sums gives (G * a), (G * b),
+//   (G * c) and dL/dx(q) = x(q) * (G * b)(q) + y(q) * (G * c)(q) + (G * a)(q) for SSIM (G
+//   symmetric, same zero padding), plus the L1 and depth terms; writes v_rgbd, zeroes v_alpha
+//   and puts the run's L1 and depth loss terms in loss_partials[column runs + run]. Depth
+//   pixels whose target depth is not > 0 are ignored (validity mask).
+// Loss terms are (l1, 1 - ssim, depth, 0), already divided by their normalisers, so that the
+// sum of loss_partials (reduce.wgsl) is the weighted loss.
+// Invariants: every in-image pixel writes all of its outputs; pixels outside the image read
+// as zero and are never written; no atomics (deterministic).
 
 struct LossParams {
-    // width, height, unused, unused
+    // width, height, runs per row (horizontal passes), runs per column (vertical pass)
     image_size: vec4<u32>,
     // w_l1, w_ssim, w_depth, 1 / depth_truncation
     weights: vec4<f32>,
     // 1 / (3 * pixels), 1 / valid depth pixels (0 if none), unused, unused
     normalisers: vec4<f32>,
+    // number of column runs (offset of the row runs' partials in loss_partials), unused x3
+    partials: vec4<u32>,
 }
 
 @group(0) @binding(0) var<uniform> loss_params: LossParams;
 @group(0) @binding(1) var<storage, read> rendered: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> target_rgbd: array<vec4<f32>>;
-// Per pixel 3 channels x (a, b, c) coefficients.
+// Per pixel the column sums of the 3 channels x (a, b, c) coefficients: a rgb, b rgb, c rgb.
 @group(0) @binding(3) var<storage, read_write> ssim_coefficients: array<f32>;
-@group(0) @binding(4) var<storage, read_write> pixel_losses: array<vec4<f32>>;
+// One vec4 of loss terms per column run, then one per row run.
+@group(0) @binding(4) var<storage, read_write> loss_partials: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read_write> v_rgbd: array<vec4<f32>>;
 @group(0) @binding(6) var<storage, read_write> v_alpha: array<f32>;
-// Horizontal-pass results, ROW_SUMS_PER_PIXEL vec4 per pixel.
-@group(0) @binding(7) var<storage, read_write> row_sums: array<vec4<f32>>;
+// Horizontal-pass results: 15 floats per pixel (statistics).
+@group(0) @binding(7) var<storage, read_write> row_sums: array<f32>;
 
 const WINDOW_RADIUS: i32 = 5;
 const WINDOW_SIGMA: f32 = 1.5;
 const SSIM_C1: f32 = 0.0001; // (0.01 * data range 1)^2
 const SSIM_C2: f32 = 0.0009; // (0.03 * data range 1)^2
+const RUN: u32 = 64u;
+const WORKGROUP_SIZE: u32 = 64u;
+const STATS_PER_PIXEL: u32 = 15u;
 const COEFFICIENTS_PER_PIXEL: u32 = 9u;
-const ROW_SUMS_PER_PIXEL: u32 = 5u;
-// Slots of row_sums: statistics in the forward pass, coefficients in the backward pass.
-const ROW_MU_X: u32 = 0u;
-const ROW_MU_Y: u32 = 1u;
-const ROW_XX: u32 = 2u;
-const ROW_YY: u32 = 3u;
-const ROW_XY: u32 = 4u;
-const ROW_A: u32 = 0u;
-const ROW_B: u32 = 1u;
-const ROW_C: u32 = 2u;
 
-// Sum of the unnormalised 1D Gaussian window over its taps (computed once per invocation:
-// exp is expensive on CPU adapters).
-fn window_total() -> f32 {
-    var total = 0.0;
-    for (var d = -WINDOW_RADIUS; d <= WINDOW_RADIUS; d++) {
-        total += exp(-f32(d * d) / (2.0 * WINDOW_SIGMA * WINDOW_SIGMA));
-    }
-    return total;
+// Normalised 1D window weights by distance from the centre (0 .. 5).
+struct Weights {
+    w0: f32,
+    w1: f32,
+    w2: f32,
+    w3: f32,
+    w4: f32,
+    w5: f32,
 }
 
-// Normalised 1D window weight at `offset` given window_total().
-fn window_weight_1d(offset: i32, total: f32) -> f32 {
-    return exp(-f32(offset * offset) / (2.0 * WINDOW_SIGMA * WINDOW_SIGMA)) / total;
+fn window_weights() -> Weights {
+    // Sum of the unnormalised window over its taps; exp is computed once per invocation.
+    var total = 0.0;
+    for (var d = -WINDOW_RADIUS; d <= WINDOW_RADIUS; d++) {
+        total += raw_weight(d);
+    }
+    return Weights(raw_weight(0) / total, raw_weight(1) / total, raw_weight(2) / total,
+                   raw_weight(3) / total, raw_weight(4) / total, raw_weight(5) / total);
+}
+
+fn raw_weight(offset: i32) -> f32 {
+    return exp(-f32(offset * offset) / (2.0 * WINDOW_SIGMA * WINDOW_SIGMA));
 }
 
 fn sign_or_zero(value: f32) -> f32 {
     return select(select(0.0, -1.0, value < 0.0), 1.0, value > 0.0);
 }
 
-@compute @workgroup_size(16, 16)
-fn loss_forward(@builtin(global_invocation_id) global_id: vec3<u32>) {
+// The run of this invocation: its first pixel (x, y) and whether it lies inside the image;
+// pixel k of the run is start + k along the row (horizontal passes) or column (vertical).
+struct Run {
+    start: vec2<u32>,
+    valid: bool,
+}
+
+fn run_of(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32,
+          along_rows: bool) -> Run {
+    let index = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * WORKGROUP_SIZE + local_index;
     let width = loss_params.image_size.x;
     let height = loss_params.image_size.y;
-    if global_id.x >= width || global_id.y >= height {
+    if along_rows {
+        let runs_per_row = loss_params.image_size.z;
+        let row = index / runs_per_row;
+        return Run(vec2<u32>((index % runs_per_row) * RUN, row), row < height);
+    }
+    let runs_per_column = loss_params.image_size.w;
+    let column = index / runs_per_column;
+    return Run(vec2<u32>(column, (index % runs_per_column) * RUN), column < width);
+}
+
+// Pixel index of window position `offset` (may be outside the run) or -1 outside the image.
+fn pixel_at(run: Run, offset: i32, along_rows: bool) -> i32 {
+    let width = i32(loss_params.image_size.x);
+    let height = i32(loss_params.image_size.y);
+    var x = i32(run.start.x);
+    var y = i32(run.start.y);
+    if along_rows {
+        x += offset;
+    } else {
+        y += offset;
+    }
+    if x < 0 || y < 0 || x >= width || y >= height {
+        return -1;
+    }
+    return y * width + x;
+}
+
+// ---- statistics (x, y, x^2, y^2, xy per channel) ----
+
+struct Stats {
+    mu_x: vec3<f32>,
+    mu_y: vec3<f32>,
+    xx: vec3<f32>,
+    yy: vec3<f32>,
+    xy: vec3<f32>,
+}
+
+fn zero_stats() -> Stats {
+    let z = vec3<f32>(0.0);
+    return Stats(z, z, z, z, z);
+}
+
+fn add_stats(a: Stats, b: Stats) -> Stats {
+    return Stats(a.mu_x + b.mu_x, a.mu_y + b.mu_y, a.xx + b.xx, a.yy + b.yy, a.xy + b.xy);
+}
+
+fn scale_stats(a: Stats, w: f32) -> Stats {
+    return Stats(w * a.mu_x, w * a.mu_y, w * a.xx, w * a.yy, w * a.xy);
+}
+
+fn window_stats(w: Weights, s0: Stats, s1: Stats, s2: Stats, s3: Stats, s4: Stats, s5: Stats,
+                s6: Stats, s7: Stats, s8: Stats, s9: Stats, s10: Stats) -> Stats {
+    var sum = scale_stats(s5, w.w0);
+    sum = add_stats(sum, scale_stats(add_stats(s4, s6), w.w1));
+    sum = add_stats(sum, scale_stats(add_stats(s3, s7), w.w2));
+    sum = add_stats(sum, scale_stats(add_stats(s2, s8), w.w3));
+    sum = add_stats(sum, scale_stats(add_stats(s1, s9), w.w4));
+    return add_stats(sum, scale_stats(add_stats(s0, s10), w.w5));
+}
+
+// Products of one pixel (zero outside the image).
+fn pixel_stats(pixel: i32) -> Stats {
+    if pixel < 0 {
+        return zero_stats();
+    }
+    let x = rendered[pixel].xyz;
+    let y = target_rgbd[pixel].xyz;
+    return Stats(x, y, x * x, y * y, x * y);
+}
+
+fn load_row_stats(pixel: i32) -> Stats {
+    if pixel < 0 {
+        return zero_stats();
+    }
+    let b = u32(pixel) * STATS_PER_PIXEL;
+    return Stats(
+        vec3<f32>(row_sums[b], row_sums[b + 1u], row_sums[b + 2u]),
+        vec3<f32>(row_sums[b + 3u], row_sums[b + 4u], row_sums[b + 5u]),
+        vec3<f32>(row_sums[b + 6u], row_sums[b + 7u], row_sums[b + 8u]),
+        vec3<f32>(row_sums[b + 9u], row_sums[b + 10u], row_sums[b + 11u]),
+        vec3<f32>(row_sums[b + 12u], row_sums[b + 13u], row_sums[b + 14u]));
+}
+
+fn store_row_stats(pixel: u32, s: Stats) {
+    let b = pixel * STATS_PER_PIXEL;
+    for (var c = 0u; c < 3u; c++) {
+        row_sums[b + c] = s.mu_x[c];
+        row_sums[b + 3u + c] = s.mu_y[c];
+        row_sums[b + 6u + c] = s.xx[c];
+        row_sums[b + 9u + c] = s.yy[c];
+        row_sums[b + 12u + c] = s.xy[c];
+    }
+}
+
+// ---- SSIM gradient coefficients (a, b, c per channel) ----
+
+struct Coefficients {
+    a: vec3<f32>,
+    b: vec3<f32>,
+    c: vec3<f32>,
+}
+
+fn zero_coefficients() -> Coefficients {
+    let z = vec3<f32>(0.0);
+    return Coefficients(z, z, z);
+}
+
+fn add_coefficients(p: Coefficients, q: Coefficients) -> Coefficients {
+    return Coefficients(p.a + q.a, p.b + q.b, p.c + q.c);
+}
+
+fn scale_coefficients(p: Coefficients, w: f32) -> Coefficients {
+    return Coefficients(w * p.a, w * p.b, w * p.c);
+}
+
+fn window_coefficients(w: Weights, s0: Coefficients, s1: Coefficients, s2: Coefficients,
+                       s3: Coefficients, s4: Coefficients, s5: Coefficients, s6: Coefficients,
+                       s7: Coefficients, s8: Coefficients, s9: Coefficients,
+                       s10: Coefficients) -> Coefficients {
+    var sum = scale_coefficients(s5, w.w0);
+    sum = add_coefficients(sum, scale_coefficients(add_coefficients(s4, s6), w.w1));
+    sum = add_coefficients(sum, scale_coefficients(add_coefficients(s3, s7), w.w2));
+    sum = add_coefficients(sum, scale_coefficients(add_coefficients(s2, s8), w.w3));
+    sum = add_coefficients(sum, scale_coefficients(add_coefficients(s1, s9), w.w4));
+    return add_coefficients(sum, scale_coefficients(add_coefficients(s0, s10), w.w5));
+}
+
+fn load_coefficients(pixel: i32) -> Coefficients {
+    if pixel < 0 {
+        return zero_coefficients();
+    }
+    let b = u32(pixel) * COEFFICIENTS_PER_PIXEL;
+    return Coefficients(
+        vec3<f32>(ssim_coefficients[b], ssim_coefficients[b + 1u], ssim_coefficients[b + 2u]),
+        vec3<f32>(ssim_coefficients[b + 3u], ssim_coefficients[b + 4u], ssim_coefficients[b + 5u]),
+        vec3<f32>(ssim_coefficients[b + 6u], ssim_coefficients[b + 7u], ssim_coefficients[b + 8u]));
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn ssim_rows(
+    @builtin(workgroup_id) workgroup_id: vec3<u32>,
+    @builtin(num_workgroups) workgroup_count: vec3<u32>,
+    @builtin(local_invocation_index) local_index: u32,
+) {
+    let run = run_of(workgroup_id, workgroup_count, local_index, true);
+    if !run.valid {
         return;
     }
-    let pixel_index = global_id.y * width + global_id.x;
-    let x_centre = rendered[pixel_index];
-    let y_centre = target_rgbd[pixel_index];
-    let total_weight = window_total();
-    var mu_x = vec3<f32>(0.0);
-    var mu_y = vec3<f32>(0.0);
-    var xx = vec3<f32>(0.0);
-    var yy = vec3<f32>(0.0);
-    var xy = vec3<f32>(0.0);
-    for (var dy = -WINDOW_RADIUS; dy <= WINDOW_RADIUS; dy++) {
-        let row = i32(global_id.y) + dy;
-        if row < 0 || row >= i32(height) {
-            continue;
+    let w = window_weights();
+    var s0 = pixel_stats(pixel_at(run, -5, true));
+    var s1 = pixel_stats(pixel_at(run, -4, true));
+    var s2 = pixel_stats(pixel_at(run, -3, true));
+    var s3 = pixel_stats(pixel_at(run, -2, true));
+    var s4 = pixel_stats(pixel_at(run, -1, true));
+    var s5 = pixel_stats(pixel_at(run, 0, true));
+    var s6 = pixel_stats(pixel_at(run, 1, true));
+    var s7 = pixel_stats(pixel_at(run, 2, true));
+    var s8 = pixel_stats(pixel_at(run, 3, true));
+    var s9 = pixel_stats(pixel_at(run, 4, true));
+    var s10 = pixel_stats(pixel_at(run, 5, true));
+    for (var step = 0; step < i32(RUN); step++) {
+        let pixel = pixel_at(run, step, true);
+        if pixel < 0 {
+            break;
         }
-        let weight = window_weight_1d(dy, total_weight);
-        let base = (u32(row) * width + global_id.x) * ROW_SUMS_PER_PIXEL;
-        mu_x += weight * row_sums[base + ROW_MU_X].xyz;
-        mu_y += weight * row_sums[base + ROW_MU_Y].xyz;
-        xx += weight * row_sums[base + ROW_XX].xyz;
-        yy += weight * row_sums[base + ROW_YY].xyz;
-        xy += weight * row_sums[base + ROW_XY].xyz;
+        store_row_stats(u32(pixel), window_stats(w, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10));
+        s0 = s1; s1 = s2; s2 = s3; s3 = s4; s4 = s5; s5 = s6; s6 = s7; s7 = s8; s8 = s9; s9 = s10;
+        s10 = pixel_stats(pixel_at(run, step + 6, true));
     }
+}
+
+// SSIM gradient coefficients of one pixel from its windowed statistics, and its 1 - SSIM
+// summed over the channels.
+struct PixelSsim {
+    coefficients: Coefficients,
+    one_minus_ssim: f32,
+}
+
+fn pixel_ssim(stats: Stats) -> PixelSsim {
     let v_ssim = -loss_params.weights.y * loss_params.normalisers.x;
-    var one_minus_ssim = 0.0;
-    for (var c = 0u; c < 3u; c++) {
-        let sigma_xx = xx[c] - mu_x[c] * mu_x[c];
-        let sigma_yy = yy[c] - mu_y[c] * mu_y[c];
-        let sigma_xy = xy[c] - mu_x[c] * mu_y[c];
-        let n1 = 2.0 * mu_x[c] * mu_y[c] + SSIM_C1;
-        let n2 = 2.0 * sigma_xy + SSIM_C2;
-        let d1 = mu_x[c] * mu_x[c] + mu_y[c] * mu_y[c] + SSIM_C1;
-        let d2 = sigma_xx + sigma_yy + SSIM_C2;
-        let ssim = (n1 * n2) / (d1 * d2);
-        one_minus_ssim += 1.0 - ssim;
-        // Partial derivatives of SSIM w.r.t. mu_x, sigma_xx and sigma_xy.
-        let d_mu = 2.0 * mu_y[c] * n2 / (d1 * d2) - 2.0 * mu_x[c] * ssim / d1;
-        let d_sigma_xx = -ssim / d2;
-        let d_sigma_xy = 2.0 * n1 / (d1 * d2);
-        let base = pixel_index * COEFFICIENTS_PER_PIXEL + 3u * c;
-        ssim_coefficients[base] = v_ssim * (d_mu - 2.0 * d_sigma_xx * mu_x[c] - d_sigma_xy * mu_y[c]);
-        ssim_coefficients[base + 1u] = v_ssim * 2.0 * d_sigma_xx;
-        ssim_coefficients[base + 2u] = v_ssim * d_sigma_xy;
+    let mu_x = stats.mu_x;
+    let mu_y = stats.mu_y;
+    let sigma_xx = stats.xx - mu_x * mu_x;
+    let sigma_yy = stats.yy - mu_y * mu_y;
+    let sigma_xy = stats.xy - mu_x * mu_y;
+    let n1 = 2.0 * mu_x * mu_y + SSIM_C1;
+    let n2 = 2.0 * sigma_xy + SSIM_C2;
+    let d1 = mu_x * mu_x + mu_y * mu_y + SSIM_C1;
+    let d2 = sigma_xx + sigma_yy + SSIM_C2;
+    let ssim = (n1 * n2) / (d1 * d2);
+    // Partial derivatives of SSIM w.r.t. mu_x, sigma_xx and sigma_xy.
+    let d_mu = 2.0 * mu_y * n2 / (d1 * d2) - 2.0 * mu_x * ssim / d1;
+    let d_sigma_xx = -ssim / d2;
+    let d_sigma_xy = 2.0 * n1 / (d1 * d2);
+    return PixelSsim(
+        Coefficients(v_ssim * (d_mu - 2.0 * d_sigma_xx * mu_x - d_sigma_xy * mu_y),
+                     v_ssim * 2.0 * d_sigma_xx, v_ssim * d_sigma_xy),
+        dot(vec3<f32>(1.0) - ssim, vec3<f32>(1.0)));
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn ssim_columns(
+    @builtin(workgroup_id) workgroup_id: vec3<u32>,
+    @builtin(num_workgroups) workgroup_count: vec3<u32>,
+    @builtin(local_invocation_index) local_index: u32,
+) {
+    let run_index = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * WORKGROUP_SIZE + local_index;
+    let run = run_of(workgroup_id, workgroup_count, local_index, false);
+    if !run.valid {
+        return;
     }
-    let l1 = dot(abs(x_centre.xyz - y_centre.xyz), vec3<f32>(1.0));
+    let w = window_weights();
+    // Statistics window centred on row y0 + step (step starts 5 rows above the run).
+    var s0 = load_row_stats(pixel_at(run, -10, false));
+    var s1 = load_row_stats(pixel_at(run, -9, false));
+    var s2 = load_row_stats(pixel_at(run, -8, false));
+    var s3 = load_row_stats(pixel_at(run, -7, false));
+    var s4 = load_row_stats(pixel_at(run, -6, false));
+    var s5 = load_row_stats(pixel_at(run, -5, false));
+    var s6 = load_row_stats(pixel_at(run, -4, false));
+    var s7 = load_row_stats(pixel_at(run, -3, false));
+    var s8 = load_row_stats(pixel_at(run, -2, false));
+    var s9 = load_row_stats(pixel_at(run, -1, false));
+    var s10 = load_row_stats(pixel_at(run, 0, false));
+    // Coefficient window: c10 is the newest row (y0 + step), c5 the row being output.
+    var c0 = zero_coefficients();
+    var c1 = zero_coefficients();
+    var c2 = zero_coefficients();
+    var c3 = zero_coefficients();
+    var c4 = zero_coefficients();
+    var c5 = zero_coefficients();
+    var c6 = zero_coefficients();
+    var c7 = zero_coefficients();
+    var c8 = zero_coefficients();
+    var c9 = zero_coefficients();
+    var c10 = zero_coefficients();
+    var ssim_term = 0.0;
+    for (var step = -5; step < i32(RUN) + 5; step++) {
+        c0 = c1; c1 = c2; c2 = c3; c3 = c4; c4 = c5; c5 = c6; c6 = c7; c7 = c8; c8 = c9; c9 = c10;
+        c10 = zero_coefficients();
+        if pixel_at(run, step, false) >= 0 {
+            let ssim = pixel_ssim(window_stats(w, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10));
+            c10 = ssim.coefficients;
+            if step >= 0 && step < i32(RUN) {
+                ssim_term += ssim.one_minus_ssim;
+            }
+        }
+        s0 = s1; s1 = s2; s2 = s3; s3 = s4; s4 = s5; s5 = s6; s6 = s7; s7 = s8; s8 = s9; s9 = s10;
+        s10 = load_row_stats(pixel_at(run, step + 6, false));
+        // Row y0 + step - 5 now has its whole coefficient window.
+        let output = pixel_at(run, step - 5, false);
+        if step >= 5 && output >= 0 {
+            let sums = window_coefficients(w, c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10);
+            let base = u32(output) * COEFFICIENTS_PER_PIXEL;
+            for (var k = 0u; k < 3u; k++) {
+                ssim_coefficients[base + k] = sums.a[k];
+                ssim_coefficients[base + 3u + k] = sums.b[k];
+                ssim_coefficients[base + 6u + k] = sums.c[k];
+            }
+        }
+    }
+    loss_partials[run_index] =
+        vec4<f32>(0.0, loss_params.weights.y * ssim_term * loss_params.normalisers.x, 0.0, 0.0);
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn loss_rows(
+    @builtin(workgroup_id) workgroup_id: vec3<u32>,
+    @builtin(num_workgroups) workgroup_count: vec3<u32>,
+    @builtin(local_invocation_index) local_index: u32,
+) {
+    let run_index = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * WORKGROUP_SIZE + local_index;
+    let run = run_of(workgroup_id, workgroup_count, local_index, true);
+    if !run.valid {
+        return;
+    }
+    let w = window_weights();
+    var s0 = load_coefficients(pixel_at(run, -5, true));
+    var s1 = load_coefficients(pixel_at(run, -4, true));
+    var s2 = load_coefficients(pixel_at(run, -3, true));
+    var s3 = load_coefficients(pixel_at(run, -2, true));
+    var s4 = load_coefficients(pixel_at(run, -1, true));
+    var s5 = load_coefficients(pixel_at(run, 0, true));
+    var s6 = load_coefficients(pixel_at(run, 1, true));
+    var s7 = load_coefficients(pixel_at(run, 2, true));
+    var s8 = load_coefficients(pixel_at(run, 3, true));
+    var s9 = load_coefficients(pixel_at(run, 4, true));
+    var s10 = load_coefficients(pixel_at(run, 5, true));
+    let l1_scale = loss_params.weights.x * loss_params.normalisers.x;
+    let depth_scale = loss_params.weights.z * loss_params.weights.w * loss_params.normalisers.y;
+    var l1_term = 0.0;
     var depth_term = 0.0;
-    if y_centre.w > 0.0 {
-        depth_term = abs(x_centre.w - y_centre.w) * loss_params.weights.w;
+    for (var step = 0; step < i32(RUN); step++) {
+        let pixel = pixel_at(run, step, true);
+        if pixel < 0 {
+            break;
+        }
+        let sums = window_coefficients(w, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10);
+        let x = rendered[pixel];
+        let y = target_rgbd[pixel];
+        var v_rgb = x.xyz * sums.b + y.xyz * sums.c + sums.a;
+        for (var c = 0u; c < 3u; c++) {
+            v_rgb[c] += l1_scale * sign_or_zero(x[c] - y[c]);
+        }
+        l1_term += dot(abs(x.xyz - y.xyz), vec3<f32>(1.0));
+        var v_depth = 0.0;
+        if y.w > 0.0 {
+            v_depth = depth_scale * sign_or_zero(x.w - y.w);
+            depth_term += abs(x.w - y.w) * loss_params.weights.w;
+        }
+        v_rgbd[pixel] = vec4<f32>(v_rgb, v_depth);
+        v_alpha[pixel] = 0.0;
+        s0 = s1; s1 = s2; s2 = s3; s3 = s4; s4 = s5; s5 = s6; s6 = s7; s7 = s8; s8 = s9; s9 = s10;
+        s10 = load_coefficients(pixel_at(run, step + 6, true));
     }
-    pixel_losses[pixel_index] = vec4<f32>(
-        loss_params.weights.x * l1 * loss_params.normalisers.x,
-        loss_params.weights.y * one_minus_ssim * loss_params.normalisers.x,
+    loss_partials[loss_params.partials.x + run_index] = vec4<f32>(
+        loss_params.weights.x * l1_term * loss_params.normalisers.x,
+        0.0,
         loss_params.weights.z * depth_term * loss_params.normalisers.y,
         0.0,
     );
-}
-
-@compute @workgroup_size(16, 16)
-fn loss_backward(@builtin(global_invocation_id) global_id: vec3<u32>) {
-    let width = loss_params.image_size.x;
-    let height = loss_params.image_size.y;
-    if global_id.x >= width || global_id.y >= height {
-        return;
-    }
-    let pixel_index = global_id.y * width + global_id.x;
-    let x = rendered[pixel_index];
-    let y = target_rgbd[pixel_index];
-    let total_weight = window_total();
-    var sum_a = vec3<f32>(0.0);
-    var sum_b = vec3<f32>(0.0);
-    var sum_c = vec3<f32>(0.0);
-    for (var dy = -WINDOW_RADIUS; dy <= WINDOW_RADIUS; dy++) {
-        let row = i32(global_id.y) + dy;
-        if row < 0 || row >= i32(height) {
-            continue;
-        }
-        let weight = window_weight_1d(dy, total_weight);
-        let base = (u32(row) * width + global_id.x) * ROW_SUMS_PER_PIXEL;
-        sum_a += weight * row_sums[base + ROW_A].xyz;
-        sum_b += weight * row_sums[base + ROW_B].xyz;
-        sum_c += weight * row_sums[base + ROW_C].xyz;
-    }
-    var v_rgb = x.xyz * sum_b + y.xyz * sum_c + sum_a;
-    let l1_scale = loss_params.weights.x * loss_params.normalisers.x;
-    for (var c = 0u; c < 3u; c++) {
-        v_rgb[c] += l1_scale * sign_or_zero(x[c] - y[c]);
-    }
-    var v_depth = 0.0;
-    if y.w > 0.0 {
-        v_depth = loss_params.weights.z * loss_params.weights.w * loss_params.normalisers.y
-            * sign_or_zero(x.w - y.w);
-    }
-    v_rgbd[pixel_index] = vec4<f32>(v_rgb, v_depth);
-    v_alpha[pixel_index] = 0.0;
-}
-
-@compute @workgroup_size(16, 16)
-fn ssim_rows(@builtin(global_invocation_id) global_id: vec3<u32>) {
-    let width = loss_params.image_size.x;
-    let height = loss_params.image_size.y;
-    if global_id.x >= width || global_id.y >= height {
-        return;
-    }
-    let total_weight = window_total();
-    var mu_x = vec3<f32>(0.0);
-    var mu_y = vec3<f32>(0.0);
-    var xx = vec3<f32>(0.0);
-    var yy = vec3<f32>(0.0);
-    var xy = vec3<f32>(0.0);
-    for (var dx = -WINDOW_RADIUS; dx <= WINDOW_RADIUS; dx++) {
-        let column = i32(global_id.x) + dx;
-        if column < 0 || column >= i32(width) {
-            continue;
-        }
-        let weight = window_weight_1d(dx, total_weight);
-        let neighbour = global_id.y * width + u32(column);
-        let x = rendered[neighbour].xyz;
-        let y = target_rgbd[neighbour].xyz;
-        mu_x += weight * x;
-        mu_y += weight * y;
-        xx += weight * x * x;
-        yy += weight * y * y;
-        xy += weight * x * y;
-    }
-    let base = (global_id.y * width + global_id.x) * ROW_SUMS_PER_PIXEL;
-    row_sums[base + ROW_MU_X] = vec4<f32>(mu_x, 0.0);
-    row_sums[base + ROW_MU_Y] = vec4<f32>(mu_y, 0.0);
-    row_sums[base + ROW_XX] = vec4<f32>(xx, 0.0);
-    row_sums[base + ROW_YY] = vec4<f32>(yy, 0.0);
-    row_sums[base + ROW_XY] = vec4<f32>(xy, 0.0);
-}
-
-@compute @workgroup_size(16, 16)
-fn coefficient_rows(@builtin(global_invocation_id) global_id: vec3<u32>) {
-    let width = loss_params.image_size.x;
-    let height = loss_params.image_size.y;
-    if global_id.x >= width || global_id.y >= height {
-        return;
-    }
-    let total_weight = window_total();
-    var sum_a = vec3<f32>(0.0);
-    var sum_b = vec3<f32>(0.0);
-    var sum_c = vec3<f32>(0.0);
-    for (var dx = -WINDOW_RADIUS; dx <= WINDOW_RADIUS; dx++) {
-        let column = i32(global_id.x) + dx;
-        if column < 0 || column >= i32(width) {
-            continue;
-        }
-        let weight = window_weight_1d(dx, total_weight);
-        let base = (global_id.y * width + u32(column)) * COEFFICIENTS_PER_PIXEL;
-        for (var c = 0u; c < 3u; c++) {
-            sum_a[c] += weight * ssim_coefficients[base + 3u * c];
-            sum_b[c] += weight * ssim_coefficients[base + 3u * c + 1u];
-            sum_c[c] += weight * ssim_coefficients[base + 3u * c + 2u];
-        }
-    }
-    let base = (global_id.y * width + global_id.x) * ROW_SUMS_PER_PIXEL;
-    row_sums[base + ROW_A] = vec4<f32>(sum_a, 0.0);
-    row_sums[base + ROW_B] = vec4<f32>(sum_b, 0.0);
-    row_sums[base + ROW_C] = vec4<f32>(sum_c, 0.0);
 }

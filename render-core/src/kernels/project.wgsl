@@ -3,9 +3,13 @@
 // it (conic), and its tile rectangle: the bounding box of the splat's support, i.e. of the
 // 3-sigma square of the reference (radius = 3 sqrt(largest eigenvalue)) intersected with the
 // ellipse outside which opacity * exp(-0.5 d^T conic d) < min splat alpha (those pixels skip
-// the splat anyway), so the tighter box changes no pixel, it only saves tile/splat pairs. Invariants: every Gaussian index < count writes
-// all outputs; a culled Gaussian (non-finite input or result, zero quaternion, behind the near
-// plane, degenerate footprint, no tile overlap) gets tile_count 0 and depth key 0xffffffff so
+// the splat anyway). Rectangles of up to 32 tiles also get a mask of the tiles the ellipse
+// actually reaches (exact box/ellipse test with a small margin), and only those are binned:
+// like the tighter box, this changes no pixel, it only saves tile/splat pairs (a thin tilted
+// ellipse misses most tiles of its bounding box). Invariants: every Gaussian index < count
+// writes all outputs; tile_counts is the number of binned tiles (mask bits, or the whole
+// rectangle); a culled Gaussian (non-finite input or result, zero quaternion, behind the near
+// plane, degenerate footprint, no tile reached) gets tile_count 0 and depth key 0xffffffff so
 // it sorts last and is never binned. sort_values is initialised to the identity permutation.
 
 @group(0) @binding(0) var<uniform> params: RenderParams;
@@ -19,7 +23,8 @@
 // conic a, b, c (matrix [[a, b], [b, c]]), radius in pixels
 @group(0) @binding(7) var<storage, read_write> splat_conic: array<vec4<f32>>;
 @group(0) @binding(8) var<storage, read_write> splat_colour: array<vec4<f32>>;
-// inclusive tile rectangle x0, y0, x1, y1
+// first tile x, first tile y, columns | rows << 16, mask of the rectangle's tiles (row-major)
+// the splat reaches
 @group(0) @binding(9) var<storage, read_write> tile_rects: array<vec4<u32>>;
 @group(0) @binding(10) var<storage, read_write> tile_counts: array<u32>;
 @group(0) @binding(11) var<storage, read_write> depth_keys: array<u32>;
@@ -31,6 +36,28 @@ const MAX_ABS_OPACITY_LOGIT: f32 = 80.0;
 // Added to the squared Mahalanobis radius of the visible ellipse: absorbs f32 rounding of the
 // alpha test so that the box never cuts a pixel the rasterizer would shade.
 const VISIBLE_RADIUS_SQUARED_MARGIN: f32 = 0.01;
+const VISIBLE_RADIUS_RELATIVE_MARGIN: f32 = 1e-4;
+// Rectangles of at most this many tiles get the per-tile ellipse test (one mask bit per tile).
+const MAX_MASKED_TILES: u32 = 32u;
+const ALL_TILES: u32 = 0xffffffffu;
+
+fn quadratic(d: vec2<f32>, conic: vec3<f32>) -> f32 {
+    return conic.x * d.x * d.x + 2.0 * conic.y * d.x * d.y + conic.z * d.y * d.y;
+}
+
+// Minimum of d^T [[a, b], [b, c]] d over the box low <= d <= high (conic = (a, b, c) positive
+// definite): 0 when the box holds the origin, else the minimum over its four edges, each a
+// 1D quadratic minimised at the clamped stationary point.
+fn box_min_quadratic(low: vec2<f32>, high: vec2<f32>, conic: vec3<f32>) -> f32 {
+    if all(low <= vec2<f32>(0.0)) && all(high >= vec2<f32>(0.0)) {
+        return 0.0;
+    }
+    var best = quadratic(vec2<f32>(low.x, clamp(-conic.y * low.x / conic.z, low.y, high.y)), conic);
+    best = min(best, quadratic(vec2<f32>(high.x, clamp(-conic.y * high.x / conic.z, low.y, high.y)), conic));
+    best = min(best, quadratic(vec2<f32>(clamp(-conic.y * low.y / conic.x, low.x, high.x), low.y), conic));
+    best = min(best, quadratic(vec2<f32>(clamp(-conic.y * high.y / conic.x, low.x, high.x), high.y), conic));
+    return best;
+}
 
 fn cull(index: u32) {
     splat_position[index] = vec4<f32>(0.0);
@@ -154,12 +181,39 @@ fn main(
         cull(index);
         return;
     }
-    let rect = vec4<u32>(u32(rect_min.x), u32(rect_min.y), u32(rect_max.x), u32(rect_max.y));
+    let first_tile = vec2<u32>(rect_min);
+    let columns = u32(rect_max.x) - first_tile.x + 1u;
+    let rows = u32(rect_max.y) - first_tile.y + 1u;
+    // Tiles of the rectangle the visible ellipse actually reaches (row-major bit mask); the
+    // test is skipped (all tiles kept) for rectangles of more than 32 tiles or without an
+    // alpha cut-off.
+    var tile_mask = ALL_TILES;
+    var tile_count = columns * rows;
+    if min_alpha > 0.0 && tile_count <= MAX_MASKED_TILES {
+        let radius_squared = (2.0 * log(opacity / min_alpha)) * (1.0 + VISIBLE_RADIUS_RELATIVE_MARGIN)
+            + VISIBLE_RADIUS_SQUARED_MARGIN;
+        tile_mask = 0u;
+        tile_count = 0u;
+        for (var i = 0u; i < columns * rows; i++) {
+            let tile_origin = vec2<f32>(first_tile + vec2<u32>(i % columns, i / columns)) * tile;
+            let low = tile_origin - mean2d;
+            let nearest = box_min_quadratic(low, low + (tile - 1.0), conic);
+            // NaN compares false: such a tile is kept.
+            if !(nearest > radius_squared) {
+                tile_mask |= 1u << i;
+                tile_count += 1u;
+            }
+        }
+        if tile_count == 0u {
+            cull(index);
+            return;
+        }
+    }
     splat_position[index] = vec4<f32>(mean2d, opacity, p.z);
     splat_conic[index] = vec4<f32>(conic, radius);
     splat_colour[index] = vec4<f32>(colour, 0.0);
-    tile_rects[index] = rect;
-    tile_counts[index] = (rect.z - rect.x + 1u) * (rect.w - rect.y + 1u);
+    tile_rects[index] = vec4<u32>(first_tile, columns | (rows << 16u), tile_mask);
+    tile_counts[index] = tile_count;
     // Positive floats order like their bit patterns, so the depth sorts as a u32.
     depth_keys[index] = bitcast<u32>(p.z);
 }

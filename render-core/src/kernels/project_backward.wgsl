@@ -1,10 +1,12 @@
-// project_backward: one invocation per Gaussian (256 per workgroup, linear id over a 2D grid).
-// Recomputes the forward projection of its Gaussian and chains the accumulated screen-space
+// project_backward: one invocation per chunk of GAUSSIANS_PER_INVOCATION consecutive
+// Gaussians, walked serially (64 invocations per workgroup, linear id over a 2D grid). For each
+// Gaussian it recomputes the forward projection and chains the accumulated screen-space
 // gradients (mean2d, conic, opacity, colour, depth; written by rasterize_backward) back to the
 // Gaussian's parameters and to the camera pose. Invariants: culled Gaussians (radius 0 in
-// splat_conic.w) get zero gradients; each invocation writes only its own Gaussian's entries,
-// and its 6-DoF pose contribution (left perturbation of camera_from_world, [translation,
-// rotation]) to pose_translation / pose_rotation, summed afterwards by reduce.wgsl.
+// splat_conic.w) get zero gradients; each invocation writes only its own Gaussians' entries,
+// and the sum of their 6-DoF pose contributions (left perturbation of camera_from_world,
+// [translation, rotation]) to pose_translation / pose_rotation[chunk], summed afterwards by
+// reduce.wgsl (a fixed order: deterministic).
 
 @group(0) @binding(0) var<uniform> params: RenderParams;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -30,8 +32,11 @@ fn at(m: mat3x3<f32>, row: u32, column: u32) -> f32 {
     return m[column][row];
 }
 
+const GAUSSIANS_PER_INVOCATION: u32 = 16u;
+const WORKGROUP_SIZE: u32 = 64u;
+
 fn write_gradients(index: u32, v_mean: vec3<f32>, v_log_scale: vec3<f32>, v_quaternion: vec4<f32>,
-                   v_logit: f32, v_colour: vec3<f32>, v_translation: vec3<f32>, v_rotation: vec3<f32>) {
+                   v_logit: f32, v_colour: vec3<f32>) {
     for (var k = 0u; k < 3u; k++) {
         v_means[3u * index + k] = v_mean[k];
         v_log_scales[3u * index + k] = v_log_scale[k];
@@ -39,24 +44,41 @@ fn write_gradients(index: u32, v_mean: vec3<f32>, v_log_scale: vec3<f32>, v_quat
     }
     v_quaternions[index] = v_quaternion;
     v_opacity_logits[index] = v_logit;
-    pose_translation[index] = vec4<f32>(v_translation, 0.0);
-    pose_rotation[index] = vec4<f32>(v_rotation, 0.0);
 }
 
-@compute @workgroup_size(256)
+struct PoseGradient {
+    translation: vec3<f32>,
+    rotation: vec3<f32>,
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
 fn main(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let index = linear_workgroup(workgroup_id, workgroup_count) * 256u + local_index;
-    if index >= params.counts.x {
+    let chunk = linear_workgroup(workgroup_id, workgroup_count) * WORKGROUP_SIZE + local_index;
+    let first = chunk * GAUSSIANS_PER_INVOCATION;
+    if first >= params.counts.x {
         return;
     }
+    let last = min(first + GAUSSIANS_PER_INVOCATION, params.counts.x);
+    var pose = PoseGradient(vec3<f32>(0.0), vec3<f32>(0.0));
+    for (var index = first; index < last; index++) {
+        let contribution = chain_gaussian(index);
+        pose.translation += contribution.translation;
+        pose.rotation += contribution.rotation;
+    }
+    pose_translation[chunk] = vec4<f32>(pose.translation, 0.0);
+    pose_rotation[chunk] = vec4<f32>(pose.rotation, 0.0);
+}
+
+// Writes Gaussian `index`'s parameter gradients and returns its pose contribution.
+fn chain_gaussian(index: u32) -> PoseGradient {
     let zero3 = vec3<f32>(0.0);
     if !(splat_conic[index].w > 0.0) {
-        write_gradients(index, zero3, zero3, vec4<f32>(0.0), 0.0, zero3, zero3, zero3);
-        return;
+        write_gradients(index, zero3, zero3, vec4<f32>(0.0), 0.0, zero3);
+        return PoseGradient(zero3, zero3);
     }
     let g = index * SCREEN_GRADIENT_STRIDE;
     let v_mean2d = vec2<f32>(screen_gradients[g], screen_gradients[g + 1u]);
@@ -147,5 +169,6 @@ fn main(
     let v_phi_covariance = vec3<f32>(at(pm, 2u, 1u) - at(pm, 1u, 2u), at(pm, 0u, 2u) - at(pm, 2u, 0u),
                                      at(pm, 1u, 0u) - at(pm, 0u, 1u));
     let v_rotation_pose = cross(p, v_p) + v_phi_covariance;
-    write_gradients(index, v_mean, v_log_scale, v_quaternion, v_logit, v_colour, v_p, v_rotation_pose);
+    write_gradients(index, v_mean, v_log_scale, v_quaternion, v_logit, v_colour);
+    return PoseGradient(v_p, v_rotation_pose);
 }

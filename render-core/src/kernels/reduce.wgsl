@@ -1,7 +1,8 @@
-// reduce: sums an array of vec4<f32> in blocks of 256 (one element per invocation, linear
-// workgroup id over a 2D grid) with a fixed-shape tree in workgroup memory, writing one
-// partial sum per block. The launcher repeats it until one value remains. The fixed tree
-// makes the result deterministic (unlike atomics).
+// reduce: sums an array of vec4<f32> in chunks of CHUNK consecutive elements, one invocation
+// per chunk walking it serially (64 invocations per workgroup, linear workgroup id over a 2D
+// grid), writing one partial sum per chunk. The launcher repeats it until one value remains.
+// The fixed chunking and order make the result deterministic (unlike atomics); a serial walk
+// costs one load per element on CPU adapters (lavapipe), a tree in workgroup memory dozens.
 
 struct ReduceParams {
     count: u32,
@@ -14,30 +15,24 @@ struct ReduceParams {
 @group(0) @binding(1) var<storage, read> reduce_input: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read_write> reduce_output: array<vec4<f32>>;
 
-const BLOCK_SIZE: u32 = 256u;
-var<workgroup> partial: array<vec4<f32>, BLOCK_SIZE>;
+const CHUNK: u32 = 64u;
+const WORKGROUP_SIZE: u32 = 64u;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP_SIZE)
 fn main(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let block = workgroup_id.y * workgroup_count.x + workgroup_id.x;
-    let index = block * BLOCK_SIZE + local_index;
-    var value = vec4<f32>(0.0);
-    if index < reduce_params.count {
-        value = reduce_input[index];
+    let chunk = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * WORKGROUP_SIZE + local_index;
+    let first = chunk * CHUNK;
+    if first >= reduce_params.count {
+        return;
     }
-    partial[local_index] = value;
-    workgroupBarrier();
-    for (var stride = BLOCK_SIZE / 2u; stride > 0u; stride = stride / 2u) {
-        if local_index < stride {
-            partial[local_index] += partial[local_index + stride];
-        }
-        workgroupBarrier();
+    let last = min(first + CHUNK, reduce_params.count);
+    var sum = vec4<f32>(0.0);
+    for (var i = first; i < last; i++) {
+        sum += reduce_input[i];
     }
-    if local_index == 0u && block * BLOCK_SIZE < reduce_params.count {
-        reduce_output[block] = partial[0];
-    }
+    reduce_output[chunk] = sum;
 }

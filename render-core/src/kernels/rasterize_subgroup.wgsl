@@ -1,0 +1,52 @@
+// rasterize (forward), subgroup variant (needs Features::SUBGROUP; see rasterize_pixels.wgsl
+// for the thread mapping). Each subgroup walks its tile's depth-ordered splat list on its own,
+// without workgroup memory or barriers: per step every lane loads a DIFFERENT splat (lane l
+// loads entry start + l) and the subgroup composites them in list order, each broadcast from
+// its lane with subgroupShuffle. On lavapipe a load costs the same per lane whether the lanes
+// share the address or not, so this loads each splat once per subgroup instead of once per
+// lane. The subgroup stops once all its pixels have stopped (subgroupAll).
+// Invariants: the loop bounds and the shuffle source lane are subgroup-uniform; lanes are
+// assumed to be numbered 0 .. active - 1 (active = number of invocations in the subgroup,
+// which may be fewer than subgroup_size for a small workgroup); the subgroup size is never
+// assumed.
+
+@compute @workgroup_size(THREADS_PER_TILE)
+fn main(
+    @builtin(workgroup_id) workgroup_id: vec3<u32>,
+    @builtin(local_invocation_index) local_index: u32,
+    @builtin(subgroup_invocation_id) lane: u32,
+) {
+    let tile_id = workgroup_id.y * params.image_size.z + workgroup_id.x;
+    let tile_origin = workgroup_id.xy * TILE_SIZE;
+    let row = tile_origin.y + local_index;
+    let range = tile_ranges[tile_id];
+    let lanes = subgroupAdd(1u);
+    let pixel_y = f32(row);
+    var group0 = new_group(tile_origin.x, row);
+    var group1 = new_group(tile_origin.x + 4u, row);
+    var group2 = new_group(tile_origin.x + 8u, row);
+    var group3 = new_group(tile_origin.x + 12u, row);
+    for (var start = range.x; start < range.y; start += lanes) {
+        if subgroupAll(all(group0.done & group1.done & group2.done & group3.done)) {
+            break;
+        }
+        var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+        if start + lane < range.y {
+            mine = load_splat(intersection_gaussians[start + lane]);
+        }
+        let count = min(lanes, range.y - start);
+        for (var k = 0u; k < count; k++) {
+            let splat = Splat(subgroupShuffle(mine.position, k), subgroupShuffle(mine.conic, k),
+                              subgroupShuffle(mine.colour, k));
+            let entry = start - range.x + k + 1u;
+            composite(&group0, pixel_y, splat, entry);
+            composite(&group1, pixel_y, splat, entry);
+            composite(&group2, pixel_y, splat, entry);
+            composite(&group3, pixel_y, splat, entry);
+        }
+    }
+    write_group(group0, row);
+    write_group(group1, row);
+    write_group(group2, row);
+    write_group(group3, row);
+}
