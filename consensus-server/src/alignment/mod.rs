@@ -1,0 +1,373 @@
+//! Keyframe-to-keyframe alignment (SPEC section 4, steps 2 and 3): the relative pose of two
+//! RGB-D keyframes, from the same agent or from two agents whose frames are unrelated.
+//!
+//! 1. Coarse ([`features`], [`ransac`]): FAST + BRIEF keypoints on both images, mutual ratio-test
+//!    matches, lifted to 3-D with depth, RANSAC over 3-point rigid fits. Needs no initial guess, so
+//!    it works when the cameras are metres and tens of degrees apart.
+//! 2. Refinement: G-ICP between the two keyframes' point clouds with both covariances
+//!    (`Sigma_k + Sigma_l`), coarse-to-fine correspondence distances (slam_core's
+//!    [`register_coarse_to_fine`]).
+//! 3. Verification ([`verification`]): inlier fraction, point-to-plane residual and depth
+//!    agreement in both directions against [`AlignmentConfig`] thresholds. The result always says
+//!    why an estimate was rejected.
+//!
+//! The estimate is `target_camera_from_source_camera`: it maps points of the source keyframe's
+//! camera frame into the target keyframe's camera frame.
+
+pub mod features;
+pub mod ransac;
+pub mod verification;
+
+use image::RgbImage;
+use nalgebra::{Isometry3, Point3};
+use serde::Serialize;
+use slam_core::camera::Intrinsics;
+use slam_core::dataset::DepthImage;
+use slam_core::registration::{
+    GicpParams, PointTree, RegistrationFailure, points_from_depth, register_coarse_to_fine,
+};
+
+use crate::config::AlignmentConfig;
+use crate::place_recognition::KeyframeRef;
+use features::Features;
+use verification::DepthComparison;
+
+/// One keyframe as the consensus receives it.
+#[derive(Debug, Clone)]
+pub struct Keyframe {
+    pub id: KeyframeRef,
+    pub rgb: RgbImage,
+    /// Metres, 0 = invalid.
+    pub depth: DepthImage,
+    pub intrinsics: Intrinsics,
+    /// The keyframe's pose in its agent's own frame (agents start at identity).
+    pub agent_from_camera: Isometry3<f64>,
+}
+
+/// A keyframe with what alignment computes from it once, however many candidates it is paired
+/// with: lifted keypoints and the point cloud with G-ICP covariances.
+pub struct PreparedKeyframe {
+    pub keyframe: Keyframe,
+    pub features: Features,
+    /// Camera-frame points with covariances: G-ICP source and target.
+    pub cloud: PointTree,
+}
+
+impl PreparedKeyframe {
+    pub fn new(keyframe: Keyframe, config: &AlignmentConfig) -> Self {
+        let _span = tracing::debug_span!("prepare keyframe", id = ?keyframe.id).entered();
+        let features =
+            features::extract(&keyframe.rgb, &keyframe.depth, &keyframe.intrinsics, config);
+        let points = points_from_depth(
+            &keyframe.depth,
+            &keyframe.intrinsics,
+            config.pixel_stride,
+            config.truncation_m,
+        );
+        let cloud = PointTree::with_covariances(
+            points,
+            config.covariance_neighbours,
+            config.covariance_epsilon,
+        )
+        // Points back-projected with valid intrinsics are finite; if not, the keyframe simply
+        // has no cloud and every alignment with it is rejected as a refinement failure.
+        .unwrap_or_else(|error| {
+            tracing::warn!(%error, "keyframe points cannot be indexed");
+            PointTree::new(Vec::new()).expect("an empty cloud always indexes")
+        });
+        Self {
+            keyframe,
+            features,
+            cloud,
+        }
+    }
+}
+
+/// Scores of the coarse registration.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct CoarseScores {
+    pub source_keypoints: usize,
+    pub target_keypoints: usize,
+    pub matches: usize,
+    pub inliers: usize,
+    pub ransac_iterations: usize,
+}
+
+/// Scores of the refined estimate.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RefinementScores {
+    pub gicp_iterations: usize,
+    pub converged: bool,
+    /// Source points with a target point within the finest correspondence distance.
+    pub inlier_fraction: f64,
+    /// RMS point-to-plane distance of those points (metres).
+    pub residual_m: f64,
+    /// Depth agreement of the source projected into the target, and the reverse.
+    pub source_in_target: DepthCounts,
+    pub target_in_source: DepthCounts,
+}
+
+/// [`DepthComparison`] as reported.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct DepthCounts {
+    pub agreeing: usize,
+    pub violating: usize,
+    pub occluded: usize,
+    pub agreement: f64,
+}
+
+impl From<DepthComparison> for DepthCounts {
+    fn from(c: DepthComparison) -> Self {
+        Self {
+            agreeing: c.agreeing,
+            violating: c.violating,
+            occluded: c.occluded,
+            agreement: c.agreement(),
+        }
+    }
+}
+
+/// Why an alignment was not accepted.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RejectionReason {
+    #[error("{found} descriptor matches, at least {required} needed")]
+    TooFewMatches { found: usize, required: usize },
+    #[error("coarse registration found {found} inlier matches, at least {required} needed")]
+    TooFewCoarseInliers { found: usize, required: usize },
+    #[error("G-ICP refinement failed: {0}")]
+    RefinementFailed(RegistrationFailure),
+    #[error("inlier fraction {found:.3} below {required:.3}")]
+    LowInlierFraction { found: f64, required: f64 },
+    #[error("point-to-plane residual {found_m:.4} m above {allowed_m:.4} m")]
+    HighResidual { found_m: f64, allowed_m: f64 },
+    #[error("{comparisons} depth comparisons, at least {required} needed")]
+    TooFewDepthComparisons { comparisons: usize, required: usize },
+    #[error("depth agreement {found:.3} below {required:.3}")]
+    DepthDisagreement { found: f64, required: f64 },
+}
+
+/// Accepted, or rejected with the reason.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Verdict {
+    Accepted,
+    Rejected(RejectionReason),
+}
+
+/// The outcome of aligning a source keyframe to a target keyframe.
+#[derive(Debug, Clone)]
+pub struct AlignmentResult {
+    pub source: KeyframeRef,
+    pub target: KeyframeRef,
+    /// The estimate: refined when refinement ran, the coarse one when refinement failed,
+    /// identity when there were too few matches to estimate anything.
+    pub target_camera_from_source_camera: Isometry3<f64>,
+    /// `None` when there were too few matches to try.
+    pub coarse: Option<CoarseScores>,
+    /// `None` when refinement did not run or failed.
+    pub refinement: Option<RefinementScores>,
+    pub verdict: Verdict,
+}
+
+impl AlignmentResult {
+    pub fn is_accepted(&self) -> bool {
+        self.verdict == Verdict::Accepted
+    }
+
+    /// The transform between the two agents' frames that this estimate implies:
+    /// `target_agent_from_source_agent`.
+    pub fn target_agent_from_source_agent(
+        &self,
+        source_agent_from_camera: &Isometry3<f64>,
+        target_agent_from_camera: &Isometry3<f64>,
+    ) -> Isometry3<f64> {
+        target_agent_from_camera
+            * self.target_camera_from_source_camera
+            * source_agent_from_camera.inverse()
+    }
+}
+
+/// Aligns two keyframes; see the module documentation. Prepares both first; use
+/// [`align_prepared`] to reuse prepared keyframes across many pairs.
+pub fn align(source: Keyframe, target: Keyframe, config: &AlignmentConfig) -> AlignmentResult {
+    let source = PreparedKeyframe::new(source, config);
+    let target = PreparedKeyframe::new(target, config);
+    align_prepared(&source, &target, config)
+}
+
+/// Aligns two prepared keyframes.
+pub fn align_prepared(
+    source: &PreparedKeyframe,
+    target: &PreparedKeyframe,
+    config: &AlignmentConfig,
+) -> AlignmentResult {
+    let _span = tracing::info_span!(
+        "align",
+        source = ?source.keyframe.id,
+        target = ?target.keyframe.id
+    )
+    .entered();
+    let mut result = AlignmentResult {
+        source: source.keyframe.id,
+        target: target.keyframe.id,
+        target_camera_from_source_camera: Isometry3::identity(),
+        coarse: None,
+        refinement: None,
+        verdict: Verdict::Accepted,
+    };
+    let reject = |mut result: AlignmentResult, reason: RejectionReason| {
+        tracing::debug!(%reason, "alignment rejected");
+        result.verdict = Verdict::Rejected(reason);
+        result
+    };
+
+    let matches = features::match_features(&source.features, &target.features, config);
+    if matches.len() < config.min_coarse_inliers {
+        let reason = RejectionReason::TooFewMatches {
+            found: matches.len(),
+            required: config.min_coarse_inliers,
+        };
+        return reject(result, reason);
+    }
+    let (source_points, target_points): (Vec<Point3<f64>>, Vec<Point3<f64>>) = matches
+        .iter()
+        .map(|&(i, j)| {
+            (
+                source.features.camera_points[i],
+                target.features.camera_points[j],
+            )
+        })
+        .unzip();
+    let coarse = ransac::register(&source_points, &target_points, config);
+    let inliers = coarse.as_ref().map_or(0, |c| c.inliers.len());
+    result.coarse = Some(CoarseScores {
+        source_keypoints: source.features.len(),
+        target_keypoints: target.features.len(),
+        matches: matches.len(),
+        inliers,
+        ransac_iterations: coarse.as_ref().map_or(0, |c| c.iterations),
+    });
+    let coarse = match coarse {
+        Some(coarse) if inliers >= config.min_coarse_inliers => coarse,
+        _ => {
+            let reason = RejectionReason::TooFewCoarseInliers {
+                found: inliers,
+                required: config.min_coarse_inliers,
+            };
+            return reject(result, reason);
+        }
+    };
+    result.target_camera_from_source_camera = coarse.target_from_source;
+
+    let refined = {
+        let _span = tracing::debug_span!("gicp").entered();
+        register_coarse_to_fine(
+            source.cloud.cloud(),
+            &target.cloud,
+            &coarse.target_from_source,
+            &config.correspondence_distances_m,
+            &gicp_params(config),
+        )
+    };
+    if let Some(failure) = refined.failure.clone().filter(|f| !f.pose_is_usable()) {
+        return reject(result, RejectionReason::RefinementFailed(failure));
+    }
+    let estimate = refined.target_from_source;
+    result.target_camera_from_source_camera = estimate;
+
+    let _span = tracing::debug_span!("verify").entered();
+    let finest = finest_distance(config);
+    let (residual_m, _) =
+        verification::point_to_plane_rms(&source.cloud, &target.cloud, &estimate, finest);
+    let source_in_target = verification::compare_depth(
+        source.cloud.positions(),
+        &estimate,
+        &target.keyframe.depth,
+        &target.keyframe.intrinsics,
+        config,
+    );
+    let target_in_source = verification::compare_depth(
+        target.cloud.positions(),
+        &estimate.inverse(),
+        &source.keyframe.depth,
+        &source.keyframe.intrinsics,
+        config,
+    );
+    let scores = RefinementScores {
+        gicp_iterations: refined.iterations,
+        converged: refined.converged,
+        inlier_fraction: refined.inlier_fraction(),
+        residual_m,
+        source_in_target: source_in_target.into(),
+        target_in_source: target_in_source.into(),
+    };
+    result.refinement = Some(scores);
+    tracing::debug!(?scores, "refined");
+    match verify(&scores, source_in_target, target_in_source, config) {
+        Some(reason) => reject(result, reason),
+        None => result,
+    }
+}
+
+/// The first threshold the scores fail, if any.
+fn verify(
+    scores: &RefinementScores,
+    source_in_target: DepthComparison,
+    target_in_source: DepthComparison,
+    config: &AlignmentConfig,
+) -> Option<RejectionReason> {
+    if scores.inlier_fraction < config.min_inlier_fraction {
+        return Some(RejectionReason::LowInlierFraction {
+            found: scores.inlier_fraction,
+            required: config.min_inlier_fraction,
+        });
+    }
+    // A NaN residual (no correspondences to measure) fails as well.
+    if scores.residual_m.is_nan() || scores.residual_m > config.max_residual_m {
+        return Some(RejectionReason::HighResidual {
+            found_m: scores.residual_m,
+            allowed_m: config.max_residual_m,
+        });
+    }
+    let comparisons = source_in_target.decisive().min(target_in_source.decisive());
+    if comparisons < config.min_depth_comparisons {
+        return Some(RejectionReason::TooFewDepthComparisons {
+            comparisons,
+            required: config.min_depth_comparisons,
+        });
+    }
+    let agreement = source_in_target
+        .agreement()
+        .min(target_in_source.agreement());
+    if agreement < config.min_depth_agreement {
+        return Some(RejectionReason::DepthDisagreement {
+            found: agreement,
+            required: config.min_depth_agreement,
+        });
+    }
+    None
+}
+
+/// The last (finest) coarse-to-fine distance: the one the final statistics are measured at.
+fn finest_distance(config: &AlignmentConfig) -> f64 {
+    config
+        .correspondence_distances_m
+        .last()
+        .copied()
+        .unwrap_or(DEFAULT_FINEST_DISTANCE_M)
+}
+
+/// Correspondence distance when the configuration lists none: the SPEC's tracking distance.
+const DEFAULT_FINEST_DISTANCE_M: f64 = 0.02;
+
+fn gicp_params(config: &AlignmentConfig) -> GicpParams {
+    GicpParams {
+        max_correspondence_m: finest_distance(config),
+        max_iterations: config.gicp_max_iterations,
+        rotation_epsilon_rad: config.gicp_rotation_epsilon_rad,
+        translation_epsilon_m: config.gicp_translation_epsilon_m,
+        overlap_distance_m: finest_distance(config),
+        // The inlier fraction is judged by `verify`, with a reason; G-ICP only needs enough
+        // correspondences for a pose.
+        min_inlier_fraction: 0.0,
+    }
+}

@@ -1,0 +1,139 @@
+//! Verification scores of a refined keyframe-to-keyframe estimate.
+//!
+//! - Residual: RMS point-to-plane distance of the source points that have a target point within
+//!   the finest correspondence distance. Plane, not point, distance: the clouds sample the
+//!   surfaces on different pixel grids, so even a perfect pose leaves point-to-point gaps of up to
+//!   half the sampling step along the surface.
+//! - Depth agreement: each keyframe's points are projected into the other keyframe's depth image.
+//!   A point close to the measured depth agrees; a point clearly in front of it is a free-space
+//!   violation (the other camera sees through where the estimate puts a surface); a point behind
+//!   it may be occluded and says nothing. Agreement = agreeing / (agreeing + violations), in both
+//!   directions, so a pose that merely matches one planar region but contradicts the rest of the
+//!   views is refused.
+
+use nalgebra::{Isometry3, Point3};
+use slam_core::camera::Intrinsics;
+use slam_core::dataset::DepthImage;
+use slam_core::registration::covariance::smallest_eigenvector;
+use slam_core::registration::{PointTree, RegistrationTarget};
+
+use crate::config::AlignmentConfig;
+
+/// Projected comparisons of one direction of the depth check.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct DepthComparison {
+    pub agreeing: usize,
+    /// Points in front of the other camera's measured surface.
+    pub violating: usize,
+    /// Points behind it (possibly occluded: neither for nor against).
+    pub occluded: usize,
+}
+
+impl DepthComparison {
+    /// Agreeing over agreeing plus violating; 0 without comparisons.
+    pub fn agreement(&self) -> f64 {
+        let decisive = self.agreeing + self.violating;
+        if decisive == 0 {
+            0.0
+        } else {
+            self.agreeing as f64 / decisive as f64
+        }
+    }
+
+    pub fn decisive(&self) -> usize {
+        self.agreeing + self.violating
+    }
+}
+
+/// RMS point-to-plane distance (metres) over the source points with a target point within
+/// `max_distance_m` after `target_from_source`, and how many there are.
+pub fn point_to_plane_rms(
+    source: &PointTree,
+    target: &PointTree,
+    target_from_source: &Isometry3<f64>,
+    max_distance_m: f64,
+) -> (f64, usize) {
+    let max_distance_sq = (max_distance_m * max_distance_m) as f32;
+    let mut sum_sq = 0.0;
+    let mut count = 0;
+    for position in source.positions() {
+        let moved = target_from_source * position.cast::<f64>();
+        let Some((index, _)) = target.nearest_within(&moved.cast::<f32>(), max_distance_sq) else {
+            continue;
+        };
+        let normal = smallest_eigenvector(&target.covariance(index).to_matrix());
+        let offset = moved - target.position(index).cast::<f64>();
+        sum_sq += offset.dot(&normal).powi(2);
+        count += 1;
+    }
+    if count == 0 {
+        (f64::INFINITY, 0)
+    } else {
+        ((sum_sq / count as f64).sqrt(), count)
+    }
+}
+
+/// Projects `points` (camera frame of the first view) into the second view (`second_from_first`)
+/// and compares with its depth image.
+pub fn compare_depth(
+    points: &[Point3<f32>],
+    second_from_first: &Isometry3<f64>,
+    second_depth: &DepthImage,
+    second_intrinsics: &Intrinsics,
+    config: &AlignmentConfig,
+) -> DepthComparison {
+    let mut comparison = DepthComparison::default();
+    for point in points {
+        let in_second = second_from_first * point.cast::<f64>();
+        let Some(pixel) = second_intrinsics.project(&in_second) else {
+            continue;
+        };
+        if !second_intrinsics.contains(&pixel) {
+            continue;
+        }
+        let measured = second_depth.get(pixel.x.round() as u32, pixel.y.round() as u32) as f64;
+        if !(measured > 0.0 && measured < config.truncation_m) {
+            continue;
+        }
+        let tolerance = config.depth_tolerance_m + config.depth_tolerance_fraction * measured;
+        let difference = in_second.z - measured;
+        if difference.abs() <= tolerance {
+            comparison.agreeing += 1;
+        } else if difference < 0.0 {
+            comparison.violating += 1;
+        } else {
+            comparison.occluded += 1;
+        }
+    }
+    comparison
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn depth_comparison_classifies_points() {
+        let k = Intrinsics::new(10.0, 10.0, 4.5, 4.5, 10, 10);
+        let mut depth = DepthImage::new(10, 10);
+        depth.data.fill(2.0);
+        let config = AlignmentConfig::default();
+        let points = [
+            Point3::new(0.0, 0.0, 2.01), // agrees
+            Point3::new(0.0, 0.0, 1.5),  // in front: violation
+            Point3::new(0.0, 0.0, 3.0),  // behind: occluded
+            Point3::new(50.0, 0.0, 2.0), // outside the image
+        ];
+        let result = compare_depth(&points, &Isometry3::identity(), &depth, &k, &config);
+        assert_eq!(
+            result,
+            DepthComparison {
+                agreeing: 1,
+                violating: 1,
+                occluded: 1
+            }
+        );
+        assert_eq!(result.agreement(), 0.5);
+        assert_eq!(DepthComparison::default().agreement(), 0.0);
+    }
+}
