@@ -16,7 +16,11 @@ use slam_core::config::Config;
 use slam_core::dataset::FrameRange;
 
 #[derive(Parser)]
-#[command(name = "mac-agent", version, about = "One mac-ego3d agent: RGB-D tracking and Gaussian mapping")]
+#[command(
+    name = "mac-agent",
+    version,
+    about = "One mac-ego3d agent: RGB-D tracking and Gaussian mapping"
+)]
 struct Args {
     /// Configuration file (configs/*.toml); SPEC defaults when absent.
     #[arg(long)]

@@ -311,10 +311,9 @@ impl MapperState {
         self.unvisited.push(self.keyframes.len());
         self.keyframes.push(StoredKeyframe { camera, target });
         self.stats.keyframes += 1;
-        self.progress.gaussians.store(
-            self.map.as_ref().map_or(0, |m| m.len()),
-            Ordering::Relaxed,
-        );
+        self.progress
+            .gaussians
+            .store(self.map.as_ref().map_or(0, |m| m.len()), Ordering::Relaxed);
         Ok(())
     }
 
@@ -358,12 +357,16 @@ impl MapperState {
             &self.weights,
             &image_gradients,
         )?;
-        let gradients = self
-            .renderer
-            .backward(context, map.gaussians(), &frame, &image_gradients)?;
+        let gradients =
+            self.renderer
+                .backward(context, map.gaussians(), &frame, &image_gradients)?;
         map.adam_step(context, &self.kernels, &gradients)?;
         self.stats.iterations += 1;
-        if self.stats.iterations.is_multiple_of(self.config.check_pairs_every) {
+        if self
+            .stats
+            .iterations
+            .is_multiple_of(self.config.check_pairs_every)
+        {
             self.stats.last_loss = Some(loss.read(context)?);
             tracing::debug!(
                 iterations = self.stats.iterations,
@@ -374,7 +377,11 @@ impl MapperState {
         } else {
             context.wait_idle()?;
         }
-        if self.stats.iterations.is_multiple_of(self.config.prune_every) {
+        if self
+            .stats
+            .iterations
+            .is_multiple_of(self.config.prune_every)
+        {
             let removed = map.prune(context, &self.prune_criteria)?.removed;
             self.stats.pruned += removed;
             if removed > 0 {

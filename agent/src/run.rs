@@ -136,7 +136,8 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
     let config = &options.config;
     let lpips = match &options.lpips_weights {
         Some(path) => Some(
-            Lpips::load(path).with_context(|| format!("loading LPIPS weights {}", path.display()))?,
+            Lpips::load(path)
+                .with_context(|| format!("loading LPIPS weights {}", path.display()))?,
         ),
         None => None,
     };
@@ -152,8 +153,8 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
         &config.tracking,
         &config.keyframes,
     );
-    let mapper = Mapper::spawn(&config.tracking, &config.mapping)
-        .context("starting the mapping thread")?;
+    let mapper =
+        Mapper::spawn(&config.tracking, &config.mapping).context("starting the mapping thread")?;
     let mut coverage = CoverageIndex::new(config.keyframes.mapping_seed_min_distance_sq_m2.sqrt());
     let progress = progress_bar(dataset.len());
 
@@ -188,8 +189,10 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
                     rgb: &frame.rgb,
                     intrinsics: &frame.intrinsics,
                 };
-                let uncovered = coverage
-                    .uncovered(&seed_frame, config.keyframes.mapping_seed_min_distance_sq_m2);
+                let uncovered = coverage.uncovered(
+                    &seed_frame,
+                    config.keyframes.mapping_seed_min_distance_sq_m2,
+                );
                 Some((KeyframeKind::Mapping, uncovered))
             } else {
                 None
@@ -261,7 +264,8 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
     let outcome = mapper.finish(refine_iterations)?;
 
     // Outputs that need no rendering first: an interrupted evaluation still leaves these.
-    let trajectory = Trajectory::from_pairs(poses.iter().map(|p| (p.timestamp, p.world_from_camera)));
+    let trajectory =
+        Trajectory::from_pairs(poses.iter().map(|p| (p.timestamp, p.world_from_camera)));
     let trajectory_path = options.out.join("trajectory.tum");
     trajectory.write_tum(&trajectory_path)?;
     let map_path = options.out.join("map.ply");
@@ -302,7 +306,11 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
         }
         None => None,
     };
-    let realtime = map_metrics(&realtime_quality, outcome.realtime_map.len(), &outcome.realtime);
+    let realtime = map_metrics(
+        &realtime_quality,
+        outcome.realtime_map.len(),
+        &outcome.realtime,
+    );
     let stats = odometry.stats();
     let source_stats = source.stats();
     let metrics = AgentMetrics {
@@ -503,7 +511,10 @@ pub fn metrics_table(metrics: &AgentMetrics) -> String {
             opt(refined.psnr, 1.0, 2),
         ));
         rows.push(("refined SSIM".into(), opt(refined.ssim, 1.0, 3)));
-        rows.push(("refined depth L1 cm".into(), opt(refined.depth_l1_cm, 1.0, 2)));
+        rows.push((
+            "refined depth L1 cm".into(),
+            opt(refined.depth_l1_cm, 1.0, 2),
+        ));
     }
     let width = rows.iter().map(|r| r.0.len()).max().unwrap_or(0);
     rows.iter()

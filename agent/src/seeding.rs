@@ -25,9 +25,6 @@ use slam_core::registration::voxel_map::{MapPoint, VoxelMap};
 /// SPEC seeding scale: `sqrt(eigenvalue) / max(1, SPEC_DEPTH_FACTOR * z^SPEC_DEPTH_EXPONENT)`.
 const SPEC_DEPTH_FACTOR: f64 = 2.0;
 const SPEC_DEPTH_EXPONENT: f64 = 1.5;
-/// Sample-footprint seeding: the tangent standard deviation is this fraction of the distance
-/// between neighbouring samples, so neighbouring discs meet at one sigma.
-const FOOTPRINT_SIGMA_PER_SPACING: f64 = 0.5;
 
 fn logit(probability: f64) -> f32 {
     (probability / (1.0 - probability)).ln() as f32
@@ -70,11 +67,9 @@ pub fn seed_gaussians(
             None => -camera_point.coords.normalize(),
         };
         let tangent_sigma = match keyframes.seed_scale {
-            SeedScale::Spec => {
-                1.0 / (SPEC_DEPTH_FACTOR * depth.powf(SPEC_DEPTH_EXPONENT)).max(1.0)
-            }
+            SeedScale::Spec => 1.0 / (SPEC_DEPTH_FACTOR * depth.powf(SPEC_DEPTH_EXPONENT)).max(1.0),
             SeedScale::SampleFootprint => {
-                FOOTPRINT_SIGMA_PER_SPACING * tracking.pixel_stride as f64 * depth / focal
+                keyframes.footprint_sigma_per_spacing * tracking.pixel_stride as f64 * depth / focal
             }
         };
         let normal_sigma = tangent_sigma * normal_ratio;
@@ -208,7 +203,10 @@ mod tests {
             intrinsics: &intrinsics,
         };
         let tracking = TrackingConfig::default();
-        let keyframes = KeyframeConfig::default();
+        let keyframes = KeyframeConfig {
+            footprint_sigma_per_spacing: 0.5,
+            ..KeyframeConfig::default()
+        };
         let cloud = seed_gaussians(&frame, &[true], &tracking, &keyframes);
         assert_eq!(cloud.len(), 1);
         assert_eq!(cloud.means[0], [1.0, 0.0, 2.0]);
@@ -250,7 +248,13 @@ mod tests {
         let mut coverage = CoverageIndex::new(0.02);
         assert_eq!(coverage.uncovered(&frame, 4e-4), vec![true]);
         let mut near = GaussianCloud::default();
-        near.push([0.0, 0.01, 2.0], [0.0; 3], [1.0, 0.0, 0.0, 0.0], 0.0, [0.0; 3]);
+        near.push(
+            [0.0, 0.01, 2.0],
+            [0.0; 3],
+            [1.0, 0.0, 0.0, 0.0],
+            0.0,
+            [0.0; 3],
+        );
         coverage.insert(&near);
         assert_eq!(coverage.uncovered(&frame, 4e-4), vec![false]);
         assert_eq!(coverage.uncovered(&frame, 1e-5), vec![true]);

@@ -77,6 +77,12 @@ pub struct KeyframeConfig {
     pub initial_opacity: f64,
     /// How big a new Gaussian is (see [`SeedScale`]).
     pub seed_scale: SeedScale,
+    /// With `seed_scale = "sample_footprint"`: the new Gaussian's standard deviation along the
+    /// surface in units of the spacing between neighbouring samples. Coverage of a surface grows
+    /// with opacity x (sigma / spacing)^2: at the SPEC's initial opacity 0.1, 2 spacings give a closed
+    /// surface from the first render (synthetic scene, no optimisation: PSNR 21.8 dB against
+    /// 16.7 dB with 1 spacing).
+    pub footprint_sigma_per_spacing: f64,
     /// At a mapping keyframe, points with a map Gaussian closer than sqrt(this) (m^2) are already
     /// covered and seed nothing. The SPEC says mapping-keyframe Gaussians are never trackable but
     /// not which points seed them; seeding every point of every 10th frame would grow the map by
@@ -95,9 +101,9 @@ pub enum SeedScale {
     /// 2 m away gets a disc of 0.18 m standard deviation: ~10x the spacing of the sampled
     /// points, which on a CPU rasteriser costs tens of millions of tile/Gaussian pairs.
     Spec,
-    /// The disc covers the point's own sample cell: standard deviation along the surface =
-    /// half the distance between neighbouring samples (pixel_stride * z / f / 2), so
-    /// neighbouring discs meet at about one sigma and the surface is closed.
+    /// The disc scales with the point's own sample cell: standard deviation along the surface =
+    /// `footprint_sigma_per_spacing` x the distance between neighbouring samples
+    /// (pixel_stride * z / f), so the surface is closed whatever the depth.
     #[default]
     SampleFootprint,
 }
@@ -111,6 +117,7 @@ impl Default for KeyframeConfig {
             trackable_new_distance_sq_m2: 5e-5,
             initial_opacity: 0.1,
             seed_scale: SeedScale::default(),
+            footprint_sigma_per_spacing: 2.0,
             mapping_seed_min_distance_sq_m2: 5e-4,
         }
     }
@@ -343,6 +350,10 @@ impl Config {
         positive("mapping.prune_max_elongation", m.prune_max_elongation)?;
         at_least_one("mapping.image_downscale", m.image_downscale as usize)?;
         at_least_one("mapping.check_pairs_every", m.check_pairs_every)?;
+        positive(
+            "keyframes.footprint_sigma_per_spacing",
+            k.footprint_sigma_per_spacing,
+        )?;
         non_negative(
             "keyframes.mapping_seed_min_distance_sq_m2",
             k.mapping_seed_min_distance_sq_m2,
@@ -424,7 +435,11 @@ mod tests {
     #[test]
     fn dataset_configs_carry_the_spec_values() {
         let seven = Config::load(&configs_dir().join("7scenes.toml")).unwrap();
-        assert_eq!(seven, Config::default(), "7-Scenes uses the SPEC defaults");
+        // Mapping resolution is the one deliberate difference: half resolution keeps a CPU
+        // Vulkan device (lavapipe) mapping in step with the camera.
+        let mut spec = Config::default();
+        spec.mapping.image_downscale = 2;
+        assert_eq!(seven, spec, "7-Scenes uses the SPEC defaults");
         let replica = Config::load(&configs_dir().join("replica.toml")).unwrap();
         assert_eq!(replica.tracking.pixel_stride, 10);
         assert_eq!(replica.tracking.truncation_m, 12.0);

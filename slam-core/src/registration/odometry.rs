@@ -400,12 +400,10 @@ impl Odometry {
                 self.previous_frame = Some(self.frame_target(frame.cloud()));
                 None
             }
-            OdometryMode::FrameToModel => Some(self.add_keyframe(
-                frame.cloud(),
-                &world_from_camera,
-                true,
-            ))
-            .filter(|added| added.contains(&true)),
+            OdometryMode::FrameToModel => {
+                Some(self.add_keyframe(frame.cloud(), &world_from_camera, true))
+                    .filter(|added| added.contains(&true))
+            }
         };
         let keyframe = trackable.is_some();
         if keyframe {
