@@ -99,6 +99,7 @@ struct RenderParams {
     counts: [u32; 4],
     thresholds: [f32; 4],
     culling: [f32; 4],
+    frustum: [f32; 4],
 }
 
 impl RenderParams {
@@ -133,8 +134,22 @@ impl RenderParams {
                 constants::MIN_QUATERNION_NORM_SQUARED,
                 constants::SPLAT_EXTENT_SIGMAS,
             ],
+            frustum: frustum_bounds(camera),
         }
     }
+}
+
+/// `[min x/z, max x/z, min y/z, max y/z]` of the means that are projected (see
+/// [`constants::FRUSTUM_GUARD_BAND`]); the CPU reference uses the same bounds.
+pub(crate) fn frustum_bounds(camera: &Camera) -> [f32; 4] {
+    let guard = constants::FRUSTUM_GUARD_BAND;
+    let (width, height) = (camera.width as f32, camera.height as f32);
+    [
+        (-guard * width - camera.cx) / camera.fx,
+        ((1.0 + guard) * width - camera.cx) / camera.fx,
+        (-guard * height - camera.cy) / camera.fy,
+        ((1.0 + guard) * height - camera.cy) / camera.fy,
+    ]
 }
 
 /// Pairs the binning buffers get per Gaussian before any frame has reported its real need.

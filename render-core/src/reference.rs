@@ -122,6 +122,13 @@ pub fn project_gaussian(
     if z.is_nan() || z < f64::from(constants::NEAR_PLANE) {
         return None;
     }
+    // Far off-axis the linearised projection is meaningless (see FRUSTUM_GUARD_BAND). The
+    // bounds are the GPU's f32 ones, compared in f32 as the kernel does.
+    let [min_u, max_u, min_v, max_v] = crate::gpu::frustum_bounds(camera);
+    let (u, v) = ((x / z) as f32, (y / z) as f32);
+    if u < min_u || u > max_u || v < min_v || v > max_v {
+        return None;
+    }
     let rotation = rotation_from_quaternion_f64(quaternion.map(f64::from));
     let scales = log_scale.map(|s| f64::from(s).exp());
     let mut scaled_rotation = rotation;

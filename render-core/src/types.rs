@@ -24,6 +24,13 @@ pub mod constants {
     pub const LOW_PASS_VARIANCE: f32 = 0.3;
     /// Gaussians closer to the camera than this (camera z, metres) are culled.
     pub const NEAR_PLANE: f32 = 0.01;
+    /// Gaussians whose mean projects further outside the image than this fraction of the
+    /// image's width (or height) are culled. The projection linearises around the mean (EWA);
+    /// far off-axis (a mean beside the camera, `x/z` large) the linearisation explodes into a
+    /// splat that covers the whole image with a wrong colour. 3DGS clamps `x/z` at 1.3 times
+    /// the half field of view in the Jacobian for the same reason; culling instead keeps the
+    /// gradients of every splat that is drawn exact.
+    pub const FRUSTUM_GUARD_BAND: f32 = 0.3;
     /// Screen-space extent of a splat, in standard deviations of its largest axis.
     pub const SPLAT_EXTENT_SIGMAS: f32 = 3.0;
     /// Quaternions with squared norm below this are treated as invalid and culled.

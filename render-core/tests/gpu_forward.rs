@@ -284,7 +284,32 @@ fn hostile_gaussians(camera: &Camera) -> GaussianCloud {
     cloud.push(in_front, [-2.0; 3], unit, 1e4, [0.5; 3]);
     cloud.push(in_front, [-2.0; 3], unit, -1e4, [0.5; 3]);
     cloud.push([1e30, 1e30, 1e30], [-2.0; 3], unit, 1.0, [0.5; 3]);
+    cloud.push(beside_the_camera(camera), [-2.7; 3], unit, 1.0, [0.5; 3]);
     cloud
+}
+
+/// A point next to the camera, far outside the field of view (x/z = -12): a mapped wall
+/// Gaussian an agent walks past. Linearised, its splat would cover the whole image.
+fn beside_the_camera(camera: &Camera) -> [f32; 3] {
+    camera
+        .world_from_camera()
+        .transform_point([-2.46, 0.7, 0.2])
+}
+
+#[test]
+fn gaussians_beside_the_camera_are_culled_not_smeared_over_the_image() {
+    let camera = default_camera();
+    let mut cloud = GaussianCloud::default();
+    cloud.push(
+        beside_the_camera(&camera),
+        [-2.7; 3],
+        [1.0, 0.0, 0.0, 0.0],
+        2.0,
+        [0.9, 0.1, 0.1],
+    );
+    assert!(reference::project_gaussian(&cloud, 0, &camera).is_none());
+    let output = render_gpu(&cloud, &camera);
+    assert!(output.alpha.iter().all(|&a| a == 0.0));
 }
 
 fn assert_finite(output: &RenderOutput) {

@@ -15,6 +15,8 @@ struct RenderParams {
     thresholds: vec4<f32>,
     // near plane, max log-scale, min quaternion norm^2, extent in sigmas
     culling: vec4<f32>,
+    // min x/z, max x/z, min y/z, max y/z of projected means (frustum plus guard band)
+    frustum: vec4<f32>,
 }
 
 const TILE_SIZE: u32 = 16u;

@@ -123,6 +123,13 @@ fn main(
         cull(index);
         return;
     }
+    // Far off-axis the linearised projection is meaningless (see FRUSTUM_GUARD_BAND).
+    let u = p.x / p.z;
+    let v = p.y / p.z;
+    if u < params.frustum.x || u > params.frustum.y || v < params.frustum.z || v > params.frustum.w {
+        cull(index);
+        return;
+    }
     let rotation = quaternion_to_rotation(quaternion);
     let scale = exp(log_scale);
     let scaled_rotation = mat3x3<f32>(rotation[0] * scale.x, rotation[1] * scale.y, rotation[2] * scale.z);
