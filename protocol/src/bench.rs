@@ -23,7 +23,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::messages::{
     CoordinateFrame, GaussianRecord, Intrinsics, KeyframeDescriptor, KeyframePose, LifecycleKind,
-    Pose,
+    Pose, RgbdPixel,
 };
 use crate::services::Topic;
 use crate::transport::{
@@ -205,6 +205,16 @@ pub fn records_checksum(records: &[GaussianRecord]) -> u64 {
     hash
 }
 
+/// Order-sensitive FNV-1a checksum over every field of every pixel.
+pub fn pixels_checksum(pixels: &[RgbdPixel]) -> u64 {
+    pixels.iter().fold(FNV_OFFSET, |h, p| {
+        let bytes = p.rgb.iter().copied().chain([p.reserved]).map(u64::from);
+        bytes
+            .chain([u64::from(p.depth_mm)])
+            .fold(h, |h, v| (h ^ v).wrapping_mul(FNV_PRIME))
+    })
+}
+
 /// FNV-1a checksum of a descriptor vector.
 pub fn descriptor_checksum(descriptor: &[f32]) -> u64 {
     descriptor.iter().fold(FNV_OFFSET, |h, v| {
@@ -259,8 +269,8 @@ pub fn bench_transport_config(namespace: &str) -> TransportConfig {
     }
 }
 
-/// The peer role: acknowledges every descriptor and patch with `[receive time, checksum]` until
-/// the driver says goodbye.
+/// The peer role: acknowledges every descriptor, patch and keyframe image with
+/// `[receive time, checksum]` until the driver says goodbye.
 pub fn run_peer(namespace: &str) -> Result<(), BenchError> {
     let config = bench_transport_config(namespace);
     let mut consumer = ConsumerLink::open(&config)?;
@@ -274,6 +284,7 @@ pub fn run_peer(namespace: &str) -> Result<(), BenchError> {
             Incoming::Lifecycle(_) => continue,
             Incoming::Descriptor(d) => descriptor_checksum(&d.descriptor),
             Incoming::Patch(p) => records_checksum(p.records()),
+            Incoming::KeyframeImage(k) => pixels_checksum(k.pixels()),
         };
         // Release the shared-memory sample before answering, as a real consumer would.
         drop(incoming);

@@ -31,6 +31,10 @@ pub const DESCRIPTOR_NORM_TOLERANCE: f32 = 1e-3;
 /// Agent id used in the [`Stamp`] of messages sent by the consensus (or another consumer).
 pub const CONSUMER_AGENT_ID: u32 = u32::MAX;
 
+/// Keyframe id of the Gaussian patch in which an agent sends its final optimised map (in its own
+/// frame) before it says goodbye; no real keyframe has this id.
+pub const FINAL_MAP_KEYFRAME_ID: u64 = u64::MAX;
+
 /// Sender identity and ordering, carried by every message.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Serialize, Deserialize)]
 #[repr(C)]
@@ -225,6 +229,65 @@ impl PatchHeader {
     }
 }
 
+/// One pixel of a keyframe's RGB-D image: 8-bit sRGB colour and depth in millimetres. 6 bytes,
+/// alignment 2, no padding (the explicit `reserved` byte fills the hole before `depth_mm`).
+/// Millimetres in a `u16` cover 0.001 m to 65.535 m, beyond the range of any RGB-D sensor, at a
+/// third of the size of an RGB + f32 depth layout.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Serialize, Deserialize)]
+#[repr(C)]
+#[type_name("mac.v1.RgbdPixel")]
+pub struct RgbdPixel {
+    /// Colour `[r, g, b]`, 0..=255.
+    pub rgb: [u8; 3],
+    /// Explicit padding; senders write 0.
+    pub reserved: u8,
+    /// Depth along the optical axis in millimetres; [`RgbdPixel::INVALID_DEPTH_MM`] (0) means no
+    /// measurement (hole, out of range, or saturated), as in the TUM/Replica depth PNGs.
+    pub depth_mm: u16,
+}
+
+impl RgbdPixel {
+    /// `depth_mm` value of a pixel without a depth measurement.
+    pub const INVALID_DEPTH_MM: u16 = 0;
+
+    /// Depth in metres, `None` where the pixel has no measurement.
+    pub fn depth_m(&self) -> Option<f32> {
+        (self.depth_mm != Self::INVALID_DEPTH_MM).then(|| f32::from(self.depth_mm) / 1000.0)
+    }
+}
+
+/// User header of a keyframe's RGB-D image (topic `mac/agent/{id}/keyframe_image`, agent ->
+/// consensus); the payload is a slice of `width * height` [`RgbdPixel`]s in row-major order
+/// (row 0 first, left to right). The consensus lifts image features of different agents'
+/// keyframes to 3-D with the depth and these intrinsics to align the agents.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("mac.v1.KeyframeImageHeader")]
+pub struct KeyframeImageHeader {
+    pub stamp: Stamp,
+    /// Keyframe this image belongs to (same id as its descriptor and patch).
+    pub keyframe_id: u64,
+    /// Index of the frame in the agent's input sequence.
+    pub frame_index: u64,
+    /// Capture time of the frame, seconds (dataset clock).
+    pub timestamp_s: f64,
+    /// Camera-to-agent-world transform of the keyframe (agent's own world frame).
+    pub camera_to_agent_world: Pose,
+    /// Intrinsics of the image as sent: when the agent downscales the image, these are the
+    /// scaled intrinsics, and their `width`/`height` equal the fields below.
+    pub intrinsics: Intrinsics,
+    /// Image size in pixels; the slice holds `width * height` pixels.
+    pub width: u32,
+    pub height: u32,
+}
+
+impl KeyframeImageHeader {
+    /// Number of pixels the header announces (`width * height`, without overflow).
+    pub fn pixel_count(&self) -> u64 {
+        u64::from(self.width) * u64::from(self.height)
+    }
+}
+
 /// An updated keyframe pose inside a correction.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
 #[repr(C)]
@@ -356,6 +419,12 @@ mod tests {
         assert_eq!(std::mem::size_of::<CorrectionHeader>(), 24 + 8 + 56 + 8);
         assert_eq!(std::mem::size_of::<KeyframePose>(), 8 + 56);
         assert_eq!(std::mem::size_of::<Lifecycle>(), 24 + 8 + 40 + 8);
+        assert_eq!(std::mem::size_of::<RgbdPixel>(), 3 + 1 + 2);
+        assert_eq!(std::mem::align_of::<RgbdPixel>(), 2);
+        assert_eq!(
+            std::mem::size_of::<KeyframeImageHeader>(),
+            24 + 8 + 8 + 8 + 56 + 40 + 4 + 4
+        );
         assert_eq!(
             std::mem::size_of::<KeyframeDescriptor>(),
             24 + 8 + 8 + 8 + 56 + 40 + 4 * DESCRIPTOR_LEN
@@ -390,6 +459,14 @@ mod tests {
         assert!((d.descriptor_norm() - 1.0).abs() < 1e-6);
         assert!((d.score(&d) - 1.0).abs() < 1e-6);
         assert!((d.descriptor[0] - 0.6).abs() < 1e-6);
+    }
+
+    #[test]
+    fn pixel_depth_zero_is_invalid() {
+        let mut pixel = RgbdPixel::default();
+        assert_eq!(pixel.depth_m(), None);
+        pixel.depth_mm = 1500;
+        assert_eq!(pixel.depth_m(), Some(1.5));
     }
 
     #[test]

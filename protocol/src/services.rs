@@ -1,14 +1,16 @@
 //! Service names, defined once.
 //!
 //! Data topics (one service per agent and topic):
-//! - `{ns}/agent/{id}/descriptor`  agent -> consumers, [`crate::messages::KeyframeDescriptor`]
-//! - `{ns}/agent/{id}/patch`       agent -> consumers, `[GaussianRecord]` + `PatchHeader`
-//! - `{ns}/agent/{id}/correction`  consumer -> agent, `[KeyframePose]` + `CorrectionHeader`
-//! - `{ns}/lifecycle`              everyone -> consumers, [`crate::messages::Lifecycle`]
+//! - `{ns}/agent/{id}/descriptor`      agent -> consumers, [`crate::messages::KeyframeDescriptor`]
+//! - `{ns}/agent/{id}/patch`           agent -> consumers, `[GaussianRecord]` + `PatchHeader`
+//! - `{ns}/agent/{id}/keyframe_image`  agent -> consumers, `[RgbdPixel]` + `KeyframeImageHeader`
+//!   (a keyframe's colour and depth, for feature-based alignment of agents in the consensus)
+//! - `{ns}/agent/{id}/correction`      consumer -> agent, `[KeyframePose]` + `CorrectionHeader`
+//! - `{ns}/lifecycle`                  everyone -> consumers, [`crate::messages::Lifecycle`]
 //!
 //! Wake-up event services (iceoryx2 event pattern; they carry no data, only "look now"):
-//! - `{ns}/agent/{id}/wake`        consumers -> agent: a correction arrived, a consumer attached
-//! - `{ns}/consumers/wake`         agents -> consumers: new data on topic `event id`
+//! - `{ns}/agent/{id}/wake`            consumers -> agent: correction arrived, consumer attached
+//! - `{ns}/consumers/wake`             agents -> consumers: new data on topic `event id`
 //!
 //! `{ns}` is [`DEFAULT_NAMESPACE`] in production; tests and benchmarks use their own namespace
 //! (e.g. with the process id) so that parallel runs never share services.
@@ -24,14 +26,16 @@ pub enum Topic {
     Patch,
     Correction,
     Lifecycle,
+    KeyframeImage,
 }
 
 impl Topic {
-    pub const ALL: [Topic; 4] = [
+    pub const ALL: [Topic; 5] = [
         Topic::Descriptor,
         Topic::Patch,
         Topic::Correction,
         Topic::Lifecycle,
+        Topic::KeyframeImage,
     ];
 
     /// Small dense index, used for per-topic tables and wake-up event ids.
@@ -41,6 +45,7 @@ impl Topic {
             Topic::Patch => 1,
             Topic::Correction => 2,
             Topic::Lifecycle => 3,
+            Topic::KeyframeImage => 4,
         }
     }
 
@@ -50,6 +55,7 @@ impl Topic {
             Topic::Patch => "patch",
             Topic::Correction => "correction",
             Topic::Lifecycle => "lifecycle",
+            Topic::KeyframeImage => "keyframe_image",
         }
     }
 }
@@ -99,6 +105,10 @@ impl ServiceNames {
         self.topic(agent_id, Topic::Patch)
     }
 
+    pub fn keyframe_image(&self, agent_id: u32) -> String {
+        self.topic(agent_id, Topic::KeyframeImage)
+    }
+
     pub fn correction(&self, agent_id: u32) -> String {
         self.topic(agent_id, Topic::Correction)
     }
@@ -127,6 +137,7 @@ mod tests {
         let names = ServiceNames::default();
         assert_eq!(names.descriptor(3), "mac/agent/3/descriptor");
         assert_eq!(names.patch(0), "mac/agent/0/patch");
+        assert_eq!(names.keyframe_image(2), "mac/agent/2/keyframe_image");
         assert_eq!(names.correction(12), "mac/agent/12/correction");
         assert_eq!(names.lifecycle(), "mac/lifecycle");
         assert_eq!(names.topic(5, Topic::Lifecycle), "mac/lifecycle");

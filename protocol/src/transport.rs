@@ -1,8 +1,9 @@
 //! Typed transport over iceoryx2 0.10 (`ipc::Service`) between agents and consumers.
 //!
-//! Two endpoints: [`AgentLink`] (one per agent process: publishes descriptors, patches and
-//! lifecycle messages, receives corrections) and [`ConsumerLink`] (the consensus or an
-//! observer: receives from every agent id `0..max_agents`, publishes corrections).
+//! Two endpoints: [`AgentLink`] (one per agent process: publishes descriptors, patches, keyframe
+//! RGB-D images and lifecycle messages, receives corrections) and [`ConsumerLink`] (the
+//! consensus or an observer: receives from every agent id `0..max_agents`, publishes
+//! corrections).
 //!
 //! Design choices, and why:
 //! - **Service limits from the config.** iceoryx2's defaults (2 publishers, 20 nodes per service)
@@ -24,10 +25,12 @@
 //! - **Crash safety.** Each link creates its own node with dead-node clean-up on creation and
 //!   also calls `try_cleanup_dead_nodes()` explicitly (and on every heartbeat), so shared memory
 //!   left by a SIGKILLed process (/dev/shm/iox2_*, /tmp/iceoryx2) is reclaimed by the next start.
-//! - **Large patches.** Patch and correction publishers use dynamic data segments with
-//!   power-of-two growth from `initial_patch_records`, so any size that fits in memory can be
-//!   sent (tested with 1,000,000 records). Note that iceoryx2 zeroes a new segment, and a segment
-//!   holds `max_consumers * (queue depth + held samples) + 1` samples of the largest slice.
+//! - **Large patches and images.** Patch, keyframe-image and correction publishers use dynamic
+//!   data segments with power-of-two growth from `initial_patch_records`,
+//!   `initial_keyframe_image_pixels` and `initial_correction_poses`, so any size that fits in
+//!   memory can be sent (tested with 1,000,000 records and 640x480 images). Note that iceoryx2
+//!   zeroes a new segment, and a segment holds `max_consumers * (queue depth + held samples) + 1`
+//!   samples of the largest slice.
 //! - **No busy waiting.** Receivers block on an iceoryx2 event listener (`timed_wait`), woken by
 //!   the sender's notification after each send; every wait is bounded by `wait_slice` so the
 //!   shutdown flag is seen promptly.
@@ -65,8 +68,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::messages::{
     CONSUMER_AGENT_ID, CoordinateFrame, CorrectionHeader, DESCRIPTOR_NORM_TOLERANCE,
-    GaussianRecord, Intrinsics, KeyframeDescriptor, KeyframePose, Lifecycle, LifecycleKind,
-    PatchHeader, Pose, Stamp,
+    GaussianRecord, Intrinsics, KeyframeDescriptor, KeyframeImageHeader, KeyframePose, Lifecycle,
+    LifecycleKind, PatchHeader, Pose, RgbdPixel, Stamp,
 };
 use crate::services::{ServiceNames, Topic};
 
@@ -96,6 +99,9 @@ const FULL_QUEUE_RETRY: Duration = Duration::from_millis(1);
 /// Number of topics, for dense per-agent event ids on the consumers' wake service.
 const TOPIC_COUNT: usize = Topic::ALL.len();
 
+/// Topics a consumer receives per agent (descriptor, keyframe image, patch), scanned round-robin.
+const AGENT_SOURCES: usize = 3;
+
 /// Settings shared by every process of one swarm (they size the shared services).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -116,12 +122,18 @@ pub struct TransportConfig {
     /// Per-consumer queue length of each topic (oldest sample overwritten when full).
     pub descriptor_queue_depth: usize,
     pub patch_queue_depth: usize,
+    /// Keyframe images are large (1.8 MB at 640x480) and sent once per keyframe, so a short
+    /// queue suffices; each queued image also occupies a slot of the publisher's data segment.
+    pub keyframe_image_queue_depth: usize,
     pub correction_queue_depth: usize,
     pub lifecycle_queue_depth: usize,
     /// Samples a receiver may hold (borrow) at once per topic.
     pub max_held_samples: usize,
     /// First data-segment sizing of the patch publisher, in records (grows by powers of two).
     pub initial_patch_records: usize,
+    /// First data-segment sizing of the keyframe-image publisher, in pixels (grows by powers of
+    /// two, so larger images are accepted at the cost of one segment re-allocation).
+    pub initial_keyframe_image_pixels: usize,
     /// First data-segment sizing of the correction publisher, in keyframe poses.
     pub initial_correction_poses: usize,
 }
@@ -137,10 +149,13 @@ impl Default for TransportConfig {
             wait_slice: Duration::from_millis(50),
             descriptor_queue_depth: 64,
             patch_queue_depth: 2,
+            keyframe_image_queue_depth: 4,
             correction_queue_depth: 4,
             lifecycle_queue_depth: 64,
             max_held_samples: 2,
             initial_patch_records: 16 * 1024,
+            // A QVGA image, the usual downscaled size for feature matching.
+            initial_keyframe_image_pixels: 320 * 240,
             initial_correction_poses: 1024,
         }
     }
@@ -176,10 +191,12 @@ impl TransportConfig {
         let depths = [
             self.descriptor_queue_depth,
             self.patch_queue_depth,
+            self.keyframe_image_queue_depth,
             self.correction_queue_depth,
             self.lifecycle_queue_depth,
             self.max_held_samples,
             self.initial_patch_records,
+            self.initial_keyframe_image_pixels,
             self.initial_correction_poses,
         ];
         if depths.contains(&0) {
@@ -431,6 +448,25 @@ pub struct SendReport {
     pub bytes: usize,
 }
 
+/// What an agent says about a keyframe image besides its pixels; the transport adds the
+/// [`Stamp`] and builds the [`KeyframeImageHeader`] from it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KeyframeImageMeta {
+    pub keyframe_id: u64,
+    /// Index of the frame in the agent's input sequence.
+    pub frame_index: u64,
+    /// Capture time of the frame, seconds (dataset clock).
+    pub timestamp_s: f64,
+    /// Camera-to-agent-world transform of the keyframe (agent's own world frame).
+    pub camera_to_agent_world: Pose,
+    /// Intrinsics of the image as sent (scaled with it when the agent downscales); their
+    /// `width`/`height` must equal the image size.
+    pub intrinsics: Intrinsics,
+    /// Image size; the pixel slice must hold exactly `width * height` pixels, row-major.
+    pub width: u32,
+    pub height: u32,
+}
+
 /// Incarnation number of this process: nanoseconds since the Unix epoch, so a restarted process
 /// always has a larger one.
 fn new_epoch() -> u64 {
@@ -574,6 +610,7 @@ fn lifecycle_limits(config: &TransportConfig) -> PubSubLimits {
 
 struct DescriptorService;
 struct PatchService;
+struct KeyframeImageService;
 struct CorrectionService;
 struct LifecycleService;
 
@@ -610,6 +647,26 @@ impl PatchService {
         with_limits(
             builder,
             agent_topic_limits(config, config.patch_queue_depth),
+        )
+        .open_or_create()
+        .map_err(|e| service_error(&name, e))
+    }
+}
+
+impl KeyframeImageService {
+    fn open(
+        node: &Node<Ipc>,
+        config: &TransportConfig,
+        agent_id: u32,
+    ) -> Result<PubSubService<Ipc, [RgbdPixel], KeyframeImageHeader>, TransportError> {
+        let name = config.names().keyframe_image(agent_id);
+        let builder = node
+            .service_builder(&service_name(&name)?)
+            .publish_subscribe::<[RgbdPixel]>()
+            .user_header::<KeyframeImageHeader>();
+        with_limits(
+            builder,
+            agent_topic_limits(config, config.keyframe_image_queue_depth),
         )
         .open_or_create()
         .map_err(|e| service_error(&name, e))
@@ -755,6 +812,52 @@ fn validate_pose(name: &str, what: &str, pose: &Pose) -> Result<(), TransportErr
     Ok(())
 }
 
+/// Refuses a keyframe image whose header would mislead the consensus: an empty image, a pixel
+/// slice that does not match `width * height`, intrinsics of another image size (the usual
+/// mistake when downscaling), unusable intrinsics or an invalid pose.
+fn validate_keyframe_image(
+    name: &str,
+    meta: &KeyframeImageMeta,
+    pixels: usize,
+) -> Result<(), TransportError> {
+    let refuse = |reason: String| {
+        Err(TransportError::InvalidMessage {
+            service: name.to_string(),
+            reason,
+        })
+    };
+    let (width, height) = (meta.width, meta.height);
+    if width == 0 || height == 0 {
+        return refuse(format!(
+            "keyframe {} image size {width}x{height} is empty",
+            meta.keyframe_id
+        ));
+    }
+    // u64: width * height of two u32 cannot overflow it, unlike usize on 32-bit targets.
+    let expected = u64::from(width) * u64::from(height);
+    if expected != pixels as u64 {
+        return refuse(format!(
+            "keyframe {} image is {width}x{height} = {expected} pixels, but {pixels} pixels were              given",
+            meta.keyframe_id
+        ));
+    }
+    let k = &meta.intrinsics;
+    if (k.width, k.height) != (width, height) {
+        return refuse(format!(
+            "keyframe {} intrinsics are for a {}x{} image but the image is {width}x{height}              (scale the intrinsics with the image)",
+            meta.keyframe_id, k.width, k.height
+        ));
+    }
+    let focal_ok = [k.fx, k.fy].iter().all(|f| f.is_finite() && *f > 0.0);
+    if !focal_ok || !k.cx.is_finite() || !k.cy.is_finite() {
+        return refuse(format!(
+            "keyframe {} intrinsics need finite positive focal lengths and a finite principal              point: {k:?}",
+            meta.keyframe_id
+        ));
+    }
+    validate_pose(name, "camera_to_agent_world", &meta.camera_to_agent_world)
+}
+
 /// A received keyframe descriptor, read in place from shared memory.
 pub struct DescriptorSample {
     sample: Sample<Ipc, KeyframeDescriptor, ()>,
@@ -780,6 +883,23 @@ impl PatchSample {
     }
 
     pub fn records(&self) -> &[GaussianRecord] {
+        self.sample.payload()
+    }
+}
+
+/// A received keyframe RGB-D image, read in place from shared memory (no copy).
+pub struct KeyframeImageSample {
+    sample: Sample<Ipc, [RgbdPixel], KeyframeImageHeader>,
+    pub delivery: Delivery,
+}
+
+impl KeyframeImageSample {
+    pub fn header(&self) -> &KeyframeImageHeader {
+        self.sample.user_header()
+    }
+
+    /// `width * height` pixels, row-major (checked on receive).
+    pub fn pixels(&self) -> &[RgbdPixel] {
         self.sample.payload()
     }
 }
@@ -818,6 +938,7 @@ impl CorrectionSample {
 pub enum Incoming {
     Descriptor(DescriptorSample),
     Patch(PatchSample),
+    KeyframeImage(KeyframeImageSample),
     Lifecycle(LifecycleSample),
 }
 
@@ -830,6 +951,7 @@ impl Incoming {
         match self {
             Incoming::Descriptor(d) => d.stamp,
             Incoming::Patch(p) => p.header().stamp,
+            Incoming::KeyframeImage(k) => k.header().stamp,
             Incoming::Lifecycle(l) => l.stamp,
         }
     }
@@ -838,6 +960,7 @@ impl Incoming {
         match self {
             Incoming::Descriptor(d) => d.delivery,
             Incoming::Patch(p) => p.delivery,
+            Incoming::KeyframeImage(k) => k.delivery,
             Incoming::Lifecycle(l) => l.delivery,
         }
     }
@@ -846,6 +969,7 @@ impl Incoming {
         match self {
             Incoming::Descriptor(_) => Topic::Descriptor,
             Incoming::Patch(_) => Topic::Patch,
+            Incoming::KeyframeImage(_) => Topic::KeyframeImage,
             Incoming::Lifecycle(_) => Topic::Lifecycle,
         }
     }
@@ -913,6 +1037,7 @@ pub struct AgentLink {
     config: TransportConfig,
     descriptor: Outbox<KeyframeDescriptor, ()>,
     patch: Outbox<[GaussianRecord], PatchHeader>,
+    keyframe_image: Outbox<[RgbdPixel], KeyframeImageHeader>,
     lifecycle: Outbox<Lifecycle, ()>,
     correction_name: String,
     correction_subscriber: Subscriber<Ipc, [KeyframePose], CorrectionHeader>,
@@ -980,6 +1105,25 @@ impl AgentLink {
                 other => port_error(&patch_name, "publisher", other),
             })?;
 
+        let keyframe_image_service = KeyframeImageService::open(&node, config, agent_id)?;
+        let keyframe_image_name = names.keyframe_image(agent_id);
+        let keyframe_image_publisher = keyframe_image_service
+            .publisher_builder()
+            .max_loaned_samples(PUBLISHER_MAX_LOANS)
+            .initial_max_slice_len(config.initial_keyframe_image_pixels)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
+            .create()
+            .map_err(|e| match e {
+                PublisherCreateError::ExceedsMaxSupportedPublishers => {
+                    TransportError::DuplicateAgent {
+                        agent_id,
+                        namespace: config.namespace.clone(),
+                    }
+                }
+                other => port_error(&keyframe_image_name, "publisher", other),
+            })?;
+
         let lifecycle_service = LifecycleService::open(&node, config)?;
         let lifecycle_name = names.lifecycle();
         let lifecycle_publisher = lifecycle_service
@@ -1022,6 +1166,12 @@ impl AgentLink {
                 name: patch_name,
                 service: patch_service,
                 publisher: patch_publisher,
+                next_sequence: 0,
+            },
+            keyframe_image: Outbox {
+                name: keyframe_image_name,
+                service: keyframe_image_service,
+                publisher: keyframe_image_publisher,
                 next_sequence: 0,
             },
             lifecycle: Outbox {
@@ -1070,6 +1220,9 @@ impl AgentLink {
         match topic {
             Topic::Descriptor => Some((self.descriptor.attached(), &self.descriptor.name)),
             Topic::Patch => Some((self.patch.attached(), &self.patch.name)),
+            Topic::KeyframeImage => {
+                Some((self.keyframe_image.attached(), &self.keyframe_image.name))
+            }
             Topic::Lifecycle => Some((self.lifecycle.attached(), &self.lifecycle.name)),
             Topic::Correction => None,
         }
@@ -1361,6 +1514,93 @@ impl AgentLink {
         }
     }
 
+    /// Publishes a keyframe's RGB-D image by copying `pixels` (row-major, `width * height` of
+    /// them) into shared memory (one copy). Refuses an empty image, a pixel count that does not
+    /// match the size, intrinsics of another size and an invalid pose
+    /// ([`TransportError::InvalidMessage`]).
+    pub fn send_keyframe_image(
+        &mut self,
+        meta: &KeyframeImageMeta,
+        pixels: &[RgbdPixel],
+    ) -> Result<SendReport, TransportError> {
+        validate_keyframe_image(&self.keyframe_image.name, meta, pixels.len())?;
+        let (sequence, header) = self.next_keyframe_image_header(meta);
+        let outbox = &self.keyframe_image;
+        let delivered = self.deliver(Topic::KeyframeImage, sequence, || {
+            let mut sample = outbox
+                .publisher
+                .loan_slice_uninit(pixels.len())
+                .map_err(|e| loan_error(&outbox.name, pixels.len(), e))?;
+            *sample.user_header_mut() = header;
+            sample
+                .write_from_slice(pixels)
+                .send()
+                .map_err(|e| send_error(&outbox.name, e))
+        })?;
+        Ok(self.account_keyframe_image(sequence, delivered, pixels.len(), size_of_val(pixels)))
+    }
+
+    /// Publishes a keyframe image whose `width * height` pixels are built in place in shared
+    /// memory by `build(i)` (`i` row-major): no intermediate interleaved buffer when the agent
+    /// holds colour and depth in separate images. `build` runs again for a re-send after a full
+    /// queue, so it must be repeatable. Validated like [`AgentLink::send_keyframe_image`].
+    pub fn send_keyframe_image_with(
+        &mut self,
+        meta: &KeyframeImageMeta,
+        mut build: impl FnMut(usize) -> RgbdPixel,
+    ) -> Result<SendReport, TransportError> {
+        let count = meta.width as usize * meta.height as usize;
+        validate_keyframe_image(&self.keyframe_image.name, meta, count)?;
+        let (sequence, header) = self.next_keyframe_image_header(meta);
+        let outbox = &self.keyframe_image;
+        let delivered = self.deliver(Topic::KeyframeImage, sequence, || {
+            let mut sample = outbox
+                .publisher
+                .loan_slice_uninit(count)
+                .map_err(|e| loan_error(&outbox.name, count, e))?;
+            *sample.user_header_mut() = header;
+            sample
+                .write_from_fn(&mut build)
+                .send()
+                .map_err(|e| send_error(&outbox.name, e))
+        })?;
+        Ok(self.account_keyframe_image(sequence, delivered, count, 0))
+    }
+
+    fn next_keyframe_image_header(
+        &mut self,
+        meta: &KeyframeImageMeta,
+    ) -> (u64, KeyframeImageHeader) {
+        let sequence = self.keyframe_image.take_sequence();
+        let header = KeyframeImageHeader {
+            stamp: self.stamp(sequence),
+            keyframe_id: meta.keyframe_id,
+            frame_index: meta.frame_index,
+            timestamp_s: meta.timestamp_s,
+            camera_to_agent_world: meta.camera_to_agent_world,
+            intrinsics: meta.intrinsics,
+            width: meta.width,
+            height: meta.height,
+        };
+        (sequence, header)
+    }
+
+    fn account_keyframe_image(
+        &mut self,
+        sequence: u64,
+        delivered: usize,
+        count: usize,
+        copied: usize,
+    ) -> SendReport {
+        let bytes = count * size_of::<RgbdPixel>() + size_of::<KeyframeImageHeader>();
+        self.account_sent(Topic::KeyframeImage, bytes, copied);
+        SendReport {
+            sequence,
+            recipients: delivered,
+            bytes,
+        }
+    }
+
     /// Next pending correction, without blocking.
     pub fn try_recv_correction(&mut self) -> Result<Option<CorrectionSample>, TransportError> {
         loop {
@@ -1449,10 +1689,13 @@ struct AgentInbox {
     descriptor: Subscriber<Ipc, KeyframeDescriptor, ()>,
     patch_name: String,
     patch: Subscriber<Ipc, [GaussianRecord], PatchHeader>,
+    keyframe_image_name: String,
+    keyframe_image: Subscriber<Ipc, [RgbdPixel], KeyframeImageHeader>,
     correction: Outbox<[KeyframePose], CorrectionHeader>,
     wake: Notifier<Ipc>,
     _descriptor_service: PubSubService<Ipc, KeyframeDescriptor, ()>,
     _patch_service: PubSubService<Ipc, [GaussianRecord], PatchHeader>,
+    _keyframe_image_service: PubSubService<Ipc, [RgbdPixel], KeyframeImageHeader>,
     _wake_service: EventService<Ipc>,
 }
 
@@ -1512,6 +1755,13 @@ impl ConsumerLink {
                 .buffer_size(config.patch_queue_depth)
                 .create()
                 .map_err(|e| port_error(&patch_name, "subscriber", e))?;
+            let keyframe_image_service = KeyframeImageService::open(&node, config, agent_id)?;
+            let keyframe_image_name = names.keyframe_image(agent_id);
+            let keyframe_image = keyframe_image_service
+                .subscriber_builder()
+                .buffer_size(config.keyframe_image_queue_depth)
+                .create()
+                .map_err(|e| port_error(&keyframe_image_name, "subscriber", e))?;
             let correction_service = CorrectionService::open(&node, config, agent_id)?;
             let correction_name = names.correction(agent_id);
             let correction_publisher = correction_service
@@ -1532,6 +1782,8 @@ impl ConsumerLink {
                 descriptor,
                 patch_name,
                 patch,
+                keyframe_image_name,
+                keyframe_image,
                 correction: Outbox {
                     name: correction_name,
                     service: correction_service,
@@ -1541,6 +1793,7 @@ impl ConsumerLink {
                 wake,
                 _descriptor_service: descriptor_service,
                 _patch_service: patch_service,
+                _keyframe_image_service: keyframe_image_service,
                 _wake_service: agent_wake_service,
             });
         }
@@ -1582,18 +1835,19 @@ impl ConsumerLink {
         if let Some(goodbye) = self.take_drained_goodbye()? {
             return Ok(Some(Incoming::Lifecycle(goodbye)));
         }
-        // Sources: lifecycle, then (descriptor, patch) of each agent.
-        let sources = 1 + 2 * self.agents.len();
+        // Sources: lifecycle, then (descriptor, keyframe image, patch) of each agent. The image
+        // comes before the patch of the same keyframe, as an agent sends them.
+        let sources = 1 + AGENT_SOURCES * self.agents.len();
         for step in 0..sources {
             let source = (self.cursor + step) % sources;
             let received = if source == 0 {
                 self.receive_lifecycle()?
             } else {
-                let agent = (source - 1) / 2;
-                if (source - 1).is_multiple_of(2) {
-                    self.receive_descriptor(agent)?
-                } else {
-                    self.receive_patch(agent)?
+                let agent = (source - 1) / AGENT_SOURCES;
+                match (source - 1) % AGENT_SOURCES {
+                    0 => self.receive_descriptor(agent)?,
+                    1 => self.receive_keyframe_image(agent)?,
+                    _ => self.receive_patch(agent)?,
                 }
             };
             if let Some(incoming) = received {
@@ -1635,6 +1889,10 @@ impl ConsumerLink {
         };
         Ok(
             pending(&inbox.descriptor_name, inbox.descriptor.has_samples())?
+                || pending(
+                    &inbox.keyframe_image_name,
+                    inbox.keyframe_image.has_samples(),
+                )?
                 || pending(&inbox.patch_name, inbox.patch.has_samples())?,
         )
     }
@@ -1781,6 +2039,59 @@ impl ConsumerLink {
         }
     }
 
+    fn receive_keyframe_image(&mut self, agent: usize) -> Result<Option<Incoming>, TransportError> {
+        let inbox = &self.agents[agent];
+        loop {
+            let Some(sample) =
+                inbox
+                    .keyframe_image
+                    .receive()
+                    .map_err(|e| TransportError::Receive {
+                        service: inbox.keyframe_image_name.clone(),
+                        reason: format!("{e:?}"),
+                    })?
+            else {
+                return Ok(None);
+            };
+            let header = *sample.user_header();
+            let len = sample.payload().len();
+            // The sender validates all of this; a mismatch here is corruption or a foreign
+            // sender, and reading pixels with the wrong size would scramble every row.
+            if header.stamp.agent_id as usize != agent
+                || header.pixel_count() != len as u64
+                || len == 0
+                || (header.intrinsics.width, header.intrinsics.height)
+                    != (header.width, header.height)
+            {
+                return Err(TransportError::Malformed {
+                    service: inbox.keyframe_image_name.clone(),
+                    reason: format!(
+                        "header (agent {}, {}x{} image, intrinsics for {}x{}) does not match \
+                         agent {agent}'s slice of {len} pixels",
+                        header.stamp.agent_id,
+                        header.width,
+                        header.height,
+                        header.intrinsics.width,
+                        header.intrinsics.height
+                    ),
+                });
+            }
+            let bytes = size_of_val(sample.payload()) + size_of::<KeyframeImageHeader>();
+            if let Some(delivery) = self.book.admit(
+                &mut self.traffic,
+                header.stamp,
+                Topic::KeyframeImage,
+                bytes,
+                header.stamp.agent_id,
+            ) {
+                return Ok(Some(Incoming::KeyframeImage(KeyframeImageSample {
+                    sample,
+                    delivery,
+                })));
+            }
+        }
+    }
+
     /// Sends a correction to agent `agent_id`. Never waits: the consensus must not block on an
     /// agent; an agent that is not attached yields [`TransportError::Undelivered`].
     pub fn send_correction(
@@ -1917,6 +2228,11 @@ mod tests {
             ..TransportConfig::default()
         };
         assert!(zero_agents.validate().is_err());
+        let no_image_queue = TransportConfig {
+            keyframe_image_queue_depth: 0,
+            ..TransportConfig::default()
+        };
+        assert!(no_image_queue.validate().is_err());
         assert!(TransportConfig::default().validate().is_ok());
     }
 

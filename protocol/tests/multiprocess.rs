@@ -66,6 +66,12 @@ fn receive_until_goodbye(
                 records_checksum(p.records()),
                 delivery,
             )),
+            Incoming::KeyframeImage(k) => {
+                panic!(
+                    "the test peer sends no keyframe images, got keyframe {}",
+                    k.header().keyframe_id
+                )
+            }
         }
         drop(incoming);
         if hello {
