@@ -10,7 +10,6 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use mac_consensus::alignment::{Keyframe, PreparedKeyframe, Verdict, align_prepared};
-use mac_consensus::config::ConsensusOptimisationConfig;
 use mac_consensus::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
 use mac_consensus::pose_graph::correction::blend;
 use mac_consensus::pose_graph::{LoopClosure, PoseGraph};
@@ -126,7 +125,7 @@ fn ground_truth(agent: &TrackedAgent) -> Trajectory {
 fn real_data_two_agents_redkitchen_joint_ate_within_5_cm() {
     let dir = slam_core::shared_data::require("datasets/7scenes-redkitchen");
     let weights = slam_core::shared_data::require("weights/lpips/alexnet.npz");
-    let config = ConsensusOptimisationConfig::default();
+    let config = ConsensusConfig::default();
 
     let clock = Instant::now();
     let agents: Vec<TrackedAgent> = AGENT_RANGES
@@ -160,8 +159,7 @@ fn real_data_two_agents_redkitchen_joint_ate_within_5_cm() {
         .flat_map(|a| a.keyframes.iter().map(|(position, k)| (*position, k)))
         .collect();
     arrivals.sort_by_key(|(position, k)| (*position, k.id));
-    let mut database =
-        PlaceDatabase::new(SelectionThresholds::from_config(&ConsensusConfig::default()));
+    let mut database = PlaceDatabase::new(SelectionThresholds::from_config(&config));
     // (source, target) keyframe pairs to align.
     let mut candidates: Vec<(KeyframeRef, KeyframeRef)> = Vec::new();
     for (_, keyframe) in &arrivals {

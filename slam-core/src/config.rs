@@ -13,6 +13,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::dataset::noise::NoiseConfig;
 
+mod consensus;
+pub use consensus::{AlignmentConfig, PoseGraphConfig};
+
 /// Tracking: point selection, per-point covariances, map-candidate selection and G-ICP.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -190,8 +193,9 @@ pub struct ConsensusConfig {
     /// Same-agent keyframes closer than this many frames are never proposed as loop closures:
     /// odometry already links them and their images are trivially alike (SPEC is silent; 10 s).
     pub same_agent_min_frame_gap: usize,
-    /// Coarse-to-fine correspondence distances for inter-agent G-ICP (metres, largest first).
-    pub association_distances_m: Vec<f64>,
+    /// Place-recognition proposals aligned per new keyframe at most (the best-scoring ones):
+    /// alignment costs about a second on a CPU, and the best few carry the overlap.
+    pub max_candidates_per_keyframe: usize,
     /// Joint refinement weights.
     pub weight_l1: f64,
     pub weight_ssim: f64,
@@ -200,6 +204,10 @@ pub struct ConsensusConfig {
     pub weight_pose_consistency: f64,
     /// AlexNet weights for the global descriptor; without them a classical descriptor is used.
     pub descriptor_weights: Option<PathBuf>,
+    /// Keyframe-to-keyframe alignment (association, G-ICP, verification): `[consensus.alignment]`.
+    pub alignment: AlignmentConfig,
+    /// Robust pose graph: `[consensus.pose_graph]`.
+    pub pose_graph: PoseGraphConfig,
 }
 
 impl Default for ConsensusConfig {
@@ -209,12 +217,14 @@ impl Default for ConsensusConfig {
             tau_same_agent: 0.80,
             tau_other_agent: 0.85,
             same_agent_min_frame_gap: 300,
-            association_distances_m: vec![0.1, 0.05, 0.02],
+            max_candidates_per_keyframe: 3,
             weight_l1: 0.8,
             weight_ssim: 0.2,
             weight_depth: 0.1,
             weight_pose_consistency: 1.0,
             descriptor_weights: None,
+            alignment: AlignmentConfig::default(),
+            pose_graph: PoseGraphConfig::default(),
         }
     }
 }
@@ -360,21 +370,30 @@ impl Config {
         )?;
         let c = &self.consensus;
         at_least_one("consensus.t_comm", c.t_comm)?;
+        at_least_one(
+            "consensus.max_candidates_per_keyframe",
+            c.max_candidates_per_keyframe,
+        )?;
         fraction("consensus.tau_same_agent", c.tau_same_agent)?;
         fraction("consensus.tau_other_agent", c.tau_other_agent)?;
-        if c.association_distances_m.is_empty()
-            || c.association_distances_m
+        if c.alignment.correspondence_distances_m.is_empty()
+            || c.alignment
+                .correspondence_distances_m
                 .iter()
                 .any(|d| !(d.is_finite() && *d > 0.0))
         {
             return Err((
-                "consensus.association_distances_m",
+                "consensus.alignment.correspondence_distances_m",
                 "must be a non-empty list of positive distances".into(),
             ));
         }
-        if c.association_distances_m.windows(2).any(|w| w[1] > w[0]) {
+        if c.alignment
+            .correspondence_distances_m
+            .windows(2)
+            .any(|w| w[1] > w[0])
+        {
             return Err((
-                "consensus.association_distances_m",
+                "consensus.alignment.correspondence_distances_m",
                 "must go from coarse to fine (decreasing)".into(),
             ));
         }
@@ -463,7 +482,7 @@ mod tests {
         assert!(err.contains("keyframes.min_overlap_fraction"), "{err}");
         std::fs::write(
             &path,
-            "[consensus]\nassociation_distances_m = [0.02, 0.1]\n",
+            "[consensus.alignment]\ncorrespondence_distances_m = [0.02, 0.1]\n",
         )
         .unwrap();
         assert!(

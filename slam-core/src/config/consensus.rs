@@ -1,19 +1,9 @@
 //! Parameters of the consensus's alignment (SPEC section 4, steps 2 and 3) and pose graph
-//! (step 4). Every field has a serde default, so a configuration file names only what it changes;
-//! the defaults suit a 640x480 RGB-D sensor (7-Scenes, TUM, the synthetic scene).
-//!
-//! Kept in this crate for now; the lead wires [`ConsensusOptimisationConfig`] into
-//! `slam_core::config::Config` later.
+//! (step 4): the `[consensus.alignment]` and `[consensus.pose_graph]` tables. Every field has a
+//! serde default, so a configuration file names only what it changes; the defaults suit a
+//! 640x480 RGB-D sensor (7-Scenes, TUM, the synthetic scene).
 
 use serde::{Deserialize, Serialize};
-
-/// Everything the consensus's keyframe alignment and pose graph read.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ConsensusOptimisationConfig {
-    pub alignment: AlignmentConfig,
-    pub pose_graph: PoseGraphConfig,
-}
 
 /// Keyframe-to-keyframe alignment: coarse feature registration, G-ICP refinement, verification.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -182,14 +172,14 @@ mod tests {
 
     #[test]
     fn partial_config_keeps_defaults() {
-        let config: ConsensusOptimisationConfig =
-            serde_json::from_str(r#"{"alignment": {"max_residual_m": 0.02}}"#).unwrap();
+        let config: super::super::ConsensusConfig =
+            toml::from_str("[alignment]\nmax_residual_m = 0.02\n").unwrap();
         assert_eq!(config.alignment.max_residual_m, 0.02);
         assert_eq!(
             config.alignment.correspondence_distances_m,
             vec![0.1, 0.05, 0.02]
         );
         assert_eq!(config.pose_graph, PoseGraphConfig::default());
-        assert!(serde_json::from_str::<AlignmentConfig>(r#"{"typo": 1}"#).is_err());
+        assert!(toml::from_str::<AlignmentConfig>("typo = 1").is_err());
     }
 }
