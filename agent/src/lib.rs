@@ -16,3 +16,4 @@ pub mod poses;
 pub mod run;
 pub mod seeding;
 pub mod source;
+pub mod swarm;

@@ -4,6 +4,10 @@
 //! --standalone --out DIR` tracks and maps one sequence and writes DIR/trajectory.tum,
 //! DIR/map.ply, DIR/metrics.json and DIR/renders/*.png. Without --dataset it runs on the
 //! embedded synthetic scene. SIGINT / SIGTERM finish the current frame and write every output.
+//!
+//! Without --standalone the agent joins the swarm of `mac-consensus` in the same iceoryx2
+//! namespace: it publishes a keyframe every T_comm frames, receives corrections, and says goodbye
+//! with its final map before it evaluates itself.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -11,7 +15,9 @@ use std::sync::atomic::AtomicBool;
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use mac_agent::run::{AgentOptions, metrics_table, run_standalone};
+use mac_agent::run::{AgentOptions, metrics_table, run_agent, run_standalone};
+use mac_agent::swarm::SwarmLink;
+use protocol::transport::TransportConfig;
 use slam_core::config::Config;
 use slam_core::dataset::FrameRange;
 
@@ -37,6 +43,12 @@ struct Args {
     /// Run without a consensus process.
     #[arg(long)]
     standalone: bool,
+    /// iceoryx2 service namespace shared with the consensus (swarm mode).
+    #[arg(long, default_value = protocol::services::DEFAULT_NAMESPACE)]
+    namespace: String,
+    /// Global-descriptor weights (AlexNet .npz) for the swarm; overrides the config.
+    #[arg(long)]
+    descriptor_weights: Option<PathBuf>,
     /// Output directory.
     #[arg(long, default_value = "out/agent")]
     out: PathBuf,
@@ -66,16 +78,16 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let args = Args::parse();
-    if !args.standalone {
-        bail!(
-            "joining a swarm needs the consensus process, which this build cannot reach yet \
-             (issues 6 and 7); run with --standalone"
-        );
-    }
-    let config = match &args.config {
+    let mut config = match &args.config {
         Some(path) => Config::load(path)?,
         None => Config::default(),
     };
+    if let Some(weights) = &args.descriptor_weights {
+        if !weights.is_file() {
+            bail!("--descriptor-weights {}: no such file", weights.display());
+        }
+        config.consensus.descriptor_weights = Some(weights.clone());
+    }
     let frames: FrameRange = args
         .frames
         .parse()
@@ -100,7 +112,13 @@ fn main() -> anyhow::Result<()> {
         signal_hook::flag::register(signal, stop.clone())
             .with_context(|| format!("installing the handler of signal {signal}"))?;
     }
-    let metrics = run_standalone(&options, &stop)?;
+    let metrics = if args.standalone {
+        run_standalone(&options, &stop)?
+    } else {
+        let transport = TransportConfig::with_namespace(args.namespace.clone());
+        let swarm = SwarmLink::connect(args.agent_id, &transport, &options.config)?;
+        run_agent(&options, &stop, Some(swarm))?
+    };
     println!("agent {} on {}", metrics.agent_id, metrics.dataset);
     print!("{}", metrics_table(&metrics));
     println!("outputs in {}", options.out.display());

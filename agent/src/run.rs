@@ -28,6 +28,7 @@ use crate::evaluation::{
 use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe, MappingStats};
 use crate::seeding::{CoverageIndex, SeedFrame, seed_gaussians};
 use crate::source::FrameSource;
+use crate::swarm::{PublishableKeyframe, SwarmLink, SwarmSummary};
 
 /// Synthetic scene used when no dataset is given: three agents' loops, this agent's share.
 pub const DEFAULT_SYNTHETIC_AGENTS: usize = 3;
@@ -113,6 +114,9 @@ pub struct AgentMetrics {
     /// The optional post-run refinement, kept apart from the real-time figures.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub refined: Option<MapMetrics>,
+    /// Swarm mode only: what went to and came from the consensus.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub swarm: Option<SwarmSummary>,
 }
 
 /// One frame's estimate.
@@ -125,6 +129,17 @@ struct TrackedPose {
 
 /// Runs one agent without a consensus process and writes its outputs to `options.out`.
 pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Result<AgentMetrics> {
+    run_agent(options, stop, None)
+}
+
+/// Runs one agent, in the swarm when `swarm` is given (keyframes published every T_comm frames,
+/// corrections received between frames, final map and goodbye before the evaluation), and
+/// writes its outputs to `options.out`.
+pub fn run_agent(
+    options: &AgentOptions,
+    stop: &AtomicBool,
+    mut swarm: Option<SwarmLink>,
+) -> anyhow::Result<AgentMetrics> {
     let _span = tracing::info_span!("agent", id = options.agent_id).entered();
     std::fs::create_dir_all(&options.out)
         .with_context(|| format!("creating output directory {}", options.out.display()))?;
@@ -143,11 +158,7 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
     };
 
     let started = Instant::now();
-    let mut source = FrameSource::new(
-        dataset.clone(),
-        options.decode_workers.max(1),
-        config.noise.clone(),
-    );
+    let mut source = FrameSource::new(dataset.clone(), options.decode_workers.max(1), config.noise);
     let mut odometry = Odometry::new(
         OdometryMode::FrameToModel,
         &config.tracking,
@@ -168,6 +179,9 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
         for item in source.by_ref() {
             let clock = Instant::now();
             let frame = &item.frame;
+            if let Some(swarm) = swarm.as_mut() {
+                swarm.announce(&frame.intrinsics);
+            }
             let tracked = odometry.track(&frame.depth, &frame.intrinsics);
             let usable = item.has_depth
                 && matches!(
@@ -181,7 +195,8 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
                 frames_since_tracking_keyframe = 0;
                 Some((KeyframeKind::Tracking, vec![true; trackable.len()]))
             } else if usable
-                && frames_since_tracking_keyframe % config.keyframes.mapping_keyframe_every == 0
+                && frames_since_tracking_keyframe
+                    .is_multiple_of(config.keyframes.mapping_keyframe_every)
             {
                 let seed_frame = SeedFrame {
                     points: &tracked.frame_points,
@@ -207,6 +222,19 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
                 let new_gaussians =
                     seed_gaussians(&seed_frame, &selected, &config.tracking, &config.keyframes);
                 coverage.insert(&new_gaussians);
+                let keyframe_id = tracking_keyframes + mapping_keyframes;
+                if let Some(swarm) = swarm.as_mut() {
+                    swarm.on_keyframe(PublishableKeyframe {
+                        keyframe_id: keyframe_id as u64,
+                        frame_index: frame.index as u64,
+                        timestamp_s: frame.timestamp,
+                        agent_from_camera: tracked.world_from_camera,
+                        intrinsics: frame.intrinsics,
+                        rgb: frame.rgb.clone(),
+                        depth: frame.depth.clone(),
+                        gaussians: new_gaussians.clone(),
+                    });
+                }
                 match kind {
                     KeyframeKind::Tracking => tracking_keyframes += 1,
                     KeyframeKind::Mapping => mapping_keyframes += 1,
@@ -218,7 +246,7 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
                     "keyframe"
                 );
                 mapper.add_keyframe(MappingKeyframe {
-                    keyframe_id: tracking_keyframes + mapping_keyframes - 1,
+                    keyframe_id,
                     frame_index: frame.index,
                     kind,
                     world_from_camera: tracked.world_from_camera,
@@ -227,6 +255,9 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
                     depth: frame.depth.clone(),
                     new_gaussians,
                 });
+            }
+            if let Some(swarm) = swarm.as_mut() {
+                swarm.after_frame();
             }
             tracking_ms.push(clock.elapsed().as_secs_f64() * 1e3);
             poses.push(TrackedPose {
@@ -268,6 +299,14 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
         Trajectory::from_pairs(poses.iter().map(|p| (p.timestamp, p.world_from_camera)));
     let trajectory_path = options.out.join("trajectory.tum");
     trajectory.write_tum(&trajectory_path)?;
+    // Ground truth next to the estimate (evaluation only: evo and the swarm report read it).
+    let ground_truth: Vec<(f64, Isometry3<f64>)> = poses
+        .iter()
+        .filter_map(|p| Some((p.timestamp, p.ground_truth?)))
+        .collect();
+    if !ground_truth.is_empty() {
+        Trajectory::from_pairs(ground_truth).write_tum(&options.out.join("groundtruth.tum"))?;
+    }
     let map_path = options.out.join("map.ply");
     render_core::ply::save_ply(&map_path, &outcome.realtime_map)
         .with_context(|| format!("writing {}", map_path.display()))?;
@@ -276,6 +315,9 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
         render_core::ply::save_ply(&path, refined_map)
             .with_context(|| format!("writing {}", path.display()))?;
     }
+    // The consensus reads trajectory.tum once this agent has said goodbye, so that goes first;
+    // the evaluation below takes a while and needs nothing from the swarm.
+    let swarm_summary = swarm.map(|link| link.finish(&outcome.realtime_map));
     let ate_stats = trajectory_ate(&poses, &trajectory);
 
     let evaluated: Vec<&TrackedPose> = poses
@@ -348,6 +390,7 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
         peak_rss_mib: peak_rss_mib(),
         interrupted,
         refined,
+        swarm: swarm_summary,
     };
     let metrics_path = options.out.join("metrics.json");
     std::fs::write(&metrics_path, serde_json::to_string_pretty(&metrics)?)
@@ -417,7 +460,7 @@ fn evaluate_map(
             }
         };
         let comparison = comparison_dir
-            .filter(|_| i % comparison_step == 0)
+            .filter(|_| comparison_renders > 0 && i % comparison_step == 0)
             .map(|dir| comparison_path(dir, frame.index));
         qualities.push(evaluate_frame(
             &renderer,

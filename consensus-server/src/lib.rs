@@ -7,14 +7,21 @@
 //! - [`alignment`]: verified relative pose of two keyframes (features + RANSAC, G-ICP, checks);
 //! - [`pose_graph`]: robust (GNC) pose graph over all agents' keyframes, giving each agent's
 //!   frame in the world and corrected keyframe poses;
-//! - [`config`]: their parameters.
+//! - [`config`]: their parameters;
+//! - [`engine`]: the consensus state (keyframes, candidates, decisions), free of transport;
+//! - [`process`]: the `mac-consensus` process around it (iceoryx2, worker thread, outputs);
+//! - [`wire`]: received messages as the consensus's own types.
 //!
-//! The joint photometric refinement and the process itself follow (issue 6).
+//! Not built yet: the joint photometric refinement of the merged map (SPEC 4, step 4, second
+//! half); the pose graph alone corrects poses today.
 
 pub mod alignment;
 pub mod config;
+pub mod engine;
 pub mod place_recognition;
 pub mod pose_graph;
+pub mod process;
+pub mod wire;
 
 // The wire format and the extractor must agree on the descriptor length.
 const _: () =

@@ -25,6 +25,8 @@ pub enum EvalCommand {
     Lpips(LpipsArgs),
     /// Depth L1 (cm) over pixels with valid reference depth, from 16-bit depth PNGs.
     Depth(DepthArgs),
+    /// A swarm run's figures (joint ATE, closures, latency, bandwidth) -> DIR/metrics.json.
+    Swarm(super::swarm_report::SwarmArgs),
 }
 
 #[derive(Args)]
@@ -92,6 +94,7 @@ pub fn run(command: &EvalCommand) -> anyhow::Result<()> {
         EvalCommand::Image(a) => run_image(a),
         EvalCommand::Lpips(a) => run_lpips(a),
         EvalCommand::Depth(a) => run_depth(a),
+        EvalCommand::Swarm(a) => super::swarm_report::run(a),
     }
 }
 

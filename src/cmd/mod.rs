@@ -6,6 +6,7 @@ pub mod eval;
 pub mod ipc;
 pub mod render;
 pub mod render_map;
+pub mod swarm_report;
 pub mod synth;
 pub mod tracking;
 

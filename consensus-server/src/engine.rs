@@ -1,0 +1,405 @@
+//! The consensus's state, free of any transport (the process feeds it from iceoryx2, tests feed it
+//! directly): keyframes arrive with their global descriptor, images and Gaussians; selection
+//! proposes loop candidates; a bounded number of candidates is aligned per call; the robust pose
+//! graph is re-solved whenever a closure was added. Every decision is recorded for
+//! consensus.json.
+//!
+//! Candidates of a new keyframe, in order:
+//! 1. the agent's previous published keyframe (an odometry check: the verified relative pose
+//!    corrects tracking where it slipped between two publications);
+//! 2. the best `max_candidates_per_keyframe` proposals of place recognition.
+//!
+//! Duplicate keyframes (a message that arrived twice, or an agent that restarted and re-sent)
+//! replace nothing and propose nothing.
+
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::time::Instant;
+
+use nalgebra::Isometry3;
+use protocol::messages::FINAL_MAP_KEYFRAME_ID;
+use render_core::types::GaussianCloud;
+use serde::Serialize;
+
+use crate::alignment::{Keyframe, PreparedKeyframe, Verdict, align_prepared};
+use crate::config::ConsensusConfig;
+use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
+use crate::pose_graph::correction::blend;
+use crate::pose_graph::{LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
+
+/// One published keyframe as the consensus receives it.
+pub struct KeyframeArrival {
+    pub keyframe: Keyframe,
+    pub frame_index: u64,
+    pub timestamp_s: f64,
+    /// L2-normalised global descriptor.
+    pub descriptor: Vec<f32>,
+    /// The keyframe's Gaussians in the agent's own world frame (may be empty).
+    pub gaussians: GaussianCloud,
+}
+
+/// Why a pair was aligned.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CandidateSource {
+    /// Consecutive published keyframes of one agent.
+    Odometry,
+    /// Proposed by place recognition.
+    PlaceRecognition,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Candidate {
+    source: KeyframeRef,
+    target: KeyframeRef,
+    score: Option<f32>,
+    origin: CandidateSource,
+}
+
+/// One alignment decision (consensus.json).
+#[derive(Debug, Clone, Serialize)]
+pub struct ClosureEvent {
+    /// Seconds since the engine started.
+    pub at_s: f64,
+    pub source: KeyframeRef,
+    pub target: KeyframeRef,
+    pub origin: CandidateSource,
+    pub inter_agent: bool,
+    /// Descriptor score (place-recognition candidates only).
+    pub score: Option<f32>,
+    /// Alignment verified the pair.
+    pub verified: bool,
+    /// Why alignment rejected it.
+    pub rejection: Option<String>,
+    /// Whether the latest pose-graph solve kept it (verified pairs only; `None` before a solve).
+    pub accepted_by_pose_graph: Option<bool>,
+    pub alignment_ms: f64,
+}
+
+/// What the engine knows about one keyframe besides its images.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct KeyframeInfo {
+    pub frame_index: u64,
+    pub timestamp_s: f64,
+    pub agent_from_camera: [f64; 7],
+}
+
+pub struct Engine {
+    config: ConsensusConfig,
+    started: Instant,
+    database: PlaceDatabase,
+    prepared: BTreeMap<KeyframeRef, PreparedKeyframe>,
+    info: BTreeMap<KeyframeRef, KeyframeInfo>,
+    gaussians: BTreeMap<KeyframeRef, GaussianCloud>,
+    /// Each agent's final optimised map (its own frame), once it has sent it.
+    final_maps: BTreeMap<u32, GaussianCloud>,
+    graph: PoseGraph,
+    queue: VecDeque<Candidate>,
+    attempted: BTreeSet<(KeyframeRef, KeyframeRef)>,
+    last_of_agent: BTreeMap<u32, KeyframeRef>,
+    events: Vec<ClosureEvent>,
+    /// Index in `events` of each closure added to the graph, in graph order.
+    closure_events: Vec<usize>,
+    solution: Option<PoseGraphSolution>,
+    /// A closure or keyframe arrived since the last solve.
+    dirty: bool,
+    solve_ms: Vec<f64>,
+}
+
+impl Engine {
+    pub fn new(config: ConsensusConfig) -> Self {
+        Self {
+            database: PlaceDatabase::new(SelectionThresholds::from_config(&config)),
+            config,
+            started: Instant::now(),
+            prepared: BTreeMap::new(),
+            info: BTreeMap::new(),
+            gaussians: BTreeMap::new(),
+            final_maps: BTreeMap::new(),
+            graph: PoseGraph::new(),
+            queue: VecDeque::new(),
+            attempted: BTreeSet::new(),
+            last_of_agent: BTreeMap::new(),
+            events: Vec::new(),
+            closure_events: Vec::new(),
+            solution: None,
+            dirty: false,
+            solve_ms: Vec::new(),
+        }
+    }
+
+    /// Stores a keyframe and queues its candidates. Returns false for a duplicate.
+    pub fn add_keyframe(&mut self, arrival: KeyframeArrival) -> bool {
+        let id = arrival.keyframe.id;
+        if self.prepared.contains_key(&id) {
+            tracing::debug!(?id, "keyframe already known: duplicate ignored");
+            return false;
+        }
+        let _span =
+            tracing::info_span!("keyframe", agent = id.agent_id, id = id.keyframe_id).entered();
+        let proposals =
+            self.database
+                .insert_and_query(id, arrival.frame_index, &arrival.descriptor);
+        let pose = arrival.keyframe.agent_from_camera;
+        let q = pose.rotation.quaternion();
+        let t = pose.translation.vector;
+        self.info.insert(
+            id,
+            KeyframeInfo {
+                frame_index: arrival.frame_index,
+                timestamp_s: arrival.timestamp_s,
+                agent_from_camera: [t.x, t.y, t.z, q.i, q.j, q.k, q.w],
+            },
+        );
+        self.graph.add_keyframe(id, pose);
+        self.gaussians.insert(id, arrival.gaussians);
+        self.prepared.insert(
+            id,
+            PreparedKeyframe::new(arrival.keyframe, &self.config.alignment),
+        );
+        if let Some(previous) = self.last_of_agent.insert(id.agent_id, id)
+            && previous != id
+        {
+            self.queue.push_back(Candidate {
+                source: id,
+                target: previous,
+                score: None,
+                origin: CandidateSource::Odometry,
+            });
+        }
+        for proposal in proposals
+            .into_iter()
+            .take(self.config.max_candidates_per_keyframe)
+        {
+            self.queue.push_back(Candidate {
+                source: proposal.query,
+                target: proposal.matched,
+                score: Some(proposal.score),
+                origin: CandidateSource::PlaceRecognition,
+            });
+        }
+        self.dirty = true;
+        true
+    }
+
+    /// Sets (replaces) a known keyframe's Gaussians, or an agent's final map (keyframe id
+    /// [`FINAL_MAP_KEYFRAME_ID`]); hands them back when the keyframe is not known yet.
+    pub fn set_gaussians(
+        &mut self,
+        id: KeyframeRef,
+        gaussians: GaussianCloud,
+    ) -> Result<(), GaussianCloud> {
+        if id.keyframe_id == FINAL_MAP_KEYFRAME_ID {
+            self.final_maps.insert(id.agent_id, gaussians);
+            return Ok(());
+        }
+        match self.gaussians.get_mut(&id) {
+            Some(stored) => {
+                *stored = gaussians;
+                Ok(())
+            }
+            None => Err(gaussians),
+        }
+    }
+
+    /// Candidates waiting for alignment.
+    pub fn pending(&self) -> usize {
+        self.queue.len()
+    }
+
+    /// Aligns the next queued candidate; `None` when the queue is empty.
+    pub fn align_next(&mut self) -> Option<&ClosureEvent> {
+        let candidate = loop {
+            let candidate = self.queue.pop_front()?;
+            let key = (candidate.source, candidate.target);
+            let reverse = (candidate.target, candidate.source);
+            if self.attempted.contains(&key) || self.attempted.contains(&reverse) {
+                continue;
+            }
+            self.attempted.insert(key);
+            break candidate;
+        };
+        let clock = Instant::now();
+        let result = align_prepared(
+            &self.prepared[&candidate.source],
+            &self.prepared[&candidate.target],
+            &self.config.alignment,
+        );
+        let mut event = ClosureEvent {
+            at_s: self.started.elapsed().as_secs_f64(),
+            source: candidate.source,
+            target: candidate.target,
+            origin: candidate.origin,
+            inter_agent: candidate.source.agent_id != candidate.target.agent_id,
+            score: candidate.score,
+            verified: result.is_accepted(),
+            rejection: None,
+            accepted_by_pose_graph: None,
+            alignment_ms: clock.elapsed().as_secs_f64() * 1e3,
+        };
+        match result.verdict {
+            Verdict::Accepted => {
+                let closure = LoopClosure {
+                    source: result.source,
+                    target: result.target,
+                    target_camera_from_source_camera: result.target_camera_from_source_camera,
+                };
+                // Both ends are in the graph (they were prepared), so this cannot fail.
+                if let Err(error) = self.graph.add_loop(closure) {
+                    tracing::error!(%error, "verified closure not added");
+                } else {
+                    self.closure_events.push(self.events.len());
+                    self.dirty = true;
+                }
+                tracing::info!(
+                    source = ?event.source,
+                    target = ?event.target,
+                    inter_agent = event.inter_agent,
+                    "closure verified"
+                );
+            }
+            Verdict::Rejected(reason) => {
+                tracing::debug!(source = ?event.source, target = ?event.target, %reason, "closure rejected");
+                event.rejection = Some(reason.to_string());
+            }
+        }
+        self.events.push(event);
+        self.events.last()
+    }
+
+    /// Re-solves the pose graph if anything changed since the last solve. Returns the new
+    /// solution, or `None` when nothing changed or agent 0 (the world frame) has not published
+    /// yet.
+    pub fn solve_if_changed(&mut self) -> Option<&PoseGraphSolution> {
+        if !self.dirty {
+            return None;
+        }
+        let clock = Instant::now();
+        match self.graph.solve(&self.config.pose_graph) {
+            Ok(solution) => {
+                self.dirty = false;
+                self.solve_ms.push(clock.elapsed().as_secs_f64() * 1e3);
+                for (decision, &event) in solution.loops.iter().zip(&self.closure_events) {
+                    self.events[event].accepted_by_pose_graph = Some(decision.accepted);
+                }
+                self.solution = Some(solution);
+                self.solution.as_ref()
+            }
+            Err(PoseGraphError::NoWorldAgent) => None,
+            Err(error) => {
+                tracing::error!(%error, "pose graph not solved");
+                self.dirty = false;
+                None
+            }
+        }
+    }
+
+    pub fn solution(&self) -> Option<&PoseGraphSolution> {
+        self.solution.as_ref()
+    }
+
+    pub fn events(&self) -> &[ClosureEvent] {
+        &self.events
+    }
+
+    pub fn keyframes(&self) -> &BTreeMap<KeyframeRef, KeyframeInfo> {
+        &self.info
+    }
+
+    pub fn solve_ms(&self) -> &[f64] {
+        &self.solve_ms
+    }
+
+    /// The merged map in the world frame: each linked agent's final map moved by its
+    /// `world_from_agent`, or, for an agent that sent none, its keyframes' Gaussians moved by each
+    /// keyframe's correction. Agents not linked to the world are left out (their frame is
+    /// unknown); the count of those Gaussians is returned too.
+    pub fn merged_map(&self) -> (GaussianCloud, usize) {
+        let mut merged = GaussianCloud::default();
+        let mut unplaced = 0;
+        for (agent_id, cloud) in &self.final_maps {
+            match self
+                .solution
+                .as_ref()
+                .and_then(|s| s.world_from_agent.get(agent_id).copied().flatten())
+            {
+                Some(world_from_agent) => {
+                    merged.extend_from(&transformed(cloud, &world_from_agent))
+                }
+                None => unplaced += cloud.len(),
+            }
+        }
+        for (id, cloud) in &self.gaussians {
+            if self.final_maps.contains_key(&id.agent_id) {
+                continue;
+            }
+            match self.solution.as_ref().and_then(|s| s.corrections.get(id)) {
+                Some(correction) => merged.extend_from(&transformed(cloud, correction)),
+                None => unplaced += cloud.len(),
+            }
+        }
+        (merged, unplaced)
+    }
+
+    /// A per-frame trajectory of `agent_id` (tracked in its own frame, `(timestamp,
+    /// agent_from_camera)`) in the world frame: each frame gets the correction blended between
+    /// the published keyframes before and after it in time. `None` when the agent is not linked
+    /// to the world.
+    pub fn world_trajectory(
+        &self,
+        agent_id: u32,
+        tracked: &[(f64, Isometry3<f64>)],
+    ) -> Option<Vec<(f64, Isometry3<f64>)>> {
+        let solution = self.solution.as_ref()?;
+        let mut anchors: Vec<(f64, Isometry3<f64>)> = self
+            .info
+            .iter()
+            .filter(|(id, _)| id.agent_id == agent_id)
+            .filter_map(|(id, info)| Some((info.timestamp_s, *solution.corrections.get(id)?)))
+            .collect();
+        if anchors.is_empty() {
+            return None;
+        }
+        anchors.sort_by(|a, b| a.0.total_cmp(&b.0));
+        Some(
+            tracked
+                .iter()
+                .map(|(t, agent_from_camera)| {
+                    let after = anchors.partition_point(|(stamp, _)| stamp <= t);
+                    let correction = if after == 0 {
+                        anchors[0].1
+                    } else if after == anchors.len() {
+                        anchors[after - 1].1
+                    } else {
+                        let (t0, c0) = &anchors[after - 1];
+                        let (t1, c1) = &anchors[after];
+                        let span = (t1 - t0).max(f64::EPSILON);
+                        blend(c0, c1, ((t - t0) / span).clamp(0.0, 1.0))
+                    };
+                    (*t, correction * agent_from_camera)
+                })
+                .collect(),
+        )
+    }
+}
+
+/// `cloud` moved by the rigid `transform` (means and orientations; scales, opacities and
+/// colours are unchanged by a rigid motion).
+fn transformed(cloud: &GaussianCloud, transform: &Isometry3<f64>) -> GaussianCloud {
+    let mut out = cloud.clone();
+    let rotation = transform.rotation;
+    for mean in &mut out.means {
+        let p = transform * nalgebra::Point3::new(mean[0] as f64, mean[1] as f64, mean[2] as f64);
+        *mean = [p.x as f32, p.y as f32, p.z as f32];
+    }
+    for q in &mut out.quaternions {
+        let local = nalgebra::Quaternion::new(q[0] as f64, q[1] as f64, q[2] as f64, q[3] as f64);
+        let world = rotation.quaternion() * local;
+        *q = [
+            world.w as f32,
+            world.i as f32,
+            world.j as f32,
+            world.k as f32,
+        ];
+    }
+    out
+}

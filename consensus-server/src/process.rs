@@ -1,0 +1,536 @@
+//! The `mac-consensus` process: receives every agent's keyframes over iceoryx2, runs the
+//! [`Engine`] on a worker thread, sends corrections back, and writes the world map, the agents'
+//! world trajectories and consensus.json at the end.
+//!
+//! Threads, and why:
+//! - the main thread owns the transport (iceoryx2 ports stay on the thread that made them): it
+//!   waits on the consumers' event (no spinning), joins each keyframe's descriptor and image
+//!   (they arrive on different topics, in any order), and sends corrections as soon as the
+//!   worker has them. It never aligns or solves, so agents are never blocked by the consensus;
+//! - the worker thread owns the [`Engine`]: preparing keyframes, aligning candidates (about a
+//!   second each on a CPU) and solving the pose graph.
+//!
+//! The run ends when every expected agent has said goodbye and the worker has aligned every
+//! queued candidate, or on SIGINT/SIGTERM (the stop flag); either way every output is written.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use anyhow::Context;
+use crossbeam_channel::{Receiver, Sender, unbounded};
+use nalgebra::Isometry3;
+use protocol::messages::{KeyframePose, LifecycleKind, Pose};
+use protocol::transport::{ConsumerLink, Incoming, TransportConfig};
+use render_core::types::GaussianCloud;
+use serde::Serialize;
+use slam_core::config::Config;
+use slam_core::trajectory::Trajectory;
+
+use crate::alignment::Keyframe;
+use crate::engine::{ClosureEvent, Engine, KeyframeArrival, KeyframeInfo};
+use crate::place_recognition::KeyframeRef;
+use crate::wire;
+
+/// What to run and where to write.
+#[derive(Debug, Clone)]
+pub struct ConsensusOptions {
+    pub config: Config,
+    pub transport: TransportConfig,
+    /// Output directory; agent K's own outputs are expected in `out/agent_K/`.
+    pub out: PathBuf,
+    /// Agents the run waits for: it ends once all of them have said goodbye. `None`: run until
+    /// stopped.
+    pub expected_agents: Option<u32>,
+}
+
+/// Messages to the worker.
+enum WorkerInput {
+    Keyframe(Box<KeyframeArrival>, Instant),
+    Gaussians(KeyframeRef, GaussianCloud),
+}
+
+/// A pose-graph solution, as the main thread forwards it.
+struct SolutionUpdate {
+    world_from_agent: BTreeMap<u32, Isometry3<f64>>,
+    world_from_camera: BTreeMap<KeyframeRef, Isometry3<f64>>,
+}
+
+/// Parts of one keyframe received so far.
+#[derive(Default)]
+struct Assembly {
+    descriptor: Option<(Vec<f32>, u64, f64)>,
+    image: Option<Keyframe>,
+    frame_index: u64,
+    timestamp_s: f64,
+}
+
+/// Per agent, what the process saw of it.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct AgentRecord {
+    pub hellos: usize,
+    pub goodbyes: usize,
+    pub config_hash: u64,
+    pub keyframes: usize,
+    pub gaussians_received: usize,
+    pub gaps: usize,
+    pub corrections_sent: usize,
+    pub corrections_undelivered: usize,
+    /// `world_from_agent` as `[tx, ty, tz, qx, qy, qz, qw]` (TUM order); absent when the agent
+    /// was never linked to the world.
+    pub world_from_agent: Option<[f64; 7]>,
+    pub bytes_received: u64,
+    pub seconds_seen: f64,
+}
+
+/// consensus.json.
+#[derive(Debug, Clone, Serialize)]
+pub struct ConsensusReport {
+    pub agents: BTreeMap<u32, AgentRecord>,
+    pub keyframes: usize,
+    pub closures_proposed: usize,
+    pub closures_verified: usize,
+    pub closures_rejected_by_alignment: usize,
+    pub loop_closures_accepted: usize,
+    pub loop_closures_rejected: usize,
+    pub inter_agent_closures_accepted: usize,
+    /// From a keyframe's arrival to the first correction that includes it.
+    pub consensus_latency_ms_median: Option<f64>,
+    pub consensus_latency_ms: Vec<f64>,
+    pub pose_graph_solve_ms_median: Option<f64>,
+    pub merged_gaussians: usize,
+    pub unplaced_gaussians: usize,
+    pub wall_s: f64,
+    pub interrupted: bool,
+    pub events: Vec<ClosureEvent>,
+    pub keyframe_info: Vec<(KeyframeRef, KeyframeInfo)>,
+}
+
+/// Runs the consensus until the expected agents are done or `stop` is raised.
+pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<ConsensusReport> {
+    let _span = tracing::info_span!("consensus").entered();
+    std::fs::create_dir_all(&options.out)
+        .with_context(|| format!("creating output directory {}", options.out.display()))?;
+    let started = Instant::now();
+    let mut link = ConsumerLink::open(&options.transport).context("opening the transport")?;
+    tracing::info!(namespace = %options.transport.namespace, "consensus listening");
+
+    let (input_tx, input_rx) = unbounded::<WorkerInput>();
+    let (solution_tx, solution_rx) = unbounded::<SolutionUpdate>();
+    let (latency_tx, latency_rx) = unbounded::<f64>();
+    let worker = spawn_worker(
+        options.config.consensus.clone(),
+        input_rx,
+        solution_tx,
+        latency_tx,
+    )?;
+
+    let mut agents: BTreeMap<u32, AgentRecord> = BTreeMap::new();
+    let mut first_seen: BTreeMap<u32, Instant> = BTreeMap::new();
+    let mut finished: BTreeSet<u32> = BTreeSet::new();
+    let mut assemblies: BTreeMap<KeyframeRef, Assembly> = BTreeMap::new();
+    let mut world_from_agent: BTreeMap<u32, Isometry3<f64>> = BTreeMap::new();
+    let mut interrupted = false;
+    let wait = options.transport.wait_slice;
+
+    loop {
+        if stop.load(Ordering::Relaxed) {
+            tracing::warn!("stop requested: writing outputs");
+            interrupted = true;
+            break;
+        }
+        if let Some(expected) = options.expected_agents
+            && (0..expected).all(|id| finished.contains(&id))
+        {
+            tracing::info!("every agent said goodbye");
+            break;
+        }
+        match link.recv_timeout(wait) {
+            Ok(Some(message)) => {
+                let agent_id = message.agent_id();
+                let record = agents.entry(agent_id).or_default();
+                first_seen.entry(agent_id).or_insert_with(Instant::now);
+                if matches!(
+                    message.delivery(),
+                    protocol::transport::Delivery::Gap { .. }
+                ) {
+                    record.gaps += 1;
+                    tracing::warn!(agent_id, topic = %message.topic(), "messages lost");
+                }
+                handle(message, record, &mut assemblies, &mut finished, &input_tx)?;
+            }
+            Ok(None) => {}
+            Err(error) => tracing::warn!(%error, "receive failed"),
+        }
+        for update in solution_rx.try_iter() {
+            send_corrections(&mut link, &update, &mut agents);
+            world_from_agent = update.world_from_agent;
+        }
+    }
+
+    // Let the worker finish its queue (it ends when the input channel closes).
+    drop(input_tx);
+    let engine = worker
+        .join()
+        .map_err(|_| anyhow::anyhow!("the consensus worker thread panicked"))?;
+    for update in solution_rx.try_iter() {
+        send_corrections(&mut link, &update, &mut agents);
+        world_from_agent = update.world_from_agent;
+    }
+    let latencies: Vec<f64> = latency_rx.try_iter().collect();
+
+    let bandwidth = link.bandwidth();
+    for (id, record) in agents.iter_mut() {
+        record.world_from_agent = world_from_agent.get(id).map(tum_pose);
+        record.bytes_received = bandwidth
+            .entries
+            .iter()
+            .filter(|e| e.agent_id == *id)
+            .map(|e| e.traffic.bytes)
+            .sum();
+        record.seconds_seen = first_seen[id].elapsed().as_secs_f64();
+    }
+    let report = write_outputs(
+        options,
+        &engine,
+        agents,
+        latencies,
+        started.elapsed().as_secs_f64(),
+        interrupted,
+    )?;
+    Ok(report)
+}
+
+/// Routes one received message.
+fn handle(
+    message: Incoming,
+    record: &mut AgentRecord,
+    assemblies: &mut BTreeMap<KeyframeRef, Assembly>,
+    finished: &mut BTreeSet<u32>,
+    to_worker: &Sender<WorkerInput>,
+) -> anyhow::Result<()> {
+    let agent_id = message.agent_id();
+    match message {
+        Incoming::Lifecycle(lifecycle) => match lifecycle.kind() {
+            Ok(LifecycleKind::Hello) => {
+                record.hellos += 1;
+                if record.hellos > 1 && record.config_hash != lifecycle.config_hash {
+                    tracing::warn!(agent_id, "agent restarted with a different configuration");
+                }
+                record.config_hash = lifecycle.config_hash;
+                // A restarted agent is back in the run.
+                finished.remove(&agent_id);
+                tracing::info!(agent_id, "agent joined");
+            }
+            Ok(LifecycleKind::Alive) => {}
+            Ok(LifecycleKind::Goodbye) => {
+                record.goodbyes += 1;
+                finished.insert(agent_id);
+                tracing::info!(agent_id, "agent left");
+            }
+            Err(error) => tracing::warn!(agent_id, %error, "lifecycle message ignored"),
+        },
+        Incoming::Descriptor(descriptor) => {
+            let id = KeyframeRef {
+                agent_id,
+                keyframe_id: descriptor.keyframe_id,
+            };
+            let assembly = assemblies.entry(id).or_default();
+            assembly.descriptor = Some((
+                descriptor.descriptor.to_vec(),
+                descriptor.frame_index,
+                descriptor.timestamp_s,
+            ));
+            forward_if_complete(id, assemblies, record, to_worker)?;
+        }
+        Incoming::KeyframeImage(image) => {
+            let header = image.header();
+            let id = KeyframeRef {
+                agent_id,
+                keyframe_id: header.keyframe_id,
+            };
+            let (rgb, depth) = wire::rgbd_images(header.width, header.height, image.pixels());
+            let assembly = assemblies.entry(id).or_default();
+            assembly.frame_index = header.frame_index;
+            assembly.timestamp_s = header.timestamp_s;
+            assembly.image = Some(Keyframe {
+                id,
+                rgb,
+                depth,
+                intrinsics: wire::intrinsics(&header.intrinsics),
+                agent_from_camera: header.camera_to_agent_world.to_isometry(),
+            });
+            forward_if_complete(id, assemblies, record, to_worker)?;
+        }
+        Incoming::Patch(patch) => {
+            let id = KeyframeRef {
+                agent_id,
+                keyframe_id: patch.header().keyframe_id,
+            };
+            let (cloud, dropped) = wire::gaussian_cloud(patch.records());
+            if dropped > 0 {
+                tracing::warn!(
+                    agent_id,
+                    dropped,
+                    "patch records with non-finite values dropped"
+                );
+            }
+            record.gaussians_received += cloud.len();
+            to_worker
+                .send(WorkerInput::Gaussians(id, cloud))
+                .context("the consensus worker stopped")?;
+        }
+    }
+    Ok(())
+}
+
+fn forward_if_complete(
+    id: KeyframeRef,
+    assemblies: &mut BTreeMap<KeyframeRef, Assembly>,
+    record: &mut AgentRecord,
+    to_worker: &Sender<WorkerInput>,
+) -> anyhow::Result<()> {
+    let complete = assemblies
+        .get(&id)
+        .is_some_and(|a| a.descriptor.is_some() && a.image.is_some());
+    if !complete {
+        return Ok(());
+    }
+    let assembly = assemblies.remove(&id).expect("checked above");
+    let (descriptor, _, _) = assembly.descriptor.expect("checked above");
+    record.keyframes += 1;
+    let arrival = KeyframeArrival {
+        keyframe: assembly.image.expect("checked above"),
+        frame_index: assembly.frame_index,
+        timestamp_s: assembly.timestamp_s,
+        descriptor,
+        gaussians: GaussianCloud::default(),
+    };
+    to_worker
+        .send(WorkerInput::Keyframe(Box::new(arrival), Instant::now()))
+        .context("the consensus worker stopped")
+}
+
+fn spawn_worker(
+    config: slam_core::config::ConsensusConfig,
+    inputs: Receiver<WorkerInput>,
+    solutions: Sender<SolutionUpdate>,
+    latencies: Sender<f64>,
+) -> anyhow::Result<JoinHandle<Engine>> {
+    std::thread::Builder::new()
+        .name("consensus-worker".into())
+        .spawn(move || {
+            let _span = tracing::info_span!("consensus worker").entered();
+            let mut worker = Worker {
+                engine: Engine::new(config),
+                waiting: BTreeMap::new(),
+                early_gaussians: BTreeMap::new(),
+            };
+            let mut open = true;
+            loop {
+                // Block for input only when nothing is left to align.
+                if worker.engine.pending() == 0 {
+                    if !open {
+                        break;
+                    }
+                    match inputs.recv() {
+                        Ok(input) => worker.take(input),
+                        Err(_) => open = false,
+                    }
+                }
+                while open {
+                    match inputs.try_recv() {
+                        Ok(input) => worker.take(input),
+                        Err(crossbeam_channel::TryRecvError::Empty) => break,
+                        Err(crossbeam_channel::TryRecvError::Disconnected) => open = false,
+                    }
+                }
+                worker.engine.align_next();
+                if let Some(update) = worker.solve(&latencies)
+                    && solutions.send(update).is_err()
+                {
+                    break;
+                }
+            }
+            worker.engine
+        })
+        .context("starting the consensus worker thread")
+}
+
+/// The worker thread's state.
+struct Worker {
+    engine: Engine,
+    /// Keyframes whose first correction has not gone out yet, with their arrival time.
+    waiting: BTreeMap<KeyframeRef, Instant>,
+    /// Gaussians that arrived before their keyframe's images.
+    early_gaussians: BTreeMap<KeyframeRef, GaussianCloud>,
+}
+
+impl Worker {
+    fn take(&mut self, input: WorkerInput) {
+        match input {
+            WorkerInput::Keyframe(mut arrival, at) => {
+                let id = arrival.keyframe.id;
+                if let Some(cloud) = self.early_gaussians.remove(&id) {
+                    arrival.gaussians = cloud;
+                }
+                if self.engine.add_keyframe(*arrival) {
+                    self.waiting.insert(id, at);
+                }
+            }
+            WorkerInput::Gaussians(id, cloud) => {
+                if let Err(cloud) = self.engine.set_gaussians(id, cloud) {
+                    self.early_gaussians.insert(id, cloud);
+                }
+            }
+        }
+    }
+
+    /// Solves if anything changed; the update to forward, and the latency of every keyframe
+    /// it places for the first time.
+    fn solve(&mut self, latencies: &Sender<f64>) -> Option<SolutionUpdate> {
+        let solution = self.engine.solve_if_changed()?;
+        let update = SolutionUpdate {
+            world_from_agent: solution
+                .world_from_agent
+                .iter()
+                .filter_map(|(id, t)| Some((*id, (*t)?)))
+                .collect(),
+            world_from_camera: solution.world_from_camera.clone(),
+        };
+        self.waiting.retain(|id, at| {
+            if update.world_from_camera.contains_key(id) {
+                // The main thread may be gone at shutdown; the figure is then not needed.
+                let _ = latencies.send(at.elapsed().as_secs_f64() * 1e3);
+                false
+            } else {
+                true
+            }
+        });
+        Some(update)
+    }
+}
+
+fn send_corrections(
+    link: &mut ConsumerLink,
+    update: &SolutionUpdate,
+    agents: &mut BTreeMap<u32, AgentRecord>,
+) {
+    for (agent_id, world_from_agent) in &update.world_from_agent {
+        let poses: Vec<KeyframePose> = update
+            .world_from_camera
+            .iter()
+            .filter(|(id, _)| id.agent_id == *agent_id)
+            .map(|(id, pose)| KeyframePose {
+                keyframe_id: id.keyframe_id,
+                camera_to_world: Pose::from(pose),
+            })
+            .collect();
+        let record = agents.entry(*agent_id).or_default();
+        match link.send_correction(*agent_id, Pose::from(world_from_agent), &poses) {
+            Ok(_) => record.corrections_sent += 1,
+            Err(error) => {
+                // An agent that left or crashed simply misses this correction; the final
+                // outputs carry it anyway.
+                record.corrections_undelivered += 1;
+                tracing::debug!(agent_id, %error, "correction not delivered");
+            }
+        }
+    }
+}
+
+/// `[tx, ty, tz, qx, qy, qz, qw]`.
+fn tum_pose(pose: &Isometry3<f64>) -> [f64; 7] {
+    let t = pose.translation.vector;
+    let q = pose.rotation.quaternion();
+    [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
+}
+
+fn median(values: &[f64]) -> Option<f64> {
+    if values.is_empty() {
+        return None;
+    }
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    Some(sorted[sorted.len() / 2])
+}
+
+/// The agent's own per-frame trajectory (its frame), written by the agent next to ours.
+pub fn agent_trajectory_path(out: &Path, agent_id: u32) -> PathBuf {
+    out.join(format!("agent_{agent_id}")).join("trajectory.tum")
+}
+
+fn write_outputs(
+    options: &ConsensusOptions,
+    engine: &Engine,
+    agents: BTreeMap<u32, AgentRecord>,
+    latencies: Vec<f64>,
+    wall_s: f64,
+    interrupted: bool,
+) -> anyhow::Result<ConsensusReport> {
+    let out = &options.out;
+    let (map, unplaced) = engine.merged_map();
+    let map_path = out.join("map.ply");
+    render_core::ply::save_ply(&map_path, &map)
+        .with_context(|| format!("writing {}", map_path.display()))?;
+    for agent_id in agents.keys() {
+        let path = agent_trajectory_path(out, *agent_id);
+        if !path.exists() {
+            tracing::warn!(agent_id, path = %path.display(), "no agent trajectory to correct");
+            continue;
+        }
+        let tracked = Trajectory::read_tum(&path)
+            .with_context(|| format!("reading agent {agent_id}'s trajectory"))?;
+        let pairs: Vec<(f64, Isometry3<f64>)> = tracked
+            .stamps
+            .iter()
+            .copied()
+            .zip(tracked.poses.iter().copied())
+            .collect();
+        match engine.world_trajectory(*agent_id, &pairs) {
+            Some(world) => {
+                let target = out.join(format!("agent_{agent_id}.tum"));
+                Trajectory::from_pairs(world)
+                    .write_tum(&target)
+                    .with_context(|| format!("writing {}", target.display()))?;
+            }
+            None => tracing::warn!(
+                agent_id,
+                "agent not linked to the world frame: no world trajectory written"
+            ),
+        }
+    }
+    let events = engine.events().to_vec();
+    let solution = engine.solution();
+    let accepted = solution.map_or(0, |s| s.accepted_loops());
+    let report = ConsensusReport {
+        keyframes: engine.keyframes().len(),
+        closures_proposed: events.len(),
+        closures_verified: events.iter().filter(|e| e.verified).count(),
+        closures_rejected_by_alignment: events.iter().filter(|e| !e.verified).count(),
+        loop_closures_accepted: accepted,
+        loop_closures_rejected: events.len() - accepted,
+        inter_agent_closures_accepted: solution.map_or(0, |s| {
+            s.loops
+                .iter()
+                .filter(|l| l.inter_agent && l.accepted)
+                .count()
+        }),
+        consensus_latency_ms_median: median(&latencies),
+        consensus_latency_ms: latencies,
+        pose_graph_solve_ms_median: median(engine.solve_ms()),
+        merged_gaussians: map.len(),
+        unplaced_gaussians: unplaced,
+        wall_s,
+        interrupted,
+        agents,
+        events,
+        keyframe_info: engine.keyframes().iter().map(|(k, v)| (*k, *v)).collect(),
+    };
+    let path = out.join("consensus.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(report)
+}

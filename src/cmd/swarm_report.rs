@@ -1,0 +1,205 @@
+//! `mac-ego3d eval swarm --dir DIR`: the figures of one swarm run (issue 7's metrics.json) from
+//! what its processes wrote: DIR/consensus.json, DIR/agent_K.tum (world frame, by the
+//! consensus), DIR/agent_K/{metrics.json, groundtruth.tum} (by each agent).
+//!
+//! Rendering figures (`psnr`, `ssim`, `lpips`, `depth_l1_cm`) are the mean over agents of each
+//! agent's own map evaluated at its own estimated poses; `rendering_source` says so. The merged
+//! map is not rendered here yet.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use clap::Args;
+use serde::Serialize;
+use serde_json::Value;
+use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
+use slam_core::trajectory::Trajectory;
+
+use super::{fmt_num, print_json};
+
+#[derive(Args)]
+pub struct SwarmArgs {
+    /// The run's output directory (scripts/launch_swarm.sh --out).
+    #[arg(long)]
+    dir: PathBuf,
+    /// Print the JSON instead of a table (DIR/metrics.json is written either way).
+    #[arg(long)]
+    json: bool,
+}
+
+/// DIR/metrics.json.
+#[derive(Debug, Serialize)]
+pub struct SwarmMetrics {
+    /// One SE(3) alignment of all linked agents' world trajectories to ground truth.
+    pub ate_joint_rmse_m: Option<f64>,
+    /// Per agent under the joint alignment (`null`: not linked to the world frame).
+    pub ate_per_agent_rmse_m: Vec<Option<f64>>,
+    /// Agents the consensus never placed in the world frame.
+    pub agents_not_linked: Vec<u32>,
+    pub psnr: Option<f64>,
+    pub ssim: Option<f64>,
+    pub lpips: Option<f64>,
+    pub depth_l1_cm: Option<f64>,
+    pub rendering_source: &'static str,
+    pub fps_per_agent: Vec<Option<f64>>,
+    pub bytes_per_agent_per_s: Vec<Option<f64>>,
+    pub consensus_latency_ms_median: Option<f64>,
+    pub loop_closures_accepted: u64,
+    pub loop_closures_rejected: u64,
+    pub inter_agent_closures_accepted: u64,
+    pub wall_s: Option<f64>,
+}
+
+fn read_json(path: &Path) -> anyhow::Result<Value> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
+fn mean(values: &[Option<f64>]) -> Option<f64> {
+    let present: Vec<f64> = values.iter().flatten().copied().collect();
+    (!present.is_empty()).then(|| present.iter().sum::<f64>() / present.len() as f64)
+}
+
+/// Computes the swarm's figures and writes DIR/metrics.json.
+pub fn swarm_metrics(dir: &Path) -> anyhow::Result<SwarmMetrics> {
+    let consensus = read_json(&dir.join("consensus.json"))?;
+    let mut agent_ids: Vec<u32> = consensus["agents"]
+        .as_object()
+        .map(|agents| agents.keys().filter_map(|k| k.parse().ok()).collect())
+        .unwrap_or_default();
+    agent_ids.sort_unstable();
+    if agent_ids.is_empty() {
+        bail!(
+            "{}: the consensus heard from no agent",
+            dir.join("consensus.json").display()
+        );
+    }
+    let mut pairs = Vec::new();
+    let mut linked = Vec::new();
+    let mut not_linked = Vec::new();
+    let mut agent_metrics = Vec::new();
+    for &id in &agent_ids {
+        let own = dir.join(format!("agent_{id}"));
+        agent_metrics.push(read_json(&own.join("metrics.json")).ok());
+        let world = dir.join(format!("agent_{id}.tum"));
+        let truth = own.join("groundtruth.tum");
+        if !world.exists() {
+            not_linked.push(id);
+            continue;
+        }
+        if !truth.exists() {
+            bail!("{}: no ground truth to score agent {id}", truth.display());
+        }
+        pairs.push((Trajectory::read_tum(&truth)?, Trajectory::read_tum(&world)?));
+        linked.push(id);
+    }
+    let joint = if pairs.is_empty() {
+        None
+    } else {
+        Some(joint_ate(&pairs, Alignment::Se3, DEFAULT_MAX_DT).context("joint ATE")?)
+    };
+    let per_agent = agent_ids
+        .iter()
+        .map(|id| {
+            let k = linked.iter().position(|l| l == id)?;
+            Some(joint.as_ref()?.per_agent_joint_aligned[k].rmse)
+        })
+        .collect();
+    let field = |name: &str| -> Vec<Option<f64>> {
+        agent_metrics
+            .iter()
+            .map(|m| m.as_ref().and_then(|m| m[name].as_f64()))
+            .collect()
+    };
+    let bytes = agent_metrics
+        .iter()
+        .map(|m| {
+            m.as_ref()
+                .and_then(|m| m["swarm"]["bytes_sent_per_s"].as_f64())
+        })
+        .collect();
+    let count = |name: &str| consensus[name].as_u64().unwrap_or(0);
+    let metrics = SwarmMetrics {
+        ate_joint_rmse_m: joint.as_ref().map(|j| j.joint.rmse),
+        ate_per_agent_rmse_m: per_agent,
+        agents_not_linked: not_linked,
+        psnr: mean(&field("psnr")),
+        ssim: mean(&field("ssim")),
+        lpips: mean(&field("lpips")),
+        depth_l1_cm: mean(&field("depth_l1_cm")),
+        rendering_source: "mean over agents of each agent's own map at its own poses",
+        fps_per_agent: field("fps"),
+        bytes_per_agent_per_s: bytes,
+        consensus_latency_ms_median: consensus["consensus_latency_ms_median"].as_f64(),
+        loop_closures_accepted: count("loop_closures_accepted"),
+        loop_closures_rejected: count("loop_closures_rejected"),
+        inter_agent_closures_accepted: count("inter_agent_closures_accepted"),
+        wall_s: consensus["wall_s"].as_f64(),
+    };
+    let path = dir.join("metrics.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(metrics)
+}
+
+pub fn run(args: &SwarmArgs) -> anyhow::Result<()> {
+    let m = swarm_metrics(&args.dir)?;
+    if args.json {
+        return print_json(&m);
+    }
+    let cm = |v: Option<f64>| v.map_or("-".into(), |v| fmt_num(v * 100.0, 2));
+    let num = |v: Option<f64>, d: usize| v.map_or("-".into(), |v| fmt_num(v, d));
+    println!("swarm run {}", args.dir.display());
+    println!(
+        "  {:<34} {:>12}",
+        "joint ATE RMSE cm",
+        cm(m.ate_joint_rmse_m)
+    );
+    for (k, ate) in m.ate_per_agent_rmse_m.iter().enumerate() {
+        println!(
+            "  {:<34} {:>12}",
+            format!("agent {k} ATE cm (joint align)"),
+            cm(*ate)
+        );
+    }
+    if !m.agents_not_linked.is_empty() {
+        println!(
+            "  agents not linked to the world: {:?}",
+            m.agents_not_linked
+        );
+    }
+    println!("  {:<34} {:>12}", "PSNR dB (agents' maps)", num(m.psnr, 2));
+    println!("  {:<34} {:>12}", "SSIM", num(m.ssim, 3));
+    println!("  {:<34} {:>12}", "depth L1 cm", num(m.depth_l1_cm, 2));
+    println!(
+        "  {:<34} {:>12}",
+        "loop closures accepted / rejected",
+        format!(
+            "{} / {}",
+            m.loop_closures_accepted, m.loop_closures_rejected
+        )
+    );
+    println!(
+        "  {:<34} {:>12}",
+        "inter-agent closures accepted", m.inter_agent_closures_accepted
+    );
+    println!(
+        "  {:<34} {:>12}",
+        "consensus latency ms (median)",
+        num(m.consensus_latency_ms_median, 0)
+    );
+    for (k, fps) in m.fps_per_agent.iter().enumerate() {
+        println!(
+            "  {:<34} {:>12}",
+            format!("agent {k} frames/s, kB/s sent"),
+            format!(
+                "{} / {}",
+                num(*fps, 1),
+                num(m.bytes_per_agent_per_s[k].map(|b| b / 1e3), 0)
+            )
+        );
+    }
+    println!("  metrics: {}", args.dir.join("metrics.json").display());
+    Ok(())
+}
