@@ -81,8 +81,11 @@ if [[ -n "$noise" ]]; then
   printf '\n[noise]\ntarget = "%s"\n' "$noise" >>"$run_config"
 fi
 weight_args=()
+eval_args=()
 if [[ -f "$weights" ]]; then
   weight_args=(--descriptor-weights "$weights")
+  # The same AlexNet file carries LPIPS's layers.
+  eval_args=(--lpips-weights "$weights")
 else
   echo "[swarm] no descriptor weights at $weights: agents use the classical descriptor" >&2
 fi
@@ -140,5 +143,5 @@ for i in "${!pids[@]}"; do
   fi
 done
 
-"$bin/mac-ego3d" eval swarm --dir "$out" || failed=1
+"$bin/mac-ego3d" eval swarm --dir "$out" "${eval_args[@]}" || failed=1
 exit "$failed"

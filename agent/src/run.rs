@@ -80,6 +80,9 @@ pub struct MapMetrics {
 pub struct AgentMetrics {
     pub agent_id: u32,
     pub dataset: String,
+    /// The `--dataset` argument and frame range, so that tools can reopen the same frames.
+    pub dataset_spec: String,
+    pub frame_range: String,
     /// SE(3)-aligned ATE RMSE against ground truth; absent without ground truth.
     pub ate_rmse_m: Option<f64>,
     pub ate_mean_m: Option<f64>,
@@ -358,6 +361,8 @@ pub fn run_agent(
     let metrics = AgentMetrics {
         agent_id: options.agent_id,
         dataset: dataset.describe(),
+        dataset_spec: options.dataset.clone(),
+        frame_range: options.frames.to_string(),
         ate_rmse_m: ate_stats.as_ref().map(|s| s.rmse),
         ate_mean_m: ate_stats.as_ref().map(|s| s.mean),
         psnr: realtime.psnr,

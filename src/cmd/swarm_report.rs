@@ -2,17 +2,23 @@
 //! what its processes wrote: DIR/consensus.json, DIR/agent_K.tum (world frame, by the
 //! consensus), DIR/agent_K/{metrics.json, groundtruth.tum} (by each agent).
 //!
-//! Rendering figures (`psnr`, `ssim`, `lpips`, `depth_l1_cm`) are the mean over agents of each
-//! agent's own map evaluated at its own estimated poses; `rendering_source` says so. The merged
-//! map is not rendered here yet.
+//! Rendering figures (`psnr`, `ssim`, `depth_l1_cm`, and `lpips` with `--lpips-weights`): the
+//! merged world map (DIR/map.ply) rendered at every `--render-every`-th frame of every linked
+//! agent, at the pose the consensus gives it (DIR/agent_K.tum), against that dataset frame; a
+//! few side-by-side PNGs go to DIR/renders/. With `--render-every 0`, or when the agents' frames
+//! cannot be reopened, they are the mean of each agent's own map at its own poses instead.
+//! `rendering_source` says which.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use clap::Args;
+use mac_agent::evaluation::{MapRenderer, QualitySummary, evaluate_frame};
 use serde::Serialize;
 use serde_json::Value;
+use slam_core::dataset::{self, FrameRange};
 use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
+use slam_core::metrics::lpips::Lpips;
 use slam_core::trajectory::Trajectory;
 
 use super::{fmt_num, print_json};
@@ -25,6 +31,15 @@ pub struct SwarmArgs {
     /// Print the JSON instead of a table (DIR/metrics.json is written either way).
     #[arg(long)]
     json: bool,
+    /// Render the merged map at every n-th frame of each agent (0: do not render).
+    #[arg(long, default_value_t = 20)]
+    render_every: usize,
+    /// Side-by-side comparison PNGs written per agent.
+    #[arg(long, default_value_t = 2)]
+    renders: usize,
+    /// LPIPS weights (.npz); LPIPS is left out without them.
+    #[arg(long)]
+    lpips_weights: Option<PathBuf>,
 }
 
 /// DIR/metrics.json.
@@ -41,6 +56,8 @@ pub struct SwarmMetrics {
     pub lpips: Option<f64>,
     pub depth_l1_cm: Option<f64>,
     pub rendering_source: &'static str,
+    /// Frames the rendering figures average over.
+    pub rendering_frames: usize,
     pub fps_per_agent: Vec<Option<f64>>,
     pub bytes_per_agent_per_s: Vec<Option<f64>>,
     pub consensus_latency_ms_median: Option<f64>,
@@ -61,8 +78,93 @@ fn mean(values: &[Option<f64>]) -> Option<f64> {
     (!present.is_empty()).then(|| present.iter().sum::<f64>() / present.len() as f64)
 }
 
+/// Renders the merged map at the linked agents' world poses; `None` when an agent's frames
+/// cannot be reopened (its metrics.json lacks the dataset spec) or nothing was evaluated.
+fn merged_map_quality(
+    dir: &Path,
+    linked: &[u32],
+    agent_metrics: &[(u32, Option<Value>)],
+    args: &SwarmArgs,
+) -> anyhow::Result<Option<QualitySummary>> {
+    if args.render_every == 0 || linked.is_empty() {
+        return Ok(None);
+    }
+    let map_path = dir.join("map.ply");
+    let map = render_core::ply::load_ply(&map_path)
+        .with_context(|| format!("reading the merged map {}", map_path.display()))?;
+    let renderer = MapRenderer::new(&map).context("uploading the merged map")?;
+    let lpips = match &args.lpips_weights {
+        Some(path) => Some(
+            Lpips::load(path)
+                .with_context(|| format!("loading LPIPS weights {}", path.display()))?,
+        ),
+        None => None,
+    };
+    let renders = dir.join("renders");
+    let mut qualities = Vec::new();
+    for &id in linked {
+        let Some(metrics) = agent_metrics
+            .iter()
+            .find(|(k, _)| *k == id)
+            .and_then(|(_, m)| m.as_ref())
+        else {
+            return Ok(None);
+        };
+        let (Some(spec), Some(range)) = (
+            metrics["dataset_spec"].as_str(),
+            metrics["frame_range"].as_str(),
+        ) else {
+            return Ok(None);
+        };
+        let range: FrameRange = range
+            .parse()
+            .map_err(|e| anyhow::anyhow!("agent {id}: frame range {range:?}: {e}"))?;
+        let dataset = dataset::open(spec, range)
+            .with_context(|| format!("reopening agent {id}'s frames ({spec})"))?;
+        let world = Trajectory::read_tum(&dir.join(format!("agent_{id}.tum")))?;
+        let evaluated: Vec<usize> = (0..dataset.len()).step_by(args.render_every).collect();
+        let comparison_every = evaluated.len().div_ceil(args.renders.max(1)).max(1);
+        if args.renders > 0 {
+            std::fs::create_dir_all(&renders)
+                .with_context(|| format!("creating {}", renders.display()))?;
+        }
+        for (i, position) in evaluated.into_iter().enumerate() {
+            let frame = match dataset.load(position) {
+                Ok(frame) => frame,
+                Err(error) => {
+                    tracing::warn!(agent = id, %error, "frame skipped");
+                    continue;
+                }
+            };
+            // The agent wrote one pose per frame it tracked, stamped with the frame's time.
+            let Some(pose) = world
+                .stamps
+                .iter()
+                .position(|t| (t - frame.timestamp).abs() < TIMESTAMP_TOLERANCE_S)
+                .map(|k| world.poses[k])
+            else {
+                continue;
+            };
+            let comparison = (args.renders > 0 && i % comparison_every == 0)
+                .then(|| renders.join(format!("agent_{id}_frame_{:06}.png", frame.index)));
+            qualities.push(evaluate_frame(
+                &renderer,
+                &frame,
+                &pose,
+                lpips.as_ref(),
+                comparison.as_deref(),
+            )?);
+        }
+    }
+    Ok((!qualities.is_empty()).then(|| QualitySummary::of(&qualities)))
+}
+
+/// Largest difference between a trajectory stamp and its frame's timestamp (the agent writes
+/// them with microsecond precision).
+const TIMESTAMP_TOLERANCE_S: f64 = 1e-5;
+
 /// Computes the swarm's figures and writes DIR/metrics.json.
-pub fn swarm_metrics(dir: &Path) -> anyhow::Result<SwarmMetrics> {
+pub fn swarm_metrics(dir: &Path, args: &SwarmArgs) -> anyhow::Result<SwarmMetrics> {
     let consensus = read_json(&dir.join("consensus.json"))?;
     let mut agent_ids: Vec<u32> = consensus["agents"]
         .as_object()
@@ -81,7 +183,7 @@ pub fn swarm_metrics(dir: &Path) -> anyhow::Result<SwarmMetrics> {
     let mut agent_metrics = Vec::new();
     for &id in &agent_ids {
         let own = dir.join(format!("agent_{id}"));
-        agent_metrics.push(read_json(&own.join("metrics.json")).ok());
+        agent_metrics.push((id, read_json(&own.join("metrics.json")).ok()));
         let world = dir.join(format!("agent_{id}.tum"));
         let truth = own.join("groundtruth.tum");
         if !world.exists() {
@@ -109,26 +211,46 @@ pub fn swarm_metrics(dir: &Path) -> anyhow::Result<SwarmMetrics> {
     let field = |name: &str| -> Vec<Option<f64>> {
         agent_metrics
             .iter()
-            .map(|m| m.as_ref().and_then(|m| m[name].as_f64()))
+            .map(|(_, m)| m.as_ref().and_then(|m| m[name].as_f64()))
             .collect()
     };
     let bytes = agent_metrics
         .iter()
-        .map(|m| {
+        .map(|(_, m)| {
             m.as_ref()
                 .and_then(|m| m["swarm"]["bytes_sent_per_s"].as_f64())
         })
         .collect();
     let count = |name: &str| consensus[name].as_u64().unwrap_or(0);
+    let merged = merged_map_quality(dir, &linked, &agent_metrics, args)?;
+    let (psnr, ssim, lpips, depth_l1_cm, rendering_source, rendering_frames) = match merged {
+        Some(q) => (
+            q.psnr,
+            q.ssim,
+            q.lpips,
+            q.depth_l1_cm,
+            "merged map at the consensus's world poses",
+            q.frames,
+        ),
+        None => (
+            mean(&field("psnr")),
+            mean(&field("ssim")),
+            mean(&field("lpips")),
+            mean(&field("depth_l1_cm")),
+            "mean over agents of each agent's own map at its own poses",
+            0,
+        ),
+    };
     let metrics = SwarmMetrics {
         ate_joint_rmse_m: joint.as_ref().map(|j| j.joint.rmse),
         ate_per_agent_rmse_m: per_agent,
         agents_not_linked: not_linked,
-        psnr: mean(&field("psnr")),
-        ssim: mean(&field("ssim")),
-        lpips: mean(&field("lpips")),
-        depth_l1_cm: mean(&field("depth_l1_cm")),
-        rendering_source: "mean over agents of each agent's own map at its own poses",
+        psnr,
+        ssim,
+        lpips,
+        depth_l1_cm,
+        rendering_source,
+        rendering_frames,
         fps_per_agent: field("fps"),
         bytes_per_agent_per_s: bytes,
         consensus_latency_ms_median: consensus["consensus_latency_ms_median"].as_f64(),
@@ -144,7 +266,7 @@ pub fn swarm_metrics(dir: &Path) -> anyhow::Result<SwarmMetrics> {
 }
 
 pub fn run(args: &SwarmArgs) -> anyhow::Result<()> {
-    let m = swarm_metrics(&args.dir)?;
+    let m = swarm_metrics(&args.dir, args)?;
     if args.json {
         return print_json(&m);
     }
@@ -169,7 +291,11 @@ pub fn run(args: &SwarmArgs) -> anyhow::Result<()> {
             m.agents_not_linked
         );
     }
-    println!("  {:<34} {:>12}", "PSNR dB (agents' maps)", num(m.psnr, 2));
+    println!(
+        "  rendering: {} ({} frames)",
+        m.rendering_source, m.rendering_frames
+    );
+    println!("  {:<34} {:>12}", "PSNR dB", num(m.psnr, 2));
     println!("  {:<34} {:>12}", "SSIM", num(m.ssim, 3));
     println!("  {:<34} {:>12}", "depth L1 cm", num(m.depth_l1_cm, 2));
     println!(
