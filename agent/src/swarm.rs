@@ -25,12 +25,10 @@ use slam_core::camera::Intrinsics;
 use slam_core::config::Config;
 use slam_core::dataset::DepthImage;
 use slam_core::descriptor::GlobalDescriptorExtractor;
+use slam_core::se3::isometry_to_tum;
 
 /// Heartbeat period: the consensus learns that a quiet agent is still alive.
 const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
-
-/// Millimetres per metre: the wire carries depth in whole millimetres.
-const MM_PER_M: f32 = 1000.0;
 
 /// A keyframe the agent may publish.
 pub struct PublishableKeyframe {
@@ -243,11 +241,7 @@ impl SwarmLink {
             .sum();
         self.summary.bytes_sent_per_s =
             self.summary.bytes_sent as f64 / self.opened.elapsed().as_secs_f64().max(1e-9);
-        self.summary.world_from_agent = self.world_from_agent.map(|pose| {
-            let t = pose.translation.vector;
-            let q = pose.rotation.quaternion();
-            [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
-        });
+        self.summary.world_from_agent = self.world_from_agent.as_ref().map(isometry_to_tum);
         if let Err(error) = self.link.close() {
             tracing::warn!(%error, "goodbye not acknowledged");
         }
@@ -279,19 +273,7 @@ fn wire_intrinsics(intrinsics: &Intrinsics) -> WireIntrinsics {
 fn rgbd_pixels(rgb: &RgbImage, depth: &DepthImage) -> Vec<RgbdPixel> {
     rgb.pixels()
         .zip(&depth.data)
-        .map(|(colour, metres)| {
-            let mm = metres * MM_PER_M;
-            let depth_mm = if mm.is_finite() && mm > 0.0 && mm <= u16::MAX as f32 {
-                mm.round() as u16
-            } else {
-                0
-            };
-            RgbdPixel {
-                rgb: colour.0,
-                reserved: 0,
-                depth_mm,
-            }
-        })
+        .map(|(colour, metres)| RgbdPixel::new(colour.0, *metres))
         .collect()
 }
 

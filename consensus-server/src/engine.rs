@@ -17,8 +17,9 @@ use std::time::Instant;
 
 use nalgebra::Isometry3;
 use protocol::messages::FINAL_MAP_KEYFRAME_ID;
-use render_core::types::GaussianCloud;
+use render_core::types::{GaussianCloud, RigidTransform};
 use serde::Serialize;
+use slam_core::se3::isometry_to_tum;
 
 use crate::alignment::{Keyframe, PreparedKeyframe, Verdict, align_prepared};
 use crate::config::ConsensusConfig;
@@ -80,6 +81,7 @@ pub struct ClosureEvent {
 pub struct KeyframeInfo {
     pub frame_index: u64,
     pub timestamp_s: f64,
+    /// `[tx, ty, tz, qx, qy, qz, qw]` (TUM order).
     pub agent_from_camera: [f64; 7],
 }
 
@@ -140,14 +142,12 @@ impl Engine {
             self.database
                 .insert_and_query(id, arrival.frame_index, &arrival.descriptor);
         let pose = arrival.keyframe.agent_from_camera;
-        let q = pose.rotation.quaternion();
-        let t = pose.translation.vector;
         self.info.insert(
             id,
             KeyframeInfo {
                 frame_index: arrival.frame_index,
                 timestamp_s: arrival.timestamp_s,
-                agent_from_camera: [t.x, t.y, t.z, q.i, q.j, q.k, q.w],
+                agent_from_camera: isometry_to_tum(&pose),
             },
         );
         self.graph.add_keyframe(id, pose);
@@ -382,24 +382,15 @@ impl Engine {
     }
 }
 
-/// `cloud` moved by the rigid `transform` (means and orientations; scales, opacities and
-/// colours are unchanged by a rigid motion).
+/// `cloud` moved by the rigid `transform` (render-core's host transform, in f32).
 fn transformed(cloud: &GaussianCloud, transform: &Isometry3<f64>) -> GaussianCloud {
+    let q = transform.rotation.quaternion();
+    let t = transform.translation.vector;
+    let rigid = RigidTransform::from_quaternion_translation(
+        [q.w, q.i, q.j, q.k].map(|v| v as f32),
+        [t.x, t.y, t.z].map(|v| v as f32),
+    );
     let mut out = cloud.clone();
-    let rotation = transform.rotation;
-    for mean in &mut out.means {
-        let p = transform * nalgebra::Point3::new(mean[0] as f64, mean[1] as f64, mean[2] as f64);
-        *mean = [p.x as f32, p.y as f32, p.z as f32];
-    }
-    for q in &mut out.quaternions {
-        let local = nalgebra::Quaternion::new(q[0] as f64, q[1] as f64, q[2] as f64, q[3] as f64);
-        let world = rotation.quaternion() * local;
-        *q = [
-            world.w as f32,
-            world.i as f32,
-            world.j as f32,
-            world.k as f32,
-        ];
-    }
+    out.transform_rigid(&rigid);
     out
 }

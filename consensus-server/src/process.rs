@@ -27,6 +27,7 @@ use protocol::transport::{ConsumerLink, Incoming, TransportConfig};
 use render_core::types::GaussianCloud;
 use serde::Serialize;
 use slam_core::config::Config;
+use slam_core::se3::isometry_to_tum;
 use slam_core::trajectory::Trajectory;
 
 use crate::alignment::Keyframe;
@@ -183,7 +184,7 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
 
     let bandwidth = link.bandwidth();
     for (id, record) in agents.iter_mut() {
-        record.world_from_agent = world_from_agent.get(id).map(tum_pose);
+        record.world_from_agent = world_from_agent.get(id).map(isometry_to_tum);
         record.bytes_received = bandwidth
             .entries
             .iter()
@@ -439,13 +440,6 @@ fn send_corrections(
             }
         }
     }
-}
-
-/// `[tx, ty, tz, qx, qy, qz, qw]`.
-fn tum_pose(pose: &Isometry3<f64>) -> [f64; 7] {
-    let t = pose.translation.vector;
-    let q = pose.rotation.quaternion();
-    [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
 }
 
 fn median(values: &[f64]) -> Option<f64> {

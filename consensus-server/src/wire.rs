@@ -7,9 +7,6 @@ use slam_core::dataset::DepthImage;
 
 use protocol::messages::{GaussianRecord, Intrinsics as WireIntrinsics, RgbdPixel};
 
-/// Millimetres per metre: the wire carries depth in whole millimetres.
-const MM_PER_M: f32 = 1000.0;
-
 pub fn intrinsics(wire: &WireIntrinsics) -> Intrinsics {
     Intrinsics::new(wire.fx, wire.fy, wire.cx, wire.cy, wire.width, wire.height)
 }
@@ -22,7 +19,7 @@ pub fn rgbd_images(width: u32, height: u32, pixels: &[RgbdPixel]) -> (RgbImage, 
     });
     let mut depth = DepthImage::new(width, height);
     for (metres, pixel) in depth.data.iter_mut().zip(pixels) {
-        *metres = pixel.depth_mm as f32 / MM_PER_M;
+        *metres = pixel.depth_m().unwrap_or(0.0);
     }
     (rgb, depth)
 }

@@ -250,9 +250,28 @@ impl RgbdPixel {
     /// `depth_mm` value of a pixel without a depth measurement.
     pub const INVALID_DEPTH_MM: u16 = 0;
 
+    /// Millimetres per metre: the wire carries depth in whole millimetres.
+    const MM_PER_M: f32 = 1000.0;
+
+    /// A pixel from a colour and a depth in metres; non-finite, non-positive or out-of-range
+    /// (over 65.535 m) depth becomes [`RgbdPixel::INVALID_DEPTH_MM`].
+    pub fn new(rgb: [u8; 3], depth_m: f32) -> Self {
+        let mm = depth_m * Self::MM_PER_M;
+        let depth_mm = if mm.is_finite() && mm > 0.0 && mm <= f32::from(u16::MAX) {
+            mm.round() as u16
+        } else {
+            Self::INVALID_DEPTH_MM
+        };
+        Self {
+            rgb,
+            reserved: 0,
+            depth_mm,
+        }
+    }
+
     /// Depth in metres, `None` where the pixel has no measurement.
     pub fn depth_m(&self) -> Option<f32> {
-        (self.depth_mm != Self::INVALID_DEPTH_MM).then(|| f32::from(self.depth_mm) / 1000.0)
+        (self.depth_mm != Self::INVALID_DEPTH_MM).then(|| f32::from(self.depth_mm) / Self::MM_PER_M)
     }
 }
 
