@@ -9,7 +9,7 @@
 # agents), consensus_latency_ms_median, fps_per_agent_mean, loop_closures_accepted, and
 # agents_not_linked (agents the consensus never placed in the world: the joint ATE leaves them out).
 # A run that fails is reported and left out of the table (its folder keeps the logs).
-# Not yet: the DIR/tcomm.png plots (issue 7).
+# DIR/tcomm.png plots every column against T_comm (`mac-ego3d plot tcomm`; empty cells are gaps).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -64,4 +64,16 @@ EOF
 done
 echo "[tcomm] table: $csv"
 column -s, -t <"$csv" 2>/dev/null || cat "$csv"
+# launch_swarm.sh built the binaries; MAC_EGO3D_PROFILE picks the same build as it did.
+plot="$out/tcomm.png"
+if (($(wc -l <"$csv") > 1)); then
+  if "target/${MAC_EGO3D_PROFILE:-release}/mac-ego3d" plot tcomm --csv "$csv" --out "$plot"; then
+    echo "[tcomm] plots: $plot"
+  else
+    echo "[tcomm] plotting $csv failed" >&2
+    failed=1
+  fi
+else
+  echo "[tcomm] no run finished: nothing to plot" >&2
+fi
 exit "$failed"

@@ -6,6 +6,8 @@
 #   - libvulkan1 + mesa-vulkan-drivers: the Vulkan loader and Mesa's lavapipe software Vulkan
 #     driver, so wgpu finds an adapter on machines without a GPU (CI, laptops, containers).
 #   - pkg-config: used by some -sys crates at build time.
+#   - fonts-dejavu-core: DejaVu Sans, the font `mac-ego3d plot` draws chart text with (read as a
+#     file at run time; no font library is linked).
 set -euo pipefail
 
 log() { printf '[setup] %s\n' "$*" >&2; }
@@ -15,6 +17,7 @@ declare -A PACKAGES=(
   [libvulkan1]=/usr/share/doc/libvulkan1
   [mesa-vulkan-drivers]=/usr/share/doc/mesa-vulkan-drivers
   [pkg-config]=/usr/share/doc/pkg-config
+  [fonts-dejavu-core]=/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf
 )
 
 missing=()

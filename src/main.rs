@@ -2,9 +2,11 @@
 //!
 //! Subcommands: `synth` writes the embedded synthetic multi-agent dataset, `dataset info`
 //! describes a dataset, `eval` computes metrics (ATE, PSNR/SSIM, LPIPS, depth L1), `bench`
-//! measures reader throughput and metric timings.
+//! measures reader throughput and metric timings, `plot tcomm` draws the T_comm benchmark.
+//! `eval swarm` also writes the run's report.html (see `report`).
 
 mod cmd;
+mod report;
 
 use clap::{Parser, Subcommand};
 
@@ -34,6 +36,9 @@ enum Command {
     /// Benchmarks (print a table, or JSON with --json).
     #[command(subcommand)]
     Bench(cmd::bench::BenchCommand),
+    /// Plots of benchmark tables (PNG).
+    #[command(subcommand)]
+    Plot(cmd::plot::PlotCommand),
 }
 
 fn main() -> std::process::ExitCode {
@@ -51,6 +56,7 @@ fn main() -> std::process::ExitCode {
         Command::Dataset(c) => cmd::dataset::run(c),
         Command::Eval(c) => cmd::eval::run(c),
         Command::Bench(c) => cmd::bench::run(c),
+        Command::Plot(c) => cmd::plot::run(c),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

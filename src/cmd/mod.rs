@@ -4,6 +4,7 @@ pub mod bench;
 pub mod dataset;
 pub mod eval;
 pub mod ipc;
+pub mod plot;
 pub mod render;
 pub mod render_map;
 pub mod swarm_report;

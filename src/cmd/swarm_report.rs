@@ -8,6 +8,9 @@
 //! few side-by-side PNGs go to DIR/renders/. With `--render-every 0`, or when the agents' frames
 //! cannot be reopened, they are the mean of each agent's own map at its own poses instead.
 //! `rendering_source` says which.
+//!
+//! DIR/report.html (crate::report) is written next to metrics.json: the figures, trajectories,
+//! renders and consensus events of the run in one offline page.
 
 use std::path::{Path, PathBuf};
 
@@ -267,6 +270,7 @@ pub fn swarm_metrics(dir: &Path, args: &SwarmArgs) -> anyhow::Result<SwarmMetric
 
 pub fn run(args: &SwarmArgs) -> anyhow::Result<()> {
     let m = swarm_metrics(&args.dir, args)?;
+    let report = crate::report::write_report(&args.dir)?;
     if args.json {
         return print_json(&m);
     }
@@ -327,5 +331,6 @@ pub fn run(args: &SwarmArgs) -> anyhow::Result<()> {
         );
     }
     println!("  metrics: {}", args.dir.join("metrics.json").display());
+    println!("  report:  {}", report.display());
     Ok(())
 }
