@@ -8,11 +8,15 @@
 //! - [`mapper`]: the mapping thread (render-core on the device; render-core's `DeviceMap` keeps
 //!   Gaussians and Adam state together through appends and pruning);
 //! - [`evaluation`]: rendering quality at the estimated poses;
-//! - [`run`]: the standalone run and its outputs.
+//! - [`run`]: the standalone run and its outputs;
+//! - [`swarm`]: the link to the consensus, and [`link_schedule`]: simulated intermittent links;
+//! - [`progress`]: progress.json for the swarm launcher's progress line.
 
 pub mod evaluation;
+pub mod link_schedule;
 pub mod mapper;
 pub mod poses;
+pub mod progress;
 pub mod run;
 pub mod seeding;
 pub mod source;

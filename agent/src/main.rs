@@ -7,14 +7,21 @@
 //!
 //! Without --standalone the agent joins the swarm of `mac-consensus` in the same iceoryx2
 //! namespace: it publishes a keyframe every T_comm frames, receives corrections, and says goodbye
-//! with its final map before it evaluates itself.
+//! with its final map before it evaluates itself. `--link-schedule FILE` simulates an
+//! intermittent link (format in `mac_agent::link_schedule`); `--link-schedule FILE
+//! --check-link-schedule N` only validates the file for a swarm of N agents and prints every
+//! agent's windows.
+//!
+//! DIR/progress.json tells how far the run is (for the swarm launcher's progress line).
 
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
+use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::Parser;
+use mac_agent::link_schedule::{LinkPlan, LinkSchedule};
 use mac_agent::run::{AgentOptions, metrics_table, run_agent, run_standalone};
 use mac_agent::swarm::SwarmLink;
 use protocol::transport::TransportConfig;
@@ -67,9 +74,20 @@ struct Args {
     /// Frame-decoding threads.
     #[arg(long, default_value_t = 2)]
     decode_workers: usize,
+    /// Swarm mode: simulate an intermittent link to the consensus with this schedule (TOML: per
+    /// agent, the windows in seconds since start in which the link is up; see
+    /// mac_agent::link_schedule). Without it the link is always up.
+    #[arg(long, value_name = "FILE")]
+    link_schedule: Option<PathBuf>,
+    /// Only validate --link-schedule for a swarm of this many agents, print every agent's
+    /// windows, and exit.
+    #[arg(long, value_name = "AGENTS", requires = "link_schedule")]
+    check_link_schedule: Option<u32>,
 }
 
 fn main() -> anyhow::Result<()> {
+    // The link schedule's clock: seconds since the agent started.
+    let started = Instant::now();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -78,6 +96,19 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let args = Args::parse();
+    let schedule = match &args.link_schedule {
+        Some(path) => Some(LinkSchedule::load(path)?),
+        None => None,
+    };
+    if let (Some(schedule), Some(agents)) = (&schedule, args.check_link_schedule) {
+        print!("{}", describe_schedule(schedule, agents));
+        return Ok(());
+    }
+    if schedule.is_some() && args.standalone {
+        bail!(
+            "--link-schedule simulates the link to the consensus: it needs swarm mode (no --standalone)"
+        );
+    }
     let mut config = match &args.config {
         Some(path) => Config::load(path)?,
         None => Config::default(),
@@ -116,11 +147,52 @@ fn main() -> anyhow::Result<()> {
         run_standalone(&options, &stop)?
     } else {
         let transport = TransportConfig::with_namespace(args.namespace.clone());
-        let swarm = SwarmLink::connect(args.agent_id, &transport, &options.config)?;
+        let plan = match &schedule {
+            Some(schedule) => {
+                let ignored = schedule.agents_outside(transport.max_agents);
+                if !ignored.is_empty() {
+                    tracing::warn!(
+                        file = %schedule.path().display(),
+                        ?ignored,
+                        max_agents = transport.max_agents,
+                        "link schedule lists agent ids no agent can have: ignored"
+                    );
+                }
+                let plan = schedule.plan(args.agent_id, started);
+                tracing::info!(
+                    file = %schedule.path().display(),
+                    windows = %plan.windows,
+                    queue_limit_bytes = plan.queue_limit_bytes,
+                    "link schedule"
+                );
+                plan
+            }
+            None => LinkPlan {
+                started,
+                ..LinkPlan::always_up()
+            },
+        };
+        let swarm = SwarmLink::connect(args.agent_id, &transport, &options.config, plan)?;
         run_agent(&options, &stop, Some(swarm))?
     };
     println!("agent {} on {}", metrics.agent_id, metrics.dataset);
     print!("{}", metrics_table(&metrics));
     println!("outputs in {}", options.out.display());
     Ok(())
+}
+
+/// `--check-link-schedule`: every agent's windows, and the ids the swarm does not have.
+fn describe_schedule(schedule: &LinkSchedule, agents: u32) -> String {
+    let mut text = format!(
+        "link schedule {} (queue bound {:.0} MiB per agent)\n",
+        schedule.path().display(),
+        schedule.queue_limit_bytes() as f64 / (1024.0 * 1024.0)
+    );
+    for agent_id in 0..agents {
+        text += &format!("  agent {agent_id}: {}\n", schedule.windows(agent_id));
+    }
+    for agent_id in schedule.agents_outside(agents) {
+        text += &format!("  agent {agent_id}: not in this swarm of {agents} agents: ignored\n");
+    }
+    text
 }

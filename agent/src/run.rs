@@ -26,6 +26,7 @@ use crate::evaluation::{
     FrameQuality, MapRenderer, QualitySummary, comparison_path, evaluate_frame,
 };
 use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe, MappingStats};
+use crate::progress::{Progress, ProgressFile, Stage};
 use crate::seeding::{CoverageIndex, SeedFrame, seed_gaussians};
 use crate::source::FrameSource;
 use crate::swarm::{PublishableKeyframe, SwarmLink, SwarmSummary};
@@ -171,6 +172,21 @@ pub fn run_agent(
         Mapper::spawn(&config.tracking, &config.mapping).context("starting the mapping thread")?;
     let mut coverage = CoverageIndex::new(config.keyframes.mapping_seed_min_distance_sq_m2.sqrt());
     let progress = progress_bar(dataset.len());
+    let mut progress_file = ProgressFile::new(&options.out);
+    let frames_total = Some(dataset.len());
+    let snapshot =
+        |stage: Stage, frames_done: usize, keyframes: usize, swarm: &Option<SwarmLink>| {
+            let link = swarm.as_ref().map(SwarmLink::status);
+            Progress {
+                stage,
+                frames_done,
+                frames_total,
+                keyframes,
+                link_up: link.map(|l| l.up),
+                queued_keyframes: link.map(|l| l.queued_keyframes),
+            }
+        };
+    progress_file.write(&snapshot(Stage::Tracking, 0, 0, &swarm));
 
     let mut poses: Vec<TrackedPose> = Vec::with_capacity(dataset.len());
     let mut tracking_ms: Vec<f64> = Vec::with_capacity(dataset.len());
@@ -270,6 +286,14 @@ pub fn run_agent(
                 ground_truth: frame.world_from_camera_gt,
             });
             progress.inc(1);
+            progress_file.update(|| {
+                snapshot(
+                    Stage::Tracking,
+                    poses.len(),
+                    tracking_keyframes + mapping_keyframes,
+                    &swarm,
+                )
+            });
             if poses.len().is_multiple_of(PROGRESS_MESSAGE_EVERY) {
                 progress.set_message(format!(
                     "{} keyframes, {} Gaussians, {} mapping iterations",
@@ -290,6 +314,8 @@ pub fn run_agent(
     }
     let loop_seconds = started.elapsed().as_secs_f64();
     progress.finish_and_clear();
+    let keyframes = tracking_keyframes + mapping_keyframes;
+    progress_file.write(&snapshot(Stage::Finishing, poses.len(), keyframes, &swarm));
     let refine_iterations = if interrupted {
         0
     } else {
@@ -400,6 +426,7 @@ pub fn run_agent(
     let metrics_path = options.out.join("metrics.json");
     std::fs::write(&metrics_path, serde_json::to_string_pretty(&metrics)?)
         .with_context(|| format!("writing {}", metrics_path.display()))?;
+    progress_file.write(&snapshot(Stage::Done, poses.len(), keyframes, &None));
     Ok(metrics)
 }
 

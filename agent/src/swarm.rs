@@ -7,6 +7,11 @@
 //! memory; the descriptor (AlexNet at 320 px) is the costliest step, once per T_comm frames.
 //! A failed send is logged and counted, never fatal: the agent's own outputs do not depend on the
 //! consensus.
+//!
+//! With a link schedule ([`crate::link_schedule`]) the link is only up in the scheduled windows:
+//! while it is down, the hello and every keyframe due for publication are queued (bounded, oldest
+//! dropped) and delivered in order at reconnect, corrections wait, and heartbeats stop; the end
+//! of the run flushes the queue before the goodbye whatever the schedule says.
 
 use std::hash::{Hash, Hasher};
 use std::time::{Duration, Instant};
@@ -18,7 +23,7 @@ use protocol::messages::{
     CoordinateFrame, FINAL_MAP_KEYFRAME_ID, GaussianRecord, Intrinsics as WireIntrinsics,
     KeyframeDescriptor, Pose, RgbdPixel,
 };
-use protocol::transport::{AgentLink, KeyframeImageMeta, TransportConfig};
+use protocol::transport::{AgentLink, Direction, KeyframeImageMeta, TransportConfig};
 use render_core::types::GaussianCloud;
 use serde::Serialize;
 use slam_core::camera::Intrinsics;
@@ -26,6 +31,8 @@ use slam_core::config::Config;
 use slam_core::dataset::DepthImage;
 use slam_core::descriptor::GlobalDescriptorExtractor;
 use slam_core::se3::isometry_to_tum;
+
+use crate::link_schedule::{BoundedQueue, LinkPlan, LinkSummary};
 
 /// Heartbeat period: the consensus learns that a quiet agent is still alive.
 const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
@@ -54,6 +61,34 @@ pub struct SwarmSummary {
     pub bytes_sent: u64,
     pub bytes_sent_per_s: f64,
     pub descriptor: String,
+    /// The link's schedule and what it queued, delivered late and dropped.
+    pub link: LinkSummary,
+}
+
+/// Whether the link is up now and what waits for it, for the progress file.
+#[derive(Debug, Clone, Copy)]
+pub struct LinkStatus {
+    pub up: bool,
+    pub queued_keyframes: usize,
+}
+
+/// One keyframe's messages, ready to send (the descriptor is computed when the keyframe is due,
+/// so a queued keyframe costs only copies at reconnect).
+struct WireKeyframe {
+    descriptor: KeyframeDescriptor,
+    image_meta: KeyframeImageMeta,
+    pixels: Vec<RgbdPixel>,
+    records: Vec<GaussianRecord>,
+    /// When it was due: its wait in the queue is measured from here.
+    due: Instant,
+}
+
+impl WireKeyframe {
+    fn bytes(&self) -> u64 {
+        (size_of::<KeyframeDescriptor>()
+            + size_of_val(self.pixels.as_slice())
+            + size_of_val(self.records.as_slice())) as u64
+    }
 }
 
 pub struct SwarmLink {
@@ -68,14 +103,25 @@ pub struct SwarmLink {
     opened: Instant,
     summary: SwarmSummary,
     world_from_agent: Option<Isometry3<f64>>,
+    plan: LinkPlan,
+    /// The link's state at the last check (checked between frames).
+    link_up: bool,
+    /// The hello, when it was due while the link was down.
+    pending_hello: Option<WireIntrinsics>,
+    /// Keyframes due while the link was down, oldest first.
+    queue: BoundedQueue<WireKeyframe>,
+    /// The newest correction that arrived while the link was down.
+    held_correction: Option<Isometry3<f64>>,
 }
 
 impl SwarmLink {
-    /// Opens this agent's services (a second live agent with the same id is refused here).
+    /// Opens this agent's services (a second live agent with the same id is refused here). The
+    /// link follows `plan` ([`LinkPlan::always_up`] without a schedule).
     pub fn connect(
         agent_id: u32,
         transport: &TransportConfig,
         config: &Config,
+        plan: LinkPlan,
     ) -> anyhow::Result<Self> {
         let link = AgentLink::open(transport, agent_id)
             .with_context(|| format!("joining the swarm as agent {agent_id}"))?;
@@ -83,8 +129,13 @@ impl SwarmLink {
             GlobalDescriptorExtractor::from_weights(config.consensus.descriptor_weights.as_deref());
         let summary = SwarmSummary {
             descriptor: extractor.kind().to_string(),
+            link: LinkSummary::new(&plan),
             ..SwarmSummary::default()
         };
+        let link_up = plan.is_up_now();
+        if !link_up {
+            tracing::info!(schedule = %plan.windows, "link down at start (schedule)");
+        }
         Ok(Self {
             link,
             extractor,
@@ -97,23 +148,78 @@ impl SwarmLink {
             opened: Instant::now(),
             summary,
             world_from_agent: None,
+            queue: BoundedQueue::new(plan.queue_limit_bytes),
+            plan,
+            link_up,
+            pending_hello: None,
+            held_correction: None,
         })
     }
 
-    /// Announces the agent with its camera (first frame).
+    /// Announces the agent with its camera (first frame); while the link is down the hello waits
+    /// for it (ahead of everything queued).
     pub fn announce(&mut self, intrinsics: &Intrinsics) {
         if self.announced {
             return;
         }
-        match self
-            .link
-            .announce(wire_intrinsics(intrinsics), self.config_hash)
-        {
-            Ok(_) => self.announced = true,
+        self.announced = true;
+        self.pending_hello = Some(wire_intrinsics(intrinsics));
+        if self.refresh_link_state() {
+            self.deliver_pending_hello();
+        } else {
+            self.summary.link.hello_delivered_late = true;
+        }
+    }
+
+    /// Sends the hello if one is pending; false when it could not be delivered (it stays pending
+    /// and is tried again after the next frame).
+    fn deliver_pending_hello(&mut self) -> bool {
+        let Some(intrinsics) = self.pending_hello else {
+            return true;
+        };
+        match self.link.announce(intrinsics, self.config_hash) {
+            Ok(_) => {
+                self.pending_hello = None;
+                true
+            }
             Err(error) => {
                 self.summary.send_failures += 1;
                 tracing::warn!(%error, "hello not delivered");
+                false
             }
+        }
+    }
+
+    /// Whether the link is up now, logging and recording transitions.
+    fn refresh_link_state(&mut self) -> bool {
+        let now_s = self.plan.elapsed_s();
+        let up = self.plan.windows.is_up(now_s);
+        if up != self.link_up {
+            self.link_up = up;
+            if up {
+                self.summary.link.came_up_at_s.push(now_s);
+                tracing::info!(
+                    at_s = now_s,
+                    queued_keyframes = self.queue.len(),
+                    queued_mib = self.queue.bytes() as f64 / (1024.0 * 1024.0),
+                    "link up (schedule): delivering what was queued"
+                );
+            } else {
+                self.summary.link.went_down_at_s.push(now_s);
+                tracing::info!(
+                    at_s = now_s,
+                    "link down (schedule): keyframes are queued, corrections wait"
+                );
+            }
+        }
+        up
+    }
+
+    /// What the link is doing, for the progress file.
+    pub fn status(&self) -> LinkStatus {
+        LinkStatus {
+            up: self.link_up,
+            queued_keyframes: self.queue.len(),
         }
     }
 
@@ -122,14 +228,20 @@ impl SwarmLink {
         self.latest = Some(keyframe);
     }
 
-    /// Between frames: publishes every T_comm frames, applies corrections, heartbeats.
+    /// Between frames: publishes every T_comm frames, applies corrections, heartbeats. While the
+    /// link is down, the due keyframe is queued and corrections wait; the first check with the
+    /// link up again delivers the queue in order and applies the newest held correction.
     pub fn after_frame(&mut self) {
         self.frames_since_publication += 1;
-        if self.frames_since_publication >= self.t_comm && self.latest.is_some() {
-            self.publish_latest();
+        let up = self.refresh_link_state();
+        if up {
+            self.flush_queue(false);
         }
-        self.receive_corrections();
-        if self.last_heartbeat.elapsed() >= HEARTBEAT_EVERY {
+        if self.frames_since_publication >= self.t_comm && self.latest.is_some() {
+            self.publish_latest(up);
+        }
+        self.receive_corrections(up);
+        if up && self.last_heartbeat.elapsed() >= HEARTBEAT_EVERY {
             self.last_heartbeat = Instant::now();
             if let Err(error) = self.link.heartbeat() {
                 tracing::debug!(%error, "heartbeat not delivered");
@@ -142,22 +254,88 @@ impl SwarmLink {
         self.world_from_agent
     }
 
-    fn publish_latest(&mut self) {
+    /// Prepares the latest keyframe's messages and sends them, or queues them when the link is
+    /// down (or older keyframes still wait, so that order is kept).
+    fn publish_latest(&mut self, link_up: bool) {
         let Some(keyframe) = self.latest.take() else {
             return;
         };
         self.frames_since_publication = 0;
         let _span = tracing::info_span!("publish keyframe", id = keyframe.keyframe_id).entered();
-        match self.publish(&keyframe) {
-            Ok(()) => self.summary.keyframes_published += 1,
+        let wire = match self.prepare(&keyframe) {
+            Ok(wire) => wire,
             Err(error) => {
                 self.summary.send_failures += 1;
                 tracing::warn!(error = %format!("{error:#}"), "keyframe not published");
+                return;
+            }
+        };
+        if link_up && self.queue.is_empty() && self.pending_hello.is_none() {
+            self.send_now(&wire);
+        } else {
+            self.enqueue(wire);
+        }
+    }
+
+    fn send_now(&mut self, wire: &WireKeyframe) -> bool {
+        match self.send(wire) {
+            Ok(()) => {
+                self.summary.keyframes_published += 1;
+                true
+            }
+            Err(error) => {
+                self.summary.send_failures += 1;
+                tracing::warn!(
+                    keyframe = wire.descriptor.keyframe_id,
+                    error = %format!("{error:#}"),
+                    "keyframe not published"
+                );
+                false
             }
         }
     }
 
-    fn publish(&mut self, keyframe: &PublishableKeyframe) -> anyhow::Result<()> {
+    fn enqueue(&mut self, wire: WireKeyframe) {
+        let keyframe_id = wire.descriptor.keyframe_id;
+        let bytes = wire.bytes();
+        self.summary.link.keyframes_queued += 1;
+        for (dropped, dropped_bytes) in self.queue.push(wire, bytes) {
+            self.summary.link.keyframes_dropped_queue_full += 1;
+            self.summary.link.bytes_dropped_queue_full += dropped_bytes;
+            tracing::warn!(
+                dropped_keyframe = dropped.descriptor.keyframe_id,
+                limit_bytes = self.plan.queue_limit_bytes,
+                dropped_total = self.summary.link.keyframes_dropped_queue_full,
+                "link queue full: oldest queued keyframe dropped"
+            );
+        }
+        self.summary.link.queue_peak_bytes =
+            self.summary.link.queue_peak_bytes.max(self.queue.bytes());
+        tracing::debug!(
+            keyframe_id,
+            queued = self.queue.len(),
+            "keyframe queued until the link is up"
+        );
+    }
+
+    /// Delivers the pending hello and every queued keyframe, oldest first. `despite_schedule`:
+    /// the end of the run, which delivers whatever the schedule says.
+    fn flush_queue(&mut self, despite_schedule: bool) {
+        if !self.deliver_pending_hello() {
+            // Nothing may overtake the hello; it is tried again after the next frame.
+            return;
+        }
+        let with_link_down = despite_schedule && !self.link_up;
+        while let Some(wire) = self.queue.pop_front() {
+            let waited_s = wire.due.elapsed().as_secs_f64();
+            if self.send_now(&wire) {
+                self.summary.link.delivered_late(waited_s, with_link_down);
+            }
+        }
+    }
+
+    /// The messages of one keyframe: descriptor (the costly step), RGB-D image and patch.
+    fn prepare(&mut self, keyframe: &PublishableKeyframe) -> anyhow::Result<WireKeyframe> {
         let descriptor = self
             .extractor
             .describe(&keyframe.rgb)
@@ -176,8 +354,7 @@ impl SwarmLink {
             message.descriptor.len()
         );
         message.descriptor.copy_from_slice(&descriptor);
-        self.link.send_descriptor(&message)?;
-        let meta = KeyframeImageMeta {
+        let image_meta = KeyframeImageMeta {
             keyframe_id: keyframe.keyframe_id,
             frame_index: keyframe.frame_index,
             timestamp_s: keyframe.timestamp_s,
@@ -186,29 +363,57 @@ impl SwarmLink {
             width: keyframe.rgb.width(),
             height: keyframe.rgb.height(),
         };
+        Ok(WireKeyframe {
+            descriptor: message,
+            image_meta,
+            pixels: rgbd_pixels(&keyframe.rgb, &keyframe.depth),
+            records: gaussian_records(&keyframe.gaussians),
+            due: Instant::now(),
+        })
+    }
+
+    fn send(&mut self, wire: &WireKeyframe) -> anyhow::Result<()> {
+        self.link.send_descriptor(&wire.descriptor)?;
         self.link
-            .send_keyframe_image(&meta, &rgbd_pixels(&keyframe.rgb, &keyframe.depth))?;
+            .send_keyframe_image(&wire.image_meta, &wire.pixels)?;
         self.link.send_patch(
-            keyframe.keyframe_id,
+            wire.descriptor.keyframe_id,
             CoordinateFrame::AgentWorld,
-            &gaussian_records(&keyframe.gaussians),
+            &wire.records,
         )?;
         Ok(())
     }
 
-    fn receive_corrections(&mut self) {
+    /// Takes every pending correction. With the link up, the newest is applied (after any held
+    /// one); with it down, the newest is held and replaces older held ones.
+    fn receive_corrections(&mut self, link_up: bool) {
+        if link_up && let Some(held) = self.held_correction.take() {
+            tracing::info!(
+                translation_m = held.translation.vector.norm(),
+                "correction held while the link was down applied"
+            );
+            self.world_from_agent = Some(held);
+        }
         loop {
             match self.link.try_recv_correction() {
                 Ok(Some(correction)) => {
                     let header = correction.header();
                     let world_from_agent = header.agent_world_to_world.to_isometry();
                     self.summary.corrections_received += 1;
-                    tracing::info!(
-                        keyframes = correction.poses().len(),
-                        translation_m = world_from_agent.translation.vector.norm(),
-                        "correction received"
-                    );
-                    self.world_from_agent = Some(world_from_agent);
+                    if link_up {
+                        tracing::info!(
+                            keyframes = correction.poses().len(),
+                            translation_m = world_from_agent.translation.vector.norm(),
+                            "correction received"
+                        );
+                        self.world_from_agent = Some(world_from_agent);
+                    } else {
+                        self.summary.link.corrections_held += 1;
+                        if self.held_correction.replace(world_from_agent).is_some() {
+                            self.summary.link.corrections_superseded += 1;
+                        }
+                        tracing::debug!("correction held until the link is up");
+                    }
                 }
                 Ok(None) => break,
                 Err(error) => {
@@ -219,10 +424,26 @@ impl SwarmLink {
         }
     }
 
-    /// Publishes the last keyframe if it has not gone out, then the final map, and says goodbye
-    /// (waiting until the consensus has everything).
+    /// Ends the run on the link, whatever the schedule says (the consensus waits for every
+    /// agent's goodbye): delivers the hello and the queue if they still wait, the last keyframe
+    /// if it has not gone out, then the final map, and says goodbye (waiting until the consensus
+    /// has everything).
     pub fn finish(mut self, final_map: &GaussianCloud) -> SwarmSummary {
-        self.publish_latest();
+        if !self.link_up && (!self.queue.is_empty() || self.pending_hello.is_some()) {
+            tracing::info!(
+                queued_keyframes = self.queue.len(),
+                "end of run with the link down: delivering the queue before the goodbye"
+            );
+        }
+        // The last keyframe goes behind anything still queued.
+        self.publish_latest(true);
+        self.flush_queue(true);
+        if !self.queue.is_empty() {
+            tracing::warn!(
+                keyframes = self.queue.len(),
+                "queued keyframes not delivered: the hello never got through"
+            );
+        }
         if let Err(error) = self.link.send_patch(
             FINAL_MAP_KEYFRAME_ID,
             CoordinateFrame::AgentWorld,
@@ -231,12 +452,12 @@ impl SwarmLink {
             self.summary.send_failures += 1;
             tracing::warn!(%error, "final map not delivered");
         }
-        self.receive_corrections();
+        self.receive_corrections(true);
         let bandwidth = self.link.bandwidth();
         self.summary.bytes_sent = bandwidth
             .entries
             .iter()
-            .filter(|e| e.direction == protocol::transport::Direction::Sent)
+            .filter(|e| e.direction == Direction::Sent)
             .map(|e| e.traffic.bytes)
             .sum();
         self.summary.bytes_sent_per_s =

@@ -8,11 +8,14 @@
 //!
 //! No ground truth reaches any process: each agent starts at identity in its own frame, and the
 //! consensus finds agent 1's frame from image matches. Ground truth only scores the result.
+//!
+//! The swarms run one at a time: two cores do not run two swarms at real speed, and the link
+//! schedule test's windows are in seconds.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
-use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -30,6 +33,16 @@ const T_COMM: usize = 30;
 const MAX_JOINT_ATE_M: f64 = 0.02;
 /// A run that takes longer than this has hung.
 const RUN_TIMEOUT: Duration = Duration::from_secs(600);
+
+/// Held by each test while its swarm runs.
+static ONE_SWARM: Mutex<()> = Mutex::new(());
+
+fn one_swarm_at_a_time() -> MutexGuard<'static, ()> {
+    // A failed test poisons the lock; the next swarm may still run.
+    ONE_SWARM
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
 
 fn config() -> Config {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic.toml");
@@ -63,6 +76,16 @@ fn spawn_consensus(
 }
 
 fn spawn_agent(dir: &Path, config_path: &Path, namespace: &str, agent_id: u32) -> Child {
+    spawn_agent_with(dir, config_path, namespace, agent_id, &[])
+}
+
+fn spawn_agent_with(
+    dir: &Path,
+    config_path: &Path,
+    namespace: &str,
+    agent_id: u32,
+    extra_args: &[&str],
+) -> Child {
     Command::new(env!("CARGO_BIN_EXE_mac-agent"))
         .args(["--config", config_path.to_str().unwrap()])
         .args([
@@ -74,6 +97,7 @@ fn spawn_agent(dir: &Path, config_path: &Path, namespace: &str, agent_id: u32) -
         .args(["--eval-every", "50", "--renders", "0"])
         .arg("--out")
         .arg(dir.join(format!("agent_{agent_id}")))
+        .args(extra_args)
         .spawn()
         .expect("starting mac-agent")
 }
@@ -134,6 +158,7 @@ fn check(dir: &Path, report: &ConsensusReport) {
 
 #[test]
 fn real_data_swarm_two_agents_and_the_consensus_agree_on_one_world() {
+    let _one_swarm = one_swarm_at_a_time();
     let dir = tempfile::tempdir().unwrap();
     let namespace = format!("swarmtest{}a", std::process::id());
     let config_path = write_config(dir.path(), &config());
@@ -150,6 +175,7 @@ fn real_data_swarm_two_agents_and_the_consensus_agree_on_one_world() {
 
 #[test]
 fn real_data_swarm_agent_killed_mid_run_and_restarted_still_gives_a_complete_result() {
+    let _one_swarm = one_swarm_at_a_time();
     let dir = tempfile::tempdir().unwrap();
     let namespace = format!("swarmtest{}b", std::process::id());
     let config_path = write_config(dir.path(), &config());
@@ -172,5 +198,92 @@ fn real_data_swarm_agent_killed_mid_run_and_restarted_still_gives_a_complete_res
         report.agents[&1].hellos, 2,
         "the restarted agent re-announced itself"
     );
+    check(dir.path(), &report);
+}
+
+/// Agent 1's link is down from this many seconds after it starts (before its first keyframe is
+/// due, 3 to 5 s in on two cores) ...
+const LINK_DOWN_AT_S: f64 = 1.0;
+/// ... to this time, before tracking ends (17 s unloaded, 40 s on a busy machine; on a much faster
+/// machine the queue is delivered at the final goodbye instead).
+const LINK_UP_AGAIN_AT_S: f64 = 14.0;
+/// More frequent publications than the other tests, so that keyframes fall into the down window
+/// even when a loaded machine runs the agents at 2 frames/s.
+const LINK_TEST_T_COMM: usize = 20;
+
+fn agent_metrics(dir: &Path, agent_id: u32) -> serde_json::Value {
+    let path = dir.join(format!("agent_{agent_id}/metrics.json"));
+    serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap()
+}
+
+#[test]
+fn real_data_swarm_intermittent_link_queues_keyframes_delivers_them_late_and_converges() {
+    let _one_swarm = one_swarm_at_a_time();
+    let dir = tempfile::tempdir().unwrap();
+    let namespace = format!("swarmtest{}c", std::process::id());
+    let mut agent_config = config();
+    agent_config.consensus.t_comm = LINK_TEST_T_COMM;
+    let config_path = write_config(dir.path(), &agent_config);
+    let schedule_path = dir.path().join("links.toml");
+    std::fs::write(
+        &schedule_path,
+        format!(
+            "[[agent]]\nid = 1\nup = [{{ from_s = 0, until_s = {LINK_DOWN_AT_S} }}, \
+             {{ from_s = {LINK_UP_AGAIN_AT_S} }}]\n"
+        ),
+    )
+    .unwrap();
+    let schedule_arg = ["--link-schedule", schedule_path.to_str().unwrap()];
+    let consensus = spawn_consensus(dir.path(), &namespace, Arc::new(AtomicBool::new(false)));
+    // Both agents read the file; agent 0 is not in it, so its link is always up.
+    let agents: Vec<Child> = (0..2)
+        .map(|k| spawn_agent_with(dir.path(), &config_path, &namespace, k, &schedule_arg))
+        .collect();
+    for (k, agent) in agents.into_iter().enumerate() {
+        wait(agent, &format!("agent {k}"));
+    }
+    let report = consensus.join().unwrap().unwrap();
+
+    let link = &agent_metrics(dir.path(), 1)["swarm"]["link"];
+    eprintln!("agent 1's link: {link:#}");
+    if link["came_up_at_s"].as_array().unwrap().is_empty() {
+        eprintln!("tracking ended before the link came back: the queue went out before goodbye");
+    }
+    let count = |key: &str| link[key].as_u64().unwrap();
+    assert_eq!(
+        link["went_down_at_s"].as_array().unwrap().len(),
+        1,
+        "{link}"
+    );
+    assert!(
+        count("keyframes_queued") >= 1,
+        "no keyframe was due while the link was down ({LINK_DOWN_AT_S} s to \
+         {LINK_UP_AGAIN_AT_S} s): {link}"
+    );
+    assert_eq!(
+        count("keyframes_delivered_late"),
+        count("keyframes_queued"),
+        "every queued keyframe arrives"
+    );
+    assert_eq!(count("keyframes_dropped_queue_full"), 0);
+    assert!(link["late_delivery_s_max"].as_f64().unwrap() > 0.0);
+    let published = agent_metrics(dir.path(), 1)["swarm"]["keyframes_published"]
+        .as_u64()
+        .unwrap();
+    assert_eq!(
+        report.agents[&1].keyframes as u64, published,
+        "the consensus assembled every keyframe agent 1 published, late ones included"
+    );
+    assert_eq!(
+        agent_metrics(dir.path(), 0)["swarm"]["link"]["keyframes_queued"],
+        0,
+        "agent 0 is not in the schedule: always up"
+    );
+    let progress: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("agent_1/progress.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(progress["stage"], "done");
+    assert_eq!(progress["frames_done"], FRAMES);
     check(dir.path(), &report);
 }
