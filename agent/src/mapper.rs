@@ -396,32 +396,15 @@ impl MapperState {
     }
 }
 
-/// Radius of the first keyframe's Gaussians around their centroid: the scene scale the mean
-/// learning rate is multiplied by (3DGS normalises by the camera extent; a single RGB-D view's
-/// extent is the natural stand-in before any camera has moved). At least 1 mm.
+/// The scene scale the mean learning rate is multiplied by: the first keyframe's radius around
+/// its centroid (a single RGB-D view's extent is the natural stand-in before any camera has
+/// moved), at least 1 mm; 1 m for an empty keyframe.
 fn scene_scale(first: &GaussianCloud) -> f64 {
     const MIN_SCENE_SCALE_M: f64 = 1e-3;
     if first.is_empty() {
         return 1.0;
     }
-    let count = first.len() as f64;
-    let centroid = first.means.iter().fold([0.0f64; 3], |acc, m| {
-        [
-            acc[0] + f64::from(m[0]) / count,
-            acc[1] + f64::from(m[1]) / count,
-            acc[2] + f64::from(m[2]) / count,
-        ]
-    });
-    first
-        .means
-        .iter()
-        .map(|m| {
-            (0..3)
-                .map(|k| (f64::from(m[k]) - centroid[k]).powi(2))
-                .sum::<f64>()
-                .sqrt()
-        })
-        .fold(MIN_SCENE_SCALE_M, f64::max)
+    first.radius_around_centroid().max(MIN_SCENE_SCALE_M)
 }
 
 /// The keyframe's camera and target at mapping resolution (`downscale` x smaller).
@@ -437,50 +420,14 @@ fn keyframe_target(keyframe: &MappingKeyframe, downscale: u32) -> (Camera, Targe
     (camera, target)
 }
 
-/// Box-filters RGB (u8 -> [0, 1]) and depth by `factor`; a depth block averages its valid pixels
-/// and is invalid (0) when none is valid. Partial blocks at the right and bottom edges are
-/// dropped, matching [`Intrinsics::scaled`]'s rounding for sizes divisible by the factor.
+/// Box-filters RGB (u8 -> [0, 1]) and depth by `factor` ([`TargetImage::downscaled`]).
 pub fn downscale_target(rgb: &RgbImage, depth: &DepthImage, factor: u32) -> TargetImage {
-    let factor = factor.max(1);
-    let width = rgb.width() / factor;
-    let height = rgb.height() / factor;
-    let mut colours = Vec::with_capacity((width * height) as usize);
-    let mut depths = Vec::with_capacity((width * height) as usize);
-    let block = f32::from(u16::try_from(factor * factor).unwrap_or(u16::MAX));
-    for y in 0..height {
-        for x in 0..width {
-            let mut sum = [0.0f32; 3];
-            let (mut depth_sum, mut depth_count) = (0.0f32, 0u32);
-            for dy in 0..factor {
-                for dx in 0..factor {
-                    let (px, py) = (x * factor + dx, y * factor + dy);
-                    let pixel = rgb.get_pixel(px, py).0;
-                    for c in 0..3 {
-                        sum[c] += f32::from(pixel[c]);
-                    }
-                    if px < depth.width && py < depth.height {
-                        let d = depth.get(px, py);
-                        if d > 0.0 {
-                            depth_sum += d;
-                            depth_count += 1;
-                        }
-                    }
-                }
-            }
-            colours.push(sum.map(|s| s / (255.0 * block)));
-            depths.push(if depth_count > 0 {
-                depth_sum / depth_count as f32
-            } else {
-                0.0
-            });
-        }
-    }
-    TargetImage {
-        width,
-        height,
-        rgb: colours,
-        depth: Some(depths),
-    }
+    assert_eq!(
+        (rgb.width(), rgb.height()),
+        (depth.width, depth.height),
+        "colour and depth of one frame have one size"
+    );
+    TargetImage::downscaled(rgb.width(), rgb.height(), rgb.as_raw(), &depth.data, factor)
 }
 
 #[cfg(test)]

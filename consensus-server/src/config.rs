@@ -2,4 +2,4 @@
 //! ([`slam_core::config::ConsensusConfig`], the `[consensus]` tables of configs/*.toml); re-exported
 //! here for the modules of this crate.
 
-pub use slam_core::config::{AlignmentConfig, ConsensusConfig, PoseGraphConfig};
+pub use slam_core::config::{AlignmentConfig, ConsensusConfig, PoseGraphConfig, RefinementConfig};

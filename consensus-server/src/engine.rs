@@ -19,12 +19,13 @@ use nalgebra::Isometry3;
 use protocol::messages::FINAL_MAP_KEYFRAME_ID;
 use render_core::types::{GaussianCloud, RigidTransform};
 use serde::Serialize;
-use slam_core::se3::isometry_to_tum;
+use slam_core::se3::{isometry_from_tum, isometry_to_tum};
 
 use crate::alignment::{Keyframe, PreparedKeyframe, Verdict, align_prepared};
 use crate::config::ConsensusConfig;
 use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
-use crate::pose_graph::correction::blend;
+use crate::pose_graph::correction::{blend, correction};
+use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
 use crate::pose_graph::{LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
 
 /// One published keyframe as the consensus receives it.
@@ -340,6 +341,88 @@ impl Engine {
         (merged, unplaced)
     }
 
+    /// The joint refinement of `map` (the merged world map, [`Engine::merged_map`]) over every
+    /// keyframe the pose graph placed in the world, with the pose graph's odometry edges
+    /// (consecutive keyframes of one agent, as tracked) and accepted loop closures. `None` before
+    /// a solution exists.
+    pub fn refinement_problem(&self, map: GaussianCloud) -> Option<RefinementProblem> {
+        let solution = self.solution.as_ref()?;
+        let mut index = BTreeMap::new();
+        let mut views = Vec::new();
+        for (id, world_from_camera) in &solution.world_from_camera {
+            let Some(prepared) = self.prepared.get(id) else {
+                continue;
+            };
+            let keyframe = &prepared.keyframe;
+            index.insert(*id, views.len());
+            views.push(RefinementView {
+                id: *id,
+                world_from_camera: *world_from_camera,
+                intrinsics: keyframe.intrinsics,
+                rgb8: keyframe.rgb.as_raw().clone(),
+                depth_m: keyframe.depth.data.clone(),
+            });
+        }
+        let mut edges = Vec::new();
+        // Keyframes are ordered by agent, then id: neighbours of one agent are odometry edges.
+        let placed: Vec<&KeyframeRef> = index.keys().collect();
+        for pair in placed.windows(2) {
+            let (a, b) = (pair[0], pair[1]);
+            if a.agent_id != b.agent_id {
+                continue;
+            }
+            let tracked_a = isometry_from_info(&self.info[a]);
+            let tracked_b = isometry_from_info(&self.info[b]);
+            edges.push(PoseEdge {
+                i: index[a],
+                j: index[b],
+                camera_i_from_camera_j: tracked_a.inverse() * tracked_b,
+            });
+        }
+        let loops = self.graph.loops();
+        for decision in solution.loops.iter().filter(|d| d.accepted) {
+            let closure = &loops[decision.index];
+            if let (Some(&i), Some(&j)) = (index.get(&closure.target), index.get(&closure.source)) {
+                edges.push(PoseEdge {
+                    i,
+                    j,
+                    camera_i_from_camera_j: closure.target_camera_from_source_camera,
+                });
+            }
+        }
+        // Agent 0's first keyframe defines the world frame.
+        let anchor = index
+            .iter()
+            .find(|(id, _)| id.agent_id == 0)
+            .map(|(_, &view)| view);
+        Some(RefinementProblem {
+            map,
+            views,
+            edges,
+            anchor,
+        })
+    }
+
+    /// Replaces the pose graph's keyframe poses by refined ones (and their corrections, which the
+    /// world trajectories blend).
+    pub fn apply_refined_poses(&mut self, refined: &BTreeMap<KeyframeRef, Isometry3<f64>>) {
+        let Some(solution) = self.solution.as_mut() else {
+            return;
+        };
+        for (id, world_from_camera) in refined {
+            let Some(info) = self.info.get(id) else {
+                continue;
+            };
+            if let Some(stored) = solution.world_from_camera.get_mut(id) {
+                *stored = *world_from_camera;
+                solution.corrections.insert(
+                    *id,
+                    correction(world_from_camera, &isometry_from_info(info)),
+                );
+            }
+        }
+    }
+
     /// A per-frame trajectory of `agent_id` (tracked in its own frame, `(timestamp,
     /// agent_from_camera)`) in the world frame: each frame gets the correction blended between
     /// the published keyframes before and after it in time. `None` when the agent is not linked
@@ -380,6 +463,11 @@ impl Engine {
                 .collect(),
         )
     }
+}
+
+/// The tracked `agent_from_camera` of a keyframe (stored in TUM order, always a valid pose).
+fn isometry_from_info(info: &KeyframeInfo) -> Isometry3<f64> {
+    isometry_from_tum(&info.agent_from_camera).expect("stored from an isometry")
 }
 
 /// `cloud` moved by the rigid `transform` (render-core's host transform, in f32).

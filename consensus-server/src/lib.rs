@@ -7,13 +7,15 @@
 //! - [`alignment`]: verified relative pose of two keyframes (features + RANSAC, G-ICP, checks);
 //! - [`pose_graph`]: robust (GNC) pose graph over all agents' keyframes, giving each agent's
 //!   frame in the world and corrected keyframe poses;
+//! - [`refinement`]: joint photometric refinement of the merged world map and the keyframe
+//!   poses through render-core, with the pose-consistency term over the pose graph's edges;
 //! - [`config`]: their parameters;
 //! - [`engine`]: the consensus state (keyframes, candidates, decisions), free of transport;
 //! - [`process`]: the `mac-consensus` process around it (iceoryx2, worker thread, outputs);
 //! - [`wire`]: received messages as the consensus's own types.
 //!
-//! Not built yet: the joint photometric refinement of the merged map (SPEC 4, step 4, second
-//! half); the pose graph alone corrects poses today.
+//! Refinement runs once the agents are done (before the outputs are written); during the run the
+//! agents receive the pose graph's corrections.
 
 pub mod alignment;
 pub mod config;
@@ -21,6 +23,7 @@ pub mod engine;
 pub mod place_recognition;
 pub mod pose_graph;
 pub mod process;
+pub mod refinement;
 pub mod wire;
 
 // The wire format and the extractor must agree on the descriptor length.

@@ -33,6 +33,7 @@ use slam_core::trajectory::Trajectory;
 use crate::alignment::Keyframe;
 use crate::engine::{ClosureEvent, Engine, KeyframeArrival, KeyframeInfo};
 use crate::place_recognition::KeyframeRef;
+use crate::refinement::{self, RefinementReport};
 use crate::wire;
 
 /// What to run and where to write.
@@ -103,6 +104,8 @@ pub struct ConsensusReport {
     pub pose_graph_solve_ms_median: Option<f64>,
     pub merged_gaussians: usize,
     pub unplaced_gaussians: usize,
+    /// The joint photometric refinement of the merged map (`null`: not run).
+    pub refinement: Option<RefinementReport>,
     pub wall_s: f64,
     pub interrupted: bool,
     pub events: Vec<ClosureEvent>,
@@ -173,7 +176,7 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
 
     // Let the worker finish its queue (it ends when the input channel closes).
     drop(input_tx);
-    let engine = worker
+    let mut engine = worker
         .join()
         .map_err(|_| anyhow::anyhow!("the consensus worker thread panicked"))?;
     for update in solution_rx.try_iter() {
@@ -193,9 +196,16 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
             .sum();
         record.seconds_seen = first_seen[id].elapsed().as_secs_f64();
     }
+    let (map, unplaced) = engine.merged_map();
+    let (map, refinement) = refine_world_map(options, &mut engine, map, interrupted)?;
     let report = write_outputs(
         options,
         &engine,
+        WorldMap {
+            map,
+            unplaced,
+            refinement,
+        },
         agents,
         latencies,
         started.elapsed().as_secs_f64(),
@@ -456,16 +466,63 @@ pub fn agent_trajectory_path(out: &Path, agent_id: u32) -> PathBuf {
     out.join(format!("agent_{agent_id}")).join("trajectory.tum")
 }
 
+/// The merged world map as written.
+struct WorldMap {
+    map: GaussianCloud,
+    /// Gaussians of agents not placed in the world (left out of `map`).
+    unplaced: usize,
+    refinement: Option<RefinementReport>,
+}
+
+/// The joint photometric refinement of the merged map (skipped when turned off, when the run was
+/// interrupted, or before any solution); the refined keyframe poses go into the engine, so the
+/// world trajectories follow them. The unrefined map is kept as map_realtime.ply. A refinement
+/// that fails is logged and the unrefined map is used: nothing computed is lost.
+fn refine_world_map(
+    options: &ConsensusOptions,
+    engine: &mut Engine,
+    map: GaussianCloud,
+    interrupted: bool,
+) -> anyhow::Result<(GaussianCloud, Option<RefinementReport>)> {
+    let consensus = &options.config.consensus;
+    if consensus.refinement.iterations == 0 || interrupted || map.is_empty() {
+        return Ok((map, None));
+    }
+    let Some(problem) = engine.refinement_problem(map.clone()) else {
+        return Ok((map, None));
+    };
+    let realtime_path = options.out.join("map_realtime.ply");
+    render_core::ply::save_ply(&realtime_path, &map)
+        .with_context(|| format!("writing {}", realtime_path.display()))?;
+    match refinement::refine(problem, consensus) {
+        Ok(outcome) => {
+            if consensus.refinement.refine_poses {
+                engine.apply_refined_poses(&outcome.world_from_camera);
+            }
+            Ok((outcome.map, Some(outcome.report)))
+        }
+        Err(error) => {
+            tracing::error!(%error, "joint refinement failed: writing the unrefined map");
+            Ok((map, None))
+        }
+    }
+}
+
 fn write_outputs(
     options: &ConsensusOptions,
     engine: &Engine,
+    world: WorldMap,
     agents: BTreeMap<u32, AgentRecord>,
     latencies: Vec<f64>,
     wall_s: f64,
     interrupted: bool,
 ) -> anyhow::Result<ConsensusReport> {
     let out = &options.out;
-    let (map, unplaced) = engine.merged_map();
+    let WorldMap {
+        map,
+        unplaced,
+        refinement,
+    } = world;
     let map_path = out.join("map.ply");
     render_core::ply::save_ply(&map_path, &map)
         .with_context(|| format!("writing {}", map_path.display()))?;
@@ -517,6 +574,7 @@ fn write_outputs(
         pose_graph_solve_ms_median: median(engine.solve_ms()),
         merged_gaussians: map.len(),
         unplaced_gaussians: unplaced,
+        refinement,
         wall_s,
         interrupted,
         agents,

@@ -104,19 +104,25 @@ pub struct DeviceGradients {
 }
 
 impl DeviceGradients {
+    /// Reads back the camera-pose gradient alone (48 bytes): what a pose optimiser needs each
+    /// iteration, without the per-Gaussian gradients.
+    pub fn read_pose(&self, context: &GpuContext) -> Result<PoseGradient, GpuError> {
+        let pose: Vec<[f32; 4]> = context.read_vec(&self.v_pose, 2)?;
+        Ok(PoseGradient {
+            v_translation: [pose[0][0], pose[0][1], pose[0][2]],
+            v_rotation: [pose[1][0], pose[1][1], pose[1][2]],
+        })
+    }
+
     pub fn download(&self, context: &GpuContext) -> Result<GaussianGradients, GpuError> {
         let n = self.count as usize;
-        let pose: Vec<[f32; 4]> = context.read_vec(&self.v_pose, 2)?;
         Ok(GaussianGradients {
             v_means: context.read_vec(&self.v_means, n)?,
             v_log_scales: context.read_vec(&self.v_log_scales, n)?,
             v_quaternions: context.read_vec(&self.v_quaternions, n)?,
             v_opacity_logits: context.read_vec(&self.v_opacity_logits, n)?,
             v_colours: context.read_vec(&self.v_colours, n)?,
-            v_pose: PoseGradient {
-                v_translation: [pose[0][0], pose[0][1], pose[0][2]],
-                v_rotation: [pose[1][0], pose[1][1], pose[1][2]],
-            },
+            v_pose: self.read_pose(context)?,
         })
     }
 }

@@ -62,6 +62,54 @@ pub struct TargetImage {
 }
 
 impl TargetImage {
+    /// A target `factor` x smaller than an 8-bit RGB image (`rgb8`: `width * height * 3` bytes,
+    /// row-major) and its depth in metres (`depth_m`, the same size; `<= 0` or non-finite is
+    /// invalid). Colour is box-filtered (u8 -> [0, 1]); a depth block averages its valid pixels
+    /// and is invalid (0) when none is valid. Partial blocks at the right and bottom edges are
+    /// dropped, as a camera whose intrinsics are scaled by `1 / factor` expects. Panics when the
+    /// slices do not match the size.
+    pub fn downscaled(width: u32, height: u32, rgb8: &[u8], depth_m: &[f32], factor: u32) -> Self {
+        let pixels = width as usize * height as usize;
+        assert_eq!(rgb8.len(), pixels * 3, "rgb8 holds width * height * 3 bytes");
+        assert_eq!(depth_m.len(), pixels, "depth_m holds width * height values");
+        let factor = factor.max(1);
+        let (out_width, out_height) = (width / factor, height / factor);
+        let block = (factor * factor) as f32;
+        let mut colours = Vec::with_capacity(out_width as usize * out_height as usize);
+        let mut depths = Vec::with_capacity(out_width as usize * out_height as usize);
+        for y in 0..out_height {
+            for x in 0..out_width {
+                let mut sum = [0.0f32; 3];
+                let (mut depth_sum, mut depth_count) = (0.0f32, 0u32);
+                for dy in 0..factor {
+                    for dx in 0..factor {
+                        let index = ((y * factor + dy) * width + x * factor + dx) as usize;
+                        for (c, total) in sum.iter_mut().enumerate() {
+                            *total += f32::from(rgb8[index * 3 + c]);
+                        }
+                        let d = depth_m[index];
+                        if d.is_finite() && d > 0.0 {
+                            depth_sum += d;
+                            depth_count += 1;
+                        }
+                    }
+                }
+                colours.push(sum.map(|s| s / (255.0 * block)));
+                depths.push(if depth_count > 0 {
+                    depth_sum / depth_count as f32
+                } else {
+                    0.0
+                });
+            }
+        }
+        Self {
+            width: out_width,
+            height: out_height,
+            rgb: colours,
+            depth: Some(depths),
+        }
+    }
+
     fn valid_depth_count(&self) -> usize {
         self.depth
             .as_ref()

@@ -124,6 +124,28 @@ impl GaussianCloud {
         }
     }
 
+    /// Largest distance of a mean from the centroid of all means (metres; 0 when empty): the
+    /// scene scale mean learning rates are multiplied by (3DGS normalises by the camera extent;
+    /// a map's own radius is the stand-in before cameras are known).
+    pub fn radius_around_centroid(&self) -> f64 {
+        if self.is_empty() {
+            return 0.0;
+        }
+        let count = self.len() as f64;
+        let centroid = self.means.iter().fold([0.0f64; 3], |acc, m| {
+            [0, 1, 2].map(|k| acc[k] + f64::from(m[k]) / count)
+        });
+        self.means
+            .iter()
+            .map(|m| {
+                (0..3)
+                    .map(|k| (f64::from(m[k]) - centroid[k]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .fold(0.0, f64::max)
+    }
+
     /// Checks that all attribute vectors have the same length.
     pub fn validate_lengths(&self) -> Result<(), String> {
         let n = self.means.len();

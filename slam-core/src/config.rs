@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 use crate::dataset::noise::NoiseConfig;
 
 mod consensus;
-pub use consensus::{AlignmentConfig, PoseGraphConfig};
+pub use consensus::{AlignmentConfig, PoseGraphConfig, RefinementConfig};
 
 /// Tracking: point selection, per-point covariances, map-candidate selection and G-ICP.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -208,6 +208,8 @@ pub struct ConsensusConfig {
     pub alignment: AlignmentConfig,
     /// Robust pose graph: `[consensus.pose_graph]`.
     pub pose_graph: PoseGraphConfig,
+    /// Joint photometric refinement of the merged map: `[consensus.refinement]`.
+    pub refinement: RefinementConfig,
 }
 
 impl Default for ConsensusConfig {
@@ -225,6 +227,7 @@ impl Default for ConsensusConfig {
             descriptor_weights: None,
             alignment: AlignmentConfig::default(),
             pose_graph: PoseGraphConfig::default(),
+            refinement: RefinementConfig::default(),
         }
     }
 }
@@ -404,6 +407,38 @@ impl Config {
             (
                 "consensus.weight_pose_consistency",
                 c.weight_pose_consistency,
+            ),
+        ] {
+            non_negative(field, v)?;
+        }
+        let r = &c.refinement;
+        positive("consensus.refinement.max_seconds", r.max_seconds)?;
+        fraction(
+            "consensus.refinement.pose_warmup_fraction",
+            r.pose_warmup_fraction,
+        )?;
+        at_least_one(
+            "consensus.refinement.image_downscale",
+            r.image_downscale as usize,
+        )?;
+        for (field, v) in [
+            ("consensus.refinement.lr_means", r.lr_means),
+            ("consensus.refinement.lr_colours", r.lr_colours),
+            ("consensus.refinement.lr_opacity", r.lr_opacity),
+            ("consensus.refinement.lr_log_scales", r.lr_log_scales),
+            ("consensus.refinement.lr_rotations", r.lr_rotations),
+            (
+                "consensus.refinement.lr_pose_translation_m",
+                r.lr_pose_translation_m,
+            ),
+            (
+                "consensus.refinement.lr_pose_rotation_rad",
+                r.lr_pose_rotation_rad,
+            ),
+            ("consensus.refinement.max_pose_change_m", r.max_pose_change_m),
+            (
+                "consensus.refinement.max_pose_change_rad",
+                r.max_pose_change_rad,
             ),
         ] {
             non_negative(field, v)?;
