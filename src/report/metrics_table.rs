@@ -195,11 +195,26 @@ fn rows(metrics: &Map<String, Value>) -> Vec<(String, String, String)> {
     known.chain(unknown).collect()
 }
 
+/// Whether a key's value is words rather than figures.
+fn is_text(key: &str) -> bool {
+    FORMATS
+        .iter()
+        .any(|(known, _, unit)| *known == key && matches!(unit, Unit::Text | Unit::AgentIds))
+}
+
 /// The metrics table's HTML.
 pub fn metrics_table(metrics: &Map<String, Value>) -> String {
     let rows: Vec<Vec<Cell>> = rows(metrics)
         .into_iter()
-        .map(|(name, value, key)| vec![Cell::text(name), Cell::number(value), Cell::text(key)])
+        .map(|(name, value, key)| {
+            // Figures line up on the right; words (a source, agent names) read from the left.
+            let value = if is_text(&key) {
+                Cell::text(value)
+            } else {
+                Cell::number(value)
+            };
+            vec![Cell::text(name), value, Cell::text(key)]
+        })
         .collect();
     table(&["Figure", "Value", "metrics.json key"], &rows)
 }

@@ -96,9 +96,9 @@ fn metrics_section(metrics: &Result<Value, String>) -> String {
     section("metrics", "Metrics", &body)
 }
 
-/// The notes of agents that cannot be drawn, then `chart` (or a line saying there is nothing).
-fn trajectory_body(trajectories: &Trajectories, chart: Option<String>) -> String {
-    let mut body: String = trajectories.notes.iter().map(|n| note(n)).collect();
+/// `notes` (why agents are not drawn), then `chart` (or a line saying there is nothing).
+fn trajectory_body(notes: &[String], chart: Option<String>) -> String {
+    let mut body: String = notes.iter().map(|n| note(n)).collect();
     match chart {
         Some(svg) => body.push_str(&svg),
         None => body.push_str(&note(
@@ -152,7 +152,7 @@ fn top_down_section(trajectories: &Trajectories) -> String {
                     &project(&track.ground_truth),
                     Stroke {
                         colour,
-                        dashed: true,
+                        reference: true,
                     },
                     &format!("agent {} ground truth", track.id),
                 );
@@ -160,7 +160,7 @@ fn top_down_section(trajectories: &Trajectories) -> String {
                     &project(&track.estimate),
                     Stroke {
                         colour,
-                        dashed: false,
+                        reference: false,
                     },
                     &format!("agent {} estimate", track.id),
                 );
@@ -169,10 +169,11 @@ fn top_down_section(trajectories: &Trajectories) -> String {
         });
     let mut body = paragraph(&format!(
         "Seen along {}: every agent's world-frame estimate (agent_K.tum, solid) after the one \
-         SE(3) alignment of the joint ATE, and its ground truth (dashed), in the ground-truth frame.",
+         SE(3) alignment of the joint ATE, and its ground truth (wide, pale, dashed), in the \
+         ground-truth frame.",
         AXIS_NAMES[3 - a - b]
     ));
-    body.push_str(&trajectory_body(trajectories, chart));
+    body.push_str(&trajectory_body(&trajectories.notes, chart));
     section("trajectories", "Trajectories, top-down", &body)
 }
 
@@ -199,7 +200,7 @@ fn ate_over_time_section(trajectories: &Trajectories) -> String {
                     &points,
                     Stroke {
                         colour: agent_colour(track.id as usize),
-                        dashed: false,
+                        reference: false,
                     },
                     &format!("agent {}", track.id),
                 );
@@ -210,7 +211,13 @@ fn ate_over_time_section(trajectories: &Trajectories) -> String {
         "Each agent's translation error per frame under the joint alignment: the errors whose \
          RMS is the per-agent ATE of the metrics table.",
     );
-    body.push_str(&trajectory_body(trajectories, chart));
+    // The reasons were given once, under the trajectories.
+    let left_out = if trajectories.notes.is_empty() {
+        Vec::new()
+    } else {
+        vec!["Some agents are left out: see Trajectories, top-down, for why.".to_string()]
+    };
+    body.push_str(&trajectory_body(&left_out, chart));
     section("ate", "Per-agent ATE over time", &body)
 }
 
@@ -299,13 +306,30 @@ fn describe_event(event: &ClosureEvent) -> String {
     )
 }
 
-/// One lane per agent (events sit on their source agent's lane), x = seconds since the
-/// consensus started.
+/// Height of a timeline lane the markers spread over: one sub-row per partner agent, so
+/// closures with different partners at about the same time do not cover each other.
+const LANE_FILL: f64 = 0.4;
+
+/// Offset within a lane of the sub-row for the partner in lane `target_lane` of `lanes`.
+fn sub_row_offset(target_lane: usize, lanes: usize) -> f64 {
+    if lanes < 2 {
+        return 0.0;
+    }
+    (target_lane as f64 / (lanes - 1) as f64 - 0.5) * LANE_FILL
+}
+
+/// One lane per agent (events sit on their source agent's lane, raised by their partner's id),
+/// x = seconds since the consensus started.
 fn timeline_chart(events: &[ClosureEvent], ids: &[u32], wall_s: Option<f64>) -> Option<String> {
     let mut lanes: Vec<u32> = ids.to_vec();
-    lanes.extend(events.iter().map(|e| e.source.agent_id));
+    lanes.extend(
+        events
+            .iter()
+            .flat_map(|e| [e.source.agent_id, e.target.agent_id]),
+    );
     lanes.sort_unstable();
     lanes.dedup();
+    let lane_of = |agent: u32| lanes.iter().position(|id| *id == agent).unwrap_or_default();
     let x_range = Range::of(events.iter().map(|e| e.at_s).chain(wall_s).chain([0.0]))?;
     let mut chart = Chart::with_lanes(
         x_range,
@@ -314,13 +338,11 @@ fn timeline_chart(events: &[ClosureEvent], ids: &[u32], wall_s: Option<f64>) -> 
         "proposing agent",
     );
     for event in events {
-        let lane = lanes
-            .iter()
-            .position(|id| *id == event.source.agent_id)
-            .unwrap_or_default();
+        let y = lane_of(event.source.agent_id) as f64
+            + sub_row_offset(lane_of(event.target.agent_id), lanes.len());
         let outcome = event.outcome();
         chart.marker(
-            (event.at_s, lane as f64),
+            (event.at_s, y),
             event_shape(event),
             outcome_colour(outcome),
             &describe_event(event),
@@ -391,8 +413,9 @@ fn consensus_section(consensus: &Result<Value, String>, ids: &[u32]) -> String {
         .filter(|e| e.outcome() == Outcome::Accepted)
         .count();
     let mut body = paragraph(&format!(
-        "{} closures proposed, {accepted} accepted by the pose graph. Hover a marker for the \
-         keyframes and the reason.",
+        "{} closures proposed, {accepted} accepted by the pose graph. A row is the agent whose \
+         new keyframe proposed the closure; within it, the higher the marker, the higher the \
+         partner agent's id. Hover a marker for the keyframes and the reason.",
         events.len()
     ));
     if let Some(chart) = timeline_chart(&events, ids, consensus["wall_s"].as_f64()) {

@@ -194,8 +194,8 @@ impl Outcome {
     pub fn label(self) -> &'static str {
         match self {
             Outcome::Accepted => "accepted by the pose graph",
-            Outcome::RejectedByPoseGraph => "verified, rejected by the pose graph",
-            Outcome::VerifiedUnsolved => "verified, not yet in a pose-graph solve",
+            Outcome::RejectedByPoseGraph => "verified, pose graph rejected it",
+            Outcome::VerifiedUnsolved => "verified, before any solve",
             Outcome::RejectedByAlignment => "rejected by alignment",
         }
     }

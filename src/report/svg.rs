@@ -16,7 +16,7 @@ const MARGIN_LEFT: f64 = 70.0;
 const MARGIN_BOTTOM: f64 = 50.0;
 const MARGIN_TOP: f64 = 15.0;
 /// Right of the plot area: the legend column.
-const LEGEND_WIDTH: f64 = 210.0;
+const LEGEND_WIDTH: f64 = 270.0;
 const LEGEND_ROW_HEIGHT: f64 = 18.0;
 const LEGEND_SWATCH_LENGTH: f64 = 24.0;
 /// Ticks per axis the 1-2-5 rule aims for.
@@ -24,6 +24,10 @@ const TARGET_TICKS: usize = 6;
 const TICK_LENGTH: f64 = 5.0;
 const FONT_SIZE: f64 = 12.0;
 const LINE_WIDTH: f64 = 1.6;
+/// A reference line (ground truth) is a wide, pale, dashed band: an estimate drawn on top of it
+/// stays visible, and a perfect estimate does not hide it.
+const REFERENCE_LINE_WIDTH: f64 = 4.0;
+const REFERENCE_OPACITY: f64 = 0.45;
 const DASH_PATTERN: &str = "6 4";
 const MARKER_RADIUS: f64 = 5.0;
 /// A polyline longer than this is thinned evenly (first and last point kept): a browser draws
@@ -152,7 +156,8 @@ fn tick_decimals(ticks: &[f64]) -> usize {
 #[derive(Debug, Clone, Copy)]
 pub struct Stroke {
     pub colour: &'static str,
-    pub dashed: bool,
+    /// A reference (ground truth) rather than a measured line.
+    pub reference: bool,
 }
 
 /// Marker shapes; colour says one thing, the shape another.
@@ -254,9 +259,9 @@ impl Chart {
         }
         let _ = writeln!(
             self.body,
-            "<polyline fill=\"none\" stroke=\"{}\" stroke-width=\"{LINE_WIDTH}\"{} points=\"{}\"/>",
+            "<polyline fill=\"none\" stroke=\"{}\"{} points=\"{}\"/>",
             stroke.colour,
-            dash_attribute(stroke.dashed),
+            stroke_attributes(stroke.reference),
             coordinates.trim_end()
         );
         self.legend
@@ -365,10 +370,10 @@ impl Chart {
             let (swatch, label) = match entry {
                 LegendEntry::Line(label, stroke) => (
                     format!(
-                        "<line x1=\"{x}\" y1=\"{y}\" x2=\"{}\" y2=\"{y}\" stroke=\"{}\" stroke-width=\"{LINE_WIDTH}\"{}/>",
+                        "<line x1=\"{x}\" y1=\"{y}\" x2=\"{}\" y2=\"{y}\" stroke=\"{}\"{}/>",
                         x + LEGEND_SWATCH_LENGTH,
                         stroke.colour,
-                        dash_attribute(stroke.dashed)
+                        stroke_attributes(stroke.reference)
                     ),
                     label,
                 ),
@@ -389,11 +394,13 @@ impl Chart {
     }
 }
 
-fn dash_attribute(dashed: bool) -> String {
-    if dashed {
-        format!(" stroke-dasharray=\"{DASH_PATTERN}\"")
+fn stroke_attributes(reference: bool) -> String {
+    if reference {
+        format!(
+            " stroke-width=\"{REFERENCE_LINE_WIDTH}\" stroke-opacity=\"{REFERENCE_OPACITY}\" stroke-dasharray=\"{DASH_PATTERN}\""
+        )
     } else {
-        String::new()
+        format!(" stroke-width=\"{LINE_WIDTH}\"")
     }
 }
 
@@ -483,7 +490,7 @@ mod tests {
             &[(0.0, 0.0), (1.0, 1.0)],
             Stroke {
                 colour: agent_colour(0),
-                dashed: true,
+                reference: true,
             },
             "a & b",
         );

@@ -233,6 +233,9 @@ fn missing_agents_and_ground_truth_are_named_not_fatal() {
     );
     assert!(top_down.contains("agent 1: no ground truth"), "{top_down}");
     assert_eq!(polyline_point_counts(top_down), [6, 6]);
+    let ate = section_of(&html, "ate");
+    assert!(ate.contains("Some agents are left out"), "{ate}");
+    assert_eq!(polyline_point_counts(ate), [6]);
     assert!(section_of(&html, "metrics").contains("No metrics"));
     assert!(section_of(&html, "renders").contains("No renders"));
 }
