@@ -126,6 +126,7 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
     let (latency_tx, latency_rx) = unbounded::<f64>();
     let worker = spawn_worker(
         options.config.consensus.clone(),
+        options.out.clone(),
         input_rx,
         solution_tx,
         latency_tx,
@@ -197,6 +198,7 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
         record.seconds_seen = first_seen[id].elapsed().as_secs_f64();
     }
     let (map, unplaced) = engine.merged_map();
+    write_progress(&options.out, &engine, ProgressStage::Refining);
     let (map, refinement) = refine_world_map(options, &mut engine, map, interrupted)?;
     let report = write_outputs(
         options,
@@ -211,6 +213,7 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
         started.elapsed().as_secs_f64(),
         interrupted,
     )?;
+    write_progress(&options.out, &engine, ProgressStage::Done);
     Ok(report)
 }
 
@@ -326,6 +329,7 @@ fn forward_if_complete(
 
 fn spawn_worker(
     config: slam_core::config::ConsensusConfig,
+    out: PathBuf,
     inputs: Receiver<WorkerInput>,
     solutions: Sender<SolutionUpdate>,
     latencies: Sender<f64>,
@@ -340,7 +344,12 @@ fn spawn_worker(
                 early_gaussians: BTreeMap::new(),
             };
             let mut open = true;
+            let mut last_progress: Option<Instant> = None;
             loop {
+                if last_progress.is_none_or(|at| at.elapsed() >= PROGRESS_INTERVAL) {
+                    write_progress(&out, &worker.engine, ProgressStage::Aligning);
+                    last_progress = Some(Instant::now());
+                }
                 // Block for input only when nothing is left to align.
                 if worker.engine.pending() == 0 {
                     if !open {
@@ -368,6 +377,51 @@ fn spawn_worker(
             worker.engine
         })
         .context("starting the consensus worker thread")
+}
+
+/// How often the worker rewrites consensus_progress.json at most.
+const PROGRESS_INTERVAL: std::time::Duration = std::time::Duration::from_millis(500);
+
+/// What the consensus is doing, for the progress display.
+#[derive(Debug, Clone, Copy, Serialize)]
+#[serde(rename_all = "snake_case")]
+enum ProgressStage {
+    Aligning,
+    Refining,
+    Done,
+}
+
+/// OUT/consensus_progress.json, read by scripts/launch_swarm.sh's progress line: one flat JSON
+/// object, written to a temporary file and renamed so a reader never sees half of it. A failed
+/// write is logged at debug level only: progress is a display, never a reason to stop.
+fn write_progress(out: &Path, engine: &Engine, stage: ProgressStage) {
+    #[derive(Serialize)]
+    struct Progress {
+        stage: ProgressStage,
+        keyframes: usize,
+        closures_verified: usize,
+        closures_rejected: usize,
+        inter_agent_closures: usize,
+        pending_alignments: usize,
+    }
+    let events = engine.events();
+    let progress = Progress {
+        stage,
+        keyframes: engine.keyframes().len(),
+        closures_verified: events.iter().filter(|e| e.verified).count(),
+        closures_rejected: events.iter().filter(|e| !e.verified).count(),
+        inter_agent_closures: events.iter().filter(|e| e.verified && e.inter_agent).count(),
+        pending_alignments: engine.pending(),
+    };
+    let path = out.join("consensus_progress.json");
+    let temporary = out.join(".consensus_progress.json.tmp");
+    let written = serde_json::to_string(&progress)
+        .map_err(std::io::Error::other)
+        .and_then(|text| std::fs::write(&temporary, text))
+        .and_then(|()| std::fs::rename(&temporary, &path));
+    if let Err(error) = written {
+        tracing::debug!(%error, path = %path.display(), "progress not written");
+    }
 }
 
 /// The worker thread's state.

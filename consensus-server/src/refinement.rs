@@ -20,8 +20,8 @@
 //! One iteration = one keyframe view (every view in turn, a shuffled order per pass): render,
 //! loss and backward on the device, one Adam step of the map on the device, and, for poses, a
 //! 48-byte read-back of the pose gradient followed by an Adam step of that keyframe's pose on the
-//! host, once the map has had `pose_warmup_fraction` of the iterations (or of the time bound,
-//! whichever comes later) to sharpen. Agent 0's first keyframe is never moved (it defines the
+//! host, once the map has had `pose_warmup_fraction` of the iterations or of the time bound
+//! (whichever ends first) to sharpen. Agent 0's first keyframe is never moved (it defines the
 //! world frame). A pose that ends
 //! farther from the pose graph's than `max_pose_change_*` is put back (the photometric term
 //! pulled it into a wrong basin) and counted.
@@ -380,7 +380,7 @@ pub fn refine(
         let gradients = renderer.backward(&context, map.gaussians(), &frame, &image_gradients)?;
         map.adam_step(&context, &kernels, &gradients)?;
         let pose_time = report.iterations >= pose_warmup
-            && started.elapsed().as_secs_f64() >= config.pose_warmup_fraction * config.max_seconds;
+            || started.elapsed().as_secs_f64() >= config.pose_warmup_fraction * config.max_seconds;
         if config.refine_poses && pose_time && Some(view) != problem.anchor {
             let photometric = gradients.read_pose(&context)?.as_array().map(f64::from);
             let gradient = Vector6::from_column_slice(&photometric)
