@@ -25,8 +25,8 @@ use crate::alignment::{Keyframe, PreparedKeyframe, Verdict, align_prepared};
 use crate::config::ConsensusConfig;
 use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
 use crate::pose_graph::correction::{blend, correction};
-use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
 use crate::pose_graph::{LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
+use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
 
 /// One published keyframe as the consensus receives it.
 pub struct KeyframeArrival {

@@ -4,7 +4,8 @@
 //! listens for every agent's keyframes, aligns and optimises them, sends corrections back, and
 //! when the N agents have said goodbye (or on SIGINT / SIGTERM) writes DIR/map.ply (the merged
 //! world map), DIR/agent_K.tum (each agent's trajectory in the world frame, from the agent's own
-//! DIR/agent_K/trajectory.tum) and DIR/consensus.json.
+//! DIR/agent_K/trajectory.tum) and DIR/consensus.json. SIGUSR1 writes the same outputs as they
+//! stand (without the final refinement, `"snapshot": true` in consensus.json) and the run goes on.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -12,7 +13,7 @@ use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
 use clap::Parser;
-use mac_consensus::process::{ConsensusOptions, run};
+use mac_consensus::process::{ConsensusOptions, run_with_snapshots};
 use protocol::transport::TransportConfig;
 use slam_core::config::Config;
 
@@ -62,7 +63,10 @@ fn main() -> anyhow::Result<()> {
         signal_hook::flag::register(signal, stop.clone())
             .with_context(|| format!("installing the handler of signal {signal}"))?;
     }
-    let report = run(&options, &stop)?;
+    let snapshot = Arc::new(AtomicBool::new(false));
+    signal_hook::flag::register(signal_hook::consts::SIGUSR1, snapshot.clone())
+        .context("installing the handler of SIGUSR1 (snapshots)")?;
+    let report = run_with_snapshots(&options, &stop, &snapshot)?;
     println!(
         "consensus: {} keyframes, {} closures proposed, {} verified, {} accepted ({} inter-agent), \
          latency median {} ms, {} Gaussians merged; outputs in {}",

@@ -52,6 +52,15 @@ pub struct ConsensusOptions {
 enum WorkerInput {
     Keyframe(Box<KeyframeArrival>, Instant),
     Gaussians(KeyframeRef, GaussianCloud),
+    /// Write the outputs as they stand now (on request: SIGUSR1), without refinement.
+    Snapshot(Box<SnapshotRequest>),
+}
+
+/// What the main thread knows that a snapshot's consensus.json needs.
+struct SnapshotRequest {
+    agents: BTreeMap<u32, AgentRecord>,
+    latencies: Vec<f64>,
+    wall_s: f64,
 }
 
 /// A pose-graph solution, as the main thread forwards it.
@@ -108,12 +117,25 @@ pub struct ConsensusReport {
     pub refinement: Option<RefinementReport>,
     pub wall_s: f64,
     pub interrupted: bool,
+    /// Written on request while the run went on (no refinement; later outputs replace it).
+    pub snapshot: bool,
     pub events: Vec<ClosureEvent>,
     pub keyframe_info: Vec<(KeyframeRef, KeyframeInfo)>,
 }
 
 /// Runs the consensus until the expected agents are done or `stop` is raised.
 pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<ConsensusReport> {
+    run_with_snapshots(options, stop, &AtomicBool::new(false))
+}
+
+/// [`run`], and each time `snapshot` is raised (the flag is lowered again), the outputs are
+/// written as they stand (merged map without refinement, world trajectories, consensus.json with
+/// `snapshot: true`) while the run goes on.
+pub fn run_with_snapshots(
+    options: &ConsensusOptions,
+    stop: &AtomicBool,
+    snapshot: &AtomicBool,
+) -> anyhow::Result<ConsensusReport> {
     let _span = tracing::info_span!("consensus").entered();
     std::fs::create_dir_all(&options.out)
         .with_context(|| format!("creating output directory {}", options.out.display()))?;
@@ -124,13 +146,7 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
     let (input_tx, input_rx) = unbounded::<WorkerInput>();
     let (solution_tx, solution_rx) = unbounded::<SolutionUpdate>();
     let (latency_tx, latency_rx) = unbounded::<f64>();
-    let worker = spawn_worker(
-        options.config.consensus.clone(),
-        options.out.clone(),
-        input_rx,
-        solution_tx,
-        latency_tx,
-    )?;
+    let worker = spawn_worker(options.clone(), input_rx, solution_tx, latency_tx)?;
 
     let mut agents: BTreeMap<u32, AgentRecord> = BTreeMap::new();
     let mut first_seen: BTreeMap<u32, Instant> = BTreeMap::new();
@@ -138,6 +154,7 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
     let mut assemblies: BTreeMap<KeyframeRef, Assembly> = BTreeMap::new();
     let mut world_from_agent: BTreeMap<u32, Isometry3<f64>> = BTreeMap::new();
     let mut interrupted = false;
+    let mut latencies: Vec<f64> = Vec::new();
     let wait = options.transport.wait_slice;
 
     loop {
@@ -173,6 +190,19 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
             send_corrections(&mut link, &update, &mut agents);
             world_from_agent = update.world_from_agent;
         }
+        latencies.extend(latency_rx.try_iter());
+        if snapshot.swap(false, Ordering::Relaxed) {
+            tracing::info!("snapshot requested: writing the outputs as they stand");
+            let mut records = agents.clone();
+            fill_records(&mut records, &world_from_agent, &link, &first_seen);
+            input_tx
+                .send(WorkerInput::Snapshot(Box::new(SnapshotRequest {
+                    agents: records,
+                    latencies: latencies.clone(),
+                    wall_s: started.elapsed().as_secs_f64(),
+                })))
+                .context("the consensus worker stopped")?;
+        }
     }
 
     // Let the worker finish its queue (it ends when the input channel closes).
@@ -184,19 +214,8 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
         send_corrections(&mut link, &update, &mut agents);
         world_from_agent = update.world_from_agent;
     }
-    let latencies: Vec<f64> = latency_rx.try_iter().collect();
-
-    let bandwidth = link.bandwidth();
-    for (id, record) in agents.iter_mut() {
-        record.world_from_agent = world_from_agent.get(id).map(isometry_to_tum);
-        record.bytes_received = bandwidth
-            .entries
-            .iter()
-            .filter(|e| e.agent_id == *id)
-            .map(|e| e.traffic.bytes)
-            .sum();
-        record.seconds_seen = first_seen[id].elapsed().as_secs_f64();
-    }
+    latencies.extend(latency_rx.try_iter());
+    fill_records(&mut agents, &world_from_agent, &link, &first_seen);
     let (map, unplaced) = engine.merged_map();
     write_progress(&options.out, &engine, ProgressStage::Refining);
     let (map, refinement) = refine_world_map(options, &mut engine, map, interrupted)?;
@@ -211,10 +230,36 @@ pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<Cons
         agents,
         latencies,
         started.elapsed().as_secs_f64(),
-        interrupted,
+        if interrupted {
+            OutputKind::Interrupted
+        } else {
+            OutputKind::Final
+        },
     )?;
     write_progress(&options.out, &engine, ProgressStage::Done);
     Ok(report)
+}
+
+/// Completes the per-agent records with what the transport and the solution know.
+fn fill_records(
+    agents: &mut BTreeMap<u32, AgentRecord>,
+    world_from_agent: &BTreeMap<u32, Isometry3<f64>>,
+    link: &ConsumerLink,
+    first_seen: &BTreeMap<u32, Instant>,
+) {
+    let bandwidth = link.bandwidth();
+    for (id, record) in agents.iter_mut() {
+        record.world_from_agent = world_from_agent.get(id).map(isometry_to_tum);
+        record.bytes_received = bandwidth
+            .entries
+            .iter()
+            .filter(|e| e.agent_id == *id)
+            .map(|e| e.traffic.bytes)
+            .sum();
+        record.seconds_seen = first_seen
+            .get(id)
+            .map_or(0.0, |at| at.elapsed().as_secs_f64());
+    }
 }
 
 /// Routes one received message.
@@ -328,8 +373,7 @@ fn forward_if_complete(
 }
 
 fn spawn_worker(
-    config: slam_core::config::ConsensusConfig,
-    out: PathBuf,
+    options: ConsensusOptions,
     inputs: Receiver<WorkerInput>,
     solutions: Sender<SolutionUpdate>,
     latencies: Sender<f64>,
@@ -339,7 +383,8 @@ fn spawn_worker(
         .spawn(move || {
             let _span = tracing::info_span!("consensus worker").entered();
             let mut worker = Worker {
-                engine: Engine::new(config),
+                engine: Engine::new(options.config.consensus.clone()),
+                options,
                 waiting: BTreeMap::new(),
                 early_gaussians: BTreeMap::new(),
             };
@@ -347,7 +392,7 @@ fn spawn_worker(
             let mut last_progress: Option<Instant> = None;
             loop {
                 if last_progress.is_none_or(|at| at.elapsed() >= PROGRESS_INTERVAL) {
-                    write_progress(&out, &worker.engine, ProgressStage::Aligning);
+                    write_progress(&worker.options.out, &worker.engine, ProgressStage::Aligning);
                     last_progress = Some(Instant::now());
                 }
                 // Block for input only when nothing is left to align.
@@ -410,7 +455,10 @@ fn write_progress(out: &Path, engine: &Engine, stage: ProgressStage) {
         keyframes: engine.keyframes().len(),
         closures_verified: events.iter().filter(|e| e.verified).count(),
         closures_rejected: events.iter().filter(|e| !e.verified).count(),
-        inter_agent_closures: events.iter().filter(|e| e.verified && e.inter_agent).count(),
+        inter_agent_closures: events
+            .iter()
+            .filter(|e| e.verified && e.inter_agent)
+            .count(),
         pending_alignments: engine.pending(),
     };
     let path = out.join("consensus_progress.json");
@@ -427,6 +475,7 @@ fn write_progress(out: &Path, engine: &Engine, stage: ProgressStage) {
 /// The worker thread's state.
 struct Worker {
     engine: Engine,
+    options: ConsensusOptions,
     /// Keyframes whose first correction has not gone out yet, with their arrival time.
     waiting: BTreeMap<KeyframeRef, Instant>,
     /// Gaussians that arrived before their keyframe's images.
@@ -448,6 +497,26 @@ impl Worker {
             WorkerInput::Gaussians(id, cloud) => {
                 if let Err(cloud) = self.engine.set_gaussians(id, cloud) {
                     self.early_gaussians.insert(id, cloud);
+                }
+            }
+            WorkerInput::Snapshot(request) => {
+                let (map, unplaced) = self.engine.merged_map();
+                let written = write_outputs(
+                    &self.options,
+                    &self.engine,
+                    WorldMap {
+                        map,
+                        unplaced,
+                        refinement: None,
+                    },
+                    request.agents,
+                    request.latencies,
+                    request.wall_s,
+                    OutputKind::Snapshot,
+                );
+                match written {
+                    Ok(_) => tracing::info!(out = %self.options.out.display(), "snapshot written"),
+                    Err(error) => tracing::error!(%error, "snapshot not written"),
                 }
             }
         }
@@ -562,6 +631,17 @@ fn refine_world_map(
     }
 }
 
+/// Why outputs are written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum OutputKind {
+    /// Every expected agent said goodbye.
+    Final,
+    /// SIGINT / SIGTERM.
+    Interrupted,
+    /// On request while the run goes on.
+    Snapshot,
+}
+
 fn write_outputs(
     options: &ConsensusOptions,
     engine: &Engine,
@@ -569,7 +649,7 @@ fn write_outputs(
     agents: BTreeMap<u32, AgentRecord>,
     latencies: Vec<f64>,
     wall_s: f64,
-    interrupted: bool,
+    kind: OutputKind,
 ) -> anyhow::Result<ConsensusReport> {
     let out = &options.out;
     let WorldMap {
@@ -630,7 +710,8 @@ fn write_outputs(
         unplaced_gaussians: unplaced,
         refinement,
         wall_s,
-        interrupted,
+        interrupted: kind == OutputKind::Interrupted,
+        snapshot: kind == OutputKind::Snapshot,
         agents,
         events,
         keyframe_info: engine.keyframes().iter().map(|(k, v)| (*k, *v)).collect(),

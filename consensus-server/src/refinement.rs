@@ -150,7 +150,8 @@ impl PoseAdam {
     /// The perturbation to apply for `gradient`, with per-component step sizes `rates`.
     fn step(&mut self, gradient: &Vector6<f64>, rates: &Vector6<f64>) -> Vector6<f64> {
         self.steps += 1;
-        self.first_moment = POSE_ADAM_BETA1 * self.first_moment + (1.0 - POSE_ADAM_BETA1) * gradient;
+        self.first_moment =
+            POSE_ADAM_BETA1 * self.first_moment + (1.0 - POSE_ADAM_BETA1) * gradient;
         self.second_moment = POSE_ADAM_BETA2 * self.second_moment
             + (1.0 - POSE_ADAM_BETA2) * gradient.component_mul(gradient);
         let m_hat = self.first_moment / (1.0 - POSE_ADAM_BETA1.powi(self.steps));
@@ -187,7 +188,10 @@ fn consistency_gradient(
     view: usize,
     weight: f64,
 ) -> Vector6<f64> {
-    let touching: Vec<&PoseEdge> = edges.iter().filter(|e| e.i == view || e.j == view).collect();
+    let touching: Vec<&PoseEdge> = edges
+        .iter()
+        .filter(|e| e.i == view || e.j == view)
+        .collect();
     if touching.is_empty() || weight == 0.0 {
         return Vector6::zeros();
     }
@@ -447,7 +451,12 @@ fn mean_psnr(
 ) -> Result<Option<f64>, GpuError> {
     let mut total = 0.0;
     for (view, pose) in views.iter().zip(poses) {
-        let output = renderer.render(context, map.gaussians(), &view.camera(pose), RenderMode::Rgb)?;
+        let output = renderer.render(
+            context,
+            map.gaussians(),
+            &view.camera(pose),
+            RenderMode::Rgb,
+        )?;
         let rendered: Vec<f64> = output
             .rgb
             .unwrap_or_default()
@@ -495,8 +504,8 @@ mod tests {
         }
         // A disagreeing edge: a small step against the gradient lowers the cost.
         let mut edges = agreeing.clone();
-        edges[1].camera_i_from_camera_j = pose([0.02, -0.01, 0.03], [0.01, 0.0, -0.02])
-            * edges[1].camera_i_from_camera_j;
+        edges[1].camera_i_from_camera_j =
+            pose([0.02, -0.01, 0.03], [0.01, 0.0, -0.02]) * edges[1].camera_i_from_camera_j;
         let before = consistency_cost(&poses, &edges);
         for view in 1..3 {
             let gradient = consistency_gradient(&poses, &edges, view, 1.0);

@@ -44,7 +44,11 @@ fn map_from_views(frames: &[Frame], colour_bias: f32) -> GaussianCloud {
     let mut cloud = GaussianCloud::default();
     for (k, frame) in frames.iter().enumerate() {
         let pose = frame.world_from_camera_gt.unwrap();
-        let bias = if k % 2 == 0 { colour_bias } else { -colour_bias };
+        let bias = if k % 2 == 0 {
+            colour_bias
+        } else {
+            -colour_bias
+        };
         let i = &frame.intrinsics;
         for y in (0..HEIGHT).step_by(MAP_STRIDE as usize) {
             for x in (0..WIDTH).step_by(MAP_STRIDE as usize) {
@@ -118,7 +122,10 @@ fn refinement_makes_the_merged_map_agree_with_every_view() {
         report.psnr_views_before.unwrap(),
         report.psnr_views_after.unwrap(),
     );
-    eprintln!("view PSNR {before:.2} -> {after:.2} dB in {:.1} s", report.seconds);
+    eprintln!(
+        "view PSNR {before:.2} -> {after:.2} dB in {:.1} s",
+        report.seconds
+    );
     assert_eq!(report.iterations, 60);
     assert!(after > before + 3.0, "PSNR {before} -> {after}");
     assert_eq!(outcome.map.len(), report.gaussians);

@@ -70,7 +70,11 @@ impl TargetImage {
     /// slices do not match the size.
     pub fn downscaled(width: u32, height: u32, rgb8: &[u8], depth_m: &[f32], factor: u32) -> Self {
         let pixels = width as usize * height as usize;
-        assert_eq!(rgb8.len(), pixels * 3, "rgb8 holds width * height * 3 bytes");
+        assert_eq!(
+            rgb8.len(),
+            pixels * 3,
+            "rgb8 holds width * height * 3 bytes"
+        );
         assert_eq!(depth_m.len(), pixels, "depth_m holds width * height values");
         let factor = factor.max(1);
         let (out_width, out_height) = (width / factor, height / factor);

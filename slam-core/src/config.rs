@@ -435,7 +435,10 @@ impl Config {
                 "consensus.refinement.lr_pose_rotation_rad",
                 r.lr_pose_rotation_rad,
             ),
-            ("consensus.refinement.max_pose_change_m", r.max_pose_change_m),
+            (
+                "consensus.refinement.max_pose_change_m",
+                r.max_pose_change_m,
+            ),
             (
                 "consensus.refinement.max_pose_change_rad",
                 r.max_pose_change_rad,
