@@ -379,6 +379,46 @@ impl<T> BoundedQueue<T> {
     }
 }
 
+/// Corrections while the link is down: only the newest is kept (an agent applies only its
+/// latest `world_from_agent`), and it is released once the link is up again.
+#[derive(Debug)]
+pub struct CorrectionGate<T> {
+    held: Option<T>,
+}
+
+impl<T> Default for CorrectionGate<T> {
+    fn default() -> Self {
+        Self { held: None }
+    }
+}
+
+/// What became of an arriving correction.
+#[derive(Debug, PartialEq)]
+pub enum CorrectionArrival<T> {
+    /// The link is up: apply it now.
+    Apply(T),
+    /// The link is down: held; `superseded` when it replaced an older held one.
+    Held { superseded: bool },
+}
+
+impl<T> CorrectionGate<T> {
+    pub fn arrive(&mut self, correction: T, link_up: bool) -> CorrectionArrival<T> {
+        if link_up {
+            // Anything held is older than this one.
+            self.held = None;
+            return CorrectionArrival::Apply(correction);
+        }
+        CorrectionArrival::Held {
+            superseded: self.held.replace(correction).is_some(),
+        }
+    }
+
+    /// The held correction, to apply now that the link is up.
+    pub fn release(&mut self) -> Option<T> {
+        self.held.take()
+    }
+}
+
 /// What the simulated link did, for metrics.json (`swarm.link`).
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct LinkSummary {
@@ -587,6 +627,30 @@ mod tests {
         assert_eq!(dropped, vec![("small", 3), ("huge", 11)]);
         assert!(queue.is_empty());
         assert_eq!(queue.bytes(), 0);
+    }
+
+    #[test]
+    fn held_corrections_wait_for_the_link_and_the_newest_wins() {
+        let mut gate = CorrectionGate::default();
+        assert_eq!(gate.arrive(1, true), CorrectionArrival::Apply(1));
+        assert_eq!(gate.release(), None);
+        assert_eq!(
+            gate.arrive(2, false),
+            CorrectionArrival::Held { superseded: false }
+        );
+        assert_eq!(
+            gate.arrive(3, false),
+            CorrectionArrival::Held { superseded: true }
+        );
+        assert_eq!(gate.release(), Some(3), "the newest held correction");
+        assert_eq!(gate.release(), None);
+        gate.arrive(4, false);
+        assert_eq!(gate.arrive(5, true), CorrectionArrival::Apply(5));
+        assert_eq!(
+            gate.release(),
+            None,
+            "a newer correction replaced the held one"
+        );
     }
 
     #[test]

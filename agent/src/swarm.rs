@@ -32,7 +32,9 @@ use slam_core::dataset::DepthImage;
 use slam_core::descriptor::GlobalDescriptorExtractor;
 use slam_core::se3::isometry_to_tum;
 
-use crate::link_schedule::{BoundedQueue, LinkPlan, LinkSummary};
+use crate::link_schedule::{
+    BoundedQueue, CorrectionArrival, CorrectionGate, LinkPlan, LinkSummary,
+};
 
 /// Heartbeat period: the consensus learns that a quiet agent is still alive.
 const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
@@ -110,8 +112,8 @@ pub struct SwarmLink {
     pending_hello: Option<WireIntrinsics>,
     /// Keyframes due while the link was down, oldest first.
     queue: BoundedQueue<WireKeyframe>,
-    /// The newest correction that arrived while the link was down.
-    held_correction: Option<Isometry3<f64>>,
+    /// Corrections that arrive while the link is down wait here (the newest only).
+    corrections: CorrectionGate<Isometry3<f64>>,
 }
 
 impl SwarmLink {
@@ -152,7 +154,7 @@ impl SwarmLink {
             plan,
             link_up,
             pending_hello: None,
-            held_correction: None,
+            corrections: CorrectionGate::default(),
         })
     }
 
@@ -384,10 +386,10 @@ impl SwarmLink {
         Ok(())
     }
 
-    /// Takes every pending correction. With the link up, the newest is applied (after any held
-    /// one); with it down, the newest is held and replaces older held ones.
+    /// Takes every pending correction. With the link up, the held one (if any) and then the
+    /// newest are applied; with it down, the newest is held and replaces older held ones.
     fn receive_corrections(&mut self, link_up: bool) {
-        if link_up && let Some(held) = self.held_correction.take() {
+        if link_up && let Some(held) = self.corrections.release() {
             tracing::info!(
                 translation_m = held.translation.vector.norm(),
                 "correction held while the link was down applied"
@@ -397,22 +399,24 @@ impl SwarmLink {
         loop {
             match self.link.try_recv_correction() {
                 Ok(Some(correction)) => {
-                    let header = correction.header();
-                    let world_from_agent = header.agent_world_to_world.to_isometry();
+                    let world_from_agent = correction.header().agent_world_to_world.to_isometry();
                     self.summary.corrections_received += 1;
-                    if link_up {
-                        tracing::info!(
-                            keyframes = correction.poses().len(),
-                            translation_m = world_from_agent.translation.vector.norm(),
-                            "correction received"
-                        );
-                        self.world_from_agent = Some(world_from_agent);
-                    } else {
-                        self.summary.link.corrections_held += 1;
-                        if self.held_correction.replace(world_from_agent).is_some() {
-                            self.summary.link.corrections_superseded += 1;
+                    match self.corrections.arrive(world_from_agent, link_up) {
+                        CorrectionArrival::Apply(world_from_agent) => {
+                            tracing::info!(
+                                keyframes = correction.poses().len(),
+                                translation_m = world_from_agent.translation.vector.norm(),
+                                "correction received"
+                            );
+                            self.world_from_agent = Some(world_from_agent);
                         }
-                        tracing::debug!("correction held until the link is up");
+                        CorrectionArrival::Held { superseded } => {
+                            self.summary.link.corrections_held += 1;
+                            if superseded {
+                                self.summary.link.corrections_superseded += 1;
+                            }
+                            tracing::debug!("correction held until the link is up");
+                        }
                     }
                 }
                 Ok(None) => break,
