@@ -3,19 +3,23 @@
 # waits for all of them, and writes the run's figures.
 #
 #   scripts/launch_swarm.sh [--config FILE] [--agents N] [--agent DATASET[:FIRST..END]]...
-#                           [--tcomm K] [--noise rgb|depth|rgbd] [--frames N]
-#                           [--descriptor-weights FILE] [--out DIR]
+#                           [--tcomm K] [--link-schedule FILE] [--noise rgb|depth|rgbd]
+#                           [--frames N] [--descriptor-weights FILE] [--out DIR]
 #
 # With no arguments: the embedded synthetic scene, 3 agents (synthetic:agents=3,agent=K).
 # --agent repeats, one dataset (and frame range) per agent; agent K is the K-th --agent.
+# --link-schedule FILE simulates intermittent links: per agent, the time windows in which it can
+# talk to the consensus; what it publishes meanwhile is queued and delivered at reconnect (the
+# format is documented in agent/src/link_schedule.rs). The file is checked before anything starts.
 # Ctrl-C is forwarded to every process; each still writes its outputs. A child that dies is
-# reported, and every child is reaped (a dead, unreaped child would keep its shared-memory slots).
+# reported at once, and every child is reaped (a dead, unreaped child would keep its shared-memory
+# slots); when agents failed, the consensus is stopped once the others are done.
+# On a terminal, one line shows the progress: frames, keyframes, link state, closures.
 #
 # Output (DIR, default out/swarm): agent_K/ (each agent's own outputs, its frame), agent_K.tum
 # (world frame), map.ply (merged world map), consensus.json, metrics.json, *.log.
-#
-# Not yet: --link-schedule (intermittent links) and report.html; see issue 7.
 set -euo pipefail
+shopt -s checkwinsize
 cd "$(dirname "$0")/.."
 
 config=configs/synthetic.toml
@@ -26,9 +30,10 @@ frames=200
 out=out/swarm
 weights="${MAC_EGO3D_SHARED:-../shared}/weights/lpips/alexnet.npz"
 specs=()
+link_schedule=""
 profile="${MAC_EGO3D_PROFILE:-release}"
 
-usage() { sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,21p' "$0" | sed 's/^# \{0,1\}//'; }
 while (($#)); do
   case "$1" in
     --config) config="$2"; shift 2 ;;
@@ -39,8 +44,7 @@ while (($#)); do
     --frames) frames="$2"; shift 2 ;;
     --descriptor-weights) weights="$2"; shift 2 ;;
     --out) out="$2"; shift 2 ;;
-    --link-schedule)
-      echo "[swarm] --link-schedule is not implemented yet (issue 7)" >&2; exit 2 ;;
+    --link-schedule) link_schedule="$2"; shift 2 ;;
     -h | --help) usage; exit 0 ;;
     *) echo "[swarm] unknown argument: $1" >&2; usage >&2; exit 2 ;;
   esac
@@ -49,6 +53,8 @@ if ((${#specs[@]})); then
   agents=${#specs[@]}
 fi
 [[ -f "$config" ]] || { echo "[swarm] --config $config: no such file" >&2; exit 2; }
+[[ -z "$link_schedule" || -f "$link_schedule" ]] ||
+  { echo "[swarm] --link-schedule $link_schedule: no such file" >&2; exit 2; }
 
 bash scripts/setup.sh
 if [[ "$profile" == release ]]; then
@@ -90,6 +96,15 @@ else
   echo "[swarm] no descriptor weights at $weights: agents use the classical descriptor" >&2
 fi
 
+schedule_args=()
+if [[ -n "$link_schedule" ]]; then
+  # Kept with the outputs, like config.toml; checked once here rather than failing in every agent.
+  run_schedule="$out/link_schedule.toml"
+  [[ "$link_schedule" -ef "$run_schedule" ]] || cp "$link_schedule" "$run_schedule"
+  "$bin/mac-agent" --link-schedule "$run_schedule" --check-link-schedule "$agents" | sed 's/^/[swarm] /'
+  schedule_args=(--link-schedule "$run_schedule")
+fi
+
 # One namespace per run, so two runs on one host never share services.
 namespace="mac$$"
 pids=()
@@ -97,7 +112,14 @@ names=()
 cleanup() {
   for pid in "${pids[@]}"; do kill -TERM "$pid" 2>/dev/null || true; done
 }
-trap 'echo "[swarm] interrupted: stopping every process (each writes its outputs)" >&2; cleanup' INT TERM
+show_progress=0
+[[ -t 1 ]] && show_progress=1
+# Erases the progress line before a message is printed.
+clear_progress() { if ((show_progress)); then printf '\r\033[K'; fi; }
+trap 'clear_progress; echo "[swarm] interrupted: stopping every process (each writes its outputs)" >&2; cleanup' INT TERM
+
+# Progress files of the previous run in this folder would show stale figures.
+rm -f "$out"/agent_*/progress.json "$out/consensus_progress.json"
 
 "$bin/mac-consensus" --config "$run_config" --out "$out" --agents "$agents" \
   --namespace "$namespace" >"$out/consensus.log" 2>&1 &
@@ -120,28 +142,115 @@ for ((k = 0; k < agents; k++)); do
     range=".."
   fi
   "$bin/mac-agent" --config "$run_config" --dataset "$dataset" --frames "$range" --agent-id "$k" \
-    --namespace "$namespace" --out "$out/agent_$k" "${weight_args[@]}" \
+    --namespace "$namespace" --out "$out/agent_$k" "${weight_args[@]}" "${schedule_args[@]}" \
     >"$out/agent_$k.log" 2>&1 &
   pids+=($!)
   names+=("agent $k")
   echo "[swarm] agent $k: $dataset ($range), log $out/agent_$k.log"
 done
 
-# Reap every child; report the ones that failed.
-failed=0
-for i in "${!pids[@]}"; do
-  status=0
-  while true; do
-    wait "${pids[$i]}" && status=0 || status=$?
-    # 128+ from `wait` itself when a trapped signal interrupted it: wait again.
-    if ((status > 128)) && kill -0 "${pids[$i]}" 2>/dev/null; then continue; fi
-    break
+# Reads a flat JSON object from FILE into `json` (values unquoted); leaves it empty when the file
+# is missing or incomplete. Builtins only: this runs every second.
+declare -A json=()
+read_json() {
+  json=()
+  [[ -r "$1" ]] || return 0
+  local text="" pair='"([a-z_]+)":[[:space:]]*("[^"]*"|[-+.eE0-9]+|true|false|null)'
+  IFS= read -r -d '' text <"$1" || true
+  [[ "$text" =~ \}[[:space:]]*$ ]] || return 0
+  while [[ "$text" =~ $pair ]]; do
+    json[${BASH_REMATCH[1]}]=${BASH_REMATCH[2]//\"/}
+    text=${text#*"${BASH_REMATCH[0]}"}
   done
-  if ((status != 0)); then
-    echo "[swarm] ${names[$i]} exited with status $status; see its log in $out" >&2
-    failed=1
+}
+
+# One line: per agent frames (of the total), keyframes, link state; the consensus's keyframes,
+# closures and pending alignments once it writes consensus_progress.json. When the line is wider
+# than the terminal, the agents' part is abbreviated (0:120/200,8kf).
+progress_line() {
+  local full=() short=() k text brief
+  for ((k = 0; k < agents; k++)); do
+    read_json "$out/agent_$k/progress.json"
+    if [[ -z "${json[frames_done]:-}" ]]; then
+      full+=("agent $k: starting")
+      short+=("$k:starting")
+      continue
+    fi
+    text="agent $k: ${json[frames_done]}"
+    brief="$k:${json[frames_done]}"
+    if [[ "${json[frames_total]:-null}" != null ]]; then
+      text+="/${json[frames_total]}"
+      brief+="/${json[frames_total]}"
+    fi
+    text+=" f, ${json[keyframes]:-0} kf"
+    brief+=",${json[keyframes]:-0}kf"
+    if [[ "${json[link_up]:-}" == false ]]; then
+      text+=", link down (${json[queued_keyframes]:-0} queued)"
+      brief+=",down"
+    fi
+    case "${json[stage]:-}" in
+      finishing) text+=", finishing" brief+=",fin" ;;
+      done) text+=", done" brief+=",done" ;;
+    esac
+    full+=("$text")
+    short+=("$brief")
+  done
+  local consensus=""
+  read_json "$out/consensus_progress.json"
+  if [[ -n "${json[keyframes]:-}" ]]; then
+    consensus=" | consensus: ${json[keyframes]} kf, ${json[closures_verified]:-0} closures"
+    [[ -z "${json[inter_agent_closures]:-}" ]] || consensus+=" (${json[inter_agent_closures]} inter-agent)"
+    [[ "${json[pending_alignments]:-0}" == 0 ]] || consensus+=", ${json[pending_alignments]} aligning"
   fi
+  local line="${full[0]}" part
+  for part in "${full[@]:1}"; do line+=" | $part"; done
+  line+="$consensus"
+  # checkwinsize (set at the top) sets COLUMNS after external commands.
+  local width=$((${COLUMNS:-80} - 1))
+  if ((${#line} > width)); then
+    line="agents ${short[*]}$consensus"
+  fi
+  printf '\r%s\033[K' "${line:0:width}"
+}
+
+# Wait for every child, reaping each as it ends and reporting a failure at once; poll once a
+# second (a trapped Ctrl-C interrupts the wait at once, so forwarding is never delayed).
+declare -A exit_status=()
+failed=0
+agents_failed=0
+stopping_consensus=0
+while ((${#exit_status[@]} < ${#pids[@]})); do
+  for i in "${!pids[@]}"; do
+    [[ -z "${exit_status[$i]:-}" ]] || continue
+    # bash reaps ended children in the background and keeps their status for `wait`.
+    if kill -0 "${pids[$i]}" 2>/dev/null; then continue; fi
+    status=0
+    wait "${pids[$i]}" || status=$?
+    exit_status[$i]=$status
+    if ((status != 0)); then
+      clear_progress
+      echo "[swarm] ${names[$i]} exited with status $status; see its log in $out" >&2
+      failed=1
+      ((i == 0)) || agents_failed=1
+    fi
+  done
+  # The consensus waits for every agent's goodbye; a failed agent may never send one.
+  if ((agents_failed && !stopping_consensus && ${#exit_status[@]} == ${#pids[@]} - 1)) &&
+    [[ -z "${exit_status[0]:-}" ]]; then
+    clear_progress
+    echo "[swarm] every agent has ended, some failed: stopping the consensus (it writes its outputs)" >&2
+    kill -TERM "${pids[0]}" 2>/dev/null || true
+    stopping_consensus=1
+  fi
+  ((${#exit_status[@]} < ${#pids[@]})) || break
+  ((show_progress)) && progress_line
+  sleep 1 &
+  wait $! 2>/dev/null || true
 done
+if ((show_progress)); then
+  progress_line
+  printf '\n'
+fi
 
 "$bin/mac-ego3d" eval swarm --dir "$out" "${eval_args[@]}" || failed=1
 exit "$failed"
