@@ -42,13 +42,13 @@ const FONT_FAMILY: &str = "sans-serif";
 const TCOMM_COLUMN: &str = "t_comm";
 
 /// A plotted column: its CSV name, the chart's title, the y axis label, the factor from the
-/// CSV's unit to the label's, and the decimals of its tick labels.
+/// CSV's unit to the label's, and whether its values are whole numbers (counts).
 struct Figure {
     column: &'static str,
     title: &'static str,
     y_label: &'static str,
     scale: f64,
-    decimals: usize,
+    whole_numbers: bool,
 }
 
 const FIGURES: [Figure; 6] = [
@@ -57,42 +57,42 @@ const FIGURES: [Figure; 6] = [
         title: "Joint ATE RMSE",
         y_label: "cm",
         scale: 100.0,
-        decimals: 2,
+        whole_numbers: false,
     },
     Figure {
         column: "psnr",
         title: "Merged-map PSNR",
         y_label: "dB",
         scale: 1.0,
-        decimals: 1,
+        whole_numbers: false,
     },
     Figure {
         column: "bytes_per_agent_per_s",
         title: "Data sent per agent",
         y_label: "kB/s",
         scale: 1e-3,
-        decimals: 0,
+        whole_numbers: false,
     },
     Figure {
         column: "consensus_latency_ms_median",
         title: "Consensus latency (median)",
         y_label: "ms",
         scale: 1.0,
-        decimals: 0,
+        whole_numbers: false,
     },
     Figure {
         column: "fps_per_agent_mean",
         title: "Frames per second per agent",
         y_label: "frames/s",
         scale: 1.0,
-        decimals: 2,
+        whole_numbers: false,
     },
     Figure {
         column: "loop_closures_accepted",
         title: "Loop closures accepted",
         y_label: "count",
         scale: 1.0,
-        decimals: 0,
+        whole_numbers: true,
     },
 ];
 
@@ -115,6 +115,8 @@ const LOG_AXIS_MARGIN_FACTOR: f64 = 1.25;
 const Y_PADDING_FRACTION: f64 = 0.1;
 /// Half-height of the y range when every value is the same.
 const FLAT_Y_HALF_SPAN: f64 = 1.0;
+/// Tick labels on the y axis (about; plotters rounds the step to a 1-2-5 value).
+const Y_LABELS: usize = 6;
 
 /// Size of the image for `FIGURES`.
 pub fn image_size() -> (u32, u32) {
@@ -220,16 +222,17 @@ fn parse_cell(text: &str) -> Result<Option<f64>, String> {
     }
 }
 
-/// Fonts registered so far: plotters keeps a `'static` reference to the bytes, so each file is
-/// read (and its bytes leaked) once per process, however often a chart is drawn.
-static REGISTERED_FONTS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+/// The font file registered last (the one charts are drawn with). plotters keeps a `'static`
+/// reference to the bytes, so they are leaked: drawing again with the same font reads nothing and
+/// leaks nothing more.
+static REGISTERED_FONT: Mutex<Option<PathBuf>> = Mutex::new(None);
 
 /// Makes `path` the font charts are drawn with.
 pub fn register_font(path: &Path) -> anyhow::Result<()> {
-    let mut registered = REGISTERED_FONTS
+    let mut registered = REGISTERED_FONT
         .lock()
         .map_err(|_| anyhow!("font registry poisoned"))?;
-    if registered.last().is_some_and(|p| p == path) {
+    if registered.as_deref() == Some(path) {
         return Ok(());
     }
     if !path.is_file() {
@@ -243,7 +246,7 @@ pub fn register_font(path: &Path) -> anyhow::Result<()> {
     let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
     plotters::style::register_font(FONT_FAMILY, FontStyle::Normal, bytes)
         .map_err(|_| anyhow!("{}: not a TrueType/OpenType font", path.display()))?;
-    registered.push(path.to_path_buf());
+    *registered = Some(path.to_path_buf());
     Ok(())
 }
 
@@ -263,7 +266,24 @@ fn segments(t_comm: &[f64], values: &[Option<f64>], scale: f64) -> Vec<Vec<(f64,
     segments
 }
 
-fn y_range(points: &[(f64, f64)]) -> std::ops::Range<f64> {
+/// The y range of a chart; a count's range spans at least one unit per tick label, so no tick
+/// falls between two whole numbers.
+fn y_range(points: &[(f64, f64)], whole_numbers: bool) -> std::ops::Range<f64> {
+    let range = data_y_range(points);
+    let min_span = if whole_numbers { Y_LABELS as f64 } else { 0.0 };
+    let extra = (min_span - (range.end - range.start)).max(0.0);
+    // Counts are never negative: a count's range grows upwards only.
+    range.start..range.end + extra
+}
+
+/// Decimals that tell the y tick labels apart (0.05 steps -> 2, steps of 2 -> 0).
+fn label_decimals(range: &std::ops::Range<f64>) -> usize {
+    let rough_step = (range.end - range.start) / Y_LABELS as f64;
+    (-rough_step.log10().floor()).max(0.0) as usize
+}
+
+/// The values' range with a margin (a unit-free default when there is no value or one).
+fn data_y_range(points: &[(f64, f64)]) -> std::ops::Range<f64> {
     let (min, max) = points
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
@@ -295,6 +315,7 @@ fn draw_panel(
     let first = t_comm.first().copied().unwrap_or(1.0);
     let last = t_comm.last().copied().unwrap_or(1.0);
     let x_range = (first / LOG_AXIS_MARGIN_FACTOR)..(last * LOG_AXIS_MARGIN_FACTOR);
+    let y_range = y_range(&points, figure.whole_numbers);
     let caption = if points.is_empty() {
         format!("{} (not measured)", figure.title)
     } else {
@@ -308,16 +329,18 @@ fn draw_panel(
         // Ticks at the T_comm values that were run, not at powers of ten.
         .build_cartesian_2d(
             x_range.log_scale().with_key_points(t_comm.to_vec()),
-            y_range(&points),
+            y_range.clone(),
         )
         .map_err(|e| draw_error(figure.title, e))?;
     let x_label = |t: &f64| format!("{t:.0}");
-    let y_label = |v: &f64| format!("{v:.*}", figure.decimals);
+    let decimals = label_decimals(&y_range);
+    let y_label = |v: &f64| format!("{v:.decimals$}");
     chart
         .configure_mesh()
         .x_desc("T_comm (frames)")
         .y_desc(figure.y_label)
         .x_label_formatter(&x_label)
+        .y_labels(Y_LABELS)
         .y_label_formatter(&y_label)
         .label_style((FONT_FAMILY, LABEL_FONT_SIZE))
         // Only the major grid: the minor lines of a log axis crowd a small chart.
@@ -428,6 +451,18 @@ mod tests {
         assert!(no_tcomm.contains("column 1 (t_comm)"), "{no_tcomm}");
         assert!(error("").contains("empty"));
         assert!(error(&format!("{HEADER}\n")).contains("no data rows"));
+    }
+
+    #[test]
+    fn counts_get_whole_number_ticks() {
+        let few = [(15.0, 0.0), (30.0, 1.0)];
+        let range = y_range(&few, true);
+        assert!(range.end - range.start >= Y_LABELS as f64);
+        assert_eq!(label_decimals(&range), 0);
+        assert_eq!(
+            label_decimals(&y_range(&[(15.0, 0.8), (30.0, 1.1)], false)),
+            2
+        );
     }
 
     #[test]
