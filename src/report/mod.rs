@@ -73,6 +73,13 @@ fn run_section(dir: &Path, ids: &[u32], consensus: Option<&Value>) -> String {
             "The run was interrupted: the figures cover what was done before the stop.",
         ));
     }
+    // mac-consensus writes snapshots on request while the run goes on (SIGUSR1).
+    if consensus.is_some_and(|c| c["snapshot"].as_bool() == Some(true)) {
+        body.push_str(&note(
+            "consensus.json is a snapshot taken while the run was still going: the run may \
+             have done more since.",
+        ));
+    }
     let config = dir.join("config.toml");
     match std::fs::read_to_string(&config) {
         Ok(text) => body.push_str(&details(

@@ -241,6 +241,23 @@ fn missing_agents_and_ground_truth_are_named_not_fatal() {
 }
 
 #[test]
+fn snapshots_and_interrupted_runs_say_so() {
+    let dir = tempfile::tempdir().unwrap();
+    complete_run(dir.path());
+    let mut consensus = consensus_json(&[0, 1]);
+    consensus["snapshot"] = serde_json::json!(true);
+    consensus["interrupted"] = serde_json::json!(true);
+    write_json(&dir.path().join("consensus.json"), &consensus);
+    let html = build_report(dir.path());
+    let run = section_of(&html, "run");
+    assert!(
+        run.contains("snapshot taken while the run was still going"),
+        "{run}"
+    );
+    assert!(run.contains("The run was interrupted"), "{run}");
+}
+
+#[test]
 fn an_empty_directory_still_gets_a_report() {
     let dir = tempfile::tempdir().unwrap();
     let html = std::fs::read_to_string(write_report(dir.path()).unwrap()).unwrap();
