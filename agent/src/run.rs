@@ -19,6 +19,7 @@ use slam_core::config::Config;
 use slam_core::dataset::{self, Dataset, FrameRange};
 use slam_core::metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate};
 use slam_core::metrics::lpips::Lpips;
+use slam_core::metrics::stats::{median, quantile};
 use slam_core::registration::odometry::{Odometry, OdometryMode, TrackingOutcome};
 use slam_core::trajectory::Trajectory;
 
@@ -400,8 +401,8 @@ pub fn run_agent(
         tracking_keyframes,
         mapping_keyframes,
         gaussians: outcome.realtime_map.len(),
-        tracking_ms_median: percentile(&tracking_ms, 0.5),
-        tracking_ms_p90: percentile(&tracking_ms, 0.9),
+        tracking_ms_median: median(&tracking_ms).unwrap_or(0.0),
+        tracking_ms_p90: quantile(&tracking_ms, 0.9).unwrap_or(0.0),
         mapping_iters_per_s: outcome.realtime.iterations_per_second(),
         mapping_iters: outcome.realtime.iterations,
         fps: if loop_seconds > 0.0 {
@@ -519,17 +520,6 @@ fn map_metrics(quality: &QualitySummary, gaussians: usize, stats: &MappingStats)
     }
 }
 
-/// The `q`-quantile (nearest rank) of `values`; 0 when empty.
-pub fn percentile(values: &[f64], q: f64) -> f64 {
-    if values.is_empty() {
-        return 0.0;
-    }
-    let mut sorted = values.to_vec();
-    sorted.sort_by(f64::total_cmp);
-    let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
-    sorted[rank - 1]
-}
-
 /// Peak resident set size of this process (Linux `VmHWM`), MiB.
 pub fn peak_rss_mib() -> Option<f64> {
     const KIB_PER_MIB: f64 = 1024.0;
@@ -595,17 +585,4 @@ pub fn metrics_table(metrics: &AgentMetrics) -> String {
     rows.iter()
         .map(|(k, v)| format!("  {k:<width$}  {v:>12}\n"))
         .collect()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn percentile_uses_nearest_rank() {
-        let values = [5.0, 1.0, 3.0, 2.0, 4.0];
-        assert_eq!(percentile(&values, 0.5), 3.0);
-        assert_eq!(percentile(&values, 0.9), 5.0);
-        assert_eq!(percentile(&[], 0.5), 0.0);
-    }
 }

@@ -27,6 +27,7 @@ use protocol::transport::{ConsumerLink, Incoming, TransportConfig};
 use render_core::types::GaussianCloud;
 use serde::Serialize;
 use slam_core::config::Config;
+use slam_core::metrics::stats::median;
 use slam_core::se3::isometry_to_tum;
 use slam_core::trajectory::Trajectory;
 
@@ -573,15 +574,6 @@ fn send_corrections(
             }
         }
     }
-}
-
-fn median(values: &[f64]) -> Option<f64> {
-    if values.is_empty() {
-        return None;
-    }
-    let mut sorted = values.to_vec();
-    sorted.sort_by(f64::total_cmp);
-    Some(sorted[sorted.len() / 2])
 }
 
 /// The agent's own per-frame trajectory (its frame), written by the agent next to ours.

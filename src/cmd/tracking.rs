@@ -11,6 +11,7 @@ use serde::Serialize;
 use slam_core::config::Config;
 use slam_core::dataset::{self, FrameRange};
 use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, ate};
+use slam_core::metrics::stats::{median, quantile};
 use slam_core::registration::{Odometry, OdometryMode, TrackingOutcome};
 use slam_core::trajectory::Trajectory;
 
@@ -60,23 +61,6 @@ struct TrackingReport {
     reinitialisations: usize,
     keyframes: usize,
     map_points: usize,
-}
-
-/// Value at quantile `q` (0..=1) of sorted values, nearest-rank.
-fn quantile(sorted: &[f64], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let rank = (q * sorted.len() as f64).ceil().max(1.0) as usize;
-    sorted[rank.min(sorted.len()) - 1]
-}
-
-fn median(sorted: &[f64]) -> f64 {
-    match sorted.len() {
-        0 => f64::NAN,
-        n if n % 2 == 1 => sorted[n / 2],
-        n => 0.5 * (sorted[n / 2 - 1] + sorted[n / 2]),
-    }
 }
 
 pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
@@ -138,11 +122,8 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         tracing::warn!("{spec}: no ground truth, ATE not computed");
         None
     };
-    times_ms.sort_by(f64::total_cmp);
-    iterations.sort_by(f64::total_cmp);
-    for stage in &mut stage_ms {
-        stage.sort_by(f64::total_cmp);
-    }
+    // An empty run has no timings: NaN prints as such in the table and as null in the JSON.
+    let median_or_nan = |values: &[f64]| median(values).unwrap_or(f64::NAN);
     let stats = odometry.stats();
     let report = TrackingReport {
         dataset: ds.describe(),
@@ -150,13 +131,13 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         threads: slam_core::registration::worker_threads(),
         frames: estimate.len(),
         points_per_frame: points as f64 / estimate.len().max(1) as f64,
-        tracking_ms_median: median(&times_ms),
-        tracking_ms_p90: quantile(&times_ms, 0.9),
-        tracking_ms_max: times_ms.last().copied().unwrap_or(f64::NAN),
-        points_ms_median: median(&stage_ms[0]),
-        registration_ms_median: median(&stage_ms[1]),
-        map_update_ms_median: median(&stage_ms[2]),
-        iterations_median: median(&iterations),
+        tracking_ms_median: median_or_nan(&times_ms),
+        tracking_ms_p90: quantile(&times_ms, 0.9).unwrap_or(f64::NAN),
+        tracking_ms_max: quantile(&times_ms, 1.0).unwrap_or(f64::NAN),
+        points_ms_median: median_or_nan(&stage_ms[0]),
+        registration_ms_median: median_or_nan(&stage_ms[1]),
+        map_update_ms_median: median_or_nan(&stage_ms[2]),
+        iterations_median: median_or_nan(&iterations),
         ate_rmse_m: ate_stats.map(|s| s.rmse),
         ate_mean_m: ate_stats.map(|s| s.mean),
         failures: stats.failures,

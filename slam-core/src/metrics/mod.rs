@@ -1,10 +1,12 @@
 //! Evaluation metrics (SPEC section 7): trajectory error ([`ate`]), image quality ([`image`]:
-//! PSNR, SSIM; [`lpips`]: LPIPS AlexNet v0.1) and depth error ([`depth`]).
+//! PSNR, SSIM; [`lpips`]: LPIPS AlexNet v0.1), depth error ([`depth`]), and the summary
+//! statistics every run-time report uses ([`stats`]).
 
 pub mod ate;
 pub mod depth;
 pub mod image;
 pub mod lpips;
+pub mod stats;
 
 /// Errors of metric computations on well-formed but unusable input.
 #[derive(Debug, thiserror::Error, PartialEq)]
