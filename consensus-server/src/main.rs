@@ -30,8 +30,8 @@ struct Args {
     /// Output directory (agents write theirs to DIR/agent_K).
     #[arg(long, default_value = "out/swarm")]
     out: PathBuf,
-    /// Agents 0..N to wait for; the run ends when all of them said goodbye. Without it the
-    /// consensus runs until SIGINT / SIGTERM.
+    /// Agents 0..N to wait for, and the swarm's agent-id range; the run ends when all of them
+    /// said goodbye. Without it the consensus runs until SIGINT / SIGTERM (ids 0..8).
     #[arg(long)]
     agents: Option<u32>,
     /// iceoryx2 service namespace shared by the swarm's processes.
@@ -54,7 +54,7 @@ fn main() -> anyhow::Result<()> {
     };
     let options = ConsensusOptions {
         config,
-        transport: TransportConfig::with_namespace(args.namespace.clone()),
+        transport: TransportConfig::for_swarm(args.namespace.clone(), args.agents),
         out: args.out.clone(),
         expected_agents: args.agents,
     };

@@ -8,7 +8,13 @@
 //! Design choices, and why:
 //! - **Service limits from the config.** iceoryx2's defaults (2 publishers, 20 nodes per service)
 //!   break a swarm; every service is opened with limits derived from [`TransportConfig`], so all
-//!   processes of a swarm must use the same config (a mismatch is a clear `Service` error).
+//!   processes of a swarm must use the same queue depths and consumer count (a mismatch is a
+//!   clear `Service` error).
+//! - **Agent count.** The agent-id range `0..max_agents` may differ between processes: the
+//!   services shared by all agents (lifecycle, consumers' wake-up) are opened as their creator
+//!   sized them and carry its range as a service attribute, so the consensus can size the swarm
+//!   (`mac-consensus --agents N`) while agents keep the default, and an agent whose id is outside
+//!   the swarm's range is refused by name ([`TransportError::AgentIdOutsideSwarm`]).
 //! - **Duplicate agent ids.** Each agent-owned topic admits exactly one publisher, so a second
 //!   live process with the same id cannot create its publisher: [`TransportError::DuplicateAgent`].
 //! - **Delivery handshake.** iceoryx2 silently drops a sample sent before a subscriber is
@@ -56,11 +62,15 @@ use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::{
-    AllocationStrategy, BackpressureStrategy, EventId, IceoryxSend, Node, NodeBuilder, NodeName,
-    ServiceName, SignalHandlingMode, ZeroCopySend, ipc,
+    AllocationStrategy, AttributeVerifier, BackpressureStrategy, EventId, IceoryxSend, Node,
+    NodeBuilder, NodeName, ServiceName, SignalHandlingMode, ZeroCopySend, ipc,
 };
 use iceoryx2::sample::Sample;
-use iceoryx2::service::builder::publish_subscribe::Builder as PubSubBuilder;
+use iceoryx2::service::attribute::{AttributeKey, AttributeValue};
+use iceoryx2::service::builder::event::{EventOpenError, EventOpenOrCreateError};
+use iceoryx2::service::builder::publish_subscribe::{
+    Builder as PubSubBuilder, PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError,
+};
 use iceoryx2::service::port_factory::PortFactory as _;
 use iceoryx2::service::port_factory::event::PortFactory as EventService;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubService;
@@ -96,6 +106,20 @@ const AGENT_WAKE_EVENT_IDS: usize = 3;
 /// a sleep, not a spin.
 const FULL_QUEUE_RETRY: Duration = Duration::from_millis(1);
 
+/// Agent-id range of a swarm whose size is not known (a consensus started without `--agents`,
+/// tests): ids `0..DEFAULT_MAX_AGENTS`.
+pub const DEFAULT_MAX_AGENTS: u32 = 8;
+
+/// Service attribute on the shared lifecycle service that records the agent-id range the swarm
+/// was set up for (by whichever process created the service first), so that a process with
+/// another range joins without a service-limit mismatch and an agent outside the range is
+/// refused by name.
+const SWARM_MAX_AGENTS_ATTRIBUTE: &str = "mac.swarm.max_agents";
+
+/// Opening a shared service races with other processes creating or removing it; this many
+/// rounds of "open as it is, else open-or-create with our limits" settle any such race.
+const SHARED_SERVICE_OPEN_ATTEMPTS: usize = 4;
+
 /// Number of topics, for dense per-agent event ids on the consumers' wake service.
 const TOPIC_COUNT: usize = Topic::ALL.len();
 
@@ -108,7 +132,12 @@ const AGENT_SOURCES: usize = 3;
 pub struct TransportConfig {
     /// Service-name prefix; `mac` in production, unique per test run.
     pub namespace: String,
-    /// Agent ids are `0..max_agents`.
+    /// Agent ids are `0..max_agents`. A consumer listens to exactly these ids. The shared
+    /// services (lifecycle, consumers' wake-up) are sized for it by the process that creates
+    /// them first, and remember it: a process configured otherwise still joins, and an agent
+    /// whose id is outside the range the swarm was set up for is refused
+    /// ([`TransportError::AgentIdOutsideSwarm`]). Size it from the swarm's agent count where
+    /// it is known ([`TransportConfig::for_swarm`]); [`DEFAULT_MAX_AGENTS`] otherwise.
     pub max_agents: u32,
     /// Consumer processes (consensus + observers) that may attach to each topic.
     pub max_consumers: usize,
@@ -142,7 +171,7 @@ impl Default for TransportConfig {
     fn default() -> Self {
         Self {
             namespace: crate::services::DEFAULT_NAMESPACE.to_string(),
-            max_agents: 8,
+            max_agents: DEFAULT_MAX_AGENTS,
             max_consumers: 2,
             required_consumers: 1,
             delivery_timeout: Duration::from_secs(10),
@@ -167,6 +196,15 @@ impl TransportConfig {
         Self {
             namespace: namespace.into(),
             ..Self::default()
+        }
+    }
+
+    /// A config for a swarm of `agents` agents (ids `0..agents`) when the count is known, e.g.
+    /// `mac-consensus --agents N`; `None` keeps [`DEFAULT_MAX_AGENTS`].
+    pub fn for_swarm(namespace: impl Into<String>, agents: Option<u32>) -> Self {
+        Self {
+            max_agents: agents.unwrap_or(DEFAULT_MAX_AGENTS),
+            ..Self::with_namespace(namespace)
         }
     }
 
@@ -220,6 +258,17 @@ pub enum TransportError {
     InvalidConfig { reason: String },
     #[error("agent id {agent_id} is out of range: the swarm is configured for ids 0..{max_agents}")]
     AgentIdOutOfRange { agent_id: u32, max_agents: u32 },
+    #[error(
+        "agent id {agent_id} is outside the swarm in namespace '{namespace}': it was set up for \
+         agent ids 0..{swarm_max_agents} by the process that started it (usually \
+         mac-consensus --agents {swarm_max_agents}); use an id in that range or start the swarm \
+         for more agents"
+    )]
+    AgentIdOutsideSwarm {
+        agent_id: u32,
+        swarm_max_agents: u32,
+        namespace: String,
+    },
     #[error(
         "agent id {agent_id} is already used by a live process in namespace '{namespace}'; \
          give every agent its own id"
@@ -600,7 +649,8 @@ fn correction_limits(config: &TransportConfig) -> PubSubLimits {
 fn lifecycle_limits(config: &TransportConfig) -> PubSubLimits {
     let processes = config.max_agents as usize + config.max_consumers;
     PubSubLimits {
-        publishers: processes,
+        // Slack as for nodes: a restarted agent may come before its dead twin is cleaned up.
+        publishers: processes + NODE_SLACK,
         subscribers: config.max_consumers,
         nodes: processes + NODE_SLACK,
         queue_depth: config.lifecycle_queue_depth,
@@ -691,18 +741,104 @@ impl CorrectionService {
 }
 
 impl LifecycleService {
+    /// Opens the shared lifecycle service as its creator set it up, or creates it sized for
+    /// `config.max_agents` with that range recorded as an attribute. Returns the service and
+    /// the agent-id range of the swarm (the creator's `max_agents`).
     fn open(
         node: &Node<Ipc>,
         config: &TransportConfig,
-    ) -> Result<PubSubService<Ipc, Lifecycle, ()>, TransportError> {
+    ) -> Result<(PubSubService<Ipc, Lifecycle, ()>, u32), TransportError> {
         let name = config.names().lifecycle();
-        let builder = node
-            .service_builder(&service_name(&name)?)
-            .publish_subscribe::<Lifecycle>();
-        with_limits(builder, lifecycle_limits(config))
-            .open_or_create()
-            .map_err(|e| service_error(&name, e))
+        let service = service_name(&name)?;
+        let attribute_error = |e: &dyn Debug| TransportError::Service {
+            service: name.clone(),
+            reason: format!("attribute {SWARM_MAX_AGENTS_ATTRIBUTE}: {e:?}"),
+        };
+        let key =
+            AttributeKey::try_from(SWARM_MAX_AGENTS_ATTRIBUTE).map_err(|e| attribute_error(&e))?;
+        let ours = AttributeValue::try_from(config.max_agents.to_string().as_str())
+            .map_err(|e| attribute_error(&e))?;
+        let any_range = AttributeVerifier::new()
+            .require_key(&key)
+            .map_err(|e| attribute_error(&e))?;
+        let our_range = AttributeVerifier::new()
+            .require(&key, &ours)
+            .map_err(|e| attribute_error(&e))?;
+        let builder = || {
+            node.service_builder(&service)
+                .publish_subscribe::<Lifecycle>()
+        };
+        let opened = open_shared(
+            &name,
+            // No limits requested: a swarm set up for another agent count opens as it is.
+            || builder().open_with_attributes(&any_range),
+            |e| {
+                matches!(
+                    e,
+                    PublishSubscribeOpenError::DoesNotExist
+                        | PublishSubscribeOpenError::HangsInCreation
+                        | PublishSubscribeOpenError::IsMarkedForDestruction
+                )
+            },
+            || {
+                with_limits(builder(), lifecycle_limits(config))
+                    .open_or_create_with_attributes(&our_range)
+            },
+            |e| {
+                matches!(
+                    e,
+                    PublishSubscribeOpenOrCreateError::PublishSubscribeOpenError(_)
+                )
+            },
+        )?;
+        let swarm_max_agents = opened
+            .attributes()
+            .key_value(&key, 0)
+            .and_then(|value| value.to_string().parse::<u32>().ok())
+            .filter(|&agents| agents > 0)
+            .ok_or_else(|| TransportError::Service {
+                service: name.clone(),
+                reason: format!(
+                    "attribute {SWARM_MAX_AGENTS_ATTRIBUTE} is not a positive agent count: {:?}",
+                    opened.attributes()
+                ),
+            })?;
+        Ok((opened, swarm_max_agents))
     }
+}
+
+/// Opens a service shared by the whole swarm whose limits depend on the agent count: first as
+/// it exists (`open_as_it_is`, requesting no limits, so processes configured for different agent
+/// counts can meet), and only when it is absent (`is_absent`) with our own limits
+/// (`open_or_create_ours`, which handles concurrent creation). When that finds a service
+/// created meanwhile with other limits (`is_mismatch`), the next round opens it as it is.
+fn open_shared<S, OpenError: Debug, OpenOrCreateError: Debug>(
+    name: &str,
+    mut open_as_it_is: impl FnMut() -> Result<S, OpenError>,
+    is_absent: impl Fn(&OpenError) -> bool,
+    mut open_or_create_ours: impl FnMut() -> Result<S, OpenOrCreateError>,
+    is_mismatch: impl Fn(&OpenOrCreateError) -> bool,
+) -> Result<S, TransportError> {
+    let mut last_error = String::new();
+    for _ in 0..SHARED_SERVICE_OPEN_ATTEMPTS {
+        match open_as_it_is() {
+            Ok(service) => return Ok(service),
+            Err(e) if is_absent(&e) => {}
+            Err(e) => return Err(service_error(name, e)),
+        }
+        match open_or_create_ours() {
+            Ok(service) => return Ok(service),
+            Err(e) if is_mismatch(&e) => last_error = format!("{e:?}"),
+            Err(e) => return Err(service_error(name, e)),
+        }
+    }
+    Err(service_error(
+        name,
+        format!(
+            "still changing after {SHARED_SERVICE_OPEN_ATTEMPTS} attempts (processes creating \
+             and removing it at the same time); last error: {last_error}"
+        ),
+    ))
 }
 
 fn open_agent_wake(
@@ -719,16 +855,36 @@ fn open_agent_wake(
     )
 }
 
+/// The consumers' wake-up service is shared by all agents and sized by the agent count, so it
+/// is opened like the lifecycle service ([`open_shared`]).
 fn open_consumers_wake(
     node: &Node<Ipc>,
     config: &TransportConfig,
 ) -> Result<EventService<Ipc>, TransportError> {
-    open_event_service(
-        node,
-        &config.names().consumers_wake(),
-        config.max_agents as usize,
-        config.max_consumers,
-        config.max_agents as usize * TOPIC_COUNT,
+    let name = config.names().consumers_wake();
+    let service = service_name(&name)?;
+    let agents = config.max_agents as usize;
+    open_shared(
+        &name,
+        || node.service_builder(&service).event().open(),
+        |e| {
+            matches!(
+                e,
+                EventOpenError::DoesNotExist
+                    | EventOpenError::HangsInCreation
+                    | EventOpenError::IsMarkedForDestruction
+            )
+        },
+        || {
+            node.service_builder(&service)
+                .event()
+                .max_notifiers(agents + NODE_SLACK)
+                .max_listeners(config.max_consumers)
+                .max_nodes(agents + config.max_consumers + NODE_SLACK)
+                .event_id_max_value(agents * TOPIC_COUNT)
+                .open_or_create()
+        },
+        |e| matches!(e, EventOpenOrCreateError::EventOpenError(_)),
     )
 }
 
@@ -1067,6 +1223,15 @@ impl AgentLink {
         }
         let names = config.names();
         let node = create_node(&format!("mac-agent-{agent_id}"))?;
+        // Opened before the agent's own topics: an id outside the swarm must not leave them.
+        let (lifecycle_service, swarm_max_agents) = LifecycleService::open(&node, config)?;
+        if agent_id >= swarm_max_agents {
+            return Err(TransportError::AgentIdOutsideSwarm {
+                agent_id,
+                swarm_max_agents,
+                namespace: config.namespace.clone(),
+            });
+        }
 
         let descriptor_service = DescriptorService::open(&node, config, agent_id)?;
         let descriptor_name = names.descriptor(agent_id);
@@ -1124,7 +1289,6 @@ impl AgentLink {
                 other => port_error(&keyframe_image_name, "publisher", other),
             })?;
 
-        let lifecycle_service = LifecycleService::open(&node, config)?;
         let lifecycle_name = names.lifecycle();
         let lifecycle_publisher = lifecycle_service
             .publisher_builder()
@@ -1726,7 +1890,8 @@ impl ConsumerLink {
         config.validate()?;
         let names = config.names();
         let node = create_node(&format!("mac-consumer-{}", std::process::id()))?;
-        let lifecycle_service = LifecycleService::open(&node, config)?;
+        // The swarm's own range may differ from ours; we listen to exactly 0..max_agents.
+        let (lifecycle_service, _swarm_max_agents) = LifecycleService::open(&node, config)?;
         let lifecycle_name = names.lifecycle();
         let lifecycle = lifecycle_service
             .subscriber_builder()

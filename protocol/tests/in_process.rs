@@ -150,6 +150,72 @@ fn mismatched_service_limits_are_a_clear_error() {
     }
 }
 
+/// A consensus started for 2 agents sets the swarm's id range: an agent configured with the
+/// default range still joins with id 1 (no service-limit mismatch), and id 3 is refused by name.
+#[test]
+fn swarm_sized_by_the_consensus_admits_its_ids_and_refuses_others_clearly() {
+    let namespace = unique_namespace("swarmsize");
+    let swarm = TransportConfig::for_swarm(&namespace, Some(2));
+    assert_eq!(swarm.max_agents, 2);
+    let mut consumer = ConsumerLink::open(&swarm).unwrap();
+    let agent_config = TransportConfig::with_namespace(&namespace);
+    assert!(
+        agent_config.max_agents > 3,
+        "the agent's own range must allow id 3"
+    );
+    match AgentLink::open(&agent_config, 3) {
+        Err(
+            err @ TransportError::AgentIdOutsideSwarm {
+                agent_id: 3,
+                swarm_max_agents: 2,
+                ..
+            },
+        ) => {
+            let text = err.to_string();
+            assert!(text.contains("agent id 3"), "{text}");
+            assert!(text.contains("0..2"), "{text}");
+            assert!(text.contains(&namespace), "{text}");
+        }
+        Err(other) => panic!("unexpected error {other}"),
+        Ok(_) => panic!("agent id 3 must be refused by a swarm of 2"),
+    }
+    let mut agent = AgentLink::open(&agent_config, 1).unwrap();
+    agent.send_descriptor(&synthetic_descriptor(4)).unwrap();
+    let received = consumer
+        .recv_timeout(PROMPT)
+        .unwrap()
+        .expect("descriptor of agent 1");
+    assert_eq!(
+        (received.agent_id(), received.topic()),
+        (1, Topic::Descriptor)
+    );
+    // The consumer's own range is checked too.
+    assert!(matches!(
+        consumer.send_correction(2, Pose::IDENTITY, &[]),
+        Err(TransportError::AgentIdOutOfRange {
+            agent_id: 2,
+            max_agents: 2
+        })
+    ));
+}
+
+/// An agent that starts first sets up the shared services for its own (default) range; a
+/// consensus for a smaller swarm then joins without a limit mismatch.
+#[test]
+fn consensus_for_a_smaller_swarm_joins_after_an_agent() {
+    let namespace = unique_namespace("swarmlater");
+    let mut agent = AgentLink::open(&TransportConfig::with_namespace(&namespace), 0).unwrap();
+    let mut consumer =
+        ConsumerLink::open(&TransportConfig::for_swarm(&namespace, Some(1))).unwrap();
+    agent.send_descriptor(&synthetic_descriptor(0)).unwrap();
+    let received = consumer.recv_timeout(PROMPT).unwrap().expect("descriptor");
+    assert_eq!(received.agent_id(), 0);
+    assert_eq!(
+        TransportConfig::for_swarm(&namespace, None).max_agents,
+        protocol::transport::DEFAULT_MAX_AGENTS
+    );
+}
+
 #[test]
 fn round_trip_in_one_process_with_exact_accounting() {
     const RECORDS: usize = 70_000; // above the initial segment size: exercises growth
