@@ -187,7 +187,10 @@ impl Swarm {
     fn check(&self, metrics: &serde_json::Value) {
         for k in 0..2 {
             let world = self.dir.path().join(format!("agent_{k}.tum"));
-            assert!(world.exists(), "agent {k} was not placed in the world frame");
+            assert!(
+                world.exists(),
+                "agent {k} was not placed in the world frame"
+            );
             let poses = slam_core::trajectory::Trajectory::read_tum(&world).unwrap();
             assert_eq!(poses.len(), FRAMES, "agent {k}: one world pose per frame");
         }
