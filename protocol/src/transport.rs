@@ -40,11 +40,19 @@
 //! - **No busy waiting.** Receivers block on an iceoryx2 event listener (`timed_wait`), woken by
 //!   the sender's notification after each send; every wait is bounded by `wait_slice` so the
 //!   shutdown flag is seen promptly.
-//! - **Full queues.** Queues never overwrite (no silent loss): a sample that finds a consumer's
-//!   queue full is not delivered there (`DiscardData`), `send()` reports fewer recipients, and
-//!   the agent re-sends the same message (same sequence number; receivers drop duplicates) in
-//!   1 ms slices until `required_consumers` have it or `delivery_timeout` passes. This only
-//!   happens when a consumer falls behind by a whole queue.
+//! - **Full queues: a policy per topic** ([`FullQueuePolicy`], [`TransportConfig::full_queue`]).
+//!   `Block` (descriptors, keyframe images, patches; lifecycle always): the queue never
+//!   overwrites, so nothing is lost silently. A sample that finds a consumer's queue full is not
+//!   delivered there (`DiscardData`), `send()` reports fewer recipients, and the sender re-sends
+//!   the same message (same sequence number; receivers drop duplicates) in 1 ms sleeps until
+//!   `required_consumers` have it, or fails after `full_queue_timeout` with
+//!   [`TransportError::QueueFull`] (counted in [`TopicTraffic::full_queue_failures`]); a
+//!   shutdown request ends the wait. iceoryx2's own `RetryUntilDelivered` was not used: it has no
+//!   time bound. `NewestWins` (corrections): iceoryx2's safe overflow, the newest sample
+//!   replaces the oldest queued one, the send never waits and the receiver sees the replaced
+//!   messages as a gap. Right for corrections, each of which carries the whole current solution.
+//!   The policy is a property of the service, so all processes of a swarm must agree on it (a
+//!   mismatch is a clear `Service` error).
 //! - **Orderly goodbye.** iceoryx2 loses samples of a publisher that is gone before the
 //!   subscriber mapped its memory. So [`AgentLink::close`] sends `Goodbye` and waits until every
 //!   consumer that got it acknowledges, and a consumer holds back an agent's `Goodbye` until it
@@ -120,6 +128,9 @@ const SWARM_MAX_AGENTS_ATTRIBUTE: &str = "mac.swarm.max_agents";
 /// rounds of "open as it is, else open-or-create with our limits" settle any such race.
 const SHARED_SERVICE_OPEN_ATTEMPTS: usize = 4;
 
+/// The correction topic of an agent has exactly one subscriber: the agent.
+const CORRECTION_RECIPIENTS: usize = 1;
+
 /// Number of topics, for dense per-agent event ids on the consumers' wake service.
 const TOPIC_COUNT: usize = Topic::ALL.len();
 
@@ -148,7 +159,13 @@ pub struct TransportConfig {
     pub delivery_timeout: Duration,
     /// Longest single blocking wait, so a shutdown request is noticed within this time.
     pub wait_slice: Duration,
-    /// Per-consumer queue length of each topic (oldest sample overwritten when full).
+    /// What a send does when a consumer's queue of a topic is full (see [`FullQueuePolicy`]).
+    pub full_queue: FullQueuePolicies,
+    /// Longest wait of a [`FullQueuePolicy::Block`] send for room in a full queue before
+    /// [`TransportError::QueueFull`]: long enough to ride out a consumer stalled by a loaded
+    /// machine, short enough that one that stopped reading surfaces as an error.
+    pub full_queue_timeout: Duration,
+    /// Per-consumer queue length of each topic (what happens when it is full: `full_queue`).
     pub descriptor_queue_depth: usize,
     pub patch_queue_depth: usize,
     /// Keyframe images are large (1.8 MB at 640x480) and sent once per keyframe, so a short
@@ -176,6 +193,8 @@ impl Default for TransportConfig {
             required_consumers: 1,
             delivery_timeout: Duration::from_secs(10),
             wait_slice: Duration::from_millis(50),
+            full_queue: FullQueuePolicies::default(),
+            full_queue_timeout: Duration::from_secs(10),
             descriptor_queue_depth: 64,
             patch_queue_depth: 2,
             keyframe_image_queue_depth: 4,
@@ -247,8 +266,71 @@ impl TransportConfig {
         Ok(())
     }
 
+    /// Per-consumer queue length of `topic`.
+    pub fn queue_depth(&self, topic: Topic) -> usize {
+        match topic {
+            Topic::Descriptor => self.descriptor_queue_depth,
+            Topic::Patch => self.patch_queue_depth,
+            Topic::KeyframeImage => self.keyframe_image_queue_depth,
+            Topic::Correction => self.correction_queue_depth,
+            Topic::Lifecycle => self.lifecycle_queue_depth,
+        }
+    }
+
     fn names(&self) -> ServiceNames {
         ServiceNames::new(&self.namespace)
+    }
+}
+
+/// What a send does when a consumer's queue of the topic is full.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FullQueuePolicy {
+    /// Nothing is lost: the send waits (re-sending in 1 ms sleeps) until the consumer made
+    /// room, at most `full_queue_timeout`, then fails with [`TransportError::QueueFull`].
+    Block,
+    /// The send never waits: the newest message replaces the oldest queued one, and the
+    /// receiver sees the replaced ones as a gap in the sequence.
+    NewestWins,
+}
+
+/// [`FullQueuePolicy`] of each topic. Lifecycle messages always block: a hello or goodbye must
+/// never be overwritten.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct FullQueuePolicies {
+    /// Every descriptor is a keyframe the consensus must know: block.
+    pub descriptor: FullQueuePolicy,
+    /// Patches are map content (and the final map): block.
+    pub patch: FullQueuePolicy,
+    /// A keyframe image is needed to align its keyframe: block.
+    pub keyframe_image: FullQueuePolicy,
+    /// A correction carries the whole current solution for the agent, so a newer one
+    /// supersedes the older ones, and the consensus must not wait on a slow agent: newest wins.
+    pub correction: FullQueuePolicy,
+}
+
+impl Default for FullQueuePolicies {
+    fn default() -> Self {
+        Self {
+            descriptor: FullQueuePolicy::Block,
+            patch: FullQueuePolicy::Block,
+            keyframe_image: FullQueuePolicy::Block,
+            correction: FullQueuePolicy::NewestWins,
+        }
+    }
+}
+
+impl FullQueuePolicies {
+    /// The policy of `topic`; [`Topic::Lifecycle`] always blocks.
+    pub fn of(&self, topic: Topic) -> FullQueuePolicy {
+        match topic {
+            Topic::Descriptor => self.descriptor,
+            Topic::Patch => self.patch,
+            Topic::KeyframeImage => self.keyframe_image,
+            Topic::Correction => self.correction,
+            Topic::Lifecycle => FullQueuePolicy::Block,
+        }
     }
 }
 
@@ -303,6 +385,19 @@ pub enum TransportError {
         delivered: usize,
         required: usize,
     },
+    #[error(
+        "message {sequence} on '{service}' ({topic} topic): a consumer's queue stayed full for \
+         {waited:?} (reached {delivered} of {required} required receivers); the consumer is not \
+         reading fast enough"
+    )]
+    QueueFull {
+        service: String,
+        topic: Topic,
+        sequence: u64,
+        delivered: usize,
+        required: usize,
+        waited: Duration,
+    },
     #[error("could not loan {elements} elements on '{service}': {reason}")]
     Loan {
         service: String,
@@ -346,6 +441,8 @@ pub struct TopicTraffic {
     /// Sent only: bytes the transport copied from caller memory into shared memory. Zero for
     /// in-place builds ([`AgentLink::send_patch_with`]); receivers never copy.
     pub bytes_copied: u64,
+    /// Sent only: messages that failed with [`TransportError::QueueFull`] (not in `messages`).
+    pub full_queue_failures: u64,
     /// Received only: number of jumps in the sequence, and messages lost in them.
     pub gaps: u64,
     pub missed: u64,
@@ -574,6 +671,8 @@ struct PubSubLimits {
     nodes: usize,
     queue_depth: usize,
     held_samples: usize,
+    /// iceoryx2 safe overflow: a full queue drops its oldest sample ([`FullQueuePolicy::NewestWins`]).
+    safe_overflow: bool,
 }
 
 fn with_limits<P: Debug + IceoryxSend + ?Sized, H: Debug + ZeroCopySend>(
@@ -587,7 +686,7 @@ fn with_limits<P: Debug + IceoryxSend + ?Sized, H: Debug + ZeroCopySend>(
         .subscriber_max_buffer_size(limits.queue_depth)
         .subscriber_max_borrowed_samples(limits.held_samples)
         .history_size(0)
-        .enable_safe_overflow(false)
+        .enable_safe_overflow(limits.safe_overflow)
 }
 
 fn open_event_service(
@@ -626,13 +725,14 @@ fn port_error(name: &str, port: &'static str, error: impl Debug) -> TransportErr
 }
 
 /// Limits of the services an agent publishes on (one publisher: the agent itself).
-fn agent_topic_limits(config: &TransportConfig, queue_depth: usize) -> PubSubLimits {
+fn agent_topic_limits(config: &TransportConfig, topic: Topic) -> PubSubLimits {
     PubSubLimits {
         publishers: 1,
         subscribers: config.max_consumers,
         nodes: 1 + config.max_consumers + NODE_SLACK,
-        queue_depth,
+        queue_depth: config.queue_depth(topic),
         held_samples: config.max_held_samples,
+        safe_overflow: config.full_queue.of(topic) == FullQueuePolicy::NewestWins,
     }
 }
 
@@ -643,6 +743,7 @@ fn correction_limits(config: &TransportConfig) -> PubSubLimits {
         nodes: 1 + config.max_consumers + NODE_SLACK,
         queue_depth: config.correction_queue_depth,
         held_samples: config.max_held_samples,
+        safe_overflow: config.full_queue.of(Topic::Correction) == FullQueuePolicy::NewestWins,
     }
 }
 
@@ -655,6 +756,7 @@ fn lifecycle_limits(config: &TransportConfig) -> PubSubLimits {
         nodes: processes + NODE_SLACK,
         queue_depth: config.lifecycle_queue_depth,
         held_samples: config.max_held_samples,
+        safe_overflow: false,
     }
 }
 
@@ -674,12 +776,9 @@ impl DescriptorService {
         let builder = node
             .service_builder(&service_name(&name)?)
             .publish_subscribe::<KeyframeDescriptor>();
-        with_limits(
-            builder,
-            agent_topic_limits(config, config.descriptor_queue_depth),
-        )
-        .open_or_create()
-        .map_err(|e| service_error(&name, e))
+        with_limits(builder, agent_topic_limits(config, Topic::Descriptor))
+            .open_or_create()
+            .map_err(|e| service_error(&name, e))
     }
 }
 
@@ -694,12 +793,9 @@ impl PatchService {
             .service_builder(&service_name(&name)?)
             .publish_subscribe::<[GaussianRecord]>()
             .user_header::<PatchHeader>();
-        with_limits(
-            builder,
-            agent_topic_limits(config, config.patch_queue_depth),
-        )
-        .open_or_create()
-        .map_err(|e| service_error(&name, e))
+        with_limits(builder, agent_topic_limits(config, Topic::Patch))
+            .open_or_create()
+            .map_err(|e| service_error(&name, e))
     }
 }
 
@@ -714,12 +810,9 @@ impl KeyframeImageService {
             .service_builder(&service_name(&name)?)
             .publish_subscribe::<[RgbdPixel]>()
             .user_header::<KeyframeImageHeader>();
-        with_limits(
-            builder,
-            agent_topic_limits(config, config.keyframe_image_queue_depth),
-        )
-        .open_or_create()
-        .map_err(|e| service_error(&name, e))
+        with_limits(builder, agent_topic_limits(config, Topic::KeyframeImage))
+            .open_or_create()
+            .map_err(|e| service_error(&name, e))
     }
 }
 
@@ -1496,7 +1589,8 @@ impl AgentLink {
     }
 
     /// Sends with `send_once` until `required_consumers` received the message: waits for
-    /// consumers to attach first, then re-sends (same sequence) while their queues are full.
+    /// consumers to attach first, then applies the topic's [`FullQueuePolicy`]: with `Block`,
+    /// re-sends (same sequence) while a consumer's queue is full, up to `full_queue_timeout`.
     fn deliver(
         &self,
         topic: Topic,
@@ -1505,6 +1599,7 @@ impl AgentLink {
     ) -> Result<usize, TransportError> {
         self.await_consumers(topic)?;
         let required = self.config.required_consumers;
+        let policy = self.config.full_queue.of(topic);
         let start = Instant::now();
         loop {
             let delivered = send_once()?;
@@ -1512,17 +1607,32 @@ impl AgentLink {
                 self.notify_consumers(topic);
                 return Ok(delivered);
             }
+            let (attached, name) = self.attached(topic).unwrap_or((0, ""));
+            if attached < required {
+                // A consumer left after the handshake: wait for one as before the first send.
+                self.await_consumers(topic)?;
+                continue;
+            }
+            // Attached but not reached: its queue is full (a `NewestWins` queue never is, so
+            // there this is a consumer leaving right now; the next round tells).
             let waited = start.elapsed();
-            if waited >= self.config.delivery_timeout {
-                let name = self
-                    .attached(topic)
-                    .map_or("", |(_, name)| name)
-                    .to_string();
-                return Err(TransportError::Undelivered {
-                    service: name,
-                    sequence,
-                    delivered,
-                    required,
+            if waited >= self.config.full_queue_timeout {
+                let service = name.to_string();
+                return Err(match policy {
+                    FullQueuePolicy::Block => TransportError::QueueFull {
+                        service,
+                        topic,
+                        sequence,
+                        delivered,
+                        required,
+                        waited,
+                    },
+                    FullQueuePolicy::NewestWins => TransportError::Undelivered {
+                        service,
+                        sequence,
+                        delivered,
+                        required,
+                    },
                 });
             }
             // Wake the consumers again: they may be asleep with a full queue of older data.
@@ -1531,11 +1641,25 @@ impl AgentLink {
         }
     }
 
+    /// Counts a [`TransportError::QueueFull`] of `topic` in the bandwidth report.
+    fn count_full_queue(
+        &mut self,
+        topic: Topic,
+        result: Result<usize, TransportError>,
+    ) -> Result<usize, TransportError> {
+        if let Err(TransportError::QueueFull { .. }) = &result {
+            self.traffic
+                .row(self.agent_id, topic, Direction::Sent)
+                .full_queue_failures += 1;
+        }
+        result
+    }
+
     fn send_lifecycle(&mut self, mut message: Lifecycle) -> Result<SendReport, TransportError> {
         let sequence = self.lifecycle.take_sequence();
         message.stamp = self.stamp(sequence);
         let outbox = &self.lifecycle;
-        let delivered = self.deliver(Topic::Lifecycle, sequence, || {
+        let result = self.deliver(Topic::Lifecycle, sequence, || {
             let sample = outbox
                 .publisher
                 .loan_uninit()
@@ -1544,7 +1668,8 @@ impl AgentLink {
                 .write_payload(message)
                 .send()
                 .map_err(|e| send_error(&outbox.name, e))
-        })?;
+        });
+        let delivered = self.count_full_queue(Topic::Lifecycle, result)?;
         let bytes = size_of::<Lifecycle>();
         self.account_sent(Topic::Lifecycle, bytes, bytes);
         Ok(SendReport {
@@ -1577,7 +1702,7 @@ impl AgentLink {
         let mut message = *descriptor;
         message.stamp = self.stamp(sequence);
         let outbox = &self.descriptor;
-        let delivered = self.deliver(Topic::Descriptor, sequence, || {
+        let result = self.deliver(Topic::Descriptor, sequence, || {
             let sample = outbox
                 .publisher
                 .loan_uninit()
@@ -1586,7 +1711,8 @@ impl AgentLink {
                 .write_payload(message)
                 .send()
                 .map_err(|e| send_error(&outbox.name, e))
-        })?;
+        });
+        let delivered = self.count_full_queue(Topic::Descriptor, result)?;
         let bytes = size_of::<KeyframeDescriptor>();
         self.account_sent(Topic::Descriptor, bytes, bytes);
         Ok(SendReport {
@@ -1605,7 +1731,7 @@ impl AgentLink {
     ) -> Result<SendReport, TransportError> {
         let (sequence, header) = self.next_patch_header(keyframe_id, frame, records.len());
         let outbox = &self.patch;
-        let delivered = self.deliver(Topic::Patch, sequence, || {
+        let result = self.deliver(Topic::Patch, sequence, || {
             let mut sample = outbox
                 .publisher
                 .loan_slice_uninit(records.len())
@@ -1615,7 +1741,8 @@ impl AgentLink {
                 .write_from_slice(records)
                 .send()
                 .map_err(|e| send_error(&outbox.name, e))
-        })?;
+        });
+        let delivered = self.count_full_queue(Topic::Patch, result)?;
         Ok(self.account_patch(sequence, delivered, records.len(), size_of_val(records)))
     }
 
@@ -1631,7 +1758,7 @@ impl AgentLink {
     ) -> Result<SendReport, TransportError> {
         let (sequence, header) = self.next_patch_header(keyframe_id, frame, count);
         let outbox = &self.patch;
-        let delivered = self.deliver(Topic::Patch, sequence, || {
+        let result = self.deliver(Topic::Patch, sequence, || {
             let mut sample = outbox
                 .publisher
                 .loan_slice_uninit(count)
@@ -1641,7 +1768,8 @@ impl AgentLink {
                 .write_from_fn(&mut build)
                 .send()
                 .map_err(|e| send_error(&outbox.name, e))
-        })?;
+        });
+        let delivered = self.count_full_queue(Topic::Patch, result)?;
         Ok(self.account_patch(sequence, delivered, count, 0))
     }
 
@@ -1690,7 +1818,7 @@ impl AgentLink {
         validate_keyframe_image(&self.keyframe_image.name, meta, pixels.len())?;
         let (sequence, header) = self.next_keyframe_image_header(meta);
         let outbox = &self.keyframe_image;
-        let delivered = self.deliver(Topic::KeyframeImage, sequence, || {
+        let result = self.deliver(Topic::KeyframeImage, sequence, || {
             let mut sample = outbox
                 .publisher
                 .loan_slice_uninit(pixels.len())
@@ -1700,7 +1828,8 @@ impl AgentLink {
                 .write_from_slice(pixels)
                 .send()
                 .map_err(|e| send_error(&outbox.name, e))
-        })?;
+        });
+        let delivered = self.count_full_queue(Topic::KeyframeImage, result)?;
         Ok(self.account_keyframe_image(sequence, delivered, pixels.len(), size_of_val(pixels)))
     }
 
@@ -1717,7 +1846,7 @@ impl AgentLink {
         validate_keyframe_image(&self.keyframe_image.name, meta, count)?;
         let (sequence, header) = self.next_keyframe_image_header(meta);
         let outbox = &self.keyframe_image;
-        let delivered = self.deliver(Topic::KeyframeImage, sequence, || {
+        let result = self.deliver(Topic::KeyframeImage, sequence, || {
             let mut sample = outbox
                 .publisher
                 .loan_slice_uninit(count)
@@ -1727,7 +1856,8 @@ impl AgentLink {
                 .write_from_fn(&mut build)
                 .send()
                 .map_err(|e| send_error(&outbox.name, e))
-        })?;
+        });
+        let delivered = self.count_full_queue(Topic::KeyframeImage, result)?;
         Ok(self.account_keyframe_image(sequence, delivered, count, 0))
     }
 
@@ -2257,8 +2387,11 @@ impl ConsumerLink {
         }
     }
 
-    /// Sends a correction to agent `agent_id`. Never waits: the consensus must not block on an
-    /// agent; an agent that is not attached yields [`TransportError::Undelivered`].
+    /// Sends a correction to agent `agent_id`. An agent that is not attached is never waited
+    /// for ([`TransportError::Undelivered`]). A full queue of the agent's: with the default
+    /// [`FullQueuePolicy::NewestWins`] the correction replaces the oldest queued one at once
+    /// (the consensus never waits on a slow agent); with `Block` the send waits up to
+    /// `full_queue_timeout`, then fails with [`TransportError::QueueFull`].
     pub fn send_correction(
         &mut self,
         agent_id: u32,
@@ -2267,6 +2400,8 @@ impl ConsumerLink {
     ) -> Result<SendReport, TransportError> {
         let max_agents = self.config.max_agents;
         let epoch = self.epoch;
+        let policy = self.config.full_queue.of(Topic::Correction);
+        let full_queue_timeout = self.config.full_queue_timeout;
         let inbox =
             self.agents
                 .get_mut(agent_id as usize)
@@ -2299,35 +2434,63 @@ impl ConsumerLink {
             agent_world_to_world,
             count: poses.len() as u64,
         };
-        let mut sample = outbox
-            .publisher
-            .loan_slice_uninit(poses.len())
-            .map_err(|e| TransportError::Loan {
-                service: outbox.name.clone(),
-                elements: poses.len(),
-                reason: format!("{e:?}"),
-            })?;
-        *sample.user_header_mut() = header;
-        let delivered =
-            sample
+        let wake_agent = |wake: &Notifier<Ipc>| {
+            if let Err(e) = wake.notify_with_custom_event_id(EventId::new(WAKE_CORRECTION)) {
+                tracing::warn!(error = ?e, agent_id, "could not wake agent for a correction");
+            }
+        };
+        let start = Instant::now();
+        let outcome = loop {
+            let mut sample = outbox
+                .publisher
+                .loan_slice_uninit(poses.len())
+                .map_err(|e| loan_error(&outbox.name, poses.len(), e))?;
+            *sample.user_header_mut() = header;
+            let delivered = sample
                 .write_from_slice(poses)
                 .send()
-                .map_err(|e| TransportError::Send {
+                .map_err(|e| send_error(&outbox.name, e))?;
+            if delivered >= CORRECTION_RECIPIENTS {
+                break Ok(delivered);
+            }
+            let waited = start.elapsed();
+            // Not attached (or NewestWins, whose queue is never full): nothing to wait for.
+            let queue_full = policy == FullQueuePolicy::Block && outbox.attached() > 0;
+            if !queue_full {
+                break check_recipients(&outbox.name, sequence, delivered, CORRECTION_RECIPIENTS)
+                    .map(|()| delivered);
+            }
+            if waited >= full_queue_timeout {
+                break Err(TransportError::QueueFull {
                     service: outbox.name.clone(),
-                    reason: format!("{e:?}"),
-                })?;
-        // The correction topic has exactly one subscriber: the agent.
-        check_recipients(&outbox.name, sequence, delivered, 1)?;
-        if let Err(e) = inbox
-            .wake
-            .notify_with_custom_event_id(EventId::new(WAKE_CORRECTION))
-        {
-            tracing::warn!(error = ?e, agent_id, "could not wake agent for a correction");
-        }
-        let bytes = size_of_val(poses) + size_of::<CorrectionHeader>();
+                    topic: Topic::Correction,
+                    sequence,
+                    delivered,
+                    required: CORRECTION_RECIPIENTS,
+                    waited,
+                });
+            }
+            if self.shutdown.load(Ordering::Relaxed) {
+                break Err(TransportError::ShutdownRequested);
+            }
+            // The agent may be asleep with a full queue: wake it, then give it time to read.
+            wake_agent(&inbox.wake);
+            std::thread::sleep(FULL_QUEUE_RETRY);
+        };
         let row = self
             .traffic
             .row(agent_id, Topic::Correction, Direction::Sent);
+        let delivered = match outcome {
+            Ok(delivered) => delivered,
+            Err(error) => {
+                if matches!(error, TransportError::QueueFull { .. }) {
+                    row.full_queue_failures += 1;
+                }
+                return Err(error);
+            }
+        };
+        wake_agent(&inbox.wake);
+        let bytes = size_of_val(poses) + size_of::<CorrectionHeader>();
         row.messages += 1;
         row.bytes += bytes as u64;
         row.bytes_copied += bytes as u64;

@@ -13,10 +13,10 @@ use protocol::messages::{
     CoordinateFrame, GaussianRecord, Intrinsics, KeyframeDescriptor, KeyframeImageHeader,
     KeyframePose, LifecycleKind, Pose, RgbdPixel,
 };
-use protocol::services::Topic;
+use protocol::services::{ServiceNames, Topic};
 use protocol::transport::{
-    AgentLink, ConsumerLink, Delivery, Direction, Incoming, KeyframeImageMeta, TransportConfig,
-    TransportError,
+    AgentLink, ConsumerLink, Delivery, Direction, FullQueuePolicies, FullQueuePolicy, Incoming,
+    KeyframeImageMeta, TransportConfig, TransportError,
 };
 
 /// Bound for what should happen at once on a loaded 2-core machine.
@@ -213,6 +213,210 @@ fn consensus_for_a_smaller_swarm_joins_after_an_agent() {
     assert_eq!(
         TransportConfig::for_swarm(&namespace, None).max_agents,
         protocol::transport::DEFAULT_MAX_AGENTS
+    );
+}
+
+/// Short bound for full-queue tests: long enough to see the wait, short for the test suite.
+const FULL_QUEUE_TIMEOUT: Duration = Duration::from_millis(300);
+
+/// `Block` (patches by default): a consumer that does not read makes the sender wait
+/// `full_queue_timeout`, then fail with `QueueFull` (counted); once it reads, sends go through,
+/// and the failed message shows as a gap.
+#[test]
+fn full_patch_queue_blocks_for_a_bounded_time_then_reports_queue_full() {
+    let namespace = unique_namespace("fullblock");
+    let config = TransportConfig {
+        patch_queue_depth: 2,
+        full_queue_timeout: FULL_QUEUE_TIMEOUT,
+        ..TransportConfig::with_namespace(&namespace)
+    };
+    assert_eq!(config.full_queue.patch, FullQueuePolicy::Block);
+    let mut consumer = ConsumerLink::open(&config).unwrap();
+    let mut agent = AgentLink::open(&config, 0).unwrap();
+    let records = vec![GaussianRecord::default(); 100];
+    for keyframe_id in 0..2 {
+        agent
+            .send_patch(keyframe_id, CoordinateFrame::AgentWorld, &records)
+            .unwrap();
+    }
+    let start = Instant::now();
+    match agent.send_patch(2, CoordinateFrame::AgentWorld, &records) {
+        Err(
+            err @ TransportError::QueueFull {
+                topic: Topic::Patch,
+                sequence: 2,
+                delivered: 0,
+                required: 1,
+                ..
+            },
+        ) => {
+            let text = err.to_string();
+            assert!(
+                text.contains(&ServiceNames::new(&namespace).patch(0)),
+                "{text}"
+            );
+            assert!(text.contains("patch topic"), "{text}");
+        }
+        other => panic!("expected QueueFull, got {:?}", other.map(|r| r.sequence)),
+    }
+    let waited = start.elapsed();
+    assert!(waited >= FULL_QUEUE_TIMEOUT, "gave up after {waited:?}");
+    assert!(waited < FULL_QUEUE_TIMEOUT + PROMPT, "took {waited:?}");
+    let sent = *agent
+        .bandwidth()
+        .get(0, Topic::Patch, Direction::Sent)
+        .unwrap();
+    assert_eq!((sent.messages, sent.full_queue_failures), (2, 1));
+
+    for expected in 0..2 {
+        match consumer.recv_timeout(PROMPT).unwrap() {
+            Some(Incoming::Patch(patch)) => assert_eq!(patch.header().keyframe_id, expected),
+            _ => panic!("expected patch {expected}"),
+        }
+    }
+    agent
+        .send_patch(3, CoordinateFrame::AgentWorld, &records)
+        .unwrap();
+    match consumer.recv_timeout(PROMPT).unwrap() {
+        Some(Incoming::Patch(patch)) => {
+            assert_eq!(patch.header().keyframe_id, 3);
+            assert_eq!(patch.delivery, Delivery::Gap { missed: 1 });
+        }
+        _ => panic!("expected patch 3"),
+    }
+}
+
+/// `NewestWins` on descriptors: sends to a consumer that does not read never wait, the queue
+/// keeps the newest, and the receiver sees the replaced ones as missed.
+#[test]
+fn newest_wins_queue_never_blocks_and_keeps_the_newest() {
+    const DEPTH: usize = 2;
+    const SENT: u64 = 5;
+    let config = TransportConfig {
+        descriptor_queue_depth: DEPTH,
+        full_queue: FullQueuePolicies {
+            descriptor: FullQueuePolicy::NewestWins,
+            ..FullQueuePolicies::default()
+        },
+        full_queue_timeout: FULL_QUEUE_TIMEOUT,
+        ..TransportConfig::with_namespace(unique_namespace("newest"))
+    };
+    let mut consumer = ConsumerLink::open(&config).unwrap();
+    let mut agent = AgentLink::open(&config, 0).unwrap();
+    let start = Instant::now();
+    for keyframe_id in 0..SENT {
+        agent
+            .send_descriptor(&synthetic_descriptor(keyframe_id))
+            .unwrap();
+    }
+    assert!(
+        start.elapsed() < FULL_QUEUE_TIMEOUT,
+        "{:?}",
+        start.elapsed()
+    );
+    let first_kept = SENT - DEPTH as u64;
+    for keyframe_id in first_kept..SENT {
+        match consumer.recv_timeout(PROMPT).unwrap() {
+            Some(Incoming::Descriptor(descriptor)) => {
+                assert_eq!(descriptor.keyframe_id, keyframe_id);
+                let expected = if keyframe_id == first_kept {
+                    Delivery::NewIncarnation {
+                        previous_epoch: None,
+                        missed: first_kept,
+                    }
+                } else {
+                    Delivery::InOrder
+                };
+                assert_eq!(descriptor.delivery, expected);
+            }
+            _ => panic!("expected descriptor {keyframe_id}"),
+        }
+    }
+    assert!(consumer.try_recv().unwrap().is_none());
+}
+
+fn shifted_pose(x: f64) -> Pose {
+    Pose {
+        translation: [x, 0.0, 0.0],
+        ..Pose::IDENTITY
+    }
+}
+
+/// Corrections are newest-wins by default: the consensus never waits on an agent that does not
+/// read, and the agent finds the newest ones. With `Block` it waits, bounded, then `QueueFull`.
+#[test]
+fn corrections_to_a_slow_agent_overwrite_by_default_and_block_bounded_when_configured() {
+    let config = TransportConfig::with_namespace(unique_namespace("corrnewest"));
+    assert_eq!(config.full_queue.correction, FullQueuePolicy::NewestWins);
+    let depth = config.correction_queue_depth as u64;
+    let sent = depth + 2;
+    let mut consumer = ConsumerLink::open(&config).unwrap();
+    let mut agent = AgentLink::open(&config, 0).unwrap();
+    let start = Instant::now();
+    for i in 0..sent {
+        consumer
+            .send_correction(0, shifted_pose(i as f64), &[])
+            .unwrap();
+    }
+    assert!(start.elapsed() < PROMPT, "{:?}", start.elapsed());
+    let mut received = Vec::new();
+    while let Some(correction) = agent.try_recv_correction().unwrap() {
+        received.push((
+            correction.header().agent_world_to_world.translation[0] as u64,
+            correction.delivery,
+        ));
+    }
+    let kept: Vec<u64> = received.iter().map(|(x, _)| *x).collect();
+    assert_eq!(kept, ((sent - depth)..sent).collect::<Vec<_>>());
+    assert_eq!(
+        received[0].1,
+        Delivery::NewIncarnation {
+            previous_epoch: None,
+            missed: sent - depth
+        }
+    );
+
+    let blocking = TransportConfig {
+        full_queue: FullQueuePolicies {
+            correction: FullQueuePolicy::Block,
+            ..FullQueuePolicies::default()
+        },
+        full_queue_timeout: FULL_QUEUE_TIMEOUT,
+        ..TransportConfig::with_namespace(unique_namespace("corrblock"))
+    };
+    let mut consumer = ConsumerLink::open(&blocking).unwrap();
+    let _agent = AgentLink::open(&blocking, 0).unwrap();
+    for i in 0..blocking.correction_queue_depth {
+        consumer
+            .send_correction(0, shifted_pose(i as f64), &[])
+            .unwrap();
+    }
+    let start = Instant::now();
+    let err = consumer
+        .send_correction(0, Pose::IDENTITY, &[])
+        .unwrap_err();
+    assert!(
+        matches!(
+            err,
+            TransportError::QueueFull {
+                topic: Topic::Correction,
+                ..
+            }
+        ),
+        "{err}"
+    );
+    let waited = start.elapsed();
+    assert!(
+        waited >= FULL_QUEUE_TIMEOUT && waited < FULL_QUEUE_TIMEOUT + PROMPT,
+        "{waited:?}"
+    );
+    let sent = *consumer
+        .bandwidth()
+        .get(0, Topic::Correction, Direction::Sent)
+        .unwrap();
+    assert_eq!(
+        (sent.messages, sent.full_queue_failures),
+        (blocking.correction_queue_depth as u64, 1)
     );
 }
 
