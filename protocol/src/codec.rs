@@ -20,8 +20,8 @@ use serde::de::DeserializeOwned;
 pub const MAGIC: [u8; 4] = *b"MACC";
 
 /// Version of the control-frame format and of the serde types it carries. A reader refuses
-/// any other version.
-pub const FORMAT_VERSION: u16 = 1;
+/// any other version. 2: `ControlMessage::ResendKeyframe`, frames on the `control` topic.
+pub const FORMAT_VERSION: u16 = 2;
 
 /// Bytes of the fixed header before the payload.
 pub const HEADER_LEN: usize = 12;
@@ -178,7 +178,8 @@ mod tests {
         );
         let message = decode::<ControlMessage>(&frame).unwrap_err().to_string();
         assert!(
-            message.contains("version 2") && message.contains("version 1"),
+            message.contains(&format!("version {}", FORMAT_VERSION + 1))
+                && message.contains(&format!("version {FORMAT_VERSION}")),
             "{message}"
         );
     }

@@ -407,15 +407,36 @@ impl Lifecycle {
     }
 }
 
+/// User header of a control frame (topic `mac/agent/{id}/control`, consensus -> agent `id`);
+/// the payload is `frame_len` bytes of one [`crate::codec`] frame holding a [`ControlMessage`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("mac.v1.ControlHeader")]
+pub struct ControlHeader {
+    pub stamp: Stamp,
+    /// Agent the message is for (the service is per agent; repeated for checks).
+    pub target_agent_id: u32,
+    /// Explicit padding.
+    pub reserved: u32,
+    /// Bytes in the slice: the whole codec frame, header included.
+    pub frame_len: u64,
+}
+
 /// Control messages with heap data. They travel through [`crate::codec`] (serde + bincode 2),
-/// never as shared-memory layouts.
+/// never as shared-memory layouts; on the `control` topic (consensus -> agent) as a codec frame
+/// in a byte slice. New variants go at the end and bump [`crate::codec::FORMAT_VERSION`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum ControlMessage {
     /// An agent's full configuration (TOML text) for the swarm record; `Lifecycle::Hello` only
     /// carries its hash.
     AgentConfig { agent_id: u32, config_toml: String },
-    /// Orderly stop of the whole swarm, with the reason shown to the user.
+    /// Orderly stop of the whole swarm, with the reason shown to the user: an agent finishes its
+    /// current frame, sends its final map and says goodbye.
     Shutdown { reason: String },
+    /// The consensus holds a keyframe it cannot use (e.g. a descriptor whose keyframe image or
+    /// patch never arrived, a gap on that topic) and asks its agent to publish it again, with
+    /// the reason for the log. An agent that no longer holds the keyframe ignores the request.
+    ResendKeyframe { keyframe_id: u64, reason: String },
 }
 
 #[cfg(test)]
@@ -437,6 +458,7 @@ mod tests {
         assert_eq!(std::mem::size_of::<Intrinsics>(), 4 * 8 + 2 * 4);
         assert_eq!(std::mem::size_of::<CorrectionHeader>(), 24 + 8 + 56 + 8);
         assert_eq!(std::mem::size_of::<KeyframePose>(), 8 + 56);
+        assert_eq!(std::mem::size_of::<ControlHeader>(), 24 + 4 + 4 + 8);
         assert_eq!(std::mem::size_of::<Lifecycle>(), 24 + 8 + 40 + 8);
         assert_eq!(std::mem::size_of::<RgbdPixel>(), 3 + 1 + 2);
         assert_eq!(std::mem::align_of::<RgbdPixel>(), 2);

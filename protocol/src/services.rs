@@ -6,6 +6,8 @@
 //! - `{ns}/agent/{id}/keyframe_image`  agent -> consumers, `[RgbdPixel]` + `KeyframeImageHeader`
 //!   (a keyframe's colour and depth, for feature-based alignment of agents in the consensus)
 //! - `{ns}/agent/{id}/correction`      consumer -> agent, `[KeyframePose]` + `CorrectionHeader`
+//! - `{ns}/agent/{id}/control`         consumer -> agent, `[u8]` (one [`crate::codec`] frame of a
+//!   [`crate::messages::ControlMessage`]) + `ControlHeader`
 //! - `{ns}/lifecycle`                  everyone -> consumers, [`crate::messages::Lifecycle`]
 //!
 //! Wake-up event services (iceoryx2 event pattern; they carry no data, only "look now"):
@@ -27,15 +29,17 @@ pub enum Topic {
     Correction,
     Lifecycle,
     KeyframeImage,
+    Control,
 }
 
 impl Topic {
-    pub const ALL: [Topic; 5] = [
+    pub const ALL: [Topic; 6] = [
         Topic::Descriptor,
         Topic::Patch,
         Topic::Correction,
         Topic::Lifecycle,
         Topic::KeyframeImage,
+        Topic::Control,
     ];
 
     /// Small dense index, used for per-topic tables and wake-up event ids.
@@ -46,6 +50,7 @@ impl Topic {
             Topic::Correction => 2,
             Topic::Lifecycle => 3,
             Topic::KeyframeImage => 4,
+            Topic::Control => 5,
         }
     }
 
@@ -56,6 +61,7 @@ impl Topic {
             Topic::Correction => "correction",
             Topic::Lifecycle => "lifecycle",
             Topic::KeyframeImage => "keyframe_image",
+            Topic::Control => "control",
         }
     }
 }
@@ -113,6 +119,10 @@ impl ServiceNames {
         self.topic(agent_id, Topic::Correction)
     }
 
+    pub fn control(&self, agent_id: u32) -> String {
+        self.topic(agent_id, Topic::Control)
+    }
+
     pub fn lifecycle(&self) -> String {
         format!("{}/lifecycle", self.namespace)
     }
@@ -139,6 +149,7 @@ mod tests {
         assert_eq!(names.patch(0), "mac/agent/0/patch");
         assert_eq!(names.keyframe_image(2), "mac/agent/2/keyframe_image");
         assert_eq!(names.correction(12), "mac/agent/12/correction");
+        assert_eq!(names.control(4), "mac/agent/4/control");
         assert_eq!(names.lifecycle(), "mac/lifecycle");
         assert_eq!(names.topic(5, Topic::Lifecycle), "mac/lifecycle");
         assert_eq!(names.agent_wake(1), "mac/agent/1/wake");

@@ -1,9 +1,15 @@
 //! Typed transport over iceoryx2 0.10 (`ipc::Service`) between agents and consumers.
 //!
 //! Two endpoints: [`AgentLink`] (one per agent process: publishes descriptors, patches, keyframe
-//! RGB-D images and lifecycle messages, receives corrections) and [`ConsumerLink`] (the
-//! consensus or an observer: receives from every agent id `0..max_agents`, publishes
-//! corrections).
+//! RGB-D images and lifecycle messages, receives corrections and control messages) and
+//! [`ConsumerLink`] (the consensus or an observer: receives from every agent id
+//! `0..max_agents`, publishes corrections and control messages).
+//!
+//! Control messages ([`ControlMessage`], heap data) travel consumer -> agent on the `control`
+//! topic as one [`crate::codec`] frame in a byte slice behind a [`ControlHeader`], with the same
+//! stamps, gap detection and accounting as every topic; a frame of another format version is
+//! refused on receive ([`TransportError::ControlFrame`]). The agent -> consensus direction has
+//! no control topic: everything an agent says fits the typed topics.
 //!
 //! Design choices, and why:
 //! - **Service limits from the config.** iceoryx2's defaults (2 publishers, 20 nodes per service)
@@ -84,10 +90,11 @@ use iceoryx2::service::port_factory::event::PortFactory as EventService;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubService;
 use serde::{Deserialize, Serialize};
 
+use crate::codec::{self, CodecError};
 use crate::messages::{
-    CONSUMER_AGENT_ID, CoordinateFrame, CorrectionHeader, DESCRIPTOR_NORM_TOLERANCE,
-    GaussianRecord, Intrinsics, KeyframeDescriptor, KeyframeImageHeader, KeyframePose, Lifecycle,
-    LifecycleKind, PatchHeader, Pose, RgbdPixel, Stamp,
+    CONSUMER_AGENT_ID, ControlHeader, ControlMessage, CoordinateFrame, CorrectionHeader,
+    DESCRIPTOR_NORM_TOLERANCE, GaussianRecord, Intrinsics, KeyframeDescriptor, KeyframeImageHeader,
+    KeyframePose, Lifecycle, LifecycleKind, PatchHeader, Pose, RgbdPixel, Stamp,
 };
 use crate::services::{ServiceNames, Topic};
 
@@ -107,7 +114,8 @@ const POSE_NORM_TOLERANCE: f64 = 1e-6;
 const WAKE_CORRECTION: usize = 0;
 const WAKE_CONSUMER_ATTACHED: usize = 1;
 const WAKE_GOODBYE_SEEN: usize = 2;
-const AGENT_WAKE_EVENT_IDS: usize = 3;
+const WAKE_CONTROL: usize = 3;
+const AGENT_WAKE_EVENT_IDS: usize = 4;
 
 /// Re-send interval while a consumer's queue is full. Consumers do not signal freed space (that
 /// would cost a syscall per received message), so an overloaded sender polls at this rate; it is
@@ -128,8 +136,8 @@ const SWARM_MAX_AGENTS_ATTRIBUTE: &str = "mac.swarm.max_agents";
 /// rounds of "open as it is, else open-or-create with our limits" settle any such race.
 const SHARED_SERVICE_OPEN_ATTEMPTS: usize = 4;
 
-/// The correction topic of an agent has exactly one subscriber: the agent.
-const CORRECTION_RECIPIENTS: usize = 1;
+/// The consumer -> agent topics (correction, control) have exactly one subscriber: the agent.
+const AGENT_RECIPIENTS: usize = 1;
 
 /// Number of topics, for dense per-agent event ids on the consumers' wake service.
 const TOPIC_COUNT: usize = Topic::ALL.len();
@@ -172,6 +180,8 @@ pub struct TransportConfig {
     /// queue suffices; each queued image also occupies a slot of the publisher's data segment.
     pub keyframe_image_queue_depth: usize,
     pub correction_queue_depth: usize,
+    /// Control messages are rare (a shutdown, a re-send request), so a short queue suffices.
+    pub control_queue_depth: usize,
     pub lifecycle_queue_depth: usize,
     /// Samples a receiver may hold (borrow) at once per topic.
     pub max_held_samples: usize,
@@ -182,6 +192,9 @@ pub struct TransportConfig {
     pub initial_keyframe_image_pixels: usize,
     /// First data-segment sizing of the correction publisher, in keyframe poses.
     pub initial_correction_poses: usize,
+    /// First data-segment sizing of the control publisher, in bytes of a codec frame (grows by
+    /// powers of two up to the codec's limit).
+    pub initial_control_bytes: usize,
 }
 
 impl Default for TransportConfig {
@@ -199,12 +212,15 @@ impl Default for TransportConfig {
             patch_queue_depth: 2,
             keyframe_image_queue_depth: 4,
             correction_queue_depth: 4,
+            control_queue_depth: 8,
             lifecycle_queue_depth: 64,
             max_held_samples: 2,
             initial_patch_records: 16 * 1024,
             // A QVGA image, the usual downscaled size for feature matching.
             initial_keyframe_image_pixels: 320 * 240,
             initial_correction_poses: 1024,
+            // Room for a config text or a reason string without re-allocation.
+            initial_control_bytes: 4096,
         }
     }
 }
@@ -250,11 +266,13 @@ impl TransportConfig {
             self.patch_queue_depth,
             self.keyframe_image_queue_depth,
             self.correction_queue_depth,
+            self.control_queue_depth,
             self.lifecycle_queue_depth,
             self.max_held_samples,
             self.initial_patch_records,
             self.initial_keyframe_image_pixels,
             self.initial_correction_poses,
+            self.initial_control_bytes,
         ];
         if depths.contains(&0) {
             return fail("queue depths, held samples and initial capacities must be at least 1");
@@ -273,6 +291,7 @@ impl TransportConfig {
             Topic::Patch => self.patch_queue_depth,
             Topic::KeyframeImage => self.keyframe_image_queue_depth,
             Topic::Correction => self.correction_queue_depth,
+            Topic::Control => self.control_queue_depth,
             Topic::Lifecycle => self.lifecycle_queue_depth,
         }
     }
@@ -308,6 +327,8 @@ pub struct FullQueuePolicies {
     /// A correction carries the whole current solution for the agent, so a newer one
     /// supersedes the older ones, and the consensus must not wait on a slow agent: newest wins.
     pub correction: FullQueuePolicy,
+    /// A control message is a request that is not repeated (shutdown, re-send): block.
+    pub control: FullQueuePolicy,
 }
 
 impl Default for FullQueuePolicies {
@@ -317,6 +338,7 @@ impl Default for FullQueuePolicies {
             patch: FullQueuePolicy::Block,
             keyframe_image: FullQueuePolicy::Block,
             correction: FullQueuePolicy::NewestWins,
+            control: FullQueuePolicy::Block,
         }
     }
 }
@@ -329,6 +351,7 @@ impl FullQueuePolicies {
             Topic::Patch => self.patch,
             Topic::KeyframeImage => self.keyframe_image,
             Topic::Correction => self.correction,
+            Topic::Control => self.control,
             Topic::Lifecycle => FullQueuePolicy::Block,
         }
     }
@@ -397,6 +420,12 @@ pub enum TransportError {
         delivered: usize,
         required: usize,
         waited: Duration,
+    },
+    #[error("control message {sequence} on '{service}' refused: {source}")]
+    ControlFrame {
+        service: String,
+        sequence: u64,
+        source: CodecError,
     },
     #[error("could not loan {elements} elements on '{service}': {reason}")]
     Loan {
@@ -736,14 +765,15 @@ fn agent_topic_limits(config: &TransportConfig, topic: Topic) -> PubSubLimits {
     }
 }
 
-fn correction_limits(config: &TransportConfig) -> PubSubLimits {
+/// Limits of the services consumers publish on to one agent (corrections, control).
+fn consumer_to_agent_limits(config: &TransportConfig, topic: Topic) -> PubSubLimits {
     PubSubLimits {
         publishers: config.max_consumers,
         subscribers: 1,
         nodes: 1 + config.max_consumers + NODE_SLACK,
-        queue_depth: config.correction_queue_depth,
+        queue_depth: config.queue_depth(topic),
         held_samples: config.max_held_samples,
-        safe_overflow: config.full_queue.of(Topic::Correction) == FullQueuePolicy::NewestWins,
+        safe_overflow: config.full_queue.of(topic) == FullQueuePolicy::NewestWins,
     }
 }
 
@@ -764,6 +794,7 @@ struct DescriptorService;
 struct PatchService;
 struct KeyframeImageService;
 struct CorrectionService;
+struct ControlService;
 struct LifecycleService;
 
 impl DescriptorService {
@@ -827,7 +858,24 @@ impl CorrectionService {
             .service_builder(&service_name(&name)?)
             .publish_subscribe::<[KeyframePose]>()
             .user_header::<CorrectionHeader>();
-        with_limits(builder, correction_limits(config))
+        with_limits(builder, consumer_to_agent_limits(config, Topic::Correction))
+            .open_or_create()
+            .map_err(|e| service_error(&name, e))
+    }
+}
+
+impl ControlService {
+    fn open(
+        node: &Node<Ipc>,
+        config: &TransportConfig,
+        agent_id: u32,
+    ) -> Result<PubSubService<Ipc, [u8], ControlHeader>, TransportError> {
+        let name = config.names().control(agent_id);
+        let builder = node
+            .service_builder(&service_name(&name)?)
+            .publish_subscribe::<[u8]>()
+            .user_header::<ControlHeader>();
+        with_limits(builder, consumer_to_agent_limits(config, Topic::Control))
             .open_or_create()
             .map_err(|e| service_error(&name, e))
     }
@@ -1183,6 +1231,14 @@ impl CorrectionSample {
     }
 }
 
+/// A received control message, decoded out of shared memory (it holds heap data).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ControlSample {
+    pub header: ControlHeader,
+    pub message: ControlMessage,
+    pub delivery: Delivery,
+}
+
 /// Anything a consumer receives.
 pub enum Incoming {
     Descriptor(DescriptorSample),
@@ -1290,6 +1346,8 @@ pub struct AgentLink {
     lifecycle: Outbox<Lifecycle, ()>,
     correction_name: String,
     correction_subscriber: Subscriber<Ipc, [KeyframePose], CorrectionHeader>,
+    control_name: String,
+    control_subscriber: Subscriber<Ipc, [u8], ControlHeader>,
     wake_listener: Listener<Ipc>,
     consumers_notifier: Notifier<Ipc>,
     traffic: TrafficTable,
@@ -1298,6 +1356,7 @@ pub struct AgentLink {
     said_goodbye: bool,
     // Kept last: ports above must be dropped before the node that owns them.
     _correction_service: PubSubService<Ipc, [KeyframePose], CorrectionHeader>,
+    _control_service: PubSubService<Ipc, [u8], ControlHeader>,
     _wake_service: EventService<Ipc>,
     _consumers_wake_service: EventService<Ipc>,
     node: Node<Ipc>,
@@ -1398,6 +1457,14 @@ impl AgentLink {
             .create()
             .map_err(|e| port_error(&correction_name, "subscriber", e))?;
 
+        let control_service = ControlService::open(&node, config, agent_id)?;
+        let control_name = names.control(agent_id);
+        let control_subscriber = control_service
+            .subscriber_builder()
+            .buffer_size(config.control_queue_depth)
+            .create()
+            .map_err(|e| port_error(&control_name, "subscriber", e))?;
+
         let wake_service = open_agent_wake(&node, config, agent_id)?;
         let wake_listener = wake_service
             .listener_builder()
@@ -1439,6 +1506,8 @@ impl AgentLink {
             },
             correction_name,
             correction_subscriber,
+            control_name,
+            control_subscriber,
             wake_listener,
             consumers_notifier,
             traffic: TrafficTable::new(),
@@ -1446,6 +1515,7 @@ impl AgentLink {
             shutdown: Arc::new(AtomicBool::new(false)),
             said_goodbye: false,
             _correction_service: correction_service,
+            _control_service: control_service,
             _wake_service: wake_service,
             _consumers_wake_service: consumers_wake_service,
             node,
@@ -1481,7 +1551,7 @@ impl AgentLink {
                 Some((self.keyframe_image.attached(), &self.keyframe_image.name))
             }
             Topic::Lifecycle => Some((self.lifecycle.attached(), &self.lifecycle.name)),
-            Topic::Correction => None,
+            Topic::Correction | Topic::Control => None,
         }
     }
 
@@ -1958,6 +2028,83 @@ impl AgentLink {
         }
     }
 
+    /// Next pending control message, without blocking. A frame that does not decode (another
+    /// codec format version, corruption) is consumed and reported as
+    /// [`TransportError::ControlFrame`]; the next call goes on with the following one.
+    pub fn try_recv_control(&mut self) -> Result<Option<ControlSample>, TransportError> {
+        loop {
+            let Some(sample) =
+                self.control_subscriber
+                    .receive()
+                    .map_err(|e| TransportError::Receive {
+                        service: self.control_name.clone(),
+                        reason: format!("{e:?}"),
+                    })?
+            else {
+                return Ok(None);
+            };
+            let header = *sample.user_header();
+            let frame = sample.payload();
+            if header.frame_len != frame.len() as u64 || header.target_agent_id != self.agent_id {
+                return Err(TransportError::Malformed {
+                    service: self.control_name.clone(),
+                    reason: format!(
+                        "header says a {}-byte frame for agent {}, slice has {} bytes (this is \
+                         agent {})",
+                        header.frame_len,
+                        header.target_agent_id,
+                        frame.len(),
+                        self.agent_id
+                    ),
+                });
+            }
+            let bytes = frame.len() + size_of::<ControlHeader>();
+            let Some(delivery) = self.book.admit(
+                &mut self.traffic,
+                header.stamp,
+                Topic::Control,
+                bytes,
+                self.agent_id,
+            ) else {
+                continue;
+            };
+            let message = codec::decode::<ControlMessage>(frame).map_err(|source| {
+                TransportError::ControlFrame {
+                    service: self.control_name.clone(),
+                    sequence: header.stamp.sequence,
+                    source,
+                }
+            })?;
+            return Ok(Some(ControlSample {
+                header,
+                message,
+                delivery,
+            }));
+        }
+    }
+
+    /// Waits (event-driven) up to `timeout` for a control message.
+    pub fn recv_control_timeout(
+        &mut self,
+        timeout: Duration,
+    ) -> Result<Option<ControlSample>, TransportError> {
+        let start = Instant::now();
+        loop {
+            if let Some(control) = self.try_recv_control()? {
+                return Ok(Some(control));
+            }
+            let waited = start.elapsed();
+            if waited >= timeout {
+                return Ok(None);
+            }
+            wait_for_event(
+                &self.wake_listener,
+                self.config.wait_slice.min(timeout - waited),
+                &self.shutdown,
+            )?;
+        }
+    }
+
     /// Bytes and messages per topic sent (and corrections received) since [`AgentLink::open`].
     pub fn bandwidth(&self) -> BandwidthReport {
         self.traffic.report()
@@ -1986,6 +2133,7 @@ struct AgentInbox {
     keyframe_image_name: String,
     keyframe_image: Subscriber<Ipc, [RgbdPixel], KeyframeImageHeader>,
     correction: Outbox<[KeyframePose], CorrectionHeader>,
+    control: Outbox<[u8], ControlHeader>,
     wake: Notifier<Ipc>,
     _descriptor_service: PubSubService<Ipc, KeyframeDescriptor, ()>,
     _patch_service: PubSubService<Ipc, [GaussianRecord], PatchHeader>,
@@ -2067,6 +2215,16 @@ impl ConsumerLink {
                 .backpressure_strategy(BackpressureStrategy::DiscardData)
                 .create()
                 .map_err(|e| port_error(&correction_name, "publisher", e))?;
+            let control_service = ControlService::open(&node, config, agent_id)?;
+            let control_name = names.control(agent_id);
+            let control_publisher = control_service
+                .publisher_builder()
+                .max_loaned_samples(PUBLISHER_MAX_LOANS)
+                .initial_max_slice_len(config.initial_control_bytes)
+                .allocation_strategy(AllocationStrategy::PowerOfTwo)
+                .backpressure_strategy(BackpressureStrategy::DiscardData)
+                .create()
+                .map_err(|e| port_error(&control_name, "publisher", e))?;
             let agent_wake_service = open_agent_wake(&node, config, agent_id)?;
             let wake = agent_wake_service
                 .notifier_builder()
@@ -2083,6 +2241,12 @@ impl ConsumerLink {
                     name: correction_name,
                     service: correction_service,
                     publisher: correction_publisher,
+                    next_sequence: 0,
+                },
+                control: Outbox {
+                    name: control_name,
+                    service: control_service,
+                    publisher: control_publisher,
                     next_sequence: 0,
                 },
                 wake,
@@ -2398,18 +2562,8 @@ impl ConsumerLink {
         agent_world_to_world: Pose,
         poses: &[KeyframePose],
     ) -> Result<SendReport, TransportError> {
-        let max_agents = self.config.max_agents;
         let epoch = self.epoch;
-        let policy = self.config.full_queue.of(Topic::Correction);
-        let full_queue_timeout = self.config.full_queue_timeout;
-        let inbox =
-            self.agents
-                .get_mut(agent_id as usize)
-                .ok_or(TransportError::AgentIdOutOfRange {
-                    agent_id,
-                    max_agents,
-                })?;
-        let outbox = &mut inbox.correction;
+        let outbox = &mut self.inbox_mut(agent_id)?.correction;
         validate_pose(&outbox.name, "agent_world_to_world", &agent_world_to_world)?;
         if let Some(bad) = poses
             .iter()
@@ -2434,71 +2588,177 @@ impl ConsumerLink {
             agent_world_to_world,
             count: poses.len() as u64,
         };
-        let wake_agent = |wake: &Notifier<Ipc>| {
-            if let Err(e) = wake.notify_with_custom_event_id(EventId::new(WAKE_CORRECTION)) {
-                tracing::warn!(error = ?e, agent_id, "could not wake agent for a correction");
+        let outbox = &self.agents[agent_id as usize].correction;
+        let result = self.deliver_to_agent(
+            agent_id,
+            Topic::Correction,
+            sequence,
+            outbox,
+            WAKE_CORRECTION,
+            || {
+                let mut sample = outbox
+                    .publisher
+                    .loan_slice_uninit(poses.len())
+                    .map_err(|e| loan_error(&outbox.name, poses.len(), e))?;
+                *sample.user_header_mut() = header;
+                sample
+                    .write_from_slice(poses)
+                    .send()
+                    .map_err(|e| send_error(&outbox.name, e))
+            },
+        );
+        let bytes = size_of_val(poses) + size_of::<CorrectionHeader>();
+        self.account_to_agent(agent_id, Topic::Correction, sequence, result, bytes)
+    }
+
+    /// Sends a control message to agent `agent_id` as one [`crate::codec`] frame (encoded here;
+    /// an unencodable or oversized message is [`TransportError::InvalidMessage`]). Full queues
+    /// follow `full_queue.control` (default `Block`, bounded by `full_queue_timeout`); an agent
+    /// that is not attached is never waited for ([`TransportError::Undelivered`]).
+    pub fn send_control(
+        &mut self,
+        agent_id: u32,
+        message: &ControlMessage,
+    ) -> Result<SendReport, TransportError> {
+        let outbox = &self.inbox_mut(agent_id)?.control;
+        let frame = codec::encode(message).map_err(|e| TransportError::InvalidMessage {
+            service: outbox.name.clone(),
+            reason: e.to_string(),
+        })?;
+        self.send_control_frame(agent_id, &frame)
+    }
+
+    /// Sends an already encoded codec frame on agent `agent_id`'s control topic.
+    fn send_control_frame(
+        &mut self,
+        agent_id: u32,
+        frame: &[u8],
+    ) -> Result<SendReport, TransportError> {
+        let epoch = self.epoch;
+        let outbox = &mut self.inbox_mut(agent_id)?.control;
+        let sequence = outbox.take_sequence();
+        let header = ControlHeader {
+            stamp: Stamp {
+                agent_id: CONSUMER_AGENT_ID,
+                reserved: 0,
+                epoch,
+                sequence,
+            },
+            target_agent_id: agent_id,
+            reserved: 0,
+            frame_len: frame.len() as u64,
+        };
+        let outbox = &self.agents[agent_id as usize].control;
+        let result = self.deliver_to_agent(
+            agent_id,
+            Topic::Control,
+            sequence,
+            outbox,
+            WAKE_CONTROL,
+            || {
+                let mut sample = outbox
+                    .publisher
+                    .loan_slice_uninit(frame.len())
+                    .map_err(|e| loan_error(&outbox.name, frame.len(), e))?;
+                *sample.user_header_mut() = header;
+                sample
+                    .write_from_slice(frame)
+                    .send()
+                    .map_err(|e| send_error(&outbox.name, e))
+            },
+        );
+        let bytes = frame.len() + size_of::<ControlHeader>();
+        self.account_to_agent(agent_id, Topic::Control, sequence, result, bytes)
+    }
+
+    fn inbox_mut(&mut self, agent_id: u32) -> Result<&mut AgentInbox, TransportError> {
+        let max_agents = self.config.max_agents;
+        self.agents
+            .get_mut(agent_id as usize)
+            .ok_or(TransportError::AgentIdOutOfRange {
+                agent_id,
+                max_agents,
+            })
+    }
+
+    /// Sends one consumer -> agent message with `send_once` (loan, fill, send; the same
+    /// sequence every time) under the topic's [`FullQueuePolicy`], then wakes the agent with
+    /// `wake_event`. An agent that is not attached is not waited for.
+    fn deliver_to_agent<P: Debug + IceoryxSend + ?Sized + 'static, H: Debug + ZeroCopySend>(
+        &self,
+        agent_id: u32,
+        topic: Topic,
+        sequence: u64,
+        outbox: &Outbox<P, H>,
+        wake_event: usize,
+        mut send_once: impl FnMut() -> Result<usize, TransportError>,
+    ) -> Result<usize, TransportError> {
+        let policy = self.config.full_queue.of(topic);
+        let wake = &self.agents[agent_id as usize].wake;
+        let wake_agent = || {
+            if let Err(e) = wake.notify_with_custom_event_id(EventId::new(wake_event)) {
+                tracing::warn!(error = ?e, agent_id, %topic, "could not wake agent");
             }
         };
         let start = Instant::now();
-        let outcome = loop {
-            let mut sample = outbox
-                .publisher
-                .loan_slice_uninit(poses.len())
-                .map_err(|e| loan_error(&outbox.name, poses.len(), e))?;
-            *sample.user_header_mut() = header;
-            let delivered = sample
-                .write_from_slice(poses)
-                .send()
-                .map_err(|e| send_error(&outbox.name, e))?;
-            if delivered >= CORRECTION_RECIPIENTS {
-                break Ok(delivered);
+        loop {
+            let delivered = send_once()?;
+            if delivered >= AGENT_RECIPIENTS {
+                wake_agent();
+                return Ok(delivered);
+            }
+            // Not attached (or NewestWins, whose queue is never full): nothing to wait for.
+            if policy == FullQueuePolicy::NewestWins || outbox.attached() == 0 {
+                check_recipients(&outbox.name, sequence, delivered, AGENT_RECIPIENTS)?;
             }
             let waited = start.elapsed();
-            // Not attached (or NewestWins, whose queue is never full): nothing to wait for.
-            let queue_full = policy == FullQueuePolicy::Block && outbox.attached() > 0;
-            if !queue_full {
-                break check_recipients(&outbox.name, sequence, delivered, CORRECTION_RECIPIENTS)
-                    .map(|()| delivered);
-            }
-            if waited >= full_queue_timeout {
-                break Err(TransportError::QueueFull {
+            if waited >= self.config.full_queue_timeout {
+                return Err(TransportError::QueueFull {
                     service: outbox.name.clone(),
-                    topic: Topic::Correction,
+                    topic,
                     sequence,
                     delivered,
-                    required: CORRECTION_RECIPIENTS,
+                    required: AGENT_RECIPIENTS,
                     waited,
                 });
             }
             if self.shutdown.load(Ordering::Relaxed) {
-                break Err(TransportError::ShutdownRequested);
+                return Err(TransportError::ShutdownRequested);
             }
             // The agent may be asleep with a full queue: wake it, then give it time to read.
-            wake_agent(&inbox.wake);
+            wake_agent();
             std::thread::sleep(FULL_QUEUE_RETRY);
-        };
-        let row = self
-            .traffic
-            .row(agent_id, Topic::Correction, Direction::Sent);
-        let delivered = match outcome {
-            Ok(delivered) => delivered,
+        }
+    }
+
+    /// Counts a consumer -> agent send (or its `QueueFull` failure) and builds the report.
+    fn account_to_agent(
+        &mut self,
+        agent_id: u32,
+        topic: Topic,
+        sequence: u64,
+        result: Result<usize, TransportError>,
+        bytes: usize,
+    ) -> Result<SendReport, TransportError> {
+        let row = self.traffic.row(agent_id, topic, Direction::Sent);
+        match result {
+            Ok(recipients) => {
+                row.messages += 1;
+                row.bytes += bytes as u64;
+                row.bytes_copied += bytes as u64;
+                Ok(SendReport {
+                    sequence,
+                    recipients,
+                    bytes,
+                })
+            }
             Err(error) => {
                 if matches!(error, TransportError::QueueFull { .. }) {
                     row.full_queue_failures += 1;
                 }
-                return Err(error);
+                Err(error)
             }
-        };
-        wake_agent(&inbox.wake);
-        let bytes = size_of_val(poses) + size_of::<CorrectionHeader>();
-        row.messages += 1;
-        row.bytes += bytes as u64;
-        row.bytes_copied += bytes as u64;
-        Ok(SendReport {
-            sequence,
-            recipients: delivered,
-            bytes,
-        })
+        }
     }
 
     /// Received traffic per agent and topic (and corrections sent) since [`ConsumerLink::open`].
@@ -2562,6 +2822,47 @@ mod tests {
         };
         assert!(no_image_queue.validate().is_err());
         assert!(TransportConfig::default().validate().is_ok());
+    }
+
+    /// A control frame of another codec format version (an agent built from other sources) is
+    /// refused on receive with an error naming the topic and both versions, and the frames
+    /// after it are still received in order.
+    #[test]
+    fn control_frame_of_another_format_version_is_refused_clearly() {
+        let config = TransportConfig::with_namespace(format!("unit-ctlver-{}", std::process::id()));
+        let mut consumer = ConsumerLink::open(&config).unwrap();
+        let mut agent = AgentLink::open(&config, 0).unwrap();
+        let message = ControlMessage::Shutdown {
+            reason: "test".into(),
+        };
+        let mut frame = codec::encode(&message).unwrap();
+        let foreign_version = codec::FORMAT_VERSION + 1;
+        frame[4..6].copy_from_slice(&foreign_version.to_le_bytes());
+        consumer.send_control_frame(0, &frame).unwrap();
+        consumer.send_control(0, &message).unwrap();
+        let timeout = Duration::from_secs(2);
+        match agent.recv_control_timeout(timeout) {
+            Err(
+                err @ TransportError::ControlFrame {
+                    sequence: 0,
+                    source: CodecError::UnsupportedVersion { .. },
+                    ..
+                },
+            ) => {
+                let text = err.to_string();
+                assert!(text.contains(&config.names().control(0)), "{text}");
+                assert!(
+                    text.contains(&format!("version {foreign_version}"))
+                        && text.contains(&format!("version {}", codec::FORMAT_VERSION)),
+                    "{text}"
+                );
+            }
+            other => panic!("expected a ControlFrame error, got {other:?}"),
+        }
+        let next = agent.recv_control_timeout(timeout).unwrap().unwrap();
+        assert_eq!(next.message, message);
+        assert_eq!(next.header.stamp.sequence, 1);
+        assert_eq!(next.delivery, Delivery::InOrder);
     }
 
     #[test]

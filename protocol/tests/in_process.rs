@@ -10,8 +10,8 @@ use std::time::{Duration, Instant};
 use common::unique_namespace;
 use protocol::bench::synthetic_descriptor;
 use protocol::messages::{
-    CoordinateFrame, GaussianRecord, Intrinsics, KeyframeDescriptor, KeyframeImageHeader,
-    KeyframePose, LifecycleKind, Pose, RgbdPixel,
+    ControlMessage, CoordinateFrame, GaussianRecord, Intrinsics, KeyframeDescriptor,
+    KeyframeImageHeader, KeyframePose, LifecycleKind, Pose, RgbdPixel,
 };
 use protocol::services::{ServiceNames, Topic};
 use protocol::transport::{
@@ -418,6 +418,71 @@ fn corrections_to_a_slow_agent_overwrite_by_default_and_block_bounded_when_confi
         (sent.messages, sent.full_queue_failures),
         (blocking.correction_queue_depth as u64, 1)
     );
+}
+
+/// Control messages (codec frames in a byte slice) reach the agent in order with their
+/// sequence, are counted on both sides, and a control message for an id outside the consumer's
+/// range is refused by name.
+#[test]
+fn control_messages_reach_the_agent_in_order_and_are_counted() {
+    let config = TransportConfig::with_namespace(unique_namespace("control"));
+    let mut consumer = ConsumerLink::open(&config).unwrap();
+    let mut agent = AgentLink::open(&config, 2).unwrap();
+    let messages = [
+        ControlMessage::ResendKeyframe {
+            keyframe_id: 17,
+            reason: "descriptor without keyframe image".into(),
+        },
+        ControlMessage::Shutdown {
+            reason: "consensus stopped by SIGINT".into(),
+        },
+    ];
+    let mut bytes_sent = 0;
+    for (sequence, message) in messages.iter().enumerate() {
+        let report = consumer.send_control(2, message).unwrap();
+        assert_eq!((report.sequence, report.recipients), (sequence as u64, 1));
+        bytes_sent += report.bytes as u64;
+    }
+    for (sequence, message) in messages.iter().enumerate() {
+        let received = agent
+            .recv_control_timeout(PROMPT)
+            .unwrap()
+            .expect("control message");
+        assert_eq!(&received.message, message);
+        assert_eq!(received.header.stamp.sequence, sequence as u64);
+        assert_eq!(received.header.target_agent_id, 2);
+        let expected = if sequence == 0 {
+            Delivery::NewIncarnation {
+                previous_epoch: None,
+                missed: 0,
+            }
+        } else {
+            Delivery::InOrder
+        };
+        assert_eq!(received.delivery, expected);
+    }
+    assert!(agent.try_recv_control().unwrap().is_none());
+    let sent = *consumer
+        .bandwidth()
+        .get(2, Topic::Control, Direction::Sent)
+        .unwrap();
+    let received = *agent
+        .bandwidth()
+        .get(2, Topic::Control, Direction::Received)
+        .unwrap();
+    assert_eq!((sent.messages, sent.bytes), (2, bytes_sent));
+    assert_eq!((received.messages, received.bytes), (2, bytes_sent));
+    assert!(matches!(
+        consumer.send_control(config.max_agents, &messages[1]),
+        Err(TransportError::AgentIdOutOfRange { .. })
+    ));
+    // Nobody attached on agent 0's control topic: refused at once, not waited for.
+    let start = Instant::now();
+    assert!(matches!(
+        consumer.send_control(0, &messages[1]),
+        Err(TransportError::Undelivered { delivered: 0, .. })
+    ));
+    assert!(start.elapsed() < PROMPT);
 }
 
 #[test]

@@ -9,7 +9,7 @@ use common::{Peer, unique_namespace};
 use protocol::bench::{
     descriptor_checksum, records_checksum, synthetic_descriptor, synthetic_record,
 };
-use protocol::messages::{KeyframePose, LifecycleKind, Pose};
+use protocol::messages::{ControlMessage, KeyframePose, LifecycleKind, Pose};
 use protocol::services::Topic;
 use protocol::transport::{
     AgentLink, ConsumerLink, Delivery, Direction, Incoming, TransportConfig, TransportError,
@@ -186,6 +186,49 @@ fn subscriber_first_delivers_every_message_and_the_correction() {
             .map(|t| t.messages),
         Some(1)
     );
+}
+
+/// Control messages cross the process boundary as codec frames: the agent process decodes them
+/// in order with their sequence numbers.
+#[test]
+fn control_messages_reach_an_agent_process() {
+    let config = TransportConfig::with_namespace(unique_namespace("control"));
+    let mut consumer = ConsumerLink::open(&config).expect("consumer opens");
+    let mut agent = Peer::agent(
+        &config.namespace,
+        0,
+        &["--descriptors", "1", "--await-control", "2"],
+    );
+    let messages = [
+        ControlMessage::ResendKeyframe {
+            keyframe_id: 7,
+            reason: "no image".into(),
+        },
+        ControlMessage::Shutdown {
+            reason: "test over".into(),
+        },
+    ];
+    let seen = receive_until_goodbye(&mut consumer, 0, |c| {
+        for message in &messages {
+            c.send_control(0, message).expect("control delivered");
+        }
+    });
+    assert!(seen.goodbye);
+    assert_eq!(
+        agent.expect_line("control"),
+        "control seq=0 resend_keyframe keyframe=7 reason=no image"
+    );
+    assert_eq!(
+        agent.expect_line("control"),
+        "control seq=1 shutdown reason=test over"
+    );
+    let (status, stderr) = agent.wait();
+    assert!(status.success(), "agent failed: {stderr}");
+    let sent = consumer
+        .bandwidth()
+        .get(0, Topic::Control, Direction::Sent)
+        .map(|t| t.messages);
+    assert_eq!(sent, Some(2));
 }
 
 #[test]

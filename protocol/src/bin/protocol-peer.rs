@@ -4,11 +4,12 @@
 //! ```text
 //! protocol-peer agent --namespace NS --agent-id K [--descriptors N] [--patches P]
 //!               [--patch-records R] [--interval-ms M] [--forever] [--await-correction]
+//!               [--await-control N]
 //! protocol-peer bench-peer --namespace NS
 //! protocol-peer bench            # runs the IPC benchmark against itself, prints JSON
 //! ```
 //! The agent role prints progress lines on stdout (`opened epoch=E`, `announced`,
-//! `correction poses=N`, `done`) that tests wait for. Exit codes: 0 success,
+//! `correction poses=N`, `control seq=S ...` per control message, `done`) that tests wait for. Exit codes: 0 success,
 //! [`EXIT_DUPLICATE_AGENT`] when the id is taken, [`EXIT_FAILURE`] on any other error,
 //! [`EXIT_USAGE`] on bad arguments.
 
@@ -19,13 +20,14 @@ use std::time::Duration;
 use protocol::bench::{
     IpcBenchConfig, PeerCommand, run_ipc_bench, run_peer, synthetic_descriptor, synthetic_record,
 };
-use protocol::messages::CoordinateFrame;
+use protocol::messages::{ControlMessage, CoordinateFrame};
 use protocol::transport::{AgentLink, TransportConfig, TransportError};
 
 const EXIT_FAILURE: u8 = 1;
 const EXIT_USAGE: u8 = 2;
 const EXIT_DUPLICATE_AGENT: u8 = 3;
-/// Longest wait for a correction with `--await-correction`.
+/// Longest wait for a correction with `--await-correction`, and for each control message with
+/// `--await-control`.
 const CORRECTION_TIMEOUT: Duration = Duration::from_secs(20);
 /// Configuration hash announced by the test agent (any fixed value).
 const PEER_CONFIG_HASH: u64 = 0x7e57;
@@ -40,6 +42,8 @@ struct AgentArgs {
     interval: Duration,
     forever: bool,
     await_correction: bool,
+    /// Control messages to wait for (and print) before closing.
+    await_control: u64,
 }
 
 fn parse_agent_args(args: &[String]) -> Result<AgentArgs, String> {
@@ -58,6 +62,7 @@ fn parse_agent_args(args: &[String]) -> Result<AgentArgs, String> {
             "--interval-ms" => parsed.interval = Duration::from_millis(number(value(flag)?, flag)?),
             "--forever" => parsed.forever = true,
             "--await-correction" => parsed.await_correction = true,
+            "--await-control" => parsed.await_control = number(value(flag)?, flag)?,
             other => return Err(format!("unknown argument {other}")),
         }
     }
@@ -111,9 +116,31 @@ fn run_agent(args: &AgentArgs) -> Result<(), TransportError> {
             None => say("correction none"),
         }
     }
+    for _ in 0..args.await_control {
+        match link.recv_control_timeout(CORRECTION_TIMEOUT)? {
+            Some(control) => say(&format!(
+                "control seq={} {}",
+                control.header.stamp.sequence,
+                describe_control(&control.message)
+            )),
+            None => say("control none"),
+        }
+    }
     link.close()?;
     say("done");
     Ok(())
+}
+
+/// One line per control message, for the tests to compare.
+fn describe_control(message: &ControlMessage) -> String {
+    match message {
+        ControlMessage::AgentConfig { agent_id, .. } => format!("agent_config agent={agent_id}"),
+        ControlMessage::Shutdown { reason } => format!("shutdown reason={reason}"),
+        ControlMessage::ResendKeyframe {
+            keyframe_id,
+            reason,
+        } => format!("resend_keyframe keyframe={keyframe_id} reason={reason}"),
+    }
 }
 
 fn main() -> ExitCode {
