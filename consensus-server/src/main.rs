@@ -31,7 +31,8 @@ struct Args {
     #[arg(long, default_value = "out/swarm")]
     out: PathBuf,
     /// Agents 0..N to wait for, and the swarm's agent-id range; the run ends when all of them
-    /// said goodbye. Without it the consensus runs until SIGINT / SIGTERM (ids 0..8).
+    /// said goodbye. Without it the consensus runs until SIGINT / SIGTERM, for the default id
+    /// range (protocol::transport::DEFAULT_MAX_AGENTS).
     #[arg(long)]
     agents: Option<u32>,
     /// iceoryx2 service namespace shared by the swarm's processes.
