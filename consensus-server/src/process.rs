@@ -413,6 +413,14 @@ fn spawn_worker(
                         Err(crossbeam_channel::TryRecvError::Disconnected) => open = false,
                     }
                 }
+                // New keyframes are placed by their odometry edges at once (a solve costs about a
+                // millisecond), before the alignments (about a second each) refine them: an
+                // agent gets its correction without waiting for its candidates.
+                if let Some(update) = worker.solve(&latencies)
+                    && solutions.send(update).is_err()
+                {
+                    break;
+                }
                 worker.engine.align_next();
                 if let Some(update) = worker.solve(&latencies)
                     && solutions.send(update).is_err()
