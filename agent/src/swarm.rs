@@ -448,10 +448,13 @@ impl SwarmLink {
                 "queued keyframes not delivered: the hello never got through"
             );
         }
-        if let Err(error) = self.link.send_patch(
+        // Built in place in shared memory: the final map is the largest patch (up to hundreds
+        // of thousands of Gaussians), and no intermediate record buffer is needed.
+        if let Err(error) = self.link.send_patch_with(
             FINAL_MAP_KEYFRAME_ID,
             CoordinateFrame::AgentWorld,
-            &gaussian_records(final_map),
+            final_map.len(),
+            |i| gaussian_record(final_map, i),
         ) {
             self.summary.send_failures += 1;
             tracing::warn!(%error, "final map not delivered");
@@ -502,15 +505,21 @@ fn rgbd_pixels(rgb: &RgbImage, depth: &DepthImage) -> Vec<RgbdPixel> {
         .collect()
 }
 
+/// Gaussian `i` of `cloud` as a wire record.
+fn gaussian_record(cloud: &GaussianCloud, i: usize) -> GaussianRecord {
+    GaussianRecord {
+        mean: cloud.means[i],
+        log_scale: cloud.log_scales[i],
+        rotation_wxyz: cloud.quaternions[i],
+        opacity_logit: cloud.opacity_logits[i],
+        colour: cloud.colours[i],
+    }
+}
+
+/// Every Gaussian of `cloud` as wire records (a queued keyframe keeps its own copy).
 fn gaussian_records(cloud: &GaussianCloud) -> Vec<GaussianRecord> {
     (0..cloud.len())
-        .map(|i| GaussianRecord {
-            mean: cloud.means[i],
-            log_scale: cloud.log_scales[i],
-            rotation_wxyz: cloud.quaternions[i],
-            opacity_logit: cloud.opacity_logits[i],
-            colour: cloud.colours[i],
-        })
+        .map(|i| gaussian_record(cloud, i))
         .collect()
 }
 
