@@ -8,7 +8,8 @@
 //! are fixed (the agent's poses come from tracking; the consensus refines them). Every
 //! `prune_every` iterations it prunes (opacity, scale, elongation).
 //!
-//! Nothing is read back inside an iteration except a wait for the device to finish it (so the
+//! Keyframe targets are uploaded once, when the keyframe arrives. Nothing is read back inside an
+//! iteration except a wait for the device to finish it (so the
 //! host does not queue unbounded work), the pair-count check every `check_pairs_every`
 //! iterations, and the pruning mask.
 
@@ -149,10 +150,14 @@ impl Mapper {
     }
 }
 
-/// A keyframe kept for optimisation, at mapping resolution.
+/// A keyframe kept for optimisation, at mapping resolution; its target lives on the device
+/// (uploaded once, not every iteration).
 struct StoredKeyframe {
     camera: Camera,
-    target: TargetImage,
+    target: DeviceTarget,
+    /// dL/d(image) of its iterations (the loss kernel rewrites every pixel, so one buffer per
+    /// keyframe serves every visit).
+    image_gradients: DeviceImageGradients,
 }
 
 struct MapperState {
@@ -308,8 +313,13 @@ impl MapperState {
             // iteration.
             self.since_pair_check = self.config.check_pairs_every;
         }
+        let stored = StoredKeyframe {
+            target: DeviceTarget::upload(&self.context, &target)?,
+            image_gradients: DeviceImageGradients::zeros(&self.context, &camera)?,
+            camera,
+        };
         self.unvisited.push(self.keyframes.len());
-        self.keyframes.push(StoredKeyframe { camera, target });
+        self.keyframes.push(stored);
         self.stats.keyframes += 1;
         self.progress
             .gaussians
@@ -331,8 +341,6 @@ impl MapperState {
         };
         let keyframe = &self.keyframes[index];
         let context = &self.context;
-        let target = DeviceTarget::upload(context, &keyframe.target)?;
-        let image_gradients = DeviceImageGradients::zeros(context, &keyframe.camera)?;
         let frame =
             self.renderer
                 .render_frame(context, map.gaussians(), &keyframe.camera, &self.raster)?;
@@ -353,13 +361,13 @@ impl MapperState {
             context,
             &self.renderer,
             &frame,
-            &target,
+            &keyframe.target,
             &self.weights,
-            &image_gradients,
+            &keyframe.image_gradients,
         )?;
         let gradients =
             self.renderer
-                .backward(context, map.gaussians(), &frame, &image_gradients)?;
+                .backward(context, map.gaussians(), &frame, &keyframe.image_gradients)?;
         map.adam_step(context, &self.kernels, &gradients)?;
         self.stats.iterations += 1;
         if self

@@ -26,8 +26,9 @@
 //! farther from the pose graph's than `max_pose_change_*` is put back (the photometric term
 //! pulled it into a wrong basin) and counted.
 //!
-//! Targets are uploaded once; nothing but the pose gradient (and the tile-pair count, to grow the
-//! binning buffers) is read back inside the loop.
+//! Targets and image-gradient buffers are allocated once per view; nothing but the pose gradient
+//! (and, on a view's first visit and every `CHECK_PAIRS_EVERY` iterations, the tile-pair count
+//! that grows the binning buffers) is read back inside the loop.
 
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -65,6 +66,10 @@ const MIN_SCENE_SCALE_M: f64 = 1e-3;
 /// grows them after the first overflow, so one retry suffices unless the adapter's binding limit
 /// is reached).
 const PAIR_OVERFLOW_RETRIES: usize = 1;
+/// After every view has been rendered (and its tile pairs checked) once, the pair count is read
+/// back only every this many iterations: the map's footprint changes slowly, and each check is
+/// a blocking read in the middle of an iteration.
+const CHECK_PAIRS_EVERY: usize = 50;
 
 /// One keyframe as refinement sees it.
 pub struct RefinementView {
@@ -327,6 +332,12 @@ pub fn refine(
         .iter()
         .map(|view| DeviceTarget::upload(&context, &view.target))
         .collect::<Result<_, _>>()?;
+    // The loss kernel rewrites every pixel of these, so one buffer per view serves every visit.
+    let image_gradients: Vec<DeviceImageGradients> = prepared
+        .iter()
+        .map(|view| DeviceImageGradients::zeros(&context, &view.camera(&Isometry3::identity())))
+        .collect::<Result<_, _>>()?;
+    let mut pairs_checked = vec![false; prepared.len()];
     let weights = LossWeights {
         l1: consensus.weight_l1 as f32,
         ssim: consensus.weight_ssim as f32,
@@ -366,22 +377,25 @@ pub fn refine(
         let view = order.pop().expect("refilled above");
         let camera = prepared[view].camera(&poses[view]);
         let mut frame = renderer.render_frame(&context, map.gaussians(), &camera, &raster)?;
-        for _ in 0..PAIR_OVERFLOW_RETRIES {
-            if !renderer.check_pairs(&context, &frame)?.overflowed() {
-                break;
+        if !pairs_checked[view] || report.iterations.is_multiple_of(CHECK_PAIRS_EVERY) {
+            pairs_checked[view] = true;
+            for _ in 0..PAIR_OVERFLOW_RETRIES {
+                if !renderer.check_pairs(&context, &frame)?.overflowed() {
+                    break;
+                }
+                frame = renderer.render_frame(&context, map.gaussians(), &camera, &raster)?;
             }
-            frame = renderer.render_frame(&context, map.gaussians(), &camera, &raster)?;
         }
-        let image_gradients = DeviceImageGradients::zeros(&context, &camera)?;
         kernels.image_loss(
             &context,
             &renderer,
             &frame,
             &targets[view],
             &weights,
-            &image_gradients,
+            &image_gradients[view],
         )?;
-        let gradients = renderer.backward(&context, map.gaussians(), &frame, &image_gradients)?;
+        let gradients =
+            renderer.backward(&context, map.gaussians(), &frame, &image_gradients[view])?;
         map.adam_step(&context, &kernels, &gradients)?;
         let pose_time = report.iterations >= pose_warmup
             || started.elapsed().as_secs_f64() >= config.pose_warmup_fraction * config.max_seconds;
