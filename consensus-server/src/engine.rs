@@ -24,9 +24,9 @@ use slam_core::se3::{isometry_from_tum, isometry_to_tum};
 use crate::alignment::{Keyframe, PreparedKeyframe, Verdict, align_prepared};
 use crate::config::ConsensusConfig;
 use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
-use crate::pose_graph::correction::{blend, correction};
 use crate::pose_graph::{LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
 use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
+use slam_core::correction::{CorrectionField, correction};
 
 /// One published keyframe as the consensus receives it.
 pub struct KeyframeArrival {
@@ -433,33 +433,19 @@ impl Engine {
         tracked: &[(f64, Isometry3<f64>)],
     ) -> Option<Vec<(f64, Isometry3<f64>)>> {
         let solution = self.solution.as_ref()?;
-        let mut anchors: Vec<(f64, Isometry3<f64>)> = self
-            .info
-            .iter()
-            .filter(|(id, _)| id.agent_id == agent_id)
-            .filter_map(|(id, info)| Some((info.timestamp_s, *solution.corrections.get(id)?)))
-            .collect();
-        if anchors.is_empty() {
+        let field = CorrectionField::from_anchors(
+            self.info
+                .iter()
+                .filter(|(id, _)| id.agent_id == agent_id)
+                .filter_map(|(id, info)| Some((info.timestamp_s, *solution.corrections.get(id)?))),
+        );
+        if field.is_empty() {
             return None;
         }
-        anchors.sort_by(|a, b| a.0.total_cmp(&b.0));
         Some(
             tracked
                 .iter()
-                .map(|(t, agent_from_camera)| {
-                    let after = anchors.partition_point(|(stamp, _)| stamp <= t);
-                    let correction = if after == 0 {
-                        anchors[0].1
-                    } else if after == anchors.len() {
-                        anchors[after - 1].1
-                    } else {
-                        let (t0, c0) = &anchors[after - 1];
-                        let (t1, c1) = &anchors[after];
-                        let span = (t1 - t0).max(f64::EPSILON);
-                        blend(c0, c1, ((t - t0) / span).clamp(0.0, 1.0))
-                    };
-                    (*t, correction * agent_from_camera)
-                })
+                .map(|(t, agent_from_camera)| (*t, field.at(*t) * agent_from_camera))
                 .collect(),
         )
     }

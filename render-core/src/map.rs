@@ -7,7 +7,9 @@
 //!   [`DeviceGaussians::retain`] takes a caller's mask; both compact every parameter buffer
 //!   with a prefix sum of the keep flags (compact.wgsl), stably: the kept Gaussians keep their
 //!   relative order, so per-Gaussian metadata on the host can follow with the same mask.
-//! - [`DeviceGaussians::transform_rigid`] applies an agent-to-world correction (transform.wgsl).
+//! - [`DeviceGaussians::transform_rigid`] applies an agent-to-world correction and
+//!   [`DeviceGaussians::transform_groups`] one transform per group of Gaussians, a keyframe's
+//!   Gaussians following their keyframe (transform.wgsl).
 //!
 //! Adam state: [`DeviceMap`] owns the Gaussians together with their [`DeviceAdam`] and applies
 //! every edit to both (new Gaussians get zero moments; compaction moves the moments with their
@@ -159,14 +161,28 @@ struct PruneParams {
     thresholds: [f32; 4],
 }
 
-/// Mirrors `TransformParams` in transform.wgsl.
+/// Mirrors `GroupTransform` in transform.wgsl.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct TransformParams {
+struct GroupTransform {
     rows: [[f32; 4]; 3],
     rotation_quaternion: [f32; 4],
-    counts: [u32; 4],
 }
+
+impl From<&RigidTransform> for GroupTransform {
+    fn from(transform: &RigidTransform) -> Self {
+        let r = transform.rotation;
+        let t = transform.translation;
+        Self {
+            rows: std::array::from_fn(|i| [r[i][0], r[i][1], r[i][2], t[i]]),
+            rotation_quaternion: transform.rotation_quaternion(),
+        }
+    }
+}
+
+/// `group_mode` of transform.wgsl: one transform for every Gaussian, or one per group.
+const TRANSFORM_ALL: u32 = 0;
+const TRANSFORM_BY_GROUP: u32 = 1;
 
 /// Compiled kernels of the map edits; one set per [`GpuContext`], built on first use.
 pub(crate) struct MapKernels {
@@ -399,18 +415,63 @@ impl DeviceGaussians {
         context: &GpuContext,
         transform: &RigidTransform,
     ) -> Result<(), GpuError> {
+        self.dispatch_transform(context, &[GroupTransform::from(transform)], None)
+    }
+
+    /// Applies `transforms[group_of[i]]` to Gaussian `i` (as [`Self::transform_rigid`] does
+    /// with one transform); a group index past the end of `transforms` leaves that Gaussian
+    /// unchanged. A non-rigid correction: each keyframe's Gaussians move with their keyframe.
+    /// Matches [`GaussianCloud::transform_groups`]; order and count are unchanged.
+    pub fn transform_groups(
+        &mut self,
+        context: &GpuContext,
+        group_of: &[u32],
+        transforms: &[RigidTransform],
+    ) -> Result<(), GpuError> {
+        if group_of.len() != self.len() {
+            return Err(GpuError::InvalidInput(format!(
+                "{} group indices for {} Gaussians",
+                group_of.len(),
+                self.len()
+            )));
+        }
+        if transforms.is_empty() {
+            return Ok(());
+        }
+        let transforms: Vec<GroupTransform> = transforms.iter().map(GroupTransform::from).collect();
+        self.dispatch_transform(context, &transforms, Some(group_of))
+    }
+
+    fn dispatch_transform(
+        &mut self,
+        context: &GpuContext,
+        transforms: &[GroupTransform],
+        group_of: Option<&[u32]>,
+    ) -> Result<(), GpuError> {
         if self.count == 0 {
             return Ok(());
         }
         let kernels = MapKernels::of(context);
-        let r = transform.rotation;
-        let t = transform.translation;
-        let params = TransformParams {
-            rows: std::array::from_fn(|i| [r[i][0], r[i][1], r[i][2], t[i]]),
-            rotation_quaternion: transform.rotation_quaternion(),
-            counts: [self.count, 0, 0, 0],
+        let mode = if group_of.is_some() {
+            TRANSFORM_BY_GROUP
+        } else {
+            TRANSFORM_ALL
         };
-        let params_buffer = context.uniform_buffer("transform params", bytemuck::bytes_of(&params));
+        let params_buffer = context.uniform_buffer(
+            "transform params",
+            &four_u32([self.count, mode, transforms.len() as u32, 0]),
+        );
+        let transforms_buffer = context.storage_buffer_init(
+            "transforms",
+            bytemuck::cast_slice(transforms),
+            size_of::<GroupTransform>(),
+        );
+        // Read only in group mode; a one-word buffer keeps the binding valid otherwise.
+        let group_buffer = context.storage_buffer_init(
+            "transform groups",
+            bytemuck::cast_slice(group_of.unwrap_or(&[])),
+            U32_BYTES as usize,
+        );
         let group = bind_group(
             context,
             &kernels.transform,
@@ -418,6 +479,8 @@ impl DeviceGaussians {
                 (0, &params_buffer),
                 (1, &self.means),
                 (2, &self.quaternions),
+                (3, &transforms_buffer),
+                (4, &group_buffer),
             ],
         );
         let mut encoder = context.device.create_command_encoder(&Default::default());
@@ -730,6 +793,18 @@ impl DeviceMap {
         transform: &RigidTransform,
     ) -> Result<(), GpuError> {
         self.gaussians.transform_rigid(context, transform)
+    }
+
+    /// [`DeviceGaussians::transform_groups`]; the moments stay, as for
+    /// [`Self::transform_rigid`].
+    pub fn transform_groups(
+        &mut self,
+        context: &GpuContext,
+        group_of: &[u32],
+        transforms: &[RigidTransform],
+    ) -> Result<(), GpuError> {
+        self.gaussians
+            .transform_groups(context, group_of, transforms)
     }
 
     /// [`TrainingKernels::adam_step`] on this map's Gaussians and state.

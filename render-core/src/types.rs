@@ -124,6 +124,28 @@ impl GaussianCloud {
         }
     }
 
+    /// Applies `transforms[group_of[i]]` to Gaussian `i` as [`Self::transform_rigid`] does; a
+    /// group index past the end of `transforms` leaves that Gaussian unchanged. The host
+    /// counterpart of `DeviceGaussians::transform_groups`.
+    ///
+    /// # Panics
+    /// When `group_of` does not have one entry per Gaussian.
+    pub fn transform_groups(&mut self, group_of: &[u32], transforms: &[RigidTransform]) {
+        assert_eq!(group_of.len(), self.len(), "one group index per Gaussian");
+        let rotations: Vec<[f32; 4]> = transforms
+            .iter()
+            .map(RigidTransform::rotation_quaternion)
+            .collect();
+        for (i, &group) in group_of.iter().enumerate() {
+            let Some(transform) = transforms.get(group as usize) else {
+                continue;
+            };
+            self.means[i] = transform.transform_point(self.means[i]);
+            self.quaternions[i] =
+                quaternion_multiply(rotations[group as usize], self.quaternions[i]);
+        }
+    }
+
     /// Largest distance of a mean from the centroid of all means (metres; 0 when empty): the
     /// scene scale mean learning rates are multiplied by (3DGS normalises by the camera extent;
     /// a map's own radius is the stand-in before cameras are known).

@@ -532,6 +532,62 @@ fn transform_rigid_matches_host_and_preserves_the_view() {
 }
 
 #[test]
+fn transform_groups_moves_each_group_by_its_own_transform() {
+    let context = &gpu().context;
+    let cloud = scene(700, 43);
+    let transforms = [
+        RigidTransform::from_quaternion_translation([0.6, -0.3, 0.5, 0.55], [1.5, -0.7, 2.2]),
+        RigidTransform::IDENTITY,
+        RigidTransform::from_quaternion_translation([0.9, 0.1, 0.0, -0.2], [0.0, 0.02, -0.01]),
+    ];
+    // Groups 0-2 in a pattern that crosses workgroup boundaries, plus groups past the end
+    // (left unchanged).
+    let group_of: Vec<u32> = (0..cloud.len() as u32)
+        .map(|i| (i * 7 + i / 256) % 5)
+        .collect();
+    let mut gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
+    gaussians
+        .transform_groups(context, &group_of, &transforms)
+        .unwrap();
+    let transformed = gaussians.download(context).unwrap();
+    let mut expected = cloud.clone();
+    expected.transform_groups(&group_of, &transforms);
+    let worst = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max)
+    };
+    let [means, _, quaternions, _, _] = groups(&transformed);
+    let [expected_means, _, expected_quaternions, _, _] = groups(&expected);
+    const TOLERANCE: f32 = 1e-5;
+    assert!(worst(&means, &expected_means) <= TOLERANCE);
+    assert!(worst(&quaternions, &expected_quaternions) <= TOLERANCE);
+    // The host oracle itself: group 0 equals the rigid transform, groups 3 and 4 do not move.
+    let mut rigid = cloud.clone();
+    rigid.transform_rigid(&transforms[0]);
+    for (i, &group) in group_of.iter().enumerate() {
+        match group {
+            0 => assert_eq!(expected.means[i], rigid.means[i]),
+            1 | 3 | 4 => {
+                assert_eq!(transformed.means[i], cloud.means[i]);
+                assert_eq!(transformed.quaternions[i], cloud.quaternions[i]);
+            }
+            _ => assert_ne!(expected.means[i], cloud.means[i]),
+        }
+    }
+    // A wrong number of group indices is refused and changes nothing.
+    assert!(matches!(
+        gaussians.transform_groups(context, &group_of[1..], &transforms),
+        Err(GpuError::InvalidInput(_))
+    ));
+    assert_eq!(
+        gaussians.download(context).unwrap().means,
+        transformed.means
+    );
+}
+
+#[test]
 fn edits_on_empty_and_fully_pruned_maps_do_not_panic() {
     let gpu = gpu();
     let context = &gpu.context;

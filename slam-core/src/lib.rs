@@ -12,6 +12,7 @@
 
 pub mod camera;
 pub mod config;
+pub mod correction;
 pub mod dataset;
 pub mod descriptor;
 pub mod metrics;

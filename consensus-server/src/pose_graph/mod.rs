@@ -22,13 +22,14 @@
 //! and the decision on every closure; [`correction`] carries the keyframes' corrections over to
 //! the frames tracked between them.
 
-pub mod correction;
 pub mod gnc;
 pub mod initial;
 pub mod residual;
 pub mod solver;
 
 use std::collections::{BTreeMap, BTreeSet};
+
+use slam_core::correction;
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
@@ -96,7 +97,8 @@ pub struct PoseGraphSolution {
     /// Corrected `world_from_camera` of every keyframe of the linked agents.
     pub world_from_camera: BTreeMap<KeyframeRef, Isometry3<f64>>,
     /// Per keyframe of the linked agents, the correction it received (see
-    /// [`correction::correction`]): apply it, or [`correction::blend`] two, to tracked poses.
+    /// [`correction::correction`]): apply it, or a [`correction::CorrectionField`] through them, to
+    /// tracked poses.
     pub corrections: BTreeMap<KeyframeRef, Isometry3<f64>>,
     pub loops: Vec<LoopDecision>,
     pub gnc_steps: usize,

@@ -1,25 +1,34 @@
-// transform: applies the rigid transform p -> R p + t to every live Gaussian in place, one
+// transform: applies a rigid transform p -> R p + t to every live Gaussian in place, one
 // invocation per Gaussian (256 per workgroup, linear workgroup id over a 2D grid).
+// Either one transform for the whole map (an agent-to-world correction: group_mode 0) or one
+// per group, with the group of Gaussian i in group_of[i] (a non-rigid correction that moves each
+// keyframe's Gaussians with their keyframe: group_mode 1); a group index >= transform_count
+// leaves the Gaussian unchanged.
 // mean <- R mean + t; quaternion <- q_R * q (Hamilton product, [w, x, y, z]), which
 // left-multiplies the Gaussian's rotation by R so its covariance becomes R Sigma R^T.
 // Log-scales, opacity and colour do not depend on the frame and stay as they are. q_R is the
 // unit quaternion of R, computed on the host, so |q| is preserved.
-// Invariant: only indices < count are read or written.
+// Invariant: only indices < count are read or written; group_of is read only in group mode.
 
 struct TransformParams {
+    // gaussian count, group_mode (0 or 1), transform count, unused
+    counts: vec4<u32>,
+}
+
+struct GroupTransform {
     // Rows of R; w holds the translation component of that row.
     row0: vec4<f32>,
     row1: vec4<f32>,
     row2: vec4<f32>,
     // q_R as (w, x, y, z)
     rotation_quaternion: vec4<f32>,
-    // gaussian count, unused, unused, unused
-    counts: vec4<u32>,
 }
 
 @group(0) @binding(0) var<uniform> transform_params: TransformParams;
 @group(0) @binding(1) var<storage, read_write> means: array<f32>;
 @group(0) @binding(2) var<storage, read_write> quaternions: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read> transforms: array<GroupTransform>;
+@group(0) @binding(4) var<storage, read> group_of: array<u32>;
 
 // Hamilton product a * b of quaternions stored as (w, x, y, z).
 fn quaternion_multiply(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
@@ -40,10 +49,17 @@ fn main(
     if index >= transform_params.counts.x {
         return;
     }
+    var group = 0u;
+    if transform_params.counts.y == 1u {
+        group = group_of[index];
+    }
+    if group >= transform_params.counts.z {
+        return;
+    }
+    let transform = transforms[group];
     let mean = vec4<f32>(means[3u * index], means[3u * index + 1u], means[3u * index + 2u], 1.0);
-    means[3u * index] = dot(transform_params.row0, mean);
-    means[3u * index + 1u] = dot(transform_params.row1, mean);
-    means[3u * index + 2u] = dot(transform_params.row2, mean);
-    quaternions[index] = quaternion_multiply(
-        transform_params.rotation_quaternion, quaternions[index]);
+    means[3u * index] = dot(transform.row0, mean);
+    means[3u * index + 1u] = dot(transform.row1, mean);
+    means[3u * index + 2u] = dot(transform.row2, mean);
+    quaternions[index] = quaternion_multiply(transform.rotation_quaternion, quaternions[index]);
 }

@@ -36,7 +36,9 @@ use super::gicp::{
 };
 use super::kdtree::PointTree;
 use super::points::{PointCloud, points_from_depth};
-use super::voxel_map::{MapPoint, VOXEL_SIZE_PER_CORRESPONDENCE_DISTANCE, ViewFrustum, VoxelMap};
+use super::voxel_map::{
+    MapPoint, MapPointId, VOXEL_SIZE_PER_CORRESPONDENCE_DISTANCE, ViewFrustum, VoxelMap,
+};
 
 /// Failed frames in a row after which frame-to-model tracking starts a new map. Three frames
 /// (0.1 s at 30 Hz) ride out a burst of bad depth on the prediction; beyond that the prediction
@@ -187,6 +189,29 @@ impl Odometry {
 
     pub fn stats(&self) -> &OdometryStats {
         &self.stats
+    }
+
+    /// Id the next map point will get: map points are numbered in the order keyframes add
+    /// them, so a caller that notes this before and after a keyframe knows which points it made.
+    pub fn next_point_id(&self) -> MapPointId {
+        self.next_point_id
+    }
+
+    /// Moves the frame-to-model map non-rigidly (a consensus correction, SPEC section 4): each
+    /// map point by `transform_of(its id)` (unchanged when `None`), and the last pose by
+    /// `current`, the correction at the current frame, so that the next prediction lands in the
+    /// moved map. The constant-velocity motion is relative and stays. Returns how many points
+    /// moved.
+    pub fn apply_correction(
+        &mut self,
+        transform_of: impl FnMut(MapPointId) -> Option<Isometry3<f64>>,
+        current: &Isometry3<f64>,
+    ) -> usize {
+        if let Some(world_from_previous) = self.world_from_previous.as_mut() {
+            *world_from_previous = current * *world_from_previous;
+            world_from_previous.rotation.renormalize();
+        }
+        self.map.transform_points(transform_of)
     }
 
     /// Points of a depth image with covariances, indexed for neighbour search.

@@ -286,6 +286,32 @@ impl VoxelMap {
         Some(point)
     }
 
+    /// Moves every point for which `transform_of` gives a transform (`p -> R p + t`, covariance
+    /// `R C R^T`); the others stay. The index is rebuilt, so queries see the new positions; ids
+    /// are kept. A point whose new position is not finite is dropped (it belongs to no voxel).
+    /// Returns how many points moved.
+    pub fn transform_points(
+        &mut self,
+        mut transform_of: impl FnMut(MapPointId) -> Option<Isometry3<f64>>,
+    ) -> usize {
+        let points: Vec<MapPoint> = self.iter().copied().collect();
+        self.clear();
+        let mut moved = 0;
+        for mut point in points {
+            if let Some(transform) = transform_of(point.id) {
+                let rotation = transform.rotation.to_rotation_matrix().into_inner();
+                point.position = (transform * point.position.cast::<f64>()).cast::<f32>();
+                point.covariance = Covariance::from_matrix(
+                    &(rotation * point.covariance.to_matrix() * rotation.transpose()),
+                );
+                moved += 1;
+            }
+            // Finite positions are always accepted; a non-finite transform loses the point.
+            let _ = self.insert(point);
+        }
+        moved
+    }
+
     pub fn get(&self, id: MapPointId) -> Option<&MapPoint> {
         let slot = *self.slot_of_id.get(&id)?;
         self.points[slot as usize].as_ref()
@@ -515,6 +541,43 @@ mod tests {
             incremental
                 .insert(point(1, Point3::new(f32::NAN, 0.0, 0.0)))
                 .is_err()
+        );
+    }
+
+    #[test]
+    fn transforming_points_moves_them_and_their_covariances() {
+        let mut map = VoxelMap::new(0.04);
+        let a = Point3::new(0.0f32, 0.0, 1.0);
+        let b = Point3::new(1.0f32, 0.0, 1.0);
+        let mut flat = point(1, a);
+        // A plane-like covariance with its thin axis along z.
+        flat.covariance = Covariance([1.0, 0.0, 0.0, 1.0, 0.0, 1e-3]);
+        map.insert(flat).unwrap();
+        map.insert(point(2, b)).unwrap();
+        // Point 1 moves 0.5 m along x and turns 90 degrees about y; point 2 stays.
+        let turn = Isometry3::from_parts(
+            nalgebra::Translation3::new(0.5, 0.0, 0.0),
+            nalgebra::UnitQuaternion::from_euler_angles(0.0, std::f64::consts::FRAC_PI_2, 0.0),
+        );
+        let moved = map.transform_points(|id| (id == 1).then_some(turn));
+        assert_eq!(moved, 1);
+        assert_eq!(map.len(), 2);
+        let expected = (turn * a.cast::<f64>()).cast::<f32>();
+        let (slot, distance_sq) = map
+            .nearest_in_map(&expected, 1e-6)
+            .expect("moved point found");
+        assert!(distance_sq < 1e-10);
+        assert_eq!(map.points[slot as usize].unwrap().id, 1);
+        assert!(
+            map.nearest_in_map(&a, 1e-4).is_none(),
+            "nothing left at the old place"
+        );
+        assert_eq!(map.get(2).unwrap().position, b);
+        // The thin axis now lies along x.
+        let c = map.get(1).unwrap().covariance.to_matrix();
+        assert!(
+            (c[(0, 0)] - 1e-3).abs() < 1e-6 && (c[(2, 2)] - 1.0).abs() < 1e-6,
+            "{c}"
         );
     }
 
