@@ -9,9 +9,11 @@
 //!   Gaussians and Adam state together through appends and pruning);
 //! - [`evaluation`]: rendering quality at the estimated poses;
 //! - [`run`]: the standalone run and its outputs;
-//! - [`swarm`]: the link to the consensus, and [`link_schedule`]: simulated intermittent links;
+//! - [`swarm`]: the link to the consensus, [`corrections`]: its corrections applied to the local
+//!   maps, and [`link_schedule`]: simulated intermittent links;
 //! - [`progress`]: progress.json for the swarm launcher's progress line.
 
+pub mod corrections;
 pub mod evaluation;
 pub mod link_schedule;
 pub mod mapper;

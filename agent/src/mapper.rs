@@ -28,7 +28,7 @@ use render_core::context::{GpuContext, GpuError};
 use render_core::gpu::GpuRenderer;
 use render_core::map::{DeviceMap, PruneCriteria};
 use render_core::training::{DeviceTarget, LossWeights, TargetImage, TrainingKernels};
-use render_core::types::{Camera, GaussianCloud, RasterConfig};
+use render_core::types::{Camera, GaussianCloud, RasterConfig, RigidTransform};
 use slam_core::camera::Intrinsics;
 use slam_core::config::{MappingConfig, TrackingConfig};
 use slam_core::dataset::DepthImage;
@@ -66,6 +66,8 @@ pub struct MappingStats {
     pub seconds: f64,
     pub pruned: usize,
     pub keyframes: usize,
+    /// Consensus corrections applied to the map.
+    pub corrections: usize,
     /// Loss of the last iteration whose loss was read back (weighted L1, SSIM, depth terms).
     pub last_loss: Option<[f32; 3]>,
 }
@@ -99,7 +101,12 @@ pub enum MapperError {
 
 enum Command {
     Keyframe(Box<MappingKeyframe>),
-    Finish { refine_iterations: usize },
+    /// A consensus correction ([`crate::corrections`]): the move of each keyframe's part of the
+    /// map, indexed by keyframe id (keyframes made later stay).
+    Correct(Vec<RigidTransform>),
+    Finish {
+        refine_iterations: usize,
+    },
 }
 
 /// Live counters the tracker may read (progress display, logs).
@@ -142,6 +149,13 @@ impl Mapper {
         let _ = self.commands.send(Command::Keyframe(Box::new(keyframe)));
     }
 
+    /// Moves each keyframe's Gaussians and pose by `keyframe_moves[keyframe id]` (a non-rigid
+    /// correction; keyframes past the end stay). Queued behind the keyframes already sent, so
+    /// every keyframe it names is in the map when it is applied; never blocks.
+    pub fn correct(&self, keyframe_moves: Vec<RigidTransform>) {
+        let _ = self.commands.send(Command::Correct(keyframe_moves));
+    }
+
     /// Ends real-time mapping (after the queued keyframes are in the map), runs
     /// `refine_iterations` more iterations over random keyframes, and returns the maps.
     pub fn finish(self, refine_iterations: usize) -> Result<MappingOutcome, MapperError> {
@@ -153,6 +167,7 @@ impl Mapper {
 /// A keyframe kept for optimisation, at mapping resolution; its target lives on the device
 /// (uploaded once, not every iteration).
 struct StoredKeyframe {
+    keyframe_id: usize,
     camera: Camera,
     target: DeviceTarget,
     /// dL/d(image) of its iterations (the loss kernel rewrites every pixel, so one buffer per
@@ -165,6 +180,9 @@ struct MapperState {
     renderer: GpuRenderer,
     kernels: TrainingKernels,
     map: Option<DeviceMap>,
+    /// Per Gaussian of `map`, in its order: the id of the keyframe that seeded it (what a
+    /// correction moves it with). Follows appends and pruning.
+    keyframe_of: Vec<u32>,
     keyframes: Vec<StoredKeyframe>,
     /// Keyframes not optimised yet, oldest first (popped from the back: newest first).
     unvisited: Vec<usize>,
@@ -195,6 +213,7 @@ impl MapperState {
             renderer,
             kernels,
             map: None,
+            keyframe_of: Vec::new(),
             keyframes: Vec::new(),
             unvisited: Vec::new(),
             rng: ChaCha8Rng::seed_from_u64(mapping.random_seed),
@@ -238,6 +257,7 @@ impl MapperState {
             };
             match command {
                 Some(Command::Keyframe(keyframe)) => self.insert_keyframe(*keyframe)?,
+                Some(Command::Correct(keyframe_moves)) => self.correct(&keyframe_moves)?,
                 Some(Command::Finish { refine_iterations }) => break refine_iterations,
                 None => self.iterate()?,
             }
@@ -309,11 +329,16 @@ impl MapperState {
                     )?);
                 }
             }
+            self.keyframe_of.extend(std::iter::repeat_n(
+                keyframe.keyframe_id as u32,
+                keyframe.new_gaussians.len(),
+            ));
             // New Gaussians may need more tile pairs than the buffers hold: check on the next
             // iteration.
             self.since_pair_check = self.config.check_pairs_every;
         }
         let stored = StoredKeyframe {
+            keyframe_id: keyframe.keyframe_id,
             target: DeviceTarget::upload(&self.context, &target)?,
             image_gradients: DeviceImageGradients::zeros(&self.context, &camera)?,
             camera,
@@ -324,6 +349,24 @@ impl MapperState {
         self.progress
             .gaussians
             .store(self.map.as_ref().map_or(0, |m| m.len()), Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Applies a correction: every Gaussian and keyframe camera moves with its keyframe.
+    fn correct(&mut self, keyframe_moves: &[RigidTransform]) -> Result<(), MapperError> {
+        let _span = tracing::debug_span!("correct", keyframes = keyframe_moves.len()).entered();
+        if let Some(map) = self.map.as_mut() {
+            debug_assert_eq!(map.len(), self.keyframe_of.len());
+            map.transform_groups(&self.context, &self.keyframe_of, keyframe_moves)?;
+        }
+        for keyframe in &mut self.keyframes {
+            if let Some(moved) = keyframe_moves.get(keyframe.keyframe_id) {
+                // camera_from_world' = (moved * world_from_camera)^-1.
+                keyframe.camera.camera_from_world =
+                    keyframe.camera.camera_from_world.compose(&moved.inverse());
+            }
+        }
+        self.stats.corrections += 1;
         Ok(())
     }
 
@@ -390,7 +433,13 @@ impl MapperState {
             .iterations
             .is_multiple_of(self.config.prune_every)
         {
-            let removed = map.prune(context, &self.prune_criteria)?.removed;
+            let report = map.prune(context, &self.prune_criteria)?;
+            let removed = report.removed;
+            if removed > 0 {
+                let mut kept = report.kept.iter();
+                self.keyframe_of
+                    .retain(|_| kept.next().copied().unwrap_or(false));
+            }
             self.stats.pruned += removed;
             if removed > 0 {
                 tracing::debug!(removed, remaining = map.len(), "pruned");

@@ -23,10 +23,12 @@ use slam_core::metrics::stats::{median, quantile};
 use slam_core::registration::odometry::{Odometry, OdometryMode, TrackingOutcome};
 use slam_core::trajectory::Trajectory;
 
+use crate::corrections::{LocalCorrectionStats, LocalCorrections, LocalMaps};
 use crate::evaluation::{
     FrameQuality, MapRenderer, QualitySummary, comparison_path, evaluate_frame,
 };
 use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe, MappingStats};
+use crate::poses::rigid_from_isometry;
 use crate::progress::{Progress, ProgressFile, Stage};
 use crate::seeding::{CoverageIndex, SeedFrame, seed_gaussians};
 use crate::source::FrameSource;
@@ -122,9 +124,13 @@ pub struct AgentMetrics {
     /// Swarm mode only: what went to and came from the consensus.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub swarm: Option<SwarmSummary>,
+    /// Swarm mode only: the consensus corrections applied to the local maps.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub local_corrections: Option<LocalCorrectionStats>,
 }
 
 /// One frame's estimate.
+#[derive(Clone, Copy)]
 struct TrackedPose {
     position: usize,
     timestamp: f64,
@@ -162,6 +168,7 @@ pub fn run_agent(
         None => None,
     };
 
+    let in_swarm = swarm.is_some();
     let started = Instant::now();
     let mut source = FrameSource::new(dataset.clone(), options.decode_workers.max(1), config.noise);
     let mut odometry = Odometry::new(
@@ -172,6 +179,8 @@ pub fn run_agent(
     let mapper =
         Mapper::spawn(&config.tracking, &config.mapping).context("starting the mapping thread")?;
     let mut coverage = CoverageIndex::new(config.keyframes.mapping_seed_min_distance_sq_m2.sqrt());
+    // Consensus corrections of the local maps (swarm only; the identity when standalone).
+    let mut corrections = LocalCorrections::new(&config.consensus.local_corrections);
     let progress = progress_bar(dataset.len());
     let mut progress_file = ProgressFile::new(&options.out);
     let frames_total = Some(dataset.len());
@@ -202,7 +211,14 @@ pub fn run_agent(
             if let Some(swarm) = swarm.as_mut() {
                 swarm.announce(&frame.intrinsics);
             }
+            let tracker_first_point = odometry.next_point_id();
             let tracked = odometry.track(&frame.depth, &frame.intrinsics);
+            if odometry.next_point_id() > tracker_first_point {
+                corrections.record_tracker_points(tracker_first_point, frame.timestamp);
+            }
+            // Tracking runs in the local-map frame; outputs use the tracked frame
+            // (crate::corrections).
+            let tracked_pose = corrections.to_tracked(frame.timestamp, &tracked.world_from_camera);
             let usable = item.has_depth
                 && matches!(
                     tracked.outcome,
@@ -241,18 +257,27 @@ pub fn run_agent(
                 };
                 let new_gaussians =
                     seed_gaussians(&seed_frame, &selected, &config.tracking, &config.keyframes);
+                corrections.record_coverage_points(coverage.next_id(), frame.timestamp);
                 coverage.insert(&new_gaussians);
                 let keyframe_id = tracking_keyframes + mapping_keyframes;
+                corrections.record_keyframe(keyframe_id, frame.timestamp, tracked_pose);
                 if let Some(swarm) = swarm.as_mut() {
+                    // Published in the tracked frame, the consensus's frame for this agent.
+                    let mut gaussians = new_gaussians.clone();
+                    if !corrections.applied().is_empty() {
+                        gaussians.transform_rigid(&rigid_from_isometry(
+                            &corrections.tracked_from_local(frame.timestamp),
+                        ));
+                    }
                     swarm.on_keyframe(PublishableKeyframe {
                         keyframe_id: keyframe_id as u64,
                         frame_index: frame.index as u64,
                         timestamp_s: frame.timestamp,
-                        agent_from_camera: tracked.world_from_camera,
+                        agent_from_camera: tracked_pose,
                         intrinsics: frame.intrinsics,
                         rgb: frame.rgb.clone(),
                         depth: frame.depth.clone(),
-                        gaussians: new_gaussians.clone(),
+                        gaussians,
                     });
                 }
                 match kind {
@@ -276,14 +301,24 @@ pub fn run_agent(
                     new_gaussians,
                 });
             }
-            if let Some(swarm) = swarm.as_mut() {
-                swarm.after_frame();
+            if let Some(swarm) = swarm.as_mut()
+                && let Some(correction) = swarm.after_frame()
+            {
+                corrections.apply(
+                    &correction,
+                    frame.timestamp,
+                    LocalMaps {
+                        odometry: &mut odometry,
+                        coverage: &mut coverage,
+                        mapper: &mapper,
+                    },
+                );
             }
             tracking_ms.push(clock.elapsed().as_secs_f64() * 1e3);
             poses.push(TrackedPose {
                 position: item.position,
                 timestamp: frame.timestamp,
-                world_from_camera: tracked.world_from_camera,
+                world_from_camera: tracked_pose,
                 ground_truth: frame.world_from_camera_gt,
             });
             progress.inc(1);
@@ -350,11 +385,16 @@ pub fn run_agent(
     let swarm_summary = swarm.map(|link| link.finish(&outcome.realtime_map));
     let ate_stats = trajectory_ate(&poses, &trajectory);
 
-    let evaluated: Vec<&TrackedPose> = poses
+    // The map is in the local-map frame: each frame is rendered where the corrections applied
+    // to the map put it (the tracked pose when none were).
+    let evaluated: Vec<TrackedPose> = poses
         .iter()
         .enumerate()
         .filter(|(i, _)| i % options.eval_every.max(1) == 0)
-        .map(|(_, p)| p)
+        .map(|(_, p)| TrackedPose {
+            world_from_camera: corrections.applied().at(p.timestamp) * p.world_from_camera,
+            ..*p
+        })
         .collect();
     let realtime_quality = evaluate_map(
         &outcome.realtime_map,
@@ -423,6 +463,7 @@ pub fn run_agent(
         interrupted,
         refined,
         swarm: swarm_summary,
+        local_corrections: in_swarm.then(|| corrections.stats().clone()),
     };
     let metrics_path = options.out.join("metrics.json");
     std::fs::write(&metrics_path, serde_json::to_string_pretty(&metrics)?)
@@ -466,7 +507,7 @@ fn trajectory_ate(poses: &[TrackedPose], estimate: &Trajectory) -> Option<AteSta
 fn evaluate_map(
     map: &render_core::types::GaussianCloud,
     dataset: &Arc<dyn Dataset>,
-    evaluated: &[&TrackedPose],
+    evaluated: &[TrackedPose],
     lpips: Option<&Lpips>,
     comparison_dir: Option<&Path>,
     comparison_renders: usize,

@@ -20,7 +20,7 @@ use slam_core::camera::Intrinsics;
 use slam_core::config::{KeyframeConfig, SeedScale, TrackingConfig};
 use slam_core::registration::covariance::{Covariance, smallest_eigenvector};
 use slam_core::registration::points::PointCloud;
-use slam_core::registration::voxel_map::{MapPoint, VoxelMap};
+use slam_core::registration::voxel_map::{MapPoint, MapPointId, VoxelMap};
 
 /// SPEC seeding scale: `sqrt(eigenvalue) / max(1, SPEC_DEPTH_FACTOR * z^SPEC_DEPTH_EXPONENT)`.
 const SPEC_DEPTH_FACTOR: f64 = 2.0;
@@ -175,6 +175,19 @@ impl CoverageIndex {
             // Seeded means are finite (finite points under a finite pose).
             let _ = self.map.insert(point);
         }
+    }
+
+    /// Id the next inserted mean gets (ids count up in insertion order).
+    pub fn next_id(&self) -> MapPointId {
+        self.next_id
+    }
+
+    /// Moves the indexed means with a correction ([`VoxelMap::transform_points`]).
+    pub fn transform_points(
+        &mut self,
+        transform_of: impl FnMut(MapPointId) -> Option<Isometry3<f64>>,
+    ) -> usize {
+        self.map.transform_points(transform_of)
     }
 }
 

@@ -32,12 +32,18 @@ use slam_core::dataset::DepthImage;
 use slam_core::descriptor::GlobalDescriptorExtractor;
 use slam_core::se3::isometry_to_tum;
 
+use crate::corrections::ReceivedCorrection;
 use crate::link_schedule::{
     BoundedQueue, CorrectionArrival, CorrectionGate, LinkPlan, LinkSummary,
 };
 
 /// Heartbeat period: the consensus learns that a quiet agent is still alive.
 const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
+/// How often an agent without a consensus looks for one. Every send waits up to the transport's
+/// `delivery_timeout` for a consumer, so an agent whose consensus is not there (not started yet,
+/// crashed, restarting) does not send at all: it queues as with the link down and checks,
+/// without blocking, this often whether the consensus is back.
+const PRESENCE_CHECK_EVERY: Duration = Duration::from_secs(1);
 
 /// A keyframe the agent may publish.
 pub struct PublishableKeyframe {
@@ -65,6 +71,14 @@ pub struct SwarmSummary {
     pub descriptor: String,
     /// The link's schedule and what it queued, delivered late and dropped.
     pub link: LinkSummary,
+    /// Seconds after the link opened at which the consensus was found attached (the first entry
+    /// is its first attachment; more mean it came back after being gone).
+    pub consensus_attached_at_s: Vec<f64>,
+    /// Seconds after the link opened at which a failed send found the consensus gone.
+    pub consensus_lost_at_s: Vec<f64>,
+    /// Messages (keyframes, the final map and the goodbye) never delivered because no
+    /// consensus was there at the end of the run.
+    pub undelivered_at_end: usize,
 }
 
 /// Whether the link is up now and what waits for it, for the progress file.
@@ -113,7 +127,10 @@ pub struct SwarmLink {
     /// Keyframes due while the link was down, oldest first.
     queue: BoundedQueue<WireKeyframe>,
     /// Corrections that arrive while the link is down wait here (the newest only).
-    corrections: CorrectionGate<Isometry3<f64>>,
+    corrections: CorrectionGate<ReceivedCorrection>,
+    /// Whether the consensus was attached at the last check (false until the first one).
+    consensus_present: bool,
+    last_presence_check: Option<Instant>,
 }
 
 impl SwarmLink {
@@ -155,6 +172,8 @@ impl SwarmLink {
             link_up,
             pending_hello: None,
             corrections: CorrectionGate::default(),
+            consensus_present: false,
+            last_presence_check: None,
         })
     }
 
@@ -187,13 +206,59 @@ impl SwarmLink {
             Err(error) => {
                 self.summary.send_failures += 1;
                 tracing::warn!(%error, "hello not delivered");
+                self.recheck_presence();
                 false
             }
         }
     }
 
-    /// Whether the link is up now, logging and recording transitions.
+    /// Whether the consensus is attached: known true until a send fails; while absent, looked
+    /// up (without blocking) at most every [`PRESENCE_CHECK_EVERY`].
+    fn consensus_attached(&mut self) -> bool {
+        if self.consensus_present {
+            return true;
+        }
+        if self
+            .last_presence_check
+            .is_some_and(|at| at.elapsed() < PRESENCE_CHECK_EVERY)
+        {
+            return false;
+        }
+        self.last_presence_check = Some(Instant::now());
+        if self.link.consumers_present() {
+            self.consensus_present = true;
+            self.summary
+                .consensus_attached_at_s
+                .push(self.opened.elapsed().as_secs_f64());
+            tracing::info!(
+                queued_keyframes = self.queue.len(),
+                "consensus attached: delivering what waited for it"
+            );
+        }
+        self.consensus_present
+    }
+
+    /// After a failed send: is the consensus still there? When it is not, later sends wait for
+    /// it to come back instead of each waiting out the delivery timeout.
+    fn recheck_presence(&mut self) {
+        if self.consensus_present && !self.link.consumers_present() {
+            self.consensus_present = false;
+            self.last_presence_check = Some(Instant::now());
+            self.summary
+                .consensus_lost_at_s
+                .push(self.opened.elapsed().as_secs_f64());
+            tracing::warn!("consensus gone: keyframes are queued until it is back");
+        }
+    }
+
+    /// Whether messages can go out now: the link is up by its schedule and the consensus is
+    /// attached.
     fn refresh_link_state(&mut self) -> bool {
+        self.refresh_schedule_state() && self.consensus_attached()
+    }
+
+    /// Whether the link is up now by its schedule, logging and recording transitions.
+    fn refresh_schedule_state(&mut self) -> bool {
         let now_s = self.plan.elapsed_s();
         let up = self.plan.windows.is_up(now_s);
         if up != self.link_up {
@@ -220,7 +285,7 @@ impl SwarmLink {
     /// What the link is doing, for the progress file.
     pub fn status(&self) -> LinkStatus {
         LinkStatus {
-            up: self.link_up,
+            up: self.link_up && self.consensus_present,
             queued_keyframes: self.queue.len(),
         }
     }
@@ -230,10 +295,11 @@ impl SwarmLink {
         self.latest = Some(keyframe);
     }
 
-    /// Between frames: publishes every T_comm frames, applies corrections, heartbeats. While the
+    /// Between frames: publishes every T_comm frames, takes corrections, heartbeats. While the
     /// link is down, the due keyframe is queued and corrections wait; the first check with the
-    /// link up again delivers the queue in order and applies the newest held correction.
-    pub fn after_frame(&mut self) {
+    /// link up again delivers the queue in order and hands out the newest held correction.
+    /// Returns the newest correction to apply to the local maps, if one arrived.
+    pub fn after_frame(&mut self) -> Option<ReceivedCorrection> {
         self.frames_since_publication += 1;
         let up = self.refresh_link_state();
         if up {
@@ -242,13 +308,15 @@ impl SwarmLink {
         if self.frames_since_publication >= self.t_comm && self.latest.is_some() {
             self.publish_latest(up);
         }
-        self.receive_corrections(up);
+        let correction = self.receive_corrections(up);
         if up && self.last_heartbeat.elapsed() >= HEARTBEAT_EVERY {
             self.last_heartbeat = Instant::now();
             if let Err(error) = self.link.heartbeat() {
                 tracing::debug!(%error, "heartbeat not delivered");
+                self.recheck_presence();
             }
         }
+        correction
     }
 
     /// The consensus's latest estimate of this agent's frame in the world.
@@ -292,6 +360,7 @@ impl SwarmLink {
                     error = %format!("{error:#}"),
                     "keyframe not published"
                 );
+                self.recheck_presence();
                 false
             }
         }
@@ -328,7 +397,9 @@ impl SwarmLink {
             return;
         }
         let with_link_down = despite_schedule && !self.link_up;
-        while let Some(wire) = self.queue.pop_front() {
+        while self.consensus_present
+            && let Some(wire) = self.queue.pop_front()
+        {
             let waited_s = wire.due.elapsed().as_secs_f64();
             if self.send_now(&wire) {
                 self.summary.link.delivered_late(waited_s, with_link_down);
@@ -386,29 +457,39 @@ impl SwarmLink {
         Ok(())
     }
 
-    /// Takes every pending correction. With the link up, the held one (if any) and then the
-    /// newest are applied; with it down, the newest is held and replaces older held ones.
-    fn receive_corrections(&mut self, link_up: bool) {
+    /// Takes every pending correction. With the link up, the newest (a held one, or one that
+    /// just arrived) is returned for applying; with it down, the newest is held and replaces
+    /// older held ones. Each correction states every published keyframe's pose, so only the
+    /// newest matters.
+    fn receive_corrections(&mut self, link_up: bool) -> Option<ReceivedCorrection> {
+        let mut newest = None;
         if link_up && let Some(held) = self.corrections.release() {
             tracing::info!(
-                translation_m = held.translation.vector.norm(),
-                "correction held while the link was down applied"
+                translation_m = held.world_from_agent.translation.vector.norm(),
+                "correction held while the link was down released"
             );
-            self.world_from_agent = Some(held);
+            newest = Some(held);
         }
         loop {
             match self.link.try_recv_correction() {
                 Ok(Some(correction)) => {
-                    let world_from_agent = correction.header().agent_world_to_world.to_isometry();
+                    let received = ReceivedCorrection {
+                        world_from_agent: correction.header().agent_world_to_world.to_isometry(),
+                        keyframes: correction
+                            .poses()
+                            .iter()
+                            .map(|p| (p.keyframe_id, p.camera_to_world.to_isometry()))
+                            .collect(),
+                    };
                     self.summary.corrections_received += 1;
-                    match self.corrections.arrive(world_from_agent, link_up) {
-                        CorrectionArrival::Apply(world_from_agent) => {
-                            tracing::info!(
-                                keyframes = correction.poses().len(),
-                                translation_m = world_from_agent.translation.vector.norm(),
+                    match self.corrections.arrive(received, link_up) {
+                        CorrectionArrival::Apply(received) => {
+                            tracing::debug!(
+                                keyframes = received.keyframes.len(),
+                                translation_m = received.world_from_agent.translation.vector.norm(),
                                 "correction received"
                             );
-                            self.world_from_agent = Some(world_from_agent);
+                            newest = Some(received);
                         }
                         CorrectionArrival::Held { superseded } => {
                             self.summary.link.corrections_held += 1;
@@ -426,6 +507,10 @@ impl SwarmLink {
                 }
             }
         }
+        if let Some(received) = &newest {
+            self.world_from_agent = Some(received.world_from_agent);
+        }
+        newest
     }
 
     /// Ends the run on the link, whatever the schedule says (the consensus waits for every
@@ -438,6 +523,29 @@ impl SwarmLink {
                 queued_keyframes = self.queue.len(),
                 "end of run with the link down: delivering the queue before the goodbye"
             );
+        }
+        if !self.consensus_attached() {
+            // One last wait for a consensus that is starting or restarting.
+            match self.link.await_all_consumers() {
+                Ok(()) => {
+                    self.consensus_present = true;
+                    self.summary
+                        .consensus_attached_at_s
+                        .push(self.opened.elapsed().as_secs_f64());
+                }
+                Err(error) => {
+                    self.summary.undelivered_at_end =
+                        self.queue.len() + usize::from(self.latest.is_some()) + 1;
+                    tracing::warn!(
+                        %error,
+                        queued_keyframes = self.queue.len(),
+                        "no consensus at the end of the run: queued keyframes, the final map \
+                         and the goodbye are not delivered (this agent's own outputs are \
+                         complete)"
+                    );
+                    return self.finish_summary();
+                }
+            }
         }
         // The last keyframe goes behind anything still queued.
         self.publish_latest(true);
@@ -459,7 +567,16 @@ impl SwarmLink {
             self.summary.send_failures += 1;
             tracing::warn!(%error, "final map not delivered");
         }
-        self.receive_corrections(true);
+        let _ = self.receive_corrections(true);
+        let summary = self.finish_summary();
+        if let Err(error) = self.link.close() {
+            tracing::warn!(%error, "goodbye not acknowledged");
+        }
+        summary
+    }
+
+    /// The summary with the link's traffic figures.
+    fn finish_summary(&mut self) -> SwarmSummary {
         let bandwidth = self.link.bandwidth();
         self.summary.bytes_sent = bandwidth
             .entries
@@ -470,10 +587,7 @@ impl SwarmLink {
         self.summary.bytes_sent_per_s =
             self.summary.bytes_sent as f64 / self.opened.elapsed().as_secs_f64().max(1e-9);
         self.summary.world_from_agent = self.world_from_agent.as_ref().map(isometry_to_tum);
-        if let Err(error) = self.link.close() {
-            tracing::warn!(%error, "goodbye not acknowledged");
-        }
-        self.summary
+        std::mem::take(&mut self.summary)
     }
 }
 

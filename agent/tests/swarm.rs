@@ -230,3 +230,52 @@ fn real_data_swarm_intermittent_link_queues_keyframes_delivers_them_late_and_con
     assert_eq!(progress["frames_done"], FRAMES);
     check(dir.path(), &report);
 }
+
+/// An agent in swarm mode whose consensus never comes (not started, or crashed) keeps tracking
+/// at its own pace: it queues what it would publish instead of waiting out the transport's
+/// delivery timeout on every send (which made such an agent take 10 s per frame), and writes all
+/// of its own outputs. Needs no shared data (classical descriptor).
+#[test]
+fn agent_without_a_consensus_keeps_tracking_and_writes_its_outputs() {
+    const FRAMES_ALONE: usize = 40;
+    let dir = tempfile::tempdir().unwrap();
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic.toml");
+    let mut config = Config::load(&path).unwrap();
+    config.consensus.t_comm = 5;
+    let config_path = write_config(dir.path(), &config);
+    let namespace = format!("alone{}", std::process::id());
+    let agent = Command::new(env!("CARGO_BIN_EXE_mac-agent"))
+        .args(["--config", config_path.to_str().unwrap()])
+        .args([
+            "--dataset",
+            &format!("synthetic:agents=2,agent=0,frames={FRAMES_ALONE},width=160,height=120"),
+        ])
+        .args(["--agent-id", "0", "--namespace", &namespace])
+        .args(["--eval-every", "20", "--renders", "0"])
+        .arg("--out")
+        .arg(dir.path().join("agent_0"))
+        .spawn()
+        .expect("starting mac-agent");
+    wait(agent, "agent without a consensus");
+    let metrics = agent_metrics(dir.path(), 0);
+    assert_eq!(metrics["frames"], FRAMES_ALONE);
+    let swarm = &metrics["swarm"];
+    assert_eq!(swarm["keyframes_published"], 0, "{swarm}");
+    assert!(
+        swarm["consensus_attached_at_s"]
+            .as_array()
+            .unwrap()
+            .is_empty()
+    );
+    assert!(
+        swarm["undelivered_at_end"].as_u64().unwrap() >= 2,
+        "the final map and the goodbye at least: {swarm}"
+    );
+    assert!(
+        swarm["link"]["keyframes_queued"].as_u64().unwrap() >= 1,
+        "publications were queued: {swarm}"
+    );
+    for output in ["trajectory.tum", "map.ply", "metrics.json"] {
+        assert!(dir.path().join("agent_0").join(output).exists(), "{output}");
+    }
+}

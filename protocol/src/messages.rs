@@ -178,7 +178,9 @@ pub struct GaussianRecord {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[repr(u32)]
 pub enum CoordinateFrame {
-    /// The agent's own world frame (its first camera pose).
+    /// The agent's own world frame (its first camera pose). Keyframe patches are in the agent's
+    /// tracked frame; the final map is in the agent's local-map frame, which the corrections
+    /// the agent applied have moved so that `world_from_agent` places it in the world.
     AgentWorld = 0,
     /// The shared world frame (agent 0's first pose), after a correction.
     World = 1,

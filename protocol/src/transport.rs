@@ -1542,6 +1542,37 @@ impl AgentLink {
         self.patch.attached()
     }
 
+    /// True when `required_consumers` consumers are attached to every outgoing topic now (a
+    /// send would not wait for one). Does not block; first reclaims what processes that died
+    /// left behind, so a killed consensus does not look attached.
+    pub fn consumers_present(&self) -> bool {
+        self.node.try_cleanup_dead_nodes();
+        let required = self.config.required_consumers;
+        [
+            Topic::Descriptor,
+            Topic::Patch,
+            Topic::KeyframeImage,
+            Topic::Lifecycle,
+        ]
+        .into_iter()
+        .filter_map(|topic| self.attached(topic))
+        .all(|(attached, _)| attached >= required)
+    }
+
+    /// Waits (event-driven) up to the configured `delivery_timeout` for consumers to attach to
+    /// every outgoing topic; [`TransportError::NoConsumer`] when they do not.
+    pub fn await_all_consumers(&self) -> Result<(), TransportError> {
+        for topic in [
+            Topic::Lifecycle,
+            Topic::Descriptor,
+            Topic::KeyframeImage,
+            Topic::Patch,
+        ] {
+            self.await_consumers(topic)?;
+        }
+        Ok(())
+    }
+
     /// Subscribers attached to one of this agent's outgoing topics, and the service name.
     fn attached(&self, topic: Topic) -> Option<(usize, &str)> {
         match topic {

@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 use crate::dataset::noise::NoiseConfig;
 
 mod consensus;
-pub use consensus::{AlignmentConfig, PoseGraphConfig, RefinementConfig};
+pub use consensus::{AlignmentConfig, LocalCorrectionConfig, PoseGraphConfig, RefinementConfig};
 
 /// Tracking: point selection, per-point covariances, map-candidate selection and G-ICP.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -210,6 +210,8 @@ pub struct ConsensusConfig {
     pub pose_graph: PoseGraphConfig,
     /// Joint photometric refinement of the merged map: `[consensus.refinement]`.
     pub refinement: RefinementConfig,
+    /// How agents apply corrections to their local maps: `[consensus.local_corrections]`.
+    pub local_corrections: LocalCorrectionConfig,
 }
 
 impl Default for ConsensusConfig {
@@ -228,6 +230,7 @@ impl Default for ConsensusConfig {
             alignment: AlignmentConfig::default(),
             pose_graph: PoseGraphConfig::default(),
             refinement: RefinementConfig::default(),
+            local_corrections: LocalCorrectionConfig::default(),
         }
     }
 }
@@ -446,6 +449,15 @@ impl Config {
         ] {
             non_negative(field, v)?;
         }
+        let l = &c.local_corrections;
+        non_negative(
+            "consensus.local_corrections.min_translation_m",
+            l.min_translation_m,
+        )?;
+        non_negative(
+            "consensus.local_corrections.min_rotation_rad",
+            l.min_rotation_rad,
+        )?;
         if let Some(n) = &self.noise {
             non_negative("noise.rgb_sigma", n.rgb_sigma)?;
             non_negative("noise.depth_sigma_m", n.depth_sigma_m)?;

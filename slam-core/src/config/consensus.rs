@@ -233,6 +233,39 @@ impl Default for RefinementConfig {
     }
 }
 
+/// How an agent applies the consensus's corrections to its local maps (SPEC section 4, step 4:
+/// "corrections go back to agents, which apply them to their local maps between frames"): the
+/// `[consensus.local_corrections]` table.
+///
+/// A correction carries the corrected pose of every keyframe the agent published. The agent
+/// moves each part of its tracking map, its mapping map and its keyframe poses with the
+/// correction blended at the time that part was made (the consensus's own rule for per-frame
+/// trajectories), so a drift the pose graph removed is also removed from the map the agent
+/// tracks against. What it publishes stays in its tracked (uncorrected) frame, which the
+/// consensus's odometry edges are built from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LocalCorrectionConfig {
+    /// Apply corrections to the local maps at all (false: they are only recorded).
+    pub apply: bool,
+    /// A correction is applied only when it would move some keyframe by at least this much
+    /// (metres) or `min_rotation_rad`: smaller changes are pose-graph noise, and every
+    /// application rebuilds the tracking map's index (about 10 ms per 100k points).
+    pub min_translation_m: f64,
+    /// Radians (0.1 degrees).
+    pub min_rotation_rad: f64,
+}
+
+impl Default for LocalCorrectionConfig {
+    fn default() -> Self {
+        Self {
+            apply: true,
+            min_translation_m: 0.002,
+            min_rotation_rad: 0.1_f64.to_radians(),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

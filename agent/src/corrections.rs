@@ -1,0 +1,376 @@
+//! Consensus corrections applied to the agent's local maps between frames (SPEC section 4,
+//! step 4; `[consensus.local_corrections]`).
+//!
+//! A correction carries `world_from_agent` and the corrected world pose of every keyframe the
+//! agent published. In the agent's own frame that is a [`CorrectionField`]: at each published
+//! keyframe's time, `agent_from_world * world_from_camera_corrected * agent_from_camera_tracked^-1`,
+//! blended in between (the consensus's rule for per-frame trajectories). Everything the agent
+//! built at time `t` (tracking-map points, seeded Gaussians, keyframe poses) moves by
+//! `target(t) * applied(t)^-1`, where `applied` is the field already applied: each part of the
+//! map follows the keyframe that made it, so drift the pose graph removed leaves the local map
+//! too, and the agent keeps tracking against a map that agrees with the swarm's.
+//!
+//! Two frames, one rule: the *tracked* frame is where the odometry would have been without
+//! corrections; the *local-map* frame is `applied` applied to it. Tracking runs in the
+//! local-map frame (that is where its map is). Everything the agent publishes or writes as its
+//! trajectory is converted back to the tracked frame (`applied(t)^-1`), because the consensus
+//! builds its odometry edges and per-frame trajectories from tracked poses: a correction never
+//! shows up as a jump in them. The current frame is after every anchor, so its conversion is the
+//! newest anchor's correction, which is continuous across an application.
+
+use std::time::Instant;
+
+use nalgebra::Isometry3;
+use render_core::types::RigidTransform;
+use serde::Serialize;
+use slam_core::config::LocalCorrectionConfig;
+use slam_core::correction::{CorrectionField, correction};
+use slam_core::registration::odometry::Odometry;
+use slam_core::registration::voxel_map::MapPointId;
+use slam_core::se3::rotation_angle;
+
+use crate::mapper::Mapper;
+use crate::poses::rigid_from_isometry;
+use crate::seeding::CoverageIndex;
+
+/// A correction as the agent received it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReceivedCorrection {
+    pub world_from_agent: Isometry3<f64>,
+    /// `(keyframe id, corrected world_from_camera)` of the agent's published keyframes.
+    pub keyframes: Vec<(u64, Isometry3<f64>)>,
+}
+
+/// What the corrections did, for metrics.json.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct LocalCorrectionStats {
+    /// Corrections that moved the local maps.
+    pub applied: usize,
+    /// Corrections that would have moved no keyframe by the configured minimum.
+    pub below_threshold: usize,
+    /// Corrections received while `apply` is off.
+    pub not_applied_disabled: usize,
+    /// Keyframe poses in corrections that name a keyframe this run never made (an earlier
+    /// incarnation's, after a restart): ignored.
+    pub unknown_keyframes: usize,
+    /// Largest keyframe move of an applied correction (metres, degrees).
+    pub largest_translation_m: f64,
+    pub largest_rotation_deg: f64,
+    /// Time the tracking thread spent applying corrections (milliseconds, all together).
+    pub tracking_thread_ms: f64,
+}
+
+/// A keyframe as the corrections need it.
+#[derive(Debug, Clone, Copy)]
+struct KeyframeRecord {
+    timestamp_s: f64,
+    /// Pose in the tracked frame (as published).
+    tracked_agent_from_camera: Isometry3<f64>,
+}
+
+/// Points of an index made at one time: ids from `first_id` up to the next run's first id.
+#[derive(Debug, Clone, Copy)]
+struct PointRun {
+    first_id: MapPointId,
+    timestamp_s: f64,
+}
+
+/// The corrections state of one agent run. See the module documentation.
+#[derive(Debug)]
+pub struct LocalCorrections {
+    config: LocalCorrectionConfig,
+    applied: CorrectionField,
+    /// Indexed by keyframe id (ids count up from 0 in the order keyframes are made).
+    keyframes: Vec<KeyframeRecord>,
+    tracker_runs: Vec<PointRun>,
+    coverage_runs: Vec<PointRun>,
+    stats: LocalCorrectionStats,
+}
+
+/// The parts of the agent a correction moves.
+pub struct LocalMaps<'a> {
+    pub odometry: &'a mut Odometry,
+    pub coverage: &'a mut CoverageIndex,
+    pub mapper: &'a Mapper,
+}
+
+impl LocalCorrections {
+    pub fn new(config: &LocalCorrectionConfig) -> Self {
+        Self {
+            config: config.clone(),
+            applied: CorrectionField::default(),
+            keyframes: Vec::new(),
+            tracker_runs: Vec::new(),
+            coverage_runs: Vec::new(),
+            stats: LocalCorrectionStats::default(),
+        }
+    }
+
+    /// The field applied so far (tracked frame -> local-map frame).
+    pub fn applied(&self) -> &CorrectionField {
+        &self.applied
+    }
+
+    pub fn stats(&self) -> &LocalCorrectionStats {
+        &self.stats
+    }
+
+    /// A pose of the local-map frame at time `t` in the tracked frame.
+    pub fn to_tracked(&self, t: f64, local_from_camera: &Isometry3<f64>) -> Isometry3<f64> {
+        let mut tracked = self.applied.at(t).inverse() * local_from_camera;
+        tracked.rotation.renormalize();
+        tracked
+    }
+
+    /// The transform from the local-map frame at time `t` to the tracked frame.
+    pub fn tracked_from_local(&self, t: f64) -> Isometry3<f64> {
+        self.applied.at(t).inverse()
+    }
+
+    /// Records keyframe `keyframe_id` (the next id: ids count up from 0) made at `timestamp_s`
+    /// with its pose in the tracked frame.
+    pub fn record_keyframe(
+        &mut self,
+        keyframe_id: usize,
+        timestamp_s: f64,
+        tracked_agent_from_camera: Isometry3<f64>,
+    ) {
+        debug_assert_eq!(keyframe_id, self.keyframes.len(), "keyframe ids count up");
+        self.keyframes.push(KeyframeRecord {
+            timestamp_s,
+            tracked_agent_from_camera,
+        });
+    }
+
+    /// Records that the tracking map's points from `first_id` on were made at `timestamp_s`.
+    pub fn record_tracker_points(&mut self, first_id: MapPointId, timestamp_s: f64) {
+        push_run(&mut self.tracker_runs, first_id, timestamp_s);
+    }
+
+    /// Records that the coverage index's means from `first_id` on were made at `timestamp_s`.
+    pub fn record_coverage_points(&mut self, first_id: MapPointId, timestamp_s: f64) {
+        push_run(&mut self.coverage_runs, first_id, timestamp_s);
+    }
+
+    /// The field `correction` asks for, in this agent's frame. `None` when it names none of
+    /// this run's keyframes.
+    fn target_field(&mut self, received: &ReceivedCorrection) -> Option<CorrectionField> {
+        let agent_from_world = received.world_from_agent.inverse();
+        let mut anchors = Vec::with_capacity(received.keyframes.len());
+        for (keyframe_id, world_from_camera) in &received.keyframes {
+            let Some(record) = usize::try_from(*keyframe_id)
+                .ok()
+                .and_then(|id| self.keyframes.get(id))
+            else {
+                self.stats.unknown_keyframes += 1;
+                continue;
+            };
+            anchors.push((
+                record.timestamp_s,
+                agent_from_world * correction(world_from_camera, &record.tracked_agent_from_camera),
+            ));
+        }
+        (!anchors.is_empty()).then(|| CorrectionField::from_anchors(anchors))
+    }
+
+    /// Applies `received` to the local maps (between frames, on the tracking thread; the mapper
+    /// gets its share over its channel). `now_s` is the current frame's time. Returns true when
+    /// the maps moved.
+    pub fn apply(
+        &mut self,
+        received: &ReceivedCorrection,
+        now_s: f64,
+        maps: LocalMaps<'_>,
+    ) -> bool {
+        let clock = Instant::now();
+        let Some(target) = self.target_field(received) else {
+            return false;
+        };
+        if !self.config.apply {
+            self.stats.not_applied_disabled += 1;
+            return false;
+        }
+        // Per keyframe: how far its part of the map moves.
+        let keyframe_moves: Vec<Isometry3<f64>> = self
+            .keyframes
+            .iter()
+            .map(|k| self.move_at(&target, k.timestamp_s))
+            .collect();
+        let current_move = self.move_at(&target, now_s);
+        let (largest_translation, largest_rotation) = keyframe_moves
+            .iter()
+            .chain(std::iter::once(&current_move))
+            .fold((0.0f64, 0.0f64), |(t, r), m| {
+                (t.max(m.translation.vector.norm()), r.max(rotation_angle(m)))
+            });
+        if largest_translation < self.config.min_translation_m
+            && largest_rotation < self.config.min_rotation_rad
+        {
+            self.stats.below_threshold += 1;
+            return false;
+        }
+        let _span = tracing::info_span!("apply correction").entered();
+        let tracker_moves = self.run_moves(&self.tracker_runs, &target);
+        let moved_points = maps.odometry.apply_correction(
+            |id| lookup_run(&self.tracker_runs, &tracker_moves, id),
+            &current_move,
+        );
+        let coverage_moves = self.run_moves(&self.coverage_runs, &target);
+        maps.coverage
+            .transform_points(|id| lookup_run(&self.coverage_runs, &coverage_moves, id));
+        maps.mapper.correct(
+            keyframe_moves
+                .iter()
+                .map(rigid_from_isometry)
+                .collect::<Vec<RigidTransform>>(),
+        );
+        self.applied = target;
+        self.stats.applied += 1;
+        self.stats.largest_translation_m =
+            self.stats.largest_translation_m.max(largest_translation);
+        self.stats.largest_rotation_deg = self
+            .stats
+            .largest_rotation_deg
+            .max(largest_rotation.to_degrees());
+        let elapsed_ms = clock.elapsed().as_secs_f64() * 1e3;
+        self.stats.tracking_thread_ms += elapsed_ms;
+        tracing::info!(
+            keyframes = keyframe_moves.len(),
+            tracking_points = moved_points,
+            largest_move_m = largest_translation,
+            largest_turn_deg = largest_rotation.to_degrees(),
+            elapsed_ms,
+            "correction applied to the local maps"
+        );
+        true
+    }
+
+    /// `target(t) * applied(t)^-1`: how what was made at time `t` moves now.
+    fn move_at(&self, target: &CorrectionField, t: f64) -> Isometry3<f64> {
+        let mut moved = target.at(t) * self.applied.at(t).inverse();
+        moved.rotation.renormalize();
+        moved
+    }
+
+    fn run_moves(&self, runs: &[PointRun], target: &CorrectionField) -> Vec<Isometry3<f64>> {
+        runs.iter()
+            .map(|run| self.move_at(target, run.timestamp_s))
+            .collect()
+    }
+}
+
+fn push_run(runs: &mut Vec<PointRun>, first_id: MapPointId, timestamp_s: f64) {
+    debug_assert!(runs.last().is_none_or(|last| last.first_id <= first_id));
+    runs.push(PointRun {
+        first_id,
+        timestamp_s,
+    });
+}
+
+/// The move of the run point `id` belongs to (`None` before the first run).
+fn lookup_run(
+    runs: &[PointRun],
+    moves: &[Isometry3<f64>],
+    id: MapPointId,
+) -> Option<Isometry3<f64>> {
+    let after = runs.partition_point(|run| run.first_id <= id);
+    after.checked_sub(1).map(|index| moves[index])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    fn pose(x: f64, yaw: f64) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::new(x, 0.0, 0.0),
+            UnitQuaternion::from_euler_angles(0.0, yaw, 0.0),
+        )
+    }
+
+    #[test]
+    fn target_field_maps_tracked_keyframes_onto_their_corrected_poses() {
+        let mut corrections = LocalCorrections::new(&LocalCorrectionConfig::default());
+        let tracked = [pose(0.0, 0.0), pose(1.0, 0.1), pose(2.0, 0.2)];
+        for (id, p) in tracked.iter().enumerate() {
+            corrections.record_keyframe(id, id as f64, *p);
+        }
+        let world_from_agent = pose(5.0, 1.0);
+        // The consensus moved keyframe 2 by 3 cm; 0 and 1 stay; keyframe 9 is unknown.
+        let drift_fix = Isometry3::translation(0.0, 0.03, 0.0);
+        let received = ReceivedCorrection {
+            world_from_agent,
+            keyframes: vec![
+                (0, world_from_agent * tracked[0]),
+                (1, world_from_agent * tracked[1]),
+                (2, world_from_agent * drift_fix * tracked[2]),
+                (9, Isometry3::identity()),
+            ],
+        };
+        let field = corrections.target_field(&received).unwrap();
+        assert_eq!(corrections.stats.unknown_keyframes, 1);
+        for (id, p) in tracked.iter().enumerate() {
+            let expected = if id == 2 { drift_fix * p } else { *p };
+            let got = field.at(id as f64) * p;
+            assert!(
+                (got.to_homogeneous() - expected.to_homogeneous())
+                    .abs()
+                    .max()
+                    < 1e-9,
+                "keyframe {id}"
+            );
+        }
+        // Half-way between 1 and 2 the fix is half applied.
+        assert!((field.at(1.5).translation.vector.y - 0.015).abs() < 1e-9);
+    }
+
+    #[test]
+    fn points_take_the_move_of_the_run_that_made_them() {
+        let runs = [
+            PointRun {
+                first_id: 0,
+                timestamp_s: 0.0,
+            },
+            PointRun {
+                first_id: 10,
+                timestamp_s: 1.0,
+            },
+        ];
+        let moves = [
+            Isometry3::translation(1.0, 0.0, 0.0),
+            Isometry3::translation(2.0, 0.0, 0.0),
+        ];
+        assert_eq!(lookup_run(&runs, &moves, 0), Some(moves[0]));
+        assert_eq!(lookup_run(&runs, &moves, 9), Some(moves[0]));
+        assert_eq!(lookup_run(&runs, &moves, 10), Some(moves[1]));
+        assert_eq!(lookup_run(&runs, &moves, 1000), Some(moves[1]));
+        let late = [PointRun {
+            first_id: 5,
+            timestamp_s: 0.0,
+        }];
+        assert_eq!(lookup_run(&late, &moves[..1], 4), None);
+    }
+
+    #[test]
+    fn tracked_poses_are_continuous_across_an_application() {
+        let mut corrections = LocalCorrections::new(&LocalCorrectionConfig::default());
+        corrections.record_keyframe(0, 0.0, pose(0.0, 0.0));
+        corrections.record_keyframe(1, 1.0, pose(1.0, 0.0));
+        let fix = Isometry3::translation(0.0, 0.05, 0.0);
+        let target = CorrectionField::from_anchors([(0.0, Isometry3::identity()), (1.0, fix)]);
+        // The current pose (after every keyframe) in the local-map frame before and after.
+        let local_before = pose(1.2, 0.05);
+        let tracked_before = corrections.to_tracked(2.0, &local_before);
+        let local_after = corrections.move_at(&target, 2.0) * local_before;
+        corrections.applied = target;
+        let tracked_after = corrections.to_tracked(2.0, &local_after);
+        assert!(
+            (tracked_before.to_homogeneous() - tracked_after.to_homogeneous())
+                .abs()
+                .max()
+                < 1e-12
+        );
+        assert!((local_after.translation.vector.y - 0.05).abs() < 1e-12);
+    }
+}
