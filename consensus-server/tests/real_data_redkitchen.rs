@@ -11,12 +11,12 @@ use std::time::Instant;
 
 use mac_consensus::alignment::{Keyframe, PreparedKeyframe, Verdict, align_prepared};
 use mac_consensus::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
-use mac_consensus::pose_graph::correction::blend;
 use mac_consensus::pose_graph::{LoopClosure, PoseGraph};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use slam_core::config::{ConsensusConfig, KeyframeConfig, TrackingConfig};
+use slam_core::correction::blend;
 use slam_core::dataset::prefetch::Prefetcher;
 use slam_core::dataset::{self, Dataset, FrameRange};
 use slam_core::descriptor::GlobalDescriptorExtractor;
