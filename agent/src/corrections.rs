@@ -66,6 +66,8 @@ struct KeyframeRecord {
     timestamp_s: f64,
     /// Pose in the tracked frame (as published).
     tracked_agent_from_camera: Isometry3<f64>,
+    /// The correction its part of the mapping map carries now.
+    applied: Isometry3<f64>,
 }
 
 /// Points of an index made at one time: ids from `first_id` up to the next run's first id.
@@ -73,6 +75,8 @@ struct KeyframeRecord {
 struct PointRun {
     first_id: MapPointId,
     timestamp_s: f64,
+    /// The correction these points carry now.
+    applied: Isometry3<f64>,
 }
 
 /// The corrections state of one agent run. See the module documentation.
@@ -139,17 +143,21 @@ impl LocalCorrections {
         self.keyframes.push(KeyframeRecord {
             timestamp_s,
             tracked_agent_from_camera,
+            // Made in the local-map frame as it is now.
+            applied: self.applied.at(timestamp_s),
         });
     }
 
     /// Records that the tracking map's points from `first_id` on were made at `timestamp_s`.
     pub fn record_tracker_points(&mut self, first_id: MapPointId, timestamp_s: f64) {
-        push_run(&mut self.tracker_runs, first_id, timestamp_s);
+        let applied = self.applied.at(timestamp_s);
+        push_run(&mut self.tracker_runs, first_id, timestamp_s, applied);
     }
 
     /// Records that the coverage index's means from `first_id` on were made at `timestamp_s`.
     pub fn record_coverage_points(&mut self, first_id: MapPointId, timestamp_s: f64) {
-        push_run(&mut self.coverage_runs, first_id, timestamp_s);
+        let applied = self.applied.at(timestamp_s);
+        push_run(&mut self.coverage_runs, first_id, timestamp_s, applied);
     }
 
     /// The field `correction` asks for, in this agent's frame. `None` when it names none of
@@ -194,9 +202,9 @@ impl LocalCorrections {
         let keyframe_moves: Vec<Isometry3<f64>> = self
             .keyframes
             .iter()
-            .map(|k| self.move_at(&target, k.timestamp_s))
+            .map(|k| moved_by(&target.at(k.timestamp_s), &k.applied))
             .collect();
-        let current_move = self.move_at(&target, now_s);
+        let current_move = moved_by(&target.at(now_s), &self.applied.at(now_s));
         let (largest_translation, largest_rotation) = keyframe_moves
             .iter()
             .chain(std::iter::once(&current_move))
@@ -210,20 +218,25 @@ impl LocalCorrections {
             return false;
         }
         let _span = tracing::info_span!("apply correction").entered();
-        let tracker_moves = self.run_moves(&self.tracker_runs, &target);
+        let config = self.config.clone();
+        let tracker_moves = settle_runs(&mut self.tracker_runs, &target, &config);
         let moved_points = maps.odometry.apply_correction(
             |id| lookup_run(&self.tracker_runs, &tracker_moves, id),
             &current_move,
         );
-        let coverage_moves = self.run_moves(&self.coverage_runs, &target);
+        let coverage_moves = settle_runs(&mut self.coverage_runs, &target, &config);
         maps.coverage
             .transform_points(|id| lookup_run(&self.coverage_runs, &coverage_moves, id));
+        // The device transforms every Gaussian anyway: negligible moves go as they are.
         maps.mapper.correct(
             keyframe_moves
                 .iter()
                 .map(rigid_from_isometry)
                 .collect::<Vec<RigidTransform>>(),
         );
+        for keyframe in &mut self.keyframes {
+            keyframe.applied = normalised(target.at(keyframe.timestamp_s));
+        }
         self.applied = target;
         self.stats.applied += 1;
         self.stats.largest_translation_m =
@@ -244,37 +257,63 @@ impl LocalCorrections {
         );
         true
     }
-
-    /// `target(t) * applied(t)^-1`: how what was made at time `t` moves now.
-    fn move_at(&self, target: &CorrectionField, t: f64) -> Isometry3<f64> {
-        let mut moved = target.at(t) * self.applied.at(t).inverse();
-        moved.rotation.renormalize();
-        moved
-    }
-
-    fn run_moves(&self, runs: &[PointRun], target: &CorrectionField) -> Vec<Isometry3<f64>> {
-        runs.iter()
-            .map(|run| self.move_at(target, run.timestamp_s))
-            .collect()
-    }
 }
 
-fn push_run(runs: &mut Vec<PointRun>, first_id: MapPointId, timestamp_s: f64) {
+/// `target * applied^-1`: how a part that carries the correction `applied` moves to carry
+/// `target`.
+fn moved_by(target: &Isometry3<f64>, applied: &Isometry3<f64>) -> Isometry3<f64> {
+    normalised(target * applied.inverse())
+}
+
+fn normalised(mut pose: Isometry3<f64>) -> Isometry3<f64> {
+    pose.rotation.renormalize();
+    pose
+}
+
+/// Per run, its move to `target`, or `None` when that is below the configured part thresholds
+/// (the run stays, and keeps what it carries, so nothing skipped is lost: a later correction
+/// moves it the whole way). Moved runs now carry `target`.
+fn settle_runs(
+    runs: &mut [PointRun],
+    target: &CorrectionField,
+    config: &LocalCorrectionConfig,
+) -> Vec<Option<Isometry3<f64>>> {
+    runs.iter_mut()
+        .map(|run| {
+            let wanted = target.at(run.timestamp_s);
+            let moved = moved_by(&wanted, &run.applied);
+            let significant = moved.translation.vector.norm() >= config.part_min_translation_m
+                || rotation_angle(&moved) >= config.part_min_rotation_rad;
+            significant.then(|| {
+                run.applied = normalised(wanted);
+                moved
+            })
+        })
+        .collect()
+}
+
+fn push_run(
+    runs: &mut Vec<PointRun>,
+    first_id: MapPointId,
+    timestamp_s: f64,
+    applied: Isometry3<f64>,
+) {
     debug_assert!(runs.last().is_none_or(|last| last.first_id <= first_id));
     runs.push(PointRun {
         first_id,
         timestamp_s,
+        applied,
     });
 }
 
 /// The move of the run point `id` belongs to (`None` before the first run).
 fn lookup_run(
     runs: &[PointRun],
-    moves: &[Isometry3<f64>],
+    moves: &[Option<Isometry3<f64>>],
     id: MapPointId,
 ) -> Option<Isometry3<f64>> {
     let after = runs.partition_point(|run| run.first_id <= id);
-    after.checked_sub(1).map(|index| moves[index])
+    moves[after.checked_sub(1)?]
 }
 
 #[cfg(test)]
@@ -326,30 +365,40 @@ mod tests {
     }
 
     #[test]
-    fn points_take_the_move_of_the_run_that_made_them() {
-        let runs = [
-            PointRun {
-                first_id: 0,
-                timestamp_s: 0.0,
-            },
-            PointRun {
-                first_id: 10,
-                timestamp_s: 1.0,
-            },
-        ];
-        let moves = [
-            Isometry3::translation(1.0, 0.0, 0.0),
-            Isometry3::translation(2.0, 0.0, 0.0),
-        ];
-        assert_eq!(lookup_run(&runs, &moves, 0), Some(moves[0]));
-        assert_eq!(lookup_run(&runs, &moves, 9), Some(moves[0]));
-        assert_eq!(lookup_run(&runs, &moves, 10), Some(moves[1]));
-        assert_eq!(lookup_run(&runs, &moves, 1000), Some(moves[1]));
-        let late = [PointRun {
-            first_id: 5,
-            timestamp_s: 0.0,
-        }];
-        assert_eq!(lookup_run(&late, &moves[..1], 4), None);
+    fn points_take_the_move_of_the_run_that_made_them_and_small_moves_wait() {
+        let run = |first_id, timestamp_s| PointRun {
+            first_id,
+            timestamp_s,
+            applied: Isometry3::identity(),
+        };
+        let mut runs = [run(0, 0.0), run(10, 1.0), run(20, 2.0)];
+        // Run 0 moves 0.1 mm (below the part threshold), runs 1 and 2 by 1 and 2 cm.
+        let target = CorrectionField::from_anchors([
+            (0.0, Isometry3::translation(1e-4, 0.0, 0.0)),
+            (1.0, Isometry3::translation(0.01, 0.0, 0.0)),
+            (2.0, Isometry3::translation(0.02, 0.0, 0.0)),
+        ]);
+        let config = LocalCorrectionConfig::default();
+        let moves = settle_runs(&mut runs, &target, &config);
+        assert_eq!(lookup_run(&runs, &moves, 0), None, "too small to move");
+        assert_eq!(lookup_run(&runs, &moves, 9), None);
+        let x = |id| lookup_run(&runs, &moves, id).unwrap().translation.vector.x;
+        assert!((x(10) - 0.01).abs() < 1e-12 && (x(19) - 0.01).abs() < 1e-12);
+        assert!((x(20) - 0.02).abs() < 1e-12 && (x(1000) - 0.02).abs() < 1e-12);
+        // What moved carries the target now; what waited still carries what it had, so the
+        // same target again moves nothing and a larger one moves run 0 the whole way.
+        assert_eq!(runs[0].applied, Isometry3::identity());
+        assert!(
+            settle_runs(&mut runs, &target, &config)
+                .iter()
+                .all(Option::is_none)
+        );
+        let further =
+            CorrectionField::from_anchors([(0.0, Isometry3::translation(0.005, 0.0, 0.0))]);
+        let moves = settle_runs(&mut runs, &further, &config);
+        assert!((moves[0].unwrap().translation.vector.x - 0.005).abs() < 1e-12);
+        let late = [run(5, 0.0)];
+        assert_eq!(lookup_run(&late, &[Some(Isometry3::identity())], 4), None);
     }
 
     #[test]
@@ -362,7 +411,7 @@ mod tests {
         // The current pose (after every keyframe) in the local-map frame before and after.
         let local_before = pose(1.2, 0.05);
         let tracked_before = corrections.to_tracked(2.0, &local_before);
-        let local_after = corrections.move_at(&target, 2.0) * local_before;
+        let local_after = moved_by(&target.at(2.0), &corrections.applied.at(2.0)) * local_before;
         corrections.applied = target;
         let tracked_after = corrections.to_tracked(2.0, &local_after);
         assert!(

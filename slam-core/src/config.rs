@@ -458,6 +458,14 @@ impl Config {
             "consensus.local_corrections.min_rotation_rad",
             l.min_rotation_rad,
         )?;
+        non_negative(
+            "consensus.local_corrections.part_min_translation_m",
+            l.part_min_translation_m,
+        )?;
+        non_negative(
+            "consensus.local_corrections.part_min_rotation_rad",
+            l.part_min_rotation_rad,
+        )?;
         if let Some(n) = &self.noise {
             non_negative("noise.rgb_sigma", n.rgb_sigma)?;
             non_negative("noise.depth_sigma_m", n.depth_sigma_m)?;

@@ -254,6 +254,14 @@ pub struct LocalCorrectionConfig {
     pub min_translation_m: f64,
     /// Radians (0.1 degrees).
     pub min_rotation_rad: f64,
+    /// Within an applied correction, a part of the tracking map or coverage index (the points
+    /// one frame added) moves only when its own move reaches this (metres) or
+    /// `part_min_rotation_rad`; a part that waits keeps its correction and moves the whole way
+    /// later. Moving a point costs a removal and an insertion in the index, and most of the map
+    /// (far from where the pose graph changed) moves by far less than the depth noise.
+    pub part_min_translation_m: f64,
+    /// Radians (0.03 degrees).
+    pub part_min_rotation_rad: f64,
 }
 
 impl Default for LocalCorrectionConfig {
@@ -262,6 +270,8 @@ impl Default for LocalCorrectionConfig {
             apply: true,
             min_translation_m: 0.002,
             min_rotation_rad: 0.1_f64.to_radians(),
+            part_min_translation_m: 5e-4,
+            part_min_rotation_rad: 0.03_f64.to_radians(),
         }
     }
 }

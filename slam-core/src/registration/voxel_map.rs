@@ -287,29 +287,31 @@ impl VoxelMap {
     }
 
     /// Moves every point for which `transform_of` gives a transform (`p -> R p + t`, covariance
-    /// `R C R^T`); the others stay. The index is rebuilt, so queries see the new positions; ids
-    /// are kept. A point whose new position is not finite is dropped (it belongs to no voxel).
-    /// Returns how many points moved.
+    /// `R C R^T`); the others stay where they are, untouched (so a correction that moves a small
+    /// part of the map costs only that part). Ids are kept; queries see the new positions. A
+    /// point whose new position is not finite is dropped (it belongs to no voxel). Returns how
+    /// many points moved.
     pub fn transform_points(
         &mut self,
         mut transform_of: impl FnMut(MapPointId) -> Option<Isometry3<f64>>,
     ) -> usize {
-        let points: Vec<MapPoint> = self.iter().copied().collect();
-        self.clear();
-        let mut moved = 0;
-        for mut point in points {
-            if let Some(transform) = transform_of(point.id) {
-                let rotation = transform.rotation.to_rotation_matrix().into_inner();
-                point.position = (transform * point.position.cast::<f64>()).cast::<f32>();
-                point.covariance = Covariance::from_matrix(
-                    &(rotation * point.covariance.to_matrix() * rotation.transpose()),
-                );
-                moved += 1;
-            }
+        let moving: Vec<(MapPointId, Isometry3<f64>)> = self
+            .iter()
+            .filter_map(|point| Some((point.id, transform_of(point.id)?)))
+            .collect();
+        for (id, transform) in &moving {
+            let Some(mut point) = self.remove(*id) else {
+                continue;
+            };
+            let rotation = transform.rotation.to_rotation_matrix().into_inner();
+            point.position = (transform * point.position.cast::<f64>()).cast::<f32>();
+            point.covariance = Covariance::from_matrix(
+                &(rotation * point.covariance.to_matrix() * rotation.transpose()),
+            );
             // Finite positions are always accepted; a non-finite transform loses the point.
             let _ = self.insert(point);
         }
-        moved
+        moving.len()
     }
 
     pub fn get(&self, id: MapPointId) -> Option<&MapPoint> {
