@@ -30,7 +30,6 @@ use slam_core::registration::voxel_map::MapPointId;
 use slam_core::se3::rotation_angle;
 
 use crate::mapper::Mapper;
-use crate::poses::rigid_from_isometry;
 use crate::seeding::CoverageIndex;
 
 /// A correction as the agent received it.
@@ -231,7 +230,7 @@ impl LocalCorrections {
         maps.mapper.correct(
             keyframe_moves
                 .iter()
-                .map(rigid_from_isometry)
+                .map(RigidTransform::from)
                 .collect::<Vec<RigidTransform>>(),
         );
         for keyframe in &mut self.keyframes {

@@ -9,15 +9,13 @@ use image::RgbImage;
 use nalgebra::Isometry3;
 use render_core::context::{GpuContext, GpuError};
 use render_core::gpu::{DeviceGaussians, GpuRenderer};
-use render_core::types::{Camera, GaussianCloud, RenderMode, RenderOutput};
+use render_core::types::{Camera, GaussianCloud, RenderMode, RenderOutput, RigidTransform};
 use serde::Serialize;
 use slam_core::camera::Intrinsics;
 use slam_core::dataset::{DepthImage, Frame};
 use slam_core::metrics::depth::depth_l1_cm;
 use slam_core::metrics::image::image_quality;
 use slam_core::metrics::lpips::Lpips;
-
-use crate::poses::rigid_from_isometry;
 
 /// Pixels whose accumulated opacity is below this get no depth: there the map is mostly empty and
 /// depth / alpha would be a guess.
@@ -97,7 +95,7 @@ impl MapRenderer {
         intrinsics: &Intrinsics,
     ) -> Result<RenderedView, GpuError> {
         let camera = Camera::from_world_from_camera(
-            rigid_from_isometry(world_from_camera),
+            RigidTransform::from(world_from_camera),
             [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy].map(|v| v as f32),
             intrinsics.width,
             intrinsics.height,

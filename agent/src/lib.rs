@@ -17,7 +17,6 @@ pub mod corrections;
 pub mod evaluation;
 pub mod link_schedule;
 pub mod mapper;
-pub mod poses;
 pub mod progress;
 pub mod run;
 pub mod seeding;

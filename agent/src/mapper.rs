@@ -33,8 +33,6 @@ use slam_core::camera::Intrinsics;
 use slam_core::config::{MappingConfig, TrackingConfig};
 use slam_core::dataset::DepthImage;
 
-use crate::poses::rigid_from_isometry;
-
 /// Why a keyframe was made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum KeyframeKind {
@@ -469,7 +467,7 @@ fn keyframe_target(keyframe: &MappingKeyframe, downscale: u32) -> (Camera, Targe
     let target = downscale_target(&keyframe.rgb, &keyframe.depth, downscale);
     let intrinsics = keyframe.intrinsics.scaled(1.0 / f64::from(downscale));
     let camera = Camera::from_world_from_camera(
-        rigid_from_isometry(&keyframe.world_from_camera),
+        RigidTransform::from(&keyframe.world_from_camera),
         [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy].map(|v| v as f32),
         target.width,
         target.height,

@@ -14,6 +14,7 @@ use std::time::Instant;
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::Isometry3;
+use render_core::types::RigidTransform;
 use serde::Serialize;
 use slam_core::config::Config;
 use slam_core::dataset::{self, Dataset, FrameRange};
@@ -28,7 +29,6 @@ use crate::evaluation::{
     FrameQuality, MapRenderer, QualitySummary, comparison_path, evaluate_frame,
 };
 use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe, MappingStats};
-use crate::poses::rigid_from_isometry;
 use crate::progress::{Progress, ProgressFile, Stage};
 use crate::seeding::{CoverageIndex, SeedFrame, seed_gaussians};
 use crate::source::FrameSource;
@@ -265,7 +265,7 @@ pub fn run_agent(
                     // Published in the tracked frame, the consensus's frame for this agent.
                     let mut gaussians = new_gaussians.clone();
                     if !corrections.applied().is_empty() {
-                        gaussians.transform_rigid(&rigid_from_isometry(
+                        gaussians.transform_rigid(&RigidTransform::from(
                             &corrections.tracked_from_local(frame.timestamp),
                         ));
                     }

@@ -458,12 +458,7 @@ fn isometry_from_info(info: &KeyframeInfo) -> Isometry3<f64> {
 
 /// `cloud` moved by the rigid `transform` (render-core's host transform, in f32).
 fn transformed(cloud: &GaussianCloud, transform: &Isometry3<f64>) -> GaussianCloud {
-    let q = transform.rotation.quaternion();
-    let t = transform.translation.vector;
-    let rigid = RigidTransform::from_quaternion_translation(
-        [q.w, q.i, q.j, q.k].map(|v| v as f32),
-        [t.x, t.y, t.z].map(|v| v as f32),
-    );
+    let rigid = RigidTransform::from(transform);
     let mut out = cloud.clone();
     out.transform_rigid(&rigid);
     out

@@ -222,15 +222,6 @@ fn consistency_gradient(
     })
 }
 
-fn rigid(pose: &Isometry3<f64>) -> RigidTransform {
-    let q = pose.rotation.quaternion();
-    let t = pose.translation.vector;
-    RigidTransform::from_quaternion_translation(
-        [q.w, q.i, q.j, q.k].map(|v| v as f32),
-        [t.x, t.y, t.z].map(|v| v as f32),
-    )
-}
-
 /// A view at refinement resolution: its camera intrinsics and size, and its target.
 struct PreparedView {
     intrinsics: [f32; 4],
@@ -242,7 +233,7 @@ struct PreparedView {
 impl PreparedView {
     fn camera(&self, world_from_camera: &Isometry3<f64>) -> Camera {
         Camera::from_world_from_camera(
-            rigid(world_from_camera),
+            RigidTransform::from(world_from_camera),
             self.intrinsics,
             self.width,
             self.height,

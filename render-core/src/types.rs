@@ -314,6 +314,19 @@ impl RigidTransform {
     }
 }
 
+/// The workspace's poses are nalgebra `Isometry3<f64>`; this is their one conversion into
+/// render-core's f32 form (rounded to f32, rotation taken from the unit quaternion).
+impl From<&nalgebra::Isometry3<f64>> for RigidTransform {
+    fn from(pose: &nalgebra::Isometry3<f64>) -> Self {
+        let rotation = pose.rotation.to_rotation_matrix();
+        let matrix = rotation.matrix();
+        Self {
+            rotation: [0, 1, 2].map(|row| [0, 1, 2].map(|col| matrix[(row, col)] as f32)),
+            translation: [0, 1, 2].map(|i| pose.translation.vector[i] as f32),
+        }
+    }
+}
+
 /// Hamilton product `a * b` of quaternions `[w, x, y, z]` (rotation `b` first, then `a`).
 pub fn quaternion_multiply(a: [f32; 4], b: [f32; 4]) -> [f32; 4] {
     let [aw, ax, ay, az] = a;
@@ -543,6 +556,36 @@ impl RasterConfig {
             max_splat_alpha: constants::MAX_SPLAT_ALPHA,
             min_transmittance: 0.0,
             restrict_to_tiles: false,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Isometry3, Point3, Vector3};
+
+    #[test]
+    fn converted_isometry_maps_points_the_same_way() {
+        let pose = Isometry3::new(Vector3::new(0.5, -1.0, 2.0), Vector3::new(0.3, -0.2, 1.1));
+        let rigid = RigidTransform::from(&pose);
+        let p = Point3::new(0.25, 0.75, -1.5);
+        let expected = pose * p;
+        let got = rigid.transform_point([p.x as f32, p.y as f32, p.z as f32]);
+        for k in 0..3 {
+            assert!((f64::from(got[k]) - expected[k]).abs() < 1e-6);
+        }
+        // The same rotation as built from the quaternion.
+        let q = pose.rotation.quaternion();
+        let t = pose.translation.vector;
+        let from_quaternion = RigidTransform::from_quaternion_translation(
+            [q.w, q.i, q.j, q.k].map(|v| v as f32),
+            [t.x, t.y, t.z].map(|v| v as f32),
+        );
+        for (a, b) in rigid.rotation.iter().zip(&from_quaternion.rotation) {
+            for (x, y) in a.iter().zip(b) {
+                assert!((x - y).abs() < 1e-6);
+            }
         }
     }
 }
