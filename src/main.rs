@@ -42,13 +42,7 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .init();
+    slam_core::process::init_logging();
     let cli = Cli::parse();
     let result = match &cli.command {
         Command::Synth(args) => cmd::synth::run(args),

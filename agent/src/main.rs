@@ -15,11 +15,9 @@
 //! DIR/progress.json tells how far the run is (for the swarm launcher's progress line).
 
 use std::path::PathBuf;
-use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use clap::Parser;
 use mac_agent::link_schedule::{LinkPlan, LinkSchedule};
 use mac_agent::run::{AgentOptions, metrics_table, run_agent, run_standalone};
@@ -88,13 +86,7 @@ struct Args {
 fn main() -> anyhow::Result<()> {
     // The link schedule's clock: seconds since the agent started.
     let started = Instant::now();
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    slam_core::process::init_logging();
     let args = Args::parse();
     let schedule = match &args.link_schedule {
         Some(path) => Some(LinkSchedule::load(path)?),
@@ -138,11 +130,7 @@ fn main() -> anyhow::Result<()> {
         lpips_weights: args.lpips_weights.clone(),
         decode_workers: args.decode_workers,
     };
-    let stop = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(signal, stop.clone())
-            .with_context(|| format!("installing the handler of signal {signal}"))?;
-    }
+    let stop = slam_core::process::stop_on_termination_signals()?;
     let metrics = if args.standalone {
         run_standalone(&options, &stop)?
     } else {

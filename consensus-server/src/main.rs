@@ -41,13 +41,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    slam_core::process::init_logging();
     let args = Args::parse();
     let config = match &args.config {
         Some(path) => Config::load(path)?,
@@ -59,11 +53,7 @@ fn main() -> anyhow::Result<()> {
         out: args.out.clone(),
         expected_agents: args.agents,
     };
-    let stop = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(signal, stop.clone())
-            .with_context(|| format!("installing the handler of signal {signal}"))?;
-    }
+    let stop = slam_core::process::stop_on_termination_signals()?;
     let snapshot = Arc::new(AtomicBool::new(false));
     signal_hook::flag::register(signal_hook::consts::SIGUSR1, snapshot.clone())
         .context("installing the handler of SIGUSR1 (snapshots)")?;

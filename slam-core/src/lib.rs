@@ -16,6 +16,7 @@ pub mod correction;
 pub mod dataset;
 pub mod descriptor;
 pub mod metrics;
+pub mod process;
 pub mod registration;
 pub mod se3;
 pub mod shared_data;
