@@ -64,28 +64,20 @@ else
 fi
 bin="target/$profile"
 
-# Per-run config: the given one, with T_comm and noise overridden when asked.
+# Per-run config: the given one, with T_comm and noise overridden when asked, resolved and
+# validated by mac-ego3d (every key listed, so the run folder says exactly what ran).
 mkdir -p "$out"
 run_config="$out/config.toml"
-cp "$config" "$run_config"
-if [[ -n "$tcomm" ]]; then
-  python3 - "$run_config" "$tcomm" <<'EOF'
-import re, sys
-path, tcomm = sys.argv[1], sys.argv[2]
-text = open(path).read()
-if re.search(r'(?m)^\s*t_comm\s*=', text):
-    text = re.sub(r'(?m)^(\s*t_comm\s*=\s*)\d+', lambda m: m.group(1) + tcomm, text)
-elif re.search(r'(?m)^\[consensus\]', text):
-    text = re.sub(r'(?m)^\[consensus\]\s*$', '[consensus]\nt_comm = ' + tcomm, text, count=1)
-else:
-    text += '\n[consensus]\nt_comm = ' + tcomm + '\n'
-open(path, 'w').write(text)
-EOF
-fi
+overrides=()
+[[ -n "$tcomm" ]] && overrides+=(--set "consensus.t_comm=$tcomm")
 if [[ -n "$noise" ]]; then
   case "$noise" in rgb | depth | rgbd) ;; *) echo "[swarm] --noise $noise: expected rgb, depth or rgbd" >&2; exit 2 ;; esac
-  printf '\n[noise]\ntarget = "%s"\n' "$noise" >>"$run_config"
+  overrides+=(--set "noise.target=$noise")
 fi
+# Written beside and renamed: the given file may be this very path (a rerun into one folder).
+"$bin/mac-ego3d" config --config "$config" "${overrides[@]}" --out "$run_config.new" ||
+  { echo "[swarm] the configuration is refused (above)" >&2; exit 2; }
+mv "$run_config.new" "$run_config"
 weight_args=()
 eval_args=()
 if [[ -f "$weights" ]]; then

@@ -2,7 +2,7 @@
 //!
 //! Subcommands: `synth` writes the embedded synthetic multi-agent dataset, `dataset info`
 //! describes a dataset, `eval` computes metrics (ATE, PSNR/SSIM, LPIPS, depth L1), `bench`
-//! measures reader throughput and metric timings, `plot tcomm` draws the T_comm benchmark.
+//! measures reader throughput and metric timings, `plot tcomm` draws the T_comm benchmark, `config` resolves a run's configuration.
 //! `eval swarm` also writes the run's report.html (see `report`).
 
 mod cmd;
@@ -36,6 +36,8 @@ enum Command {
     /// Benchmarks (print a table, or JSON with --json).
     #[command(subcommand)]
     Bench(cmd::bench::BenchCommand),
+    /// Write a run's configuration with overrides applied and every key listed.
+    Config(cmd::config::ConfigArgs),
     /// Plots of benchmark tables (PNG).
     #[command(subcommand)]
     Plot(cmd::plot::PlotCommand),
@@ -51,6 +53,7 @@ fn main() -> std::process::ExitCode {
         Command::Eval(c) => cmd::eval::run(c),
         Command::Bench(c) => cmd::bench::run(c),
         Command::Plot(c) => cmd::plot::run(c),
+        Command::Config(args) => cmd::config::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

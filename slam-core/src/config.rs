@@ -287,6 +287,49 @@ impl Config {
         Ok(config)
     }
 
+    /// The configuration as a TOML file with every key (what [`Config::load`] reads back).
+    pub fn to_toml(&self) -> Result<String, String> {
+        toml::to_string(self).map_err(|e| e.to_string())
+    }
+
+    /// This configuration with `overrides` applied: each `(key, value)` sets the dotted key
+    /// (`consensus.t_comm`, `noise.target`) to the TOML value `value` (a bare word that is not
+    /// a TOML value is taken as a string). Tables missing from the file are created. The result
+    /// is parsed and validated as a file would be: an unknown key or a bad value is refused
+    /// with an error naming it.
+    pub fn with_overrides(&self, overrides: &[(String, String)]) -> Result<Config, String> {
+        let mut root = toml::Table::try_from(self).map_err(|e| e.to_string())?;
+        for (key, value) in overrides {
+            let parsed = toml::from_str::<toml::Table>(&format!("value = {value}"))
+                .ok()
+                .and_then(|mut t| t.remove("value"))
+                .unwrap_or_else(|| toml::Value::String(value.clone()));
+            let path: Vec<&str> = key.split('.').collect();
+            if path.iter().any(|part| part.is_empty()) {
+                return Err(format!("{key:?} is not a dotted key such as consensus.t_comm"));
+            }
+            let (last, tables) = path.split_last().expect("split yields one part at least");
+            let mut table = &mut root;
+            for part in tables {
+                let entry = table
+                    .entry(part.to_string())
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+                table = match entry {
+                    toml::Value::Table(inner) => inner,
+                    _ => return Err(format!("{key}: {part} is a value, not a table")),
+                };
+            }
+            table.insert(last.to_string(), parsed);
+        }
+        let config: Config = toml::Value::Table(root)
+            .try_into()
+            .map_err(|e: toml::de::Error| e.to_string())?;
+        config
+            .validate()
+            .map_err(|(field, reason)| format!("{field}: {reason}"))?;
+        Ok(config)
+    }
+
     /// Checks ranges; returns the offending field and why.
     pub fn validate(&self) -> Result<(), (&'static str, String)> {
         fn positive(field: &'static str, v: f64) -> Result<(), (&'static str, String)> {
@@ -488,6 +531,34 @@ impl Config {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn overrides_set_dotted_keys_and_are_validated() {
+        let base = Config::default();
+        let set = |pairs: &[(&str, &str)]| {
+            let pairs: Vec<(String, String)> = pairs
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.to_string()))
+                .collect();
+            base.with_overrides(&pairs)
+        };
+        let changed = set(&[
+            ("consensus.t_comm", "30"),
+            ("noise.target", "rgb"),
+            ("consensus.refinement.max_seconds", "12.5"),
+        ])
+        .unwrap();
+        assert_eq!(changed.consensus.t_comm, 30);
+        assert!(changed.noise.is_some(), "a missing table is created");
+        assert_eq!(changed.consensus.refinement.max_seconds, 12.5);
+        assert_eq!(changed.tracking, base.tracking, "the rest stays");
+        let unknown = set(&[("consensus.t_com", "30")]).unwrap_err();
+        assert!(unknown.contains("t_com"), "{unknown}");
+        let invalid = set(&[("consensus.refinement.max_seconds", "-1")]).unwrap_err();
+        assert!(invalid.contains("max_seconds"), "{invalid}");
+        assert!(set(&[("consensus..t_comm", "3")]).is_err());
+        assert!(set(&[("consensus.t_comm.x", "3")]).is_err());
+    }
 
     fn configs_dir() -> PathBuf {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs")

@@ -1,6 +1,7 @@
 //! One module per subcommand.
 
 pub mod bench;
+pub mod config;
 pub mod dataset;
 pub mod eval;
 pub mod ipc;
