@@ -306,7 +306,9 @@ impl Config {
                 .unwrap_or_else(|| toml::Value::String(value.clone()));
             let path: Vec<&str> = key.split('.').collect();
             if path.iter().any(|part| part.is_empty()) {
-                return Err(format!("{key:?} is not a dotted key such as consensus.t_comm"));
+                return Err(format!(
+                    "{key:?} is not a dotted key such as consensus.t_comm"
+                ));
             }
             let (last, tables) = path.split_last().expect("split yields one part at least");
             let mut table = &mut root;

@@ -52,8 +52,9 @@ pub fn run(args: &ConfigArgs) -> anyhow::Result<()> {
     );
     text += &resolved.to_toml().map_err(anyhow::Error::msg)?;
     match &args.out {
-        Some(path) => std::fs::write(path, text)
-            .with_context(|| format!("writing {}", path.display()))?,
+        Some(path) => {
+            std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?
+        }
         None => print!("{text}"),
     }
     Ok(())
