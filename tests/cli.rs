@@ -332,3 +332,50 @@ fn render_command_renders_a_saved_map() {
         "{err}"
     );
 }
+
+#[test]
+fn config_resolves_overrides_and_refuses_unknown_keys() {
+    let dir = tempfile::tempdir().unwrap();
+    let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/synthetic.toml");
+    let out = dir.path().join("run.toml");
+    let resolved = mac_ego3d(&[
+        "config",
+        "--config",
+        base.to_str().unwrap(),
+        "--set",
+        "consensus.t_comm=25",
+        "--set",
+        "noise.target=depth",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        resolved.status.success(),
+        "{}",
+        String::from_utf8_lossy(&resolved.stderr)
+    );
+    // What was written loads as a configuration with the overrides and the file's own values.
+    let config = slam_core::config::Config::load(&out).unwrap();
+    assert_eq!(config.consensus.t_comm, 25);
+    assert!(config.noise.is_some());
+    assert_eq!(
+        config.tracking.pixel_stride, 5,
+        "from configs/synthetic.toml"
+    );
+    let refused = mac_ego3d(&[
+        "config",
+        "--config",
+        base.to_str().unwrap(),
+        "--set",
+        "consensus.tcomm=25",
+    ]);
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        stderr.contains("tcomm") && stderr.contains("synthetic.toml"),
+        "{stderr}"
+    );
+    let malformed = mac_ego3d(&["config", "--set", "consensus.t_comm"]);
+    assert!(!malformed.status.success());
+    assert!(String::from_utf8_lossy(&malformed.stderr).contains("KEY=VALUE"));
+}
