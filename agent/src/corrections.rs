@@ -109,7 +109,9 @@ impl LocalCorrections {
         }
     }
 
-    /// The field applied so far (tracked frame -> local-map frame).
+    /// The field applied so far (tracked frame -> local-map frame). Parts of the tracking map
+    /// and coverage index whose own move was below the part thresholds still carry an older
+    /// correction, within those thresholds of this field.
     pub fn applied(&self) -> &CorrectionField {
         &self.applied
     }
@@ -120,9 +122,7 @@ impl LocalCorrections {
 
     /// A pose of the local-map frame at time `t` in the tracked frame.
     pub fn to_tracked(&self, t: f64, local_from_camera: &Isometry3<f64>) -> Isometry3<f64> {
-        let mut tracked = self.applied.at(t).inverse() * local_from_camera;
-        tracked.rotation.renormalize();
-        tracked
+        normalised(self.tracked_from_local(t) * local_from_camera)
     }
 
     /// The transform from the local-map frame at time `t` to the tracked frame.
@@ -217,13 +217,12 @@ impl LocalCorrections {
             return false;
         }
         let _span = tracing::info_span!("apply correction").entered();
-        let config = self.config.clone();
-        let tracker_moves = settle_runs(&mut self.tracker_runs, &target, &config);
+        let tracker_moves = settle_runs(&mut self.tracker_runs, &target, &self.config);
         let moved_points = maps.odometry.apply_correction(
             |id| lookup_run(&self.tracker_runs, &tracker_moves, id),
             &current_move,
         );
-        let coverage_moves = settle_runs(&mut self.coverage_runs, &target, &config);
+        let coverage_moves = settle_runs(&mut self.coverage_runs, &target, &self.config);
         maps.coverage
             .transform_points(|id| lookup_run(&self.coverage_runs, &coverage_moves, id));
         // The device transforms every Gaussian anyway: negligible moves go as they are.
@@ -519,27 +518,21 @@ mod tests {
                             .map(|(id, pose)| (id as u64, world_from_agent * fix * pose))
                             .collect(),
                     };
-                    let applied = corrections.apply(
-                        &received,
-                        frame.timestamp,
-                        LocalMaps {
-                            odometry: &mut odometry,
-                            coverage: &mut coverage,
-                            mapper: &mapper,
-                        },
-                    );
-                    assert!(applied);
+                    let mut apply_received = |corrections: &mut LocalCorrections| {
+                        corrections.apply(
+                            &received,
+                            frame.timestamp,
+                            LocalMaps {
+                                odometry: &mut odometry,
+                                coverage: &mut coverage,
+                                mapper: &mapper,
+                            },
+                        )
+                    };
+                    assert!(apply_received(&mut corrections));
                     assert_eq!(corrections.stats().applied, 1);
                     // The same correction again moves nothing: it is below the threshold now.
-                    assert!(!corrections.apply(
-                        &received,
-                        frame.timestamp,
-                        LocalMaps {
-                            odometry: &mut odometry,
-                            coverage: &mut coverage,
-                            mapper: &mapper,
-                        },
-                    ));
+                    assert!(!apply_received(&mut corrections));
                     assert_eq!(corrections.stats().below_threshold, 1);
                 }
             }

@@ -264,11 +264,9 @@ pub fn run_agent(
                 if let Some(swarm) = swarm.as_mut() {
                     // Published in the tracked frame, the consensus's frame for this agent.
                     let mut gaussians = new_gaussians.clone();
-                    if !corrections.applied().is_empty() {
-                        gaussians.transform_rigid(&RigidTransform::from(
-                            &corrections.tracked_from_local(frame.timestamp),
-                        ));
-                    }
+                    gaussians.transform_rigid(&RigidTransform::from(
+                        &corrections.tracked_from_local(frame.timestamp),
+                    ));
                     swarm.on_keyframe(PublishableKeyframe {
                         keyframe_id: keyframe_id as u64,
                         frame_index: frame.index as u64,

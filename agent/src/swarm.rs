@@ -226,16 +226,20 @@ impl SwarmLink {
         }
         self.last_presence_check = Some(Instant::now());
         if self.link.consumers_present() {
-            self.consensus_present = true;
-            self.summary
-                .consensus_attached_at_s
-                .push(self.opened.elapsed().as_secs_f64());
-            tracing::info!(
-                queued_keyframes = self.queue.len(),
-                "consensus attached: delivering what waited for it"
-            );
+            self.mark_attached();
         }
         self.consensus_present
+    }
+
+    fn mark_attached(&mut self) {
+        self.consensus_present = true;
+        self.summary
+            .consensus_attached_at_s
+            .push(self.opened.elapsed().as_secs_f64());
+        tracing::info!(
+            queued_keyframes = self.queue.len(),
+            "consensus attached: delivering what waited for it"
+        );
     }
 
     /// After a failed send: is the consensus still there? When it is not, later sends wait for
@@ -527,12 +531,7 @@ impl SwarmLink {
         if !self.consensus_attached() {
             // One last wait for a consensus that is starting or restarting.
             match self.link.await_all_consumers() {
-                Ok(()) => {
-                    self.consensus_present = true;
-                    self.summary
-                        .consensus_attached_at_s
-                        .push(self.opened.elapsed().as_secs_f64());
-                }
+                Ok(()) => self.mark_attached(),
                 Err(error) => {
                     self.summary.undelivered_at_end =
                         self.queue.len() + usize::from(self.latest.is_some()) + 1;

@@ -261,6 +261,9 @@ fn agent_without_a_consensus_keeps_tracking_and_writes_its_outputs() {
     assert_eq!(metrics["frames"], FRAMES_ALONE);
     let swarm = &metrics["swarm"];
     assert_eq!(swarm["keyframes_published"], 0, "{swarm}");
+    // Nothing was sent into the void: no send waited out the delivery timeout and failed (the
+    // old behaviour failed the hello after every frame, 10 s each).
+    assert_eq!(swarm["send_failures"], 0, "{swarm}");
     assert!(
         swarm["consensus_attached_at_s"]
             .as_array()

@@ -1548,29 +1548,19 @@ impl AgentLink {
     pub fn consumers_present(&self) -> bool {
         self.node.try_cleanup_dead_nodes();
         let required = self.config.required_consumers;
-        [
-            Topic::Descriptor,
-            Topic::Patch,
-            Topic::KeyframeImage,
-            Topic::Lifecycle,
-        ]
-        .into_iter()
-        .filter_map(|topic| self.attached(topic))
-        .all(|(attached, _)| attached >= required)
+        Topic::ALL
+            .into_iter()
+            .filter_map(|topic| self.attached(topic))
+            .all(|(attached, _)| attached >= required)
     }
 
     /// Waits (event-driven) up to the configured `delivery_timeout` for consumers to attach to
     /// every outgoing topic; [`TransportError::NoConsumer`] when they do not.
     pub fn await_all_consumers(&self) -> Result<(), TransportError> {
-        for topic in [
-            Topic::Lifecycle,
-            Topic::Descriptor,
-            Topic::KeyframeImage,
-            Topic::Patch,
-        ] {
-            self.await_consumers(topic)?;
-        }
-        Ok(())
+        // Incoming topics have no consumers to wait for: await_consumers passes them at once.
+        Topic::ALL
+            .into_iter()
+            .try_for_each(|topic| self.await_consumers(topic))
     }
 
     /// Subscribers attached to one of this agent's outgoing topics, and the service name.

@@ -495,22 +495,26 @@ impl Config {
             non_negative(field, v)?;
         }
         let l = &c.local_corrections;
-        non_negative(
-            "consensus.local_corrections.min_translation_m",
-            l.min_translation_m,
-        )?;
-        non_negative(
-            "consensus.local_corrections.min_rotation_rad",
-            l.min_rotation_rad,
-        )?;
-        non_negative(
-            "consensus.local_corrections.part_min_translation_m",
-            l.part_min_translation_m,
-        )?;
-        non_negative(
-            "consensus.local_corrections.part_min_rotation_rad",
-            l.part_min_rotation_rad,
-        )?;
+        for (field, v) in [
+            (
+                "consensus.local_corrections.min_translation_m",
+                l.min_translation_m,
+            ),
+            (
+                "consensus.local_corrections.min_rotation_rad",
+                l.min_rotation_rad,
+            ),
+            (
+                "consensus.local_corrections.part_min_translation_m",
+                l.part_min_translation_m,
+            ),
+            (
+                "consensus.local_corrections.part_min_rotation_rad",
+                l.part_min_rotation_rad,
+            ),
+        ] {
+            non_negative(field, v)?;
+        }
         if let Some(n) = &self.noise {
             non_negative("noise.rgb_sigma", n.rgb_sigma)?;
             non_negative("noise.depth_sigma_m", n.depth_sigma_m)?;

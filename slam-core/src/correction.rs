@@ -82,17 +82,6 @@ impl CorrectionField {
         let span = (t1 - t0).max(f64::EPSILON);
         blend(c0, c1, (t - t0) / span)
     }
-
-    /// `transform * self` at every anchor: the same field seen from another frame.
-    pub fn left_multiplied(&self, transform: &Isometry3<f64>) -> Self {
-        Self {
-            anchors: self
-                .anchors
-                .iter()
-                .map(|(t, c)| (*t, transform * c))
-                .collect(),
-        }
-    }
 }
 
 #[cfg(test)]
@@ -151,7 +140,5 @@ mod tests {
         assert_eq!(field.at(10.0), a);
         assert!((field.at(15.0).translation.vector.x - 2.0).abs() < 1e-12);
         assert_eq!(field.at(99.0), b, "after the last anchor");
-        let moved = field.left_multiplied(&Isometry3::translation(0.0, 1.0, 0.0));
-        assert_eq!(moved.at(0.0).translation.vector.y, 1.0);
     }
 }
