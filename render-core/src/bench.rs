@@ -250,7 +250,7 @@ fn time_ms(
     Ok(median(times))
 }
 
-/// Measures one scene size.
+/// Measures one size of the synthetic scene.
 pub fn run_case(
     context: &GpuContext,
     renderer: &GpuRenderer,
@@ -260,7 +260,22 @@ pub fn run_case(
 ) -> Result<BenchCase, GpuError> {
     let camera = bench_camera(config.width, config.height);
     let cloud = realistic_scene(&camera, gaussian_count, config.seed);
-    let gaussians = DeviceGaussians::upload(context, &cloud)?;
+    run_case_on(context, renderer, kernels, config, &cloud, &camera)
+}
+
+/// Measures a given map seen by a given camera (e.g. a map saved by a SLAM run, seen from one of
+/// its keyframes); `config.width`/`height` are ignored in favour of the camera's.
+pub fn run_case_on(
+    context: &GpuContext,
+    renderer: &GpuRenderer,
+    kernels: &TrainingKernels,
+    config: &BenchConfig,
+    cloud: &GaussianCloud,
+    camera: &Camera,
+) -> Result<BenchCase, GpuError> {
+    let gaussian_count = cloud.len();
+    let camera = camera.clone();
+    let gaussians = DeviceGaussians::upload(context, cloud)?;
     let raster = RasterConfig::default();
     let (warmup, repeats) = (config.warmup, config.repeats);
 
@@ -368,8 +383,8 @@ pub fn run_case(
     let sort_ms = time_sort(context, renderer, gaussian_count, config)?;
     Ok(BenchCase {
         gaussians: gaussian_count,
-        width: config.width,
-        height: config.height,
+        width: camera.width,
+        height: camera.height,
         intersections,
         forward_ms,
         forward_backward_ms,

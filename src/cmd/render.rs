@@ -2,9 +2,11 @@
 //! backward, full optimisation iteration, radix sort, forward stages) on a synthetic
 //! indoor-map-like scene. Figures are wall-clock on the machine it runs on.
 
+use std::path::PathBuf;
+
 use anyhow::Context;
 use clap::Args;
-use render_core::bench::{BenchCase, BenchConfig, run_case};
+use render_core::bench::{BenchCase, BenchConfig, run_case, run_case_on};
 use render_core::context::GpuContext;
 use render_core::gpu::{GpuRenderer, RendererOptions, StageTimes, Subgroups};
 use render_core::training::TrainingKernels;
@@ -35,6 +37,16 @@ pub struct BenchRenderArgs {
     no_subgroups: bool,
     #[arg(long)]
     json: bool,
+    /// Time this map (standard 3DGS PLY, e.g. a SLAM run's map.ply) instead of the synthetic
+    /// scene; needs --pose and --intrinsics, and uses --width/--height as the image size.
+    #[arg(long, requires_all = ["pose", "intrinsics"])]
+    map: Option<PathBuf>,
+    /// With --map: camera-to-world pose, TUM order "tx ty tz qx qy qz qw".
+    #[arg(long, allow_hyphen_values = true)]
+    pose: Option<String>,
+    /// With --map: pinhole intrinsics "fx,fy,cx,cy" in pixels at --width x --height.
+    #[arg(long, allow_hyphen_values = true)]
+    intrinsics: Option<String>,
 }
 
 #[derive(Serialize)]
@@ -124,7 +136,25 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
         ..BenchConfig::default()
     };
     let mut cases = Vec::with_capacity(config.gaussian_counts.len());
-    for &count in &config.gaussian_counts {
+    if let (Some(path), Some(pose), Some(intrinsics)) = (&args.map, &args.pose, &args.intrinsics) {
+        let camera =
+            super::render_map::camera_from_args(pose, intrinsics, args.width, args.height)?;
+        let map = render_core::ply::load_ply(path)
+            .with_context(|| format!("reading map {}", path.display()))?;
+        if !args.json {
+            eprintln!(
+                "measuring {} ({} Gaussians) at {}x{} ...",
+                path.display(),
+                map.len(),
+                args.width,
+                args.height
+            );
+        }
+        let case = run_case_on(&context, &renderer, &kernels, &config, &map, &camera)
+            .with_context(|| format!("benchmarking {}", path.display()))?;
+        cases.push(CaseReport::from(case));
+    }
+    for &count in config.gaussian_counts.iter().filter(|_| args.map.is_none()) {
         if !args.json {
             eprintln!(
                 "measuring {count} Gaussians at {}x{} ...",

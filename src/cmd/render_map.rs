@@ -71,25 +71,41 @@ fn parse_size(text: &str) -> anyhow::Result<(u32, u32)> {
     }
 }
 
-pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
-    let pose = parse_numbers(&args.pose, ' ', 7, "--pose")?;
-    let k = parse_numbers(&args.intrinsics, ',', 4, "--intrinsics")?;
+/// The camera of `--pose` (camera-to-world, TUM order "tx ty tz qx qy qz qw") and
+/// `--intrinsics` ("fx,fy,cx,cy" in pixels) at `width x height`.
+pub fn camera_from_args(
+    pose: &str,
+    intrinsics: &str,
+    width: u32,
+    height: u32,
+) -> anyhow::Result<Camera> {
+    let pose = parse_numbers(pose, ' ', 7, "--pose")?;
+    let k = parse_numbers(intrinsics, ',', 4, "--intrinsics")?;
     let (fx, fy, cx, cy) = (k[0], k[1], k[2], k[3]);
     if fx <= 0.0 || fy <= 0.0 {
         bail!("--intrinsics: focal lengths must be positive, got fx={fx} fy={fy}");
     }
-    let (width, height) = parse_size(&args.size)?;
     let quaternion_norm = pose[3..7].iter().map(|v| v * v).sum::<f32>().sqrt();
     if quaternion_norm < 1e-6 {
         bail!("--pose: the quaternion (qx qy qz qw) has zero length");
     }
-    let map = load_ply(&args.map).with_context(|| format!("reading map {}", args.map.display()))?;
     // TUM order is qx qy qz qw; render-core takes w first.
     let world_from_camera = RigidTransform::from_quaternion_translation(
         [pose[6], pose[3], pose[4], pose[5]],
         [pose[0], pose[1], pose[2]],
     );
-    let camera = Camera::from_world_from_camera(world_from_camera, [fx, fy, cx, cy], width, height);
+    Ok(Camera::from_world_from_camera(
+        world_from_camera,
+        [fx, fy, cx, cy],
+        width,
+        height,
+    ))
+}
+
+pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
+    let (width, height) = parse_size(&args.size)?;
+    let camera = camera_from_args(&args.pose, &args.intrinsics, width, height)?;
+    let map = load_ply(&args.map).with_context(|| format!("reading map {}", args.map.display()))?;
 
     let context = GpuContext::new().context("creating the wgpu device")?;
     let gaussians = DeviceGaussians::upload(&context, &map).context("uploading the map")?;
