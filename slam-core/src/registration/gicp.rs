@@ -21,9 +21,11 @@
 //! **Levenberg-Marquardt:** each iteration searches correspondences and builds the normal
 //! equations `H = sum J^T W J`, `b = sum J^T W d` at the current pose; then up to
 //! [`LM_MAX_INNER_ITERATIONS`] damped steps `(H + lambda I) delta = -b` are tried, each judged with
-//! the *same* correspondences (no new search): a step that does not lower the error is rejected
-//! and `lambda` grows by [`LM_LAMBDA_FACTOR`]; an accepted step shrinks it. These are small_gicp's
-//! defaults. When no damped step lowers the error the pose is a minimum to numerical precision,
+//! the *same* correspondences and the *same* weights `W` (no new search, no new 3x3 inverse): a
+//! step that does not lower the error is rejected and `lambda` grows by [`LM_LAMBDA_FACTOR`]; an
+//! accepted step shrinks it. These are small_gicp's defaults, and so is keeping `W` from the
+//! linearisation (the rotation a damped step adds changes `R C_A R^T` by far less than it changes
+//! the residuals, and recomputing `W` per point doubled the cost of judging a step). When no damped step lowers the error the pose is a minimum to numerical precision,
 //! which counts as converged.
 
 use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, Vector3, Vector6};
@@ -48,8 +50,9 @@ pub const LM_MAX_INNER_ITERATIONS: usize = 10;
 /// Source points per rayon task: big enough to amortise scheduling, small enough to balance.
 const POINTS_PER_TASK: usize = 1024;
 
-/// Marks a source point without a correspondence.
-const NO_CORRESPONDENCE: u32 = u32::MAX;
+/// A source point's correspondence as found by the last linearisation: the target point and the
+/// weight `W = (C_B + R C_A R^T)^-1` at that linearisation's rotation. `None` without one.
+type Correspondence = Option<(Vector3<f64>, Matrix3<f64>)>;
 
 /// What G-ICP aligns against: a searchable set of points with covariances. Implemented by the
 /// static [`super::kdtree::PointTree`] and the incremental [`super::voxel_map::VoxelMap`].
@@ -196,7 +199,7 @@ pub fn register<T: RegistrationTarget + ?Sized>(
         return RegistrationResult::failed(initial, source.len(), failure);
     }
     let max_distance_sq = (params.max_correspondence_m * params.max_correspondence_m) as f32;
-    let mut correspondences = vec![NO_CORRESPONDENCE; source.len()];
+    let mut correspondences: Vec<Correspondence> = vec![None; source.len()];
     let mut pose = *initial;
     let mut lambda = LM_INITIAL_LAMBDA;
     let mut converged = false;
@@ -240,7 +243,7 @@ pub fn register<T: RegistrationTarget + ?Sized>(
             let rotation_change = delta.fixed_rows::<3>(0).into_owned();
             let translation_change = delta.fixed_rows::<3>(3).into_owned();
             let candidate = pose * Isometry3::new(translation_change, rotation_change);
-            if evaluate(source, target, &candidate, &correspondences) <= system.error {
+            if evaluate(source, &candidate, &correspondences) <= system.error {
                 pose = candidate;
                 lambda /= LM_LAMBDA_FACTOR;
                 accepted = true;
@@ -463,14 +466,14 @@ fn residual_and_weight(
     ))
 }
 
-/// Searches correspondences at `pose` (stored into `correspondences`) and builds the normal
-/// equations of the right-perturbed residuals.
+/// Searches correspondences at `pose` (stored with their weights into `correspondences`) and
+/// builds the normal equations of the right-perturbed residuals.
 fn linearize<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,
     pose: &Isometry3<f64>,
     max_distance_sq: f32,
-    correspondences: &mut [u32],
+    correspondences: &mut [Correspondence],
 ) -> NormalEquations {
     let parts = RigidParts::of(pose);
     source
@@ -483,22 +486,23 @@ fn linearize<T: RegistrationTarget + ?Sized>(
             for ((a, c_a), found) in positions.iter().zip(covariances).zip(matches.iter_mut()) {
                 let a = a.coords.cast::<f64>();
                 let transformed = parts.transform(&a);
-                *found = NO_CORRESPONDENCE;
+                *found = None;
                 let Some((j, _)) = target
                     .nearest_within(&Point3::from(transformed.cast::<f32>()), max_distance_sq)
                 else {
                     continue;
                 };
+                let target_position = target.position(j);
                 let Some((d, w)) = residual_and_weight(
                     &transformed,
                     c_a,
-                    &target.position(j),
+                    &target_position,
                     &target.covariance(j),
                     &parts.rotation,
                 ) else {
                     continue;
                 };
-                *found = j;
+                *found = Some((target_position.coords.cast::<f64>(), w));
                 // J = [R [a]x, -R] (3x6), so J^T W J and J^T W d follow blockwise.
                 let r_skew_a = parts.rotation * a.cross_matrix();
                 let mut jacobian = nalgebra::Matrix3x6::<f64>::zeros();
@@ -517,33 +521,19 @@ fn linearize<T: RegistrationTarget + ?Sized>(
         .reduce(NormalEquations::zero, NormalEquations::add)
 }
 
-/// G-ICP error at `pose` with fixed correspondences (judging a damped step needs no new search).
-fn evaluate<T: RegistrationTarget + ?Sized>(
-    source: &PointCloud,
-    target: &T,
-    pose: &Isometry3<f64>,
-    correspondences: &[u32],
-) -> f64 {
+/// G-ICP error at `pose` with the correspondences and weights of the last linearisation (judging
+/// a damped step needs no new search).
+fn evaluate(source: &PointCloud, pose: &Isometry3<f64>, correspondences: &[Correspondence]) -> f64 {
     let parts = RigidParts::of(pose);
     source
         .positions
         .par_chunks(POINTS_PER_TASK)
-        .zip(source.covariances.par_chunks(POINTS_PER_TASK))
         .zip(correspondences.par_chunks(POINTS_PER_TASK))
-        .map(|((positions, covariances), matches)| {
+        .map(|(positions, matches)| {
             let mut error = 0.0;
-            for ((a, c_a), &j) in positions.iter().zip(covariances).zip(matches) {
-                if j == NO_CORRESPONDENCE {
-                    continue;
-                }
-                let transformed = parts.transform(&a.coords.cast::<f64>());
-                if let Some((d, w)) = residual_and_weight(
-                    &transformed,
-                    c_a,
-                    &target.position(j),
-                    &target.covariance(j),
-                    &parts.rotation,
-                ) {
+            for (a, found) in positions.iter().zip(matches) {
+                if let Some((b, w)) = found {
+                    let d = b - parts.transform(&a.coords.cast::<f64>());
                     error += d.dot(&(w * d));
                 }
             }
