@@ -16,7 +16,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::Isometry3;
 use render_core::types::RigidTransform;
 use serde::Serialize;
-use slam_core::config::Config;
+use slam_core::config::{Config, TrackingKeyframeSeeds};
 use slam_core::dataset::{self, Dataset, FrameRange};
 use slam_core::metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate};
 use slam_core::metrics::lpips::Lpips;
@@ -227,24 +227,30 @@ pub fn run_agent(
                         | TrackingOutcome::TrackedNotConverged
                 );
             frames_since_tracking_keyframe += 1;
-            let keyframe = if let Some(trackable) = &tracked.trackable {
-                frames_since_tracking_keyframe = 0;
-                Some((KeyframeKind::Tracking, vec![true; trackable.len()]))
-            } else if usable
-                && frames_since_tracking_keyframe
-                    .is_multiple_of(config.keyframes.mapping_keyframe_every)
-            {
+            let uncovered_points = || {
                 let seed_frame = SeedFrame {
                     points: &tracked.frame_points,
                     world_from_camera: &tracked.world_from_camera,
                     rgb: &frame.rgb,
                     intrinsics: &frame.intrinsics,
                 };
-                let uncovered = coverage.uncovered(
+                coverage.uncovered(
                     &seed_frame,
                     config.keyframes.mapping_seed_min_distance_sq_m2,
-                );
-                Some((KeyframeKind::Mapping, uncovered))
+                )
+            };
+            let keyframe = if let Some(trackable) = &tracked.trackable {
+                frames_since_tracking_keyframe = 0;
+                let selected = match config.keyframes.tracking_keyframe_seeds {
+                    TrackingKeyframeSeeds::All => vec![true; trackable.len()],
+                    TrackingKeyframeSeeds::Uncovered => uncovered_points(),
+                };
+                Some((KeyframeKind::Tracking, selected))
+            } else if usable
+                && frames_since_tracking_keyframe
+                    .is_multiple_of(config.keyframes.mapping_keyframe_every)
+            {
+                Some((KeyframeKind::Mapping, uncovered_points()))
             } else {
                 None
             };
