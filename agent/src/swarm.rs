@@ -13,6 +13,7 @@
 //! dropped) and delivered in order at reconnect, corrections wait, and heartbeats stop; the end
 //! of the run flushes the queue before the goodbye whatever the schedule says.
 
+use std::collections::VecDeque;
 use std::hash::{Hash, Hasher};
 use std::time::{Duration, Instant};
 
@@ -20,10 +21,12 @@ use anyhow::Context;
 use image::RgbImage;
 use nalgebra::Isometry3;
 use protocol::messages::{
-    CoordinateFrame, FINAL_MAP_KEYFRAME_ID, GaussianRecord, Intrinsics as WireIntrinsics,
-    KeyframeDescriptor, Pose, RgbdPixel,
+    ControlMessage, CoordinateFrame, FINAL_MAP_KEYFRAME_ID, GaussianRecord,
+    Intrinsics as WireIntrinsics, KeyframeDescriptor, Pose, RgbdPixel,
 };
-use protocol::transport::{AgentLink, Direction, KeyframeImageMeta, TransportConfig};
+use protocol::transport::{
+    AgentLink, Direction, KeyframeImageMeta, TransportConfig, TransportError,
+};
 use render_core::types::GaussianCloud;
 use serde::Serialize;
 use slam_core::camera::Intrinsics;
@@ -61,6 +64,7 @@ pub struct PublishableKeyframe {
 /// What the swarm link did, for metrics.json.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct SwarmSummary {
+    /// Keyframes delivered (those published again on request included).
     pub keyframes_published: usize,
     pub send_failures: usize,
     pub corrections_received: usize,
@@ -79,6 +83,12 @@ pub struct SwarmSummary {
     /// Messages (keyframes, the final map and the goodbye) never delivered because no
     /// consensus was there at the end of the run.
     pub undelivered_at_end: usize,
+    /// The consensus's requests to publish a keyframe again (it arrived incomplete there).
+    pub resend_requests: usize,
+    /// Keyframes published again on request.
+    pub keyframes_resent: usize,
+    /// Requests for keyframes this agent no longer held (`[consensus.resend] agent_keeps`).
+    pub resend_unavailable: usize,
 }
 
 /// Whether the link is up now and what waits for it, for the progress file.
@@ -131,6 +141,9 @@ pub struct SwarmLink {
     /// Whether the consensus was attached at the last check (false until the first one).
     consensus_present: bool,
     last_presence_check: Option<Instant>,
+    /// The last published keyframes, newest last, kept for the consensus's resend requests.
+    published: VecDeque<WireKeyframe>,
+    keep_published: usize,
 }
 
 impl SwarmLink {
@@ -174,6 +187,8 @@ impl SwarmLink {
             corrections: CorrectionGate::default(),
             consensus_present: false,
             last_presence_check: None,
+            published: VecDeque::new(),
+            keep_published: config.consensus.resend.agent_keeps,
         })
     }
 
@@ -312,6 +327,9 @@ impl SwarmLink {
         if self.frames_since_publication >= self.t_comm && self.latest.is_some() {
             self.publish_latest(up);
         }
+        if up {
+            self.answer_control_messages();
+        }
         let correction = self.receive_corrections(up);
         if up && self.last_heartbeat.elapsed() >= HEARTBEAT_EVERY {
             self.last_heartbeat = Instant::now();
@@ -321,6 +339,11 @@ impl SwarmLink {
             }
         }
         correction
+    }
+
+    /// What the link did so far (the final figures come from [`Self::finish`]).
+    pub fn summary(&self) -> &SwarmSummary {
+        &self.summary
     }
 
     /// The consensus's latest estimate of this agent's frame in the world.
@@ -345,16 +368,18 @@ impl SwarmLink {
             }
         };
         if link_up && self.queue.is_empty() && self.pending_hello.is_none() {
-            self.send_now(&wire);
+            self.send_now(wire);
         } else {
             self.enqueue(wire);
         }
     }
 
-    fn send_now(&mut self, wire: &WireKeyframe) -> bool {
-        match self.send(wire) {
+    /// Sends a keyframe's messages; a delivered keyframe is kept for resend requests.
+    fn send_now(&mut self, wire: WireKeyframe) -> bool {
+        match self.send(&wire) {
             Ok(()) => {
                 self.summary.keyframes_published += 1;
+                self.keep_for_resend(wire);
                 true
             }
             Err(error) => {
@@ -405,7 +430,7 @@ impl SwarmLink {
             && let Some(wire) = self.queue.pop_front()
         {
             let waited_s = wire.due.elapsed().as_secs_f64();
-            if self.send_now(&wire) {
+            if self.send_now(wire) {
                 self.summary.link.delivered_late(waited_s, with_link_down);
             }
         }
@@ -459,6 +484,65 @@ impl SwarmLink {
             &wire.records,
         )?;
         Ok(())
+    }
+
+    fn keep_for_resend(&mut self, wire: WireKeyframe) {
+        if self.keep_published == 0 {
+            return;
+        }
+        while self.published.len() >= self.keep_published {
+            self.published.pop_front();
+        }
+        self.published.push_back(wire);
+    }
+
+    /// Answers the consensus's control messages: a keyframe that arrived incomplete there is
+    /// published again (in order behind anything queued) if this agent still holds it.
+    fn answer_control_messages(&mut self) {
+        loop {
+            let control = match self.link.try_recv_control() {
+                Ok(Some(control)) => control,
+                Ok(None) => break,
+                Err(error @ TransportError::ControlFrame { .. }) => {
+                    // That frame is consumed; the next one may be fine.
+                    tracing::warn!(%error, "control message refused");
+                    continue;
+                }
+                Err(error) => {
+                    tracing::warn!(%error, "control messages not readable");
+                    break;
+                }
+            };
+            match control.message {
+                ControlMessage::ResendKeyframe {
+                    keyframe_id,
+                    reason,
+                } => {
+                    self.summary.resend_requests += 1;
+                    let held = self
+                        .published
+                        .iter()
+                        .position(|w| w.descriptor.keyframe_id == keyframe_id);
+                    let Some(wire) = held.and_then(|at| self.published.remove(at)) else {
+                        self.summary.resend_unavailable += 1;
+                        tracing::warn!(
+                            keyframe_id,
+                            %reason,
+                            "consensus asks for a keyframe this agent no longer holds"
+                        );
+                        continue;
+                    };
+                    tracing::info!(keyframe_id, %reason, "publishing a keyframe again on request");
+                    self.summary.keyframes_resent += 1;
+                    if self.queue.is_empty() && self.pending_hello.is_none() {
+                        self.send_now(wire);
+                    } else {
+                        self.enqueue(wire);
+                    }
+                }
+                other => tracing::debug!(message = ?other, "control message ignored"),
+            }
+        }
     }
 
     /// Takes every pending correction. With the link up, the newest (a held one, or one that
@@ -652,5 +736,76 @@ mod tests {
         let mm: Vec<u16> = pixels.iter().map(|p| p.depth_mm).collect();
         assert_eq!(mm, vec![1235, 0, 0, 0]);
         assert_eq!(pixels[0].rgb, [1, 2, 3]);
+    }
+
+    /// Keyframe ids of the keyframe messages waiting at `consumer`: (descriptors, images,
+    /// patches).
+    fn received_keyframes(
+        consumer: &mut protocol::transport::ConsumerLink,
+    ) -> (Vec<u64>, Vec<u64>, Vec<u64>) {
+        use protocol::transport::Incoming;
+        const QUIET: Duration = Duration::from_millis(500);
+        let (mut descriptors, mut images, mut patches) = (Vec::new(), Vec::new(), Vec::new());
+        while let Some(message) = consumer.recv_timeout(QUIET).unwrap() {
+            match message {
+                Incoming::Descriptor(d) => descriptors.push(d.keyframe_id),
+                Incoming::KeyframeImage(k) => images.push(k.header().keyframe_id),
+                Incoming::Patch(p) => patches.push(p.header().keyframe_id),
+                Incoming::Lifecycle(_) => {}
+            }
+        }
+        (descriptors, images, patches)
+    }
+
+    #[test]
+    fn a_keyframe_the_consensus_asks_for_again_is_published_again() {
+        let transport =
+            TransportConfig::with_namespace(format!("resend-agent-{}", std::process::id()));
+        let mut consumer = protocol::transport::ConsumerLink::open(&transport).unwrap();
+        let mut config = Config::default();
+        config.consensus.t_comm = 1;
+        let mut swarm = SwarmLink::connect(0, &transport, &config, LinkPlan::always_up()).unwrap();
+        let intrinsics = Intrinsics::new(40.0, 40.0, 16.0, 12.0, 32, 24);
+        swarm.announce(&intrinsics);
+        let keyframe = |keyframe_id| PublishableKeyframe {
+            keyframe_id,
+            frame_index: keyframe_id * 10,
+            timestamp_s: keyframe_id as f64,
+            agent_from_camera: Isometry3::identity(),
+            intrinsics,
+            rgb: RgbImage::from_fn(32, 24, |x, y| {
+                image::Rgb([(x * 8) as u8, (y * 10) as u8, 7])
+            }),
+            depth: DepthImage {
+                width: 32,
+                height: 24,
+                data: vec![1.5; 32 * 24],
+            },
+            gaussians: GaussianCloud::default(),
+        };
+        swarm.on_keyframe(keyframe(7));
+        assert!(swarm.after_frame().is_none());
+        assert_eq!(
+            received_keyframes(&mut consumer),
+            (vec![7], vec![7], vec![7])
+        );
+
+        let ask = |keyframe_id| ControlMessage::ResendKeyframe {
+            keyframe_id,
+            reason: "test".into(),
+        };
+        consumer.send_control(0, &ask(7)).unwrap();
+        consumer.send_control(0, &ask(99)).unwrap();
+        swarm.after_frame();
+        assert_eq!(
+            received_keyframes(&mut consumer),
+            (vec![7], vec![7], vec![7]),
+            "keyframe 7 again, nothing for the unknown 99"
+        );
+        let summary = swarm.summary();
+        assert_eq!(summary.resend_requests, 2);
+        assert_eq!(summary.keyframes_resent, 1);
+        assert_eq!(summary.resend_unavailable, 1);
+        assert_eq!(summary.send_failures, 0);
     }
 }

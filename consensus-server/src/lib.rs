@@ -11,6 +11,7 @@
 //!   poses through render-core, with the pose-consistency term over the pose graph's edges;
 //! - [`config`]: their parameters;
 //! - [`engine`]: the consensus state (keyframes, candidates, decisions), free of transport;
+//! - [`inbox`]: joins each keyframe's messages, drops repeats, says what to re-request;
 //! - [`process`]: the `mac-consensus` process around it (iceoryx2, worker thread, outputs);
 //! - [`wire`]: received messages as the consensus's own types.
 //!
@@ -20,6 +21,7 @@
 pub mod alignment;
 pub mod config;
 pub mod engine;
+pub mod inbox;
 pub mod place_recognition;
 pub mod pose_graph;
 pub mod process;

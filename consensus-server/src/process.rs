@@ -5,8 +5,8 @@
 //! Threads, and why:
 //! - the main thread owns the transport (iceoryx2 ports stay on the thread that made them): it
 //!   waits on the consumers' event (no spinning), joins each keyframe's descriptor and image
-//!   (they arrive on different topics, in any order), and sends corrections as soon as the
-//!   worker has them. It never aligns or solves, so agents are never blocked by the consensus;
+//!   (they arrive on different topics, in any order; [`crate::inbox`]), asks agents to publish
+//!   again what arrived incomplete, and sends corrections as soon as the worker has them. It never aligns or solves, so agents are never blocked by the consensus;
 //! - the worker thread owns the [`Engine`]: preparing keyframes, aligning candidates (about a
 //!   second each on a CPU) and solving the pose graph.
 //!
@@ -22,7 +22,9 @@ use std::time::Instant;
 use anyhow::Context;
 use crossbeam_channel::{Receiver, Sender, unbounded};
 use nalgebra::Isometry3;
-use protocol::messages::{KeyframePose, LifecycleKind, Pose};
+use protocol::messages::{
+    ControlMessage, FINAL_MAP_KEYFRAME_ID, KeyframePose, LifecycleKind, Pose,
+};
 use protocol::transport::{ConsumerLink, Incoming, TransportConfig};
 use render_core::types::GaussianCloud;
 use serde::Serialize;
@@ -33,6 +35,7 @@ use slam_core::trajectory::Trajectory;
 
 use crate::alignment::Keyframe;
 use crate::engine::{ClosureEvent, Engine, KeyframeArrival, KeyframeInfo};
+use crate::inbox::KeyframeInbox;
 use crate::place_recognition::KeyframeRef;
 use crate::refinement::{self, RefinementReport};
 use crate::wire;
@@ -70,15 +73,6 @@ struct SolutionUpdate {
     world_from_camera: BTreeMap<KeyframeRef, Isometry3<f64>>,
 }
 
-/// Parts of one keyframe received so far.
-#[derive(Default)]
-struct Assembly {
-    descriptor: Option<(Vec<f32>, u64, f64)>,
-    image: Option<Keyframe>,
-    frame_index: u64,
-    timestamp_s: f64,
-}
-
 /// Per agent, what the process saw of it.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct AgentRecord {
@@ -88,6 +82,12 @@ pub struct AgentRecord {
     pub keyframes: usize,
     pub gaussians_received: usize,
     pub gaps: usize,
+    /// `ResendKeyframe` requests sent for keyframes that arrived incomplete.
+    pub resend_requests: usize,
+    /// Keyframes still missing a part at the end (descriptor, image or patch).
+    pub keyframes_incomplete: usize,
+    /// Keyframe parts that arrived more than once (ignored).
+    pub duplicate_parts: usize,
     pub corrections_sent: usize,
     pub corrections_undelivered: usize,
     /// `world_from_agent` as `[tx, ty, tz, qx, qy, qz, qw]` (TUM order); absent when the agent
@@ -152,7 +152,7 @@ pub fn run_with_snapshots(
     let mut agents: BTreeMap<u32, AgentRecord> = BTreeMap::new();
     let mut first_seen: BTreeMap<u32, Instant> = BTreeMap::new();
     let mut finished: BTreeSet<u32> = BTreeSet::new();
-    let mut assemblies: BTreeMap<KeyframeRef, Assembly> = BTreeMap::new();
+    let mut inbox = KeyframeInbox::new(options.config.consensus.resend.clone());
     let mut world_from_agent: BTreeMap<u32, Isometry3<f64>> = BTreeMap::new();
     let mut interrupted = false;
     let mut latencies: Vec<f64> = Vec::new();
@@ -182,11 +182,12 @@ pub fn run_with_snapshots(
                     record.gaps += 1;
                     tracing::warn!(agent_id, topic = %message.topic(), "messages lost");
                 }
-                handle(message, record, &mut assemblies, &mut finished, &input_tx)?;
+                handle(message, record, &mut inbox, &mut finished, &input_tx)?;
             }
             Ok(None) => {}
             Err(error) => tracing::warn!(%error, "receive failed"),
         }
+        request_resends(&mut link, &mut inbox, &finished, &mut agents);
         for update in solution_rx.try_iter() {
             send_corrections(&mut link, &update, &mut agents);
             world_from_agent = update.world_from_agent;
@@ -217,6 +218,17 @@ pub fn run_with_snapshots(
     }
     latencies.extend(latency_rx.try_iter());
     fill_records(&mut agents, &world_from_agent, &link, &first_seen);
+    for (agent_id, record) in agents.iter_mut() {
+        record.keyframes_incomplete = inbox.incomplete(*agent_id);
+        record.duplicate_parts = inbox.duplicates(*agent_id);
+        if record.keyframes_incomplete > 0 {
+            tracing::warn!(
+                agent_id,
+                keyframes = record.keyframes_incomplete,
+                "keyframes never arrived complete"
+            );
+        }
+    }
     let (map, unplaced) = engine.merged_map();
     write_progress(&options.out, &engine, ProgressStage::Refining);
     let (map, refinement) = refine_world_map(options, &mut engine, map, interrupted)?;
@@ -267,7 +279,7 @@ fn fill_records(
 fn handle(
     message: Incoming,
     record: &mut AgentRecord,
-    assemblies: &mut BTreeMap<KeyframeRef, Assembly>,
+    inbox: &mut KeyframeInbox,
     finished: &mut BTreeSet<u32>,
     to_worker: &Sender<WorkerInput>,
 ) -> anyhow::Result<()> {
@@ -280,8 +292,12 @@ fn handle(
                     tracing::warn!(agent_id, "agent restarted with a different configuration");
                 }
                 record.config_hash = lifecycle.config_hash;
-                // A restarted agent is back in the run.
+                // A restarted agent is back in the run; its previous process's incomplete
+                // keyframes are gone with it.
                 finished.remove(&agent_id);
+                if record.hellos > 1 {
+                    inbox.forget_incomplete(agent_id);
+                }
                 tracing::info!(agent_id, "agent joined");
             }
             Ok(LifecycleKind::Alive) => {}
@@ -297,13 +313,14 @@ fn handle(
                 agent_id,
                 keyframe_id: descriptor.keyframe_id,
             };
-            let assembly = assemblies.entry(id).or_default();
-            assembly.descriptor = Some((
+            let part = (
                 descriptor.descriptor.to_vec(),
                 descriptor.frame_index,
                 descriptor.timestamp_s,
-            ));
-            forward_if_complete(id, assemblies, record, to_worker)?;
+            );
+            if let Some(arrival) = inbox.descriptor(id, part, Instant::now()) {
+                forward(arrival, record, to_worker)?;
+            }
         }
         Incoming::KeyframeImage(image) => {
             let header = image.header();
@@ -312,23 +329,32 @@ fn handle(
                 keyframe_id: header.keyframe_id,
             };
             let (rgb, depth) = wire::rgbd_images(header.width, header.height, image.pixels());
-            let assembly = assemblies.entry(id).or_default();
-            assembly.frame_index = header.frame_index;
-            assembly.timestamp_s = header.timestamp_s;
-            assembly.image = Some(Keyframe {
+            let keyframe = Keyframe {
                 id,
                 rgb,
                 depth,
                 intrinsics: wire::intrinsics(&header.intrinsics),
                 agent_from_camera: header.camera_to_agent_world.to_isometry(),
-            });
-            forward_if_complete(id, assemblies, record, to_worker)?;
+            };
+            if let Some(arrival) = inbox.image(
+                id,
+                keyframe,
+                header.frame_index,
+                header.timestamp_s,
+                Instant::now(),
+            ) {
+                forward(arrival, record, to_worker)?;
+            }
         }
         Incoming::Patch(patch) => {
             let id = KeyframeRef {
                 agent_id,
                 keyframe_id: patch.header().keyframe_id,
             };
+            if id.keyframe_id != FINAL_MAP_KEYFRAME_ID && !inbox.patch(id, Instant::now()) {
+                // Already stored (a resend crossing a late original).
+                return Ok(());
+            }
             let (cloud, dropped) = wire::gaussian_cloud(patch.records());
             if dropped > 0 {
                 tracing::warn!(
@@ -346,31 +372,43 @@ fn handle(
     Ok(())
 }
 
-fn forward_if_complete(
-    id: KeyframeRef,
-    assemblies: &mut BTreeMap<KeyframeRef, Assembly>,
+/// Hands a keyframe whose descriptor and image are both there to the worker.
+fn forward(
+    arrival: KeyframeArrival,
     record: &mut AgentRecord,
     to_worker: &Sender<WorkerInput>,
 ) -> anyhow::Result<()> {
-    let complete = assemblies
-        .get(&id)
-        .is_some_and(|a| a.descriptor.is_some() && a.image.is_some());
-    if !complete {
-        return Ok(());
-    }
-    let assembly = assemblies.remove(&id).expect("checked above");
-    let (descriptor, _, _) = assembly.descriptor.expect("checked above");
     record.keyframes += 1;
-    let arrival = KeyframeArrival {
-        keyframe: assembly.image.expect("checked above"),
-        frame_index: assembly.frame_index,
-        timestamp_s: assembly.timestamp_s,
-        descriptor,
-        gaussians: GaussianCloud::default(),
-    };
     to_worker
         .send(WorkerInput::Keyframe(Box::new(arrival), Instant::now()))
         .context("the consensus worker stopped")
+}
+
+/// Asks agents to publish again the keyframes that waited too long for a missing part.
+fn request_resends(
+    link: &mut ConsumerLink,
+    inbox: &mut KeyframeInbox,
+    finished: &BTreeSet<u32>,
+    agents: &mut BTreeMap<u32, AgentRecord>,
+) {
+    for request in inbox.due_requests(Instant::now(), finished) {
+        let agent_id = request.keyframe.agent_id;
+        tracing::warn!(
+            agent_id,
+            keyframe_id = request.keyframe.keyframe_id,
+            reason = %request.reason,
+            "keyframe incomplete: asking the agent to publish it again"
+        );
+        agents.entry(agent_id).or_default().resend_requests += 1;
+        let message = ControlMessage::ResendKeyframe {
+            keyframe_id: request.keyframe.keyframe_id,
+            reason: request.reason,
+        };
+        if let Err(error) = link.send_control(agent_id, &message) {
+            // Asked again after the next wait, up to the configured number of requests.
+            tracing::debug!(agent_id, %error, "resend request not delivered");
+        }
+    }
 }
 
 fn spawn_worker(

@@ -274,7 +274,7 @@ pub fn run_case_on(
     camera: &Camera,
 ) -> Result<BenchCase, GpuError> {
     let gaussian_count = cloud.len();
-    let camera = camera.clone();
+    let camera = *camera;
     let gaussians = DeviceGaussians::upload(context, cloud)?;
     let raster = RasterConfig::default();
     let (warmup, repeats) = (config.warmup, config.repeats);

@@ -14,7 +14,9 @@ use serde::{Deserialize, Serialize};
 use crate::dataset::noise::NoiseConfig;
 
 mod consensus;
-pub use consensus::{AlignmentConfig, LocalCorrectionConfig, PoseGraphConfig, RefinementConfig};
+pub use consensus::{
+    AlignmentConfig, LocalCorrectionConfig, PoseGraphConfig, RefinementConfig, ResendConfig,
+};
 
 /// Tracking: point selection, per-point covariances, map-candidate selection and G-ICP.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -230,6 +232,8 @@ pub struct ConsensusConfig {
     pub refinement: RefinementConfig,
     /// How agents apply corrections to their local maps: `[consensus.local_corrections]`.
     pub local_corrections: LocalCorrectionConfig,
+    /// Re-requesting keyframes that arrived incomplete: `[consensus.resend]`.
+    pub resend: ResendConfig,
 }
 
 impl Default for ConsensusConfig {
@@ -249,6 +253,7 @@ impl Default for ConsensusConfig {
             pose_graph: PoseGraphConfig::default(),
             refinement: RefinementConfig::default(),
             local_corrections: LocalCorrectionConfig::default(),
+            resend: ResendConfig::default(),
         }
     }
 }
@@ -533,6 +538,7 @@ impl Config {
         ] {
             non_negative(field, v)?;
         }
+        positive("consensus.resend.after_s", c.resend.after_s)?;
         if let Some(n) = &self.noise {
             non_negative("noise.rgb_sigma", n.rgb_sigma)?;
             non_negative("noise.depth_sigma_m", n.depth_sigma_m)?;

@@ -280,6 +280,37 @@ impl Default for LocalCorrectionConfig {
     }
 }
 
+/// Re-requesting keyframes that arrived incomplete: the `[consensus.resend]` table.
+///
+/// A published keyframe is three messages (descriptor, RGB-D image, Gaussian patch). One can be
+/// lost: a full queue, an agent that restarted between them, a sample iceoryx2 dropped. The
+/// consensus notices a keyframe with some parts and not others, waits `after_s` (the parts of
+/// one keyframe go out back to back, so a longer wait means loss, not delay) and asks the agent
+/// to publish it again (`ControlMessage::ResendKeyframe`), at most `max_requests` times. The
+/// agent keeps its last `agent_keeps` published keyframes for that; an older one is gone and
+/// the request is answered by nothing (counted on both sides).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ResendConfig {
+    /// Seconds an incomplete keyframe waits before (and between) requests.
+    pub after_s: f64,
+    /// Requests per keyframe before the consensus gives up on it (0: never ask).
+    pub max_requests: usize,
+    /// Published keyframes an agent keeps for re-sending (each holds its RGB-D image and its
+    /// Gaussians: ~2.5 MB at 640x480 plus 56 bytes per Gaussian).
+    pub agent_keeps: usize,
+}
+
+impl Default for ResendConfig {
+    fn default() -> Self {
+        Self {
+            after_s: 2.0,
+            max_requests: 3,
+            agent_keeps: 8,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,0 +1,337 @@
+//! The consensus's inbox of published keyframes: joins each keyframe's three messages
+//! (descriptor, RGB-D image, Gaussian patch; different topics, any order), hands a keyframe to
+//! the engine once its descriptor and image are both there, ignores parts that arrive twice, and
+//! says which keyframes have waited too long for a missing part, so that the process can ask the
+//! agent to publish them again (`[consensus.resend]`, `ControlMessage::ResendKeyframe`).
+//!
+//! Free of transport and clocks: callers pass `now`, so the rule is testable without waiting.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::time::{Duration, Instant};
+
+use render_core::types::GaussianCloud;
+use slam_core::config::ResendConfig;
+
+use crate::alignment::Keyframe;
+use crate::engine::KeyframeArrival;
+use crate::place_recognition::KeyframeRef;
+
+/// A keyframe's descriptor as it arrived: values, frame index, timestamp.
+pub type DescriptorPart = (Vec<f32>, u64, f64);
+
+/// Parts of one keyframe received so far.
+struct Pending {
+    descriptor: Option<DescriptorPart>,
+    image: Option<(Keyframe, u64, f64)>,
+    /// Descriptor and image went to the engine.
+    forwarded: bool,
+    patch: bool,
+    /// First part's arrival, or the last request (the next request waits from there).
+    waiting_since: Instant,
+    requests: usize,
+}
+
+impl Pending {
+    fn new(now: Instant) -> Self {
+        Self {
+            descriptor: None,
+            image: None,
+            forwarded: false,
+            patch: false,
+            waiting_since: now,
+            requests: 0,
+        }
+    }
+
+    /// What is still missing, for the request's reason.
+    fn missing(&self) -> Vec<&'static str> {
+        let mut missing = Vec::new();
+        if !self.forwarded && self.descriptor.is_none() {
+            missing.push("descriptor");
+        }
+        if !self.forwarded && self.image.is_none() {
+            missing.push("RGB-D image");
+        }
+        if !self.patch {
+            missing.push("Gaussian patch");
+        }
+        missing
+    }
+}
+
+/// A request the process should send: agent, keyframe and the reason for its log.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResendRequest {
+    pub keyframe: KeyframeRef,
+    pub reason: String,
+}
+
+/// See the module documentation.
+pub struct KeyframeInbox {
+    policy: ResendConfig,
+    pending: BTreeMap<KeyframeRef, Pending>,
+    /// Every part arrived.
+    complete: BTreeSet<KeyframeRef>,
+    duplicates: BTreeMap<u32, usize>,
+    given_up: BTreeSet<KeyframeRef>,
+}
+
+impl KeyframeInbox {
+    pub fn new(policy: ResendConfig) -> Self {
+        Self {
+            policy,
+            pending: BTreeMap::new(),
+            complete: BTreeSet::new(),
+            duplicates: BTreeMap::new(),
+            given_up: BTreeSet::new(),
+        }
+    }
+
+    fn entry(&mut self, id: KeyframeRef, now: Instant) -> Option<&mut Pending> {
+        if self.complete.contains(&id) {
+            *self.duplicates.entry(id.agent_id).or_default() += 1;
+            return None;
+        }
+        Some(self.pending.entry(id).or_insert_with(|| Pending::new(now)))
+    }
+
+    /// A descriptor arrived; returns the keyframe for the engine when this completes it.
+    pub fn descriptor(
+        &mut self,
+        id: KeyframeRef,
+        descriptor: DescriptorPart,
+        now: Instant,
+    ) -> Option<KeyframeArrival> {
+        let pending = self.entry(id, now)?;
+        if pending.forwarded || pending.descriptor.is_some() {
+            *self.duplicates.entry(id.agent_id).or_default() += 1;
+            return None;
+        }
+        pending.descriptor = Some(descriptor);
+        self.forward_if_ready(id)
+    }
+
+    /// An RGB-D image arrived; returns the keyframe for the engine when this completes it.
+    pub fn image(
+        &mut self,
+        id: KeyframeRef,
+        keyframe: Keyframe,
+        frame_index: u64,
+        timestamp_s: f64,
+        now: Instant,
+    ) -> Option<KeyframeArrival> {
+        let pending = self.entry(id, now)?;
+        if pending.forwarded || pending.image.is_some() {
+            *self.duplicates.entry(id.agent_id).or_default() += 1;
+            return None;
+        }
+        pending.image = Some((keyframe, frame_index, timestamp_s));
+        self.forward_if_ready(id)
+    }
+
+    /// A keyframe's patch arrived (the caller hands the Gaussians on: a repeated patch replaces
+    /// the stored one, which is harmless). Returns false for a repeat.
+    pub fn patch(&mut self, id: KeyframeRef, now: Instant) -> bool {
+        let Some(pending) = self.entry(id, now) else {
+            return false;
+        };
+        if pending.patch {
+            *self.duplicates.entry(id.agent_id).or_default() += 1;
+            return false;
+        }
+        pending.patch = true;
+        self.retire_if_complete(id);
+        true
+    }
+
+    fn forward_if_ready(&mut self, id: KeyframeRef) -> Option<KeyframeArrival> {
+        let pending = self.pending.get_mut(&id)?;
+        if pending.descriptor.is_none() || pending.image.is_none() {
+            return None;
+        }
+        let (descriptor, _, _) = pending.descriptor.take()?;
+        let (keyframe, frame_index, timestamp_s) = pending.image.take()?;
+        pending.forwarded = true;
+        self.retire_if_complete(id);
+        Some(KeyframeArrival {
+            keyframe,
+            frame_index,
+            timestamp_s,
+            descriptor,
+            gaussians: GaussianCloud::default(),
+        })
+    }
+
+    fn retire_if_complete(&mut self, id: KeyframeRef) {
+        if self
+            .pending
+            .get(&id)
+            .is_some_and(|pending| pending.forwarded && pending.patch)
+        {
+            self.pending.remove(&id);
+            self.given_up.remove(&id);
+            self.complete.insert(id);
+        }
+    }
+
+    /// An agent started again (a second hello): what its previous process left incomplete will
+    /// never be completed, and the new process does not hold those keyframes.
+    pub fn forget_incomplete(&mut self, agent_id: u32) {
+        self.pending.retain(|id, _| id.agent_id != agent_id);
+    }
+
+    /// Keyframes that have waited `after_s` for a missing part since their first part or their
+    /// last request, of agents not in `finished`, each at most `max_requests` times. Each
+    /// returned request counts as sent.
+    pub fn due_requests(&mut self, now: Instant, finished: &BTreeSet<u32>) -> Vec<ResendRequest> {
+        let wait = Duration::from_secs_f64(self.policy.after_s);
+        let mut due = Vec::new();
+        for (id, pending) in &mut self.pending {
+            if finished.contains(&id.agent_id)
+                || now.saturating_duration_since(pending.waiting_since) < wait
+            {
+                continue;
+            }
+            if pending.requests >= self.policy.max_requests {
+                if self.given_up.insert(*id) {
+                    tracing::warn!(
+                        agent_id = id.agent_id,
+                        keyframe_id = id.keyframe_id,
+                        requests = pending.requests,
+                        missing = pending.missing().join(", "),
+                        "keyframe still incomplete: no more requests"
+                    );
+                }
+                continue;
+            }
+            pending.requests += 1;
+            pending.waiting_since = now;
+            due.push(ResendRequest {
+                keyframe: *id,
+                reason: format!(
+                    "{} missing after {:.1} s",
+                    pending.missing().join(" and "),
+                    self.policy.after_s
+                ),
+            });
+        }
+        due
+    }
+
+    /// Keyframes of `agent_id` still missing a part.
+    pub fn incomplete(&self, agent_id: u32) -> usize {
+        self.pending
+            .keys()
+            .filter(|id| id.agent_id == agent_id)
+            .count()
+    }
+
+    /// Parts of `agent_id`'s keyframes that arrived more than once (ignored).
+    pub fn duplicates(&self, agent_id: u32) -> usize {
+        self.duplicates.get(&agent_id).copied().unwrap_or(0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Isometry3;
+    use slam_core::camera::Intrinsics;
+    use slam_core::dataset::DepthImage;
+
+    fn id(keyframe_id: u64) -> KeyframeRef {
+        KeyframeRef {
+            agent_id: 3,
+            keyframe_id,
+        }
+    }
+
+    fn keyframe(keyframe_id: u64) -> Keyframe {
+        let intrinsics = Intrinsics::new(50.0, 50.0, 2.0, 2.0, 4, 4);
+        Keyframe {
+            id: id(keyframe_id),
+            rgb: image::RgbImage::new(4, 4),
+            depth: DepthImage {
+                width: 4,
+                height: 4,
+                data: vec![1.0; 16],
+            },
+            intrinsics,
+            agent_from_camera: Isometry3::identity(),
+        }
+    }
+
+    fn policy() -> ResendConfig {
+        ResendConfig {
+            after_s: 2.0,
+            max_requests: 2,
+            agent_keeps: 8,
+        }
+    }
+
+    #[test]
+    fn a_keyframe_goes_to_the_engine_once_whatever_the_order_and_repeats() {
+        let mut inbox = KeyframeInbox::new(policy());
+        let now = Instant::now();
+        assert!(inbox.patch(id(1), now));
+        assert!(inbox.image(id(1), keyframe(1), 10, 0.5, now).is_none());
+        let arrival = inbox
+            .descriptor(id(1), (vec![1.0], 10, 0.5), now)
+            .expect("descriptor and image are both there");
+        assert_eq!(arrival.frame_index, 10);
+        assert_eq!(inbox.incomplete(3), 0);
+        // Everything again (a resend that crossed a late original): nothing new.
+        assert!(inbox.descriptor(id(1), (vec![1.0], 10, 0.5), now).is_none());
+        assert!(inbox.image(id(1), keyframe(1), 10, 0.5, now).is_none());
+        assert!(!inbox.patch(id(1), now));
+        assert_eq!(inbox.duplicates(3), 3);
+        assert!(
+            inbox
+                .due_requests(now + Duration::from_secs(60), &BTreeSet::new())
+                .is_empty()
+        );
+    }
+
+    #[test]
+    fn a_missing_part_is_requested_after_the_wait_at_most_max_requests_times() {
+        let mut inbox = KeyframeInbox::new(policy());
+        let start = Instant::now();
+        let at = |s: f64| start + Duration::from_secs_f64(s);
+        assert!(
+            inbox
+                .descriptor(id(4), (vec![1.0], 40, 4.0), start)
+                .is_none()
+        );
+        assert!(inbox.due_requests(at(1.9), &BTreeSet::new()).is_empty());
+        let first = inbox.due_requests(at(2.0), &BTreeSet::new());
+        assert_eq!(first.len(), 1);
+        assert_eq!(first[0].keyframe, id(4));
+        assert!(
+            first[0].reason.contains("RGB-D image") && first[0].reason.contains("patch"),
+            "{}",
+            first[0].reason
+        );
+        // The next request waits again from the last one.
+        assert!(inbox.due_requests(at(3.0), &BTreeSet::new()).is_empty());
+        assert_eq!(inbox.due_requests(at(4.0), &BTreeSet::new()).len(), 1);
+        // max_requests = 2: no third request.
+        assert!(inbox.due_requests(at(10.0), &BTreeSet::new()).is_empty());
+        assert_eq!(inbox.incomplete(3), 1);
+        // A late answer still completes it.
+        assert!(inbox.image(id(4), keyframe(4), 40, 4.0, at(11.0)).is_some());
+        assert!(inbox.patch(id(4), at(11.0)));
+        assert_eq!(inbox.incomplete(3), 0);
+    }
+
+    #[test]
+    fn finished_agents_are_not_asked_and_a_restart_forgets_the_old_process() {
+        let mut inbox = KeyframeInbox::new(policy());
+        let start = Instant::now();
+        assert!(inbox.image(id(2), keyframe(2), 20, 2.0, start).is_none());
+        let late = start + Duration::from_secs(5);
+        assert!(inbox.due_requests(late, &BTreeSet::from([3])).is_empty());
+        inbox.forget_incomplete(3);
+        assert_eq!(inbox.incomplete(3), 0);
+        assert!(inbox.due_requests(late, &BTreeSet::new()).is_empty());
+    }
+}
