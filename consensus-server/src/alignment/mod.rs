@@ -266,6 +266,9 @@ pub fn align_prepared(
             &coarse.target_from_source,
             &config.correspondence_distances_m,
             &gicp_params(config),
+            // `verify` rejects pairs below this fraction at the finest distance; a coarser
+            // stage already below it cannot get there.
+            config.min_inlier_fraction,
         )
     };
     if let Some(failure) = refined.failure.clone().filter(|f| !f.pose_is_usable()) {

@@ -266,12 +266,19 @@ pub fn register<T: RegistrationTarget + ?Sized>(
 /// that merely runs out of iterations hands its pose on; any other failure stops the sequence.
 /// The result is the last stage's, with iterations summed over all stages. An empty list runs
 /// once at `params.max_correspondence_m`.
+///
+/// A stage whose inlier fraction (at its own distance) ends below `give_up_below_fraction` also
+/// ends the sequence: at a given pose a finer distance can only count fewer inliers, so a pair
+/// that the caller would reject for too few inliers at the finest distance is rejected without
+/// the finer stages' iterations (pairs that do not overlap are the ones that run every stage to
+/// its iteration limit). 0 never gives up.
 pub fn register_coarse_to_fine<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,
     initial: &Isometry3<f64>,
     distances_m: &[f64],
     params: &GicpParams,
+    give_up_below_fraction: f64,
 ) -> RegistrationResult {
     let mut pose = *initial;
     let mut total_iterations = 0;
@@ -285,9 +292,10 @@ pub fn register_coarse_to_fine<T: RegistrationTarget + ?Sized>(
         );
         total_iterations += stage.iterations;
         let usable = stage.failure.as_ref().is_none_or(|f| f.pose_is_usable());
+        let hopeless = stage.inlier_fraction() < give_up_below_fraction;
         pose = stage.target_from_source;
         last = Some(stage);
-        if !usable {
+        if !usable || hopeless {
             break;
         }
     }
@@ -709,8 +717,26 @@ mod tests {
             &Isometry3::identity(),
             &[0.1, 0.05, 0.02],
             &params(0.02),
+            0.0,
         );
         assert!(coarse_to_fine.is_success(), "{:?}", coarse_to_fine.failure);
+        // Giving up below a fraction no stage reaches stops after the first stage.
+        let first_stage = register(
+            source.cloud(),
+            &target,
+            &Isometry3::identity(),
+            &params(0.1),
+        );
+        let given_up = register_coarse_to_fine(
+            source.cloud(),
+            &target,
+            &Isometry3::identity(),
+            &[0.1, 0.05, 0.02],
+            &params(0.02),
+            1.01,
+        );
+        assert_eq!(given_up.iterations, first_stage.iterations);
+        assert!(given_up.iterations < coarse_to_fine.iterations);
         assert_close(&coarse_to_fine.target_from_source, &truth);
         // The fine distance alone cannot bridge 10 cm: the coarse stages are what make it work.
         let fine_error = (fine_only.target_from_source.inverse() * truth)
