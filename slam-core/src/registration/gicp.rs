@@ -199,14 +199,29 @@ pub fn register<T: RegistrationTarget + ?Sized>(
         return RegistrationResult::failed(initial, source.len(), failure);
     }
     let max_distance_sq = (params.max_correspondence_m * params.max_correspondence_m) as f32;
+    let overlap_sq = (params.overlap_distance_m * params.overlap_distance_m) as f32;
     let mut correspondences: Vec<Correspondence> = vec![None; source.len()];
+    // Statistics of the latest linearisation: the result's when the next step is the converged
+    // one (see `finish`).
+    let mut linearized = None;
     let mut pose = *initial;
     let mut lambda = LM_INITIAL_LAMBDA;
     let mut converged = false;
     let mut iterations = 0;
     while iterations < params.max_iterations && !converged {
         iterations += 1;
-        let system = linearize(source, target, &pose, max_distance_sq, &mut correspondences);
+        let system = linearize(
+            source,
+            target,
+            &pose,
+            (max_distance_sq, overlap_sq),
+            &mut correspondences,
+        );
+        linearized = Some(FinalStatistics {
+            inliers: system.inliers,
+            overlapping: system.overlapping,
+            error: system.error,
+        });
         if system.inliers < MIN_POINTS_FOR_A_POSE {
             let failure = RegistrationFailure::TooFewCorrespondences {
                 found: system.inliers,
@@ -258,7 +273,10 @@ pub fn register<T: RegistrationTarget + ?Sized>(
             converged = true;
         }
     }
-    finish(source, target, initial, pose, iterations, converged, params)
+    let linearized = linearized.filter(|_| converged);
+    finish(
+        source, target, initial, pose, iterations, converged, params, linearized,
+    )
 }
 
 /// Coarse-to-fine G-ICP: one [`register`] per correspondence distance in `distances_m` (largest
@@ -367,8 +385,13 @@ fn check_inputs<T: RegistrationTarget + ?Sized>(
     None
 }
 
-/// Final statistics at the final pose (a fresh search, so the numbers describe the returned pose)
-/// and the failure classification.
+/// Final statistics and the failure classification. After convergence they are those of the
+/// last linearisation (`linearized`): the returned pose is that linearisation's pose plus one
+/// step below the convergence thresholds (or none at all), which moves no point by more than a
+/// fraction of a millimetre, so a fresh search would count the same correspondences (small_gicp
+/// reports its last linearisation's figures likewise) and costs a sixth of a frame's tracking.
+/// Otherwise a fresh search at the final pose.
+#[allow(clippy::too_many_arguments)]
 fn finish<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,
@@ -377,8 +400,9 @@ fn finish<T: RegistrationTarget + ?Sized>(
     iterations: usize,
     converged: bool,
     params: &GicpParams,
+    linearized: Option<FinalStatistics>,
 ) -> RegistrationResult {
-    let stats = final_statistics(source, target, &pose, params);
+    let stats = linearized.unwrap_or_else(|| final_statistics(source, target, &pose, params));
     let required = MIN_POINTS_FOR_A_POSE
         .max((params.min_inlier_fraction * source.len() as f64).ceil() as usize);
     let failure =
@@ -414,6 +438,8 @@ struct NormalEquations {
     gradient: Vector6<f64>,
     error: f64,
     inliers: usize,
+    /// Source points with a target point within the overlap distance.
+    overlapping: usize,
 }
 
 impl NormalEquations {
@@ -423,6 +449,7 @@ impl NormalEquations {
             gradient: Vector6::zeros(),
             error: 0.0,
             inliers: 0,
+            overlapping: 0,
         }
     }
 
@@ -431,6 +458,7 @@ impl NormalEquations {
         self.gradient += other.gradient;
         self.error += other.error;
         self.inliers += other.inliers;
+        self.overlapping += other.overlapping;
         self
     }
 }
@@ -475,15 +503,17 @@ fn residual_and_weight(
 }
 
 /// Searches correspondences at `pose` (stored with their weights into `correspondences`) and
-/// builds the normal equations of the right-perturbed residuals.
+/// builds the normal equations of the right-perturbed residuals. `(correspondence, overlap)`
+/// squared distances: one search with the larger also counts the overlapping points.
 fn linearize<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,
     pose: &Isometry3<f64>,
-    max_distance_sq: f32,
+    (max_distance_sq, overlap_sq): (f32, f32),
     correspondences: &mut [Correspondence],
 ) -> NormalEquations {
     let parts = RigidParts::of(pose);
+    let search_sq = max_distance_sq.max(overlap_sq);
     source
         .positions
         .par_chunks(POINTS_PER_TASK)
@@ -495,11 +525,17 @@ fn linearize<T: RegistrationTarget + ?Sized>(
                 let a = a.coords.cast::<f64>();
                 let transformed = parts.transform(&a);
                 *found = None;
-                let Some((j, _)) = target
-                    .nearest_within(&Point3::from(transformed.cast::<f32>()), max_distance_sq)
+                let Some((j, distance_sq)) =
+                    target.nearest_within(&Point3::from(transformed.cast::<f32>()), search_sq)
                 else {
                     continue;
                 };
+                if distance_sq <= overlap_sq {
+                    sum.overlapping += 1;
+                }
+                if distance_sq > max_distance_sq {
+                    continue;
+                }
                 let target_position = target.position(j);
                 let Some((d, w)) = residual_and_weight(
                     &transformed,
