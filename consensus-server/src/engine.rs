@@ -13,6 +13,7 @@
 //! replace nothing and propose nothing.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::sync::Arc;
 use std::time::Instant;
 
 use nalgebra::Isometry3;
@@ -21,7 +22,8 @@ use render_core::types::{GaussianCloud, RigidTransform};
 use serde::Serialize;
 use slam_core::se3::{isometry_from_tum, isometry_to_tum};
 
-use crate::alignment::{Keyframe, PreparedKeyframe, Verdict, align_prepared};
+use crate::alignment::{AlignmentResult, Keyframe, PreparedKeyframe, Verdict, align_prepared};
+use crate::config::AlignmentConfig;
 use crate::config::ConsensusConfig;
 use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
 use crate::pose_graph::{LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
@@ -57,6 +59,35 @@ struct Candidate {
     origin: CandidateSource,
 }
 
+/// One queued alignment with what it needs, free of the engine (see
+/// [`Engine::next_alignment`]).
+pub struct AlignmentJob {
+    candidate: Candidate,
+    source: Arc<PreparedKeyframe>,
+    target: Arc<PreparedKeyframe>,
+    config: AlignmentConfig,
+}
+
+impl AlignmentJob {
+    /// Aligns the pair (about a second on a CPU).
+    pub fn run(self) -> FinishedAlignment {
+        let clock = Instant::now();
+        let result = align_prepared(&self.source, &self.target, &self.config);
+        FinishedAlignment {
+            candidate: self.candidate,
+            result,
+            alignment_ms: clock.elapsed().as_secs_f64() * 1e3,
+        }
+    }
+}
+
+/// An [`AlignmentJob`]'s outcome, for [`Engine::record_alignment`].
+pub struct FinishedAlignment {
+    candidate: Candidate,
+    result: AlignmentResult,
+    alignment_ms: f64,
+}
+
 /// One alignment decision (consensus.json).
 #[derive(Debug, Clone, Serialize)]
 pub struct ClosureEvent {
@@ -90,7 +121,8 @@ pub struct Engine {
     config: ConsensusConfig,
     started: Instant,
     database: PlaceDatabase,
-    prepared: BTreeMap<KeyframeRef, PreparedKeyframe>,
+    /// Shared with alignment jobs, which may run on another thread ([`AlignmentJob`]).
+    prepared: BTreeMap<KeyframeRef, Arc<PreparedKeyframe>>,
     info: BTreeMap<KeyframeRef, KeyframeInfo>,
     gaussians: BTreeMap<KeyframeRef, GaussianCloud>,
     /// Each agent's final optimised map (its own frame), once it has sent it.
@@ -155,7 +187,10 @@ impl Engine {
         self.gaussians.insert(id, arrival.gaussians);
         self.prepared.insert(
             id,
-            PreparedKeyframe::new(arrival.keyframe, &self.config.alignment),
+            Arc::new(PreparedKeyframe::new(
+                arrival.keyframe,
+                &self.config.alignment,
+            )),
         );
         if let Some(previous) = self.last_of_agent.insert(id.agent_id, id)
             && previous != id
@@ -207,8 +242,16 @@ impl Engine {
         self.queue.len()
     }
 
-    /// Aligns the next queued candidate; `None` when the queue is empty.
+    /// Aligns the next queued candidate here and now; `None` when the queue is empty.
     pub fn align_next(&mut self) -> Option<&ClosureEvent> {
+        let job = self.next_alignment()?;
+        Some(self.record_alignment(job.run()))
+    }
+
+    /// Takes the next queued candidate (skipping pairs already attempted either way round) as a
+    /// job that can run on any thread while the engine takes keyframes and solves; its result
+    /// goes back through [`Self::record_alignment`]. `None` when the queue is empty.
+    pub fn next_alignment(&mut self) -> Option<AlignmentJob> {
         let candidate = loop {
             let candidate = self.queue.pop_front()?;
             let key = (candidate.source, candidate.target);
@@ -219,12 +262,22 @@ impl Engine {
             self.attempted.insert(key);
             break candidate;
         };
-        let clock = Instant::now();
-        let result = align_prepared(
-            &self.prepared[&candidate.source],
-            &self.prepared[&candidate.target],
-            &self.config.alignment,
-        );
+        Some(AlignmentJob {
+            source: Arc::clone(&self.prepared[&candidate.source]),
+            target: Arc::clone(&self.prepared[&candidate.target]),
+            candidate,
+            config: self.config.alignment.clone(),
+        })
+    }
+
+    /// Takes a finished alignment: a verified closure joins the pose graph (solved at the next
+    /// [`Self::solve_if_changed`]). Returns the decision as recorded.
+    pub fn record_alignment(&mut self, done: FinishedAlignment) -> &ClosureEvent {
+        let FinishedAlignment {
+            candidate,
+            result,
+            alignment_ms,
+        } = done;
         let mut event = ClosureEvent {
             at_s: self.started.elapsed().as_secs_f64(),
             source: candidate.source,
@@ -235,7 +288,7 @@ impl Engine {
             verified: result.is_accepted(),
             rejection: None,
             accepted_by_pose_graph: None,
-            alignment_ms: clock.elapsed().as_secs_f64() * 1e3,
+            alignment_ms,
         };
         match result.verdict {
             Verdict::Accepted => {
@@ -264,7 +317,7 @@ impl Engine {
             }
         }
         self.events.push(event);
-        self.events.last()
+        self.events.last().expect("just pushed")
     }
 
     /// Re-solves the pose graph if anything changed since the last solve. Returns the new

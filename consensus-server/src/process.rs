@@ -7,8 +7,10 @@
 //!   waits on the consumers' event (no spinning), joins each keyframe's descriptor and image
 //!   (they arrive on different topics, in any order; [`crate::inbox`]), asks agents to publish
 //!   again what arrived incomplete, and sends corrections as soon as the worker has them. It never aligns or solves, so agents are never blocked by the consensus;
-//! - the worker thread owns the [`Engine`]: preparing keyframes, aligning candidates (about a
-//!   second each on a CPU) and solving the pose graph.
+//! - the worker thread owns the [`Engine`]: preparing keyframes and solving the pose graph
+//!   (about a millisecond) as soon as a keyframe arrives or an alignment finishes;
+//! - an aligner thread aligns candidate pairs one at a time (about a second each on a CPU,
+//!   longer under load), so no keyframe waits for an alignment before it is placed.
 //!
 //! The run ends when every expected agent has said goodbye and the worker has aligned every
 //! queued candidate, or on SIGINT/SIGTERM (the stop flag); either way every output is written.
@@ -34,7 +36,9 @@ use slam_core::se3::isometry_to_tum;
 use slam_core::trajectory::Trajectory;
 
 use crate::alignment::Keyframe;
-use crate::engine::{ClosureEvent, Engine, KeyframeArrival, KeyframeInfo};
+use crate::engine::{
+    AlignmentJob, ClosureEvent, Engine, FinishedAlignment, KeyframeArrival, KeyframeInfo,
+};
 use crate::inbox::KeyframeInbox;
 use crate::place_recognition::KeyframeRef;
 use crate::refinement::{self, RefinementReport};
@@ -427,21 +431,66 @@ fn spawn_worker(
                 waiting: BTreeMap::new(),
                 early_gaussians: BTreeMap::new(),
             };
+            // Alignments run on their own thread, one at a time, so that a slow one (seconds
+            // on a loaded CPU, tens of seconds for a hopeless pair) never holds up new
+            // keyframes: those are prepared, placed by their odometry edges and solved (about a
+            // millisecond) while it runs, and their agents get corrections at once.
+            let (job_tx, job_rx) = crossbeam_channel::bounded::<AlignmentJob>(1);
+            let (done_tx, done_rx) = crossbeam_channel::bounded::<FinishedAlignment>(1);
+            let aligner = std::thread::Builder::new()
+                .name("consensus-aligner".into())
+                .spawn(move || {
+                    let _span = tracing::info_span!("consensus aligner").entered();
+                    for job in job_rx {
+                        if done_tx.send(job.run()).is_err() {
+                            break;
+                        }
+                    }
+                })
+                .expect("starting the consensus aligner thread");
             let mut open = true;
+            let mut in_flight = false;
             let mut last_progress: Option<Instant> = None;
             loop {
                 if last_progress.is_none_or(|at| at.elapsed() >= PROGRESS_INTERVAL) {
                     write_progress(&worker.options.out, &worker.engine, ProgressStage::Aligning);
                     last_progress = Some(Instant::now());
                 }
-                // Block for input only when nothing is left to align.
-                if worker.engine.pending() == 0 {
-                    if !open {
-                        break;
+                if !in_flight && let Some(job) = worker.engine.next_alignment() {
+                    in_flight = job_tx.send(job).is_ok();
+                }
+                if !in_flight && !open {
+                    break;
+                }
+                // Wait for whichever comes first: an input or the running alignment.
+                if open && in_flight {
+                    crossbeam_channel::select! {
+                        recv(inputs) -> input => match input {
+                            Ok(input) => worker.take(input),
+                            Err(_) => open = false,
+                        },
+                        recv(done_rx) -> done => {
+                            in_flight = false;
+                            match done {
+                                Ok(done) => {
+                                    worker.engine.record_alignment(done);
+                                }
+                                Err(_) => break,
+                            }
+                        },
                     }
+                } else if open {
                     match inputs.recv() {
                         Ok(input) => worker.take(input),
                         Err(_) => open = false,
+                    }
+                } else {
+                    in_flight = false;
+                    match done_rx.recv() {
+                        Ok(done) => {
+                            worker.engine.record_alignment(done);
+                        }
+                        Err(_) => break,
                     }
                 }
                 while open {
@@ -451,20 +500,15 @@ fn spawn_worker(
                         Err(crossbeam_channel::TryRecvError::Disconnected) => open = false,
                     }
                 }
-                // New keyframes are placed by their odometry edges at once (a solve costs about a
-                // millisecond), before the alignments (about a second each) refine them: an
-                // agent gets its correction without waiting for its candidates.
                 if let Some(update) = worker.solve(&latencies)
                     && solutions.send(update).is_err()
                 {
                     break;
                 }
-                worker.engine.align_next();
-                if let Some(update) = worker.solve(&latencies)
-                    && solutions.send(update).is_err()
-                {
-                    break;
-                }
+            }
+            drop(job_tx);
+            if aligner.join().is_err() {
+                tracing::error!("the consensus aligner thread panicked");
             }
             worker.engine
         })
