@@ -367,6 +367,12 @@ impl SwarmLink {
                 return;
             }
         };
+        self.send_or_enqueue(wire, link_up);
+    }
+
+    /// Sends a keyframe now when nothing it must not overtake waits (the hello, queued
+    /// keyframes) and the link is up; otherwise queues it behind them.
+    fn send_or_enqueue(&mut self, wire: WireKeyframe, link_up: bool) {
         if link_up && self.queue.is_empty() && self.pending_hello.is_none() {
             self.send_now(wire);
         } else {
@@ -534,11 +540,8 @@ impl SwarmLink {
                     };
                     tracing::info!(keyframe_id, %reason, "publishing a keyframe again on request");
                     self.summary.keyframes_resent += 1;
-                    if self.queue.is_empty() && self.pending_hello.is_none() {
-                        self.send_now(wire);
-                    } else {
-                        self.enqueue(wire);
-                    }
+                    // Control messages are only read with the link up.
+                    self.send_or_enqueue(wire, true);
                 }
                 other => tracing::debug!(message = ?other, "control message ignored"),
             }

@@ -16,12 +16,9 @@ use crate::alignment::Keyframe;
 use crate::engine::KeyframeArrival;
 use crate::place_recognition::KeyframeRef;
 
-/// A keyframe's descriptor as it arrived: values, frame index, timestamp.
-pub type DescriptorPart = (Vec<f32>, u64, f64);
-
 /// Parts of one keyframe received so far.
 struct Pending {
-    descriptor: Option<DescriptorPart>,
+    descriptor: Option<Vec<f32>>,
     image: Option<(Keyframe, u64, f64)>,
     /// Descriptor and image went to the engine.
     forwarded: bool,
@@ -87,26 +84,30 @@ impl KeyframeInbox {
         }
     }
 
-    fn entry(&mut self, id: KeyframeRef, now: Instant) -> Option<&mut Pending> {
-        if self.complete.contains(&id) {
+    /// The pending entry for a part not seen before (`seen`: whether the entry already has
+    /// it); `None`, counted as a duplicate, for a repeat or a part of a complete keyframe.
+    fn fresh_part(
+        &mut self,
+        id: KeyframeRef,
+        now: Instant,
+        seen: fn(&Pending) -> bool,
+    ) -> Option<&mut Pending> {
+        if self.complete.contains(&id) || self.pending.get(&id).is_some_and(seen) {
             *self.duplicates.entry(id.agent_id).or_default() += 1;
             return None;
         }
         Some(self.pending.entry(id).or_insert_with(|| Pending::new(now)))
     }
 
-    /// A descriptor arrived; returns the keyframe for the engine when this completes it.
+    /// A descriptor (L2-normalised values) arrived; returns the keyframe for the engine when
+    /// this completes it.
     pub fn descriptor(
         &mut self,
         id: KeyframeRef,
-        descriptor: DescriptorPart,
+        descriptor: Vec<f32>,
         now: Instant,
     ) -> Option<KeyframeArrival> {
-        let pending = self.entry(id, now)?;
-        if pending.forwarded || pending.descriptor.is_some() {
-            *self.duplicates.entry(id.agent_id).or_default() += 1;
-            return None;
-        }
+        let pending = self.fresh_part(id, now, |p| p.forwarded || p.descriptor.is_some())?;
         pending.descriptor = Some(descriptor);
         self.forward_if_ready(id)
     }
@@ -120,25 +121,17 @@ impl KeyframeInbox {
         timestamp_s: f64,
         now: Instant,
     ) -> Option<KeyframeArrival> {
-        let pending = self.entry(id, now)?;
-        if pending.forwarded || pending.image.is_some() {
-            *self.duplicates.entry(id.agent_id).or_default() += 1;
-            return None;
-        }
+        let pending = self.fresh_part(id, now, |p| p.forwarded || p.image.is_some())?;
         pending.image = Some((keyframe, frame_index, timestamp_s));
         self.forward_if_ready(id)
     }
 
-    /// A keyframe's patch arrived (the caller hands the Gaussians on: a repeated patch replaces
-    /// the stored one, which is harmless). Returns false for a repeat.
+    /// A keyframe's patch arrived. Returns false for a repeat, which the caller drops (the
+    /// Gaussians of the first one are already on their way).
     pub fn patch(&mut self, id: KeyframeRef, now: Instant) -> bool {
-        let Some(pending) = self.entry(id, now) else {
+        let Some(pending) = self.fresh_part(id, now, |p| p.patch) else {
             return false;
         };
-        if pending.patch {
-            *self.duplicates.entry(id.agent_id).or_default() += 1;
-            return false;
-        }
         pending.patch = true;
         self.retire_if_complete(id);
         true
@@ -149,7 +142,7 @@ impl KeyframeInbox {
         if pending.descriptor.is_none() || pending.image.is_none() {
             return None;
         }
-        let (descriptor, _, _) = pending.descriptor.take()?;
+        let descriptor = pending.descriptor.take()?;
         let (keyframe, frame_index, timestamp_s) = pending.image.take()?;
         pending.forwarded = true;
         self.retire_if_complete(id);
@@ -276,12 +269,12 @@ mod tests {
         assert!(inbox.patch(id(1), now));
         assert!(inbox.image(id(1), keyframe(1), 10, 0.5, now).is_none());
         let arrival = inbox
-            .descriptor(id(1), (vec![1.0], 10, 0.5), now)
+            .descriptor(id(1), vec![1.0], now)
             .expect("descriptor and image are both there");
         assert_eq!(arrival.frame_index, 10);
         assert_eq!(inbox.incomplete(3), 0);
         // Everything again (a resend that crossed a late original): nothing new.
-        assert!(inbox.descriptor(id(1), (vec![1.0], 10, 0.5), now).is_none());
+        assert!(inbox.descriptor(id(1), vec![1.0], now).is_none());
         assert!(inbox.image(id(1), keyframe(1), 10, 0.5, now).is_none());
         assert!(!inbox.patch(id(1), now));
         assert_eq!(inbox.duplicates(3), 3);
@@ -297,11 +290,7 @@ mod tests {
         let mut inbox = KeyframeInbox::new(policy());
         let start = Instant::now();
         let at = |s: f64| start + Duration::from_secs_f64(s);
-        assert!(
-            inbox
-                .descriptor(id(4), (vec![1.0], 40, 4.0), start)
-                .is_none()
-        );
+        assert!(inbox.descriptor(id(4), vec![1.0], start).is_none());
         assert!(inbox.due_requests(at(1.9), &BTreeSet::new()).is_empty());
         let first = inbox.due_requests(at(2.0), &BTreeSet::new());
         assert_eq!(first.len(), 1);

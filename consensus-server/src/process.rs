@@ -317,12 +317,9 @@ fn handle(
                 agent_id,
                 keyframe_id: descriptor.keyframe_id,
             };
-            let part = (
-                descriptor.descriptor.to_vec(),
-                descriptor.frame_index,
-                descriptor.timestamp_s,
-            );
-            if let Some(arrival) = inbox.descriptor(id, part, Instant::now()) {
+            if let Some(arrival) =
+                inbox.descriptor(id, descriptor.descriptor.to_vec(), Instant::now())
+            {
                 forward(arrival, record, to_worker)?;
             }
         }
