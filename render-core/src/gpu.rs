@@ -69,8 +69,6 @@ const SORT_BLOCKS_TARGET: u32 = 256;
 /// fewer invocations).
 const BIN_TABLE_ENTRIES_PER_GAUSSIAN: u32 = 1;
 const MIN_BIN_BLOCK_SIZE: u32 = 32;
-/// Depth keys are full f32 bit patterns.
-const DEPTH_KEY_BITS: u32 = 32;
 pub(crate) const U32_BYTES: u64 = 4;
 /// Parameter groups of a Gaussian: means, log-scales, quaternions, opacity logits, colours.
 pub(crate) const PARAMETER_GROUPS: usize = 5;
@@ -952,7 +950,7 @@ impl GpuRenderer {
                 [&depth_values[0], &depth_values[1]],
                 &count_buffer(context, n),
                 n,
-                DEPTH_KEY_BITS,
+                constants::DEPTH_KEY_BITS,
             )?;
             sorted_gaussians = &depth_values[current];
             profiler.mark(context, &mut encoder, "depth sort")?;

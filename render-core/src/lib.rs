@@ -36,5 +36,5 @@ pub mod types;
 
 pub use types::{
     Camera, GaussianCloud, GaussianGradients, ImageGradients, PoseGradient, RasterConfig,
-    RenderMode, RenderOutput, RigidTransform, constants,
+    RenderMode, RenderOutput, RigidTransform, constants, depth_sort_key,
 };

@@ -17,7 +17,7 @@
 
 use crate::types::{
     Camera, GaussianCloud, GaussianGradients, ImageGradients, PoseGradient, RasterConfig,
-    RenderMode, RenderOutput, constants, rotation_from_quaternion_f64,
+    RenderMode, RenderOutput, constants, depth_sort_key, rotation_from_quaternion_f64,
 };
 
 type Mat3 = [[f64; 3]; 3];
@@ -218,12 +218,8 @@ pub fn project_and_sort(cloud: &GaussianCloud, camera: &Camera) -> Vec<Projected
     let mut projected: Vec<ProjectedGaussian> = (0..cloud.len())
         .filter_map(|i| project_gaussian(cloud, i, camera))
         .collect();
-    // The GPU sorts by the f32 depth; sorting by the same key keeps near-ties identical.
-    projected.sort_by(|a, b| {
-        let depth_a = a.camera_point[2] as f32;
-        let depth_b = b.camera_point[2] as f32;
-        depth_a.total_cmp(&depth_b).then(a.index.cmp(&b.index))
-    });
+    // The GPU sorts by the same key (and keeps the Gaussian order on ties).
+    projected.sort_by_key(|p| (depth_sort_key(p.camera_point[2] as f32), p.index));
     projected
 }
 

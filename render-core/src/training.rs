@@ -295,7 +295,7 @@ struct LossParams {
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 struct AdamParams {
-    count: [u32; 4],
+    counts: [u32; 4],
     rates: [f32; 4],
     corrections: [f32; 4],
 }
@@ -617,12 +617,11 @@ impl TrainingKernels {
         let mut encoder = context.device.create_command_encoder(&Default::default());
         for (group, (learning_rate, parameters, group_gradients)) in groups.into_iter().enumerate()
         {
-            let elements = adam.count * PARAMETER_GROUP_WIDTHS[group];
-            if learning_rate == 0.0 || elements == 0 {
+            if learning_rate == 0.0 || adam.count == 0 {
                 continue;
             }
             let params = AdamParams {
-                count: [elements, 0, 0, 0],
+                counts: [adam.count, PARAMETER_GROUP_WIDTHS[group], 0, 0],
                 rates: [learning_rate, config.beta1, config.beta2, config.epsilon],
                 corrections,
             };
@@ -637,13 +636,14 @@ impl TrainingKernels {
                     (2, group_gradients),
                     (3, m),
                     (4, v),
+                    (5, &gradients.in_view),
                 ],
             );
             dispatch_linear(
                 &mut encoder,
                 &self.adam,
                 &bind,
-                elements.div_ceil(WORKGROUP_SIZE),
+                adam.count.div_ceil(WORKGROUP_SIZE),
             );
         }
         context.queue.submit([encoder.finish()]);

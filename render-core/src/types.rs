@@ -37,6 +37,26 @@ pub mod constants {
     pub const MIN_QUATERNION_NORM_SQUARED: f32 = 1e-12;
     /// Largest log-scale accepted; larger values (exp overflow territory) cull the Gaussian.
     pub const MAX_LOG_SCALE: f32 = 20.0;
+    /// Bits of a splat's depth sort key (see [`super::depth_sort_key`]): three 8-bit radix
+    /// passes instead of four for the full f32.
+    pub const DEPTH_KEY_BITS: u32 = 24;
+    /// Low mantissa bits of the camera z the depth sort key drops.
+    pub const DEPTH_KEY_DROPPED_BITS: u32 = 4;
+}
+
+/// The key splats are depth-sorted by (ascending; ties keep the Gaussian order): camera z's
+/// f32 bit pattern relative to the near plane's, without its [`constants::DEPTH_KEY_DROPPED_BITS`]
+/// lowest mantissa bits, in [`constants::DEPTH_KEY_BITS`] bits. Positive floats order like their
+/// bit patterns, so the key orders like z. Dropping 4 of the 23 mantissa bits merges depths
+/// closer than 2^-19 of z (6 um at 3 m) into one key; 24 bits then span 2^(24+4-23) = 32
+/// binades above the near plane (0.01 m to 4.3e7 m). Farther splats share the largest key;
+/// `u32::MAX` (culled) stays above every visible key. project.wgsl computes the same key.
+pub fn depth_sort_key(camera_z: f32) -> u32 {
+    let largest_visible = (1u32 << constants::DEPTH_KEY_BITS) - 2;
+    let above_near = camera_z
+        .to_bits()
+        .saturating_sub(constants::NEAR_PLANE.to_bits());
+    (above_near >> constants::DEPTH_KEY_DROPPED_BITS).min(largest_visible)
 }
 
 /// A set of 3D Gaussians in structure-of-arrays layout, all vectors of equal length.
@@ -564,6 +584,27 @@ impl RasterConfig {
 mod tests {
     use super::*;
     use nalgebra::{Isometry3, Point3, Vector3};
+
+    #[test]
+    fn depth_sort_keys_order_like_depth_and_stay_below_the_culled_key() {
+        // The culled key (u32::MAX) as the sort sees it: its low DEPTH_KEY_BITS bits.
+        let culled_key = (1u32 << constants::DEPTH_KEY_BITS) - 1;
+        assert_eq!(depth_sort_key(constants::NEAR_PLANE), 0);
+        let depths = [0.01f32, 0.02, 0.5, 1.0, 1.0001, 2.0, 3.5, 10.0, 1e3, 4e7];
+        for pair in depths.windows(2) {
+            let (near, far) = (depth_sort_key(pair[0]), depth_sort_key(pair[1]));
+            assert!(near < far, "{} -> {near}, {} -> {far}", pair[0], pair[1]);
+        }
+        // Only depths within 2^-19 of each other share a key, and the farthest depths
+        // saturate below the culled key.
+        assert_eq!(
+            depth_sort_key(3.0),
+            depth_sort_key(3.0 + 3.0 * 2f32.powi(-21))
+        );
+        assert!(depth_sort_key(f32::MAX) < culled_key);
+        assert!(depth_sort_key(1e30) < culled_key);
+        assert_eq!(depth_sort_key(0.0), 0);
+    }
 
     #[test]
     fn converted_isometry_maps_points_the_same_way() {

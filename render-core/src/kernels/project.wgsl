@@ -10,7 +10,7 @@
 // writes all outputs; tile_counts is the number of binned tiles (mask bits, or the whole
 // rectangle); a culled Gaussian (non-finite input or result, zero quaternion, behind the near
 // plane, degenerate footprint, no tile reached) gets tile_count 0 and depth key 0xffffffff so
-// it sorts last and is never binned. sort_values is initialised to the identity permutation.
+// it sorts last and is never binned (visible keys stay below it: see depth_sort_key). sort_values is initialised to the identity permutation.
 
 @group(0) @binding(0) var<uniform> params: RenderParams;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -31,6 +31,10 @@
 @group(0) @binding(12) var<storage, read_write> sort_values: array<u32>;
 
 const CULLED_DEPTH_KEY: u32 = 0xffffffffu;
+// constants::DEPTH_KEY_DROPPED_BITS and the largest key below the culled one in
+// constants::DEPTH_KEY_BITS (24) bits.
+const DEPTH_KEY_DROPPED_BITS: u32 = 4u;
+const LARGEST_VISIBLE_DEPTH_KEY: u32 = 0xfffffeu;
 // exp() of larger magnitudes overflows f32; the sigmoid is saturated long before.
 const MAX_ABS_OPACITY_LOGIT: f32 = 80.0;
 // Added to the squared Mahalanobis radius of the visible ellipse: absorbs f32 rounding of the
@@ -221,6 +225,7 @@ fn main(
     splat_colour[index] = vec4<f32>(colour, 0.0);
     tile_rects[index] = vec4<u32>(first_tile, columns | (rows << 16u), tile_mask);
     tile_counts[index] = tile_count;
-    // Positive floats order like their bit patterns, so the depth sorts as a u32.
-    depth_keys[index] = bitcast<u32>(p.z);
+    // render_core::depth_sort_key (p.z >= the near plane here).
+    depth_keys[index] = min((bitcast<u32>(p.z) - bitcast<u32>(params.culling.x)) >> DEPTH_KEY_DROPPED_BITS,
+                            LARGEST_VISIBLE_DEPTH_KEY);
 }

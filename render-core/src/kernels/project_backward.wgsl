@@ -3,10 +3,11 @@
 // Gaussian it recomputes the forward projection and chains the accumulated screen-space
 // gradients (mean2d, conic, opacity, colour, depth; written by rasterize_backward) back to the
 // Gaussian's parameters and to the camera pose. Invariants: culled Gaussians (radius 0 in
-// splat_conic.w) get zero gradients; each invocation writes only its own Gaussians' entries,
-// and the sum of their 6-DoF pose contributions (left perturbation of camera_from_world,
-// [translation, rotation]) to pose_translation / pose_rotation[chunk], summed afterwards by
-// reduce.wgsl (a fixed order: deterministic).
+// splat_conic.w) keep the zero gradients of the launcher's fresh (zero-filled) buffers,
+// unwritten; each invocation writes only its own Gaussians' entries, and the sum of their
+// 6-DoF pose contributions (left perturbation of camera_from_world, [translation, rotation])
+// to pose_translation / pose_rotation[chunk], summed afterwards by reduce.wgsl (a fixed
+// order: deterministic).
 
 @group(0) @binding(0) var<uniform> params: RenderParams;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -77,7 +78,8 @@ fn main(
 fn chain_gaussian(index: u32) -> PoseGradient {
     let zero3 = vec3<f32>(0.0);
     if !(splat_conic[index].w > 0.0) {
-        write_gradients(index, zero3, zero3, vec4<f32>(0.0), 0.0, zero3);
+        // Culled: its gradients stay the zeros the fresh buffers hold (wgpu zero-fills new
+        // buffers), so nothing is written.
         return PoseGradient(zero3, zero3);
     }
     let g = index * SCREEN_GRADIENT_STRIDE;
