@@ -1,4 +1,5 @@
-// Shared declarations, prepended to project.wgsl and rasterize.wgsl by the Rust launcher.
+// Shared declarations, prepended to the render kernels (project, rasterize forward and
+// backward) and the map-editing kernels by the Rust launcher.
 // Must match `RenderParams` in render-core/src/gpu.rs field for field (all 16-byte vectors).
 struct RenderParams {
     // Rows of camera_from_world's rotation; w holds the translation component.
@@ -31,4 +32,52 @@ fn is_finite(x: f32) -> bool {
 // Linear workgroup index for 1D work spread over a 2D grid (dispatch limit is 65535 per axis).
 fn linear_workgroup(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>) -> u32 {
     return workgroup_id.y * workgroup_count.x + workgroup_id.x;
+}
+
+// Relative and absolute margins on the squared Mahalanobis radius and on the pixel extent of
+// visible_half_extent: they absorb f32 rounding, so the extent never excludes a pixel where
+// the rasterizer's own alpha test would pass.
+const EXTENT_RADIUS_SQUARED_RELATIVE_MARGIN: f32 = 1e-3;
+const EXTENT_RADIUS_SQUARED_MARGIN: f32 = 0.01;
+const EXTENT_PIXEL_MARGIN: f32 = 0.01;
+// "No bound": larger than any image coordinate.
+const UNBOUNDED_EXTENT: f32 = 1e30;
+
+// Half extents (x, y) in pixels, around the splat's mean, of the pixels where its alpha
+// opacity * exp(-0.5 d^T conic d) reaches min_alpha (the params.thresholds.x of a render): the
+// bounding box of the ellipse d^T conic d <= r^2, r^2 = 2 ln(opacity / min alpha), whose half
+// extents are sqrt(r^2 * covariance_xx) and sqrt(r^2 * covariance_yy), the covariance being the
+// conic's inverse. Outside the box the splat adds exactly nothing, so a rasterizer may skip it
+// for pixels there. Unbounded without an alpha cut-off; NaN for a degenerate conic (every
+// comparison with it is false, so callers must test "outside", never "inside").
+fn visible_half_extent(opacity: f32, conic: vec3<f32>, min_alpha: f32) -> vec2<f32> {
+    if !(min_alpha > 0.0) {
+        return vec2<f32>(UNBOUNDED_EXTENT);
+    }
+    let radius_squared = max(2.0 * log(opacity / min_alpha), 0.0)
+        * (1.0 + EXTENT_RADIUS_SQUARED_RELATIVE_MARGIN) + EXTENT_RADIUS_SQUARED_MARGIN;
+    let determinant = conic.x * conic.z - conic.y * conic.y;
+    let covariance_diagonal = vec2<f32>(conic.z, conic.x) / determinant;
+    return sqrt(radius_squared * covariance_diagonal) + EXTENT_PIXEL_MARGIN;
+}
+
+// Whether the box mean +- half_extent misses the pixel centres low ..= high on one axis
+// (false for NaN extents: such a splat is never skipped).
+fn misses_span(mean: f32, half_extent: f32, low: f32, high: f32) -> bool {
+    return mean - half_extent > high || mean + half_extent < low;
+}
+
+const NO_LANE: u32 = 0xffffffffu;
+
+// Removes the lowest set bit of a subgroup ballot (lanes 0..127 over 4 words) and returns its
+// lane, or NO_LANE once the ballot is empty.
+fn pop_lowest_lane(ballot: ptr<function, vec4<u32>>) -> u32 {
+    for (var word = 0u; word < 4u; word++) {
+        let bits = (*ballot)[word];
+        if bits != 0u {
+            (*ballot)[word] = bits & (bits - 1u);
+            return 32u * word + firstTrailingBit(bits);
+        }
+    }
+    return NO_LANE;
 }

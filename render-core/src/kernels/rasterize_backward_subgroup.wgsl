@@ -7,6 +7,10 @@
 // the subgroup's pixels (subgroupAdd, skipped when no pixel of the subgroup sees it) are kept
 // by the lane that loaded the splat, which adds them to screen_gradients after the step: one
 // atomic add per component per subgroup instead of one per invocation.
+// Skipping as in rasterize_subgroup.wgsl: a splat whose visible box (visible_half_extent)
+// misses the subgroup's rows is skipped by the whole subgroup, one that misses a group's
+// columns skips that group (subgroup-uniform tests; exact, the splat touched none of those
+// pixels in the forward pass either).
 // Invariants: loop bounds and shuffle source lanes are subgroup-uniform; lanes are assumed to
 // be numbered 0 .. active - 1; the subgroup size is never assumed.
 
@@ -20,6 +24,8 @@ fn main(
     let tile_origin = workgroup_id.xy * TILE_SIZE;
     let row = tile_origin.y + local_index;
     let pixel_y = f32(row);
+    let rows_low = f32(subgroupMin(row));
+    let rows_high = f32(subgroupMax(row));
     var group0 = load_group(tile_origin.x, row);
     var group1 = load_group(tile_origin.x + 4u, row);
     var group2 = load_group(tile_origin.x + 8u, row);
@@ -32,12 +38,21 @@ fn main(
         let count = min(lanes, end);
         var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
         var my_gaussian = 0u;
+        var reaches_rows = false;
         if lane < count {
             my_gaussian = intersection_gaussians[start + end - 1u - lane];
             mine = load_splat(my_gaussian);
+            let extent = visible_half_extent(mine.position.z, mine.conic, params.thresholds.x);
+            reaches_rows = !misses_span(mine.position.y, extent.y, rows_low, rows_high);
         }
         var my_gradient = SplatGradient(vec4<f32>(0.0), vec4<f32>(0.0), vec2<f32>(0.0));
-        for (var k = 0u; k < count; k++) {
+        // Only the loaded splats that reach the subgroup's rows, in lane (= list) order.
+        var pending = subgroupBallot(reaches_rows);
+        loop {
+            let k = pop_lowest_lane(&pending);
+            if k == NO_LANE {
+                break;
+            }
             let splat = Splat(subgroupShuffle(mine.position, k), subgroupShuffle(mine.conic, k),
                               subgroupShuffle(mine.colour, k));
             let entry = end - 1u - k;

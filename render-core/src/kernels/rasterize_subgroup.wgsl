@@ -5,6 +5,11 @@
 // its lane with subgroupShuffle. On lavapipe a load costs the same per lane whether the lanes
 // share the address or not, so this loads each splat once per subgroup instead of once per
 // lane. The subgroup stops once all its pixels have stopped (subgroupAll).
+// Skipping: each lane also computes its splat's visible box (visible_half_extent, common.wgsl,
+// vectorised over the lanes); a splat whose box misses the subgroup's rows is skipped by the
+// whole subgroup, and one whose box misses a PixelGroup's 4 columns (the same columns in every
+// lane) skips that group. Both tests are subgroup-uniform, so they are real branches even on
+// SIMD CPU adapters, and exact: a skipped splat would have added exactly nothing there.
 // Invariants: the loop bounds and the shuffle source lane are subgroup-uniform; lanes are
 // assumed to be numbered 0 .. active - 1 (active = number of invocations in the subgroup,
 // which may be fewer than subgroup_size for a small workgroup); the subgroup size is never
@@ -22,6 +27,8 @@ fn main(
     let range = tile_ranges[tile_id];
     let lanes = subgroupAdd(1u);
     let pixel_y = f32(row);
+    let rows_low = f32(subgroupMin(row));
+    let rows_high = f32(subgroupMax(row));
     var group0 = new_group(tile_origin.x, row);
     var group1 = new_group(tile_origin.x + 4u, row);
     var group2 = new_group(tile_origin.x + 8u, row);
@@ -31,11 +38,19 @@ fn main(
             break;
         }
         var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+        var reaches_rows = false;
         if start + lane < range.y {
             mine = load_splat(intersection_gaussians[start + lane]);
+            let extent = visible_half_extent(mine.position.z, mine.conic, params.thresholds.x);
+            reaches_rows = !misses_span(mine.position.y, extent.y, rows_low, rows_high);
         }
-        let count = min(lanes, range.y - start);
-        for (var k = 0u; k < count; k++) {
+        // Only the loaded splats that reach the subgroup's rows, in lane (= list) order.
+        var pending = subgroupBallot(reaches_rows);
+        loop {
+            let k = pop_lowest_lane(&pending);
+            if k == NO_LANE {
+                break;
+            }
             let splat = Splat(subgroupShuffle(mine.position, k), subgroupShuffle(mine.conic, k),
                               subgroupShuffle(mine.colour, k));
             let entry = start - range.x + k + 1u;
