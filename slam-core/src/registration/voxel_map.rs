@@ -217,9 +217,9 @@ impl VoxelMap {
     fn key_of(&self, p: &Point3<f32>) -> VoxelKey {
         let scale = 1.0 / self.voxel_size;
         VoxelKey {
-            x: (p.x * scale).floor() as i32,
-            y: (p.y * scale).floor() as i32,
-            z: (p.z * scale).floor() as i32,
+            x: floor_to_i32(p.x * scale),
+            y: floor_to_i32(p.y * scale),
+            z: floor_to_i32(p.z * scale),
         }
     }
 
@@ -444,6 +444,13 @@ impl VoxelMap {
     }
 }
 
+/// `v.floor() as i32` without a call into libm (`f32::floor` is one on x86-64 without SSE4.1;
+/// it showed as ~3 % of the tracking profile); exact for |v| < 2^31, 0 for NaN.
+fn floor_to_i32(v: f32) -> i32 {
+    let truncated = v as i32;
+    truncated - i32::from(truncated as f32 > v)
+}
+
 impl RegistrationTarget for VoxelMap {
     fn nearest_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> Option<(u32, f32)> {
         self.nearest(query, max_distance_sq, true)
@@ -493,6 +500,16 @@ mod tests {
             position,
             covariance: Covariance::IDENTITY,
         }
+    }
+
+    #[test]
+    fn fast_floor_matches_floor() {
+        for v in [
+            -2.5f32, -2.0, -1e-7, -0.0, 0.0, 0.3, 1.0, 1.999_999, 7.5e8, -7.5e8,
+        ] {
+            assert_eq!(floor_to_i32(v), v.floor() as i32, "{v}");
+        }
+        assert_eq!(floor_to_i32(f32::NAN), 0);
     }
 
     #[test]
