@@ -101,9 +101,6 @@ pub struct DeviceGradients {
     pub v_opacity_logits: wgpu::Buffer,
     pub v_colours: wgpu::Buffer,
     pub v_pose: wgpu::Buffer,
-    /// The frame's `splat_conic` (radius 0 for a Gaussian the frame culled): the Adam step
-    /// updates only the Gaussians in view (see adam.wgsl).
-    pub(crate) in_view: wgpu::Buffer,
 }
 
 impl DeviceGradients {
@@ -115,13 +112,6 @@ impl DeviceGradients {
             v_translation: [pose[0][0], pose[0][1], pose[0][2]],
             v_rotation: [pose[1][0], pose[1][1], pose[1][2]],
         })
-    }
-
-    /// One flag per Gaussian: whether the frame saw it (the Gaussians an Adam step with these
-    /// gradients updates).
-    pub fn download_in_view(&self, context: &GpuContext) -> Result<Vec<bool>, GpuError> {
-        let conics: Vec<[f32; 4]> = context.read_vec(&self.in_view, self.count as usize)?;
-        Ok(conics.iter().map(|conic| conic[3] > 0.0).collect())
     }
 
     pub fn download(&self, context: &GpuContext) -> Result<GaussianGradients, GpuError> {
@@ -193,7 +183,6 @@ impl GpuRenderer {
             v_opacity_logits: context.storage_buffer("v_opacity_logits", count * U32_BYTES)?,
             v_colours: context.storage_buffer("v_colours", count * 3 * U32_BYTES)?,
             v_pose: context.storage_buffer("v_pose", 2 * VEC4_BYTES)?,
-            in_view: frame.splat_conic.clone(),
         };
         if n == 0 {
             return Ok(gradients);

@@ -295,7 +295,7 @@ struct LossParams {
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 struct AdamParams {
-    counts: [u32; 4],
+    count: [u32; 4],
     rates: [f32; 4],
     corrections: [f32; 4],
 }
@@ -565,8 +565,12 @@ impl TrainingKernels {
         Ok(DeviceLoss { terms })
     }
 
-    /// One Adam step on every group with a non-zero learning rate. Submits work; reads
-    /// nothing back.
+    /// One Adam step on every group with a non-zero learning rate, over every Gaussian (plain
+    /// Adam: one the frame did not see still moves by its momentum). A "selective" step over the
+    /// Gaussians in view only was tried: 4-6 ms cheaper at 81k Gaussians, but redkitchen 0..300
+    /// mapped 0.2 dB worse, real-time (17.44 vs 17.67 dB) and after 300 refinement iterations
+    /// (20.35 vs 20.51 dB), two runs each: with so few iterations per keyframe the momentum
+    /// carries the Gaussians on in the right direction. Submits work; reads nothing back.
     pub fn adam_step(
         &self,
         context: &GpuContext,
@@ -617,11 +621,12 @@ impl TrainingKernels {
         let mut encoder = context.device.create_command_encoder(&Default::default());
         for (group, (learning_rate, parameters, group_gradients)) in groups.into_iter().enumerate()
         {
-            if learning_rate == 0.0 || adam.count == 0 {
+            let elements = adam.count * PARAMETER_GROUP_WIDTHS[group];
+            if learning_rate == 0.0 || elements == 0 {
                 continue;
             }
             let params = AdamParams {
-                counts: [adam.count, PARAMETER_GROUP_WIDTHS[group], 0, 0],
+                count: [elements, 0, 0, 0],
                 rates: [learning_rate, config.beta1, config.beta2, config.epsilon],
                 corrections,
             };
@@ -636,14 +641,13 @@ impl TrainingKernels {
                     (2, group_gradients),
                     (3, m),
                     (4, v),
-                    (5, &gradients.in_view),
                 ],
             );
             dispatch_linear(
                 &mut encoder,
                 &self.adam,
                 &bind,
-                adam.count.div_ceil(WORKGROUP_SIZE),
+                elements.div_ceil(WORKGROUP_SIZE),
             );
         }
         context.queue.submit([encoder.finish()]);
