@@ -7,10 +7,9 @@
 // the subgroup's pixels (subgroupAdd, skipped when no pixel of the subgroup sees it) are kept
 // by the lane that loaded the splat, which adds them to screen_gradients after the step: one
 // atomic add per component per subgroup instead of one per invocation.
-// Skipping as in rasterize_subgroup.wgsl: a splat whose visible box (visible_half_extent)
-// misses the subgroup's rows is skipped by the whole subgroup, one that misses a group's
-// columns skips that group (subgroup-uniform tests; exact, the splat touched none of those
-// pixels in the forward pass either).
+// Skipping as in rasterize_subgroup.wgsl: the loop runs only over the loaded splats whose
+// visible box (visible_half_extent) reaches the subgroup's rows (a subgroupBallot); exact, such
+// a splat touched none of these pixels in the forward pass either.
 // Invariants: loop bounds and shuffle source lanes are subgroup-uniform; lanes are assumed to
 // be numbered 0 .. active - 1; the subgroup size is never assumed.
 

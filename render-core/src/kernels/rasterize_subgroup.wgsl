@@ -5,11 +5,12 @@
 // its lane with subgroupShuffle. On lavapipe a load costs the same per lane whether the lanes
 // share the address or not, so this loads each splat once per subgroup instead of once per
 // lane. The subgroup stops once all its pixels have stopped (subgroupAll).
-// Skipping: each lane also computes its splat's visible box (visible_half_extent, common.wgsl,
-// vectorised over the lanes); a splat whose box misses the subgroup's rows is skipped by the
-// whole subgroup, and one whose box misses a PixelGroup's 4 columns (the same columns in every
-// lane) skips that group. Both tests are subgroup-uniform, so they are real branches even on
-// SIMD CPU adapters, and exact: a skipped splat would have added exactly nothing there.
+// Skipping: each lane also tests its splat's visible box (visible_half_extent, common.wgsl,
+// vectorised over the lanes) against the subgroup's rows, and the compositing loop runs only
+// over the splats that reach them (a subgroupBallot, walked lowest lane first = list order).
+// Exact: a skipped splat would have added exactly nothing to these rows. It is a shorter loop
+// rather than an `if` because SIMD CPU adapters (lavapipe) run straight-line code masked
+// whatever the condition and only save loop trips (see render-core/README.md).
 // Invariants: the loop bounds and the shuffle source lane are subgroup-uniform; lanes are
 // assumed to be numbered 0 .. active - 1 (active = number of invocations in the subgroup,
 // which may be fewer than subgroup_size for a small workgroup); the subgroup size is never
