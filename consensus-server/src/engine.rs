@@ -242,12 +242,6 @@ impl Engine {
         self.queue.len()
     }
 
-    /// Aligns the next queued candidate here and now; `None` when the queue is empty.
-    pub fn align_next(&mut self) -> Option<&ClosureEvent> {
-        let job = self.next_alignment()?;
-        Some(self.record_alignment(job.run()))
-    }
-
     /// Takes the next queued candidate (skipping pairs already attempted either way round) as a
     /// job that can run on any thread while the engine takes keyframes and solves; its result
     /// goes back through [`Self::record_alignment`]. `None` when the queue is empty.
@@ -271,8 +265,8 @@ impl Engine {
     }
 
     /// Takes a finished alignment: a verified closure joins the pose graph (solved at the next
-    /// [`Self::solve_if_changed`]). Returns the decision as recorded.
-    pub fn record_alignment(&mut self, done: FinishedAlignment) -> &ClosureEvent {
+    /// [`Self::solve_if_changed`]); the decision is recorded for consensus.json.
+    pub fn record_alignment(&mut self, done: FinishedAlignment) {
         let FinishedAlignment {
             candidate,
             result,
@@ -317,7 +311,6 @@ impl Engine {
             }
         }
         self.events.push(event);
-        self.events.last().expect("just pushed")
     }
 
     /// Re-solves the pose graph if anything changed since the last solve. Returns the new

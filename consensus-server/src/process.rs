@@ -6,7 +6,8 @@
 //! - the main thread owns the transport (iceoryx2 ports stay on the thread that made them): it
 //!   waits on the consumers' event (no spinning), joins each keyframe's descriptor and image
 //!   (they arrive on different topics, in any order; [`crate::inbox`]), asks agents to publish
-//!   again what arrived incomplete, and sends corrections as soon as the worker has them. It never aligns or solves, so agents are never blocked by the consensus;
+//!   again what arrived incomplete, and sends corrections as soon as the worker has them. It
+//!   never aligns or solves, so agents are never blocked by the consensus;
 //! - the worker thread owns the [`Engine`]: preparing keyframes and solving the pose graph
 //!   (about a millisecond) as soon as a keyframe arrives or an alignment finishes;
 //! - an aligner thread aligns candidate pairs one at a time (about a second each on a CPU,
@@ -445,6 +446,8 @@ fn spawn_worker(
                     }
                 })
                 .expect("starting the consensus aligner thread");
+            let no_inputs = crossbeam_channel::never();
+            let no_alignment = crossbeam_channel::never();
             let mut open = true;
             let mut in_flight = false;
             let mut last_progress: Option<Instant> = None;
@@ -459,36 +462,22 @@ fn spawn_worker(
                 if !in_flight && !open {
                     break;
                 }
-                // Wait for whichever comes first: an input or the running alignment.
-                if open && in_flight {
-                    crossbeam_channel::select! {
-                        recv(inputs) -> input => match input {
-                            Ok(input) => worker.take(input),
-                            Err(_) => open = false,
-                        },
-                        recv(done_rx) -> done => {
-                            in_flight = false;
-                            match done {
-                                Ok(done) => {
-                                    worker.engine.record_alignment(done);
-                                }
-                                Err(_) => break,
-                            }
-                        },
-                    }
-                } else if open {
-                    match inputs.recv() {
+                // Wait for whichever comes first: an input or the running alignment (a closed
+                // input or no alignment in flight waits on a channel that never delivers).
+                let live_inputs = if open { &inputs } else { &no_inputs };
+                let live_done = if in_flight { &done_rx } else { &no_alignment };
+                crossbeam_channel::select! {
+                    recv(live_inputs) -> input => match input {
                         Ok(input) => worker.take(input),
                         Err(_) => open = false,
-                    }
-                } else {
-                    in_flight = false;
-                    match done_rx.recv() {
+                    },
+                    recv(live_done) -> done => match done {
                         Ok(done) => {
+                            in_flight = false;
                             worker.engine.record_alignment(done);
                         }
                         Err(_) => break,
-                    }
+                    },
                 }
                 while open {
                     match inputs.try_recv() {

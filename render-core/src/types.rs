@@ -45,9 +45,9 @@ pub mod constants {
 }
 
 /// The key splats are depth-sorted by (ascending; ties keep the Gaussian order): camera z's
-/// f32 bit pattern relative to the near plane's, without its [`constants::DEPTH_KEY_DROPPED_BITS`]
-/// lowest mantissa bits, in [`constants::DEPTH_KEY_BITS`] bits. Positive floats order like their
-/// bit patterns, so the key orders like z. Dropping 4 of the 23 mantissa bits merges depths
+/// f32 bit pattern relative to the near plane's, without its
+/// [`constants::DEPTH_KEY_DROPPED_BITS`] lowest mantissa bits, in [`constants::DEPTH_KEY_BITS`]
+/// bits. Positive floats order like their bit patterns, so the key orders like z. Dropping 4 of the 23 mantissa bits merges depths
 /// closer than 2^-19 of z (6 um at 3 m) into one key; 24 bits then span 2^(24+4-23) = 32
 /// binades above the near plane (0.01 m to 4.3e7 m). Farther splats share the largest key;
 /// `u32::MAX` (culled) stays above every visible key. project.wgsl computes the same key.
@@ -595,8 +595,8 @@ mod tests {
             let (near, far) = (depth_sort_key(pair[0]), depth_sort_key(pair[1]));
             assert!(near < far, "{} -> {near}, {} -> {far}", pair[0], pair[1]);
         }
-        // Only depths within 2^-19 of each other share a key, and the farthest depths
-        // saturate below the culled key.
+        // Depths within 2^-19 of each other may share a key; the farthest depths saturate
+        // below the culled key.
         assert_eq!(
             depth_sort_key(3.0),
             depth_sort_key(3.0 + 3.0 * 2f32.powi(-21))

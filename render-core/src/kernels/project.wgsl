@@ -10,7 +10,8 @@
 // writes all outputs; tile_counts is the number of binned tiles (mask bits, or the whole
 // rectangle); a culled Gaussian (non-finite input or result, zero quaternion, behind the near
 // plane, degenerate footprint, no tile reached) gets tile_count 0 and depth key 0xffffffff so
-// it sorts last and is never binned (visible keys stay below it: see depth_sort_key). sort_values is initialised to the identity permutation.
+// it sorts last and is never binned (visible keys stay below it: see depth_sort_key).
+// sort_values is initialised to the identity permutation.
 
 @group(0) @binding(0) var<uniform> params: RenderParams;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -226,6 +227,6 @@ fn main(
     tile_rects[index] = vec4<u32>(first_tile, columns | (rows << 16u), tile_mask);
     tile_counts[index] = tile_count;
     // render_core::depth_sort_key (p.z >= the near plane here).
-    depth_keys[index] = min((bitcast<u32>(p.z) - bitcast<u32>(params.culling.x)) >> DEPTH_KEY_DROPPED_BITS,
-                            LARGEST_VISIBLE_DEPTH_KEY);
+    let above_near = bitcast<u32>(p.z) - bitcast<u32>(params.culling.x);
+    depth_keys[index] = min(above_near >> DEPTH_KEY_DROPPED_BITS, LARGEST_VISIBLE_DEPTH_KEY);
 }

@@ -741,36 +741,30 @@ mod tests {
         );
         assert!(truth.translation.vector.norm() > 0.099);
         let (source, target) = source_and_target(&truth);
-        let fine_only = register(
-            source.cloud(),
-            &target,
-            &Isometry3::identity(),
-            &params(0.02),
-        );
-        let coarse_to_fine = register_coarse_to_fine(
-            source.cloud(),
-            &target,
-            &Isometry3::identity(),
-            &[0.1, 0.05, 0.02],
-            &params(0.02),
-            0.0,
-        );
+        let at_identity = |distance_m: f64| {
+            register(
+                source.cloud(),
+                &target,
+                &Isometry3::identity(),
+                &params(distance_m),
+            )
+        };
+        let coarse_to_fine_giving_up_below = |fraction: f64| {
+            register_coarse_to_fine(
+                source.cloud(),
+                &target,
+                &Isometry3::identity(),
+                &[0.1, 0.05, 0.02],
+                &params(0.02),
+                fraction,
+            )
+        };
+        let fine_only = at_identity(0.02);
+        let coarse_to_fine = coarse_to_fine_giving_up_below(0.0);
         assert!(coarse_to_fine.is_success(), "{:?}", coarse_to_fine.failure);
         // Giving up below a fraction no stage reaches stops after the first stage.
-        let first_stage = register(
-            source.cloud(),
-            &target,
-            &Isometry3::identity(),
-            &params(0.1),
-        );
-        let given_up = register_coarse_to_fine(
-            source.cloud(),
-            &target,
-            &Isometry3::identity(),
-            &[0.1, 0.05, 0.02],
-            &params(0.02),
-            1.01,
-        );
+        let first_stage = at_identity(0.1);
+        let given_up = coarse_to_fine_giving_up_below(1.01);
         assert_eq!(given_up.iterations, first_stage.iterations);
         assert!(given_up.iterations < coarse_to_fine.iterations);
         assert_close(&coarse_to_fine.target_from_source, &truth);
