@@ -83,6 +83,8 @@ pub enum BenchError {
         received: u64,
         expected: u64,
     },
+    #[error("could not pin the benchmark to CPU {cpu}: {reason}")]
+    Pin { cpu: usize, reason: String },
     #[error("invalid benchmark configuration: {0}")]
     InvalidConfig(String),
 }
@@ -98,6 +100,13 @@ pub struct IpcBenchConfig {
     pub throughput_messages: usize,
     /// Service-name namespace; unique per run so runs never share services.
     pub namespace: String,
+    /// Both processes' [`TransportConfig::poll_before_wait`]; zero measures receivers that
+    /// block at once (the wake-up cost shows as the gap between send call and latency).
+    pub poll_before_wait: Duration,
+    /// `[driver CPU, peer CPU]` to pin the two processes to, or `None` to leave placement to
+    /// the scheduler. Pinning keeps the figures from depending on whether the scheduler puts
+    /// both processes on one core (then each poll or wake-up waits for the other's time slice).
+    pub cpus: Option<[usize; 2]>,
 }
 
 impl Default for IpcBenchConfig {
@@ -107,11 +116,13 @@ impl Default for IpcBenchConfig {
             warmup: 50,
             throughput_messages: 500,
             namespace: format!("mac-bench-{}", std::process::id()),
+            poll_before_wait: TransportConfig::default().poll_before_wait,
+            cpus: None,
         }
     }
 }
 
-/// How to start the peer process: `program args... --namespace NS`.
+/// How to start the peer process: `program args... --namespace NS --poll-before-wait-us US`.
 #[derive(Debug, Clone)]
 pub struct PeerCommand {
     pub program: PathBuf,
@@ -180,6 +191,10 @@ pub struct IpcBenchReport {
     pub patch_100k_send_call: LatencySummary,
     pub record_bytes: usize,
     pub descriptor_bytes: usize,
+    /// Receivers' poll before blocking ([`TransportConfig::poll_before_wait`]), microseconds.
+    pub poll_before_wait_us: f64,
+    /// `[driver CPU, peer CPU]` the processes were pinned to; `None`: placed by the scheduler.
+    pub cpus: Option<[usize; 2]>,
 }
 
 /// Deterministic record `index` of a synthetic patch (plausible values, distinct per index).
@@ -269,8 +284,9 @@ pub fn monotonic_ns() -> u64 {
 }
 
 /// Transport settings of both benchmark processes (they must agree).
-pub fn bench_transport_config(namespace: &str) -> TransportConfig {
+pub fn bench_transport_config(namespace: &str, poll_before_wait: Duration) -> TransportConfig {
     TransportConfig {
+        poll_before_wait,
         max_agents: 1,
         max_consumers: 1,
         required_consumers: 1,
@@ -282,8 +298,8 @@ pub fn bench_transport_config(namespace: &str) -> TransportConfig {
 
 /// The peer role: acknowledges every descriptor, patch and keyframe image with
 /// `[receive time, checksum]` until the driver says goodbye.
-pub fn run_peer(namespace: &str) -> Result<(), BenchError> {
-    let config = bench_transport_config(namespace);
+pub fn run_peer(namespace: &str, poll_before_wait: Duration) -> Result<(), BenchError> {
+    let config = bench_transport_config(namespace, poll_before_wait);
     let mut consumer = ConsumerLink::open(&config)?;
     loop {
         let incoming = consumer
@@ -469,10 +485,75 @@ impl Driver {
     }
 }
 
-fn spawn_peer(peer: &PeerCommand, namespace: &str) -> Result<Child, BenchError> {
-    Command::new(&peer.program)
+/// Restricts the calling process (and the threads it starts later) to `cpu`.
+pub fn pin_to_cpu(cpu: usize) -> Result<(), BenchError> {
+    set_affinity(cpu).map_err(|e| BenchError::Pin {
+        cpu,
+        reason: e.to_string(),
+    })
+}
+
+fn set_affinity(cpu: usize) -> std::io::Result<()> {
+    if cpu >= libc::CPU_SETSIZE as usize {
+        return Err(std::io::Error::from_raw_os_error(libc::EINVAL));
+    }
+    // SAFETY: cpu_set_t is a plain bit set for which all-zero is the empty set; CPU_SET writes
+    // one bit inside it (cpu < CPU_SETSIZE, checked above); sched_setaffinity reads exactly
+    // size_of::<cpu_set_t>() bytes from the valid pointer. pid 0 is the calling thread. Only
+    // async-signal-safe calls are made, so this may also run between fork and exec.
+    let result = unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        libc::CPU_SET(cpu, &mut set);
+        libc::sched_setaffinity(0, size_of::<libc::cpu_set_t>(), &set)
+    };
+    if result == 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::last_os_error())
+    }
+}
+
+/// The first two CPUs this process may run on, or `None` on a single-CPU machine.
+pub fn first_two_cpus() -> Option<[usize; 2]> {
+    // SAFETY: as in `set_affinity`; sched_getaffinity writes at most the given size.
+    let allowed = unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        if libc::sched_getaffinity(0, size_of::<libc::cpu_set_t>(), &mut set) != 0 {
+            return None;
+        }
+        (0..libc::CPU_SETSIZE as usize)
+            .filter(|&cpu| libc::CPU_ISSET(cpu, &set))
+            .take(2)
+            .collect::<Vec<_>>()
+    };
+    match allowed[..] {
+        [driver, peer] => Some([driver, peer]),
+        _ => None,
+    }
+}
+
+fn spawn_peer(
+    peer: &PeerCommand,
+    namespace: &str,
+    poll_before_wait: Duration,
+    cpu: Option<usize>,
+) -> Result<Child, BenchError> {
+    let mut command = Command::new(&peer.program);
+    if let Some(cpu) = cpu {
+        use std::os::unix::process::CommandExt;
+        // SAFETY: the closure runs in the child between fork and exec and makes only the
+        // async-signal-safe sched_setaffinity call (no allocation, no locks).
+        unsafe {
+            command.pre_exec(move || set_affinity(cpu));
+        }
+    }
+    command
         .args(&peer.args)
         .args(["--namespace", namespace])
+        .args([
+            "--poll-before-wait-us".to_string(),
+            poll_before_wait.as_micros().to_string(),
+        ])
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .spawn()
@@ -516,9 +597,13 @@ pub fn run_ipc_bench(
             "latency_samples and throughput_messages must be positive".into(),
         ));
     }
-    let transport = bench_transport_config(&config.namespace);
+    if let Some([driver_cpu, _]) = config.cpus {
+        pin_to_cpu(driver_cpu)?;
+    }
+    let transport = bench_transport_config(&config.namespace, config.poll_before_wait);
     let agent = AgentLink::open(&transport, BENCH_AGENT_ID)?;
-    let mut child = spawn_peer(peer, &config.namespace)?;
+    let peer_cpu = config.cpus.map(|[_, peer_cpu]| peer_cpu);
+    let mut child = spawn_peer(peer, &config.namespace, config.poll_before_wait, peer_cpu)?;
     let result = drive(config, agent);
     match result {
         Ok(report) => {
@@ -614,6 +699,8 @@ fn drive(config: &IpcBenchConfig, mut agent: AgentLink) -> Result<IpcBenchReport
         patch_100k_send_call,
         record_bytes: size_of::<GaussianRecord>(),
         descriptor_bytes: size_of::<KeyframeDescriptor>(),
+        poll_before_wait_us: config.poll_before_wait.as_secs_f64() * 1e6,
+        cpus: config.cpus,
     })
 }
 

@@ -397,6 +397,7 @@ fn ipc_bench_runs_between_two_processes() {
         warmup: 2,
         throughput_messages: 10,
         namespace: unique_namespace("bench"),
+        ..protocol::bench::IpcBenchConfig::default()
     };
     let peer = protocol::bench::PeerCommand {
         program: common::peer_binary().into(),

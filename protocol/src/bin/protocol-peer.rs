@@ -5,7 +5,7 @@
 //! protocol-peer agent --namespace NS --agent-id K [--descriptors N] [--patches P]
 //!               [--patch-records R] [--interval-ms M] [--forever] [--await-correction]
 //!               [--await-control N]
-//! protocol-peer bench-peer --namespace NS
+//! protocol-peer bench-peer --namespace NS --poll-before-wait-us US   (started by the benchmark)
 //! protocol-peer bench            # runs the IPC benchmark against itself, prints JSON
 //! ```
 //! The agent role prints progress lines on stdout (`opened epoch=E`, `announced`,
@@ -169,14 +169,24 @@ fn main() -> ExitCode {
             }
         }
         Some("bench-peer") => {
-            let namespace = match args.get(1..3) {
-                Some([flag, ns]) if flag == "--namespace" => ns.clone(),
+            let (namespace, poll_before_wait) = match args.get(1..) {
+                Some([ns_flag, ns, poll_flag, poll_us])
+                    if ns_flag == "--namespace" && poll_flag == "--poll-before-wait-us" =>
+                {
+                    match poll_us.parse::<u64>() {
+                        Ok(us) => (ns.clone(), Duration::from_micros(us)),
+                        Err(e) => {
+                            eprintln!("--poll-before-wait-us '{poll_us}': {e}\n{usage}");
+                            return ExitCode::from(EXIT_USAGE);
+                        }
+                    }
+                }
                 _ => {
                     eprintln!("{usage}");
                     return ExitCode::from(EXIT_USAGE);
                 }
             };
-            match run_peer(&namespace) {
+            match run_peer(&namespace, poll_before_wait) {
                 Ok(()) => ExitCode::SUCCESS,
                 Err(e) => {
                     eprintln!("protocol-peer bench-peer: {e}");
