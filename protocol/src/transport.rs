@@ -48,10 +48,11 @@
 //!   bounded by `wait_slice` so the shutdown flag is seen promptly. A sleeping process is slow to
 //!   wake, though: on the 2-core development VM the wake-up added ~50 us to a patch's one-way
 //!   latency (`mac-ego3d bench ipc`: 10k patch median 84-128 us with a send call of 47-61 us).
-//!   So each receive first polls its queues for `poll_before_wait` (yielding the core between
-//!   polls), which catches the next message of a burst or the answer to a message just sent
-//!   without sleeping; only then does it block. The poll is bounded, so an idle receiver costs
-//!   at most `poll_before_wait / wait_slice` of a core.
+//!   So for `poll_before_wait` after its last message (sent or received) a link's receive
+//!   polls its queues (yielding the core between polls), which catches the next message of a
+//!   burst or stream, or the answer to a message just sent, without sleeping. A receiver idle
+//!   for longer blocks at once, so the poll costs at most `poll_before_wait` of CPU per
+//!   message and nothing while idle.
 //! - **Full queues: a policy per topic** ([`FullQueuePolicy`], [`TransportConfig::full_queue`]).
 //!   `Block` (descriptors, keyframe images, patches; lifecycle always): the queue never
 //!   overwrites, so nothing is lost silently. A sample that finds a consumer's queue full is not
@@ -173,10 +174,13 @@ pub struct TransportConfig {
     pub delivery_timeout: Duration,
     /// Longest single blocking wait, so a shutdown request is noticed within this time.
     pub wait_slice: Duration,
-    /// How long a receive polls its queues (yielding the core between polls) before it blocks
-    /// on the wake-up event. Waking a blocked process costs tens of microseconds on a loaded or
-    /// virtualised machine, more than copying a 10k-Gaussian patch; a short poll avoids it for
-    /// messages that arrive in bursts or in answer to one just sent. Zero blocks at once.
+    /// For how long after the link's last message (sent or received) a receive polls its
+    /// queues, yielding the core between polls, before it blocks on the wake-up event. Waking
+    /// a blocked process costs tens of microseconds on a loaded or virtualised machine, as much
+    /// as copying a 10k-Gaussian patch; the poll avoids it for messages that follow others
+    /// closely (a keyframe's descriptor, image and patch; a stream of patches; the answer to a
+    /// message just sent), while a receiver that has been idle for longer blocks at once and
+    /// burns nothing. Zero always blocks.
     pub poll_before_wait: Duration,
     /// What a send does when a consumer's queue of a topic is full (see [`FullQueuePolicy`]).
     pub full_queue: FullQueuePolicies,
@@ -217,7 +221,7 @@ impl Default for TransportConfig {
             required_consumers: 1,
             delivery_timeout: Duration::from_secs(10),
             wait_slice: Duration::from_millis(50),
-            poll_before_wait: Duration::from_micros(200),
+            poll_before_wait: Duration::from_millis(1),
             full_queue: FullQueuePolicies::default(),
             full_queue_timeout: Duration::from_secs(10),
             descriptor_queue_depth: 64,
@@ -1067,11 +1071,15 @@ trait Receiving {
     fn config(&self) -> &TransportConfig;
     fn wake_listener(&self) -> &Listener<Ipc>;
     fn shutdown_flag(&self) -> &AtomicBool;
+    /// When the link last sent or received a message.
+    fn last_activity(&self) -> Instant;
+    fn mark_activity(&mut self);
 }
 
-/// Calls `try_receive` until it yields a message or `timeout` has passed: polling (yielding the
-/// core between polls) for the first `poll_before_wait`, then blocking on the link's wake-up
-/// event in slices of at most `wait_slice`. Returns `None` after `timeout`.
+/// Calls `try_receive` until it yields a message or `timeout` has passed. While the link's
+/// last message (sent or received) is less than `poll_before_wait` old, it polls, yielding the
+/// core between polls; after that it blocks on the link's wake-up event in slices of at most
+/// `wait_slice`. Returns `None` after `timeout`.
 fn receive_within<L: Receiving, T>(
     link: &mut L,
     timeout: Duration,
@@ -1080,6 +1088,7 @@ fn receive_within<L: Receiving, T>(
     let start = Instant::now();
     loop {
         if let Some(message) = try_receive(link)? {
+            link.mark_activity();
             return Ok(Some(message));
         }
         let waited = start.elapsed();
@@ -1087,7 +1096,7 @@ fn receive_within<L: Receiving, T>(
             return Ok(None);
         }
         let config = link.config();
-        if waited < config.poll_before_wait {
+        if link.last_activity().elapsed() < config.poll_before_wait {
             if link.shutdown_flag().load(Ordering::Relaxed) {
                 return Err(TransportError::ShutdownRequested);
             }
@@ -1408,6 +1417,8 @@ pub struct AgentLink {
     traffic: TrafficTable,
     book: ReceiveBook,
     shutdown: Arc<AtomicBool>,
+    /// When this link last sent or received a message: receives poll while it is recent.
+    last_activity: Instant,
     said_goodbye: bool,
     // Kept last: ports above must be dropped before the node that owns them.
     _correction_service: PubSubService<Ipc, [KeyframePose], CorrectionHeader>,
@@ -1568,6 +1579,7 @@ impl AgentLink {
             traffic: TrafficTable::new(),
             book: ReceiveBook::default(),
             shutdown: Arc::new(AtomicBool::new(false)),
+            last_activity: Instant::now(),
             said_goodbye: false,
             _correction_service: correction_service,
             _control_service: control_service,
@@ -1675,6 +1687,7 @@ impl AgentLink {
     }
 
     fn account_sent(&mut self, topic: Topic, bytes: usize, copied: usize) {
+        self.last_activity = Instant::now();
         let row = self.traffic.row(self.agent_id, topic, Direction::Sent);
         row.messages += 1;
         row.bytes += bytes as u64;
@@ -2169,6 +2182,12 @@ impl Receiving for AgentLink {
     fn shutdown_flag(&self) -> &AtomicBool {
         &self.shutdown
     }
+    fn last_activity(&self) -> Instant {
+        self.last_activity
+    }
+    fn mark_activity(&mut self) {
+        self.last_activity = Instant::now();
+    }
 }
 
 impl Drop for AgentLink {
@@ -2216,6 +2235,8 @@ pub struct ConsumerLink {
     /// Goodbyes held back until their agent's data topics are drained.
     deferred_goodbyes: Vec<LifecycleSample>,
     shutdown: Arc<AtomicBool>,
+    /// When this link last sent or received a message: receives poll while it is recent.
+    last_activity: Instant,
     _lifecycle_service: PubSubService<Ipc, Lifecycle, ()>,
     _wake_service: EventService<Ipc>,
     _node: Node<Ipc>,
@@ -2230,6 +2251,12 @@ impl Receiving for ConsumerLink {
     }
     fn shutdown_flag(&self) -> &AtomicBool {
         &self.shutdown
+    }
+    fn last_activity(&self) -> Instant {
+        self.last_activity
+    }
+    fn mark_activity(&mut self) {
+        self.last_activity = Instant::now();
     }
 }
 
@@ -2349,6 +2376,7 @@ impl ConsumerLink {
             cursor: 0,
             deferred_goodbyes: Vec::new(),
             shutdown: Arc::new(AtomicBool::new(false)),
+            last_activity: Instant::now(),
             _lifecycle_service: lifecycle_service,
             _wake_service: wake_service,
             _node: node,
@@ -2801,6 +2829,7 @@ impl ConsumerLink {
         let row = self.traffic.row(agent_id, topic, Direction::Sent);
         match result {
             Ok(recipients) => {
+                self.last_activity = Instant::now();
                 row.messages += 1;
                 row.bytes += bytes as u64;
                 row.bytes_copied += bytes as u64;
