@@ -10,11 +10,19 @@
 //! consumer's receive. Throughput runs keep `window` patches in flight (credit = acks), so the
 //! consumer's queue never overflows and every patch is read and checksummed.
 //!
+//! The latency cases send back to back, as a stream: the peer's next message follows its
+//! acknowledgement within its poll window ([`TransportConfig::poll_before_wait`]), so it finds
+//! the message while polling. `patch_10k_after_idle` sends the same patches one at a time with
+//! the peer idle for longer than that window, so it is blocked and must be woken: the latency a
+//! consumer sees for a message that comes alone.
+//!
 //! Each latency case also reports the duration of the driver's send call alone (`*_send_call`:
 //! loan, writing the records, `send()`, waking the consumer), so a report shows where the time
 //! goes: for a 10k patch sent with `send_patch` the send call is mostly the one 560 KB copy into
-//! shared memory, the rest of the one-way latency is the consumer's wake-up, and on a loaded
-//! machine the tail comes from the processes being scheduled out, not from the transport.
+//! shared memory, the rest of the one-way latency is the consumer's receive (or wake-up), and on
+//! a loaded machine the tail comes from the processes being scheduled out, not from the
+//! transport. The driver and the peer are pinned to two CPUs when [`IpcBenchConfig::cpus`] says
+//! so.
 //!
 //! Copies are counted by the transport (bytes it copied from caller memory into shared memory),
 //! not asserted: the copying path (`send_patch` from the agent's Vec) is 1 copy, the in-place
@@ -46,6 +54,9 @@ pub const LARGE_PATCH_RECORDS: usize = 100_000;
 const BENCH_INITIAL_PATCH_RECORDS: usize = 131_072;
 /// Per-consumer patch queue in the benchmark; also the throughput window.
 const BENCH_PATCH_QUEUE_DEPTH: usize = 4;
+/// Idle time before each send of the `after_idle` case beyond twice the poll window: the peer
+/// has certainly stopped polling and blocks on its wake-up event.
+const PEER_BLOCKED_AFTER: Duration = Duration::from_millis(1);
 /// Longest wait for one acknowledgement before the peer is declared lost.
 const ACK_TIMEOUT: Duration = Duration::from_secs(10);
 /// Longest idle wait of the peer between two messages.
@@ -167,6 +178,10 @@ pub struct IpcBenchReport {
     pub patch_10k_median_us: f64,
     pub patch_10k_p99_us: f64,
     pub patch_10k_msgs_per_s: f64,
+    /// 10k-record patch sent after the peer has been idle (blocked, not polling): includes
+    /// waking the peer process.
+    pub patch_10k_after_idle_median_us: f64,
+    pub patch_10k_after_idle_p99_us: f64,
     /// 10k-record patch built in place in shared memory (`send_patch_with`); includes building.
     pub patch_10k_in_place_median_us: f64,
     pub patch_10k_in_place_p99_us: f64,
@@ -182,11 +197,13 @@ pub struct IpcBenchReport {
     pub receiver_copies_per_patch: f64,
     pub descriptor: LatencySummary,
     pub patch_10k: LatencySummary,
+    pub patch_10k_after_idle: LatencySummary,
     pub patch_10k_in_place: LatencySummary,
     pub patch_100k: LatencySummary,
     /// The driver's send call alone in each latency case (part of the one-way latency above).
     pub descriptor_send_call: LatencySummary,
     pub patch_10k_send_call: LatencySummary,
+    pub patch_10k_after_idle_send_call: LatencySummary,
     pub patch_10k_in_place_send_call: LatencySummary,
     pub patch_100k_send_call: LatencySummary,
     pub record_bytes: usize,
@@ -396,17 +413,23 @@ impl Driver {
     }
 
     /// One-way latencies of `case`, and the durations of the send calls alone.
+    /// With `idle_before_send`, the driver sleeps that long before each send, so that the
+    /// peer has stopped polling and blocks: the latency then includes its wake-up.
     fn latency(
         &mut self,
         case: Case,
         name: &'static str,
         warmup: usize,
         samples: usize,
+        idle_before_send: Option<Duration>,
     ) -> Result<(LatencySummary, LatencySummary), BenchError> {
         let expected = self.expected_checksum(case);
         let mut latencies = Vec::with_capacity(samples);
         let mut send_calls = Vec::with_capacity(samples);
         for i in 0..warmup + samples {
+            if let Some(idle) = idle_before_send {
+                std::thread::sleep(idle);
+            }
             let sent_ns = monotonic_ns();
             self.send(case)?;
             let send_returned_ns = monotonic_ns();
@@ -633,7 +656,7 @@ fn drive(config: &IpcBenchConfig, mut agent: AgentLink) -> Result<IpcBenchReport
     };
     let (warmup, samples) = (config.warmup, config.latency_samples);
     let (descriptor, descriptor_send_call) =
-        driver.latency(Case::Descriptor, "descriptor", warmup, samples)?;
+        driver.latency(Case::Descriptor, "descriptor", warmup, samples, None)?;
 
     let before_copy = driver.patch_counters();
     let (patch_10k, patch_10k_send_call) = driver.latency(
@@ -641,8 +664,18 @@ fn drive(config: &IpcBenchConfig, mut agent: AgentLink) -> Result<IpcBenchReport
         "patch_10k",
         warmup,
         samples,
+        None,
     )?;
     let copies_per_patch = driver.copies_since(before_copy);
+    // The same patches one at a time with the peer idle long enough to be blocked.
+    let idle = config.poll_before_wait * 2 + PEER_BLOCKED_AFTER;
+    let (patch_10k_after_idle, patch_10k_after_idle_send_call) = driver.latency(
+        Case::PatchCopy(SMALL_PATCH_RECORDS),
+        "patch_10k_after_idle",
+        warmup,
+        samples,
+        Some(idle),
+    )?;
 
     let before_in_place = driver.patch_counters();
     let in_place = SMALL_PATCH_RECORDS;
@@ -651,6 +684,7 @@ fn drive(config: &IpcBenchConfig, mut agent: AgentLink) -> Result<IpcBenchReport
         "patch_10k_in_place",
         warmup,
         samples,
+        None,
     )?;
     let copies_per_patch_in_place = driver.copies_since(before_in_place);
 
@@ -659,6 +693,7 @@ fn drive(config: &IpcBenchConfig, mut agent: AgentLink) -> Result<IpcBenchReport
         "patch_100k",
         warmup,
         samples,
+        None,
     )?;
     let window = BENCH_PATCH_QUEUE_DEPTH;
     let patch_10k_msgs_per_s = driver.throughput(
@@ -681,6 +716,8 @@ fn drive(config: &IpcBenchConfig, mut agent: AgentLink) -> Result<IpcBenchReport
         patch_10k_median_us: patch_10k.median_us,
         patch_10k_p99_us: patch_10k.p99_us,
         patch_10k_msgs_per_s,
+        patch_10k_after_idle_median_us: patch_10k_after_idle.median_us,
+        patch_10k_after_idle_p99_us: patch_10k_after_idle.p99_us,
         patch_10k_in_place_median_us: patch_10k_in_place.median_us,
         patch_10k_in_place_p99_us: patch_10k_in_place.p99_us,
         patch_100k_median_us: patch_100k.median_us,
@@ -691,10 +728,12 @@ fn drive(config: &IpcBenchConfig, mut agent: AgentLink) -> Result<IpcBenchReport
         receiver_copies_per_patch: 0.0,
         descriptor,
         patch_10k,
+        patch_10k_after_idle,
         patch_10k_in_place,
         patch_100k,
         descriptor_send_call,
         patch_10k_send_call,
+        patch_10k_after_idle_send_call,
         patch_10k_in_place_send_call,
         patch_100k_send_call,
         record_bytes: size_of::<GaussianRecord>(),

@@ -405,6 +405,7 @@ fn ipc_bench_runs_between_two_processes() {
     };
     let report = protocol::bench::run_ipc_bench(&config, &peer).expect("bench runs");
     assert_eq!(report.patch_10k.samples, 20);
+    assert_eq!(report.patch_10k_after_idle.samples, 20);
     assert!(
         report.patch_10k_median_us > 0.0 && report.patch_10k_p99_us >= report.patch_10k_median_us
     );

@@ -88,6 +88,11 @@ pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
             &report.patch_10k_send_call,
         ),
         (
+            "patch 10k, peer idle before",
+            &report.patch_10k_after_idle,
+            &report.patch_10k_after_idle_send_call,
+        ),
+        (
             "patch 10k (built in place)",
             &report.patch_10k_in_place,
             &report.patch_10k_in_place_send_call,
