@@ -99,21 +99,25 @@ pub struct LinkStatus {
 }
 
 /// One keyframe's messages, ready to send (the descriptor is computed when the keyframe is due,
-/// so a queued keyframe costs only copies at reconnect).
+/// so a queued keyframe costs nothing more at reconnect). The image and the Gaussians stay in
+/// the keyframe's own buffers, and each send builds the wire pixels and records straight into
+/// shared memory: no intermediate wire buffer, no copy of one (a re-send builds them again).
 struct WireKeyframe {
     descriptor: KeyframeDescriptor,
     image_meta: KeyframeImageMeta,
-    pixels: Vec<RgbdPixel>,
-    records: Vec<GaussianRecord>,
+    rgb: RgbImage,
+    depth: DepthImage,
+    gaussians: GaussianCloud,
     /// When it was due: its wait in the queue is measured from here.
     due: Instant,
 }
 
 impl WireKeyframe {
     fn bytes(&self) -> u64 {
+        let pixels = self.image_meta.width as usize * self.image_meta.height as usize;
         (size_of::<KeyframeDescriptor>()
-            + size_of_val(self.pixels.as_slice())
-            + size_of_val(self.records.as_slice())) as u64
+            + pixels * size_of::<RgbdPixel>()
+            + self.gaussians.len() * size_of::<GaussianRecord>()) as u64
     }
 }
 
@@ -359,7 +363,7 @@ impl SwarmLink {
         };
         self.frames_since_publication = 0;
         let _span = tracing::info_span!("publish keyframe", id = keyframe.keyframe_id).entered();
-        let wire = match self.prepare(&keyframe) {
+        let wire = match self.prepare(keyframe) {
             Ok(wire) => wire,
             Err(error) => {
                 self.summary.send_failures += 1;
@@ -443,7 +447,7 @@ impl SwarmLink {
     }
 
     /// The messages of one keyframe: descriptor (the costly step), RGB-D image and patch.
-    fn prepare(&mut self, keyframe: &PublishableKeyframe) -> anyhow::Result<WireKeyframe> {
+    fn prepare(&mut self, keyframe: PublishableKeyframe) -> anyhow::Result<WireKeyframe> {
         let descriptor = self
             .extractor
             .describe(&keyframe.rgb)
@@ -462,32 +466,45 @@ impl SwarmLink {
             message.descriptor.len()
         );
         message.descriptor.copy_from_slice(&descriptor);
+        let (width, height) = keyframe.rgb.dimensions();
+        anyhow::ensure!(
+            (keyframe.depth.width, keyframe.depth.height) == (width, height)
+                && keyframe.depth.data.len() == width as usize * height as usize,
+            "keyframe {}: depth image is {}x{} ({} values), colour image {width}x{height}",
+            keyframe.keyframe_id,
+            keyframe.depth.width,
+            keyframe.depth.height,
+            keyframe.depth.data.len()
+        );
         let image_meta = KeyframeImageMeta {
             keyframe_id: keyframe.keyframe_id,
             frame_index: keyframe.frame_index,
             timestamp_s: keyframe.timestamp_s,
             camera_to_agent_world: message.camera_to_agent_world,
             intrinsics: message.intrinsics,
-            width: keyframe.rgb.width(),
-            height: keyframe.rgb.height(),
+            width,
+            height,
         };
         Ok(WireKeyframe {
             descriptor: message,
             image_meta,
-            pixels: rgbd_pixels(&keyframe.rgb, &keyframe.depth),
-            records: gaussian_records(&keyframe.gaussians),
+            rgb: keyframe.rgb,
+            depth: keyframe.depth,
+            gaussians: keyframe.gaussians,
             due: Instant::now(),
         })
     }
 
     fn send(&mut self, wire: &WireKeyframe) -> anyhow::Result<()> {
         self.link.send_descriptor(&wire.descriptor)?;
-        self.link
-            .send_keyframe_image(&wire.image_meta, &wire.pixels)?;
-        self.link.send_patch(
+        self.link.send_keyframe_image_with(&wire.image_meta, |i| {
+            rgbd_pixel(&wire.rgb, &wire.depth, i)
+        })?;
+        self.link.send_patch_with(
             wire.descriptor.keyframe_id,
             CoordinateFrame::AgentWorld,
-            &wire.records,
+            wire.gaussians.len(),
+            |i| gaussian_record(&wire.gaussians, i),
         )?;
         Ok(())
     }
@@ -697,12 +714,11 @@ fn wire_intrinsics(intrinsics: &Intrinsics) -> WireIntrinsics {
     }
 }
 
-/// Row-major RGB-D pixels; invalid or out-of-range depth becomes 0 (invalid).
-fn rgbd_pixels(rgb: &RgbImage, depth: &DepthImage) -> Vec<RgbdPixel> {
-    rgb.pixels()
-        .zip(&depth.data)
-        .map(|(colour, metres)| RgbdPixel::new(colour.0, *metres))
-        .collect()
+/// Row-major pixel `i` of a keyframe as an RGB-D wire pixel; invalid or out-of-range depth
+/// becomes 0 (invalid). Both images have the same size (checked in `prepare`).
+fn rgbd_pixel(rgb: &RgbImage, depth: &DepthImage, i: usize) -> RgbdPixel {
+    let colour = &rgb.as_raw()[3 * i..3 * i + 3];
+    RgbdPixel::new([colour[0], colour[1], colour[2]], depth.data[i])
 }
 
 /// Gaussian `i` of `cloud` as a wire record.
@@ -714,13 +730,6 @@ fn gaussian_record(cloud: &GaussianCloud, i: usize) -> GaussianRecord {
         opacity_logit: cloud.opacity_logits[i],
         colour: cloud.colours[i],
     }
-}
-
-/// Every Gaussian of `cloud` as wire records (a queued keyframe keeps its own copy).
-fn gaussian_records(cloud: &GaussianCloud) -> Vec<GaussianRecord> {
-    (0..cloud.len())
-        .map(|i| gaussian_record(cloud, i))
-        .collect()
 }
 
 #[cfg(test)]
@@ -735,29 +744,80 @@ mod tests {
             height: 1,
             data: vec![1.2345, f32::NAN, -1.0, 100.0],
         };
-        let pixels = rgbd_pixels(&rgb, &depth);
+        let pixels: Vec<RgbdPixel> = (0..4).map(|i| rgbd_pixel(&rgb, &depth, i)).collect();
         let mm: Vec<u16> = pixels.iter().map(|p| p.depth_mm).collect();
         assert_eq!(mm, vec![1235, 0, 0, 0]);
         assert_eq!(pixels[0].rgb, [1, 2, 3]);
     }
 
-    /// Keyframe ids of the keyframe messages waiting at `consumer`: (descriptors, images,
-    /// patches).
-    fn received_keyframes(
-        consumer: &mut protocol::transport::ConsumerLink,
-    ) -> (Vec<u64>, Vec<u64>, Vec<u64>) {
+    /// The keyframe messages waiting at `consumer`.
+    #[derive(Default)]
+    struct Received {
+        descriptors: Vec<u64>,
+        images: Vec<(u64, Vec<RgbdPixel>)>,
+        patches: Vec<(u64, Vec<GaussianRecord>)>,
+    }
+
+    impl Received {
+        /// Keyframe ids: (descriptors, images, patches).
+        fn ids(&self) -> (Vec<u64>, Vec<u64>, Vec<u64>) {
+            (
+                self.descriptors.clone(),
+                self.images.iter().map(|(id, _)| *id).collect(),
+                self.patches.iter().map(|(id, _)| *id).collect(),
+            )
+        }
+    }
+
+    fn received_keyframes(consumer: &mut protocol::transport::ConsumerLink) -> Received {
         use protocol::transport::Incoming;
         const QUIET: Duration = Duration::from_millis(500);
-        let (mut descriptors, mut images, mut patches) = (Vec::new(), Vec::new(), Vec::new());
+        let mut received = Received::default();
         while let Some(message) = consumer.recv_timeout(QUIET).unwrap() {
             match message {
-                Incoming::Descriptor(d) => descriptors.push(d.keyframe_id),
-                Incoming::KeyframeImage(k) => images.push(k.header().keyframe_id),
-                Incoming::Patch(p) => patches.push(p.header().keyframe_id),
+                Incoming::Descriptor(d) => received.descriptors.push(d.keyframe_id),
+                Incoming::KeyframeImage(k) => received
+                    .images
+                    .push((k.header().keyframe_id, k.pixels().to_vec())),
+                Incoming::Patch(p) => received
+                    .patches
+                    .push((p.header().keyframe_id, p.records().to_vec())),
                 Incoming::Lifecycle(_) => {}
             }
         }
-        (descriptors, images, patches)
+        received
+    }
+
+    #[test]
+    fn a_keyframe_whose_depth_and_colour_sizes_differ_is_refused_not_sent() {
+        let transport =
+            TransportConfig::with_namespace(format!("size-mismatch-{}", std::process::id()));
+        let mut consumer = protocol::transport::ConsumerLink::open(&transport).unwrap();
+        let mut config = Config::default();
+        config.consensus.t_comm = 1;
+        let mut swarm = SwarmLink::connect(0, &transport, &config, LinkPlan::always_up()).unwrap();
+        let intrinsics = Intrinsics::new(40.0, 40.0, 16.0, 12.0, 32, 24);
+        swarm.announce(&intrinsics);
+        swarm.on_keyframe(PublishableKeyframe {
+            keyframe_id: 3,
+            frame_index: 30,
+            timestamp_s: 3.0,
+            agent_from_camera: Isometry3::identity(),
+            intrinsics,
+            rgb: RgbImage::from_pixel(32, 24, image::Rgb([1, 2, 3])),
+            depth: DepthImage {
+                width: 16,
+                height: 12,
+                data: vec![1.5; 16 * 12],
+            },
+            gaussians: GaussianCloud::default(),
+        });
+        swarm.after_frame();
+        assert_eq!(
+            received_keyframes(&mut consumer).ids(),
+            (vec![], vec![], vec![])
+        );
+        assert_eq!(swarm.summary().send_failures, 1);
     }
 
     #[test]
@@ -784,14 +844,43 @@ mod tests {
                 height: 24,
                 data: vec![1.5; 32 * 24],
             },
-            gaussians: GaussianCloud::default(),
+            gaussians: {
+                let mut cloud = GaussianCloud::default();
+                for i in 0..5 {
+                    let v = i as f32;
+                    cloud.push(
+                        [v, 1.0, 2.0],
+                        [-4.0; 3],
+                        [1.0, 0.0, 0.0, v],
+                        v - 2.0,
+                        [0.5; 3],
+                    );
+                }
+                cloud
+            },
+        };
+        // What the consumer must see: the keyframe's pixels and Gaussians, built in place.
+        let expected_pixels: Vec<RgbdPixel> = {
+            let k = keyframe(7);
+            (0..32 * 24)
+                .map(|i| rgbd_pixel(&k.rgb, &k.depth, i))
+                .collect()
+        };
+        let expected_records: Vec<GaussianRecord> = {
+            let k = keyframe(7);
+            (0..5).map(|i| gaussian_record(&k.gaussians, i)).collect()
+        };
+        assert_eq!(expected_pixels[33].rgb, [8, 10, 7]);
+        assert_eq!(expected_records[3].mean, [3.0, 1.0, 2.0]);
+        let content_is_the_keyframes = |received: &Received| {
+            assert_eq!(received.images[0].1, expected_pixels);
+            assert_eq!(received.patches[0].1, expected_records);
         };
         swarm.on_keyframe(keyframe(7));
         assert!(swarm.after_frame().is_none());
-        assert_eq!(
-            received_keyframes(&mut consumer),
-            (vec![7], vec![7], vec![7])
-        );
+        let received = received_keyframes(&mut consumer);
+        assert_eq!(received.ids(), (vec![7], vec![7], vec![7]));
+        content_is_the_keyframes(&received);
 
         let ask = |keyframe_id| ControlMessage::ResendKeyframe {
             keyframe_id,
@@ -800,11 +889,13 @@ mod tests {
         consumer.send_control(0, &ask(7)).unwrap();
         consumer.send_control(0, &ask(99)).unwrap();
         swarm.after_frame();
+        let received = received_keyframes(&mut consumer);
         assert_eq!(
-            received_keyframes(&mut consumer),
+            received.ids(),
             (vec![7], vec![7], vec![7]),
             "keyframe 7 again, nothing for the unknown 99"
         );
+        content_is_the_keyframes(&received);
         let summary = swarm.summary();
         assert_eq!(summary.resend_requests, 2);
         assert_eq!(summary.keyframes_resent, 1);
