@@ -788,16 +788,25 @@ mod tests {
         received
     }
 
-    #[test]
-    fn a_keyframe_whose_depth_and_colour_sizes_differ_is_refused_not_sent() {
+    /// A consumer and agent 0 announced to it (publishing every keyframe), in a namespace of
+    /// its own, with the agent's 32x24 camera.
+    fn announced_agent(
+        namespace: &str,
+    ) -> (protocol::transport::ConsumerLink, SwarmLink, Intrinsics) {
         let transport =
-            TransportConfig::with_namespace(format!("size-mismatch-{}", std::process::id()));
-        let mut consumer = protocol::transport::ConsumerLink::open(&transport).unwrap();
+            TransportConfig::with_namespace(format!("{namespace}-{}", std::process::id()));
+        let consumer = protocol::transport::ConsumerLink::open(&transport).unwrap();
         let mut config = Config::default();
         config.consensus.t_comm = 1;
         let mut swarm = SwarmLink::connect(0, &transport, &config, LinkPlan::always_up()).unwrap();
         let intrinsics = Intrinsics::new(40.0, 40.0, 16.0, 12.0, 32, 24);
         swarm.announce(&intrinsics);
+        (consumer, swarm, intrinsics)
+    }
+
+    #[test]
+    fn a_keyframe_whose_depth_and_colour_sizes_differ_is_refused_not_sent() {
+        let (mut consumer, mut swarm, intrinsics) = announced_agent("size-mismatch");
         swarm.on_keyframe(PublishableKeyframe {
             keyframe_id: 3,
             frame_index: 30,
@@ -822,14 +831,7 @@ mod tests {
 
     #[test]
     fn a_keyframe_the_consensus_asks_for_again_is_published_again() {
-        let transport =
-            TransportConfig::with_namespace(format!("resend-agent-{}", std::process::id()));
-        let mut consumer = protocol::transport::ConsumerLink::open(&transport).unwrap();
-        let mut config = Config::default();
-        config.consensus.t_comm = 1;
-        let mut swarm = SwarmLink::connect(0, &transport, &config, LinkPlan::always_up()).unwrap();
-        let intrinsics = Intrinsics::new(40.0, 40.0, 16.0, 12.0, 32, 24);
-        swarm.announce(&intrinsics);
+        let (mut consumer, mut swarm, intrinsics) = announced_agent("resend-agent");
         let keyframe = |keyframe_id| PublishableKeyframe {
             keyframe_id,
             frame_index: keyframe_id * 10,

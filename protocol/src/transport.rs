@@ -1076,6 +1076,30 @@ trait Receiving {
     fn mark_activity(&mut self);
 }
 
+/// [`Receiving`] for a link type with fields `config`, `wake_listener`, `shutdown` and
+/// `last_activity`.
+macro_rules! impl_receiving {
+    ($link:ty) => {
+        impl Receiving for $link {
+            fn config(&self) -> &TransportConfig {
+                &self.config
+            }
+            fn wake_listener(&self) -> &Listener<Ipc> {
+                &self.wake_listener
+            }
+            fn shutdown_flag(&self) -> &AtomicBool {
+                &self.shutdown
+            }
+            fn last_activity(&self) -> Instant {
+                self.last_activity
+            }
+            fn mark_activity(&mut self) {
+                self.last_activity = Instant::now();
+            }
+        }
+    };
+}
+
 /// Calls `try_receive` until it yields a message or `timeout` has passed. While the link's
 /// last message (sent or received) is less than `poll_before_wait` old, it polls, yielding the
 /// core between polls; after that it blocks on the link's wake-up event in slices of at most
@@ -2172,23 +2196,7 @@ impl AgentLink {
     }
 }
 
-impl Receiving for AgentLink {
-    fn config(&self) -> &TransportConfig {
-        &self.config
-    }
-    fn wake_listener(&self) -> &Listener<Ipc> {
-        &self.wake_listener
-    }
-    fn shutdown_flag(&self) -> &AtomicBool {
-        &self.shutdown
-    }
-    fn last_activity(&self) -> Instant {
-        self.last_activity
-    }
-    fn mark_activity(&mut self) {
-        self.last_activity = Instant::now();
-    }
-}
+impl_receiving!(AgentLink);
 
 impl Drop for AgentLink {
     fn drop(&mut self) {
@@ -2242,23 +2250,7 @@ pub struct ConsumerLink {
     _node: Node<Ipc>,
 }
 
-impl Receiving for ConsumerLink {
-    fn config(&self) -> &TransportConfig {
-        &self.config
-    }
-    fn wake_listener(&self) -> &Listener<Ipc> {
-        &self.wake_listener
-    }
-    fn shutdown_flag(&self) -> &AtomicBool {
-        &self.shutdown
-    }
-    fn last_activity(&self) -> Instant {
-        self.last_activity
-    }
-    fn mark_activity(&mut self) {
-        self.last_activity = Instant::now();
-    }
-}
+impl_receiving!(ConsumerLink);
 
 impl ConsumerLink {
     /// Subscribes to every agent id `0..max_agents` and tells running agents that a consumer
