@@ -342,9 +342,11 @@ pub fn run_agent(
                     mapper.progress.iterations.load(Ordering::Relaxed)
                 ));
             }
-            if stop.load(Ordering::Relaxed) {
+            let stopped_by_consensus = swarm.as_ref().and_then(|s| s.stop_requested());
+            if stop.load(Ordering::Relaxed) || stopped_by_consensus.is_some() {
                 tracing::warn!(
                     frame = frame.index,
+                    by_consensus = stopped_by_consensus,
                     "stop requested: finishing after this frame and writing outputs"
                 );
                 interrupted = true;

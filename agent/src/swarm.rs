@@ -89,6 +89,9 @@ pub struct SwarmSummary {
     pub keyframes_resent: usize,
     /// Requests for keyframes this agent no longer held (`[consensus.resend] agent_keeps`).
     pub resend_unavailable: usize,
+    /// The reason the consensus gave when it asked the swarm to stop
+    /// (`ControlMessage::Shutdown`); absent when it never did.
+    pub stopped_by_consensus: Option<String>,
 }
 
 /// Whether the link is up now and what waits for it, for the progress file.
@@ -345,6 +348,12 @@ impl SwarmLink {
         correction
     }
 
+    /// The consensus's reason, once it has asked the swarm to stop: the run should end after
+    /// the current frame as on SIGTERM (final map, goodbye, outputs).
+    pub fn stop_requested(&self) -> Option<&str> {
+        self.summary.stopped_by_consensus.as_deref()
+    }
+
     /// What the link did so far (the final figures come from [`Self::finish`]).
     pub fn summary(&self) -> &SwarmSummary {
         &self.summary
@@ -559,6 +568,13 @@ impl SwarmLink {
                     self.summary.keyframes_resent += 1;
                     // Control messages are only read with the link up.
                     self.send_or_enqueue(wire, true);
+                }
+                ControlMessage::Shutdown { reason } => {
+                    tracing::warn!(
+                        %reason,
+                        "the consensus stops the swarm: finishing after this frame"
+                    );
+                    self.summary.stopped_by_consensus = Some(reason);
                 }
                 other => tracing::debug!(message = ?other, "control message ignored"),
             }

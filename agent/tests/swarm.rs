@@ -64,6 +64,7 @@ fn spawn_consensus(
         transport: TransportConfig::with_namespace(namespace),
         out: dir.to_path_buf(),
         expected_agents: Some(2),
+        stop_agents_wait: None,
     };
     std::thread::spawn(move || run(&options, &stop))
 }
@@ -281,4 +282,93 @@ fn agent_without_a_consensus_keeps_tracking_and_writes_its_outputs() {
     for output in ["trajectory.tum", "map.ply", "metrics.json"] {
         assert!(dir.path().join("agent_0").join(output).exists(), "{output}");
     }
+}
+
+/// A consensus started with `stop_agents_wait` that is asked to stop (SIGINT / SIGTERM in the
+/// binary) stops the swarm in order: the running agent gets `ControlMessage::Shutdown`, ends its
+/// run after the current frame (long before its last frame), sends its final map and says
+/// goodbye, and the consensus writes its outputs with that agent's data, not before. Needs no
+/// shared data (classical descriptor).
+#[test]
+fn a_stopping_consensus_stops_its_agents_and_keeps_their_final_maps() {
+    /// Far more than the test waits for: the agent must stop early.
+    const FRAMES_PLANNED: usize = 5000;
+    /// Frames the agent tracks before the consensus is stopped.
+    const FRAMES_BEFORE_STOP: u64 = 20;
+    let dir = tempfile::tempdir().unwrap();
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic.toml");
+    let mut config = Config::load(&path).unwrap();
+    config.consensus.t_comm = 5;
+    config.consensus.refinement.iterations = 0;
+    let config_path = write_config(dir.path(), &config);
+    let namespace = format!("stopswarm{}", std::process::id());
+    let stop = Arc::new(AtomicBool::new(false));
+    let options = ConsensusOptions {
+        config,
+        transport: TransportConfig::with_namespace(&namespace),
+        out: dir.path().to_path_buf(),
+        expected_agents: Some(1),
+        stop_agents_wait: Some(RUN_TIMEOUT),
+    };
+    let consensus = {
+        let stop = stop.clone();
+        std::thread::spawn(move || run(&options, &stop))
+    };
+    let agent = Command::new(env!("CARGO_BIN_EXE_mac-agent"))
+        .args(["--config", config_path.to_str().unwrap()])
+        .args([
+            "--dataset",
+            &format!("synthetic:agents=2,agent=0,frames={FRAMES_PLANNED},width=320,height=240"),
+        ])
+        .args(["--agent-id", "0", "--namespace", &namespace])
+        .args(["--eval-every", "50", "--renders", "0"])
+        .arg("--out")
+        .arg(dir.path().join("agent_0"))
+        .spawn()
+        .expect("starting mac-agent");
+
+    let progress_path = dir.path().join("agent_0/progress.json");
+    let started = Instant::now();
+    loop {
+        let frames_done = std::fs::read_to_string(&progress_path)
+            .ok()
+            .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+            .and_then(|progress| progress["frames_done"].as_u64())
+            .unwrap_or(0);
+        if frames_done >= FRAMES_BEFORE_STOP {
+            break;
+        }
+        assert!(
+            started.elapsed() < RUN_TIMEOUT,
+            "the agent made no progress"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    wait(agent, "agent asked to stop");
+    let report = consensus.join().unwrap().unwrap();
+
+    let metrics = agent_metrics(dir.path(), 0);
+    let frames = metrics["frames"].as_u64().unwrap();
+    assert!(
+        (FRAMES_BEFORE_STOP..FRAMES_PLANNED as u64).contains(&frames),
+        "stopped early: {frames} frames"
+    );
+    assert_eq!(metrics["interrupted"], true);
+    assert!(
+        metrics["swarm"]["stopped_by_consensus"].is_string(),
+        "{}",
+        metrics["swarm"]
+    );
+    assert_eq!(report.agents[&0].goodbyes, 1, "the agent said goodbye");
+    assert!(report.interrupted);
+    assert!(report.agents[&0].keyframes >= 1);
+    assert!(
+        report.merged_gaussians > 0,
+        "the merged map holds the agent's Gaussians"
+    );
+    for output in ["trajectory.tum", "map.ply", "metrics.json"] {
+        assert!(dir.path().join("agent_0").join(output).exists(), "{output}");
+    }
+    assert!(dir.path().join("consensus.json").exists());
 }

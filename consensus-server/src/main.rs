@@ -6,10 +6,13 @@
 //! world map), DIR/agent_K.tum (each agent's trajectory in the world frame, from the agent's own
 //! DIR/agent_K/trajectory.tum) and DIR/consensus.json. SIGUSR1 writes the same outputs as they
 //! stand (without the final refinement, `"snapshot": true` in consensus.json) and the run goes on.
+//! With `--stop-agents SECONDS`, SIGINT / SIGTERM first ask every running agent to stop
+//! (`ControlMessage::Shutdown`) and wait up to SECONDS for their final maps and goodbyes.
 
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
+use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
@@ -38,6 +41,11 @@ struct Args {
     /// iceoryx2 service namespace shared by the swarm's processes.
     #[arg(long, default_value = protocol::services::DEFAULT_NAMESPACE)]
     namespace: String,
+    /// On SIGINT / SIGTERM, ask every running agent to stop as well (each finishes its frame,
+    /// sends its final map and says goodbye) and wait up to this many seconds for them before
+    /// writing the outputs. Without it the agents keep running on their own.
+    #[arg(long, value_name = "SECONDS")]
+    stop_agents: Option<f64>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -52,6 +60,13 @@ fn main() -> anyhow::Result<()> {
         transport: TransportConfig::for_swarm(args.namespace.clone(), args.agents),
         out: args.out.clone(),
         expected_agents: args.agents,
+        stop_agents_wait: args
+            .stop_agents
+            .map(|seconds| {
+                Duration::try_from_secs_f64(seconds)
+                    .with_context(|| format!("--stop-agents {seconds}: not a number of seconds"))
+            })
+            .transpose()?,
     };
     let stop = slam_core::process::stop_on_termination_signals()?;
     let snapshot = Arc::new(AtomicBool::new(false));

@@ -20,7 +20,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use crossbeam_channel::{Receiver, Sender, unbounded};
@@ -55,6 +55,12 @@ pub struct ConsensusOptions {
     /// Agents the run waits for: it ends once all of them have said goodbye. `None`: run until
     /// stopped.
     pub expected_agents: Option<u32>,
+    /// On a stop request (SIGINT / SIGTERM), ask every agent still running to stop too
+    /// (`ControlMessage::Shutdown`: each finishes its frame, sends its final map and says
+    /// goodbye) and wait up to this long for their goodbyes before writing the outputs, so
+    /// the outputs include everything the agents had. `None`: stop at once and leave the
+    /// agents running (they go on without a consensus).
+    pub stop_agents_wait: Option<Duration>,
 }
 
 /// Messages to the worker.
@@ -163,11 +169,32 @@ pub fn run_with_snapshots(
     let mut latencies: Vec<f64> = Vec::new();
     let wait = options.transport.wait_slice;
 
+    // When the agents were asked to stop (with `stop_agents_wait`).
+    let mut agents_asked_to_stop: Option<Instant> = None;
     loop {
         if stop.load(Ordering::Relaxed) {
-            tracing::warn!("stop requested: writing outputs");
             interrupted = true;
-            break;
+            let running = running_agents(&agents, &finished);
+            // With `stop_agents_wait`, the loop goes on receiving (the agents' last keyframes,
+            // final maps and goodbyes) until they are done or the wait is over.
+            let mut waiting = false;
+            if let Some(wait_for_agents) = options.stop_agents_wait {
+                let asked = *agents_asked_to_stop.get_or_insert_with(|| {
+                    ask_agents_to_stop(&mut link, &running);
+                    Instant::now()
+                });
+                waiting = !running.is_empty() && asked.elapsed() < wait_for_agents;
+                if !waiting && !running.is_empty() {
+                    tracing::warn!(
+                        agents = ?running,
+                        "agents did not say goodbye within {wait_for_agents:?}"
+                    );
+                }
+            }
+            if !waiting {
+                tracing::warn!("stop requested: writing outputs");
+                break;
+            }
         }
         if let Some(expected) = options.expected_agents
             && (0..expected).all(|id| finished.contains(&id))
@@ -277,6 +304,31 @@ fn fill_records(
         record.seconds_seen = first_seen
             .get(id)
             .map_or(0.0, |at| at.elapsed().as_secs_f64());
+    }
+}
+
+/// Agents that said hello and have not said goodbye since.
+fn running_agents(agents: &BTreeMap<u32, AgentRecord>, finished: &BTreeSet<u32>) -> Vec<u32> {
+    agents
+        .iter()
+        .filter(|(id, record)| record.hellos > 0 && !finished.contains(id))
+        .map(|(id, _)| *id)
+        .collect()
+}
+
+/// Sends `ControlMessage::Shutdown` to each of `agent_ids`.
+fn ask_agents_to_stop(link: &mut ConsumerLink, agent_ids: &[u32]) {
+    tracing::warn!(
+        agents = ?agent_ids,
+        "stop requested: asking the running agents to stop and send their final maps"
+    );
+    let message = ControlMessage::Shutdown {
+        reason: "the consensus was asked to stop".into(),
+    };
+    for &agent_id in agent_ids {
+        if let Err(error) = link.send_control(agent_id, &message) {
+            tracing::warn!(agent_id, %error, "stop request not delivered");
+        }
     }
 }
 

@@ -31,6 +31,7 @@ fn an_incomplete_keyframe_is_asked_for_again_and_completed() {
         transport: transport.clone(),
         out: dir.path().to_path_buf(),
         expected_agents: Some(1),
+        stop_agents_wait: None,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let consensus = {

@@ -22,6 +22,7 @@ fn a_snapshot_is_written_on_request_and_the_run_goes_on() {
         out: dir.path().to_path_buf(),
         // No agent: the run goes on until stopped.
         expected_agents: None,
+        stop_agents_wait: None,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let snapshot = Arc::new(AtomicBool::new(false));
