@@ -69,18 +69,19 @@ fn spawn_consensus(
     std::thread::spawn(move || run(&options, &stop))
 }
 
+/// Agent `agent_id` of the two-agent synthetic scene, `frames` frames at 320x240.
 fn spawn_agent_with(
     dir: &Path,
     config_path: &Path,
     namespace: &str,
-    agent_id: u32,
+    (agent_id, frames): (u32, usize),
     extra_args: &[&str],
 ) -> Child {
     Command::new(env!("CARGO_BIN_EXE_mac-agent"))
         .args(["--config", config_path.to_str().unwrap()])
         .args([
             "--dataset",
-            &format!("synthetic:agents=2,agent={agent_id},frames={FRAMES},width=320,height=240"),
+            &format!("synthetic:agents=2,agent={agent_id},frames={frames},width=320,height=240"),
         ])
         .args(["--agent-id", &agent_id.to_string()])
         .args(["--namespace", namespace])
@@ -181,7 +182,15 @@ fn real_data_swarm_intermittent_link_queues_keyframes_delivers_them_late_and_con
     let consensus = spawn_consensus(dir.path(), &namespace, Arc::new(AtomicBool::new(false)));
     // Both agents read the file; agent 0 is not in it, so its link is always up.
     let agents: Vec<Child> = (0..2)
-        .map(|k| spawn_agent_with(dir.path(), &config_path, &namespace, k, &schedule_arg))
+        .map(|k| {
+            spawn_agent_with(
+                dir.path(),
+                &config_path,
+                &namespace,
+                (k, FRAMES),
+                &schedule_arg,
+            )
+        })
         .collect();
     for (k, agent) in agents.into_iter().enumerate() {
         wait(agent, &format!("agent {k}"));
@@ -245,18 +254,7 @@ fn agent_without_a_consensus_keeps_tracking_and_writes_its_outputs() {
     config.consensus.t_comm = 5;
     let config_path = write_config(dir.path(), &config);
     let namespace = format!("alone{}", std::process::id());
-    let agent = Command::new(env!("CARGO_BIN_EXE_mac-agent"))
-        .args(["--config", config_path.to_str().unwrap()])
-        .args([
-            "--dataset",
-            &format!("synthetic:agents=2,agent=0,frames={FRAMES_ALONE},width=160,height=120"),
-        ])
-        .args(["--agent-id", "0", "--namespace", &namespace])
-        .args(["--eval-every", "20", "--renders", "0"])
-        .arg("--out")
-        .arg(dir.path().join("agent_0"))
-        .spawn()
-        .expect("starting mac-agent");
+    let agent = spawn_agent_with(dir.path(), &config_path, &namespace, (0, FRAMES_ALONE), &[]);
     wait(agent, "agent without a consensus");
     let metrics = agent_metrics(dir.path(), 0);
     assert_eq!(metrics["frames"], FRAMES_ALONE);
@@ -314,18 +312,13 @@ fn a_stopping_consensus_stops_its_agents_and_keeps_their_final_maps() {
         let stop = stop.clone();
         std::thread::spawn(move || run(&options, &stop))
     };
-    let agent = Command::new(env!("CARGO_BIN_EXE_mac-agent"))
-        .args(["--config", config_path.to_str().unwrap()])
-        .args([
-            "--dataset",
-            &format!("synthetic:agents=2,agent=0,frames={FRAMES_PLANNED},width=320,height=240"),
-        ])
-        .args(["--agent-id", "0", "--namespace", &namespace])
-        .args(["--eval-every", "50", "--renders", "0"])
-        .arg("--out")
-        .arg(dir.path().join("agent_0"))
-        .spawn()
-        .expect("starting mac-agent");
+    let agent = spawn_agent_with(
+        dir.path(),
+        &config_path,
+        &namespace,
+        (0, FRAMES_PLANNED),
+        &[],
+    );
 
     let progress_path = dir.path().join("agent_0/progress.json");
     let started = Instant::now();
