@@ -22,6 +22,8 @@ struct Pending {
     image: Option<(Keyframe, u64, f64)>,
     /// Descriptor and image went to the engine.
     forwarded: bool,
+    /// The frame the forwarded image showed.
+    forwarded_frame_index: Option<u64>,
     patch: bool,
     /// First part's arrival, or the last request (the next request waits from there).
     waiting_since: Instant,
@@ -34,6 +36,7 @@ impl Pending {
             descriptor: None,
             image: None,
             forwarded: false,
+            forwarded_frame_index: None,
             patch: false,
             waiting_since: now,
             requests: 0,
@@ -67,9 +70,11 @@ pub struct ResendRequest {
 pub struct KeyframeInbox {
     policy: ResendConfig,
     pending: BTreeMap<KeyframeRef, Pending>,
-    /// Every part arrived.
-    complete: BTreeSet<KeyframeRef>,
+    /// Every part arrived: the frame index of the keyframe's image.
+    complete: BTreeMap<KeyframeRef, Option<u64>>,
     duplicates: BTreeMap<u32, usize>,
+    /// Keyframe images whose id was already taken by another frame (see [`Self::image`]).
+    conflicts: BTreeMap<u32, usize>,
     given_up: BTreeSet<KeyframeRef>,
 }
 
@@ -78,8 +83,9 @@ impl KeyframeInbox {
         Self {
             policy,
             pending: BTreeMap::new(),
-            complete: BTreeSet::new(),
+            complete: BTreeMap::new(),
             duplicates: BTreeMap::new(),
+            conflicts: BTreeMap::new(),
             given_up: BTreeSet::new(),
         }
     }
@@ -92,7 +98,7 @@ impl KeyframeInbox {
         now: Instant,
         seen: fn(&Pending) -> bool,
     ) -> Option<&mut Pending> {
-        if self.complete.contains(&id) || self.pending.get(&id).is_some_and(seen) {
+        if self.complete.contains_key(&id) || self.pending.get(&id).is_some_and(seen) {
             *self.duplicates.entry(id.agent_id).or_default() += 1;
             return None;
         }
@@ -113,6 +119,11 @@ impl KeyframeInbox {
     }
 
     /// An RGB-D image arrived; returns the keyframe for the engine when this completes it.
+    ///
+    /// An image whose keyframe id already went to the engine for another frame is a conflict,
+    /// not a repeat: an agent restarted on other frames numbers its keyframes from 0 again.
+    /// Such an image is ignored and counted ([`Self::conflicts`]), with a warning, since the
+    /// consensus keeps one frame per agent and cannot place a second run's keyframes in it.
     pub fn image(
         &mut self,
         id: KeyframeRef,
@@ -121,6 +132,22 @@ impl KeyframeInbox {
         timestamp_s: f64,
         now: Instant,
     ) -> Option<KeyframeArrival> {
+        let earlier_frame = match self.complete.get(&id) {
+            Some(frame) => *frame,
+            None => self.pending.get(&id).and_then(|p| p.forwarded_frame_index),
+        };
+        if let Some(earlier_frame) = earlier_frame.filter(|&earlier| earlier != frame_index) {
+            *self.conflicts.entry(id.agent_id).or_default() += 1;
+            tracing::warn!(
+                agent_id = id.agent_id,
+                keyframe_id = id.keyframe_id,
+                earlier_frame,
+                frame_index,
+                "keyframe id already used by another frame of this agent (restarted on other \
+                 frames?): this keyframe is ignored"
+            );
+            return None;
+        }
         let pending = self.fresh_part(id, now, |p| p.forwarded || p.image.is_some())?;
         pending.image = Some((keyframe, frame_index, timestamp_s));
         self.forward_if_ready(id)
@@ -145,6 +172,7 @@ impl KeyframeInbox {
         let descriptor = pending.descriptor.take()?;
         let (keyframe, frame_index, timestamp_s) = pending.image.take()?;
         pending.forwarded = true;
+        pending.forwarded_frame_index = Some(frame_index);
         self.retire_if_complete(id);
         Some(KeyframeArrival {
             keyframe,
@@ -161,9 +189,12 @@ impl KeyframeInbox {
             .get(&id)
             .is_some_and(|pending| pending.forwarded && pending.patch)
         {
-            self.pending.remove(&id);
+            let frame_index = self
+                .pending
+                .remove(&id)
+                .and_then(|p| p.forwarded_frame_index);
             self.given_up.remove(&id);
-            self.complete.insert(id);
+            self.complete.insert(id, frame_index);
         }
     }
 
@@ -222,6 +253,11 @@ impl KeyframeInbox {
     /// Parts of `agent_id`'s keyframes that arrived more than once (ignored).
     pub fn duplicates(&self, agent_id: u32) -> usize {
         self.duplicates.get(&agent_id).copied().unwrap_or(0)
+    }
+
+    /// Keyframe images of `agent_id` ignored because their id was taken by another frame.
+    pub fn conflicts(&self, agent_id: u32) -> usize {
+        self.conflicts.get(&agent_id).copied().unwrap_or(0)
     }
 }
 
@@ -283,6 +319,27 @@ mod tests {
                 .due_requests(now + Duration::from_secs(60), &BTreeSet::new())
                 .is_empty()
         );
+    }
+
+    #[test]
+    fn an_id_reused_for_another_frame_is_a_conflict_not_a_duplicate() {
+        let mut inbox = KeyframeInbox::new(policy());
+        let now = Instant::now();
+        assert!(inbox.patch(id(5), now));
+        assert!(inbox.descriptor(id(5), vec![1.0], now).is_none());
+        let arrival = inbox.image(id(5), keyframe(5), 10, 0.5, now);
+        assert_eq!(arrival.expect("complete").frame_index, 10);
+        // A restarted agent's keyframe 5 shows frame 99: ignored, counted as a conflict.
+        assert!(inbox.image(id(5), keyframe(5), 99, 3.0, now).is_none());
+        assert_eq!((inbox.conflicts(3), inbox.duplicates(3)), (1, 0));
+        // The same frame again is a plain repeat.
+        assert!(inbox.image(id(5), keyframe(5), 10, 0.5, now).is_none());
+        assert_eq!((inbox.conflicts(3), inbox.duplicates(3)), (1, 1));
+        // Forwarded but still waiting for its patch: the same rule.
+        assert!(inbox.descriptor(id(6), vec![1.0], now).is_none());
+        assert!(inbox.image(id(6), keyframe(6), 20, 1.0, now).is_some());
+        assert!(inbox.image(id(6), keyframe(6), 21, 1.1, now).is_none());
+        assert_eq!(inbox.conflicts(3), 2);
     }
 
     #[test]

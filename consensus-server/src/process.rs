@@ -99,6 +99,9 @@ pub struct AgentRecord {
     pub keyframes_incomplete: usize,
     /// Keyframe parts that arrived more than once (ignored).
     pub duplicate_parts: usize,
+    /// Keyframe images whose id this agent had already used for another frame (ignored): a
+    /// restart that did not re-run the same frames numbers its keyframes from 0 again.
+    pub keyframe_id_conflicts: usize,
     pub corrections_sent: usize,
     pub corrections_undelivered: usize,
     /// `world_from_agent` as `[tx, ty, tz, qx, qy, qz, qw]` (TUM order); absent when the agent
@@ -253,6 +256,7 @@ pub fn run_with_snapshots(
     for (agent_id, record) in agents.iter_mut() {
         record.keyframes_incomplete = inbox.incomplete(*agent_id);
         record.duplicate_parts = inbox.duplicates(*agent_id);
+        record.keyframe_id_conflicts = inbox.conflicts(*agent_id);
         if record.keyframes_incomplete > 0 {
             tracing::warn!(
                 agent_id,

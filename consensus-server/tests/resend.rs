@@ -107,5 +107,6 @@ fn an_incomplete_keyframe_is_asked_for_again_and_completed() {
     assert!(record.resend_requests >= 1);
     assert_eq!(record.keyframes_incomplete, 0);
     assert_eq!(record.duplicate_parts, 1, "the descriptor arrived twice");
+    assert_eq!(record.keyframe_id_conflicts, 0);
     assert_eq!(record.gaussians_received, 1);
 }
