@@ -20,10 +20,8 @@ use crate::place_recognition::KeyframeRef;
 struct Pending {
     descriptor: Option<Vec<f32>>,
     image: Option<(Keyframe, u64, f64)>,
-    /// Descriptor and image went to the engine.
-    forwarded: bool,
-    /// The frame the forwarded image showed.
-    forwarded_frame_index: Option<u64>,
+    /// Descriptor and image went to the engine: the frame index the image showed.
+    forwarded: Option<u64>,
     patch: bool,
     /// First part's arrival, or the last request (the next request waits from there).
     waiting_since: Instant,
@@ -35,8 +33,7 @@ impl Pending {
         Self {
             descriptor: None,
             image: None,
-            forwarded: false,
-            forwarded_frame_index: None,
+            forwarded: None,
             patch: false,
             waiting_since: now,
             requests: 0,
@@ -46,10 +43,10 @@ impl Pending {
     /// What is still missing, for the request's reason.
     fn missing(&self) -> Vec<&'static str> {
         let mut missing = Vec::new();
-        if !self.forwarded && self.descriptor.is_none() {
+        if self.forwarded.is_none() && self.descriptor.is_none() {
             missing.push("descriptor");
         }
-        if !self.forwarded && self.image.is_none() {
+        if self.forwarded.is_none() && self.image.is_none() {
             missing.push("RGB-D image");
         }
         if !self.patch {
@@ -71,7 +68,7 @@ pub struct KeyframeInbox {
     policy: ResendConfig,
     pending: BTreeMap<KeyframeRef, Pending>,
     /// Every part arrived: the frame index of the keyframe's image.
-    complete: BTreeMap<KeyframeRef, Option<u64>>,
+    complete: BTreeMap<KeyframeRef, u64>,
     duplicates: BTreeMap<u32, usize>,
     /// Keyframe images whose id was already taken by another frame (see [`Self::image`]).
     conflicts: BTreeMap<u32, usize>,
@@ -113,7 +110,8 @@ impl KeyframeInbox {
         descriptor: Vec<f32>,
         now: Instant,
     ) -> Option<KeyframeArrival> {
-        let pending = self.fresh_part(id, now, |p| p.forwarded || p.descriptor.is_some())?;
+        let pending =
+            self.fresh_part(id, now, |p| p.forwarded.is_some() || p.descriptor.is_some())?;
         pending.descriptor = Some(descriptor);
         self.forward_if_ready(id)
     }
@@ -133,8 +131,8 @@ impl KeyframeInbox {
         now: Instant,
     ) -> Option<KeyframeArrival> {
         let earlier_frame = match self.complete.get(&id) {
-            Some(frame) => *frame,
-            None => self.pending.get(&id).and_then(|p| p.forwarded_frame_index),
+            Some(&frame) => Some(frame),
+            None => self.pending.get(&id).and_then(|p| p.forwarded),
         };
         if let Some(earlier_frame) = earlier_frame.filter(|&earlier| earlier != frame_index) {
             *self.conflicts.entry(id.agent_id).or_default() += 1;
@@ -148,7 +146,7 @@ impl KeyframeInbox {
             );
             return None;
         }
-        let pending = self.fresh_part(id, now, |p| p.forwarded || p.image.is_some())?;
+        let pending = self.fresh_part(id, now, |p| p.forwarded.is_some() || p.image.is_some())?;
         pending.image = Some((keyframe, frame_index, timestamp_s));
         self.forward_if_ready(id)
     }
@@ -171,8 +169,7 @@ impl KeyframeInbox {
         }
         let descriptor = pending.descriptor.take()?;
         let (keyframe, frame_index, timestamp_s) = pending.image.take()?;
-        pending.forwarded = true;
-        pending.forwarded_frame_index = Some(frame_index);
+        pending.forwarded = Some(frame_index);
         self.retire_if_complete(id);
         Some(KeyframeArrival {
             keyframe,
@@ -187,12 +184,9 @@ impl KeyframeInbox {
         if self
             .pending
             .get(&id)
-            .is_some_and(|pending| pending.forwarded && pending.patch)
+            .is_some_and(|pending| pending.forwarded.is_some() && pending.patch)
+            && let Some(frame_index) = self.pending.remove(&id).and_then(|p| p.forwarded)
         {
-            let frame_index = self
-                .pending
-                .remove(&id)
-                .and_then(|p| p.forwarded_frame_index);
             self.given_up.remove(&id);
             self.complete.insert(id, frame_index);
         }

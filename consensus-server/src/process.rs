@@ -322,6 +322,9 @@ fn running_agents(agents: &BTreeMap<u32, AgentRecord>, finished: &BTreeSet<u32>)
 
 /// Sends `ControlMessage::Shutdown` to each of `agent_ids`.
 fn ask_agents_to_stop(link: &mut ConsumerLink, agent_ids: &[u32]) {
+    if agent_ids.is_empty() {
+        return;
+    }
     tracing::warn!(
         agents = ?agent_ids,
         "stop requested: asking the running agents to stop and send their final maps"

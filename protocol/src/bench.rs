@@ -509,7 +509,7 @@ impl Driver {
 }
 
 /// Restricts the calling process (and the threads it starts later) to `cpu`.
-pub fn pin_to_cpu(cpu: usize) -> Result<(), BenchError> {
+fn pin_to_cpu(cpu: usize) -> Result<(), BenchError> {
     set_affinity(cpu).map_err(|e| BenchError::Pin {
         cpu,
         reason: e.to_string(),

@@ -46,8 +46,8 @@
 //! - **No busy waiting, but a short poll before sleeping.** Receivers block on an iceoryx2 event
 //!   listener (`timed_wait`), woken by the sender's notification after each send; every wait is
 //!   bounded by `wait_slice` so the shutdown flag is seen promptly. A sleeping process is slow to
-//!   wake, though: on the 2-core development VM the wake-up added ~50 us to a patch's one-way
-//!   latency (`mac-ego3d bench ipc`: 10k patch median 84-128 us with a send call of 47-61 us).
+//!   wake, though: on the 2-core development VM the wake-up added 50-150 us at the median to
+//!   a message's one-way latency (`mac-ego3d bench ipc`, figures in protocol/README.md).
 //!   So for `poll_before_wait` after its last message (sent or received) a link's receive
 //!   polls its queues (yielding the core between polls), which catches the next message of a
 //!   burst or stream, or the answer to a message just sent, without sleeping. A receiver idle
@@ -1222,21 +1222,24 @@ fn validate_keyframe_image(
     let expected = u64::from(width) * u64::from(height);
     if expected != pixels as u64 {
         return refuse(format!(
-            "keyframe {} image is {width}x{height} = {expected} pixels, but {pixels} pixels were              given",
+            "keyframe {} image is {width}x{height} = {expected} pixels, but {pixels} pixels were \
+             given",
             meta.keyframe_id
         ));
     }
     let k = &meta.intrinsics;
     if (k.width, k.height) != (width, height) {
         return refuse(format!(
-            "keyframe {} intrinsics are for a {}x{} image but the image is {width}x{height}              (scale the intrinsics with the image)",
+            "keyframe {} intrinsics are for a {}x{} image but the image is {width}x{height} \
+             (scale the intrinsics with the image)",
             meta.keyframe_id, k.width, k.height
         ));
     }
     let focal_ok = [k.fx, k.fy].iter().all(|f| f.is_finite() && *f > 0.0);
     if !focal_ok || !k.cx.is_finite() || !k.cy.is_finite() {
         return refuse(format!(
-            "keyframe {} intrinsics need finite positive focal lengths and a finite principal              point: {k:?}",
+            "keyframe {} intrinsics need finite positive focal lengths and a finite principal \
+             point: {k:?}",
             meta.keyframe_id
         ));
     }

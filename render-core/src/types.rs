@@ -47,10 +47,11 @@ pub mod constants {
 /// The key splats are depth-sorted by (ascending; ties keep the Gaussian order): camera z's
 /// f32 bit pattern relative to the near plane's, without its
 /// [`constants::DEPTH_KEY_DROPPED_BITS`] lowest mantissa bits, in [`constants::DEPTH_KEY_BITS`]
-/// bits. Positive floats order like their bit patterns, so the key orders like z. Dropping 4 of the 23 mantissa bits merges depths
-/// closer than 2^-19 of z (6 um at 3 m) into one key; 24 bits then span 2^(24+4-23) = 32
-/// binades above the near plane (0.01 m to 4.3e7 m). Farther splats share the largest key;
-/// `u32::MAX` (culled) stays above every visible key. project.wgsl computes the same key.
+/// bits. Positive floats order like their bit patterns, so the key orders like z. Dropping 4 of
+/// the 23 mantissa bits merges depths closer than 2^-19 of z (6 um at 3 m) into one key; 24
+/// bits then span 2^(24+4-23) = 32 binades above the near plane (0.01 m to 4.3e7 m). Farther
+/// splats share the largest key; `u32::MAX` (culled) stays above every visible key.
+/// project.wgsl computes the same key.
 pub fn depth_sort_key(camera_z: f32) -> u32 {
     let largest_visible = (1u32 << constants::DEPTH_KEY_BITS) - 2;
     let above_near = camera_z

@@ -166,16 +166,16 @@ pub fn smallest_eigenvector(a: &Matrix3<f64>) -> Vector3<f64> {
 /// result invertible, so G-ICP never divides by zero.
 ///
 /// **Image-grid search.** For a cloud back-projected from a depth image
-/// ([`super::points::PointCloud::grid`]),
-/// the candidates are first taken from the `(2 radius + 1)^2` grid cells around the point, for
-/// each radius of [`GRID_WINDOW_RADII_CELLS`] until one answer is *certified* exact: a point
-/// outside the window lies on a camera ray at least `(radius + 1) stride` pixels away, and every point on such a ray is at least
-/// `z (radius + 1) stride / (f_max |m|_max)` from the query (z: the query's depth, f_max: the
-/// larger focal length, |m|_max: the longest normalised ray, at an image corner; see
-/// [`outside_window_distance`]). When the k-th candidate is no farther than that bound, no point
-/// outside the window can be among the k nearest, so the result equals the kd-tree's (up to ties);
-/// otherwise (grazing surfaces, sparse depth) the kd-tree answers. The semantics are exactly
-/// k-NN; the grid only makes the common case cheap.
+/// ([`super::points::PointCloud::grid`]), the candidates are first taken from the
+/// `(2 radius + 1)^2` grid cells around the point, for each radius of
+/// [`GRID_WINDOW_RADII_CELLS`] until one answer is *certified* exact: a point outside the
+/// window lies on a camera ray at least `(radius + 1) stride` pixels away, and every point on
+/// such a ray is at least `z (radius + 1) stride / (f_max |m|_max)` from the query (z: the
+/// query's depth, f_max: the larger focal length, |m|_max: the longest normalised ray, at an
+/// image corner; see [`outside_window_distance`]). When the k-th candidate is no farther than
+/// that bound, no point outside the window can be among the k nearest, so the result equals
+/// the kd-tree's (up to ties); otherwise (grazing surfaces, sparse depth) the kd-tree answers.
+/// The semantics are exactly k-NN; the grid only makes the common case cheap.
 pub fn estimate_covariances(tree: &PointTree, neighbours: usize, epsilon: f64) -> Vec<Covariance> {
     let cloud = tree.cloud();
     let positions = &cloud.positions;
