@@ -54,6 +54,13 @@ impl Topic {
         }
     }
 
+    /// Topics whose messages are large (slices of records or pixels): building one in shared
+    /// memory takes long enough (tens of microseconds for a 10k-record patch) that a sender
+    /// wakes its receivers before it starts rather than after it is done.
+    pub const fn is_bulk(self) -> bool {
+        matches!(self, Topic::Patch | Topic::KeyframeImage)
+    }
+
     pub const fn name(self) -> &'static str {
         match self {
             Topic::Descriptor => "descriptor",
