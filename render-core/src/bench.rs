@@ -104,6 +104,10 @@ pub struct BenchCase {
     /// Stages of the optimisation iteration (forward, loss, backward stages, Adam), each
     /// submitted and waited for separately; empty when the iteration is not measured.
     pub iteration_stages: StageTimes,
+    /// The most device memory buffers held at once during the case (the map, its Adam state,
+    /// every frame, loss and gradient buffer; not the sort measurement's own keys), in bytes
+    /// ([`GpuContext::peak_buffer_bytes`]).
+    pub peak_device_bytes: u64,
 }
 
 /// The benchmark camera: `width x height`, principal point at the image centre, at the
@@ -275,6 +279,9 @@ pub fn run_case_on(
 ) -> Result<BenchCase, GpuError> {
     let gaussian_count = cloud.len();
     let camera = *camera;
+    // The peak counts from here, without the buffers of an earlier case.
+    context.release_dropped_buffers()?;
+    context.reset_peak_buffer_bytes();
     let gaussians = DeviceGaussians::upload(context, cloud)?;
     let raster = RasterConfig::default();
     let (warmup, repeats) = (config.warmup, config.repeats);
@@ -380,6 +387,7 @@ pub fn run_case_on(
         (None, None, StageTimes::default())
     };
 
+    let peak_device_bytes = context.peak_buffer_bytes();
     let sort_ms = time_sort(context, renderer, gaussian_count, config)?;
     Ok(BenchCase {
         gaussians: gaussian_count,
@@ -392,6 +400,7 @@ pub fn run_case_on(
         sort_ms,
         stages,
         iteration_stages,
+        peak_device_bytes,
     })
 }
 

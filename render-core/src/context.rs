@@ -1,5 +1,6 @@
 //! wgpu adapter, device and the capabilities the kernels care about.
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{OnceLock, mpsc};
 
 use crate::map::MapKernels;
@@ -41,6 +42,11 @@ pub struct GpuContext {
     /// Kernels of the map edits (prune, compaction, rigid transform), compiled on first use
     /// so that the edit methods need no kernel object from the caller.
     pub(crate) map_kernels: OnceLock<MapKernels>,
+    /// Largest [`GpuContext::buffer_bytes`] seen right after a buffer was created since the
+    /// context was made or [`GpuContext::reset_peak_buffer_bytes`] was called. Buffer memory
+    /// only grows when a buffer is created, and every buffer of the workspace is created by
+    /// this context's helpers, so sampling there catches the exact peak.
+    peak_buffer_bytes: AtomicU64,
 }
 
 impl GpuContext {
@@ -92,7 +98,37 @@ impl GpuContext {
             has_float_atomics,
             has_subgroups,
             map_kernels: OnceLock::new(),
+            peak_buffer_bytes: AtomicU64::new(0),
         })
+    }
+
+    /// Device memory held by live buffers now, in bytes, as wgpu's backend counts it (the
+    /// sub-allocations of buffers, not the larger memory blocks they are carved from). Buffers
+    /// dropped by the host count until the device is polled after their last use
+    /// ([`GpuContext::wait_idle`]).
+    pub fn buffer_bytes(&self) -> u64 {
+        let bytes = self.device.get_internal_counters().hal.buffer_memory.read();
+        u64::try_from(bytes).unwrap_or(0)
+    }
+
+    /// The most device memory buffers held at once since the last
+    /// [`GpuContext::reset_peak_buffer_bytes`] (or since the context was made), in bytes.
+    pub fn peak_buffer_bytes(&self) -> u64 {
+        self.peak_buffer_bytes
+            .load(Ordering::Relaxed)
+            .max(self.buffer_bytes())
+    }
+
+    /// Starts a new peak measurement from the memory buffers hold now.
+    pub fn reset_peak_buffer_bytes(&self) {
+        self.peak_buffer_bytes
+            .store(self.buffer_bytes(), Ordering::Relaxed);
+    }
+
+    /// Called after every buffer creation: updates the peak.
+    fn record_allocation(&self) {
+        self.peak_buffer_bytes
+            .fetch_max(self.buffer_bytes(), Ordering::Relaxed);
     }
 
     /// Largest size in bytes of one storage binding.
@@ -108,6 +144,14 @@ impl GpuContext {
             .poll(wgpu::PollType::wait_indefinitely())
             .map(|_| ())
             .map_err(|e| GpuError::Readback(e.to_string()))
+    }
+
+    /// Frees the device memory of buffers the host has dropped: wgpu releases a dropped
+    /// buffer at a device poll after a submission that follows its last use, so this submits
+    /// an empty batch and waits for the device. Used before memory is measured.
+    pub fn release_dropped_buffers(&self) -> Result<(), GpuError> {
+        self.queue.submit([]);
+        self.wait_idle()
     }
 
     /// A one-line description: adapter name, backend and capabilities.
@@ -133,7 +177,7 @@ impl GpuContext {
         let usage = wgpu::BufferUsages::STORAGE
             | wgpu::BufferUsages::COPY_SRC
             | wgpu::BufferUsages::COPY_DST;
-        if contents.len() >= min_bytes {
+        let buffer = if contents.len() >= min_bytes {
             self.device
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                     label: Some(label),
@@ -149,7 +193,9 @@ impl GpuContext {
                     contents: &padded,
                     usage,
                 })
-        }
+        };
+        self.record_allocation();
+        buffer
     }
 
     /// An uninitialised (zeroed) storage buffer of at least `bytes` (minimum 16).
@@ -163,23 +209,28 @@ impl GpuContext {
                 self.max_storage_binding_bytes()
             )));
         }
-        Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
+        let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size,
             usage: wgpu::BufferUsages::STORAGE
                 | wgpu::BufferUsages::COPY_SRC
                 | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
-        }))
+        });
+        self.record_allocation();
+        Ok(buffer)
     }
 
     pub(crate) fn uniform_buffer(&self, label: &str, contents: &[u8]) -> wgpu::Buffer {
-        self.device
+        let buffer = self
+            .device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
                 contents,
                 usage: wgpu::BufferUsages::UNIFORM,
-            })
+            });
+        self.record_allocation();
+        buffer
     }
 
     /// Copies `bytes` bytes from `offset` in `buffer` to the host (blocks until done).
@@ -198,6 +249,7 @@ impl GpuContext {
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
+        self.record_allocation();
         let mut encoder = self.device.create_command_encoder(&Default::default());
         encoder.copy_buffer_to_buffer(buffer, offset, &staging, 0, bytes);
         self.queue.submit([encoder.finish()]);

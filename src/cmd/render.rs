@@ -14,6 +14,8 @@ use serde::Serialize;
 
 use super::{fmt_num, print_json};
 
+const BYTES_PER_MIB: f64 = 1024.0 * 1024.0;
+
 #[derive(Args)]
 pub struct BenchRenderArgs {
     /// Scene sizes (number of Gaussians), comma-separated.
@@ -65,6 +67,8 @@ struct CaseReport {
     forward_backward_ms: Option<f64>,
     iteration_ms: Option<f64>,
     sort_ms: f64,
+    /// Most device memory held by buffers at once during the case, MiB.
+    peak_device_mib: f64,
     forward_stages: Vec<StageReport>,
     iteration_stages: Vec<StageReport>,
 }
@@ -87,6 +91,7 @@ impl From<BenchCase> for CaseReport {
             forward_backward_ms: case.forward_backward_ms,
             iteration_ms: case.iteration_ms,
             sort_ms: case.sort_ms,
+            peak_device_mib: case.peak_device_bytes as f64 / BYTES_PER_MIB,
             forward_stages: stage_reports(case.stages),
             iteration_stages: stage_reports(case.iteration_stages),
         }
@@ -183,19 +188,20 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
         report.repeats, report.adapter
     );
     println!(
-        "  {:>10} {:>9} {:>11} {:>10} {:>12} {:>11} {:>9}",
-        "gaussians", "size", "pairs", "forward", "fwd+bwd", "iteration", "sort"
+        "  {:>10} {:>9} {:>11} {:>10} {:>12} {:>11} {:>9} {:>11}",
+        "gaussians", "size", "pairs", "forward", "fwd+bwd", "iteration", "sort", "peak MiB"
     );
     for case in &report.cases {
         println!(
-            "  {:>10} {:>9} {:>11} {:>10} {:>12} {:>11} {:>9}",
+            "  {:>10} {:>9} {:>11} {:>10} {:>12} {:>11} {:>9} {:>11}",
             case.gaussians,
             format!("{}x{}", case.width, case.height),
             case.intersections,
             fmt_num(case.forward_ms, 1),
             optional(case.forward_backward_ms),
             optional(case.iteration_ms),
-            fmt_num(case.sort_ms, 1)
+            fmt_num(case.sort_ms, 1),
+            fmt_num(case.peak_device_mib, 1)
         );
     }
     println!("forward stages (each submitted and waited for separately, ms):");
