@@ -110,6 +110,156 @@ pub struct BenchCase {
     pub peak_device_bytes: u64,
 }
 
+/// The (pixel, splat) work of a tile rasterizer on one view, counted on the host (no device):
+/// what the rasterizer kernels spend their arithmetic on, against what contributes to the
+/// image. Splats are the reference projection's, binned into every tile their visible box
+/// (where opacity x exp(power) can reach `min_splat_alpha`) overlaps, and walked front to back
+/// per band of `band_rows` tile rows, as the subgroup rasterizer walks them per subgroup: a
+/// splat whose box misses the band's rows is skipped, any other costs one evaluation per
+/// pixel of the band, until every pixel of the band has terminated.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RasterWorkload {
+    pub tile_size: u32,
+    /// Tile rows one skip test and one early-termination test cover (the subgroup's rows in
+    /// the subgroup rasterizer: one row per lane).
+    pub band_rows: u32,
+    /// Tile/splat pairs (the renderer's pair count is lower, 20 % on the benchmark scene: it
+    /// also drops the tiles of a small rectangle that the splat's ellipse misses).
+    pub pairs: u64,
+    /// (band, splat) steps that were not skipped.
+    pub band_steps: u64,
+    /// Pixel evaluations: `band_steps` x pixels per band.
+    pub evaluations: u64,
+    /// Evaluations where the pixel was still compositing and the splat's alpha reached
+    /// `min_splat_alpha`: the part of the arithmetic that changes the image.
+    pub visible_evaluations: u64,
+}
+
+/// Counts [`RasterWorkload`] for `cloud` seen by `camera` with `tile_size` x `tile_size` tiles
+/// walked in bands of `band_rows` rows (a divisor of `tile_size`). The early-termination test
+/// runs after every splat here; the kernels test after every batch of one splat per lane, so
+/// they run a few more steps than counted.
+pub fn raster_workload(
+    cloud: &GaussianCloud,
+    camera: &Camera,
+    raster: &RasterConfig,
+    tile_size: u32,
+    band_rows: u32,
+) -> Result<RasterWorkload, GpuError> {
+    if tile_size == 0 || band_rows == 0 || tile_size % band_rows != 0 {
+        return Err(GpuError::InvalidInput(format!(
+            "band of {band_rows} rows does not divide a tile of {tile_size} pixels"
+        )));
+    }
+    let (width, height) = (camera.width, camera.height);
+    let min_alpha = f64::from(raster.min_splat_alpha);
+    let max_alpha = f64::from(raster.max_splat_alpha);
+    let min_transmittance = f64::from(raster.min_transmittance);
+    let splats = crate::reference::project_and_sort(cloud, camera);
+    // Visible box [x_min, y_min, x_max, y_max] of each splat (as visible_half_extent in
+    // common.wgsl, without its safety margins).
+    let boxes: Vec<[f64; 4]> = splats
+        .iter()
+        .map(|splat| {
+            let [a, b, c] = splat.conic;
+            let radius_squared = (2.0 * (splat.opacity / min_alpha).ln()).max(0.0);
+            let determinant = a * c - b * b;
+            let half_x = (radius_squared * c / determinant).sqrt();
+            let half_y = (radius_squared * a / determinant).sqrt();
+            let [x, y] = splat.mean2d;
+            [x - half_x, y - half_y, x + half_x, y + half_y]
+        })
+        .collect();
+    let tiles_x = width.div_ceil(tile_size);
+    let tiles_y = height.div_ceil(tile_size);
+    let tile = f64::from(tile_size);
+    let mut lists: Vec<Vec<usize>> = vec![Vec::new(); (tiles_x * tiles_y) as usize];
+    let mut workload = RasterWorkload {
+        tile_size,
+        band_rows,
+        pairs: 0,
+        band_steps: 0,
+        evaluations: 0,
+        visible_evaluations: 0,
+    };
+    for (index, &[x_min, y_min, x_max, y_max]) in boxes.iter().enumerate() {
+        let outside = x_max < 0.0 || y_max < 0.0 || x_min > f64::from(width - 1);
+        // NaN boxes (degenerate conics) fail every comparison and are dropped here too.
+        if outside || y_min > f64::from(height - 1) || !(x_min <= x_max && y_min <= y_max) {
+            continue;
+        }
+        let first_x = (x_min.max(0.0) / tile) as u32;
+        let first_y = (y_min.max(0.0) / tile) as u32;
+        let last_x = ((x_max / tile) as u32).min(tiles_x - 1);
+        let last_y = ((y_max / tile) as u32).min(tiles_y - 1);
+        for tile_y in first_y..=last_y {
+            for tile_x in first_x..=last_x {
+                lists[(tile_y * tiles_x + tile_x) as usize].push(index);
+                workload.pairs += 1;
+            }
+        }
+    }
+    let band_pixels = (band_rows * tile_size) as usize;
+    let mut transmittance = vec![1.0f64; band_pixels];
+    let mut done = vec![false; band_pixels];
+    for tile_y in 0..tiles_y {
+        for tile_x in 0..tiles_x {
+            let list = &lists[(tile_y * tiles_x + tile_x) as usize];
+            for first_row in
+                (tile_y * tile_size..(tile_y + 1) * tile_size).step_by(band_rows as usize)
+            {
+                let rows = first_row..first_row + band_rows;
+                let columns = tile_x * tile_size..(tile_x + 1) * tile_size;
+                for (pixel, (row, column)) in rows
+                    .clone()
+                    .flat_map(|row| columns.clone().map(move |column| (row, column)))
+                    .enumerate()
+                {
+                    transmittance[pixel] = 1.0;
+                    done[pixel] = row >= height || column >= width;
+                }
+                for &index in list {
+                    if done.iter().all(|&d| d) {
+                        break;
+                    }
+                    let [_, y_min, _, y_max] = boxes[index];
+                    if y_min > f64::from(rows.end - 1) || y_max < f64::from(rows.start) {
+                        continue;
+                    }
+                    workload.band_steps += 1;
+                    workload.evaluations += band_pixels as u64;
+                    let splat = &splats[index];
+                    let [a, b, c] = splat.conic;
+                    for (pixel, (row, column)) in rows
+                        .clone()
+                        .flat_map(|row| columns.clone().map(move |column| (row, column)))
+                        .enumerate()
+                    {
+                        if done[pixel] {
+                            continue;
+                        }
+                        let dx = f64::from(column) - splat.mean2d[0];
+                        let dy = f64::from(row) - splat.mean2d[1];
+                        let power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy;
+                        let alpha = (splat.opacity * power.exp()).min(max_alpha);
+                        if power > 0.0 || alpha < min_alpha {
+                            continue;
+                        }
+                        workload.visible_evaluations += 1;
+                        let next = transmittance[pixel] * (1.0 - alpha);
+                        if next < min_transmittance {
+                            done[pixel] = true;
+                        } else {
+                            transmittance[pixel] = next;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(workload)
+}
+
 /// The benchmark camera: `width x height`, principal point at the image centre, at the
 /// world origin looking along +z (world = camera frame).
 pub fn bench_camera(width: u32, height: u32) -> Camera {
@@ -424,6 +574,69 @@ fn time_sort(
 mod tests {
     use super::*;
     use crate::reference;
+
+    #[test]
+    fn raster_workload_counts_band_steps_and_visible_pixels() {
+        // One opaque-ish splat near the corner of a 32x32 image (2x2 tiles of 16), small
+        // enough (visible box about 4 pixels each way) to stay inside tile (0, 0)'s first
+        // band of 8 rows.
+        let camera = bench_camera(32, 32);
+        let mut cloud = GaussianCloud::default();
+        let depth = 2.0;
+        let (u, v) = (4.0, 3.5);
+        let mean = [
+            (u - camera.cx) / camera.fx * depth,
+            (v - camera.cy) / camera.fy * depth,
+            depth,
+        ];
+        // About one pixel of standard deviation; opacity 0.9 (logit ln 9).
+        let sigma = depth / camera.fx;
+        cloud.push(
+            mean,
+            [sigma.ln(); 3],
+            [1.0, 0.0, 0.0, 0.0],
+            9f32.ln(),
+            [0.5; 3],
+        );
+        let raster = RasterConfig::default();
+        let workload = raster_workload(&cloud, &camera, &raster, 16, 8).unwrap();
+        assert_eq!(
+            workload.pairs,
+            1,
+            "{workload:?} {:?}",
+            crate::reference::project_and_sort(&cloud, &camera)
+                .iter()
+                .map(|s| (s.mean2d, s.conic, s.opacity))
+                .collect::<Vec<_>>()
+        );
+        assert_eq!(workload.band_steps, 1);
+        assert_eq!(workload.evaluations, 16 * 8);
+        assert!(workload.visible_evaluations > 0);
+        assert!(workload.visible_evaluations < workload.evaluations);
+        // Bands of a whole tile evaluate the tile once; the visible count does not change.
+        let whole = raster_workload(&cloud, &camera, &raster, 16, 16).unwrap();
+        assert_eq!(whole.evaluations, 16 * 16);
+        assert_eq!(whole.visible_evaluations, workload.visible_evaluations);
+        assert!(raster_workload(&cloud, &camera, &raster, 16, 5).is_err());
+    }
+
+    #[test]
+    fn raster_workload_of_the_benchmark_scene_is_mostly_waste_but_bounded() {
+        let camera = bench_camera(160, 120);
+        let cloud = realistic_scene(&camera, 5_000, 7);
+        let raster = RasterConfig::default();
+        let bands_of_8 = raster_workload(&cloud, &camera, &raster, 16, 8).unwrap();
+        let bands_of_4 = raster_workload(&cloud, &camera, &raster, 16, 4).unwrap();
+        assert!(bands_of_8.visible_evaluations > 0);
+        assert!(bands_of_8.visible_evaluations <= bands_of_8.evaluations);
+        assert!(bands_of_8.evaluations <= bands_of_8.pairs * 16 * 16);
+        // Narrower bands skip more and never see a different image.
+        assert!(bands_of_4.evaluations <= bands_of_8.evaluations);
+        assert_eq!(
+            bands_of_4.visible_evaluations,
+            bands_of_8.visible_evaluations
+        );
+    }
 
     #[test]
     fn realistic_scene_is_deterministic_and_fills_the_view() {

@@ -6,10 +6,14 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args;
-use render_core::bench::{BenchCase, BenchConfig, run_case, run_case_on};
+use render_core::bench::{
+    BenchCase, BenchConfig, RasterWorkload, bench_camera, raster_workload, realistic_scene,
+    run_case, run_case_on,
+};
 use render_core::context::GpuContext;
 use render_core::gpu::{GpuRenderer, RendererOptions, StageTimes, Subgroups};
 use render_core::training::TrainingKernels;
+use render_core::{Camera, GaussianCloud, RasterConfig};
 use serde::Serialize;
 
 use super::{fmt_num, print_json};
@@ -39,6 +43,11 @@ pub struct BenchRenderArgs {
     no_subgroups: bool,
     #[arg(long)]
     json: bool,
+    /// Also count each case's rasterizer workload on the host: (pixel, splat) evaluations for
+    /// 16- and 8-pixel tiles walked in bands of 16, 8 or 4 rows, against the evaluations that
+    /// change the image (render_core::bench::raster_workload).
+    #[arg(long)]
+    workload: bool,
     /// Time this map (standard 3DGS PLY, e.g. a SLAM run's map.ply) instead of the synthetic
     /// scene; needs --pose and --intrinsics, and uses --width/--height as the image size.
     #[arg(long, requires_all = ["pose", "intrinsics"])]
@@ -71,6 +80,47 @@ struct CaseReport {
     peak_device_mib: f64,
     forward_stages: Vec<StageReport>,
     iteration_stages: Vec<StageReport>,
+    /// With `--workload`: rasterizer work per tile size and band height.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    workload: Vec<WorkloadReport>,
+}
+
+#[derive(Serialize)]
+struct WorkloadReport {
+    tile_size: u32,
+    band_rows: u32,
+    pairs: u64,
+    band_steps: u64,
+    evaluations: u64,
+    visible_evaluations: u64,
+}
+
+impl From<RasterWorkload> for WorkloadReport {
+    fn from(w: RasterWorkload) -> Self {
+        Self {
+            tile_size: w.tile_size,
+            band_rows: w.band_rows,
+            pairs: w.pairs,
+            band_steps: w.band_steps,
+            evaluations: w.evaluations,
+            visible_evaluations: w.visible_evaluations,
+        }
+    }
+}
+
+/// (tile size, band rows) counted by `--workload`: this renderer's 16-pixel tiles (a band is
+/// the rows of one subgroup, 8 on lavapipe) and what smaller bands or tiles would do.
+const WORKLOAD_LAYOUTS: [(u32, u32); 5] = [(16, 16), (16, 8), (16, 4), (8, 8), (8, 4)];
+
+fn workload_reports(cloud: &GaussianCloud, camera: &Camera) -> anyhow::Result<Vec<WorkloadReport>> {
+    WORKLOAD_LAYOUTS
+        .iter()
+        .map(|&(tile, band)| {
+            raster_workload(cloud, camera, &RasterConfig::default(), tile, band)
+                .map(WorkloadReport::from)
+                .map_err(anyhow::Error::from)
+        })
+        .collect()
 }
 
 #[derive(Serialize)]
@@ -94,6 +144,7 @@ impl From<BenchCase> for CaseReport {
             peak_device_mib: case.peak_device_bytes as f64 / BYTES_PER_MIB,
             forward_stages: stage_reports(case.stages),
             iteration_stages: stage_reports(case.iteration_stages),
+            workload: Vec::new(),
         }
     }
 }
@@ -157,7 +208,11 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
         }
         let case = run_case_on(&context, &renderer, &kernels, &config, &map, &camera)
             .with_context(|| format!("benchmarking {}", path.display()))?;
-        cases.push(CaseReport::from(case));
+        let mut report = CaseReport::from(case);
+        if args.workload {
+            report.workload = workload_reports(&map, &camera)?;
+        }
+        cases.push(report);
     }
     for &count in config.gaussian_counts.iter().filter(|_| args.map.is_none()) {
         if !args.json {
@@ -168,7 +223,13 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
         }
         let case = run_case(&context, &renderer, &kernels, &config, count)
             .with_context(|| format!("benchmarking {count} Gaussians"))?;
-        cases.push(CaseReport::from(case));
+        let mut report = CaseReport::from(case);
+        if args.workload {
+            let camera = bench_camera(config.width, config.height);
+            report.workload =
+                workload_reports(&realistic_scene(&camera, count, config.seed), &camera)?;
+        }
+        cases.push(report);
     }
     let report = BenchRenderReport {
         adapter: if renderer.uses_subgroups {
@@ -212,6 +273,32 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
             .map(|s| format!("{} {}", s.stage, fmt_num(s.ms, 1)))
             .collect();
         println!("  {:>10}: {}", case.gaussians, stages.join(", "));
+    }
+    if report.cases.iter().any(|c| !c.workload.is_empty()) {
+        println!(
+            "rasterizer workload (host count; evaluations = pixels x splats walked, visible = those that change the image):"
+        );
+        println!(
+            "  {:>10} {:>6} {:>6} {:>11} {:>13} {:>12} {:>8}",
+            "gaussians", "tile", "band", "pairs", "evaluations", "visible", "visible %"
+        );
+        for case in &report.cases {
+            for w in &case.workload {
+                println!(
+                    "  {:>10} {:>6} {:>6} {:>11} {:>13} {:>12} {:>8}",
+                    case.gaussians,
+                    w.tile_size,
+                    w.band_rows,
+                    w.pairs,
+                    w.evaluations,
+                    w.visible_evaluations,
+                    fmt_num(
+                        100.0 * w.visible_evaluations as f64 / w.evaluations.max(1) as f64,
+                        1
+                    )
+                );
+            }
+        }
     }
     if report.cases.iter().any(|c| !c.iteration_stages.is_empty()) {
         println!("iteration stages (each submitted and waited for separately, ms):");
