@@ -146,7 +146,7 @@ pub fn raster_workload(
     tile_size: u32,
     band_rows: u32,
 ) -> Result<RasterWorkload, GpuError> {
-    if tile_size == 0 || band_rows == 0 || tile_size % band_rows != 0 {
+    if tile_size == 0 || band_rows == 0 || !tile_size.is_multiple_of(band_rows) {
         return Err(GpuError::InvalidInput(format!(
             "band of {band_rows} rows does not divide a tile of {tile_size} pixels"
         )));
