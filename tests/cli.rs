@@ -379,3 +379,52 @@ fn config_resolves_overrides_and_refuses_unknown_keys() {
     assert!(!malformed.status.success());
     assert!(String::from_utf8_lossy(&malformed.stderr).contains("KEY=VALUE"));
 }
+
+#[test]
+fn bench_render_json_has_every_case_with_its_peak_memory_and_workload() {
+    let report = stdout_json(&mac_ego3d(&[
+        "bench",
+        "render",
+        "--gaussians",
+        "300,600",
+        "--sizes",
+        "64x48,32x24",
+        "--repeats",
+        "1",
+        "--warmup",
+        "0",
+        "--workload",
+        "--json",
+    ]));
+    let cases = report["cases"].as_array().expect("cases");
+    let sizes: Vec<(u64, u64, u64)> = cases
+        .iter()
+        .map(|c| {
+            (
+                c["width"].as_u64().unwrap(),
+                c["height"].as_u64().unwrap(),
+                c["gaussians"].as_u64().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        sizes,
+        [(64, 48, 300), (64, 48, 600), (32, 24, 300), (32, 24, 600)]
+    );
+    for case in cases {
+        for key in ["forward_ms", "forward_backward_ms", "iteration_ms"] {
+            assert!(case[key].as_f64().unwrap() > 0.0, "{key}: {case}");
+        }
+        // The map, its frame buffers and the optimiser state: more than nothing, far less
+        // than the 128 MiB binding limit at these sizes.
+        let peak = case["peak_device_mib"].as_f64().unwrap();
+        assert!(peak > 0.0 && peak < 128.0, "peak_device_mib {peak}");
+        let workload = case["workload"].as_array().expect("workload");
+        assert!(!workload.is_empty());
+        for layout in workload {
+            let evaluations = layout["evaluations"].as_u64().unwrap();
+            let visible = layout["visible_evaluations"].as_u64().unwrap();
+            assert!(visible <= evaluations, "{layout}");
+        }
+    }
+}

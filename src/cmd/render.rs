@@ -22,18 +22,24 @@ const BYTES_PER_MIB: f64 = 1024.0 * 1024.0;
 
 #[derive(Args)]
 pub struct BenchRenderArgs {
-    /// Scene sizes (number of Gaussians), comma-separated.
-    #[arg(long, value_delimiter = ',', default_values_t = [10_000usize, 100_000, 1_000_000])]
+    /// Scene sizes (number of Gaussians), comma-separated; every one is measured at every
+    /// image size.
+    #[arg(long, value_delimiter = ',', default_values_t = [10_000usize, 100_000, 300_000])]
     gaussians: Vec<usize>,
-    #[arg(long, default_value_t = 640)]
-    width: u32,
-    #[arg(long, default_value_t = 480)]
-    height: u32,
+    /// Image sizes "WxH", comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "320x240,640x480")]
+    sizes: Vec<String>,
+    /// One image size instead of --sizes (with --height); with --map, the size its
+    /// --intrinsics are for.
+    #[arg(long, requires = "height")]
+    width: Option<u32>,
+    #[arg(long, requires = "width")]
+    height: Option<u32>,
     /// Timed runs per measurement (the median is reported).
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = 20)]
     repeats: usize,
     /// Untimed warm-up runs per measurement.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 2)]
     warmup: usize,
     /// Time the forward pass only (skip forward + backward and the optimisation iteration).
     #[arg(long)]
@@ -49,8 +55,8 @@ pub struct BenchRenderArgs {
     #[arg(long)]
     workload: bool,
     /// Time this map (standard 3DGS PLY, e.g. a SLAM run's map.ply) instead of the synthetic
-    /// scene; needs --pose and --intrinsics, and uses --width/--height as the image size.
-    #[arg(long, requires_all = ["pose", "intrinsics"])]
+    /// scene; needs --pose, --intrinsics, --width and --height (the image size).
+    #[arg(long, requires_all = ["pose", "intrinsics", "width", "height"])]
     map: Option<PathBuf>,
     /// With --map: camera-to-world pose, TUM order "tx ty tz qx qy qz qw".
     #[arg(long, allow_hyphen_values = true)]
@@ -160,15 +166,32 @@ fn stage_reports(stages: StageTimes) -> Vec<StageReport> {
         .collect()
 }
 
+/// The image sizes to measure: --width x --height when given, else --sizes.
+fn image_sizes(args: &BenchRenderArgs) -> anyhow::Result<Vec<(u32, u32)>> {
+    let sizes = match (args.width, args.height) {
+        (Some(width), Some(height)) => {
+            anyhow::ensure!(
+                width > 0 && height > 0,
+                "--width and --height must be positive"
+            );
+            vec![(width, height)]
+        }
+        _ => args
+            .sizes
+            .iter()
+            .map(|size| super::render_map::parse_size(size, "--sizes"))
+            .collect::<anyhow::Result<_>>()?,
+    };
+    anyhow::ensure!(!sizes.is_empty(), "--sizes needs at least one size");
+    Ok(sizes)
+}
+
 pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
-    anyhow::ensure!(
-        args.width > 0 && args.height > 0,
-        "--width and --height must be positive"
-    );
     anyhow::ensure!(
         !args.gaussians.is_empty(),
         "--gaussians needs at least one size"
     );
+    let sizes = image_sizes(args)?;
     let context = GpuContext::new().context("creating the wgpu device")?;
     let renderer = GpuRenderer::with_options(
         &context,
@@ -184,26 +207,22 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
     let kernels = TrainingKernels::new(&context);
     let config = BenchConfig {
         gaussian_counts: args.gaussians.clone(),
-        width: args.width,
-        height: args.height,
         warmup: args.warmup,
         repeats: args.repeats.max(1),
         iteration: !args.forward_only,
         ..BenchConfig::default()
     };
-    let mut cases = Vec::with_capacity(config.gaussian_counts.len());
+    let mut cases = Vec::with_capacity(config.gaussian_counts.len() * sizes.len());
     if let (Some(path), Some(pose), Some(intrinsics)) = (&args.map, &args.pose, &args.intrinsics) {
-        let camera =
-            super::render_map::camera_from_args(pose, intrinsics, args.width, args.height)?;
+        let (width, height) = sizes[0];
+        let camera = super::render_map::camera_from_args(pose, intrinsics, width, height)?;
         let map = render_core::ply::load_ply(path)
             .with_context(|| format!("reading map {}", path.display()))?;
         if !args.json {
             eprintln!(
-                "measuring {} ({} Gaussians) at {}x{} ...",
+                "measuring {} ({} Gaussians) at {width}x{height} ...",
                 path.display(),
                 map.len(),
-                args.width,
-                args.height
             );
         }
         let case = run_case_on(&context, &renderer, &kernels, &config, &map, &camera)
@@ -214,22 +233,31 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
         }
         cases.push(report);
     }
-    for &count in config.gaussian_counts.iter().filter(|_| args.map.is_none()) {
-        if !args.json {
-            eprintln!(
-                "measuring {count} Gaussians at {}x{} ...",
-                args.width, args.height
-            );
+    let synthetic_sizes = if args.map.is_none() {
+        sizes.as_slice()
+    } else {
+        &[]
+    };
+    for &(width, height) in synthetic_sizes {
+        let config = BenchConfig {
+            width,
+            height,
+            ..config.clone()
+        };
+        for &count in &config.gaussian_counts {
+            if !args.json {
+                eprintln!("measuring {count} Gaussians at {width}x{height} ...");
+            }
+            let case = run_case(&context, &renderer, &kernels, &config, count)
+                .with_context(|| format!("benchmarking {count} Gaussians at {width}x{height}"))?;
+            let mut report = CaseReport::from(case);
+            if args.workload {
+                let camera = bench_camera(width, height);
+                let scene = realistic_scene(&camera, count, config.seed);
+                report.workload = workload_reports(&scene, &camera)?;
+            }
+            cases.push(report);
         }
-        let case = run_case(&context, &renderer, &kernels, &config, count)
-            .with_context(|| format!("benchmarking {count} Gaussians"))?;
-        let mut report = CaseReport::from(case);
-        if args.workload {
-            let camera = bench_camera(config.width, config.height);
-            report.workload =
-                workload_reports(&realistic_scene(&camera, count, config.seed), &camera)?;
-        }
-        cases.push(report);
     }
     let report = BenchRenderReport {
         adapter: if renderer.uses_subgroups {

@@ -60,14 +60,15 @@ fn parse_numbers(
     Ok(values)
 }
 
-fn parse_size(text: &str) -> anyhow::Result<(u32, u32)> {
+/// An image size "WxH" given to option `flag`.
+pub fn parse_size(text: &str, flag: &str) -> anyhow::Result<(u32, u32)> {
     let (w, h) = text
         .split_once(['x', 'X'])
-        .with_context(|| format!("--size {text:?}: expected WxH, e.g. 640x480"))?;
+        .with_context(|| format!("{flag} {text:?}: expected WxH, e.g. 640x480"))?;
     let parse = |v: &str| v.trim().parse::<u32>().ok().filter(|&n| n > 0);
     match (parse(w), parse(h)) {
         (Some(w), Some(h)) => Ok((w, h)),
-        _ => bail!("--size {text:?}: width and height must be positive integers"),
+        _ => bail!("{flag} {text:?}: width and height must be positive integers"),
     }
 }
 
@@ -103,7 +104,7 @@ pub fn camera_from_args(
 }
 
 pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
-    let (width, height) = parse_size(&args.size)?;
+    let (width, height) = parse_size(&args.size, "--size")?;
     let camera = camera_from_args(&args.pose, &args.intrinsics, width, height)?;
     let map = load_ply(&args.map).with_context(|| format!("reading map {}", args.map.display()))?;
 
