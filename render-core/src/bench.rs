@@ -294,7 +294,8 @@ fn ellipse_x_extent(
     let half_y = (radius_squared * a / determinant).sqrt();
     let low = y_min.max(mean[1] - half_y);
     let high = y_max.min(mean[1] + half_y);
-    if !(low <= high) {
+    // A degenerate conic gives NaN bounds: that misses too.
+    if low.is_nan() || high.is_nan() || low > high {
         return None;
     }
     // The ellipse's chord at row y: centre mean.x - b dy / a, half-width
