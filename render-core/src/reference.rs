@@ -242,6 +242,47 @@ struct PixelResult {
     contributions: Vec<Contribution>,
 }
 
+/// A splat evaluated at a pixel centre, where it reaches the pixel.
+pub(crate) struct SplatAtPixel {
+    /// Pixel centre minus the splat's mean.
+    pub offset: [f64; 2],
+    /// exp(power), before the opacity.
+    pub gaussian_value: f64,
+    /// opacity x gaussian_value, capped at `max_splat_alpha`.
+    pub alpha: f64,
+    /// True when the cap applied (no opacity or footprint gradient then).
+    pub clamped: bool,
+}
+
+/// `splat` at pixel centre `pixel`, as every rasterizer here evaluates it; `None` where it
+/// adds nothing (beyond its peak's side of the quadratic, or alpha below `min_splat_alpha`).
+pub(crate) fn splat_at_pixel(
+    splat: &ProjectedGaussian,
+    pixel: [f64; 2],
+    config: &RasterConfig,
+) -> Option<SplatAtPixel> {
+    let offset = [pixel[0] - splat.mean2d[0], pixel[1] - splat.mean2d[1]];
+    let [a, b, c] = splat.conic;
+    let power =
+        -0.5 * (a * offset[0] * offset[0] + c * offset[1] * offset[1]) - b * offset[0] * offset[1];
+    if power > 0.0 {
+        return None;
+    }
+    let gaussian_value = power.exp();
+    let raw_alpha = splat.opacity * gaussian_value;
+    let max_alpha = f64::from(config.max_splat_alpha);
+    let alpha = raw_alpha.min(max_alpha);
+    if alpha < f64::from(config.min_splat_alpha) {
+        return None;
+    }
+    Some(SplatAtPixel {
+        offset,
+        gaussian_value,
+        alpha,
+        clamped: raw_alpha > max_alpha,
+    })
+}
+
 fn composite_pixel(
     splats: &[ProjectedGaussian],
     col: u32,
@@ -263,21 +304,15 @@ fn composite_pixel(
         {
             continue;
         }
-        let offset = [pixel[0] - splat.mean2d[0], pixel[1] - splat.mean2d[1]];
-        let [a, b, c] = splat.conic;
-        let power = -0.5 * (a * offset[0] * offset[0] + c * offset[1] * offset[1])
-            - b * offset[0] * offset[1];
-        if power > 0.0 {
+        let Some(SplatAtPixel {
+            offset,
+            gaussian_value,
+            alpha,
+            clamped,
+        }) = splat_at_pixel(splat, pixel, config)
+        else {
             continue;
-        }
-        let gaussian_value = power.exp();
-        let raw_alpha = splat.opacity * gaussian_value;
-        let max_alpha = f64::from(config.max_splat_alpha);
-        let clamped = raw_alpha > max_alpha;
-        let alpha = raw_alpha.min(max_alpha);
-        if alpha < f64::from(config.min_splat_alpha) {
-            continue;
-        }
+        };
         let next_transmittance = transmittance * (1.0 - alpha);
         if next_transmittance < f64::from(config.min_transmittance) {
             break;
