@@ -181,12 +181,9 @@ impl KeyframeInbox {
     }
 
     fn retire_if_complete(&mut self, id: KeyframeRef) {
-        if self
-            .pending
-            .get(&id)
-            .is_some_and(|pending| pending.forwarded.is_some() && pending.patch)
-            && let Some(frame_index) = self.pending.remove(&id).and_then(|p| p.forwarded)
-        {
+        let forwarded_with_patch = self.pending.get(&id).filter(|p| p.patch);
+        if let Some(frame_index) = forwarded_with_patch.and_then(|p| p.forwarded) {
+            self.pending.remove(&id);
             self.given_up.remove(&id);
             self.complete.insert(id, frame_index);
         }
