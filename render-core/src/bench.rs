@@ -55,6 +55,13 @@ const MARGIN_PIXELS: f32 = 24.0;
 /// Depth of the synthetic target image used by the loss (metres).
 const TARGET_DEPTH: f32 = 2.5;
 
+/// The benchmark's default cases (issue 3): these Gaussian counts at these image sizes, each
+/// figure the median of [`DEFAULT_REPEATS`] runs after [`DEFAULT_WARMUP`] untimed ones.
+pub const DEFAULT_GAUSSIAN_COUNTS: [usize; 3] = [10_000, 100_000, 300_000];
+pub const DEFAULT_IMAGE_SIZES: [(u32, u32); 2] = [(320, 240), (640, 480)];
+pub const DEFAULT_REPEATS: usize = 20;
+pub const DEFAULT_WARMUP: usize = 2;
+
 /// What to measure.
 #[derive(Clone, Debug)]
 pub struct BenchConfig {
@@ -73,11 +80,11 @@ pub struct BenchConfig {
 impl Default for BenchConfig {
     fn default() -> Self {
         Self {
-            gaussian_counts: vec![10_000, 100_000, 1_000_000],
-            width: 640,
-            height: 480,
-            warmup: 1,
-            repeats: 5,
+            gaussian_counts: DEFAULT_GAUSSIAN_COUNTS.to_vec(),
+            width: DEFAULT_IMAGE_SIZES[1].0,
+            height: DEFAULT_IMAGE_SIZES[1].1,
+            warmup: DEFAULT_WARMUP,
+            repeats: DEFAULT_REPEATS,
             iteration: true,
             seed: 7,
         }

@@ -7,8 +7,9 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Args;
 use render_core::bench::{
-    BenchCase, BenchConfig, RasterWorkload, bench_camera, raster_workload, realistic_scene,
-    run_case, run_case_on,
+    BenchCase, BenchConfig, DEFAULT_GAUSSIAN_COUNTS, DEFAULT_IMAGE_SIZES, DEFAULT_REPEATS,
+    DEFAULT_WARMUP, RasterWorkload, bench_camera, raster_workload, realistic_scene, run_case,
+    run_case_on,
 };
 use render_core::context::GpuContext;
 use render_core::gpu::{GpuRenderer, RendererOptions, StageTimes, Subgroups};
@@ -24,11 +25,11 @@ const BYTES_PER_MIB: f64 = 1024.0 * 1024.0;
 pub struct BenchRenderArgs {
     /// Scene sizes (number of Gaussians), comma-separated; every one is measured at every
     /// image size.
-    #[arg(long, value_delimiter = ',', default_values_t = [10_000usize, 100_000, 300_000])]
+    #[arg(long, value_delimiter = ',', default_values_t = DEFAULT_GAUSSIAN_COUNTS)]
     gaussians: Vec<usize>,
-    /// Image sizes "WxH", comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "320x240,640x480")]
-    sizes: Vec<String>,
+    /// Image sizes "WxH", comma-separated [default: 320x240,640x480].
+    #[arg(long, value_delimiter = ',')]
+    sizes: Option<Vec<String>>,
     /// One image size instead of --sizes (with --height); with --map, the size its
     /// --intrinsics are for.
     #[arg(long, requires = "height")]
@@ -36,10 +37,10 @@ pub struct BenchRenderArgs {
     #[arg(long, requires = "width")]
     height: Option<u32>,
     /// Timed runs per measurement (the median is reported).
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = DEFAULT_REPEATS)]
     repeats: usize,
     /// Untimed warm-up runs per measurement.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = DEFAULT_WARMUP)]
     warmup: usize,
     /// Time the forward pass only (skip forward + backward and the optimisation iteration).
     #[arg(long)]
@@ -176,11 +177,13 @@ fn image_sizes(args: &BenchRenderArgs) -> anyhow::Result<Vec<(u32, u32)>> {
             );
             vec![(width, height)]
         }
-        _ => args
-            .sizes
-            .iter()
-            .map(|size| super::render_map::parse_size(size, "--sizes"))
-            .collect::<anyhow::Result<_>>()?,
+        _ => match &args.sizes {
+            Some(sizes) => sizes
+                .iter()
+                .map(|size| super::render_map::parse_size(size, "--sizes"))
+                .collect::<anyhow::Result<_>>()?,
+            None => DEFAULT_IMAGE_SIZES.to_vec(),
+        },
     };
     anyhow::ensure!(!sizes.is_empty(), "--sizes needs at least one size");
     Ok(sizes)
