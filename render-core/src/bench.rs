@@ -740,7 +740,7 @@ mod tests {
     }
 
     #[test]
-    fn raster_workload_of_the_benchmark_scene_is_mostly_waste_but_bounded() {
+    fn raster_workload_is_bounded_and_narrower_bands_see_the_same_image() {
         let camera = bench_camera(160, 120);
         let cloud = realistic_scene(&camera, 5_000, 7);
         let raster = RasterConfig::default();
