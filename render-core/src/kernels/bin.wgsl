@@ -7,7 +7,8 @@
 //   gives every Gaussian the depth-order index of its first pair).
 // - `pair_status_from_scan` (ONE invocation): pair_status = [pairs kept, pairs needed]; the
 //   needed count is the last scan entry, the kept count is capped at the capacity.
-// - `count_pairs` (one invocation per block, 64 per workgroup, walking its block serially):
+// - `count_pairs` (one invocation per block, BLOCK_WORKGROUP_SIZE per workgroup, walking its
+//   block serially):
 //   adds 1 to (tile, block) for every kept pair of the block's Gaussians: the tiles of the
 //   Gaussian's rectangle (tile_rects: first tile, columns | rows << 16, and for rectangles
 //   of up to 32 tiles a row-major mask of the tiles the splat reaches, see project.wgsl).
@@ -48,7 +49,8 @@ struct BinParams {
 // [pairs kept, pairs needed]
 @group(0) @binding(9) var<storage, read_write> pair_status: array<u32>;
 
-const BLOCK_WORKGROUP_SIZE: u32 = 64u;
+// BIN_WORKGROUP_SIZE in gpu.rs.
+const BLOCK_WORKGROUP_SIZE: u32 = 8u;
 // Rectangles of at most this many tiles carry a mask of their binned tiles (project.wgsl).
 const MAX_MASKED_TILES: u32 = 32u;
 
@@ -88,7 +90,9 @@ fn walk_block(block: u32, emit: bool) {
         let gaussian = sorted_gaussians[k];
         let count = tile_counts[gaussian];
         if count == 0u {
-            continue;
+            // Only culled Gaussians bin no tile, and their depth key sorts them behind every
+            // visible one (project.wgsl): the rest of the block is culled too.
+            break;
         }
         // The inclusive scan holds the end of this Gaussian's pairs in depth order.
         let first_pair = sorted_tile_counts[k] - count;
@@ -102,11 +106,20 @@ fn walk_block(block: u32, emit: bool) {
         let area = columns * (rect.z >> 16u);
         let masked = area <= MAX_MASKED_TILES;
         var binned = 0u;
+        // The tile's column and row advance with i (no integer division: SIMD CPU adapters
+        // divide lane by lane, at dozens of cycles each).
+        var column = 0u;
+        var tile_row_start = rect.y * bin_params.tiles_x + rect.x;
         for (var i = 0u; i < area && binned < kept; i++) {
+            let tile = tile_row_start + column;
+            column += 1u;
+            if column == columns {
+                column = 0u;
+                tile_row_start += bin_params.tiles_x;
+            }
             if masked && ((rect.w >> i) & 1u) == 0u {
                 continue;
             }
-            let tile = (rect.y + i / columns) * bin_params.tiles_x + rect.x + i % columns;
             let entry = tile * block_count + block;
             let slot = table[entry];
             table[entry] = slot + 1u;

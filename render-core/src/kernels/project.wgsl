@@ -206,8 +206,11 @@ fn main(
             + VISIBLE_RADIUS_SQUARED_MARGIN;
         tile_mask = 0u;
         tile_count = 0u;
+        // The tile's column and row advance with i (no integer division: SIMD CPU adapters
+        // divide lane by lane, at dozens of cycles each).
+        var cell = vec2<u32>(0u);
         for (var i = 0u; i < columns * rows; i++) {
-            let tile_origin = vec2<f32>(first_tile + vec2<u32>(i % columns, i / columns)) * tile;
+            let tile_origin = vec2<f32>(first_tile + cell) * tile;
             let low = tile_origin - mean2d;
             let nearest = box_min_quadratic(low, low + (tile - 1.0), conic);
             // NaN compares false: such a tile is kept.
@@ -215,6 +218,8 @@ fn main(
                 tile_mask |= 1u << i;
                 tile_count += 1u;
             }
+            let row_ends = cell.x + 1u == columns;
+            cell = select(vec2<u32>(cell.x + 1u, cell.y), vec2<u32>(0u, cell.y + 1u), row_ends);
         }
         if tile_count == 0u {
             cull(index);
