@@ -81,3 +81,41 @@ fn pop_lowest_lane(ballot: ptr<function, vec4<u32>>) -> u32 {
     }
     return NO_LANE;
 }
+
+// Largest per-pixel step of a splat's power that row_gaussian_values lets its ratio take
+// (exp(80) ~ 5.5e34 stays finite in f32; steps in reach of a visible pixel are below 39).
+const MAX_PIXEL_STEP_POWER: f32 = 80.0;
+
+// exp(power) of a splat at the 4 pixels x0 .. x0 + 3 of one row (the vec4 components), where
+// power = -0.5 (a dx^2 + c dy^2) - b dx dy, conic = (a, b, c), dx = x - mean x (offset_x0 at
+// x0) and dy = offset_y. Both rasterizers evaluate splats only through this function, so the
+// backward pass recomputes the forward's alpha bit for bit.
+// Why not one exp per pixel: on SIMD CPU adapters the exp is half of a pixel's compositing
+// arithmetic. power is quadratic in x, so the value at the next pixel is the current one times
+// exp(step), and each step is the previous one minus a: one exp at x0, one for the first
+// ratio, then multiplications (`ratio_growth` = exp(-a), once per splat, from the caller).
+// Range: every conic has a <= 1 / (low-pass variance 0.3 px^2), so in a group with any pixel
+// where alpha can reach 1/255 (power >= -5.6) the power at x0 is >= -39 and the steps are
+// below 39: no under- or overflow, and the values equal per-pixel exps to a few ulps of the
+// power (the CPU reference's tolerance). Elsewhere a value may be 0, above 1, inf or NaN
+// (an underflowed value times a huge ratio): callers treat any value not <= 1 as invisible,
+// which NaN is too (it compares false), and the ratio cap keeps the valid ones finite.
+fn row_gaussian_values(conic: vec3<f32>, offset_x0: f32, offset_y: f32, ratio_growth: f32)
+    -> vec4<f32> {
+    let power0 = -0.5 * (conic.x * offset_x0 * offset_x0 + conic.z * offset_y * offset_y)
+        - conic.y * offset_x0 * offset_y;
+    // power(x0 + 1) - power(x0)
+    let step0 = -(conic.x * (offset_x0 + 0.5) + conic.y * offset_y);
+    let value0 = exp(power0);
+    let ratio0 = exp(min(step0, MAX_PIXEL_STEP_POWER));
+    let value1 = value0 * ratio0;
+    let ratio1 = ratio0 * ratio_growth;
+    let value2 = value1 * ratio1;
+    let value3 = value2 * (ratio1 * ratio_growth);
+    return vec4<f32>(value0, value1, value2, value3);
+}
+
+// The ratio_growth of row_gaussian_values for a splat: exp(-a).
+fn row_ratio_growth(conic: vec3<f32>) -> f32 {
+    return exp(-conic.x);
+}

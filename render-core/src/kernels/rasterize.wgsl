@@ -63,10 +63,11 @@ fn main(
         for (var j = 0u; j < batch_length; j++) {
             let splat = Splat(batch_position[j], batch_conic[j], batch_colour[j]);
             let entry = batch * BATCH_SIZE + j + 1u;
-            composite(&group0, pixel_y, splat, entry);
-            composite(&group1, pixel_y, splat, entry);
-            composite(&group2, pixel_y, splat, entry);
-            composite(&group3, pixel_y, splat, entry);
+            let ratio_growth = row_ratio_growth(splat.conic);
+            composite(&group0, pixel_y, splat, ratio_growth, entry);
+            composite(&group1, pixel_y, splat, ratio_growth, entry);
+            composite(&group2, pixel_y, splat, ratio_growth, entry);
+            composite(&group3, pixel_y, splat, ratio_growth, entry);
         }
         workgroupBarrier();
     }

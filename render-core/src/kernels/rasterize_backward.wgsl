@@ -62,10 +62,11 @@ fn main(
             let entry = list_length - 1u - (first_reversed + j);
             let splat = Splat(batch_position[j], batch_conic[j], batch_colour[j]);
             var partials = zero_partials();
-            let hit0 = accumulate(&group0, pixel_y, splat, entry, &partials);
-            let hit1 = accumulate(&group1, pixel_y, splat, entry, &partials);
-            let hit2 = accumulate(&group2, pixel_y, splat, entry, &partials);
-            let hit3 = accumulate(&group3, pixel_y, splat, entry, &partials);
+            let ratio_growth = row_ratio_growth(splat.conic);
+            let hit0 = accumulate(&group0, pixel_y, splat, ratio_growth, entry, &partials);
+            let hit1 = accumulate(&group1, pixel_y, splat, ratio_growth, entry, &partials);
+            let hit2 = accumulate(&group2, pixel_y, splat, ratio_growth, entry, &partials);
+            let hit3 = accumulate(&group3, pixel_y, splat, ratio_growth, entry, &partials);
             if hit0 || hit1 || hit2 || hit3 {
                 add_splat_gradient(batch_gaussian[j], total(partials));
             }

@@ -158,8 +158,9 @@ fn add_splat_gradient(gaussian: u32, g: SplatGradient) {
 // Un-composites `splat` (list entry `entry` of the tile, walking back to front) from the
 // group's pixels and adds its gradients into `partials`. Returns whether any pixel of the
 // group saw the splat.
-fn accumulate(group: ptr<function, PixelGradients>, pixel_y: f32, splat: Splat, entry: u32,
-              partials: ptr<function, SplatPartials>) -> bool {
+// `ratio_growth` is row_ratio_growth(splat.conic) (common.wgsl), computed once per splat.
+fn accumulate(group: ptr<function, PixelGradients>, pixel_y: f32, splat: Splat,
+              ratio_growth: f32, entry: u32, partials: ptr<function, SplatPartials>) -> bool {
     let in_list = vec4<u32>(entry) < (*group).last_entry;
     if !any(in_list) {
         return false;
@@ -169,12 +170,11 @@ fn accumulate(group: ptr<function, PixelGradients>, pixel_y: f32, splat: Splat, 
     let conic = splat.conic;
     let offset_x = (*group).x - splat.position.x;
     let offset_y = pixel_y - splat.position.y;
-    let power = -0.5 * (conic.x * offset_x * offset_x + conic.z * offset_y * offset_y)
-        - conic.y * offset_x * offset_y;
-    let gaussian_value = exp(power);
+    // The forward pass's values (row_gaussian_values), so the same pixels see the splat.
+    let gaussian_value = row_gaussian_values(conic, offset_x.x, offset_y, ratio_growth);
     let raw_alpha = splat.position.z * gaussian_value;
     let alpha = min(vec4<f32>(max_alpha), raw_alpha);
-    let visible = in_list & power <= vec4<f32>(0.0) & alpha >= vec4<f32>(min_alpha);
+    let visible = in_list & gaussian_value <= vec4<f32>(1.0) & alpha >= vec4<f32>(min_alpha);
     if !any(visible) {
         return false;
     }

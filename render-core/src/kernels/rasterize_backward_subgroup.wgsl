@@ -56,10 +56,11 @@ fn main(
                               subgroupShuffle(mine.colour, k));
             let entry = end - 1u - k;
             var partials = zero_partials();
-            let hit0 = accumulate(&group0, pixel_y, splat, entry, &partials);
-            let hit1 = accumulate(&group1, pixel_y, splat, entry, &partials);
-            let hit2 = accumulate(&group2, pixel_y, splat, entry, &partials);
-            let hit3 = accumulate(&group3, pixel_y, splat, entry, &partials);
+            let ratio_growth = row_ratio_growth(splat.conic);
+            let hit0 = accumulate(&group0, pixel_y, splat, ratio_growth, entry, &partials);
+            let hit1 = accumulate(&group1, pixel_y, splat, ratio_growth, entry, &partials);
+            let hit2 = accumulate(&group2, pixel_y, splat, ratio_growth, entry, &partials);
+            let hit3 = accumulate(&group3, pixel_y, splat, ratio_growth, entry, &partials);
             if subgroupAny(hit0 || hit1 || hit2 || hit3) {
                 let own = total(partials);
                 let summed = SplatGradient(subgroupAdd(own.a), subgroupAdd(own.b), subgroupAdd(own.c));

@@ -67,16 +67,16 @@ fn new_group(first_column: u32, row: u32) -> PixelGroup {
 
 // Composites `splat`, list entry `entry - 1` of the tile, behind the group's pixels. A pixel
 // stops when the splat would bring its transmittance below the floor (early termination).
-fn composite(group: ptr<function, PixelGroup>, pixel_y: f32, splat: Splat, entry: u32) {
+// `ratio_growth` is row_ratio_growth(splat.conic) (common.wgsl), computed once per splat.
+fn composite(group: ptr<function, PixelGroup>, pixel_y: f32, splat: Splat, ratio_growth: f32,
+             entry: u32) {
     let min_alpha = params.thresholds.x;
     let max_alpha = params.thresholds.y;
     let min_transmittance = params.thresholds.z;
-    let offset_x = (*group).x - splat.position.x;
-    let offset_y = pixel_y - splat.position.y;
-    let power = -0.5 * (splat.conic.x * offset_x * offset_x + splat.conic.z * offset_y * offset_y)
-        - splat.conic.y * offset_x * offset_y;
-    let alpha = min(vec4<f32>(max_alpha), splat.position.z * exp(power));
-    let visible = !(*group).done & power <= vec4<f32>(0.0) & alpha >= vec4<f32>(min_alpha);
+    let value = row_gaussian_values(splat.conic, (*group).x.x - splat.position.x,
+                                    pixel_y - splat.position.y, ratio_growth);
+    let alpha = min(vec4<f32>(max_alpha), splat.position.z * value);
+    let visible = !(*group).done & value <= vec4<f32>(1.0) & alpha >= vec4<f32>(min_alpha);
     let transmittance = (*group).transmittance;
     let next_transmittance = transmittance * (1.0 - alpha);
     let terminates = visible & next_transmittance < vec4<f32>(min_transmittance);

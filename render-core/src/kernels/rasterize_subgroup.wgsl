@@ -55,10 +55,11 @@ fn main(
             let splat = Splat(subgroupShuffle(mine.position, k), subgroupShuffle(mine.conic, k),
                               subgroupShuffle(mine.colour, k));
             let entry = start - range.x + k + 1u;
-            composite(&group0, pixel_y, splat, entry);
-            composite(&group1, pixel_y, splat, entry);
-            composite(&group2, pixel_y, splat, entry);
-            composite(&group3, pixel_y, splat, entry);
+            let ratio_growth = row_ratio_growth(splat.conic);
+            composite(&group0, pixel_y, splat, ratio_growth, entry);
+            composite(&group1, pixel_y, splat, ratio_growth, entry);
+            composite(&group2, pixel_y, splat, ratio_growth, entry);
+            composite(&group3, pixel_y, splat, ratio_growth, entry);
         }
     }
     write_group(group0, row);
