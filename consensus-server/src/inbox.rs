@@ -56,6 +56,29 @@ impl Pending {
     }
 }
 
+/// The incarnations (process epochs, `Stamp::epoch`) of one agent, as far as its frame goes.
+/// The keyframes the engine holds for an agent are in the tracked frame of the incarnation that
+/// sent them, anchored at the frame its tracking starts from: its keyframe 0. A restart that replays
+/// the same frames starts at the same frame, so it tracks in that same frame and its keyframes are
+/// welcome (repeats are dropped; a later keyframe id may show another frame than in the first
+/// run, since keyframe decisions depend on when corrections arrived: that image alone is ignored
+/// as a conflict). A restart on other frames tracks in a frame of its own that the consensus
+/// cannot relate to the agent's, or its new keyframe ids would place keyframes and Gaussians in
+/// the wrong frame: its keyframe 0 showing another frame than the agent's keyframe 0 makes it
+/// "foreign", and everything it publishes is ignored. Keyframe 0 is the first keyframe a run
+/// publishes, so this is settled before any new id arrives.
+#[derive(Default)]
+struct AgentIncarnations {
+    /// The largest epoch seen: the running incarnation (a restart has a later start time).
+    latest: Option<u64>,
+    foreign: BTreeSet<u64>,
+    /// Keyframe parts of foreign incarnations, ignored.
+    ignored_parts: usize,
+}
+
+/// Every run's first keyframe: the frame its tracked frame is anchored at.
+const FIRST_KEYFRAME_ID: u64 = 0;
+
 /// A request the process should send: agent, keyframe and the reason for its log.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ResendRequest {
@@ -73,6 +96,7 @@ pub struct KeyframeInbox {
     /// Keyframe images whose id was already taken by another frame (see [`Self::image`]).
     conflicts: BTreeMap<u32, usize>,
     given_up: BTreeSet<KeyframeRef>,
+    incarnations: BTreeMap<u32, AgentIncarnations>,
 }
 
 impl KeyframeInbox {
@@ -84,7 +108,52 @@ impl KeyframeInbox {
             duplicates: BTreeMap::new(),
             conflicts: BTreeMap::new(),
             given_up: BTreeSet::new(),
+            incarnations: BTreeMap::new(),
         }
+    }
+
+    /// Notes a message of incarnation `epoch` of `agent_id`; true when that incarnation is
+    /// foreign (see [`AgentIncarnations`]), in which case the part is counted as ignored. The
+    /// keyframe parts below call it themselves; the process calls it for an agent's final map.
+    pub fn ignores(&mut self, agent_id: u32, epoch: u64) -> bool {
+        let agent = self.incarnations.entry(agent_id).or_default();
+        agent.latest = agent.latest.max(Some(epoch));
+        let foreign = agent.foreign.contains(&epoch);
+        if foreign {
+            agent.ignored_parts += 1;
+        }
+        foreign
+    }
+
+    /// Whether incarnation `epoch` of `agent_id` was found to track in a frame of its own.
+    pub fn is_foreign(&self, agent_id: u32, epoch: u64) -> bool {
+        self.incarnations
+            .get(&agent_id)
+            .is_some_and(|agent| agent.foreign.contains(&epoch))
+    }
+
+    /// Whether the running (latest seen) incarnation of `agent_id` is foreign: corrections for
+    /// the agent's keyframes would name keyframes it does not have, and the trajectory and map it
+    /// writes at its end are in its own frame.
+    pub fn latest_is_foreign(&self, agent_id: u32) -> bool {
+        self.incarnations
+            .get(&agent_id)
+            .and_then(|agent| agent.latest.map(|latest| agent.foreign.contains(&latest)))
+            .unwrap_or(false)
+    }
+
+    /// Restarts of `agent_id` found to run on other frames (their keyframes are ignored).
+    pub fn foreign_incarnations(&self, agent_id: u32) -> usize {
+        self.incarnations
+            .get(&agent_id)
+            .map_or(0, |agent| agent.foreign.len())
+    }
+
+    /// Keyframe parts of those restarts, ignored.
+    pub fn foreign_parts(&self, agent_id: u32) -> usize {
+        self.incarnations
+            .get(&agent_id)
+            .map_or(0, |agent| agent.ignored_parts)
     }
 
     /// The pending entry for a part not seen before (`seen`: whether the entry already has
@@ -102,48 +171,75 @@ impl KeyframeInbox {
         Some(self.pending.entry(id).or_insert_with(|| Pending::new(now)))
     }
 
-    /// A descriptor (L2-normalised values) arrived; returns the keyframe for the engine when
-    /// this completes it.
+    /// A descriptor (L2-normalised values) of incarnation `epoch` arrived; returns the keyframe
+    /// for the engine when this completes it.
     pub fn descriptor(
         &mut self,
         id: KeyframeRef,
+        epoch: u64,
         descriptor: Vec<f32>,
         now: Instant,
     ) -> Option<KeyframeArrival> {
+        if self.ignores(id.agent_id, epoch) {
+            return None;
+        }
         let pending =
             self.fresh_part(id, now, |p| p.forwarded.is_some() || p.descriptor.is_some())?;
         pending.descriptor = Some(descriptor);
         self.forward_if_ready(id)
     }
 
-    /// An RGB-D image arrived; returns the keyframe for the engine when this completes it.
+    /// An RGB-D image of incarnation `epoch` arrived; returns the keyframe for the engine when
+    /// this completes it.
     ///
     /// An image whose keyframe id already went to the engine for another frame is a conflict,
-    /// not a repeat: an agent restarted on other frames numbers its keyframes from 0 again.
-    /// Such an image is ignored and counted ([`Self::conflicts`]), with a warning, since the
-    /// consensus keeps one frame per agent and cannot place a second run's keyframes in it.
+    /// not a repeat: a restarted agent numbers its keyframes from 0 again. Such an image is
+    /// ignored and counted ([`Self::conflicts`]); when it is keyframe 0, the restart runs on
+    /// other frames and its incarnation is foreign from then on (see [`AgentIncarnations`]),
+    /// with a warning: the consensus keeps one frame per agent and cannot place a second
+    /// frame's keyframes in it.
     pub fn image(
         &mut self,
         id: KeyframeRef,
+        epoch: u64,
         keyframe: Keyframe,
         frame_index: u64,
         timestamp_s: f64,
         now: Instant,
     ) -> Option<KeyframeArrival> {
+        if self.ignores(id.agent_id, epoch) {
+            return None;
+        }
         let earlier_frame = match self.complete.get(&id) {
             Some(&frame) => Some(frame),
             None => self.pending.get(&id).and_then(|p| p.forwarded),
         };
         if let Some(earlier_frame) = earlier_frame.filter(|&earlier| earlier != frame_index) {
             *self.conflicts.entry(id.agent_id).or_default() += 1;
-            tracing::warn!(
-                agent_id = id.agent_id,
-                keyframe_id = id.keyframe_id,
-                earlier_frame,
-                frame_index,
-                "keyframe id already used by another frame of this agent (restarted on other \
-                 frames?): this keyframe is ignored"
-            );
+            if id.keyframe_id == FIRST_KEYFRAME_ID {
+                self.incarnations
+                    .entry(id.agent_id)
+                    .or_default()
+                    .foreign
+                    .insert(epoch);
+                tracing::warn!(
+                    agent_id = id.agent_id,
+                    earlier_frame,
+                    frame_index,
+                    "agent restarted on other frames: its first keyframe shows another frame \
+                     than before, so it tracks in a frame of its own, which the consensus cannot \
+                     place; everything this run publishes is ignored"
+                );
+            } else {
+                tracing::warn!(
+                    agent_id = id.agent_id,
+                    keyframe_id = id.keyframe_id,
+                    earlier_frame,
+                    frame_index,
+                    "keyframe id already used by another frame of this agent (a restart that \
+                     chose other keyframes): this keyframe is ignored"
+                );
+            }
             return None;
         }
         let pending = self.fresh_part(id, now, |p| p.forwarded.is_some() || p.image.is_some())?;
@@ -151,9 +247,13 @@ impl KeyframeInbox {
         self.forward_if_ready(id)
     }
 
-    /// A keyframe's patch arrived. Returns false for a repeat, which the caller drops (the
-    /// Gaussians of the first one are already on their way).
-    pub fn patch(&mut self, id: KeyframeRef, now: Instant) -> bool {
+    /// A keyframe's patch of incarnation `epoch` arrived. Returns false for a repeat, which the
+    /// caller drops (the Gaussians of the first one are already on their way), and for a patch
+    /// of a foreign incarnation (its Gaussians are in another frame).
+    pub fn patch(&mut self, id: KeyframeRef, epoch: u64, now: Instant) -> bool {
+        if self.ignores(id.agent_id, epoch) {
+            return false;
+        }
         let Some(pending) = self.fresh_part(id, now, |p| p.patch) else {
             return false;
         };
@@ -259,6 +359,10 @@ mod tests {
     use slam_core::camera::Intrinsics;
     use slam_core::dataset::DepthImage;
 
+    /// Epochs of an agent's first run and of its restart.
+    const FIRST_RUN: u64 = 1_000;
+    const RESTART: u64 = 2_000;
+
     fn id(keyframe_id: u64) -> KeyframeRef {
         KeyframeRef {
             agent_id: 3,
@@ -293,17 +397,25 @@ mod tests {
     fn a_keyframe_goes_to_the_engine_once_whatever_the_order_and_repeats() {
         let mut inbox = KeyframeInbox::new(policy());
         let now = Instant::now();
-        assert!(inbox.patch(id(1), now));
-        assert!(inbox.image(id(1), keyframe(1), 10, 0.5, now).is_none());
+        assert!(inbox.patch(id(1), FIRST_RUN, now));
+        assert!(
+            inbox
+                .image(id(1), FIRST_RUN, keyframe(1), 10, 0.5, now)
+                .is_none()
+        );
         let arrival = inbox
-            .descriptor(id(1), vec![1.0], now)
+            .descriptor(id(1), FIRST_RUN, vec![1.0], now)
             .expect("descriptor and image are both there");
         assert_eq!(arrival.frame_index, 10);
         assert_eq!(inbox.incomplete(3), 0);
         // Everything again (a resend that crossed a late original): nothing new.
-        assert!(inbox.descriptor(id(1), vec![1.0], now).is_none());
-        assert!(inbox.image(id(1), keyframe(1), 10, 0.5, now).is_none());
-        assert!(!inbox.patch(id(1), now));
+        assert!(inbox.descriptor(id(1), FIRST_RUN, vec![1.0], now).is_none());
+        assert!(
+            inbox
+                .image(id(1), FIRST_RUN, keyframe(1), 10, 0.5, now)
+                .is_none()
+        );
+        assert!(!inbox.patch(id(1), FIRST_RUN, now));
         assert_eq!(inbox.duplicates(3), 3);
         assert!(
             inbox
@@ -316,21 +428,114 @@ mod tests {
     fn an_id_reused_for_another_frame_is_a_conflict_not_a_duplicate() {
         let mut inbox = KeyframeInbox::new(policy());
         let now = Instant::now();
-        assert!(inbox.patch(id(5), now));
-        assert!(inbox.descriptor(id(5), vec![1.0], now).is_none());
-        let arrival = inbox.image(id(5), keyframe(5), 10, 0.5, now);
+        assert!(inbox.patch(id(5), FIRST_RUN, now));
+        assert!(inbox.descriptor(id(5), FIRST_RUN, vec![1.0], now).is_none());
+        let arrival = inbox.image(id(5), FIRST_RUN, keyframe(5), 10, 0.5, now);
         assert_eq!(arrival.expect("complete").frame_index, 10);
-        // A restarted agent's keyframe 5 shows frame 99: ignored, counted as a conflict.
-        assert!(inbox.image(id(5), keyframe(5), 99, 3.0, now).is_none());
-        assert_eq!((inbox.conflicts(3), inbox.duplicates(3)), (1, 0));
-        // The same frame again is a plain repeat.
-        assert!(inbox.image(id(5), keyframe(5), 10, 0.5, now).is_none());
+        // The same run's keyframe 5 again (a resend that crossed the original): a repeat.
+        assert!(
+            inbox
+                .image(id(5), FIRST_RUN, keyframe(5), 10, 0.5, now)
+                .is_none()
+        );
+        assert_eq!((inbox.conflicts(3), inbox.duplicates(3)), (0, 1));
+        // Forwarded but still waiting for its patch: another frame under its id conflicts too.
+        assert!(inbox.descriptor(id(6), FIRST_RUN, vec![1.0], now).is_none());
+        assert!(
+            inbox
+                .image(id(6), FIRST_RUN, keyframe(6), 20, 1.0, now)
+                .is_some()
+        );
+        // A restarted agent's keyframe 6 shows frame 21: ignored, counted as a conflict.
+        assert!(
+            inbox
+                .image(id(6), RESTART, keyframe(6), 21, 1.1, now)
+                .is_none()
+        );
         assert_eq!((inbox.conflicts(3), inbox.duplicates(3)), (1, 1));
-        // Forwarded but still waiting for its patch: the same rule.
-        assert!(inbox.descriptor(id(6), vec![1.0], now).is_none());
-        assert!(inbox.image(id(6), keyframe(6), 20, 1.0, now).is_some());
-        assert!(inbox.image(id(6), keyframe(6), 21, 1.1, now).is_none());
-        assert_eq!(inbox.conflicts(3), 2);
+        // Not keyframe 0: the restart may run in the same frame, so it is not foreign.
+        assert!(!inbox.is_foreign(3, RESTART));
+    }
+
+    #[test]
+    fn a_restart_on_other_frames_is_ignored_even_under_new_keyframe_ids() {
+        let mut inbox = KeyframeInbox::new(policy());
+        let now = Instant::now();
+        for k in 0..3 {
+            assert!(inbox.patch(id(k), FIRST_RUN, now));
+            assert!(inbox.descriptor(id(k), FIRST_RUN, vec![1.0], now).is_none());
+            assert!(
+                inbox
+                    .image(id(k), FIRST_RUN, keyframe(k), 10 * k, 0.5, now)
+                    .is_some()
+            );
+        }
+        assert!(!inbox.latest_is_foreign(3));
+        // The agent restarts on frames 300.. and numbers its keyframes from 0 again. Its first
+        // image reuses id 0 for frame 300: the restart runs in a frame of its own.
+        assert!(inbox.descriptor(id(0), RESTART, vec![1.0], now).is_none());
+        assert!(
+            inbox
+                .image(id(0), RESTART, keyframe(0), 300, 30.0, now)
+                .is_none()
+        );
+        assert!(inbox.latest_is_foreign(3));
+        // Its later keyframes, past the first run's ids, must not land in the first run's frame.
+        assert!(!inbox.patch(id(3), RESTART, now));
+        assert!(inbox.descriptor(id(3), RESTART, vec![1.0], now).is_none());
+        assert!(
+            inbox
+                .image(id(3), RESTART, keyframe(3), 330, 33.0, now)
+                .is_none()
+        );
+        assert_eq!(
+            inbox.incomplete(3),
+            0,
+            "nothing of the restart waits for its parts"
+        );
+        assert_eq!(inbox.conflicts(3), 1);
+        assert_eq!(inbox.foreign_incarnations(3), 1);
+        assert_eq!(inbox.foreign_parts(3), 3);
+        // A late message of the first run still counts as that run's.
+        assert!(!inbox.is_foreign(3, FIRST_RUN));
+    }
+
+    #[test]
+    fn a_restart_replaying_the_same_frames_continues_the_agents_frame() {
+        let mut inbox = KeyframeInbox::new(policy());
+        let now = Instant::now();
+        for k in 0..2 {
+            assert!(inbox.patch(id(k), FIRST_RUN, now));
+            assert!(inbox.descriptor(id(k), FIRST_RUN, vec![1.0], now).is_none());
+            assert!(
+                inbox
+                    .image(id(k), FIRST_RUN, keyframe(k), 10 * k, 0.5, now)
+                    .is_some()
+            );
+        }
+        // Same command again: keyframe 0 shows the same frame (a repeat); keyframe 1 another
+        // frame than in the first run (keyframe decisions depend on when corrections came):
+        // that image alone is ignored; keyframe 2 is new and joins the agent's frame.
+        assert!(!inbox.patch(id(0), RESTART, now));
+        assert!(
+            inbox
+                .image(id(0), RESTART, keyframe(0), 0, 0.5, now)
+                .is_none()
+        );
+        assert!(
+            inbox
+                .image(id(1), RESTART, keyframe(1), 12, 0.6, now)
+                .is_none()
+        );
+        assert!(inbox.patch(id(2), RESTART, now));
+        assert!(inbox.descriptor(id(2), RESTART, vec![1.0], now).is_none());
+        assert!(
+            inbox
+                .image(id(2), RESTART, keyframe(2), 20, 2.0, now)
+                .is_some()
+        );
+        assert!(!inbox.latest_is_foreign(3));
+        assert_eq!((inbox.conflicts(3), inbox.foreign_parts(3)), (1, 0));
     }
 
     #[test]
@@ -338,7 +543,11 @@ mod tests {
         let mut inbox = KeyframeInbox::new(policy());
         let start = Instant::now();
         let at = |s: f64| start + Duration::from_secs_f64(s);
-        assert!(inbox.descriptor(id(4), vec![1.0], start).is_none());
+        assert!(
+            inbox
+                .descriptor(id(4), FIRST_RUN, vec![1.0], start)
+                .is_none()
+        );
         assert!(inbox.due_requests(at(1.9), &BTreeSet::new()).is_empty());
         let first = inbox.due_requests(at(2.0), &BTreeSet::new());
         assert_eq!(first.len(), 1);
@@ -355,8 +564,12 @@ mod tests {
         assert!(inbox.due_requests(at(10.0), &BTreeSet::new()).is_empty());
         assert_eq!(inbox.incomplete(3), 1);
         // A late answer still completes it.
-        assert!(inbox.image(id(4), keyframe(4), 40, 4.0, at(11.0)).is_some());
-        assert!(inbox.patch(id(4), at(11.0)));
+        assert!(
+            inbox
+                .image(id(4), FIRST_RUN, keyframe(4), 40, 4.0, at(11.0))
+                .is_some()
+        );
+        assert!(inbox.patch(id(4), FIRST_RUN, at(11.0)));
         assert_eq!(inbox.incomplete(3), 0);
     }
 
@@ -364,7 +577,11 @@ mod tests {
     fn finished_agents_are_not_asked_and_a_restart_forgets_the_old_process() {
         let mut inbox = KeyframeInbox::new(policy());
         let start = Instant::now();
-        assert!(inbox.image(id(2), keyframe(2), 20, 2.0, start).is_none());
+        assert!(
+            inbox
+                .image(id(2), FIRST_RUN, keyframe(2), 20, 2.0, start)
+                .is_none()
+        );
         let late = start + Duration::from_secs(5);
         assert!(inbox.due_requests(late, &BTreeSet::from([3])).is_empty());
         inbox.forget_incomplete(3);

@@ -102,6 +102,18 @@ pub struct AgentRecord {
     /// Keyframe images whose id this agent had already used for another frame (ignored): a
     /// restart that did not re-run the same frames numbers its keyframes from 0 again.
     pub keyframe_id_conflicts: usize,
+    /// Restarts found to run on other frames (a keyframe id reused for another frame): each
+    /// tracks in a frame of its own, which the consensus cannot place, so everything such a
+    /// run publishes is ignored (see `KeyframeInbox`).
+    pub restarts_on_other_frames: usize,
+    /// Keyframe parts (descriptors, images, patches, final map) of those restarts, ignored.
+    pub restart_parts_ignored: usize,
+    /// Whether the agent's last run was such a restart: its corrections are withheld (they
+    /// would name keyframes it does not have) and its trajectory file, written in its own
+    /// frame, is not turned into a world trajectory.
+    pub last_run_on_other_frames: bool,
+    /// Corrections not sent because the agent's running process is such a restart.
+    pub corrections_withheld: usize,
     pub corrections_sent: usize,
     pub corrections_undelivered: usize,
     /// `world_from_agent` as `[tx, ty, tz, qx, qy, qz, qw]` (TUM order); absent when the agent
@@ -224,7 +236,7 @@ pub fn run_with_snapshots(
         }
         request_resends(&mut link, &mut inbox, &finished, &mut agents);
         for update in solution_rx.try_iter() {
-            send_corrections(&mut link, &update, &mut agents);
+            send_corrections(&mut link, &update, &inbox, &mut agents);
             world_from_agent = update.world_from_agent;
         }
         latencies.extend(latency_rx.try_iter());
@@ -232,6 +244,7 @@ pub fn run_with_snapshots(
             tracing::info!("snapshot requested: writing the outputs as they stand");
             let mut records = agents.clone();
             fill_records(&mut records, &world_from_agent, &link, &first_seen);
+            fill_inbox_counts(&mut records, &inbox);
             input_tx
                 .send(WorkerInput::Snapshot(Box::new(SnapshotRequest {
                     agents: records,
@@ -248,15 +261,13 @@ pub fn run_with_snapshots(
         .join()
         .map_err(|_| anyhow::anyhow!("the consensus worker thread panicked"))?;
     for update in solution_rx.try_iter() {
-        send_corrections(&mut link, &update, &mut agents);
+        send_corrections(&mut link, &update, &inbox, &mut agents);
         world_from_agent = update.world_from_agent;
     }
     latencies.extend(latency_rx.try_iter());
     fill_records(&mut agents, &world_from_agent, &link, &first_seen);
+    fill_inbox_counts(&mut agents, &inbox);
     for (agent_id, record) in agents.iter_mut() {
-        record.keyframes_incomplete = inbox.incomplete(*agent_id);
-        record.duplicate_parts = inbox.duplicates(*agent_id);
-        record.keyframe_id_conflicts = inbox.conflicts(*agent_id);
         if record.keyframes_incomplete > 0 {
             tracing::warn!(
                 agent_id,
@@ -287,6 +298,18 @@ pub fn run_with_snapshots(
     )?;
     write_progress(&options.out, &engine, ProgressStage::Done);
     Ok(report)
+}
+
+/// Copies the inbox's per-agent counts into the records.
+fn fill_inbox_counts(agents: &mut BTreeMap<u32, AgentRecord>, inbox: &KeyframeInbox) {
+    for (agent_id, record) in agents.iter_mut() {
+        record.keyframes_incomplete = inbox.incomplete(*agent_id);
+        record.duplicate_parts = inbox.duplicates(*agent_id);
+        record.keyframe_id_conflicts = inbox.conflicts(*agent_id);
+        record.restarts_on_other_frames = inbox.foreign_incarnations(*agent_id);
+        record.restart_parts_ignored = inbox.foreign_parts(*agent_id);
+        record.last_run_on_other_frames = inbox.latest_is_foreign(*agent_id);
+    }
 }
 
 /// Completes the per-agent records with what the transport and the solution know.
@@ -348,6 +371,7 @@ fn handle(
     to_worker: &Sender<WorkerInput>,
 ) -> anyhow::Result<()> {
     let agent_id = message.agent_id();
+    let epoch = message.stamp().epoch;
     match message {
         Incoming::Lifecycle(lifecycle) => match lifecycle.kind() {
             Ok(LifecycleKind::Hello) => {
@@ -378,7 +402,7 @@ fn handle(
                 keyframe_id: descriptor.keyframe_id,
             };
             if let Some(arrival) =
-                inbox.descriptor(id, descriptor.descriptor.to_vec(), Instant::now())
+                inbox.descriptor(id, epoch, descriptor.descriptor.to_vec(), Instant::now())
             {
                 forward(arrival, record, to_worker)?;
             }
@@ -399,6 +423,7 @@ fn handle(
             };
             if let Some(arrival) = inbox.image(
                 id,
+                epoch,
                 keyframe,
                 header.frame_index,
                 header.timestamp_s,
@@ -412,8 +437,18 @@ fn handle(
                 agent_id,
                 keyframe_id: patch.header().keyframe_id,
             };
-            if id.keyframe_id != FINAL_MAP_KEYFRAME_ID && !inbox.patch(id, Instant::now()) {
-                // Already stored (a resend crossing a late original).
+            if id.keyframe_id == FINAL_MAP_KEYFRAME_ID {
+                if inbox.ignores(agent_id, epoch) {
+                    tracing::warn!(
+                        agent_id,
+                        "final map of a run restarted on other frames (a frame of its own): \
+                         ignored"
+                    );
+                    return Ok(());
+                }
+            } else if !inbox.patch(id, epoch, Instant::now()) {
+                // Already stored (a resend crossing a late original), or from a run restarted
+                // on other frames.
                 return Ok(());
             }
             let (cloud, dropped) = wire::gaussian_cloud(patch.records());
@@ -686,9 +721,15 @@ impl Worker {
 fn send_corrections(
     link: &mut ConsumerLink,
     update: &SolutionUpdate,
+    inbox: &KeyframeInbox,
     agents: &mut BTreeMap<u32, AgentRecord>,
 ) {
     for (agent_id, world_from_agent) in &update.world_from_agent {
+        if inbox.latest_is_foreign(*agent_id) {
+            // Its keyframe ids name other frames in the running process.
+            agents.entry(*agent_id).or_default().corrections_withheld += 1;
+            continue;
+        }
         let poses: Vec<KeyframePose> = update
             .world_from_camera
             .iter()
@@ -787,7 +828,15 @@ fn write_outputs(
     let map_path = out.join("map.ply");
     render_core::ply::save_ply(&map_path, &map)
         .with_context(|| format!("writing {}", map_path.display()))?;
-    for agent_id in agents.keys() {
+    for (agent_id, record) in &agents {
+        if record.last_run_on_other_frames {
+            tracing::warn!(
+                agent_id,
+                "the agent's last run restarted on other frames, in a frame of its own: no world \
+                 trajectory written from its trajectory file"
+            );
+            continue;
+        }
         let path = agent_trajectory_path(out, *agent_id);
         if !path.exists() {
             tracing::warn!(agent_id, path = %path.display(), "no agent trajectory to correct");
