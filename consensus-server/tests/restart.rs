@@ -1,0 +1,129 @@
+//! An agent restarted on other frames numbers its keyframes from 0 again, in a tracked frame of
+//! its own: the consensus ignores that run whole (its keyframe 0 shows another frame than the
+//! agent's keyframe 0), including keyframe ids the first run never used and its final map, which
+//! would otherwise land in the first run's frame. A fake agent on the real transport plays both
+//! runs; each ends with an orderly goodbye, which waits until the consensus has drained it.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use mac_consensus::process::{ConsensusOptions, run};
+use protocol::messages::{
+    CoordinateFrame, FINAL_MAP_KEYFRAME_ID, GaussianRecord, Intrinsics, KeyframeDescriptor,
+    RgbdPixel,
+};
+use protocol::transport::{AgentLink, KeyframeImageMeta, TransportConfig};
+use slam_core::config::Config;
+
+const WIDTH: u32 = 32;
+const HEIGHT: u32 = 24;
+const AGENT_ID: u32 = 0;
+
+fn intrinsics() -> Intrinsics {
+    Intrinsics {
+        fx: 30.0,
+        fy: 30.0,
+        cx: 16.0,
+        cy: 12.0,
+        width: WIDTH,
+        height: HEIGHT,
+    }
+}
+
+fn gaussian() -> GaussianRecord {
+    GaussianRecord {
+        mean: [0.0, 0.0, 1.5],
+        log_scale: [-4.0, -4.0, -7.0],
+        rotation_wxyz: [1.0, 0.0, 0.0, 0.0],
+        opacity_logit: 0.0,
+        colour: [0.5, 0.4, 0.3],
+    }
+}
+
+/// Publishes keyframe `keyframe_id` showing dataset frame `frame_index`: descriptor, RGB-D
+/// image and a one-Gaussian patch.
+fn publish(agent: &mut AgentLink, keyframe_id: u64, frame_index: u64) {
+    let timestamp_s = frame_index as f64 / 30.0;
+    let mut descriptor = KeyframeDescriptor::new(keyframe_id, frame_index, timestamp_s);
+    descriptor.intrinsics = intrinsics();
+    descriptor.descriptor[0] = 1.0;
+    agent.send_descriptor(&descriptor).unwrap();
+    let pixels: Vec<RgbdPixel> = (0..WIDTH * HEIGHT)
+        .map(|i| RgbdPixel::new([(i % 251) as u8, 90, 30], 1.5))
+        .collect();
+    let meta = KeyframeImageMeta {
+        keyframe_id,
+        frame_index,
+        timestamp_s,
+        camera_to_agent_world: descriptor.camera_to_agent_world,
+        intrinsics: intrinsics(),
+        width: WIDTH,
+        height: HEIGHT,
+    };
+    agent.send_keyframe_image(&meta, &pixels).unwrap();
+    agent
+        .send_patch(keyframe_id, CoordinateFrame::AgentWorld, &[gaussian()])
+        .unwrap();
+}
+
+#[test]
+fn a_restart_on_other_frames_is_ignored_whole() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = Config::default();
+    config.consensus.refinement.iterations = 0;
+    let transport = TransportConfig::with_namespace(format!("restart{}", std::process::id()));
+    let options = ConsensusOptions {
+        config,
+        transport: transport.clone(),
+        out: dir.path().to_path_buf(),
+        // Runs until stopped: a goodbye must not end it before the restart.
+        expected_agents: None,
+        stop_agents_wait: None,
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    let consensus = {
+        let stop = stop.clone();
+        std::thread::spawn(move || run(&options, &stop))
+    };
+
+    // First run: frames 0 and 10 become keyframes 0 and 1.
+    let mut first = AgentLink::open(&transport, AGENT_ID).unwrap();
+    first.announce(intrinsics(), 0).unwrap();
+    publish(&mut first, 0, 0);
+    publish(&mut first, 1, 10);
+    first.close().unwrap();
+
+    // Restart on frames 300..: keyframe 0 is frame 300, then a keyframe id the first run never
+    // used (2), then its final map.
+    let mut restart = AgentLink::open(&transport, AGENT_ID).unwrap();
+    restart.announce(intrinsics(), 0).unwrap();
+    publish(&mut restart, 0, 300);
+    publish(&mut restart, 2, 320);
+    restart
+        .send_patch(
+            FINAL_MAP_KEYFRAME_ID,
+            CoordinateFrame::AgentWorld,
+            &[gaussian(), gaussian()],
+        )
+        .unwrap();
+    restart.close().unwrap();
+    stop.store(true, Ordering::Relaxed);
+
+    let report = consensus.join().unwrap().unwrap();
+    let record = &report.agents[&AGENT_ID];
+    assert_eq!(record.hellos, 2);
+    assert_eq!(report.keyframes, 2, "only the first run's keyframes");
+    assert_eq!(record.keyframes, 2);
+    assert_eq!(record.gaussians_received, 2, "only the first run's patches");
+    assert_eq!(record.restarts_on_other_frames, 1);
+    assert!(record.last_run_on_other_frames);
+    assert_eq!(record.keyframe_id_conflicts, 1, "the restart's keyframe 0");
+    // Its keyframe 0's patch, keyframe 2 (descriptor, image, patch) and the final map; its
+    // keyframe 0's descriptor too when it came after the image (topics are not ordered).
+    assert!(
+        (5..=6).contains(&record.restart_parts_ignored),
+        "{} parts of the restart ignored",
+        record.restart_parts_ignored
+    );
+    assert_eq!(record.keyframes_incomplete, 0);
+}
