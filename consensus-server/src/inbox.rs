@@ -385,6 +385,16 @@ mod tests {
         }
     }
 
+    /// The first run's keyframes 0 .. count, each complete (keyframe k shows frame 10 k).
+    fn first_run_keyframes(inbox: &mut KeyframeInbox, count: u64, now: Instant) {
+        for k in 0..count {
+            assert!(inbox.patch(id(k), FIRST_RUN, now));
+            assert!(inbox.descriptor(id(k), FIRST_RUN, vec![1.0], now).is_none());
+            let arrival = inbox.image(id(k), FIRST_RUN, keyframe(k), 10 * k, 0.5, now);
+            assert!(arrival.is_some());
+        }
+    }
+
     fn policy() -> ResendConfig {
         ResendConfig {
             after_s: 2.0,
@@ -461,15 +471,7 @@ mod tests {
     fn a_restart_on_other_frames_is_ignored_even_under_new_keyframe_ids() {
         let mut inbox = KeyframeInbox::new(policy());
         let now = Instant::now();
-        for k in 0..3 {
-            assert!(inbox.patch(id(k), FIRST_RUN, now));
-            assert!(inbox.descriptor(id(k), FIRST_RUN, vec![1.0], now).is_none());
-            assert!(
-                inbox
-                    .image(id(k), FIRST_RUN, keyframe(k), 10 * k, 0.5, now)
-                    .is_some()
-            );
-        }
+        first_run_keyframes(&mut inbox, 3, now);
         assert!(!inbox.latest_is_foreign(3));
         // The agent restarts on frames 300.. and numbers its keyframes from 0 again. Its first
         // image reuses id 0 for frame 300: the restart runs in a frame of its own.
@@ -504,15 +506,7 @@ mod tests {
     fn a_restart_replaying_the_same_frames_continues_the_agents_frame() {
         let mut inbox = KeyframeInbox::new(policy());
         let now = Instant::now();
-        for k in 0..2 {
-            assert!(inbox.patch(id(k), FIRST_RUN, now));
-            assert!(inbox.descriptor(id(k), FIRST_RUN, vec![1.0], now).is_none());
-            assert!(
-                inbox
-                    .image(id(k), FIRST_RUN, keyframe(k), 10 * k, 0.5, now)
-                    .is_some()
-            );
-        }
+        first_run_keyframes(&mut inbox, 2, now);
         // Same command again: keyframe 0 shows the same frame (a repeat); keyframe 1 another
         // frame than in the first run (keyframe decisions depend on when corrections came):
         // that image alone is ignored; keyframe 2 is new and joins the agent's frame.

@@ -7,16 +7,16 @@ use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use mac_consensus::process::{ConsensusOptions, run};
-use protocol::messages::{
-    ControlMessage, CoordinateFrame, GaussianRecord, Intrinsics, KeyframeDescriptor, RgbdPixel,
-};
+use protocol::messages::{ControlMessage, CoordinateFrame, KeyframeDescriptor};
 use protocol::transport::{AgentLink, KeyframeImageMeta, TransportConfig};
 use slam_core::config::Config;
 
+mod common;
+
+use common::{HEIGHT, WIDTH, gaussian, intrinsics, pixels};
+
 /// Much longer than the configured wait before a request.
 const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);
-const WIDTH: u32 = 32;
-const HEIGHT: u32 = 24;
 const KEYFRAME_ID: u64 = 5;
 
 #[test]
@@ -39,14 +39,7 @@ fn an_incomplete_keyframe_is_asked_for_again_and_completed() {
         std::thread::spawn(move || run(&options, &stop))
     };
 
-    let intrinsics = Intrinsics {
-        fx: 30.0,
-        fy: 30.0,
-        cx: 16.0,
-        cy: 12.0,
-        width: WIDTH,
-        height: HEIGHT,
-    };
+    let intrinsics = intrinsics();
     let mut agent = AgentLink::open(&transport, 0).unwrap();
     agent.announce(intrinsics, 0).unwrap();
     let mut descriptor = KeyframeDescriptor::new(KEYFRAME_ID, 50, 1.5);
@@ -75,9 +68,6 @@ fn an_incomplete_keyframe_is_asked_for_again_and_completed() {
 
     // The answer: every part again.
     agent.send_descriptor(&descriptor).unwrap();
-    let pixels: Vec<RgbdPixel> = (0..WIDTH * HEIGHT)
-        .map(|i| RgbdPixel::new([(i % 251) as u8, 90, 30], 1.5))
-        .collect();
     let meta = KeyframeImageMeta {
         keyframe_id: KEYFRAME_ID,
         frame_index: 50,
@@ -87,16 +77,9 @@ fn an_incomplete_keyframe_is_asked_for_again_and_completed() {
         width: WIDTH,
         height: HEIGHT,
     };
-    agent.send_keyframe_image(&meta, &pixels).unwrap();
-    let record = GaussianRecord {
-        mean: [0.0, 0.0, 1.5],
-        log_scale: [-4.0, -4.0, -7.0],
-        rotation_wxyz: [1.0, 0.0, 0.0, 0.0],
-        opacity_logit: 0.0,
-        colour: [0.5, 0.4, 0.3],
-    };
+    agent.send_keyframe_image(&meta, &pixels()).unwrap();
     agent
-        .send_patch(KEYFRAME_ID, CoordinateFrame::AgentWorld, &[record])
+        .send_patch(KEYFRAME_ID, CoordinateFrame::AgentWorld, &[gaussian()])
         .unwrap();
     agent.close().unwrap();
 

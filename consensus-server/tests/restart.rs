@@ -8,37 +8,15 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use mac_consensus::process::{ConsensusOptions, run};
-use protocol::messages::{
-    CoordinateFrame, FINAL_MAP_KEYFRAME_ID, GaussianRecord, Intrinsics, KeyframeDescriptor,
-    RgbdPixel,
-};
+use protocol::messages::{CoordinateFrame, FINAL_MAP_KEYFRAME_ID, KeyframeDescriptor};
 use protocol::transport::{AgentLink, KeyframeImageMeta, TransportConfig};
 use slam_core::config::Config;
 
-const WIDTH: u32 = 32;
-const HEIGHT: u32 = 24;
+mod common;
+
+use common::{HEIGHT, WIDTH, gaussian, intrinsics, pixels};
+
 const AGENT_ID: u32 = 0;
-
-fn intrinsics() -> Intrinsics {
-    Intrinsics {
-        fx: 30.0,
-        fy: 30.0,
-        cx: 16.0,
-        cy: 12.0,
-        width: WIDTH,
-        height: HEIGHT,
-    }
-}
-
-fn gaussian() -> GaussianRecord {
-    GaussianRecord {
-        mean: [0.0, 0.0, 1.5],
-        log_scale: [-4.0, -4.0, -7.0],
-        rotation_wxyz: [1.0, 0.0, 0.0, 0.0],
-        opacity_logit: 0.0,
-        colour: [0.5, 0.4, 0.3],
-    }
-}
 
 /// Publishes keyframe `keyframe_id` showing dataset frame `frame_index`: descriptor, RGB-D
 /// image and a one-Gaussian patch.
@@ -48,9 +26,6 @@ fn publish(agent: &mut AgentLink, keyframe_id: u64, frame_index: u64) {
     descriptor.intrinsics = intrinsics();
     descriptor.descriptor[0] = 1.0;
     agent.send_descriptor(&descriptor).unwrap();
-    let pixels: Vec<RgbdPixel> = (0..WIDTH * HEIGHT)
-        .map(|i| RgbdPixel::new([(i % 251) as u8, 90, 30], 1.5))
-        .collect();
     let meta = KeyframeImageMeta {
         keyframe_id,
         frame_index,
@@ -60,7 +35,7 @@ fn publish(agent: &mut AgentLink, keyframe_id: u64, frame_index: u64) {
         width: WIDTH,
         height: HEIGHT,
     };
-    agent.send_keyframe_image(&meta, &pixels).unwrap();
+    agent.send_keyframe_image(&meta, &pixels()).unwrap();
     agent
         .send_patch(keyframe_id, CoordinateFrame::AgentWorld, &[gaussian()])
         .unwrap();
