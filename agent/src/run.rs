@@ -32,7 +32,7 @@ use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe, MappingStats};
 use crate::progress::{Progress, ProgressFile, Stage};
 use crate::seeding::{CoverageIndex, SeedFrame, seed_gaussians};
 use crate::source::FrameSource;
-use crate::swarm::{PublishableKeyframe, SwarmLink, SwarmSummary};
+use crate::swarm::{PublishableKeyframe, SwarmLink, SwarmSummary, run_anchor};
 
 /// Synthetic scene used when no dataset is given: three agents' loops, this agent's share.
 pub const DEFAULT_SYNTHETIC_AGENTS: usize = 3;
@@ -208,8 +208,12 @@ pub fn run_agent(
         for item in source.by_ref() {
             let clock = Instant::now();
             let frame = &item.frame;
-            if let Some(swarm) = swarm.as_mut() {
-                swarm.announce(&frame.intrinsics);
+            if let Some(swarm) = swarm.as_mut()
+                && !swarm.is_announced()
+            {
+                // Announced with the first frame: the one the tracked frame starts at.
+                let anchor = run_anchor(&options.dataset, frame.index, frame.timestamp);
+                swarm.announce(&frame.intrinsics, anchor);
             }
             let tracker_first_point = odometry.next_point_id();
             let tracked = odometry.track(&frame.depth, &frame.intrinsics);

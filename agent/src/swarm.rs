@@ -140,7 +140,8 @@ pub struct SwarmLink {
     /// The link's state at the last check (checked between frames).
     link_up: bool,
     /// The hello, when it was due while the link was down.
-    pending_hello: Option<WireIntrinsics>,
+    /// The hello's camera and run anchor, until delivered.
+    pending_hello: Option<(WireIntrinsics, u64)>,
     /// Keyframes due while the link was down, oldest first.
     queue: BoundedQueue<WireKeyframe>,
     /// Corrections that arrive while the link is down wait here (the newest only).
@@ -199,14 +200,19 @@ impl SwarmLink {
         })
     }
 
-    /// Announces the agent with its camera (first frame); while the link is down the hello waits
-    /// for it (ahead of everything queued).
-    pub fn announce(&mut self, intrinsics: &Intrinsics) {
+    /// Whether [`Self::announce`] was called (the hello may still wait for the link).
+    pub fn is_announced(&self) -> bool {
+        self.announced
+    }
+
+    /// Announces the agent with its camera and its run anchor ([`run_anchor`] of its first
+    /// frame); while the link is down the hello waits for it (ahead of everything queued).
+    pub fn announce(&mut self, intrinsics: &Intrinsics, run_anchor: u64) {
         if self.announced {
             return;
         }
         self.announced = true;
-        self.pending_hello = Some(wire_intrinsics(intrinsics));
+        self.pending_hello = Some((wire_intrinsics(intrinsics), run_anchor));
         if self.refresh_link_state() {
             self.deliver_pending_hello();
         } else {
@@ -217,10 +223,10 @@ impl SwarmLink {
     /// Sends the hello if one is pending; false when it could not be delivered (it stays pending
     /// and is tried again after the next frame).
     fn deliver_pending_hello(&mut self) -> bool {
-        let Some(intrinsics) = self.pending_hello else {
+        let Some((intrinsics, run_anchor)) = self.pending_hello else {
             return true;
         };
-        match self.link.announce(intrinsics, self.config_hash) {
+        match self.link.announce(intrinsics, self.config_hash, run_anchor) {
             Ok(_) => {
                 self.pending_hello = None;
                 true
@@ -711,6 +717,20 @@ impl SwarmLink {
 }
 
 /// A hash of the whole configuration: the consensus warns when agents differ.
+/// The run anchor of an agent's hello (`Lifecycle::run_anchor`): a hash of its dataset (the
+/// canonical path when it is one, else the spec as given) and of its first frame's index and
+/// timestamp. The agent's tracked frame is anchored at that frame, so equal anchors mean the
+/// same frame: a restart with the same frames sends the same anchor, one on other frames
+/// (another start or another sequence) a different one.
+pub fn run_anchor(dataset: &str, first_frame_index: usize, first_timestamp_s: f64) -> u64 {
+    let identity = std::fs::canonicalize(dataset)
+        .map(|path| path.display().to_string())
+        .unwrap_or_else(|_| dataset.to_owned());
+    let mut hasher = std::collections::hash_map::DefaultHasher::new();
+    (identity, first_frame_index, first_timestamp_s.to_bits()).hash(&mut hasher);
+    hasher.finish()
+}
+
 fn config_hash(config: &Config) -> u64 {
     let mut hasher = std::collections::hash_map::DefaultHasher::new();
     serde_json::to_string(config)
@@ -816,7 +836,7 @@ mod tests {
         config.consensus.t_comm = 1;
         let mut swarm = SwarmLink::connect(0, &transport, &config, LinkPlan::always_up()).unwrap();
         let intrinsics = Intrinsics::new(40.0, 40.0, 16.0, 12.0, 32, 24);
-        swarm.announce(&intrinsics);
+        swarm.announce(&intrinsics, run_anchor("synthetic", 0, 0.0));
         (consumer, swarm, intrinsics)
     }
 

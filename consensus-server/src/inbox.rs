@@ -57,27 +57,47 @@ impl Pending {
 }
 
 /// The incarnations (process epochs, `Stamp::epoch`) of one agent, as far as its frame goes.
-/// The keyframes the engine holds for an agent are in the tracked frame of the incarnation that
-/// sent them, anchored at the frame its tracking starts from: its keyframe 0. A restart that replays
-/// the same frames starts at the same frame, so it tracks in that same frame and its keyframes are
-/// welcome (repeats are dropped; a later keyframe id may show another frame than in the first
-/// run, since keyframe decisions depend on when corrections arrived: that image alone is ignored
-/// as a conflict). A restart on other frames tracks in a frame of its own that the consensus
-/// cannot relate to the agent's, or its new keyframe ids would place keyframes and Gaussians in
-/// the wrong frame: its keyframe 0 showing another frame than the agent's keyframe 0 makes it
-/// "foreign", and everything it publishes is ignored. Keyframe 0 is the first keyframe a run
-/// publishes, so this is settled before any new id arrives.
+/// The keyframes the engine holds for an agent are in the tracked frame of the run that sent
+/// them, anchored at that run's first frame; each run's hello carries a hash of its dataset and
+/// first frame (`Lifecycle::run_anchor`). A restart that replays the same frames has the same
+/// anchor and tracks in the same frame, so its keyframes are welcome (repeats are dropped; a
+/// keyframe id may show another frame than in the first run, since keyframe decisions depend on
+/// when corrections arrived: that image alone is ignored as a conflict). A restart on other
+/// frames has another anchor and tracks in a frame of its own that the consensus cannot relate
+/// to the agent's: it is "foreign" and everything it publishes is ignored, or its new keyframe
+/// ids would place keyframes and Gaussians in the wrong frame. The agent's frame is that of the
+/// first run whose keyframe reached the engine.
 #[derive(Default)]
 struct AgentIncarnations {
     /// The largest epoch seen: the running incarnation (a restart has a later start time).
     latest: Option<u64>,
+    /// Run anchor of each incarnation whose hello arrived.
+    anchors: BTreeMap<u64, u64>,
+    /// Anchor of the agent's frame: that of the first incarnation whose keyframe went to the
+    /// engine (None before, or when that incarnation's hello was never seen).
+    frame_anchor: Option<u64>,
     foreign: BTreeSet<u64>,
     /// Keyframe parts of foreign incarnations, ignored.
     ignored_parts: usize,
 }
 
-/// Every run's first keyframe: the frame its tracked frame is anchored at.
-const FIRST_KEYFRAME_ID: u64 = 0;
+impl AgentIncarnations {
+    /// Marks `epoch` foreign when its anchor differs from the agent's frame (once, with a
+    /// warning).
+    fn check(&mut self, agent_id: u32, epoch: u64) {
+        let (Some(frame), Some(&anchor)) = (self.frame_anchor, self.anchors.get(&epoch)) else {
+            return;
+        };
+        if anchor != frame && self.foreign.insert(epoch) {
+            tracing::warn!(
+                agent_id,
+                "agent restarted on other frames: it tracks in a frame of its own, which the \
+                 consensus cannot place; everything this run publishes is ignored (start it \
+                 as a new agent id to have it joined)"
+            );
+        }
+    }
+}
 
 /// A request the process should send: agent, keyframe and the reason for its log.
 #[derive(Debug, Clone, PartialEq)]
@@ -118,11 +138,20 @@ impl KeyframeInbox {
     pub fn ignores(&mut self, agent_id: u32, epoch: u64) -> bool {
         let agent = self.incarnations.entry(agent_id).or_default();
         agent.latest = agent.latest.max(Some(epoch));
+        agent.check(agent_id, epoch);
         let foreign = agent.foreign.contains(&epoch);
         if foreign {
             agent.ignored_parts += 1;
         }
         foreign
+    }
+
+    /// The hello of incarnation `epoch` of `agent_id` arrived with `run_anchor`.
+    pub fn hello(&mut self, agent_id: u32, epoch: u64, run_anchor: u64) {
+        let agent = self.incarnations.entry(agent_id).or_default();
+        agent.latest = agent.latest.max(Some(epoch));
+        agent.anchors.insert(epoch, run_anchor);
+        agent.check(agent_id, epoch);
     }
 
     /// Whether incarnation `epoch` of `agent_id` was found to track in a frame of its own.
@@ -186,18 +215,17 @@ impl KeyframeInbox {
         let pending =
             self.fresh_part(id, now, |p| p.forwarded.is_some() || p.descriptor.is_some())?;
         pending.descriptor = Some(descriptor);
-        self.forward_if_ready(id)
+        self.forward_if_ready(id, epoch)
     }
 
     /// An RGB-D image of incarnation `epoch` arrived; returns the keyframe for the engine when
     /// this completes it.
     ///
     /// An image whose keyframe id already went to the engine for another frame is a conflict,
-    /// not a repeat: a restarted agent numbers its keyframes from 0 again. Such an image is
-    /// ignored and counted ([`Self::conflicts`]); when it is keyframe 0, the restart runs on
-    /// other frames and its incarnation is foreign from then on (see [`AgentIncarnations`]),
-    /// with a warning: the consensus keeps one frame per agent and cannot place a second
-    /// frame's keyframes in it.
+    /// not a repeat: a restarted agent numbers its keyframes from 0 again, and a replay may
+    /// choose other keyframes. Such an image is ignored and counted ([`Self::conflicts`]), with
+    /// a warning. Images of a restart on other frames are ignored whole (see
+    /// [`AgentIncarnations`]).
     pub fn image(
         &mut self,
         id: KeyframeRef,
@@ -216,35 +244,19 @@ impl KeyframeInbox {
         };
         if let Some(earlier_frame) = earlier_frame.filter(|&earlier| earlier != frame_index) {
             *self.conflicts.entry(id.agent_id).or_default() += 1;
-            if id.keyframe_id == FIRST_KEYFRAME_ID {
-                self.incarnations
-                    .entry(id.agent_id)
-                    .or_default()
-                    .foreign
-                    .insert(epoch);
-                tracing::warn!(
-                    agent_id = id.agent_id,
-                    earlier_frame,
-                    frame_index,
-                    "agent restarted on other frames: its first keyframe shows another frame \
-                     than before, so it tracks in a frame of its own, which the consensus cannot \
-                     place; everything this run publishes is ignored"
-                );
-            } else {
-                tracing::warn!(
-                    agent_id = id.agent_id,
-                    keyframe_id = id.keyframe_id,
-                    earlier_frame,
-                    frame_index,
-                    "keyframe id already used by another frame of this agent (a restart that \
-                     chose other keyframes): this keyframe is ignored"
-                );
-            }
+            tracing::warn!(
+                agent_id = id.agent_id,
+                keyframe_id = id.keyframe_id,
+                earlier_frame,
+                frame_index,
+                "keyframe id already used by another frame of this agent (a restart that chose \
+                 other keyframes): this keyframe is ignored"
+            );
             return None;
         }
         let pending = self.fresh_part(id, now, |p| p.forwarded.is_some() || p.image.is_some())?;
         pending.image = Some((keyframe, frame_index, timestamp_s));
-        self.forward_if_ready(id)
+        self.forward_if_ready(id, epoch)
     }
 
     /// A keyframe's patch of incarnation `epoch` arrived. Returns false for a repeat, which the
@@ -262,10 +274,17 @@ impl KeyframeInbox {
         true
     }
 
-    fn forward_if_ready(&mut self, id: KeyframeRef) -> Option<KeyframeArrival> {
+    /// Hands the keyframe to the engine once descriptor and image are there; the first
+    /// incarnation (`epoch`: the one whose part completed it) to do so for an agent sets the
+    /// agent's frame anchor.
+    fn forward_if_ready(&mut self, id: KeyframeRef, epoch: u64) -> Option<KeyframeArrival> {
         let pending = self.pending.get_mut(&id)?;
         if pending.descriptor.is_none() || pending.image.is_none() {
             return None;
+        }
+        let agent = self.incarnations.entry(id.agent_id).or_default();
+        if agent.frame_anchor.is_none() {
+            agent.frame_anchor = agent.anchors.get(&epoch).copied();
         }
         let descriptor = pending.descriptor.take()?;
         let (keyframe, frame_index, timestamp_s) = pending.image.take()?;
@@ -362,6 +381,9 @@ mod tests {
     /// Epochs of an agent's first run and of its restart.
     const FIRST_RUN: u64 = 1_000;
     const RESTART: u64 = 2_000;
+    /// Run anchors of the first run's frames and of other frames.
+    const FIRST_FRAMES: u64 = 77;
+    const OTHER_FRAMES: u64 = 88;
 
     fn id(keyframe_id: u64) -> KeyframeRef {
         KeyframeRef {
@@ -385,8 +407,10 @@ mod tests {
         }
     }
 
-    /// The first run's keyframes 0 .. count, each complete (keyframe k shows frame 10 k).
+    /// The first run's hello (anchor FIRST_FRAMES) and keyframes 0 .. count, each complete
+    /// (keyframe k shows frame 10 k).
     fn first_run_keyframes(inbox: &mut KeyframeInbox, count: u64, now: Instant) {
+        inbox.hello(3, FIRST_RUN, FIRST_FRAMES);
         for k in 0..count {
             assert!(inbox.patch(id(k), FIRST_RUN, now));
             assert!(inbox.descriptor(id(k), FIRST_RUN, vec![1.0], now).is_none());
@@ -473,31 +497,27 @@ mod tests {
         let now = Instant::now();
         first_run_keyframes(&mut inbox, 3, now);
         assert!(!inbox.latest_is_foreign(3));
-        // The agent restarts on frames 300.. and numbers its keyframes from 0 again. Its first
-        // image reuses id 0 for frame 300: the restart runs in a frame of its own.
-        assert!(inbox.descriptor(id(0), RESTART, vec![1.0], now).is_none());
-        assert!(
-            inbox
-                .image(id(0), RESTART, keyframe(0), 300, 30.0, now)
-                .is_none()
-        );
+        // The agent restarts on frames 300..: its hello has another anchor, so it tracks in a
+        // frame of its own, before any of its keyframes arrives.
+        inbox.hello(3, RESTART, OTHER_FRAMES);
+        assert!(inbox.is_foreign(3, RESTART));
         assert!(inbox.latest_is_foreign(3));
-        // Its later keyframes, past the first run's ids, must not land in the first run's frame.
-        assert!(!inbox.patch(id(3), RESTART, now));
-        assert!(inbox.descriptor(id(3), RESTART, vec![1.0], now).is_none());
-        assert!(
-            inbox
-                .image(id(3), RESTART, keyframe(3), 330, 33.0, now)
-                .is_none()
-        );
+        // Its keyframes 0 (an id the first run used) and 3 (one it did not) are ignored whole:
+        // the new id must not land in the first run's frame.
+        for (k, frame) in [(0, 300), (3, 330)] {
+            assert!(!inbox.patch(id(k), RESTART, now));
+            assert!(inbox.descriptor(id(k), RESTART, vec![1.0], now).is_none());
+            let arrival = inbox.image(id(k), RESTART, keyframe(k), frame, 30.0, now);
+            assert!(arrival.is_none());
+        }
         assert_eq!(
             inbox.incomplete(3),
             0,
             "nothing of the restart waits for its parts"
         );
-        assert_eq!(inbox.conflicts(3), 1);
+        assert_eq!((inbox.conflicts(3), inbox.duplicates(3)), (0, 0));
         assert_eq!(inbox.foreign_incarnations(3), 1);
-        assert_eq!(inbox.foreign_parts(3), 3);
+        assert_eq!(inbox.foreign_parts(3), 6);
         // A late message of the first run still counts as that run's.
         assert!(!inbox.is_foreign(3, FIRST_RUN));
     }
@@ -507,6 +527,7 @@ mod tests {
         let mut inbox = KeyframeInbox::new(policy());
         let now = Instant::now();
         first_run_keyframes(&mut inbox, 2, now);
+        inbox.hello(3, RESTART, FIRST_FRAMES);
         // Same command again: keyframe 0 shows the same frame (a repeat); keyframe 1 another
         // frame than in the first run (keyframe decisions depend on when corrections came):
         // that image alone is ignored; keyframe 2 is new and joins the agent's frame.

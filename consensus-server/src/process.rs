@@ -380,6 +380,7 @@ fn handle(
                     tracing::warn!(agent_id, "agent restarted with a different configuration");
                 }
                 record.config_hash = lifecycle.config_hash;
+                inbox.hello(agent_id, epoch, lifecycle.run_anchor);
                 // A restarted agent is back in the run; its previous process's incomplete
                 // keyframes are gone with it.
                 finished.remove(&agent_id);

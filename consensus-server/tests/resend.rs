@@ -41,7 +41,7 @@ fn an_incomplete_keyframe_is_asked_for_again_and_completed() {
 
     let intrinsics = intrinsics();
     let mut agent = AgentLink::open(&transport, 0).unwrap();
-    agent.announce(intrinsics, 0).unwrap();
+    agent.announce(intrinsics, 0, 0).unwrap();
     let mut descriptor = KeyframeDescriptor::new(KEYFRAME_ID, 50, 1.5);
     descriptor.intrinsics = intrinsics;
     descriptor.descriptor[0] = 1.0;

@@ -643,7 +643,7 @@ pub fn run_ipc_bench(
 
 fn drive(config: &IpcBenchConfig, mut agent: AgentLink) -> Result<IpcBenchReport, BenchError> {
     // Blocks until the peer's subscribers are attached: the delivery handshake.
-    agent.announce(Intrinsics::default(), 0)?;
+    agent.announce(Intrinsics::default(), 0, 0)?;
     let mut driver = Driver {
         agent,
         descriptor: synthetic_descriptor(1),

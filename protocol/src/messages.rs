@@ -9,7 +9,7 @@
 //!   or newer tag is reported as an error instead of being undefined behaviour.
 //! - Every message carries a [`Stamp`] (agent id, incarnation epoch, sequence number); the
 //!   transport fills it in, receivers use it for gap and restart detection.
-//! - Type names carry [`WIRE_VERSION`] (`mac.v1.*`): iceoryx2 refuses to connect a process built
+//! - Type names carry [`WIRE_VERSION`] (`mac.v2.*`): iceoryx2 refuses to connect a process built
 //!   with another layout version to the same service (`IncompatibleTypes`).
 
 use iceoryx2::prelude::ZeroCopySend;
@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 
 /// Version of the shared-memory layouts below. Baked into every `type_name` as `v1`; bump both
 /// together when a layout changes.
-pub const WIRE_VERSION: u32 = 1;
+pub const WIRE_VERSION: u32 = 2;
 
 /// Length of the global keyframe descriptor: AlexNet's last convolution has 256 channels, and
 /// GeM pooling keeps one value per channel. The classical thumbnail fallback is resampled to the
@@ -38,7 +38,7 @@ pub const FINAL_MAP_KEYFRAME_ID: u64 = u64::MAX;
 /// Sender identity and ordering, carried by every message.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Serialize, Deserialize)]
 #[repr(C)]
-#[type_name("mac.v1.Stamp")]
+#[type_name("mac.v2.Stamp")]
 pub struct Stamp {
     /// Sending agent, or [`CONSUMER_AGENT_ID`] for the consensus.
     pub agent_id: u32,
@@ -54,7 +54,7 @@ pub struct Stamp {
 /// Rigid transform. `translation` in metres; `rotation_wxyz` a unit quaternion, w first.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Serialize, Deserialize)]
 #[repr(C)]
-#[type_name("mac.v1.Pose")]
+#[type_name("mac.v2.Pose")]
 pub struct Pose {
     pub translation: [f64; 3],
     /// Unit quaternion `[w, x, y, z]`.
@@ -88,7 +88,7 @@ impl Default for Pose {
 /// Pinhole intrinsics of the camera that produced a keyframe, in pixels.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
 #[repr(C)]
-#[type_name("mac.v1.Intrinsics")]
+#[type_name("mac.v2.Intrinsics")]
 pub struct Intrinsics {
     pub fx: f64,
     pub fy: f64,
@@ -102,7 +102,7 @@ pub struct Intrinsics {
 /// Topic `mac/agent/{id}/descriptor`, agent -> consensus.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
 #[repr(C)]
-#[type_name("mac.v1.KeyframeDescriptor")]
+#[type_name("mac.v2.KeyframeDescriptor")]
 pub struct KeyframeDescriptor {
     pub stamp: Stamp,
     pub keyframe_id: u64,
@@ -160,7 +160,7 @@ impl KeyframeDescriptor {
 /// One Gaussian of the map (SPEC 2). 14 f32 = 56 bytes, no padding.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
 #[repr(C)]
-#[type_name("mac.v1.GaussianRecord")]
+#[type_name("mac.v2.GaussianRecord")]
 pub struct GaussianRecord {
     /// Mean position, metres, in the frame named by the patch header.
     pub mean: [f32; 3],
@@ -212,7 +212,7 @@ pub struct UnknownTag {
 /// payload is a slice of `count` [`GaussianRecord`]s.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
 #[repr(C)]
-#[type_name("mac.v1.PatchHeader")]
+#[type_name("mac.v2.PatchHeader")]
 pub struct PatchHeader {
     pub stamp: Stamp,
     /// Keyframe whose Gaussians these are.
@@ -237,7 +237,7 @@ impl PatchHeader {
 /// third of the size of an RGB + f32 depth layout.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Serialize, Deserialize)]
 #[repr(C)]
-#[type_name("mac.v1.RgbdPixel")]
+#[type_name("mac.v2.RgbdPixel")]
 pub struct RgbdPixel {
     /// Colour `[r, g, b]`, 0..=255.
     pub rgb: [u8; 3],
@@ -283,7 +283,7 @@ impl RgbdPixel {
 /// keyframes to 3-D with the depth and these intrinsics to align the agents.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]
-#[type_name("mac.v1.KeyframeImageHeader")]
+#[type_name("mac.v2.KeyframeImageHeader")]
 pub struct KeyframeImageHeader {
     pub stamp: Stamp,
     /// Keyframe this image belongs to (same id as its descriptor and patch).
@@ -312,7 +312,7 @@ impl KeyframeImageHeader {
 /// An updated keyframe pose inside a correction.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
 #[repr(C)]
-#[type_name("mac.v1.KeyframePose")]
+#[type_name("mac.v2.KeyframePose")]
 pub struct KeyframePose {
     pub keyframe_id: u64,
     /// Corrected camera-to-world pose (shared world frame).
@@ -323,7 +323,7 @@ pub struct KeyframePose {
 /// payload is a slice of `count` [`KeyframePose`]s.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]
-#[type_name("mac.v1.CorrectionHeader")]
+#[type_name("mac.v2.CorrectionHeader")]
 pub struct CorrectionHeader {
     pub stamp: Stamp,
     /// Agent the correction is for (the service is per agent; repeated for logging and checks).
@@ -367,7 +367,7 @@ impl TryFrom<u32> for LifecycleKind {
 /// A tagged struct rather than an enum so that unknown tags are detectable (see module doc).
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
 #[repr(C)]
-#[type_name("mac.v1.Lifecycle")]
+#[type_name("mac.v2.Lifecycle")]
 pub struct Lifecycle {
     pub stamp: Stamp,
     /// [`LifecycleKind`] tag.
@@ -379,11 +379,18 @@ pub struct Lifecycle {
     /// Hello only: hash of the agent's configuration, so the consensus can refuse a swarm whose
     /// agents run with different settings.
     pub config_hash: u64,
+    /// Hello only: identifies the frame the agent tracks in, which is anchored at its first
+    /// frame: a hash of its dataset and first frame. A restart that replays the same frames
+    /// sends the same value; one on other frames another (the consensus then ignores it).
+    pub run_anchor: u64,
 }
 
 impl Lifecycle {
-    pub fn hello(intrinsics: Intrinsics, config_hash: u64) -> Self {
-        Self::with_kind(LifecycleKind::Hello, intrinsics, config_hash)
+    pub fn hello(intrinsics: Intrinsics, config_hash: u64, run_anchor: u64) -> Self {
+        Self {
+            run_anchor,
+            ..Self::with_kind(LifecycleKind::Hello, intrinsics, config_hash)
+        }
     }
 
     pub fn alive() -> Self {
@@ -401,6 +408,7 @@ impl Lifecycle {
             wire_version: WIRE_VERSION,
             intrinsics,
             config_hash,
+            run_anchor: 0,
         }
     }
 
@@ -413,7 +421,7 @@ impl Lifecycle {
 /// the payload is `frame_len` bytes of one [`crate::codec`] frame holding a [`ControlMessage`].
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]
-#[type_name("mac.v1.ControlHeader")]
+#[type_name("mac.v2.ControlHeader")]
 pub struct ControlHeader {
     pub stamp: Stamp,
     /// Agent the message is for (the service is per agent; repeated for checks).
@@ -461,7 +469,7 @@ mod tests {
         assert_eq!(std::mem::size_of::<CorrectionHeader>(), 24 + 8 + 56 + 8);
         assert_eq!(std::mem::size_of::<KeyframePose>(), 8 + 56);
         assert_eq!(std::mem::size_of::<ControlHeader>(), 24 + 4 + 4 + 8);
-        assert_eq!(std::mem::size_of::<Lifecycle>(), 24 + 8 + 40 + 8);
+        assert_eq!(std::mem::size_of::<Lifecycle>(), 24 + 8 + 40 + 8 + 8);
         assert_eq!(std::mem::size_of::<RgbdPixel>(), 3 + 1 + 2);
         assert_eq!(std::mem::align_of::<RgbdPixel>(), 2);
         assert_eq!(
@@ -487,7 +495,7 @@ mod tests {
         assert_eq!(CoordinateFrame::try_from(1), Ok(CoordinateFrame::World));
         assert!(CoordinateFrame::try_from(7).is_err());
         assert_eq!(
-            Lifecycle::hello(Intrinsics::default(), 9).kind(),
+            Lifecycle::hello(Intrinsics::default(), 9, 7).kind(),
             Ok(LifecycleKind::Hello)
         );
     }

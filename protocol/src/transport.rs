@@ -1753,13 +1753,15 @@ impl AgentLink {
         row.bytes_copied += copied as u64;
     }
 
-    /// Announces this incarnation (first message after [`AgentLink::open`]).
+    /// Announces this incarnation (first message after [`AgentLink::open`]); `run_anchor` as in
+    /// [`Lifecycle::run_anchor`].
     pub fn announce(
         &mut self,
         intrinsics: Intrinsics,
         config_hash: u64,
+        run_anchor: u64,
     ) -> Result<SendReport, TransportError> {
-        self.send_lifecycle(Lifecycle::hello(intrinsics, config_hash))
+        self.send_lifecycle(Lifecycle::hello(intrinsics, config_hash, run_anchor))
     }
 
     /// Heartbeat; also reclaims leftovers of processes that died since the last one.
@@ -2421,26 +2423,28 @@ impl ConsumerLink {
         Arc::clone(&self.shutdown)
     }
 
-    /// Next pending message of any agent, without blocking. Sources are scanned round-robin;
-    /// an agent's `Goodbye` comes after all data it sent before it.
+    /// Next pending message of any agent, without blocking. Lifecycle messages come first, so
+    /// an agent's hello is handled before the data it sent after it (the consensus needs a
+    /// restarted agent's run anchor before its first keyframe); they are few and small. The
+    /// data sources are scanned round-robin. An agent's `Goodbye` comes after all data it sent
+    /// before it.
     pub fn try_recv(&mut self) -> Result<Option<Incoming>, TransportError> {
         if let Some(goodbye) = self.take_drained_goodbye()? {
             return Ok(Some(Incoming::Lifecycle(goodbye)));
         }
-        // Sources: lifecycle, then (descriptor, keyframe image, patch) of each agent. The image
-        // comes before the patch of the same keyframe, as an agent sends them.
-        let sources = 1 + AGENT_SOURCES * self.agents.len();
+        if let Some(lifecycle) = self.receive_lifecycle()? {
+            return Ok(Some(lifecycle));
+        }
+        // Data sources: (descriptor, keyframe image, patch) of each agent. The image comes
+        // before the patch of the same keyframe, as an agent sends them.
+        let sources = AGENT_SOURCES * self.agents.len();
         for step in 0..sources {
             let source = (self.cursor + step) % sources;
-            let received = if source == 0 {
-                self.receive_lifecycle()?
-            } else {
-                let agent = (source - 1) / AGENT_SOURCES;
-                match (source - 1) % AGENT_SOURCES {
-                    0 => self.receive_descriptor(agent)?,
-                    1 => self.receive_keyframe_image(agent)?,
-                    _ => self.receive_patch(agent)?,
-                }
+            let agent = source / AGENT_SOURCES;
+            let received = match source % AGENT_SOURCES {
+                0 => self.receive_descriptor(agent)?,
+                1 => self.receive_keyframe_image(agent)?,
+                _ => self.receive_patch(agent)?,
             };
             if let Some(incoming) = received {
                 self.cursor = (source + 1) % sources;

@@ -84,7 +84,7 @@ fn run_agent(args: &AgentArgs) -> Result<(), TransportError> {
     let config = TransportConfig::with_namespace(namespace);
     let mut link = AgentLink::open(&config, args.agent_id)?;
     say(&format!("opened epoch={}", link.epoch()));
-    link.announce(protocol::bench::SAMPLE_INTRINSICS, PEER_CONFIG_HASH)?;
+    link.announce(protocol::bench::SAMPLE_INTRINSICS, PEER_CONFIG_HASH, 0)?;
     say("announced");
     let mut keyframe = 0u64;
     loop {
