@@ -34,6 +34,8 @@
 //! - **Sequence numbers and restarts.** Every message carries a [`Stamp`]: an incarnation epoch
 //!   (start time in ns) and a per-topic sequence from 0. Receivers report gaps and accept a
 //!   larger epoch as a restart (sequence from 0 again); messages of an older epoch are dropped.
+//!   A consumer takes lifecycle messages before data, so a (re)started agent's hello, with its
+//!   run anchor, is handled before the keyframes it sent after it.
 //! - **Crash safety.** Each link creates its own node with dead-node clean-up on creation and
 //!   also calls `try_cleanup_dead_nodes()` explicitly (and on every heartbeat), so shared memory
 //!   left by a SIGKILLed process (/dev/shm/iox2_*, /tmp/iceoryx2) is reclaimed by the next start.
