@@ -716,7 +716,6 @@ impl SwarmLink {
     }
 }
 
-/// A hash of the whole configuration: the consensus warns when agents differ.
 /// The run anchor of an agent's hello (`Lifecycle::run_anchor`): a hash of its dataset (the
 /// canonical path when it is one, else the spec as given) and of its first frame's index and
 /// timestamp. The agent's tracked frame is anchored at that frame, so equal anchors mean the
@@ -731,6 +730,7 @@ pub fn run_anchor(dataset: &str, first_frame_index: usize, first_timestamp_s: f6
     hasher.finish()
 }
 
+/// A hash of the whole configuration: the consensus warns when agents differ.
 fn config_hash(config: &Config) -> u64 {
     let mut hasher = std::collections::hash_map::DefaultHasher::new();
     serde_json::to_string(config)

@@ -82,9 +82,10 @@ struct AgentIncarnations {
 }
 
 impl AgentIncarnations {
-    /// Marks `epoch` foreign when its anchor differs from the agent's frame (once, with a
-    /// warning).
-    fn check(&mut self, agent_id: u32, epoch: u64) {
+    /// Notes a message of incarnation `epoch` and marks the incarnation foreign when its
+    /// anchor differs from the agent's frame (once, with a warning).
+    fn observe(&mut self, agent_id: u32, epoch: u64) {
+        self.latest = self.latest.max(Some(epoch));
         let (Some(frame), Some(&anchor)) = (self.frame_anchor, self.anchors.get(&epoch)) else {
             return;
         };
@@ -137,8 +138,7 @@ impl KeyframeInbox {
     /// keyframe parts below call it themselves; the process calls it for an agent's final map.
     pub fn ignores(&mut self, agent_id: u32, epoch: u64) -> bool {
         let agent = self.incarnations.entry(agent_id).or_default();
-        agent.latest = agent.latest.max(Some(epoch));
-        agent.check(agent_id, epoch);
+        agent.observe(agent_id, epoch);
         let foreign = agent.foreign.contains(&epoch);
         if foreign {
             agent.ignored_parts += 1;
@@ -149,9 +149,8 @@ impl KeyframeInbox {
     /// The hello of incarnation `epoch` of `agent_id` arrived with `run_anchor`.
     pub fn hello(&mut self, agent_id: u32, epoch: u64, run_anchor: u64) {
         let agent = self.incarnations.entry(agent_id).or_default();
-        agent.latest = agent.latest.max(Some(epoch));
         agent.anchors.insert(epoch, run_anchor);
-        agent.check(agent_id, epoch);
+        agent.observe(agent_id, epoch);
     }
 
     /// Whether incarnation `epoch` of `agent_id` was found to track in a frame of its own.
@@ -480,14 +479,23 @@ mod tests {
                 .image(id(6), FIRST_RUN, keyframe(6), 20, 1.0, now)
                 .is_some()
         );
-        // A restarted agent's keyframe 6 shows frame 21: ignored, counted as a conflict.
+        // A restarted agent's keyframe 5 shows frame 99, and its keyframe 6 frame 21: each
+        // ignored, counted as a conflict, whether the first run's keyframe was complete (5) or
+        // still waiting for its patch (6).
+        assert!(
+            inbox
+                .image(id(5), RESTART, keyframe(5), 99, 3.0, now)
+                .is_none()
+        );
+        assert_eq!((inbox.conflicts(3), inbox.duplicates(3)), (1, 1));
         assert!(
             inbox
                 .image(id(6), RESTART, keyframe(6), 21, 1.1, now)
                 .is_none()
         );
-        assert_eq!((inbox.conflicts(3), inbox.duplicates(3)), (1, 1));
-        // Not keyframe 0: the restart may run in the same frame, so it is not foreign.
+        assert_eq!((inbox.conflicts(3), inbox.duplicates(3)), (2, 1));
+        // No hello with another run anchor: the restart may run in the same frame, so it is
+        // not foreign.
         assert!(!inbox.is_foreign(3, RESTART));
     }
 

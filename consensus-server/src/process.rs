@@ -102,9 +102,9 @@ pub struct AgentRecord {
     /// Keyframe images whose id this agent had already used for another frame (ignored): a
     /// restart that did not re-run the same frames numbers its keyframes from 0 again.
     pub keyframe_id_conflicts: usize,
-    /// Restarts found to run on other frames (a keyframe id reused for another frame): each
-    /// tracks in a frame of its own, which the consensus cannot place, so everything such a
-    /// run publishes is ignored (see `KeyframeInbox`).
+    /// Restarts found to run on other frames (their hello's run anchor differs from the
+    /// agent's first run's): each tracks in a frame of its own, which the consensus cannot
+    /// place, so everything such a run publishes is ignored (see `KeyframeInbox`).
     pub restarts_on_other_frames: usize,
     /// Keyframe parts (descriptors, images, patches, final map) of those restarts, ignored.
     pub restart_parts_ignored: usize,

@@ -254,8 +254,10 @@ pub(crate) struct SplatAtPixel {
     pub clamped: bool,
 }
 
-/// `splat` at pixel centre `pixel`, as every rasterizer here evaluates it; `None` where it
-/// adds nothing (beyond its peak's side of the quadratic, or alpha below `min_splat_alpha`).
+/// `splat` at pixel centre `pixel`, as the CPU reference defines it (the device rasterizers
+/// match it to a few ulps: they step exp along rows, see `row_gaussian_values` in
+/// common.wgsl); `None` where it adds nothing (positive power, or alpha below
+/// `min_splat_alpha`).
 pub(crate) fn splat_at_pixel(
     splat: &ProjectedGaussian,
     pixel: [f64; 2],
