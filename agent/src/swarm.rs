@@ -183,7 +183,9 @@ impl SwarmLink {
             config_hash: config_hash(config),
             announced: false,
             latest: None,
-            frames_since_publication: 0,
+            // The first keyframe goes out at once: with the last one (sent at the end) even an
+            // agent whose run is shorter than T_comm gives the consensus two views to place.
+            frames_since_publication: config.consensus.t_comm,
             last_heartbeat: Instant::now(),
             opened: Instant::now(),
             summary,
@@ -322,8 +324,16 @@ impl SwarmLink {
         }
     }
 
-    /// Remembers the latest keyframe; it goes out at the next publication.
-    pub fn on_keyframe(&mut self, keyframe: PublishableKeyframe) {
+    /// Remembers the latest keyframe; it goes out at the next publication. The Gaussians seeded
+    /// at keyframes that are not published travel with the next published one, so the consensus
+    /// sees the whole map grow (its map registration needs the map, not only the published
+    /// views), not just the share seeded at published keyframes.
+    pub fn on_keyframe(&mut self, mut keyframe: PublishableKeyframe) {
+        if let Some(unpublished) = self.latest.take() {
+            let mut gaussians = unpublished.gaussians;
+            gaussians.extend_from(&keyframe.gaussians);
+            keyframe.gaussians = gaussians;
+        }
         self.latest = Some(keyframe);
     }
 

@@ -290,6 +290,7 @@ impl Engine {
                     source: result.source,
                     target: result.target,
                     target_camera_from_source_camera: result.target_camera_from_source_camera,
+                    sigmas: None,
                 };
                 // Both ends are in the graph (they were prepared), so this cannot fail.
                 if let Err(error) = self.graph.add_loop(closure) {

@@ -115,6 +115,7 @@ fn scenario() -> Scenario {
                 source: *source,
                 target: *target,
                 target_camera_from_source_camera: noisy(
+                sigmas: None,
                     &mut rng,
                     &(t.inverse() * s),
                     LOOP_SIGMA_M,

@@ -209,6 +209,7 @@ fn real_data_two_agents_redkitchen_joint_ate_within_5_cm() {
                     source: result.source,
                     target: result.target,
                     target_camera_from_source_camera: result.target_camera_from_source_camera,
+                    sigmas: None,
                 });
                 let truth_relative = truth[&result.target].inverse() * truth[&result.source];
                 let error = result.target_camera_from_source_camera.inverse() * truth_relative;

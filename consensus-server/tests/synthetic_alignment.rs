@@ -135,6 +135,7 @@ fn agent_to_world_transform_is_found_across_a_large_displacement() {
             source: source_id,
             target: target_id,
             target_camera_from_source_camera: result.target_camera_from_source_camera,
+            sigmas: None,
         })
         .unwrap();
     let solution = graph.solve(&PoseGraphConfig::default()).unwrap();

@@ -1,4 +1,6 @@
-//! `mac-ego3d dataset info PATH`: what a dataset holds, read through the same readers SLAM uses.
+//! `mac-ego3d dataset info PATH`: what a dataset holds, read through the same readers SLAM uses;
+//! `dataset frame` exports one frame; `dataset covisibility` measures how much two sequences (two
+//! agents) share, from their ground truth.
 
 use std::path::Path;
 
@@ -19,6 +21,28 @@ pub enum DatasetCommand {
     /// Decode one frame through the dataset reader and write it as lossless PNGs (RGB, and depth
     /// as 16-bit millimetres).
     Frame(FrameArgs),
+    /// How much two sequences with ground truth in one world frame (two agents) share: the
+    /// co-visibility of every sampled cross pair of frames (the largest is what keyframe matching
+    /// can hope for) and the share of each sequence's surface the other one saw at all (the
+    /// maps' overlap), plus the distance and viewing-angle difference of the first frames.
+    Covisibility(CovisibilityArgs),
+}
+
+#[derive(Args)]
+pub struct CovisibilityArgs {
+    /// First sequence: dataset folder or `synthetic:...` spec.
+    a: String,
+    /// Second sequence.
+    b: String,
+    #[arg(long, default_value = "0..")]
+    frames_a: FrameRange,
+    #[arg(long, default_value = "0..")]
+    frames_b: FrameRange,
+    /// Use every n-th frame of each sequence.
+    #[arg(long, default_value_t = 10)]
+    every: usize,
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args)]
@@ -185,6 +209,7 @@ pub fn run(command: &DatasetCommand) -> anyhow::Result<()> {
     let args = match command {
         DatasetCommand::Info(args) => args,
         DatasetCommand::Frame(args) => return export_frame(args),
+        DatasetCommand::Covisibility(args) => return covisibility(args),
     };
     let path = Path::new(&args.path);
     // A folder of agent folders (synth output, Multi-agent Replica) -> one block per agent.
@@ -217,6 +242,116 @@ pub fn run(command: &DatasetCommand) -> anyhow::Result<()> {
     }
     for i in &infos {
         print_info(i);
+    }
+    Ok(())
+}
+
+/// What `dataset covisibility` prints.
+#[derive(Debug, Serialize)]
+pub struct CovisibilityReport {
+    pub frames_a: usize,
+    pub frames_b: usize,
+    /// Distance between the two sequences' first camera centres (metres).
+    pub start_distance_m: f64,
+    /// Angle between their first optical axes (degrees).
+    pub start_view_angle_deg: f64,
+    /// Over every sampled cross pair, the larger of both directions' co-visibility.
+    pub pair_covisibility_max: f64,
+    pub pair_covisibility_median: f64,
+    /// Share of A's sampled surface seen by some sampled frame of B, and the reverse.
+    pub map_overlap_a_in_b: f64,
+    pub map_overlap_b_in_a: f64,
+}
+
+/// Every `every`-th frame of a sequence with its ground-truth pose.
+fn posed_frames(
+    spec: &str,
+    range: FrameRange,
+    every: usize,
+) -> anyhow::Result<Vec<(dataset::Frame, nalgebra::Isometry3<f64>)>> {
+    let ds = dataset::open(spec, range).with_context(|| format!("opening dataset {spec}"))?;
+    anyhow::ensure!(!ds.is_empty(), "{spec}: no frames in the range");
+    (0..ds.len())
+        .step_by(every.max(1))
+        .map(|position| {
+            let frame = ds
+                .load(position)
+                .with_context(|| format!("{spec}: frame {}", ds.frame_index(position)))?;
+            let pose = frame.world_from_camera_gt.with_context(|| {
+                format!("{spec}: frame {} has no ground-truth pose", frame.index)
+            })?;
+            Ok((frame, pose))
+        })
+        .collect()
+}
+
+fn posed<'a>(
+    frame: &'a dataset::Frame,
+    pose: &'a nalgebra::Isometry3<f64>,
+) -> slam_core::metrics::covisibility::PosedDepth<'a> {
+    slam_core::metrics::covisibility::PosedDepth {
+        depth: &frame.depth,
+        intrinsics: &frame.intrinsics,
+        world_from_camera: pose,
+    }
+}
+
+fn covisibility(args: &CovisibilityArgs) -> anyhow::Result<()> {
+    use slam_core::metrics::covisibility::{CovisibilityParams, PosedDepth, covisibility_with_any};
+    let a = posed_frames(&args.a, args.frames_a, args.every)?;
+    let b = posed_frames(&args.b, args.frames_b, args.every)?;
+    let a_posed: Vec<PosedDepth> = a.iter().map(|(f, p)| posed(f, p)).collect();
+    let b_posed: Vec<PosedDepth> = b.iter().map(|(f, p)| posed(f, p)).collect();
+    let params = CovisibilityParams::default();
+    let mut pairs = Vec::new();
+    for fa in &a_posed {
+        for fb in &b_posed {
+            let ab = covisibility_with_any(*fa, std::slice::from_ref(fb), &params).unwrap_or(0.0);
+            let ba = covisibility_with_any(*fb, std::slice::from_ref(fa), &params).unwrap_or(0.0);
+            pairs.push(ab.max(ba));
+        }
+    }
+    pairs.sort_by(f64::total_cmp);
+    let overlap = |of: &[PosedDepth], by: &[PosedDepth]| {
+        let shares: Vec<f64> = of
+            .iter()
+            .filter_map(|f| covisibility_with_any(*f, by, &params))
+            .collect();
+        shares.iter().sum::<f64>() / shares.len().max(1) as f64
+    };
+    let (pose_a, pose_b) = (&a[0].1, &b[0].1);
+    let axis = |p: &nalgebra::Isometry3<f64>| p.rotation * nalgebra::Vector3::z();
+    let report = CovisibilityReport {
+        frames_a: a.len(),
+        frames_b: b.len(),
+        start_distance_m: (pose_a.translation.vector - pose_b.translation.vector).norm(),
+        start_view_angle_deg: axis(pose_a).angle(&axis(pose_b)).to_degrees(),
+        pair_covisibility_max: pairs.last().copied().unwrap_or(0.0),
+        pair_covisibility_median: pairs[pairs.len() / 2],
+        map_overlap_a_in_b: overlap(&a_posed, &b_posed),
+        map_overlap_b_in_a: overlap(&b_posed, &a_posed),
+    };
+    if args.json {
+        print_json(&report)?;
+    } else {
+        println!(
+            "{} frames of A, {} of B (every {})",
+            report.frames_a, report.frames_b, args.every
+        );
+        println!(
+            "  first frames        {:.2} m apart, optical axes {:.0} degrees apart",
+            report.start_distance_m, report.start_view_angle_deg
+        );
+        println!(
+            "  frame pairs         co-visibility max {:.1} %, median {:.1} %",
+            100.0 * report.pair_covisibility_max,
+            100.0 * report.pair_covisibility_median
+        );
+        println!(
+            "  maps                {:.1} % of A seen by B, {:.1} % of B seen by A",
+            100.0 * report.map_overlap_a_in_b,
+            100.0 * report.map_overlap_b_in_a
+        );
     }
     Ok(())
 }

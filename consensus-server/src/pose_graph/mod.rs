@@ -44,12 +44,23 @@ pub const WORLD_AGENT: u32 = 0;
 /// A closure whose final GNC weight is at least this is accepted.
 const ACCEPTED_WEIGHT: f64 = 0.5;
 
-/// A verified relative pose between two keyframes (an [`crate::alignment::AlignmentResult`]).
+/// A verified relative pose between two keyframes (an [`crate::alignment::AlignmentResult`], or
+/// a map registration carried to two keyframes, [`crate::map_links`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LoopClosure {
     pub source: KeyframeRef,
     pub target: KeyframeRef,
     pub target_camera_from_source_camera: Isometry3<f64>,
+    /// The measurement's own standard deviations; `None`: the configured loop-closure ones
+    /// ([`PoseGraphConfig::loop_rotation_sigma_rad`], `loop_translation_sigma_m`).
+    pub sigmas: Option<EdgeSigmas>,
+}
+
+/// Standard deviations of a relative-pose measurement (isotropic per block).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct EdgeSigmas {
+    pub rotation_rad: f64,
+    pub translation_m: f64,
 }
 
 /// A graph that cannot be solved as given.
@@ -225,14 +236,18 @@ impl PoseGraph {
             .iter()
             .enumerate()
             .filter_map(|(index, closure)| {
+                let sigmas = closure.sigmas.unwrap_or(EdgeSigmas {
+                    rotation_rad: config.loop_rotation_sigma_rad,
+                    translation_m: config.loop_translation_sigma_m,
+                });
                 Some((
                     index,
                     Edge {
                         from: *node_of.get(&closure.target)?,
                         to: *node_of.get(&closure.source)?,
                         measured: closure.target_camera_from_source_camera,
-                        rotation_information: config.loop_rotation_sigma_rad.powi(-2),
-                        translation_information: config.loop_translation_sigma_m.powi(-2),
+                        rotation_information: sigmas.rotation_rad.powi(-2),
+                        translation_information: sigmas.translation_m.powi(-2),
                     },
                 ))
             })
@@ -470,6 +485,7 @@ mod tests {
             source,
             target,
             target_camera_from_source_camera: Isometry3::identity(),
+            sigmas: None,
         };
         assert_eq!(
             graph.add_loop(closure(kf(1, 0), kf(0, 0))),
@@ -496,6 +512,7 @@ mod tests {
                 source: kf(1, 0),
                 target: kf(0, 2),
                 target_camera_from_source_camera: one_metre,
+                sigmas: None,
             })
             .unwrap();
         let solution = graph.solve(&PoseGraphConfig::default()).unwrap();

@@ -3,6 +3,7 @@
 //! statistics every run-time report uses ([`stats`]).
 
 pub mod ate;
+pub mod covisibility;
 pub mod depth;
 pub mod image;
 pub mod lpips;
