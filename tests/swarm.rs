@@ -9,10 +9,11 @@
 //! The agent and consensus binaries belong to other packages of the workspace; `cargo test
 //! --workspace` (the README's test command) builds them next to `mac-ego3d`.
 
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command};
-use std::time::{Duration, Instant};
+mod common;
 
+use std::time::Duration;
+
+use common::{AgentSpec, SwarmRun};
 use slam_core::config::Config;
 
 /// Frames per agent: the two synthetic loops overlap within this many frames.
@@ -37,28 +38,11 @@ const MAX_JOINT_ATE_M: f64 = 0.02;
 const MIN_MERGED_PSNR_DB: f64 = 25.0;
 /// Render the merged map at every n-th frame of each agent for the PSNR.
 const RENDER_EVERY: usize = 10;
-/// A run that takes longer than this has hung.
-const RUN_TIMEOUT: Duration = Duration::from_secs(900);
 /// Agent 1 is killed this long after it started (it has published keyframes by then).
 const KILL_AFTER: Duration = Duration::from_secs(8);
 
-/// A binary of the workspace, built next to this package's `mac-ego3d`.
-fn workspace_binary(name: &str) -> PathBuf {
-    let path = Path::new(env!("CARGO_BIN_EXE_mac-ego3d"))
-        .parent()
-        .unwrap()
-        .join(name);
-    assert!(
-        path.exists(),
-        "{} is missing: run the tests with `cargo test --workspace` (it builds every binary)",
-        path.display()
-    );
-    path
-}
-
-fn write_config(dir: &Path) -> PathBuf {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/synthetic.toml");
-    let mut config = Config::load(&path).unwrap();
+fn config() -> Config {
+    let mut config = common::repository_config("configs/synthetic.toml");
     config.consensus.t_comm = T_COMM;
     config.tracking.pixel_stride = PIXEL_STRIDE;
     config.keyframes.footprint_sigma_per_spacing = FOOTPRINT_SIGMA_PER_SPACING;
@@ -68,152 +52,44 @@ fn write_config(dir: &Path) -> PathBuf {
     // overlapping pair of this scene.
     config.consensus.descriptor_weights =
         Some(slam_core::shared_data::require("weights/lpips/alexnet.npz"));
-    let written = dir.join("config.toml");
-    std::fs::write(&written, toml::to_string(&config).unwrap()).unwrap();
-    written
+    config
 }
 
-struct Swarm {
-    dir: tempfile::TempDir,
-    config: PathBuf,
-    namespace: String,
-}
-
-impl Swarm {
-    fn new(tag: &str) -> Self {
-        let dir = tempfile::tempdir().unwrap();
-        let config = write_config(dir.path());
-        Self {
-            namespace: format!("e2e{}{tag}", std::process::id()),
-            dir,
-            config,
-        }
-    }
-
-    fn log(&self, name: &str) -> std::fs::File {
-        std::fs::File::create(self.dir.path().join(format!("{name}.log"))).unwrap()
-    }
-
-    fn spawn_consensus(&self) -> Child {
-        Command::new(workspace_binary("mac-consensus"))
-            .arg("--config")
-            .arg(&self.config)
-            .arg("--out")
-            .arg(self.dir.path())
-            .args(["--agents", "2", "--namespace", &self.namespace])
-            .stderr(self.log("consensus"))
-            .spawn()
-            .expect("starting mac-consensus")
-    }
-
-    fn spawn_agent(&self, agent_id: u32, log: &str) -> Child {
-        Command::new(workspace_binary("mac-agent"))
-            .arg("--config")
-            .arg(&self.config)
-            .args([
-                "--dataset",
-                &format!(
-                    "synthetic:agents=2,agent={agent_id},frames={FRAMES},width={WIDTH},\
-                     height={HEIGHT}"
-                ),
-            ])
-            .args(["--agent-id", &agent_id.to_string()])
-            .args(["--namespace", &self.namespace])
-            .args(["--eval-every", "50", "--renders", "0"])
-            .arg("--out")
-            .arg(self.dir.path().join(format!("agent_{agent_id}")))
-            .stderr(self.log(log))
-            .spawn()
-            .expect("starting mac-agent")
-    }
-
-    /// Waits for `child`; on failure, panics with the tail of its log.
-    fn wait(&self, mut child: Child, what: &str, log: &str) {
-        let started = Instant::now();
-        loop {
-            if let Some(status) = child.try_wait().unwrap() {
-                if !status.success() {
-                    let text = std::fs::read_to_string(self.dir.path().join(format!("{log}.log")))
-                        .unwrap_or_default();
-                    let tail: String = text
-                        .lines()
-                        .rev()
-                        .take(20)
-                        .collect::<Vec<_>>()
-                        .into_iter()
-                        .rev()
-                        .collect::<Vec<_>>()
-                        .join("\n");
-                    panic!("{what} exited with {status}; its log ends:\n{tail}");
-                }
-                return;
-            }
-            if started.elapsed() > RUN_TIMEOUT {
-                let _ = child.kill();
-                panic!("{what} did not finish within {RUN_TIMEOUT:?}");
-            }
-            std::thread::sleep(Duration::from_millis(100));
-        }
-    }
-
-    /// `mac-ego3d eval swarm --json` over the run's outputs.
-    fn evaluate(&self) -> serde_json::Value {
-        let output = Command::new(env!("CARGO_BIN_EXE_mac-ego3d"))
-            .args(["eval", "swarm", "--json", "--renders", "0"])
-            .args(["--render-every", &RENDER_EVERY.to_string()])
-            .arg("--dir")
-            .arg(self.dir.path())
-            .output()
-            .expect("running mac-ego3d eval swarm");
-        assert!(
-            output.status.success(),
-            "eval swarm failed: {}",
-            String::from_utf8_lossy(&output.stderr)
-        );
-        serde_json::from_slice(&output.stdout).unwrap_or_else(|e| {
-            panic!(
-                "eval swarm printed no JSON ({e}): {}",
-                String::from_utf8_lossy(&output.stdout)
+fn swarm(tag: &str) -> SwarmRun {
+    let agents = (0..2)
+        .map(|k| {
+            AgentSpec::new(
+                format!("synthetic:agents=2,agent={k},frames={FRAMES},width={WIDTH},height={HEIGHT}"),
+                "..",
             )
         })
-    }
+        .collect();
+    SwarmRun::new(tag, &config(), agents)
+}
 
-    fn consensus_report(&self) -> serde_json::Value {
-        let text = std::fs::read_to_string(self.dir.path().join("consensus.json")).unwrap();
-        serde_json::from_str(&text).unwrap()
+/// Both agents placed in the world with a pose per frame, and the figures within bounds.
+fn check(swarm: &SwarmRun, metrics: &serde_json::Value) {
+    for k in 0..2 {
+        let world = swarm.path().join(format!("agent_{k}.tum"));
+        assert!(
+            world.exists(),
+            "agent {k} was not placed in the world frame"
+        );
+        let poses = slam_core::trajectory::Trajectory::read_tum(&world).unwrap();
+        assert_eq!(poses.len(), FRAMES, "agent {k}: one world pose per frame");
     }
-
-    /// Both agents placed in the world with a pose per frame, and the figures within bounds.
-    fn check(&self, metrics: &serde_json::Value) {
-        for k in 0..2 {
-            let world = self.dir.path().join(format!("agent_{k}.tum"));
-            assert!(
-                world.exists(),
-                "agent {k} was not placed in the world frame"
-            );
-            let poses = slam_core::trajectory::Trajectory::read_tum(&world).unwrap();
-            assert_eq!(poses.len(), FRAMES, "agent {k}: one world pose per frame");
-        }
-        let ate = metrics["ate_joint_rmse_m"].as_f64().expect("joint ATE");
-        assert!(ate <= MAX_JOINT_ATE_M, "joint ATE {ate} m");
-        let inter_agent = metrics["inter_agent_closures_accepted"].as_u64().unwrap();
-        assert!(inter_agent >= 1, "no inter-agent loop closure accepted");
-        assert!(self.dir.path().join("map.ply").exists());
-    }
+    let ate = metrics["ate_joint_rmse_m"].as_f64().expect("joint ATE");
+    assert!(ate <= MAX_JOINT_ATE_M, "joint ATE {ate} m");
+    let inter_agent = metrics["inter_agent_closures_accepted"].as_u64().unwrap();
+    assert!(inter_agent >= 1, "no inter-agent loop closure accepted");
+    assert!(swarm.path().join("map.ply").exists());
 }
 
 #[test]
 fn real_data_swarm_of_two_agent_processes_agrees_on_one_sharp_world() {
-    let swarm = Swarm::new("a");
-    let consensus = swarm.spawn_consensus();
-    let agents: Vec<Child> = (0..2)
-        .map(|k| swarm.spawn_agent(k, &format!("agent_{k}")))
-        .collect();
-    for (k, agent) in agents.into_iter().enumerate() {
-        swarm.wait(agent, &format!("agent {k}"), &format!("agent_{k}"));
-    }
-    swarm.wait(consensus, "mac-consensus", "consensus");
-    let metrics = swarm.evaluate();
+    let swarm = swarm("a");
+    swarm.run_to_end();
+    let metrics = swarm.evaluate(RENDER_EVERY);
     eprintln!(
         "joint ATE {:?} m, PSNR {:?} dB, SSIM {:?}, depth L1 {:?} cm, inter-agent closures {:?}, \
          refinement {}",
@@ -224,7 +100,7 @@ fn real_data_swarm_of_two_agent_processes_agrees_on_one_sharp_world() {
         metrics["inter_agent_closures_accepted"],
         swarm.consensus_report()["refinement"]
     );
-    swarm.check(&metrics);
+    check(&swarm, &metrics);
     let psnr = metrics["psnr"].as_f64().expect("merged-map PSNR");
     assert!(
         psnr >= MIN_MERGED_PSNR_DB,
@@ -234,7 +110,7 @@ fn real_data_swarm_of_two_agent_processes_agrees_on_one_sharp_world() {
 
 #[test]
 fn real_data_swarm_agent_process_killed_and_restarted_still_gives_a_complete_result() {
-    let swarm = Swarm::new("b");
+    let swarm = swarm("b");
     let consensus = swarm.spawn_consensus();
     let survivor = swarm.spawn_agent(0, "agent_0");
     let mut victim = swarm.spawn_agent(1, "agent_1_killed");
@@ -261,6 +137,6 @@ fn real_data_swarm_agent_process_killed_and_restarted_still_gives_a_complete_res
         "restarted agent 1: {} keyframe id conflicts",
         report["agents"]["1"]["keyframe_id_conflicts"]
     );
-    let metrics = swarm.evaluate();
-    swarm.check(&metrics);
+    let metrics = swarm.evaluate(RENDER_EVERY);
+    check(&swarm, &metrics);
 }

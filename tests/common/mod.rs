@@ -1,0 +1,212 @@
+//! A swarm run as a user starts one: one `mac-consensus` and N `mac-agent` processes (the
+//! workspace's own binaries, each its own OS process) in a temporary folder, then `mac-ego3d eval
+//! swarm` for the figures. Shared by the swarm tests of this package.
+//!
+//! The agent and consensus binaries belong to other packages of the workspace; `cargo test
+//! --workspace` (the README's test command) builds them next to `mac-ego3d`.
+
+#![allow(dead_code)] // each test file uses its own part
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command};
+use std::time::{Duration, Instant};
+
+use slam_core::config::Config;
+
+/// A run that takes longer than this has hung.
+pub const RUN_TIMEOUT: Duration = Duration::from_secs(900);
+
+/// A binary of the workspace, built next to this package's `mac-ego3d`.
+pub fn workspace_binary(name: &str) -> PathBuf {
+    let path = Path::new(env!("CARGO_BIN_EXE_mac-ego3d"))
+        .parent()
+        .unwrap()
+        .join(name);
+    assert!(
+        path.exists(),
+        "{} is missing: run the tests with `cargo test --workspace` (it builds every binary)",
+        path.display()
+    );
+    path
+}
+
+/// A configuration file of the repository (`configs/...`).
+pub fn repository_config(relative: &str) -> Config {
+    Config::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join(relative)).unwrap()
+}
+
+/// One agent of a run: its dataset (path or `synthetic:...` spec) and frame range.
+#[derive(Debug, Clone)]
+pub struct AgentSpec {
+    pub dataset: String,
+    pub frames: String,
+}
+
+impl AgentSpec {
+    pub fn new(dataset: impl Into<String>, frames: &str) -> Self {
+        Self {
+            dataset: dataset.into(),
+            frames: frames.to_string(),
+        }
+    }
+}
+
+pub struct SwarmRun {
+    pub dir: tempfile::TempDir,
+    pub config: PathBuf,
+    pub namespace: String,
+    pub agents: Vec<AgentSpec>,
+}
+
+impl SwarmRun {
+    /// A run folder with `config` written into it; `tag` keeps namespaces of concurrent tests
+    /// apart.
+    pub fn new(tag: &str, config: &Config, agents: Vec<AgentSpec>) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let written = dir.path().join("config.toml");
+        std::fs::write(&written, toml::to_string(config).unwrap()).unwrap();
+        Self {
+            namespace: format!("e2e{}{tag}", std::process::id()),
+            dir,
+            config: written,
+            agents,
+        }
+    }
+
+    pub fn path(&self) -> &Path {
+        self.dir.path()
+    }
+
+    pub fn log(&self, name: &str) -> std::fs::File {
+        std::fs::File::create(self.path().join(format!("{name}.log"))).unwrap()
+    }
+
+    pub fn spawn_consensus(&self) -> Child {
+        Command::new(workspace_binary("mac-consensus"))
+            .arg("--config")
+            .arg(&self.config)
+            .arg("--out")
+            .arg(self.path())
+            .args(["--agents", &self.agents.len().to_string()])
+            .args(["--namespace", &self.namespace])
+            .stderr(self.log("consensus"))
+            .spawn()
+            .expect("starting mac-consensus")
+    }
+
+    pub fn spawn_agent(&self, agent_id: u32, log: &str) -> Child {
+        let agent = &self.agents[agent_id as usize];
+        Command::new(workspace_binary("mac-agent"))
+            .arg("--config")
+            .arg(&self.config)
+            .args(["--dataset", &agent.dataset, "--frames", &agent.frames])
+            .args(["--agent-id", &agent_id.to_string()])
+            .args(["--namespace", &self.namespace])
+            .args(["--eval-every", "50", "--renders", "0"])
+            .arg("--out")
+            .arg(self.path().join(format!("agent_{agent_id}")))
+            .stderr(self.log(log))
+            .spawn()
+            .expect("starting mac-agent")
+    }
+
+    /// Runs the consensus and every agent to the end.
+    pub fn run_to_end(&self) {
+        let consensus = self.spawn_consensus();
+        let agents: Vec<Child> = (0..self.agents.len() as u32)
+            .map(|k| self.spawn_agent(k, &format!("agent_{k}")))
+            .collect();
+        for (k, agent) in agents.into_iter().enumerate() {
+            self.wait(agent, &format!("agent {k}"), &format!("agent_{k}"));
+        }
+        self.wait(consensus, "mac-consensus", "consensus");
+    }
+
+    /// Waits for `child`; on failure, panics with the tail of its log.
+    pub fn wait(&self, mut child: Child, what: &str, log: &str) {
+        let started = Instant::now();
+        loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                if !status.success() {
+                    panic!(
+                        "{what} exited with {status}; its log ends:\n{}",
+                        self.log_tail(log, 20)
+                    );
+                }
+                return;
+            }
+            if started.elapsed() > RUN_TIMEOUT {
+                let _ = child.kill();
+                panic!("{what} did not finish within {RUN_TIMEOUT:?}");
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    /// The last `lines` lines of a process's log.
+    pub fn log_tail(&self, log: &str, lines: usize) -> String {
+        let text =
+            std::fs::read_to_string(self.path().join(format!("{log}.log"))).unwrap_or_default();
+        let tail: Vec<&str> = text.lines().rev().take(lines).collect();
+        tail.into_iter().rev().collect::<Vec<_>>().join("\n")
+    }
+
+    /// `mac-ego3d eval swarm --json` over the run's outputs, rendering every `render_every`-th
+    /// frame (0: no renders, trajectories only).
+    pub fn evaluate(&self, render_every: usize) -> serde_json::Value {
+        let output = Command::new(env!("CARGO_BIN_EXE_mac-ego3d"))
+            .args(["eval", "swarm", "--json", "--renders", "0"])
+            .args(["--render-every", &render_every.to_string()])
+            .arg("--dir")
+            .arg(self.path())
+            .output()
+            .expect("running mac-ego3d eval swarm");
+        assert!(
+            output.status.success(),
+            "eval swarm failed: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        serde_json::from_slice(&output.stdout).unwrap_or_else(|e| {
+            panic!(
+                "eval swarm printed no JSON ({e}): {}",
+                String::from_utf8_lossy(&output.stdout)
+            )
+        })
+    }
+
+    pub fn consensus_report(&self) -> serde_json::Value {
+        let text = std::fs::read_to_string(self.path().join("consensus.json")).unwrap();
+        serde_json::from_str(&text).unwrap()
+    }
+
+    /// Whether the consensus placed agent `k` in the world (it wrote a world trajectory).
+    pub fn is_linked(&self, k: u32) -> bool {
+        self.path().join(format!("agent_{k}.tum")).exists()
+    }
+
+    /// One line per inter-agent attempt of consensus.json, for failure messages.
+    pub fn attempts_summary(&self) -> String {
+        let report = self.consensus_report();
+        let Some(events) = report["events"].as_array() else {
+            return "no events".into();
+        };
+        events
+            .iter()
+            .filter(|e| e["inter_agent"] == true)
+            .map(|e| {
+                format!(
+                    "{} {}->{} verified {} pose graph {} inliers {} overlap {} {}",
+                    e["kind"],
+                    e["source"]["agent_id"],
+                    e["target"]["agent_id"],
+                    e["verified"],
+                    e["accepted_by_pose_graph"],
+                    e["inliers"],
+                    e["overlap"],
+                    e["rejection"]
+                )
+            })
+            .collect::<Vec<_>>()
+            .join("\n")
+    }
+}
