@@ -5,6 +5,8 @@
 //! Built so far:
 //! - [`place_recognition`]: the descriptor database that proposes loop closures;
 //! - [`alignment`]: verified relative pose of two keyframes (features + RANSAC, G-ICP, checks);
+//! - [`map_registration`]: verified transform between two agents' maps without an initial guess
+//!   (voxel downsampling, FPFH-style descriptors, RANSAC with a runner-up, G-ICP, checks);
 //! - [`pose_graph`]: robust (GNC) pose graph over all agents' keyframes, giving each agent's
 //!   frame in the world and corrected keyframe poses;
 //! - [`refinement`]: joint photometric refinement of the merged world map and the keyframe
@@ -22,6 +24,7 @@ pub mod alignment;
 pub mod config;
 pub mod engine;
 pub mod inbox;
+pub mod map_registration;
 pub mod place_recognition;
 pub mod pose_graph;
 pub mod process;

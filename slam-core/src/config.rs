@@ -15,7 +15,8 @@ use crate::dataset::noise::NoiseConfig;
 
 mod consensus;
 pub use consensus::{
-    AlignmentConfig, LocalCorrectionConfig, PoseGraphConfig, RefinementConfig, ResendConfig,
+    AlignmentConfig, LocalCorrectionConfig, MapRegistrationConfig, PoseGraphConfig,
+    RefinementConfig, ResendConfig,
 };
 
 /// Tracking: point selection, per-point covariances, map-candidate selection and G-ICP.
@@ -234,6 +235,8 @@ pub struct ConsensusConfig {
     pub local_corrections: LocalCorrectionConfig,
     /// Re-requesting keyframes that arrived incomplete: `[consensus.resend]`.
     pub resend: ResendConfig,
+    /// Map-to-map global registration without an initial guess: `[consensus.map_registration]`.
+    pub map_registration: MapRegistrationConfig,
 }
 
 impl Default for ConsensusConfig {
@@ -254,6 +257,7 @@ impl Default for ConsensusConfig {
             refinement: RefinementConfig::default(),
             local_corrections: LocalCorrectionConfig::default(),
             resend: ResendConfig::default(),
+            map_registration: MapRegistrationConfig::default(),
         }
     }
 }
@@ -539,6 +543,141 @@ impl Config {
             non_negative(field, v)?;
         }
         positive("consensus.resend.after_s", c.resend.after_s)?;
+        let g = &c.map_registration;
+        for (field, v) in [
+            ("consensus.map_registration.voxel_m", g.voxel_m),
+            (
+                "consensus.map_registration.normal_radius_voxels",
+                g.normal_radius_voxels,
+            ),
+            (
+                "consensus.map_registration.feature_radius_voxels",
+                g.feature_radius_voxels,
+            ),
+            (
+                "consensus.map_registration.inlier_distance_voxels",
+                g.inlier_distance_voxels,
+            ),
+            (
+                "consensus.map_registration.edge_tolerance_voxels",
+                g.edge_tolerance_voxels,
+            ),
+            (
+                "consensus.map_registration.covariance_epsilon",
+                g.covariance_epsilon,
+            ),
+            (
+                "consensus.map_registration.gicp_rotation_epsilon_rad",
+                g.gicp_rotation_epsilon_rad,
+            ),
+            (
+                "consensus.map_registration.gicp_translation_epsilon_m",
+                g.gicp_translation_epsilon_m,
+            ),
+            (
+                "consensus.map_registration.max_residual_m",
+                g.max_residual_m,
+            ),
+            (
+                "consensus.map_registration.residual_sigma_floor_m",
+                g.residual_sigma_floor_m,
+            ),
+            (
+                "consensus.map_registration.max_rotation_sigma_rad",
+                g.max_rotation_sigma_rad,
+            ),
+            (
+                "consensus.map_registration.max_translation_sigma_m",
+                g.max_translation_sigma_m,
+            ),
+        ] {
+            positive(field, v)?;
+        }
+        for (field, v) in [
+            (
+                "consensus.map_registration.min_sample_spread_voxels",
+                g.min_sample_spread_voxels,
+            ),
+            (
+                "consensus.map_registration.distinct_rotation_rad",
+                g.distinct_rotation_rad,
+            ),
+            (
+                "consensus.map_registration.distinct_translation_m",
+                g.distinct_translation_m,
+            ),
+        ] {
+            non_negative(field, v)?;
+        }
+        for (field, v) in [
+            (
+                "consensus.map_registration.ransac_confidence",
+                g.ransac_confidence,
+            ),
+            (
+                "consensus.map_registration.max_ambiguity_ratio",
+                g.max_ambiguity_ratio,
+            ),
+            (
+                "consensus.map_registration.min_overlap_fraction",
+                g.min_overlap_fraction,
+            ),
+        ] {
+            fraction(field, v)?;
+        }
+        for (field, v) in [
+            ("consensus.map_registration.max_points", g.max_points),
+            (
+                "consensus.map_registration.max_matched_features",
+                g.max_matched_features,
+            ),
+            (
+                "consensus.map_registration.refine_max_points",
+                g.refine_max_points,
+            ),
+            (
+                "consensus.map_registration.ransac_max_samples",
+                g.ransac_max_samples,
+            ),
+            (
+                "consensus.map_registration.gicp_max_iterations",
+                g.gicp_max_iterations,
+            ),
+        ] {
+            at_least_one(field, v)?;
+        }
+        for (field, v) in [
+            (
+                "consensus.map_registration.min_normal_neighbours",
+                g.min_normal_neighbours,
+            ),
+            (
+                "consensus.map_registration.covariance_neighbours",
+                g.covariance_neighbours,
+            ),
+        ] {
+            if v < 3 {
+                return Err((field, "a plane needs at least 3 neighbours".into()));
+            }
+        }
+        if g.min_consistent_correspondences < 3 {
+            return Err((
+                "consensus.map_registration.min_consistent_correspondences",
+                "a rigid transform needs at least 3 correspondences".into(),
+            ));
+        }
+        if g.refine_distances_voxels.is_empty()
+            || g.refine_distances_voxels
+                .iter()
+                .any(|d| !(d.is_finite() && *d > 0.0))
+            || g.refine_distances_voxels.windows(2).any(|w| w[1] > w[0])
+        {
+            return Err((
+                "consensus.map_registration.refine_distances_voxels",
+                "must be a non-empty list of positive distances, coarse to fine (decreasing)"
+                    .into(),
+            ));
+        }
         if let Some(n) = &self.noise {
             non_negative("noise.rgb_sigma", n.rgb_sigma)?;
             non_negative("noise.depth_sigma_m", n.depth_sigma_m)?;

@@ -27,6 +27,8 @@ pub enum BenchCommand {
     Render(super::render::BenchRenderArgs),
     /// G-ICP odometry: per-frame tracking time and ATE.
     Tracking(super::tracking::TrackingArgs),
+    /// Global registration of two agents' maps without an initial guess, against ground truth.
+    MapRegistration(super::map_registration_bench::MapRegistrationArgs),
     /// Latency and throughput of the agent <-> consensus IPC transport between two processes.
     Ipc(super::ipc::IpcArgs),
     /// Peer process of `bench ipc` (started by it).
@@ -259,6 +261,7 @@ pub fn run(command: &BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Metrics(a) => run_metrics(a),
         BenchCommand::Render(a) => super::render::run_bench(a),
         BenchCommand::Tracking(a) => super::tracking::run(a),
+        BenchCommand::MapRegistration(a) => super::map_registration_bench::run(a),
         BenchCommand::Ipc(a) => super::ipc::run(a),
         BenchCommand::IpcPeer(a) => super::ipc::run_peer(a),
     }

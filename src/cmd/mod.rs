@@ -5,6 +5,7 @@ pub mod config;
 pub mod dataset;
 pub mod eval;
 pub mod ipc;
+pub mod map_registration_bench;
 pub mod plot;
 pub mod render;
 pub mod render_map;

@@ -311,6 +311,165 @@ impl Default for ResendConfig {
     }
 }
 
+/// Map-level global registration between two agents' maps, without an initial guess: the
+/// `[consensus.map_registration]` table (consensus-server/src/map_registration). Both maps are
+/// voxel-downsampled, described by FPFH-style local geometry histograms, matched in feature
+/// space, pruned by RANSAC over rigid 3-point fits, refined by G-ICP and verified.
+///
+/// Lengths ending in `_voxels` are multiples of the voxel size actually used, which grows above
+/// `voxel_m` when a map has more than `max_points` voxels: radii and tolerances then scale with
+/// the sampling, which is what they depend on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MapRegistrationConfig {
+    // --- Downsampling ---
+    /// Smallest voxel edge (metres): each map is reduced to one point (the centroid) per voxel.
+    /// 5 cm keeps table tops, chairs and door frames as shapes while removing the fine detail
+    /// that depth noise (1-2 cm) blurs anyway. Maps must sample their surfaces at least this
+    /// finely (dense SLAM maps do), or isolated-point removal thins them.
+    pub voxel_m: f64,
+    /// Points per map at most for the descriptors: the voxel grows (both maps get the same one,
+    /// so their features describe the same scale) until both maps fit. Bounds the cost: two maps
+    /// of 10k points register in 0.3-0.9 s on two cores.
+    pub max_points: usize,
+
+    // --- Normals and features ---
+    /// Normal of a point: smallest principal axis of its neighbours within this radius (voxels).
+    /// 2.5 voxels holds ~20 neighbours on a plane: enough for a stable normal, small enough not
+    /// to round off edges.
+    pub normal_radius_voxels: f64,
+    /// A point with fewer neighbours (itself included) within the normal radius has no reliable
+    /// normal: it is removed before the point budget is applied (isolated outliers, thin edges
+    /// of the scan). A plane holds ~20 points in that radius, an edge of it ~10; points scattered
+    /// through free space (a fifth of the unit test's points) rarely have 10.
+    pub min_normal_neighbours: usize,
+    /// Feature histograms pair a point with its neighbours within this radius (voxels); the final
+    /// descriptor also folds in the neighbours' own histograms, so it sees up to twice as far.
+    /// 5 voxels is the usual FPFH choice (Rusu 2009 uses ~2x the normal radius).
+    pub feature_radius_voxels: f64,
+    /// A point with fewer neighbours with normals within the feature radius gets no feature.
+    pub min_feature_neighbours: usize,
+
+    // --- Correspondences ---
+    /// Descriptors per map that take part in matching at most: the most distinctive ones, those
+    /// farthest from the map's mean descriptor (the "persistence" idea of Rusu et al. 2008).
+    /// Walls and floors, most of an indoor map, all look alike and mostly add wrong matches, and
+    /// matching costs the product of the two counts.
+    pub max_matched_features: usize,
+    /// Mutual nearest neighbours in feature space are the correspondences; when fewer than this
+    /// are mutual, the best one-way matches (smallest feature distance) are added up to it.
+    pub min_correspondences: usize,
+
+    // --- Robust pruning (RANSAC over 3 correspondences) ---
+    /// A correspondence supports a hypothesis when the hypothesis puts its source point within
+    /// this distance of its target point (voxels): matched points are voxel centroids of two
+    /// different samplings, up to about a voxel apart on the same surface.
+    pub inlier_distance_voxels: f64,
+    /// A sample's pairwise distances must agree between the maps within this tolerance
+    /// (voxels) before a transform is fitted: a rigid motion preserves distances, and the test
+    /// discards almost every wrong sample for the price of three subtractions.
+    pub edge_tolerance_voxels: f64,
+    /// Sample points closer together than this (voxels) make an ill-conditioned rotation.
+    pub min_sample_spread_voxels: f64,
+    /// Samples drawn at most.
+    pub ransac_max_samples: usize,
+    /// Stop sampling once a hypothesis as good as the best would have been drawn with this
+    /// probability (and at least `ransac_min_samples` were drawn).
+    pub ransac_confidence: f64,
+    /// Samples drawn at least, so the runner-up hypothesis is searched for too (samples are
+    /// cheap: 50 000 cost a few milliseconds, almost all discarded by the edge test).
+    pub ransac_min_samples: usize,
+    /// Seed of the sampler: registration is deterministic for the same inputs.
+    pub ransac_seed: u64,
+    /// A runner-up hypothesis counts as distinct from the best when their rotations differ by
+    /// more than this (radians)...
+    pub distinct_rotation_rad: f64,
+    /// ...or they place the source map's centre farther apart than this (metres).
+    pub distinct_translation_m: f64,
+
+    // --- G-ICP refinement ---
+    /// Neighbours per G-ICP covariance and its plane regularisation (as tracking does).
+    pub covariance_neighbours: usize,
+    pub covariance_epsilon: f64,
+    /// Coarse-to-fine correspondence distances (voxels, largest first). The coarse ones are
+    /// multiples of the feature level's voxel; the last one, the final stage's and the
+    /// verification's overlap distance, of the refinement level's.
+    pub refine_distances_voxels: Vec<f64>,
+    /// Points per map at most for the final G-ICP stage and the verification: the refinement
+    /// level keeps the finest voxel up to this many points (more than `max_points`: accuracy
+    /// comes from fine sampling, and G-ICP costs only linearly in the points).
+    pub refine_max_points: usize,
+    /// Levenberg-Marquardt iterations per stage.
+    pub gicp_max_iterations: usize,
+    /// Converged when an update rotates less than this (radians) and translates less than
+    /// `gicp_translation_epsilon_m`.
+    pub gicp_rotation_epsilon_rad: f64,
+    pub gicp_translation_epsilon_m: f64,
+
+    // --- Verification ---
+    /// RANSAC's best hypothesis needs at least this many consistent correspondences. Chance
+    /// alignments of ~500 correspondences reach 8-16 on the synthetic and redkitchen maps; true
+    /// ones 20-180.
+    pub min_consistent_correspondences: usize,
+    /// Refused as ambiguous when the best distinct runner-up hypothesis has more than this
+    /// fraction of the best one's support (symmetric or repetitive structure, or a best
+    /// hypothesis no better than chance). 0.5: the best must explain twice as much.
+    pub max_ambiguity_ratio: f64,
+    /// Fraction of the smaller map's points that must have a point of the other map within the
+    /// final refinement distance after alignment.
+    pub min_overlap_fraction: f64,
+    /// RMS point-to-plane distance of those overlapping points (metres) at most.
+    pub max_residual_m: f64,
+    /// Standard deviation of one point-to-plane residual assumed by the covariance estimate
+    /// when the measured RMS residual is smaller (metres): voxel centroids are not exact.
+    pub residual_sigma_floor_m: f64,
+    /// Refused as degenerate when the estimate's standard deviation along its worst direction
+    /// exceeds this rotation (radians) or translation (metres): the overlap does not pin down all
+    /// six degrees of freedom (a single plane, a corridor). The deviations treat residuals as
+    /// independent (thousands of points give fractions of a millimetre), so only overlaps that
+    /// leave a direction (nearly) free reach these bounds.
+    pub max_rotation_sigma_rad: f64,
+    pub max_translation_sigma_m: f64,
+}
+
+impl Default for MapRegistrationConfig {
+    fn default() -> Self {
+        Self {
+            voxel_m: 0.05,
+            max_points: 10_000,
+            normal_radius_voxels: 2.5,
+            min_normal_neighbours: 10,
+            feature_radius_voxels: 5.0,
+            min_feature_neighbours: 10,
+            max_matched_features: 3000,
+            min_correspondences: 300,
+            inlier_distance_voxels: 1.5,
+            edge_tolerance_voxels: 2.0,
+            min_sample_spread_voxels: 4.0,
+            ransac_max_samples: 1_000_000,
+            ransac_confidence: 0.9999,
+            ransac_min_samples: 50_000,
+            ransac_seed: 0,
+            distinct_rotation_rad: 10f64.to_radians(),
+            distinct_translation_m: 0.3,
+            covariance_neighbours: 10,
+            covariance_epsilon: 1e-3,
+            refine_distances_voxels: vec![4.0, 2.0, 1.0],
+            refine_max_points: 25_000,
+            gicp_max_iterations: 15,
+            gicp_rotation_epsilon_rad: 1e-4,
+            gicp_translation_epsilon_m: 1e-4,
+            min_consistent_correspondences: 20,
+            max_ambiguity_ratio: 0.5,
+            min_overlap_fraction: 0.1,
+            max_residual_m: 0.03,
+            residual_sigma_floor_m: 0.005,
+            max_rotation_sigma_rad: 2f64.to_radians(),
+            max_translation_sigma_m: 0.05,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
