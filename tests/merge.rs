@@ -120,7 +120,10 @@ fn agents_shorter_than_t_comm_are_linked() {
     let swarm = SwarmRun::new(
         "short",
         &config,
-        vec![AgentSpec::new(walk, "0..40"), AgentSpec::new(walk, "30..70")],
+        vec![
+            AgentSpec::new(walk, "0..40"),
+            AgentSpec::new(walk, "30..70"),
+        ],
     );
     swarm.run_to_end();
     let ate = joint_ate_of_linked_run(&swarm);
@@ -179,7 +182,10 @@ fn real_data_redkitchen_segments_that_barely_overlap_are_not_merged_wrongly() {
     );
     if swarm.is_linked(1) {
         let ate = metrics["ate_joint_rmse_m"].as_f64().expect("joint ATE");
-        assert!(ate <= MAX_REAL_JOINT_ATE_M, "a wrong merge: joint ATE {ate} m");
+        assert!(
+            ate <= MAX_REAL_JOINT_ATE_M,
+            "a wrong merge: joint ATE {ate} m"
+        );
     }
 }
 

@@ -59,7 +59,9 @@ fn swarm(tag: &str) -> SwarmRun {
     let agents = (0..2)
         .map(|k| {
             AgentSpec::new(
-                format!("synthetic:agents=2,agent={k},frames={FRAMES},width={WIDTH},height={HEIGHT}"),
+                format!(
+                    "synthetic:agents=2,agent={k},frames={FRAMES},width={WIDTH},height={HEIGHT}"
+                ),
                 "..",
             )
         })

@@ -9,6 +9,10 @@
 //!    corrects tracking where it slipped between two publications);
 //! 2. the best `max_candidates_per_keyframe` proposals of place recognition.
 //!
+//! Besides keyframe pairs, pairs of agents are registered map to map ([`crate::map_links`]):
+//! an agent pair not linked yet goes before the keyframe candidates, a linked one is refreshed
+//! when nothing else waits.
+//!
 //! Duplicate keyframes (a message that arrived twice, or an agent that restarted and re-sent)
 //! replace nothing and propose nothing.
 
@@ -16,7 +20,7 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::sync::Arc;
 use std::time::Instant;
 
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Point3};
 use protocol::messages::FINAL_MAP_KEYFRAME_ID;
 use render_core::types::{GaussianCloud, RigidTransform};
 use serde::Serialize;
@@ -25,8 +29,9 @@ use slam_core::se3::{isometry_from_tum, isometry_to_tum};
 use crate::alignment::{AlignmentResult, Keyframe, PreparedKeyframe, Verdict, align_prepared};
 use crate::config::AlignmentConfig;
 use crate::config::ConsensusConfig;
+use crate::map_links::{AgentMap, FinishedMapJob, MapAttemptScores, MapJob, MapScheduler};
 use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
-use crate::pose_graph::{LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
+use crate::pose_graph::{EdgeSigmas, LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
 use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
 use slam_core::correction::{CorrectionField, correction};
 
@@ -49,6 +54,9 @@ pub enum CandidateSource {
     Odometry,
     /// Proposed by place recognition.
     PlaceRecognition,
+    /// Two agents' maps registered with each other ([`crate::map_links`]); the keyframes are
+    /// the link's ends (or each agent's newest keyframe when the registration was not used).
+    MapRegistration,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -81,11 +89,42 @@ impl AlignmentJob {
     }
 }
 
-/// An [`AlignmentJob`]'s outcome, for [`Engine::record_alignment`].
+/// An [`AlignmentJob`]'s outcome.
 pub struct FinishedAlignment {
     candidate: Candidate,
     result: AlignmentResult,
     alignment_ms: f64,
+}
+
+/// Work for the aligner thread: a keyframe pair or two agents' maps.
+pub enum Job {
+    Keyframes(AlignmentJob),
+    Maps(Box<MapJob>),
+}
+
+impl Job {
+    pub fn run(self) -> Finished {
+        match self {
+            Job::Keyframes(job) => Finished::Keyframes(job.run()),
+            Job::Maps(job) => Finished::Maps(Box::new(job.run())),
+        }
+    }
+}
+
+/// A [`Job`]'s outcome, for [`Engine::record`].
+pub enum Finished {
+    Keyframes(FinishedAlignment),
+    Maps(Box<FinishedMapJob>),
+}
+
+/// What was compared to decide an attempt (consensus.json).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AttemptKind {
+    /// Two keyframes' images and depth.
+    Keyframe,
+    /// Two agents' maps.
+    Map,
 }
 
 /// One alignment decision (consensus.json).
@@ -101,6 +140,15 @@ pub struct ClosureEvent {
     pub score: Option<f32>,
     /// Alignment verified the pair.
     pub verified: bool,
+    /// Keyframe pair or agents' maps.
+    pub kind: AttemptKind,
+    /// Inlier correspondences of the coarse registration (features or map points).
+    pub inliers: Option<usize>,
+    /// Overlap after alignment: the fraction of source points with a target point within the
+    /// finest correspondence distance.
+    pub overlap: Option<f64>,
+    /// The map registration's figures (map attempts only).
+    pub map: Option<MapAttemptScores>,
     /// Why alignment rejected it.
     pub rejection: Option<String>,
     /// Whether the latest pose-graph solve kept it (verified pairs only; `None` before a solve).
@@ -132,6 +180,9 @@ pub struct Engine {
     attempted: BTreeSet<(KeyframeRef, KeyframeRef)>,
     last_of_agent: BTreeMap<u32, KeyframeRef>,
     events: Vec<ClosureEvent>,
+    /// Published keyframes per agent (what map registration is scheduled by).
+    keyframes_per_agent: BTreeMap<u32, usize>,
+    map_scheduler: MapScheduler,
     /// Index in `events` of each closure added to the graph, in graph order.
     closure_events: Vec<usize>,
     solution: Option<PoseGraphSolution>,
@@ -155,6 +206,8 @@ impl Engine {
             attempted: BTreeSet::new(),
             last_of_agent: BTreeMap::new(),
             events: Vec::new(),
+            keyframes_per_agent: BTreeMap::new(),
+            map_scheduler: MapScheduler::default(),
             closure_events: Vec::new(),
             solution: None,
             dirty: false,
@@ -184,6 +237,7 @@ impl Engine {
             },
         );
         self.graph.add_keyframe(id, pose);
+        *self.keyframes_per_agent.entry(id.agent_id).or_default() += 1;
         self.gaussians.insert(id, arrival.gaussians);
         self.prepared.insert(
             id,
@@ -242,10 +296,22 @@ impl Engine {
         self.queue.len()
     }
 
-    /// Takes the next queued candidate (skipping pairs already attempted either way round) as a
-    /// job that can run on any thread while the engine takes keyframes and solves; its result
-    /// goes back through [`Self::record_alignment`]. `None` when the queue is empty.
-    pub fn next_alignment(&mut self) -> Option<AlignmentJob> {
+    /// The next piece of work, as a job that can run on any thread while the engine takes
+    /// keyframes and solves; its result goes back through [`Self::record`]. In order: a map
+    /// registration of two agents not linked yet, the next keyframe candidate, a map
+    /// registration that refreshes a link. `None` when nothing is due.
+    pub fn next_job(&mut self) -> Option<Job> {
+        if let Some(job) = self.next_map_job(false) {
+            return Some(Job::Maps(Box::new(job)));
+        }
+        if let Some(job) = self.next_alignment() {
+            return Some(Job::Keyframes(job));
+        }
+        self.next_map_job(true).map(|job| Job::Maps(Box::new(job)))
+    }
+
+    /// Takes the next queued candidate (skipping pairs already attempted either way round).
+    fn next_alignment(&mut self) -> Option<AlignmentJob> {
         let candidate = loop {
             let candidate = self.queue.pop_front()?;
             let key = (candidate.source, candidate.target);
@@ -264,9 +330,65 @@ impl Engine {
         })
     }
 
-    /// Takes a finished alignment: a verified closure joins the pose graph (solved at the next
+    /// A map registration of the next due agent pair ([`MapScheduler`]); the higher agent id is
+    /// the source.
+    fn next_map_job(&mut self, refreshes: bool) -> Option<MapJob> {
+        let placed = |agent: u32| {
+            self.solution
+                .as_ref()
+                .and_then(|s| s.world_from_agent.get(&agent).copied().flatten())
+                .is_some()
+        };
+        let (target, source) = self.map_scheduler.next_pair(
+            &self.keyframes_per_agent,
+            &placed,
+            refreshes,
+            &self.config.map_registration,
+        )?;
+        Some(MapJob {
+            source: self.agent_map(source),
+            target: self.agent_map(target),
+            registration: self.config.map_registration.clone(),
+            alignment: self.config.alignment.clone(),
+        })
+    }
+
+    /// An agent's map as published, in its tracked frame: its patches' Gaussian means and its
+    /// keyframes' depth points.
+    fn agent_map(&self, agent_id: u32) -> AgentMap {
+        let mut points = Vec::new();
+        let mut keyframes = Vec::new();
+        for (id, prepared) in self.prepared.range(agent_range(agent_id)) {
+            if let Some(cloud) = self.gaussians.get(id) {
+                points.extend(cloud.means.iter().map(|m| Point3::new(m[0], m[1], m[2])));
+            }
+            let agent_from_camera = prepared.keyframe.agent_from_camera.cast::<f32>();
+            points.extend(
+                prepared
+                    .cloud
+                    .positions()
+                    .iter()
+                    .map(|p| agent_from_camera * p),
+            );
+            keyframes.push(Arc::clone(prepared));
+        }
+        AgentMap {
+            agent_id,
+            points,
+            keyframes,
+        }
+    }
+
+    /// Takes a finished job: a verified closure joins the pose graph (solved at the next
     /// [`Self::solve_if_changed`]); the decision is recorded for consensus.json.
-    pub fn record_alignment(&mut self, done: FinishedAlignment) {
+    pub fn record(&mut self, done: Finished) {
+        match done {
+            Finished::Keyframes(done) => self.record_alignment(done),
+            Finished::Maps(done) => self.record_map_job(*done),
+        }
+    }
+
+    fn record_alignment(&mut self, done: FinishedAlignment) {
         let FinishedAlignment {
             candidate,
             result,
@@ -280,6 +402,10 @@ impl Engine {
             inter_agent: candidate.source.agent_id != candidate.target.agent_id,
             score: candidate.score,
             verified: result.is_accepted(),
+            kind: AttemptKind::Keyframe,
+            inliers: result.coarse.map(|c| c.inliers),
+            overlap: result.refinement.map(|r| r.inlier_fraction),
+            map: None,
             rejection: None,
             accepted_by_pose_graph: None,
             alignment_ms,
@@ -309,6 +435,69 @@ impl Engine {
             Verdict::Rejected(reason) => {
                 tracing::debug!(source = ?event.source, target = ?event.target, %reason, "closure rejected");
                 event.rejection = Some(reason.to_string());
+            }
+        }
+        self.events.push(event);
+    }
+
+    fn record_map_job(&mut self, done: FinishedMapJob) {
+        let (Some(source), Some(target)) = (done.source_keyframe, done.target_keyframe) else {
+            return;
+        };
+        let scores = done.scores();
+        let mut event = ClosureEvent {
+            at_s: self.started.elapsed().as_secs_f64(),
+            source,
+            target,
+            origin: CandidateSource::MapRegistration,
+            inter_agent: true,
+            score: None,
+            verified: done.closure.is_some(),
+            kind: AttemptKind::Map,
+            inliers: Some(scores.consistent_correspondences),
+            overlap: Some(scores.overlap_fraction),
+            map: Some(scores),
+            rejection: done.rejection.as_ref().map(ToString::to_string),
+            accepted_by_pose_graph: None,
+            alignment_ms: done.elapsed_ms,
+        };
+        if let Some(measured) = done.closure {
+            // The registration's own uncertainty, never tighter than a keyframe closure's: the
+            // maps it compares carry each agent's tracking drift.
+            let scores = &done.registration.scores;
+            let closure = LoopClosure {
+                source,
+                target,
+                target_camera_from_source_camera: measured,
+                sigmas: Some(EdgeSigmas {
+                    rotation_rad: scores
+                        .rotation_sigma_deg
+                        .to_radians()
+                        .max(self.config.pose_graph.loop_rotation_sigma_rad),
+                    translation_m: scores
+                        .translation_sigma_m
+                        .max(self.config.pose_graph.loop_translation_sigma_m),
+                }),
+            };
+            match self.graph.add_loop(closure) {
+                Ok(_) => {
+                    self.closure_events.push(self.events.len());
+                    self.map_scheduler
+                        .mark_linked(done.source_agent, done.target_agent);
+                    self.dirty = true;
+                    tracing::info!(
+                        source = ?source,
+                        target = ?target,
+                        inliers = event.inliers,
+                        overlap = event.overlap,
+                        "agents linked by map registration"
+                    );
+                }
+                Err(error) => {
+                    tracing::error!(%error, "map link not added");
+                    event.verified = false;
+                    event.rejection = Some(error.to_string());
+                }
             }
         }
         self.events.push(event);
@@ -509,4 +698,15 @@ fn transformed(cloud: &GaussianCloud, transform: &Isometry3<f64>) -> GaussianClo
     let mut out = cloud.clone();
     out.transform_rigid(&rigid);
     out
+}
+
+/// Every keyframe of one agent in a map keyed by [`KeyframeRef`] (ordered by agent, then id).
+fn agent_range(agent_id: u32) -> std::ops::RangeInclusive<KeyframeRef> {
+    KeyframeRef {
+        agent_id,
+        keyframe_id: 0,
+    }..=KeyframeRef {
+        agent_id,
+        keyframe_id: u64::MAX,
+    }
 }

@@ -7,6 +7,8 @@
 //! - [`alignment`]: verified relative pose of two keyframes (features + RANSAC, G-ICP, checks);
 //! - [`map_registration`]: verified transform between two agents' maps without an initial guess
 //!   (voxel downsampling, FPFH-style descriptors, RANSAC with a runner-up, G-ICP, checks);
+//! - [`map_links`]: when two agents' maps are registered, the free-space check of a result, and
+//!   the pose-graph edge it becomes;
 //! - [`pose_graph`]: robust (GNC) pose graph over all agents' keyframes, giving each agent's
 //!   frame in the world and corrected keyframe poses;
 //! - [`refinement`]: joint photometric refinement of the merged world map and the keyframe
@@ -24,6 +26,7 @@ pub mod alignment;
 pub mod config;
 pub mod engine;
 pub mod inbox;
+pub mod map_links;
 pub mod map_registration;
 pub mod place_recognition;
 pub mod pose_graph;

@@ -38,7 +38,7 @@ use slam_core::trajectory::Trajectory;
 
 use crate::alignment::Keyframe;
 use crate::engine::{
-    AlignmentJob, ClosureEvent, Engine, FinishedAlignment, KeyframeArrival, KeyframeInfo,
+    AttemptKind, ClosureEvent, Engine, Finished, Job, KeyframeArrival, KeyframeInfo,
 };
 use crate::inbox::KeyframeInbox;
 use crate::place_recognition::KeyframeRef;
@@ -146,8 +146,46 @@ pub struct ConsensusReport {
     pub interrupted: bool,
     /// Written on request while the run went on (no refinement; later outputs replace it).
     pub snapshot: bool,
+    /// Per pair of agents (`"A-B"`, A < B), what linking them took: every attempt is in
+    /// `events` (with its kind, inliers, overlap and reason); this is their tally.
+    pub agent_pairs: BTreeMap<String, PairAttempts>,
     pub events: Vec<ClosureEvent>,
     pub keyframe_info: Vec<(KeyframeRef, KeyframeInfo)>,
+}
+
+/// The inter-agent attempts of one pair of agents (consensus.json `agent_pairs`).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct PairAttempts {
+    pub keyframe_attempts: usize,
+    pub map_attempts: usize,
+    /// Attempts that alignment or map registration verified.
+    pub verified: usize,
+    /// Verified attempts the robust pose graph kept.
+    pub accepted: usize,
+    /// Why the most recent refused attempt was refused.
+    pub last_rejection: Option<String>,
+}
+
+/// Tallies the inter-agent attempts of `events` per pair of agents.
+fn pair_attempts(events: &[ClosureEvent]) -> BTreeMap<String, PairAttempts> {
+    let mut pairs: BTreeMap<(u32, u32), PairAttempts> = BTreeMap::new();
+    for event in events.iter().filter(|e| e.inter_agent) {
+        let (a, b) = (event.source.agent_id, event.target.agent_id);
+        let pair = pairs.entry((a.min(b), a.max(b))).or_default();
+        match event.kind {
+            AttemptKind::Keyframe => pair.keyframe_attempts += 1,
+            AttemptKind::Map => pair.map_attempts += 1,
+        }
+        pair.verified += usize::from(event.verified);
+        pair.accepted += usize::from(event.accepted_by_pose_graph == Some(true));
+        if let Some(reason) = &event.rejection {
+            pair.last_rejection = Some(reason.clone());
+        }
+    }
+    pairs
+        .into_iter()
+        .map(|((a, b), attempts)| (format!("{a}-{b}"), attempts))
+        .collect()
 }
 
 /// Runs the consensus until the expected agents are done or `stop` is raised.
@@ -528,8 +566,8 @@ fn spawn_worker(
             // on a loaded CPU, tens of seconds for a hopeless pair) never holds up new
             // keyframes: those are prepared, placed by their odometry edges and solved (about a
             // millisecond) while it runs, and their agents get corrections at once.
-            let (job_tx, job_rx) = crossbeam_channel::bounded::<AlignmentJob>(1);
-            let (done_tx, done_rx) = crossbeam_channel::bounded::<FinishedAlignment>(1);
+            let (job_tx, job_rx) = crossbeam_channel::bounded::<Job>(1);
+            let (done_tx, done_rx) = crossbeam_channel::bounded::<Finished>(1);
             let aligner = std::thread::Builder::new()
                 .name("consensus-aligner".into())
                 .spawn(move || {
@@ -551,7 +589,7 @@ fn spawn_worker(
                     write_progress(&worker.options.out, &worker.engine, ProgressStage::Aligning);
                     last_progress = Some(Instant::now());
                 }
-                if !in_flight && let Some(job) = worker.engine.next_alignment() {
+                if !in_flight && let Some(job) = worker.engine.next_job() {
                     in_flight = job_tx.send(job).is_ok();
                 }
                 if !in_flight && !open {
@@ -569,7 +607,7 @@ fn spawn_worker(
                     recv(live_done) -> done => match done {
                         Ok(done) => {
                             in_flight = false;
-                            worker.engine.record_alignment(done);
+                            worker.engine.record(done);
                         }
                         Err(_) => break,
                     },
@@ -890,6 +928,7 @@ fn write_outputs(
         interrupted: kind == OutputKind::Interrupted,
         snapshot: kind == OutputKind::Snapshot,
         agents,
+        agent_pairs: pair_attempts(&events),
         events,
         keyframe_info: engine.keyframes().iter().map(|(k, v)| (*k, *v)).collect(),
     };

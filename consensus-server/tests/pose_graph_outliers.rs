@@ -115,12 +115,12 @@ fn scenario() -> Scenario {
                 source: *source,
                 target: *target,
                 target_camera_from_source_camera: noisy(
-                sigmas: None,
                     &mut rng,
                     &(t.inverse() * s),
                     LOOP_SIGMA_M,
                     LOOP_SIGMA_RAD,
                 ),
+                sigmas: None,
             });
         }
     }

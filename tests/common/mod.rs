@@ -81,8 +81,21 @@ impl SwarmRun {
         std::fs::File::create(self.path().join(format!("{name}.log"))).unwrap()
     }
 
+    /// A command for one of the run's processes, independent of the user's environment: no
+    /// default AlexNet weights (`MAC_EGO3D_WEIGHTS` empty; a test that wants them names them in
+    /// its config, which wins), and, where unset, the run folder (mode 700) as runtime folder, so
+    /// headless Vulkan prints no "XDG_RUNTIME_DIR is invalid" lines into the logs.
+    pub fn command(&self, program: impl AsRef<std::ffi::OsStr>) -> Command {
+        let mut command = Command::new(program);
+        command.env(slam_core::weights::WEIGHTS_ENV, "");
+        if !std::env::var_os("XDG_RUNTIME_DIR").is_some_and(|dir| Path::new(&dir).is_absolute()) {
+            command.env("XDG_RUNTIME_DIR", self.path());
+        }
+        command
+    }
+
     pub fn spawn_consensus(&self) -> Child {
-        Command::new(workspace_binary("mac-consensus"))
+        self.command(workspace_binary("mac-consensus"))
             .arg("--config")
             .arg(&self.config)
             .arg("--out")
@@ -96,7 +109,7 @@ impl SwarmRun {
 
     pub fn spawn_agent(&self, agent_id: u32, log: &str) -> Child {
         let agent = &self.agents[agent_id as usize];
-        Command::new(workspace_binary("mac-agent"))
+        self.command(workspace_binary("mac-agent"))
             .arg("--config")
             .arg(&self.config)
             .args(["--dataset", &agent.dataset, "--frames", &agent.frames])
@@ -154,7 +167,8 @@ impl SwarmRun {
     /// `mac-ego3d eval swarm --json` over the run's outputs, rendering every `render_every`-th
     /// frame (0: no renders, trajectories only).
     pub fn evaluate(&self, render_every: usize) -> serde_json::Value {
-        let output = Command::new(env!("CARGO_BIN_EXE_mac-ego3d"))
+        let output = self
+            .command(env!("CARGO_BIN_EXE_mac-ego3d"))
             .args(["eval", "swarm", "--json", "--renders", "0"])
             .args(["--render-every", &render_every.to_string()])
             .arg("--dir")

@@ -1,0 +1,355 @@
+//! Links between agents found by registering their maps (see [`crate::map_registration`] for the
+//! registration itself and docs/method.md, "Map-level registration", for why).
+//!
+//! Keyframe-to-keyframe alignment needs two views that see the same surfaces from similar
+//! viewpoints. Two agents that walk the same room facing other ways rarely have such a pair, while
+//! their maps overlap. So the engine also registers the agents' maps with each other, with no
+//! initial guess:
+//!
+//! 1. **When** ([`MapScheduler`]): a pair of agents that is not linked yet is registered whenever
+//!    either agent has published `retry_after_keyframes` new keyframes since the pair's last
+//!    attempt (its map grew, so the overlap may have); a pair already linked is registered again
+//!    after `refresh_after_keyframes` new keyframes, which adds an independent constraint for the
+//!    pose graph.
+//! 2. **What**: each agent's map in its own tracked frame, as published: the means of every
+//!    Gaussian patch (agents send the Gaussians seeded since their last publication with each
+//!    published keyframe) and the back-projected depth of the published keyframes.
+//! 3. **Check** ([`MapJob::run`]): a registration the map registration accepted must also agree
+//!    with what the cameras saw: each agent's map points, moved by the estimate into the other
+//!    agent's keyframes, must not lie in the free space in front of the surfaces those keyframes
+//!    measured (the keyframe alignment's depth test, in both directions).
+//! 4. **Edge**: the estimate `target_agent_from_source_agent` enters the pose graph as a loop
+//!    closure between the pair of keyframes (one of each agent) whose cameras are closest under
+//!    it, with standard deviations from the registration's own uncertainty; the robust pose graph
+//!    treats it like any other closure.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+use nalgebra::{Isometry3, Point3};
+use serde::Serialize;
+
+use crate::alignment::PreparedKeyframe;
+use crate::alignment::verification::{DepthComparison, compare_depth};
+use crate::config::AlignmentConfig;
+use crate::map_registration::{MapRegistration, register_maps};
+use crate::place_recognition::KeyframeRef;
+use slam_core::config::MapRegistrationConfig;
+
+/// One agent's map as a registration input: points in its own tracked frame and the keyframes
+/// that saw them.
+pub struct AgentMap {
+    pub agent_id: u32,
+    pub points: Vec<Point3<f32>>,
+    /// Published keyframes, with `agent_from_camera` in `keyframe.agent_from_camera`.
+    pub keyframes: Vec<Arc<PreparedKeyframe>>,
+}
+
+impl AgentMap {
+    /// The newest keyframe (the one an attempt is filed under when no closure comes of it).
+    fn latest_keyframe(&self) -> Option<KeyframeRef> {
+        self.keyframes.last().map(|k| k.keyframe.id)
+    }
+}
+
+/// A map registration between two agents, free of the engine (runs on the aligner thread).
+pub struct MapJob {
+    pub source: AgentMap,
+    pub target: AgentMap,
+    pub registration: MapRegistrationConfig,
+    pub alignment: AlignmentConfig,
+}
+
+/// Why a registration that the map registration accepted was not used.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MapLinkRejection {
+    #[error("{0}")]
+    Registration(String),
+    #[error(
+        "{comparisons} depth comparisons against the other agent's keyframes, at least {required} needed"
+    )]
+    TooFewDepthComparisons { comparisons: usize, required: usize },
+    #[error(
+        "map points lie in the free space of the other agent's keyframes: depth agreement {found:.3} below {required:.3}"
+    )]
+    DepthDisagreement { found: f64, required: f64 },
+    #[error("an agent has no keyframe to attach the link to")]
+    NoKeyframes,
+}
+
+/// Outcome of a [`MapJob`].
+pub struct FinishedMapJob {
+    pub source_agent: u32,
+    pub target_agent: u32,
+    /// The keyframes the attempt is filed under: the closure's ends when accepted, else each
+    /// agent's newest keyframe.
+    pub source_keyframe: Option<KeyframeRef>,
+    pub target_keyframe: Option<KeyframeRef>,
+    pub registration: MapRegistration,
+    /// Depth agreement of the source map in the target's keyframes, and the reverse.
+    pub source_in_target: DepthComparison,
+    pub target_in_source: DepthComparison,
+    /// The loop closure's measurement when accepted: `target_camera_from_source_camera`.
+    pub closure: Option<Isometry3<f64>>,
+    pub rejection: Option<MapLinkRejection>,
+    pub elapsed_ms: f64,
+}
+
+impl MapJob {
+    /// Registers the two maps, checks the result against the keyframes' depth, and picks the
+    /// keyframe pair that carries it into the pose graph.
+    pub fn run(self) -> FinishedMapJob {
+        let clock = Instant::now();
+        let _span = tracing::info_span!(
+            "map registration",
+            source = self.source.agent_id,
+            target = self.target.agent_id
+        )
+        .entered();
+        let registration =
+            register_maps(&self.source.points, &self.target.points, &self.registration);
+        let mut finished = FinishedMapJob {
+            source_agent: self.source.agent_id,
+            target_agent: self.target.agent_id,
+            source_keyframe: self.source.latest_keyframe(),
+            target_keyframe: self.target.latest_keyframe(),
+            source_in_target: DepthComparison::default(),
+            target_in_source: DepthComparison::default(),
+            closure: None,
+            rejection: None,
+            elapsed_ms: 0.0,
+            registration,
+        };
+        let target_from_source = finished.registration.target_from_source;
+        let verdict = match &finished.registration.verdict {
+            Err(reason) => Err(MapLinkRejection::Registration(reason.to_string())),
+            Ok(()) => {
+                finished.source_in_target = depth_agreement(
+                    &self.source.points,
+                    &target_from_source,
+                    &self.target.keyframes,
+                    &self.alignment,
+                    self.registration.depth_check_points,
+                );
+                finished.target_in_source = depth_agreement(
+                    &self.target.points,
+                    &target_from_source.inverse(),
+                    &self.source.keyframes,
+                    &self.alignment,
+                    self.registration.depth_check_points,
+                );
+                check_depth(
+                    finished.source_in_target,
+                    finished.target_in_source,
+                    &self.alignment,
+                )
+                .and_then(|()| {
+                    closest_keyframes(&self.source, &self.target, &target_from_source)
+                        .ok_or(MapLinkRejection::NoKeyframes)
+                })
+            }
+        };
+        match verdict {
+            Ok((source, target)) => {
+                let source_pose = source.keyframe.agent_from_camera;
+                let target_pose = target.keyframe.agent_from_camera;
+                finished.source_keyframe = Some(source.keyframe.id);
+                finished.target_keyframe = Some(target.keyframe.id);
+                finished.closure = Some(target_pose.inverse() * target_from_source * source_pose);
+            }
+            Err(reason) => {
+                tracing::info!(%reason, "map registration not used");
+                finished.rejection = Some(reason);
+            }
+        }
+        finished.elapsed_ms = clock.elapsed().as_secs_f64() * 1e3;
+        finished
+    }
+}
+
+/// The keyframe depth test summed over every keyframe of `keyframes`: `points` (the other
+/// agent's map, at most `max_points` of them, evenly spread) moved by `keyframes_agent_from_points`.
+fn depth_agreement(
+    points: &[Point3<f32>],
+    keyframes_agent_from_points: &Isometry3<f64>,
+    keyframes: &[Arc<PreparedKeyframe>],
+    config: &AlignmentConfig,
+    max_points: usize,
+) -> DepthComparison {
+    let step = points.len().div_ceil(max_points.max(1)).max(1);
+    let sample: Vec<Point3<f32>> = points.iter().step_by(step).copied().collect();
+    let mut total = DepthComparison::default();
+    for prepared in keyframes {
+        let keyframe = &prepared.keyframe;
+        let camera_from_points = keyframe.agent_from_camera.inverse() * keyframes_agent_from_points;
+        let counts = compare_depth(
+            &sample,
+            &camera_from_points,
+            &keyframe.depth,
+            &keyframe.intrinsics,
+            config,
+        );
+        total.agreeing += counts.agreeing;
+        total.violating += counts.violating;
+        total.occluded += counts.occluded;
+    }
+    total
+}
+
+/// The keyframe alignment's depth thresholds applied to the maps' depth agreement.
+fn check_depth(
+    source_in_target: DepthComparison,
+    target_in_source: DepthComparison,
+    config: &AlignmentConfig,
+) -> Result<(), MapLinkRejection> {
+    let comparisons = source_in_target.decisive().min(target_in_source.decisive());
+    if comparisons < config.min_depth_comparisons {
+        return Err(MapLinkRejection::TooFewDepthComparisons {
+            comparisons,
+            required: config.min_depth_comparisons,
+        });
+    }
+    let agreement = source_in_target
+        .agreement()
+        .min(target_in_source.agreement());
+    if agreement < config.min_depth_agreement {
+        return Err(MapLinkRejection::DepthDisagreement {
+            found: agreement,
+            required: config.min_depth_agreement,
+        });
+    }
+    Ok(())
+}
+
+/// Metres of camera distance that one radian of viewing-direction difference counts as when
+/// choosing the keyframe pair for a map link.
+const METRES_PER_RADIAN: f64 = 0.5;
+
+/// The keyframe pair (one of each agent) whose cameras are closest under `target_from_source`:
+/// the closure between them spans the least tracking drift.
+fn closest_keyframes<'a>(
+    source: &'a AgentMap,
+    target: &'a AgentMap,
+    target_from_source: &Isometry3<f64>,
+) -> Option<(&'a PreparedKeyframe, &'a PreparedKeyframe)> {
+    let mut best: Option<(f64, &PreparedKeyframe, &PreparedKeyframe)> = None;
+    for s in &source.keyframes {
+        let placed = target_from_source * s.keyframe.agent_from_camera;
+        for t in &target.keyframes {
+            let pose = t.keyframe.agent_from_camera;
+            let distance = (placed.translation.vector - pose.translation.vector).norm();
+            let angle = placed.rotation.angle_to(&pose.rotation);
+            let cost = distance + METRES_PER_RADIAN * angle;
+            if best.as_ref().is_none_or(|(c, _, _)| cost < *c) {
+                best = Some((cost, s, t));
+            }
+        }
+    }
+    best.map(|(_, s, t)| (s, t))
+}
+
+/// When each pair of agents is due for a map registration.
+#[derive(Debug, Default)]
+pub struct MapScheduler {
+    /// Keyframes each agent had when the pair `(lower, higher)` was last registered.
+    last_attempt: BTreeMap<(u32, u32), (usize, usize)>,
+    /// Pairs with an accepted map link (they only come back for refreshes).
+    linked: BTreeMap<(u32, u32), usize>,
+}
+
+impl MapScheduler {
+    /// The next pair to register, if one is due: unlinked pairs first (an agent linked to the
+    /// world first among them), then, with `refreshes`, linked ones. `keyframes` counts each
+    /// agent's published keyframes; `placed` says whether the pose graph has placed an agent in
+    /// the world. Returns `(lower, higher)` agent ids.
+    pub fn next_pair(
+        &mut self,
+        keyframes: &BTreeMap<u32, usize>,
+        placed: &dyn Fn(u32) -> bool,
+        refreshes: bool,
+        config: &MapRegistrationConfig,
+    ) -> Option<(u32, u32)> {
+        if !config.enabled {
+            return None;
+        }
+        let agents: Vec<u32> = keyframes.keys().copied().collect();
+        let mut due: Vec<(u8, (u32, u32))> = Vec::new();
+        for (i, &a) in agents.iter().enumerate() {
+            for &b in &agents[i + 1..] {
+                let now = (keyframes[&a], keyframes[&b]);
+                let linked = (placed(a) && placed(b)) || self.linked.contains_key(&(a, b));
+                if linked && !refreshes {
+                    continue;
+                }
+                let after = if linked {
+                    config.refresh_after_keyframes
+                } else {
+                    config.retry_after_keyframes
+                };
+                if after == 0 {
+                    continue;
+                }
+                let grown = match self.last_attempt.get(&(a, b)) {
+                    None => true,
+                    Some(&(ka, kb)) => now.0 >= ka + after || now.1 >= kb + after,
+                };
+                if !grown {
+                    continue;
+                }
+                let priority = match (linked, placed(a) || placed(b)) {
+                    (false, true) => 0,
+                    (false, false) => 1,
+                    (true, _) => 2,
+                };
+                due.push((priority, (a, b)));
+            }
+        }
+        let (_, pair) = due
+            .into_iter()
+            .min_by_key(|(priority, pair)| (*priority, *pair))?;
+        self.last_attempt
+            .insert(pair, (keyframes[&pair.0], keyframes[&pair.1]));
+        Some(pair)
+    }
+
+    /// Records an accepted link between two agents.
+    pub fn mark_linked(&mut self, a: u32, b: u32) {
+        *self.linked.entry((a.min(b), a.max(b))).or_default() += 1;
+    }
+}
+
+/// One map registration attempt as consensus.json reports it (inside the closure event).
+#[derive(Debug, Clone, Serialize)]
+pub struct MapAttemptScores {
+    pub source_points: usize,
+    pub target_points: usize,
+    pub correspondences: usize,
+    pub consistent_correspondences: usize,
+    pub overlap_fraction: f64,
+    pub residual_m: f64,
+    pub depth_agreement: f64,
+    pub depth_comparisons: usize,
+}
+
+impl FinishedMapJob {
+    pub fn scores(&self) -> MapAttemptScores {
+        let scores = &self.registration.scores;
+        MapAttemptScores {
+            source_points: scores.source_points,
+            target_points: scores.target_points,
+            correspondences: scores.correspondences,
+            consistent_correspondences: scores.consistent_correspondences,
+            overlap_fraction: scores.overlap_fraction,
+            residual_m: scores.residual_m,
+            depth_agreement: self
+                .source_in_target
+                .agreement()
+                .min(self.target_in_source.agreement()),
+            depth_comparisons: self
+                .source_in_target
+                .decisive()
+                .min(self.target_in_source.decisive()),
+        }
+    }
+}
