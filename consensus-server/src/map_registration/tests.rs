@@ -387,3 +387,27 @@ fn registration_is_deterministic() {
         Err(MapRejection::TooFewPoints { .. })
     ));
 }
+
+#[test]
+fn the_configuration_is_validated() {
+    let mut config = slam_core::config::Config::default();
+    assert_eq!(config.validate(), Ok(()));
+    let g = &mut config.consensus.map_registration;
+    g.refine_distances_voxels = vec![1.0, 2.0];
+    assert_eq!(
+        config.validate().unwrap_err().0,
+        "consensus.map_registration.refine_distances_voxels"
+    );
+    let mut config = slam_core::config::Config::default();
+    config.consensus.map_registration.max_ambiguity_ratio = 1.5;
+    assert_eq!(
+        config.validate().unwrap_err().0,
+        "consensus.map_registration.max_ambiguity_ratio"
+    );
+    let mut config = slam_core::config::Config::default();
+    config.consensus.map_registration.voxel_m = 0.0;
+    assert_eq!(
+        config.validate().unwrap_err().0,
+        "consensus.map_registration.voxel_m"
+    );
+}
