@@ -87,5 +87,36 @@ fn main() -> anyhow::Result<()> {
         report.merged_gaussians,
         args.out.display()
     );
+    for (agent_id, record) in &report.agents {
+        if record.world_from_agent.is_some() {
+            continue;
+        }
+        // The agent's pairs with the others: what was tried and why it did not link them.
+        let tried: Vec<String> = report
+            .agent_pairs
+            .iter()
+            .filter(|(pair, _)| pair.split('-').any(|a| a == agent_id.to_string()))
+            .map(|(pair, a)| {
+                format!(
+                    "{pair}: {} keyframe and {} map attempts{}",
+                    a.keyframe_attempts,
+                    a.map_attempts,
+                    a.last_rejection
+                        .as_ref()
+                        .map(|r| format!(", last refused: {r}"))
+                        .unwrap_or_default()
+                )
+            })
+            .collect();
+        println!(
+            "consensus: agent {agent_id} not linked to the world (its map overlaps no linked \
+             agent's, or not clearly enough){}",
+            if tried.is_empty() {
+                " - nothing to compare it with".to_string()
+            } else {
+                format!(" - {}", tried.join("; "))
+            }
+        );
+    }
     Ok(())
 }
