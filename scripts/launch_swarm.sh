@@ -16,8 +16,12 @@
 # slots); when agents failed, the consensus is stopped once the others are done.
 # On a terminal, one line shows the progress: frames, keyframes, link state, closures.
 #
+# The AlexNet weights (global descriptor, LPIPS) are the cached ones scripts/setup.sh fetches
+# ($MAC_EGO3D_WEIGHTS, else ~/.cache/mac-ego3d/weights/lpips/alexnet.npz) unless
+# --descriptor-weights names a file; without any, the agents use the classical descriptor.
+#
 # Output (DIR, default out/swarm): agent_K/ (each agent's own outputs, its frame), agent_K.tum
-# (world frame), map.ply (merged world map), consensus.json, metrics.json, *.log.
+# (world frame), map.ply (merged world map), consensus.json, metrics.json, report.html, *.log.
 set -euo pipefail
 shopt -s checkwinsize
 cd "$(dirname "$0")/.."
@@ -28,12 +32,12 @@ tcomm=""
 noise=""
 frames=200
 out=out/swarm
-weights="${MAC_EGO3D_SHARED:-../shared}/weights/lpips/alexnet.npz"
+weights=""
 specs=()
 link_schedule=""
 profile="${MAC_EGO3D_PROFILE:-release}"
 
-usage() { sed -n '2,21p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//'; }
 while (($#)); do
   case "$1" in
     --config) config="$2"; shift 2 ;;
@@ -56,13 +60,26 @@ fi
 [[ -z "$link_schedule" || -f "$link_schedule" ]] ||
   { echo "[swarm] --link-schedule $link_schedule: no such file" >&2; exit 2; }
 
-bash scripts/setup.sh
-if [[ "$profile" == release ]]; then
-  cargo build --release --quiet -p mac-agent -p mac-consensus -p mac-ego3d --bins
-else
-  cargo build --quiet -p mac-agent -p mac-consensus -p mac-ego3d --bins
+# Mesa's Vulkan loader path (libwayland, probing for a display) prints "error: XDG_RUNTIME_DIR
+# is invalid or not set in the environment." in every process when the variable is unset, as on a
+# headless machine, in a container or over plain ssh. Nothing here opens a window: a private,
+# empty runtime folder (mode 700, removed at exit) silences it and hides no other message.
+if [[ "${XDG_RUNTIME_DIR:-}" != /* ]]; then
+  XDG_RUNTIME_DIR="$(mktemp -d "${TMPDIR:-/tmp}/mac-ego3d-runtime.XXXXXX")"
+  export XDG_RUNTIME_DIR
+  trap 'rm -rf "$XDG_RUNTIME_DIR"' EXIT
 fi
+
+bash scripts/setup.sh
 bin="target/$profile"
+build_args=(-p mac-agent -p mac-consensus -p mac-ego3d --bins)
+[[ "$profile" == release ]] && build_args+=(--release)
+if [[ -x "$bin/mac-agent" && -x "$bin/mac-consensus" && -x "$bin/mac-ego3d" ]]; then
+  echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; up to date unless the sources changed)" >&2
+else
+  echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; the first build takes several minutes, progress below)" >&2
+fi
+cargo build "${build_args[@]}"
 
 # Per-run config: the given one, with T_comm and noise overridden when asked, resolved and
 # validated by mac-ego3d (every key listed, so the run folder says exactly what ran).
@@ -78,14 +95,15 @@ fi
 "$bin/mac-ego3d" config --config "$config" "${overrides[@]}" --out "$run_config.new" ||
   { echo "[swarm] the configuration is refused (above)" >&2; exit 2; }
 mv "$run_config.new" "$run_config"
+# Without --descriptor-weights, every process uses the default weights (slam_core::weights) and
+# says in its log when there are none; setup.sh has already said so on the screen.
 weight_args=()
 eval_args=()
-if [[ -f "$weights" ]]; then
+if [[ -n "$weights" ]]; then
+  [[ -f "$weights" ]] || { echo "[swarm] --descriptor-weights $weights: no such file" >&2; exit 2; }
   weight_args=(--descriptor-weights "$weights")
   # The same AlexNet file carries LPIPS's layers.
   eval_args=(--lpips-weights "$weights")
-else
-  echo "[swarm] no descriptor weights at $weights: agents use the classical descriptor" >&2
 fi
 
 schedule_args=()
@@ -245,4 +263,14 @@ if ((show_progress)); then
 fi
 
 "$bin/mac-ego3d" eval swarm --dir "$out" "${eval_args[@]}" || failed=1
+if [[ -f "$out/report.html" ]]; then
+  # Absolute paths: this script ran from the repository root, the user may be elsewhere.
+  dir="$(cd "$out" && pwd)"
+  echo
+  echo "[swarm] next:"
+  echo "[swarm]   the report: $dir/report.html (open it in a browser, e.g. xdg-open $dir/report.html)"
+  echo "[swarm]   the merged map: $dir/map.ply (3DGS PLY: any Gaussian-splat viewer, e.g. SuperSplat)"
+  echo "[swarm]   trajectories: $dir/agent_K.tum (world frame; e.g. evo_traj tum $dir/agent_*.tum --plot)"
+  echo "[swarm]   what each process logged: $dir/*.log"
+fi
 exit "$failed"

@@ -9,6 +9,16 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 
+# Headless Vulkan (lavapipe, through libwayland) prints "error: XDG_RUNTIME_DIR is invalid or not
+# set in the environment." in every process that opens a device when the variable is unset: a
+# private, empty runtime folder for the tests and the processes they start silences it (as in
+# scripts/launch_swarm.sh).
+if [[ "${XDG_RUNTIME_DIR:-}" != /* ]]; then
+  XDG_RUNTIME_DIR="$(mktemp -d "${TMPDIR:-/tmp}/mac-ego3d-runtime.XXXXXX")"
+  export XDG_RUNTIME_DIR
+  trap 'rm -rf "$XDG_RUNTIME_DIR"' EXIT
+fi
+
 repo_root=$(pwd)
 export MAC_EGO3D_SHARED="${MAC_EGO3D_SHARED:-$repo_root/../shared}"
 required=(

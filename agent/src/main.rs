@@ -51,7 +51,10 @@ struct Args {
     /// iceoryx2 service namespace shared with the consensus (swarm mode).
     #[arg(long, default_value = protocol::services::DEFAULT_NAMESPACE)]
     namespace: String,
-    /// Global-descriptor weights (AlexNet .npz) for the swarm; overrides the config.
+    /// Global-descriptor weights (AlexNet .npz) for the swarm; overrides the config. Default:
+    /// `consensus.descriptor_weights`, else $MAC_EGO3D_WEIGHTS, else the cache that
+    /// scripts/setup.sh fills (~/.cache/mac-ego3d/weights/lpips/alexnet.npz); without any, the
+    /// classical thumbnail descriptor.
     #[arg(long)]
     descriptor_weights: Option<PathBuf>,
     /// Output directory.
@@ -67,6 +70,9 @@ struct Args {
     #[arg(long, default_value_t = 4)]
     renders: usize,
     /// LPIPS weights (.npz, see scripts/get_lpips_weights.sh); LPIPS is left out without them.
+    /// Default with --standalone: $MAC_EGO3D_WEIGHTS, else the cache that scripts/setup.sh
+    /// fills. In the swarm, none: `mac-ego3d eval swarm` measures LPIPS on the merged map (an
+    /// agent's own LPIPS costs it about a second per evaluated frame on a CPU).
     #[arg(long)]
     lpips_weights: Option<PathBuf>,
     /// Frame-decoding threads.
@@ -110,7 +116,14 @@ fn main() -> anyhow::Result<()> {
             bail!("--descriptor-weights {}: no such file", weights.display());
         }
         config.consensus.descriptor_weights = Some(weights.clone());
+    } else if !args.standalone && config.consensus.descriptor_weights.is_none() {
+        config.consensus.descriptor_weights = slam_core::weights::default_alexnet_weights();
     }
+    let lpips_weights = match &args.lpips_weights {
+        Some(path) => Some(path.clone()),
+        None if args.standalone => slam_core::weights::default_alexnet_weights(),
+        None => None,
+    };
     let frames: FrameRange = args
         .frames
         .parse()
@@ -127,7 +140,7 @@ fn main() -> anyhow::Result<()> {
         refine_iterations: args.refine_iters,
         eval_every: args.eval_every,
         comparison_renders: args.renders,
-        lpips_weights: args.lpips_weights.clone(),
+        lpips_weights,
         decode_workers: args.decode_workers,
     };
     let stop = slam_core::process::stop_on_termination_signals()?;

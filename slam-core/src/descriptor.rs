@@ -38,19 +38,24 @@ pub enum GlobalDescriptorExtractor {
 
 impl GlobalDescriptorExtractor {
     /// The pretrained descriptor when `weights` is given and loads; otherwise the thumbnail
-    /// fallback, with a warning saying why.
+    /// fallback. Logs which one runs; a file that does not load is a warning. (No weights at all
+    /// is an info line: [`crate::weights::default_alexnet_weights`] has already warned, naming
+    /// the path it looked for and how to fetch the weights.)
     pub fn from_weights(weights: Option<&Path>) -> Self {
         match weights {
             Some(path) => match Lpips::load(path) {
-                Ok(net) => Self::AlexNetGem(Box::new(net)),
+                Ok(net) => {
+                    tracing::info!(weights = %path.display(), "global descriptor: alexnet-gem");
+                    Self::AlexNetGem(Box::new(net))
+                }
                 Err(error) => {
                     tracing::warn!(%error, "cannot load descriptor weights: using the classical thumbnail descriptor");
                     Self::Thumbnail
                 }
             },
             None => {
-                tracing::warn!(
-                    "no descriptor weights configured: using the classical thumbnail descriptor"
+                tracing::info!(
+                    "global descriptor: classical thumbnail (no AlexNet weights configured)"
                 );
                 Self::Thumbnail
             }

@@ -21,3 +21,4 @@ pub mod registration;
 pub mod se3;
 pub mod shared_data;
 pub mod trajectory;
+pub mod weights;

@@ -58,7 +58,8 @@ pub struct MetricsArgs {
     /// Repetitions per timed metric (the median is reported).
     #[arg(long, default_value_t = 5)]
     repeats: usize,
-    /// LPIPS weights (default: $MAC_EGO3D_SHARED/weights/lpips/alexnet.npz; skipped if missing).
+    /// LPIPS weights (default: $MAC_EGO3D_WEIGHTS, else the cache scripts/setup.sh fills;
+    /// skipped if missing).
     #[arg(long)]
     weights: Option<std::path::PathBuf>,
     #[arg(long)]
@@ -194,21 +195,25 @@ fn run_metrics(args: &MetricsArgs) -> anyhow::Result<()> {
     let depth_l1_ms = time_ms(args.repeats, || {
         Ok(depth_l1_cm(&a.depth, &b.depth).map(|_| ())?)
     })?;
-    let weights = args
-        .weights
-        .clone()
-        .unwrap_or_else(|| slam_core::shared_data::shared_dir().join("weights/lpips/alexnet.npz"));
-    let lpips_ms = if weights.is_file() {
-        let lpips = Lpips::load(&weights)?;
-        Some(time_ms(args.repeats, || {
-            Ok(lpips.distance(&a.rgb, &b.rgb).map(|_| ())?)
-        })?)
-    } else {
-        eprintln!(
-            "LPIPS skipped: no weights at {} (scripts/get_lpips_weights.sh)",
-            weights.display()
-        );
-        None
+    let weights = match &args.weights {
+        Some(path) if path.is_file() => Ok(path.clone()),
+        Some(path) => Err(format!(
+            "no weights at {} (scripts/get_lpips_weights.sh)",
+            path.display()
+        )),
+        None => slam_core::weights::resolve_default().map_err(|missing| missing.to_string()),
+    };
+    let lpips_ms = match weights {
+        Ok(weights) => {
+            let lpips = Lpips::load(&weights)?;
+            Some(time_ms(args.repeats, || {
+                Ok(lpips.distance(&a.rgb, &b.rgb).map(|_| ())?)
+            })?)
+        }
+        Err(why) => {
+            eprintln!("LPIPS skipped: {why}");
+            None
+        }
     };
     let k = ds.intrinsics();
     let report = MetricsReport {

@@ -68,7 +68,8 @@ pub struct LpipsArgs {
     /// Second image.
     b: PathBuf,
     /// LPIPS AlexNet weights (.npz; scripts/get_lpips_weights.sh obtains them). Default:
-    /// $MAC_EGO3D_SHARED/weights/lpips/alexnet.npz.
+    /// $MAC_EGO3D_WEIGHTS, else the cache scripts/setup.sh fills
+    /// (~/.cache/mac-ego3d/weights/lpips/alexnet.npz).
     #[arg(long)]
     weights: Option<PathBuf>,
     #[arg(long)]
@@ -232,10 +233,10 @@ fn run_image(args: &ImageArgs) -> anyhow::Result<()> {
 }
 
 fn run_lpips(args: &LpipsArgs) -> anyhow::Result<()> {
-    let weights = args
-        .weights
-        .clone()
-        .unwrap_or_else(|| slam_core::shared_data::shared_dir().join("weights/lpips/alexnet.npz"));
+    let weights = match &args.weights {
+        Some(path) => path.clone(),
+        None => slam_core::weights::resolve_default()?,
+    };
     let lpips = Lpips::load(&weights).with_context(|| {
         format!(
             "loading LPIPS weights {} (see scripts/get_lpips_weights.sh)",

@@ -40,7 +40,8 @@ pub struct SwarmArgs {
     /// Side-by-side comparison PNGs written per agent.
     #[arg(long, default_value_t = 2)]
     renders: usize,
-    /// LPIPS weights (.npz); LPIPS is left out without them.
+    /// LPIPS weights (.npz). Default: $MAC_EGO3D_WEIGHTS, else the cache scripts/setup.sh
+    /// fills; LPIPS is left out without them.
     #[arg(long)]
     lpips_weights: Option<PathBuf>,
 }
@@ -54,6 +55,9 @@ pub struct SwarmMetrics {
     pub ate_per_agent_rmse_m: Vec<Option<f64>>,
     /// Agents the consensus never placed in the world frame.
     pub agents_not_linked: Vec<u32>,
+    /// The global descriptor the agents ran for place recognition ("alexnet-gem", or
+    /// "thumbnail", the classical fallback without weights), per agent (`null`: not reported).
+    pub descriptor_per_agent: Vec<Option<String>>,
     pub psnr: Option<f64>,
     pub ssim: Option<f64>,
     pub lpips: Option<f64>,
@@ -96,7 +100,11 @@ fn merged_map_quality(
     let map = render_core::ply::load_ply(&map_path)
         .with_context(|| format!("reading the merged map {}", map_path.display()))?;
     let renderer = MapRenderer::new(&map).context("uploading the merged map")?;
-    let lpips = match &args.lpips_weights {
+    let weights = args
+        .lpips_weights
+        .clone()
+        .or_else(slam_core::weights::default_alexnet_weights);
+    let lpips = match &weights {
         Some(path) => Some(
             Lpips::load(path)
                 .with_context(|| format!("loading LPIPS weights {}", path.display()))?,
@@ -162,6 +170,27 @@ fn merged_map_quality(
     Ok((!qualities.is_empty()).then(|| QualitySummary::of(&qualities)))
 }
 
+/// "alexnet-gem" when every agent ran it; otherwise the kinds per agent, the fallback named.
+fn describe_descriptors(per_agent: &[Option<String>]) -> String {
+    let name = |kind: &Option<String>| match kind.as_deref() {
+        Some("thumbnail") => "thumbnail (classical fallback: no AlexNet weights, see \
+                              scripts/get_lpips_weights.sh)"
+            .to_string(),
+        Some(kind) => kind.to_string(),
+        None => "not reported".to_string(),
+    };
+    match per_agent {
+        [] => "-".to_string(),
+        [first, rest @ ..] if rest.iter().all(|kind| kind == first) => name(first),
+        _ => per_agent
+            .iter()
+            .enumerate()
+            .map(|(k, kind)| format!("agent {k}: {}", name(kind)))
+            .collect::<Vec<_>>()
+            .join(", "),
+    }
+}
+
 /// Largest difference between a trajectory stamp and its frame's timestamp (the agent writes
 /// them with microsecond precision).
 const TIMESTAMP_TOLERANCE_S: f64 = 1e-5;
@@ -224,6 +253,14 @@ pub fn swarm_metrics(dir: &Path, args: &SwarmArgs) -> anyhow::Result<SwarmMetric
                 .and_then(|m| m["swarm"]["bytes_sent_per_s"].as_f64())
         })
         .collect();
+    let descriptors = agent_metrics
+        .iter()
+        .map(|(_, m)| {
+            m.as_ref()
+                .and_then(|m| m["swarm"]["descriptor"].as_str())
+                .map(str::to_string)
+        })
+        .collect();
     let count = |name: &str| consensus[name].as_u64().unwrap_or(0);
     let merged = merged_map_quality(dir, &linked, &agent_metrics, args)?;
     let (psnr, ssim, lpips, depth_l1_cm, rendering_source, rendering_frames) = match merged {
@@ -248,6 +285,7 @@ pub fn swarm_metrics(dir: &Path, args: &SwarmArgs) -> anyhow::Result<SwarmMetric
         ate_joint_rmse_m: joint.as_ref().map(|j| j.joint.rmse),
         ate_per_agent_rmse_m: per_agent,
         agents_not_linked: not_linked,
+        descriptor_per_agent: descriptors,
         psnr,
         ssim,
         lpips,
@@ -296,11 +334,16 @@ pub fn run(args: &SwarmArgs) -> anyhow::Result<()> {
         );
     }
     println!(
+        "  global descriptor: {}",
+        describe_descriptors(&m.descriptor_per_agent)
+    );
+    println!(
         "  rendering: {} ({} frames)",
         m.rendering_source, m.rendering_frames
     );
     println!("  {:<34} {:>12}", "PSNR dB", num(m.psnr, 2));
     println!("  {:<34} {:>12}", "SSIM", num(m.ssim, 3));
+    println!("  {:<34} {:>12}", "LPIPS (AlexNet)", num(m.lpips, 3));
     println!("  {:<34} {:>12}", "depth L1 cm", num(m.depth_l1_cm, 2));
     println!(
         "  {:<34} {:>12}",

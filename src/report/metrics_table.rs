@@ -52,6 +52,11 @@ const FORMATS: &[(&str, &str, Unit)] = &[
         Unit::AgentIds,
     ),
     (
+        "descriptor_per_agent",
+        "Global descriptor (place recognition), per agent",
+        Unit::Text,
+    ),
+    (
         "psnr",
         "PSNR",
         Unit::Scaled {
@@ -229,6 +234,7 @@ mod tests {
             ate_joint_rmse_m: Some(0.0123),
             ate_per_agent_rmse_m: vec![Some(0.01), None],
             agents_not_linked: vec![1],
+            descriptor_per_agent: vec![Some("alexnet-gem".into()), None],
             psnr: Some(25.5),
             ssim: Some(0.8),
             lpips: None,
@@ -267,6 +273,10 @@ mod tests {
             "agent 0: 1.00 cm; agent 1: n/a"
         );
         assert_eq!(find("agents_not_linked"), "agent 1");
+        assert_eq!(
+            find("descriptor_per_agent"),
+            "agent 0: alexnet-gem; agent 1: n/a"
+        );
         assert_eq!(
             find("bytes_per_agent_per_s"),
             "agent 0: 150.0 kB/s; agent 1: n/a"
