@@ -97,15 +97,16 @@ pub struct FinishedAlignment {
 }
 
 /// Work for the aligner thread: a keyframe pair or two agents' maps.
+/// Boxed: a job is made a few times a second and moved across threads.
 pub enum Job {
-    Keyframes(AlignmentJob),
+    Keyframes(Box<AlignmentJob>),
     Maps(Box<MapJob>),
 }
 
 impl Job {
     pub fn run(self) -> Finished {
         match self {
-            Job::Keyframes(job) => Finished::Keyframes(job.run()),
+            Job::Keyframes(job) => Finished::Keyframes(Box::new(job.run())),
             Job::Maps(job) => Finished::Maps(Box::new(job.run())),
         }
     }
@@ -113,7 +114,7 @@ impl Job {
 
 /// A [`Job`]'s outcome, for [`Engine::record`].
 pub enum Finished {
-    Keyframes(FinishedAlignment),
+    Keyframes(Box<FinishedAlignment>),
     Maps(Box<FinishedMapJob>),
 }
 
@@ -305,7 +306,7 @@ impl Engine {
             return Some(Job::Maps(Box::new(job)));
         }
         if let Some(job) = self.next_alignment() {
-            return Some(Job::Keyframes(job));
+            return Some(Job::Keyframes(Box::new(job)));
         }
         self.next_map_job(true).map(|job| Job::Maps(Box::new(job)))
     }
@@ -383,7 +384,7 @@ impl Engine {
     /// [`Self::solve_if_changed`]); the decision is recorded for consensus.json.
     pub fn record(&mut self, done: Finished) {
         match done {
-            Finished::Keyframes(done) => self.record_alignment(done),
+            Finished::Keyframes(done) => self.record_alignment(*done),
             Finished::Maps(done) => self.record_map_job(*done),
         }
     }
