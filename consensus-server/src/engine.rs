@@ -20,7 +20,7 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::sync::Arc;
 use std::time::Instant;
 
-use nalgebra::{Isometry3, Point3};
+use nalgebra::Isometry3;
 use protocol::messages::FINAL_MAP_KEYFRAME_ID;
 use render_core::types::{GaussianCloud, RigidTransform};
 use serde::Serialize;
@@ -355,29 +355,14 @@ impl Engine {
     }
 
     /// An agent's map as published, in its tracked frame: its patches' Gaussian means and its
-    /// keyframes' depth points.
+    /// keyframes' depth points, with their colours.
     fn agent_map(&self, agent_id: u32) -> AgentMap {
-        let mut points = Vec::new();
-        let mut keyframes = Vec::new();
-        for (id, prepared) in self.prepared.range(agent_range(agent_id)) {
-            if let Some(cloud) = self.gaussians.get(id) {
-                points.extend(cloud.means.iter().map(|m| Point3::new(m[0], m[1], m[2])));
-            }
-            let agent_from_camera = prepared.keyframe.agent_from_camera.cast::<f32>();
-            points.extend(
-                prepared
-                    .cloud
-                    .positions()
-                    .iter()
-                    .map(|p| agent_from_camera * p),
-            );
-            keyframes.push(Arc::clone(prepared));
-        }
-        AgentMap {
+        AgentMap::from_keyframes(
             agent_id,
-            points,
-            keyframes,
-        }
+            self.prepared
+                .range(agent_range(agent_id))
+                .map(|(id, prepared)| (prepared, self.gaussians.get(id))),
+        )
     }
 
     /// Takes a finished job: a verified closure joins the pose graph (solved at the next

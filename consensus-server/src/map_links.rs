@@ -13,7 +13,9 @@
 //!    pose graph.
 //! 2. **What**: each agent's map in its own tracked frame, as published: the means of every
 //!    Gaussian patch (agents send the Gaussians seeded since their last publication with each
-//!    published keyframe) and the back-projected depth of the published keyframes.
+//!    published keyframe) and the back-projected depth of the published keyframes, each point
+//!    with its colour (the Gaussian's, the keyframe pixel's; see [`AgentMap::from_keyframes`]),
+//!    which the registration uses to tell surfaces of the same shape apart.
 //! 3. **Check** ([`MapJob::run`]): a registration the map registration accepted must also agree
 //!    with what the cameras saw: each agent's map points, moved by the estimate into the other
 //!    agent's keyframes, must not lie in the free space in front of the surfaces those keyframes
@@ -30,23 +32,93 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Point3};
 use serde::Serialize;
 
+use render_core::types::GaussianCloud;
+
 use crate::alignment::PreparedKeyframe;
 use crate::alignment::verification::{DepthComparison, compare_depth};
 use crate::config::AlignmentConfig;
-use crate::map_registration::{MapRegistration, register_maps};
+use crate::map_registration::colour::Rgb;
+use crate::map_registration::{MapPoints, MapRegistration, register_maps};
 use crate::place_recognition::KeyframeRef;
 use slam_core::config::MapRegistrationConfig;
 
-/// One agent's map as a registration input: points in its own tracked frame and the keyframes
-/// that saw them.
+/// One agent's map as a registration input: points in its own tracked frame, their colours,
+/// and the keyframes that saw them.
 pub struct AgentMap {
     pub agent_id: u32,
     pub points: Vec<Point3<f32>>,
+    /// One per point (RGB in `[0, 1]`), or `None` when some point has none: the map is then
+    /// registered on its geometry alone.
+    pub colours: Option<Vec<Rgb>>,
     /// Published keyframes, with `agent_from_camera` in `keyframe.agent_from_camera`.
     pub keyframes: Vec<Arc<PreparedKeyframe>>,
 }
 
+/// The colour of each of a keyframe's cloud points: its pixel's RGB / 255, the space the
+/// agents' Gaussian colours are in (seeded from and fitted to those pixels). `None` when the
+/// cloud does not say which pixel each point came from, or a pixel lies outside the image.
+fn keyframe_point_colours(prepared: &PreparedKeyframe) -> Option<Vec<Rgb>> {
+    let keyframe = &prepared.keyframe;
+    let cloud = prepared.cloud.cloud();
+    if cloud.pixels.len() != cloud.positions.len() {
+        return None;
+    }
+    let width = keyframe.depth.width;
+    let (rgb_width, rgb_height) = keyframe.rgb.dimensions();
+    cloud
+        .pixels
+        .iter()
+        .map(|&pixel| {
+            let (u, v) = (pixel % width, pixel / width);
+            (u < rgb_width && v < rgb_height)
+                .then(|| keyframe.rgb.get_pixel(u, v).0.map(|c| f32::from(c) / 255.0))
+        })
+        .collect()
+}
+
 impl AgentMap {
+    /// An agent's map from its published keyframes (in publication order) and the Gaussians
+    /// that came with each: the Gaussian means and the keyframes' depth points moved into the
+    /// agent's frame, with their colours (`None` for the whole map if any point has none).
+    pub fn from_keyframes<'a>(
+        agent_id: u32,
+        published: impl IntoIterator<Item = (&'a Arc<PreparedKeyframe>, Option<&'a GaussianCloud>)>,
+    ) -> Self {
+        let mut points = Vec::new();
+        let mut colours = Some(Vec::new());
+        let mut keyframes = Vec::new();
+        for (prepared, gaussians) in published {
+            if let Some(cloud) = gaussians {
+                points.extend(cloud.means.iter().map(|m| Point3::new(m[0], m[1], m[2])));
+                match &mut colours {
+                    Some(colours) if cloud.colours.len() == cloud.means.len() => {
+                        colours.extend_from_slice(&cloud.colours)
+                    }
+                    _ => colours = None,
+                }
+            }
+            let agent_from_camera = prepared.keyframe.agent_from_camera.cast::<f32>();
+            points.extend(
+                prepared
+                    .cloud
+                    .positions()
+                    .iter()
+                    .map(|p| agent_from_camera * p),
+            );
+            match (&mut colours, keyframe_point_colours(prepared)) {
+                (Some(colours), Some(found)) => colours.extend(found),
+                _ => colours = None,
+            }
+            keyframes.push(Arc::clone(prepared));
+        }
+        Self {
+            agent_id,
+            points,
+            colours,
+            keyframes,
+        }
+    }
+
     /// The newest keyframe (the one an attempt is filed under when no closure comes of it).
     fn latest_keyframe(&self) -> Option<KeyframeRef> {
         self.keyframes.last().map(|k| k.keyframe.id)
@@ -107,8 +179,11 @@ impl MapJob {
             target = self.target.agent_id
         )
         .entered();
-        let registration =
-            register_maps(&self.source.points, &self.target.points, &self.registration);
+        let registration = register_maps(
+            MapPoints::coloured(&self.source.points, self.source.colours.as_deref()),
+            MapPoints::coloured(&self.target.points, self.target.colours.as_deref()),
+            &self.registration,
+        );
         let mut finished = FinishedMapJob {
             source_agent: self.source.agent_id,
             target_agent: self.target.agent_id,
@@ -328,6 +403,9 @@ pub struct MapAttemptScores {
     pub consistent_correspondences: usize,
     pub overlap_fraction: f64,
     pub residual_m: f64,
+    /// Whether the maps' colours were used, and the overlap's colour agreement (NaN without).
+    pub colour: bool,
+    pub colour_agreement: f64,
     pub depth_agreement: f64,
     pub depth_comparisons: usize,
 }
@@ -342,6 +420,8 @@ impl FinishedMapJob {
             consistent_correspondences: scores.consistent_correspondences,
             overlap_fraction: scores.overlap_fraction,
             residual_m: scores.residual_m,
+            colour: scores.colour,
+            colour_agreement: scores.colour_agreement,
             depth_agreement: self
                 .source_in_target
                 .agreement()

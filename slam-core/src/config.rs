@@ -590,6 +590,10 @@ impl Config {
                 "consensus.map_registration.max_translation_sigma_m",
                 g.max_translation_sigma_m,
             ),
+            (
+                "consensus.map_registration.colour_tolerance",
+                g.colour_tolerance,
+            ),
         ] {
             positive(field, v)?;
         }
@@ -606,6 +610,7 @@ impl Config {
                 "consensus.map_registration.distinct_translation_m",
                 g.distinct_translation_m,
             ),
+            ("consensus.map_registration.colour_weight", g.colour_weight),
         ] {
             non_negative(field, v)?;
         }
@@ -621,6 +626,18 @@ impl Config {
             (
                 "consensus.map_registration.min_overlap_fraction",
                 g.min_overlap_fraction,
+            ),
+            (
+                "consensus.map_registration.min_colour_kappa",
+                g.min_colour_kappa,
+            ),
+            (
+                "consensus.map_registration.colour_confirmed_overlap_fraction",
+                g.colour_confirmed_overlap_fraction,
+            ),
+            (
+                "consensus.map_registration.colour_confirmed_kappa",
+                g.colour_confirmed_kappa,
             ),
         ] {
             fraction(field, v)?;
@@ -643,6 +660,10 @@ impl Config {
             (
                 "consensus.map_registration.gicp_max_iterations",
                 g.gicp_max_iterations,
+            ),
+            (
+                "consensus.map_registration.min_colour_comparisons",
+                g.min_colour_comparisons,
             ),
         ] {
             at_least_one(field, v)?;

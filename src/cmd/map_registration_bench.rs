@@ -7,9 +7,14 @@
 //! subset of that many points. Map A stays in the world frame (the target); map B is expressed
 //! in a random rigid frame (any rotation, up to 5 m away, seeded), so the true
 //! `target_from_source` is known. The default data is the embedded synthetic scene with two
-//! agents (A = agent 0, B = agent 1); each seed changes the scene's seed and the random frame.
+//! agents (A = agent 0, B = agent 1; `--frames N` is short for `--synthetic-frames N`); each
+//! seed changes the scene's seed and the random frame.
 //! With `--dataset PATH`, A and B are `--frames-a` and `--frames-b` of that dataset and seeds
 //! change the random frame only.
+//!
+//! Each map point carries the colour of its pixel (RGB / 255, averaged per map cell), and the
+//! registration uses it; `--no-colour` registers the same maps on their geometry alone. The
+//! table's `kappa` is how far the accepted overlap's colours agree beyond chance.
 //!
 //! Errors are measured at the centre of map B (rotation angle, and the distance between where the
 //! estimate and the truth put that centre), so they do not depend on where the random frame's
@@ -19,7 +24,8 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args;
-use mac_consensus::map_registration::{MapRegistration, register_maps};
+use mac_consensus::map_registration::colour::Rgb;
+use mac_consensus::map_registration::{MapPoints, MapRegistration, register_maps};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 use slam_core::config::{Config, MapRegistrationConfig};
@@ -53,7 +59,7 @@ pub struct MapRegistrationArgs {
     #[arg(long, default_value = "500..600")]
     frames_b: FrameRange,
     /// Synthetic scene: frames per agent and image size.
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, alias = "frames", default_value_t = 300)]
     synthetic_frames: usize,
     #[arg(long, default_value_t = 320)]
     synthetic_width: u32,
@@ -79,6 +85,9 @@ pub struct MapRegistrationArgs {
     /// Configuration file (its [consensus.map_registration] table). Default: the defaults.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Register the maps without their colours (geometry alone).
+    #[arg(long)]
+    no_colour: bool,
     #[arg(long)]
     json: bool,
 }
@@ -98,6 +107,10 @@ struct Run {
     runner_up: usize,
     overlap: f64,
     residual_m: f64,
+    /// Fraction of the overlapping points that agree in colour, and Cohen's kappa of that
+    /// against chance (NaN without colour).
+    colour_agreement: f64,
+    colour_kappa: f64,
     gicp_iterations: usize,
     rotation_error_deg: f64,
     translation_error_m: f64,
@@ -110,6 +123,8 @@ struct Run {
 #[derive(Serialize)]
 struct Report {
     data: String,
+    /// Whether the maps' colours were used.
+    colour: bool,
     threads: usize,
     runs: Vec<Run>,
     median_time_ms: f64,
@@ -162,16 +177,23 @@ fn random_frame(seed: u64) -> Isometry3<f64> {
     )
 }
 
-/// World-frame map of a dataset's frames (see the module documentation).
+/// A map's points and their colours.
+struct Map {
+    points: Vec<Point3<f32>>,
+    colours: Vec<Rgb>,
+}
+
+/// World-frame map of a dataset's frames, with colours (see the module documentation).
 fn build_map(
     spec: &str,
     frames: FrameRange,
     args: &MapRegistrationArgs,
     seed: u64,
-) -> anyhow::Result<Vec<Point3<f32>>> {
+) -> anyhow::Result<Map> {
     let ds = dataset::open(spec, frames).with_context(|| format!("opening {spec}"))?;
     anyhow::ensure!(!ds.is_empty(), "{spec}: no frames in {frames}");
     let mut points = Vec::new();
+    let mut colours = Vec::new();
     for position in (0..ds.len()).step_by(args.every.max(1)) {
         let frame = ds.load(position)?;
         let pose = frame
@@ -189,18 +211,31 @@ fn build_map(
                 .iter()
                 .map(|p| (pose * p.cast::<f64>()).cast::<f32>()),
         );
+        let width = frame.rgb.width();
+        colours.extend(cloud.pixels.iter().map(|&pixel| {
+            let rgb = frame.rgb.get_pixel(pixel % width, pixel / width).0;
+            rgb.map(|c| f32::from(c) / 255.0)
+        }));
     }
-    let mut map =
-        mac_consensus::map_registration::downsample::voxel_downsample(&points, args.map_voxel)
-            .points;
-    if map.len() > args.points {
+    let down = mac_consensus::map_registration::downsample::voxel_downsample_coloured(
+        &points,
+        Some(&colours),
+        args.map_voxel,
+    );
+    let mut map = Map {
+        points: down.points,
+        colours: down.colours.expect("coloured input"),
+    };
+    if map.points.len() > args.points {
         // Seeded partial Fisher-Yates: the first `points` entries are a uniform random subset.
         let mut rng = SplitMix(seed ^ 0x0000_7375_6273_6574);
         for i in 0..args.points {
-            let j = i + (rng.next_u64() % (map.len() - i) as u64) as usize;
-            map.swap(i, j);
+            let j = i + (rng.next_u64() % (map.points.len() - i) as u64) as usize;
+            map.points.swap(i, j);
+            map.colours.swap(i, j);
         }
-        map.truncate(args.points);
+        map.points.truncate(args.points);
+        map.colours.truncate(args.points);
     }
     Ok(map)
 }
@@ -239,14 +274,21 @@ fn run_one(
     let describe = format!("A = {spec_a} [{frames_a}], B = {spec_b} [{frames_b}]");
     let map_a = build_map(&spec_a, frames_a, args, seed)?;
     let map_b_world = build_map(&spec_b, frames_b, args, seed.wrapping_add(1))?;
-    let overlap = true_overlap(&map_a, &map_b_world);
+    let overlap = true_overlap(&map_a.points, &map_b_world.points);
     let frame_from_world = random_frame(seed);
     let map_b: Vec<Point3<f32>> = map_b_world
+        .points
         .iter()
         .map(|p| (frame_from_world * p.cast::<f64>()).cast::<f32>())
         .collect();
     let truth = frame_from_world.inverse();
-    let result: MapRegistration = register_maps(&map_b, &map_a, config);
+    let colours = |map: &Map| (!args.no_colour).then_some(map.colours.clone());
+    let (colours_b, colours_a) = (colours(&map_b_world), colours(&map_a));
+    let result: MapRegistration = register_maps(
+        MapPoints::coloured(&map_b, colours_b.as_deref()),
+        MapPoints::coloured(&map_a.points, colours_a.as_deref()),
+        config,
+    );
     let centre = Point3::from(
         map_b
             .iter()
@@ -265,7 +307,7 @@ fn run_one(
         seed,
         time_ms: result.elapsed_ms,
         source_points: map_b.len(),
-        target_points: map_a.len(),
+        target_points: map_a.points.len(),
         true_overlap: overlap,
         voxel_m: s.voxel_m,
         downsampled_points: [s.source_points, s.target_points],
@@ -274,6 +316,8 @@ fn run_one(
         runner_up: s.runner_up_support,
         overlap: s.overlap_fraction,
         residual_m: s.residual_m,
+        colour_agreement: s.colour_agreement,
+        colour_kappa: s.colour_kappa,
         gicp_iterations: s.gicp_iterations,
         rotation_error_deg,
         translation_error_m,
@@ -298,9 +342,16 @@ pub fn run(args: &MapRegistrationArgs) -> anyhow::Result<()> {
         let (run, describe) = run_one(seed, args, &config)?;
         if !args.json {
             if runs.is_empty() {
-                println!("map registration: {describe} (first seed)");
                 println!(
-                    "  {:>4} {:>8} {:>13} {:>6} {:>6} {:>6} {:>5} {:>5} {:>6} {:>7} {:>8} {:>8}  verdict",
+                    "map registration {}: {describe} (first seed)",
+                    if args.no_colour {
+                        "without colour"
+                    } else {
+                        "with colour"
+                    }
+                );
+                println!(
+                    "  {:>4} {:>8} {:>13} {:>6} {:>6} {:>6} {:>5} {:>5} {:>6} {:>7} {:>6} {:>8} {:>8}  verdict",
                     "seed",
                     "ms",
                     "points B/A",
@@ -311,12 +362,13 @@ pub fn run(args: &MapRegistrationArgs) -> anyhow::Result<()> {
                     "2nd",
                     "ovl",
                     "res mm",
+                    "kappa",
                     "rot deg",
                     "trans cm"
                 );
             }
             println!(
-                "  {:>4} {:>8} {:>13} {:>6} {:>6} {:>6} {:>5} {:>5} {:>6} {:>7} {:>8} {:>8}  {}",
+                "  {:>4} {:>8} {:>13} {:>6} {:>6} {:>6} {:>5} {:>5} {:>6} {:>7} {:>6} {:>8} {:>8}  {}",
                 run.seed,
                 fmt_num(run.time_ms, 0),
                 format!("{}/{}", run.source_points, run.target_points),
@@ -327,6 +379,7 @@ pub fn run(args: &MapRegistrationArgs) -> anyhow::Result<()> {
                 run.runner_up,
                 fmt_num(run.overlap, 2),
                 fmt_num(run.residual_m * 1e3, 1),
+                fmt_num(run.colour_kappa, 2),
                 fmt_num(run.rotation_error_deg, 2),
                 fmt_num(run.translation_error_m * 100.0, 1),
                 match (&run.rejection, run.success) {
@@ -344,6 +397,7 @@ pub fn run(args: &MapRegistrationArgs) -> anyhow::Result<()> {
     let successes = runs.iter().filter(|r| r.success).count();
     let report = Report {
         data,
+        colour: !args.no_colour,
         threads: slam_core::registration::worker_threads(),
         median_time_ms: median(&times).unwrap_or(f64::NAN),
         accepted,
@@ -356,7 +410,12 @@ pub fn run(args: &MapRegistrationArgs) -> anyhow::Result<()> {
         return print_json(&report);
     }
     println!(
-        "  median {} ms ({} threads); accepted {}/{}, within {} cm and {} degrees {}/{} ({}%), accepted but wrong {}",
+        "  {}: median {} ms ({} threads); accepted {}/{}, within {} cm and {} degrees {}/{} ({}%), accepted but wrong {}",
+        if report.colour {
+            "with colour"
+        } else {
+            "without colour"
+        },
         fmt_num(report.median_time_ms, 0),
         report.threads,
         report.accepted,

@@ -1,7 +1,8 @@
 //! Stage 3: putative correspondences, nearest neighbours in descriptor space.
 //!
 //! Every source descriptor's nearest target descriptor and every target descriptor's nearest
-//! source descriptor are found (Euclidean distance over the 33 histogram values); a pair that
+//! source descriptor are found (Euclidean distance over the 33 FPFH values and, when the maps have
+//! colour, the weighted colour signature of `colour`: 43 values); a pair that
 //! chose each other (mutual nearest neighbours) is a correspondence. Mutuality removes most
 //! matches of repeated structure (a thousand wall points all choose the same few "most wall-like"
 //! descriptors of the other map; at most one of each such choice is mutual) at the price of some
@@ -15,7 +16,7 @@
 //! which is the product of the two counts.
 //!
 //! The search compares every pair, once, for both directions ([`nearest_brute_force_both_ways`]).
-//! kiddo's kd-tree in 33 dimensions ([`nearest_kd_tree`], kept as a second implementation the
+//! kiddo's kd-tree in 33 (now 43) dimensions ([`nearest_kd_tree`], kept as a second implementation the
 //! tests compare) was slower at these sizes: on the unit test's room, 9.4k x 8.8k descriptors,
 //! 2.5 s for both directions against 0.9 s by brute force (two cores, loaded machine); kd-trees
 //! prune little in 33 dimensions. With 3000 descriptors per map the brute force takes 110-170 ms.
@@ -23,7 +24,14 @@
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 
-use super::fpfh::{DESCRIPTOR_LEN, Descriptor};
+use super::colour::SIGNATURE_LEN;
+use super::fpfh::DESCRIPTOR_LEN;
+
+/// Length of a descriptor as matched: the FPFH histogram, then the colour signature scaled by
+/// its weight (zeros for maps without colour, which change no distance).
+pub const MATCH_LEN: usize = DESCRIPTOR_LEN + SIGNATURE_LEN;
+/// One point's descriptor as matched.
+pub type MatchDescriptor = [f32; MATCH_LEN];
 
 /// Queries per rayon task.
 const QUERIES_PER_TASK: usize = 64;
@@ -42,11 +50,14 @@ pub struct FeatureMatch {
 
 /// Index and squared distance of the nearest `reference` descriptor of every query, by kd-tree.
 /// Empty when `reference` is.
-pub fn nearest_kd_tree(queries: &[Descriptor], reference: &[Descriptor]) -> Vec<(u32, f32)> {
+pub fn nearest_kd_tree(
+    queries: &[MatchDescriptor],
+    reference: &[MatchDescriptor],
+) -> Vec<(u32, f32)> {
     if reference.is_empty() {
         return Vec::new();
     }
-    let tree: ImmutableKdTree<f32, DESCRIPTOR_LEN> =
+    let tree: ImmutableKdTree<f32, MATCH_LEN> =
         ImmutableKdTree::new_from_slice(reference).expect("descriptor count fits in u32");
     queries
         .par_iter()
@@ -63,25 +74,25 @@ pub fn nearest_kd_tree(queries: &[Descriptor], reference: &[Descriptor]) -> Vec<
 
 /// Squared Euclidean distance of two descriptors.
 #[inline]
-pub fn descriptor_distance_sq(a: &Descriptor, b: &Descriptor) -> f32 {
+pub fn descriptor_distance_sq(a: &MatchDescriptor, b: &MatchDescriptor) -> f32 {
     a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
 }
 
-/// Descriptor length padded to whole SIMD lanes (zeros add nothing to a distance).
-const PADDED_LEN: usize = 40;
 /// Lanes of the distance accumulator.
 const LANES: usize = 8;
+/// Descriptor length padded to whole SIMD lanes (zeros add nothing to a distance).
+const PADDED_LEN: usize = MATCH_LEN.div_ceil(LANES) * LANES;
 /// Source descriptors compared with each target descriptor while it is in the L1 cache.
 const ROWS_PER_BLOCK: usize = 16;
 
 type Padded = [f32; PADDED_LEN];
 
-fn padded(descriptors: &[Descriptor]) -> Vec<Padded> {
+fn padded(descriptors: &[MatchDescriptor]) -> Vec<Padded> {
     descriptors
         .iter()
         .map(|d| {
             let mut p = [0.0f32; PADDED_LEN];
-            p[..DESCRIPTOR_LEN].copy_from_slice(d);
+            p[..MATCH_LEN].copy_from_slice(d);
             p
         })
         .collect()
@@ -122,8 +133,8 @@ fn better(a: (u32, f32), b: (u32, f32)) -> (u32, f32) {
 /// [`ROWS_PER_BLOCK`] source descriptors while it is in cache; rows in parallel, each worker
 /// keeping its own column minima, merged at the end.
 pub fn nearest_brute_force_both_ways(
-    source: &[Descriptor],
-    target: &[Descriptor],
+    source: &[MatchDescriptor],
+    target: &[MatchDescriptor],
 ) -> (Nearest, Nearest) {
     if source.is_empty() || target.is_empty() {
         return (Vec::new(), Vec::new());
@@ -171,23 +182,26 @@ pub fn nearest_brute_force_both_ways(
 }
 
 /// The same as [`nearest_kd_tree`] by comparing every pair (ties go to the lower index).
-pub fn nearest_brute_force(queries: &[Descriptor], reference: &[Descriptor]) -> Vec<(u32, f32)> {
+pub fn nearest_brute_force(
+    queries: &[MatchDescriptor],
+    reference: &[MatchDescriptor],
+) -> Vec<(u32, f32)> {
     nearest_brute_force_both_ways(queries, reference).0
 }
 
 /// Indices (ascending) of the at most `max_count` most distinctive descriptors: those farthest
 /// from the list's mean descriptor (ties to the lower index). All of them when there are no more.
-pub fn most_distinctive(descriptors: &[Descriptor], max_count: usize) -> Vec<u32> {
+pub fn most_distinctive(descriptors: &[MatchDescriptor], max_count: usize) -> Vec<u32> {
     if descriptors.len() <= max_count {
         return (0..descriptors.len() as u32).collect();
     }
-    let mut mean = [0.0f64; DESCRIPTOR_LEN];
+    let mut mean = [0.0f64; MATCH_LEN];
     for d in descriptors {
         for (m, v) in mean.iter_mut().zip(d) {
             *m += *v as f64;
         }
     }
-    let mean: Descriptor = mean.map(|m| (m / descriptors.len() as f64) as f32);
+    let mean: MatchDescriptor = mean.map(|m| (m / descriptors.len() as f64) as f32);
     let mut ranked: Vec<(f32, u32)> = descriptors
         .par_iter()
         .map(|d| descriptor_distance_sq(d, &mean))
@@ -260,8 +274,8 @@ pub fn mutual_matches(
 /// [`nearest_brute_force_both_ways`] between them, then [`mutual_matches`]. Indices refer to the
 /// full lists.
 pub fn match_descriptors(
-    source: &[Descriptor],
-    target: &[Descriptor],
+    source: &[MatchDescriptor],
+    target: &[MatchDescriptor],
     max_per_map: usize,
     min_correspondences: usize,
 ) -> Vec<FeatureMatch> {
@@ -272,7 +286,7 @@ pub fn match_descriptors(
         || most_distinctive(source, max_per_map),
         || most_distinctive(target, max_per_map),
     );
-    let pick = |all: &[Descriptor], kept: &[u32]| -> Vec<Descriptor> {
+    let pick = |all: &[MatchDescriptor], kept: &[u32]| -> Vec<MatchDescriptor> {
         kept.iter().map(|&i| all[i as usize]).collect()
     };
     let (forward, backward) =
@@ -292,9 +306,9 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     /// Histogram-like random descriptors clustered around a few prototypes, as real ones are.
-    fn descriptors(seed: u64, n: usize) -> Vec<Descriptor> {
+    fn descriptors(seed: u64, n: usize) -> Vec<MatchDescriptor> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let prototypes: Vec<Descriptor> = (0..8)
+        let prototypes: Vec<MatchDescriptor> = (0..8)
             .map(|_| std::array::from_fn(|_| rng.random_range(0.0..0.3)))
             .collect();
         (0..n)
@@ -306,9 +320,14 @@ mod tests {
     }
 
     /// Target descriptors: noisy copies of the first `copies` source descriptors, then others.
-    fn related(source: &[Descriptor], copies: usize, others: usize, seed: u64) -> Vec<Descriptor> {
+    fn related(
+        source: &[MatchDescriptor],
+        copies: usize,
+        others: usize,
+        seed: u64,
+    ) -> Vec<MatchDescriptor> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let mut target: Vec<Descriptor> = source[..copies]
+        let mut target: Vec<MatchDescriptor> = source[..copies]
             .iter()
             .map(|d| std::array::from_fn(|i| (d[i] + rng.random_range(-0.01..0.01f32)).max(0.0)))
             .collect();
@@ -317,7 +336,7 @@ mod tests {
     }
 
     /// Nearest neighbours straight from the definition.
-    fn reference_nearest(queries: &[Descriptor], set: &[Descriptor]) -> Vec<(u32, f32)> {
+    fn reference_nearest(queries: &[MatchDescriptor], set: &[MatchDescriptor]) -> Vec<(u32, f32)> {
         queries
             .iter()
             .map(|q| {
@@ -408,7 +427,7 @@ mod tests {
     #[test]
     fn the_most_distinctive_descriptors_are_kept_for_matching() {
         // 900 alike ("walls") and 100 different ones ("corners").
-        let mut list = vec![[0.1f32; DESCRIPTOR_LEN]; 900];
+        let mut list = vec![[0.1f32; MATCH_LEN]; 900];
         list.extend(descriptors(5, 100));
         let kept = most_distinctive(&list, 100);
         assert_eq!(kept, (900..1000).collect::<Vec<u32>>());

@@ -341,7 +341,7 @@ pub fn describe(
 }
 
 /// [`describe`] from precomputed neighbourhoods (at the larger radius).
-fn describe_with(
+pub fn describe_with(
     points: &[Point3<f32>],
     neighbourhoods: &Neighbourhoods,
     (normal_radius_m, min_normal_neighbours): (f64, usize),

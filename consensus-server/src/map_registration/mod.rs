@@ -4,64 +4,104 @@
 //!
 //! Keyframe-to-keyframe alignment ([`crate::alignment`]) needs two images of the same place from
 //! similar viewpoints; agents that crossed the same room in opposite directions, or metres apart,
-//! never produce such a pair. Their maps still share surfaces, and the shape of those surfaces is
-//! viewpoint-independent. The pipeline, one stage per file:
+//! never produce such a pair. Their maps still share surfaces, and the shape and colour of those
+//! surfaces are viewpoint-independent. The input is a [`MapPoints`] per map: points and,
+//! optionally, a colour per point; colour is used when both maps have it. The pipeline, one
+//! stage per file:
 //!
-//! 1. [`downsample`]: one centroid per voxel, isolated points removed, the same voxel for both
-//!    maps, grown until both fit `max_points` (the cost bound). Uniform sampling makes the local
-//!    descriptors describe the geometry rather than how long the agent looked at it.
+//! 1. [`downsample`]: one centroid per voxel (and the mean colour), isolated points removed, the
+//!    same voxel for both maps, grown until both fit `max_points` (the cost bound). Uniform
+//!    sampling makes the local descriptors describe the geometry rather than how long the agent
+//!    looked at it.
 //! 2. [`fpfh`]: a PCA normal per point and a 33-bin FPFH-style histogram of the angles between
 //!    the normals of neighbouring points and the lines joining them: a description of the local
 //!    shape that is invariant to rigid motion. The angles are taken between lines, so the
-//!    unknowable sign of a map normal does not matter (the reason is in that file).
-//! 3. [`correspondences`]: mutual nearest neighbours in descriptor space (kd-tree), topped up with
-//!    the best one-way matches when too few are mutual.
+//!    unknowable sign of a map normal does not matter (the reason is in that file). With colour,
+//!    [`colour`] appends the neighbourhood's hue histogram (exposure-invariant chromaticity),
+//!    weighted by `colour_weight`.
+//! 3. [`correspondences`]: mutual nearest neighbours in descriptor space, topped up with the best
+//!    one-way matches when too few are mutual.
 //! 4. [`consistency`]: RANSAC over three correspondences with distance-preservation pre-checks
 //!    and local least-squares refits: the transform most correspondences agree on, and the best
 //!    *distinct* runner-up, whose relative support measures ambiguity (symmetric rooms,
 //!    repeated shelves).
 //! 5. [`verification`]: coarse-to-fine G-ICP from the RANSAC transform (slam_core's, plane to
-//!    plane, with each map's covariances), then overlap, point-to-plane residual and the
-//!    information matrix of the estimate.
+//!    plane, with each map's covariances), then overlap, point-to-plane residual, the
+//!    information matrix of the estimate and, with colour, how far the overlap's colours agree
+//!    beyond chance (Cohen's kappa of chromaticity agreement).
 //!
 //! The verdict refuses, with the numbers, every estimate that is not trustworthy: too few points,
 //! descriptors or consistent correspondences; ambiguous (the runner-up nearly as well supported);
-//! G-ICP failure; too little overlap; a high residual; or a degenerate overlap (one plane, a
-//! corridor: a direction the overlap does not constrain).
+//! G-ICP failure; too little overlap (below `min_overlap_fraction`, or below the smaller
+//! `colour_confirmed_overlap_fraction` when colour agrees with a kappa of at least
+//! `colour_confirmed_kappa`); a high residual; a degenerate overlap (one plane, a corridor: a
+//! direction the overlap does not constrain); or colours that agree no better than chance.
 //!
 //! Lengths of the configuration ending in `_voxels` scale with the voxel actually used. Every
 //! stage is parallel (rayon) except RANSAC, which is sequential so that the result depends on
 //! the seed only; timings per stage go to `tracing` at debug level and into the scores.
 //!
-//! **Measured** with `mac-ego3d bench map-registration` (2-core development machine shared with
-//! other builds, load 3-4; maps of ~50k points, every 10th frame back-projected with the
-//! ground-truth poses, map B in a random frame; success = accepted and within 5 cm and 2
-//! degrees at map B's centre):
+//! **Measured** with `mac-ego3d bench map-registration` (2-core development machine, load ~2;
+//! maps of ~50k points, every 10th frame back-projected with the ground-truth poses and coloured
+//! by its pixels, map B in a random frame; success = accepted and within 5 cm and 2 degrees at
+//! map B's centre; `--no-colour` registers the same maps without their colours):
 //!
-//! | maps | true overlap | median time | accepted / success / accepted but wrong |
+//! | maps | true overlap | with colour: median (max) time, accepted / success / wrong | without colour |
 //! |---|---:|---:|---:|
-//! | synthetic, 2 agents x 300 frames (default) | 80-97 % | 283 ms | 10 / 10 / 0 of 10 |
-//! | synthetic, 2 agents x 150 frames | - | 743 ms | 17 / 17 / 0 of 20 |
-//! | synthetic, 2 agents x 100 frames | 4-41 % | 342 ms | 5 / 5 / 0 of 20 |
-//! | redkitchen 0..100 vs 500..600 | 62 % | 342 ms | 10 / 10 / 0 of 10 |
-//! | redkitchen 100..180 vs 850..950 | 3 % | 385 ms | 0 / 0 / 0 of 10 (refused) |
+//! | synthetic, 2 agents x 300 frames (default) | 80-97 % | 590 (801) ms, 10 / 10 / 0 of 10 | 282 ms, 10 / 10 / 0 |
+//! | synthetic, 2 agents x 100 frames | 4-41 % | 497 (735) ms, 18 / 18 / 0 of 20 | 172 ms, 5 / 5 / 0 |
+//! | redkitchen 0..100 vs 500..600 | 62 % | 188 (211) ms, 10 / 10 / 0 of 10 | 186 ms, 10 / 10 / 0 |
+//! | redkitchen 100..180 vs 850..950 | 3 % | 188 (237) ms, 0 / 0 / 0 of 10 (refused) | 207 ms, 0 / 0 / 0 |
 //!
-//! On redkitchen the estimate is 0.9-1.1 degrees and ~2 cm from the ground truth every time:
-//! G-ICP started *at* the ground truth converges to the same pose with a lower residual (14.4
-//! against 16.6 mm), so the difference is the ground truth's (KinectFusion) own inconsistency
-//! between the two stretches. Time splits roughly into downsampling 50-100 ms, descriptors
-//! 150-280 ms, matching 110-170 ms, RANSAC under 15 ms, refinement 150-400 ms.
+//! Without colour the results are those of the geometry-only pipeline, bit for bit. On
+//! redkitchen the estimate is 0.9-1.1 degrees and ~2 cm from the ground truth every time, with
+//! or without colour: G-ICP started *at* the ground truth converges to the same pose with a lower
+//! residual (14.4 against 16.6 mm), so the difference is the ground truth's (KinectFusion) own
+//! inconsistency between the two stretches. Time splits roughly into downsampling 30-60 ms,
+//! descriptors 80-100 ms, matching 55-65 ms, RANSAC 5-40 ms without colour and 100-450 ms with
+//! it (colour makes most correspondences of a true transform inliers, and every sample drawn from
+//! them is refitted), refinement 50-500 ms.
 //!
-//! **Limits.** Geometry alone cannot tell a box-shaped room from itself turned by 90 or 180
+//! **Colour.** Geometry alone cannot tell a box-shaped room from itself turned by 90 or 180
 //! degrees: with little true overlap (the synthetic agents over 100 frames) the turned room
 //! often overlaps *more* than the true pose (0.6-0.7 of the smaller map against 0.04-0.16), so
-//! neither the overlap nor the residual can refuse it. What refuses it is the correspondence
-//! evidence: the support must clear `min_consistent_correspondences` (chance alignments of ~500
-//! correspondences reach 8-16 supporters on these scenes) and be at least twice the best
-//! distinct alternative's. That costs recall on low-overlap pairs (5 of 20 above) but accepted
-//! no wrong pose in these runs. Colour, which would separate such poses, is not used. The
-//! information matrix treats residuals as independent and is therefore optimistic.
+//! neither the overlap nor the residual can refuse it, and without colour only the
+//! correspondence evidence does (at least `min_consistent_correspondences`, twice the best
+//! distinct alternative's support), at the cost of recall: 15 of the 20 pairs were refused,
+//! their best transforms (right or turned) with 11-19 supporters, or ambiguous. The walls of the
+//! room differ in colour, and the hue part of the descriptors lets the true correspondences find
+//! each other: 33-114 supporters on the 18 pairs accepted, runner-ups 10-26. What was measured
+//! (synthetic 100 frames, 20 pairs; redkitchen 0..100 vs 500..600, 10 runs):
+//!
+//! - descriptor weight of the hue histogram: 0.6: 15/20, 0.75: 17/20, 1.0: 17/20 (18/20 with
+//!   the colour-confirmed overlap below); redkitchen inliers 42-55 at 1.0 (40-55 without
+//!   colour). With a relative-intensity histogram (texture contrast) as a further part: 0.25:
+//!   14/20, 0.5: 17/20, 1.0: 17/20, but redkitchen lost up to a third of its inliers (28-41 at
+//!   1.0; intensity ratios change with the camera's exposure curve): dropped.
+//! - a colour gate on correspondences (drop a match whose signatures differ): on top of the
+//!   descriptor weight it changed nothing (17/20); alone it dropped three quarters of the
+//!   geometric matches and the support of the true pose with them (4-5/20): dropped.
+//! - the verification's colour kappa, on poses forced through (no ambiguity or support limits,
+//!   geometry-only descriptors): true poses 0.89-0.98 on the synthetic maps, 0.34-0.37 on
+//!   redkitchen; turned synthetic rooms 0.25-0.58 (their floors agree; they overlap 26-50 %);
+//!   wrong redkitchen poses -0.13 to 0.16, and 0.19 for redkitchen laid onto the synthetic room
+//!   (merge test, 36 supporters, 7.5 % overlap). So `min_colour_kappa` (0.25, between those and
+//!   the true 0.34) refuses poses whose colours are unrelated, not a turned room whose floor
+//!   matches; those are left to the correspondence evidence and, between agents, to the
+//!   free-space check of [`crate::map_links`] (the wide-baseline merge test: one turned room,
+//!   kappa 0.29, caught there). A kappa of 0.75 or more, which no wrong pose reached, confirms a
+//!   pose well enough to accept an overlap down to 3 % (the wide-baseline agents' maps share
+//!   3.7 % at 5 cm, kappa 0.88; synthetic pair 16 of the bench, 9 %, kappa 0.90).
+//!
+//! Colour has a cost in chance support: matches concentrate in regions of distinctive colour, so
+//! a wrong transform that lays one such region onto a similar one collects more of them (on
+//! redkitchen 100..180 vs 850..950 the best wrong transform has 24-27 supporters with colour
+//! against 9-12 without). Those are refused as ambiguous (the next wrong transform is nearly as
+//! good), and with the ambiguity test disabled still by overlap (7-9 %) or colour kappa.
+//!
+//! The information matrix treats residuals as independent and is therefore optimistic.
 
+pub mod colour;
 pub mod consistency;
 pub mod correspondences;
 pub mod downsample;
@@ -79,8 +119,12 @@ use slam_core::config::MapRegistrationConfig;
 use slam_core::registration::covariance::smallest_eigenvector;
 use slam_core::registration::{PointCloud, PointTree, RegistrationFailure};
 
+use colour::Rgb;
 use consistency::{RansacParams, find_consensus, transform_difference};
-use verification::{RefinementParams, measure_overlap, refine};
+use correspondences::{MATCH_LEN, MatchDescriptor};
+use downsample::Cloud;
+pub use downsample::MapPoints;
+use verification::{ColourCheck, RefinementParams, measure_overlap, refine};
 
 /// Why a map registration is refused. Each names the numbers that decided it.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -118,8 +162,18 @@ pub enum MapRejection {
     },
     #[error("G-ICP refinement failed: {0}")]
     RefinementFailed(RegistrationFailure),
-    #[error("overlap {found:.3} of the smaller map below {required:.3}")]
-    LowOverlap { found: f64, required: f64 },
+    #[error(
+        "overlap {found:.3} of the smaller map below {required:.3} (or {confirmed:.3} with a colour kappa of {required_kappa:.2}; found {kappa:.2})"
+    )]
+    LowOverlap {
+        found: f64,
+        required: f64,
+        /// The smaller overlap allowed when colour confirms the pose, the kappa that takes and
+        /// the kappa found (NaN without colour).
+        confirmed: f64,
+        required_kappa: f64,
+        kappa: f64,
+    },
     #[error("point-to-plane residual {found_m:.4} m above {allowed_m:.4} m")]
     HighResidual { found_m: f64, allowed_m: f64 },
     #[error(
@@ -130,6 +184,16 @@ pub enum MapRejection {
         translation_m: f64,
         allowed_rotation_deg: f64,
         allowed_translation_m: f64,
+    },
+    #[error(
+        "colours disagree: {agreement:.3} of {compared} overlapping points agree in chromaticity, {chance:.3} by chance: kappa {kappa:.3} below {required:.3}"
+    )]
+    ColourDisagreement {
+        compared: usize,
+        agreement: f64,
+        chance: f64,
+        kappa: f64,
+        required: f64,
     },
 }
 
@@ -163,6 +227,8 @@ pub struct MapRegistrationScores {
     pub refine_target_points: usize,
     pub source_features: usize,
     pub target_features: usize,
+    /// Whether colour was used (both maps have colours).
+    pub colour: bool,
     /// Putative correspondences, and how many of them are mutual nearest neighbours.
     pub correspondences: usize,
     pub mutual_correspondences: usize,
@@ -189,6 +255,13 @@ pub struct MapRegistrationScores {
     /// Marginal standard deviations of the estimate (see [`verification`]).
     pub rotation_sigma_deg: f64,
     pub translation_sigma_m: f64,
+    /// Overlapping points compared in colour, the fraction of them that agree, the fraction that
+    /// agree when paired at random, and Cohen's kappa of the two (see [`verification`]; NaN when
+    /// none were compared, the kappa also when the colours cannot tell).
+    pub colour_compared: usize,
+    pub colour_agreement: f64,
+    pub colour_chance: f64,
+    pub colour_kappa: f64,
     pub timings: StageTimings,
 }
 
@@ -205,6 +278,7 @@ impl MapRegistrationScores {
             refine_target_points: 0,
             source_features: 0,
             target_features: 0,
+            colour: false,
             correspondences: 0,
             mutual_correspondences: 0,
             ransac_samples: 0,
@@ -221,6 +295,10 @@ impl MapRegistrationScores {
             residual_m: f64::NAN,
             rotation_sigma_deg: f64::NAN,
             translation_sigma_m: f64::NAN,
+            colour_compared: 0,
+            colour_agreement: f64::NAN,
+            colour_chance: f64::NAN,
+            colour_kappa: f64::NAN,
             timings: StageTimings::default(),
         }
     }
@@ -268,26 +346,52 @@ struct PreparedMap {
     tree: PointTree,
     normals: Vec<Option<nalgebra::Vector3<f32>>>,
     features: fpfh::Features,
+    /// Per feature: the FPFH descriptor and the weighted colour signature.
+    descriptors: Vec<MatchDescriptor>,
+    /// Per point, when colour is used.
+    colours: Option<Vec<Rgb>>,
 }
 
-fn prepare(points: Vec<Point3<f32>>, voxel_m: f64, config: &MapRegistrationConfig) -> PreparedMap {
+/// Normals, descriptors and, with `colours`, colour signatures of a downsampled map.
+fn prepare(cloud: Cloud, voxel_m: f64, config: &MapRegistrationConfig) -> PreparedMap {
     let tree = PointTree::with_covariances(
-        PointCloud::from_positions(points),
+        PointCloud::from_positions(cloud.points),
         config.covariance_neighbours,
         config.covariance_epsilon,
     )
     .expect("downsampled points are finite and few");
-    let (normals, features) = fpfh::describe(
-        &tree,
-        config.normal_radius_voxels * voxel_m,
-        config.min_normal_neighbours,
-        config.feature_radius_voxels * voxel_m,
-        config.min_feature_neighbours,
+    let normal_radius = config.normal_radius_voxels * voxel_m;
+    let feature_radius = config.feature_radius_voxels * voxel_m;
+    let neighbourhoods = fpfh::radius_neighbours(&tree, normal_radius.max(feature_radius));
+    let (normals, features) = fpfh::describe_with(
+        tree.positions(),
+        &neighbourhoods,
+        (normal_radius, config.min_normal_neighbours),
+        (feature_radius, config.min_feature_neighbours),
     );
+    let signatures = cloud
+        .colours
+        .as_ref()
+        .map(|colours| colour::signatures(colours, &neighbourhoods, &features.indices));
+    let weight = config.colour_weight as f32;
+    let descriptors = (0..features.len())
+        .map(|k| {
+            let mut d = [0.0f32; MATCH_LEN];
+            d[..fpfh::DESCRIPTOR_LEN].copy_from_slice(&features.descriptors[k]);
+            if let Some(signature) = signatures.as_ref().and_then(|s| s[k].as_ref()) {
+                for (to, from) in d[fpfh::DESCRIPTOR_LEN..].iter_mut().zip(signature) {
+                    *to = weight * from;
+                }
+            }
+            d
+        })
+        .collect();
     PreparedMap {
         tree,
         normals,
         features,
+        descriptors,
+        colours: cloud.colours,
     }
 }
 
@@ -296,12 +400,13 @@ fn prepare(points: Vec<Point3<f32>>, voxel_m: f64, config: &MapRegistrationConfi
 struct RefinementMap {
     tree: PointTree,
     normals: Vec<Option<nalgebra::Vector3<f32>>>,
+    colours: Option<Vec<Rgb>>,
 }
 
 impl RefinementMap {
-    fn new(points: Vec<Point3<f32>>, config: &MapRegistrationConfig) -> Self {
+    fn new(cloud: Cloud, config: &MapRegistrationConfig) -> Self {
         let tree = PointTree::with_covariances(
-            PointCloud::from_positions(points),
+            PointCloud::from_positions(cloud.points),
             config.covariance_neighbours,
             config.covariance_epsilon,
         )
@@ -313,24 +418,37 @@ impl RefinementMap {
             .iter()
             .map(|c| Some(smallest_eigenvector(&c.to_matrix()).cast::<f32>()))
             .collect();
-        Self { tree, normals }
+        Self {
+            tree,
+            normals,
+            colours: cloud.colours,
+        }
     }
 }
 
-/// Registers the `source` map onto the `target` map (see the module documentation).
-pub fn register_maps(
-    source: &[Point3<f32>],
-    target: &[Point3<f32>],
+/// Registers the `source` map onto the `target` map (see the module documentation). Colours
+/// are used when both maps have them.
+pub fn register_maps<'a, 'b>(
+    source: impl Into<MapPoints<'a>>,
+    target: impl Into<MapPoints<'b>>,
     config: &MapRegistrationConfig,
 ) -> MapRegistration {
     let start = Instant::now();
+    let (mut source, mut target) = (source.into(), target.into());
+    let use_colour = source.colours.is_some() && target.colours.is_some();
+    if !use_colour {
+        source.colours = None;
+        target.colours = None;
+    }
     let _span = tracing::debug_span!(
         "register_maps",
-        source = source.len(),
-        target = target.len()
+        source = source.points.len(),
+        target = target.points.len(),
+        colour = use_colour
     )
     .entered();
-    let mut scores = MapRegistrationScores::new(source.len(), target.len());
+    let mut scores = MapRegistrationScores::new(source.points.len(), target.points.len());
+    scores.colour = use_colour;
     let finish = |target_from_source: Isometry3<f64>,
                   scores: MapRegistrationScores,
                   verdict: Result<(), MapRejection>,
@@ -422,8 +540,8 @@ pub fn register_maps(
     // 3. Correspondences.
     let stage = Instant::now();
     let matches = correspondences::match_descriptors(
-        &source_map.features.descriptors,
-        &target_map.features.descriptors,
+        &source_map.descriptors,
+        &target_map.descriptors,
         config.max_matched_features,
         config.min_correspondences,
     );
@@ -538,10 +656,13 @@ pub fn register_maps(
         )
     });
     let (fine_source, fine_target) = match &fine_maps {
-        Some((s, t)) => ((&s.tree, &s.normals), (&t.tree, &t.normals)),
+        Some((s, t)) => (
+            (&s.tree, &s.normals, &s.colours),
+            (&t.tree, &t.normals, &t.colours),
+        ),
         None => (
-            (&source_map.tree, &source_map.normals),
-            (&target_map.tree, &target_map.normals),
+            (&source_map.tree, &source_map.normals, &source_map.colours),
+            (&target_map.tree, &target_map.normals, &target_map.colours),
         ),
     };
     let distances = &config.refine_distances_voxels;
@@ -582,6 +703,14 @@ pub fn register_maps(
 
     // 6. Verification.
     let stage = Instant::now();
+    let colour_check = match (fine_source.2, fine_target.2) {
+        (Some(source), Some(target)) => Some(ColourCheck {
+            source,
+            target,
+            tolerance: config.colour_tolerance as f32,
+        }),
+        _ => None,
+    };
     let overlap = measure_overlap(
         fine_source.0.positions(),
         fine_target.0,
@@ -589,24 +718,38 @@ pub fn register_maps(
         &estimate,
         fine_distance_m,
         config.residual_sigma_floor_m,
+        colour_check,
     );
     scores.overlapping_points = overlap.overlapping;
     scores.overlap_fraction = overlap.fraction;
     scores.residual_m = overlap.residual_m;
     scores.rotation_sigma_deg = overlap.rotation_sigma_rad.to_degrees();
     scores.translation_sigma_m = overlap.translation_sigma_m;
+    scores.colour_compared = overlap.colour_compared;
+    scores.colour_agreement = overlap.colour_agreement();
+    scores.colour_chance = overlap.colour_chance;
+    scores.colour_kappa = overlap.colour_kappa();
     scores.timings.verification_ms = elapsed_ms(stage);
     tracing::debug!(
         overlap = overlap.fraction,
         residual_m = overlap.residual_m,
+        colour_agreement = scores.colour_agreement,
+        colour_kappa = scores.colour_kappa,
         ms = scores.timings.verification_ms,
         "verified"
     );
     let information = Some(overlap.information);
-    let verdict = if overlap.fraction < config.min_overlap_fraction {
+    let colour_judged = overlap.colour_compared >= config.min_colour_comparisons;
+    let colour_confirms = colour_judged
+        && overlap.colour_kappa() >= config.colour_confirmed_kappa
+        && overlap.fraction >= config.colour_confirmed_overlap_fraction;
+    let verdict = if overlap.fraction < config.min_overlap_fraction && !colour_confirms {
         Err(MapRejection::LowOverlap {
             found: overlap.fraction,
             required: config.min_overlap_fraction,
+            confirmed: config.colour_confirmed_overlap_fraction,
+            required_kappa: config.colour_confirmed_kappa,
+            kappa: overlap.colour_kappa(),
         })
     } else if overlap.residual_m.is_nan() || overlap.residual_m > config.max_residual_m {
         Err(MapRejection::HighResidual {
@@ -621,6 +764,14 @@ pub fn register_maps(
             translation_m: overlap.translation_sigma_m,
             allowed_rotation_deg: config.max_rotation_sigma_rad.to_degrees(),
             allowed_translation_m: config.max_translation_sigma_m,
+        })
+    } else if colour_judged && overlap.colour_kappa() < config.min_colour_kappa {
+        Err(MapRejection::ColourDisagreement {
+            compared: overlap.colour_compared,
+            agreement: overlap.colour_agreement(),
+            chance: overlap.colour_chance,
+            kappa: overlap.colour_kappa(),
+            required: config.min_colour_kappa,
         })
     } else {
         Ok(())

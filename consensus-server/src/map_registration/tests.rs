@@ -1,5 +1,6 @@
 //! End-to-end tests of [`super::register_maps`] on procedural scenes: an indoor-like room with
-//! furniture, an unrelated outdoor-like scene, and a room with four-fold symmetry.
+//! furniture, an unrelated outdoor-like scene, and a room with four-fold symmetry; each surface
+//! painted its own colour, for the tests with colour.
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
@@ -7,23 +8,44 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use slam_core::config::MapRegistrationConfig;
 
-use super::{MapRegistration, MapRejection, register_maps};
+use super::colour::Rgb;
+use super::{MapPoints, MapRegistration, MapRejection, register_maps};
 
 /// Surface sampling step of the scenes (metres).
 const STEP: f64 = 0.025;
 
-/// Points of a scene under construction.
+/// Points of a scene under construction, each with the colour its surface was painted.
 struct Scene {
     points: Vec<Point3<f64>>,
+    colours: Vec<Rgb>,
+    /// Colour of the surfaces added next.
+    paint: Rgb,
     rng: ChaCha8Rng,
+    /// Shading of the colours (a stream of its own: the geometry does not depend on colours).
+    shade_rng: ChaCha8Rng,
 }
 
 impl Scene {
     fn new(seed: u64) -> Self {
         Self {
             points: Vec::new(),
+            colours: Vec::new(),
+            paint: [0.5; 3],
             rng: ChaCha8Rng::seed_from_u64(seed),
+            shade_rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_c010),
         }
+    }
+
+    /// Paints what is added next: `rgb`, brighter or darker by up to 15 % per point (texture).
+    fn paint(&mut self, rgb: Rgb) -> &mut Self {
+        self.paint = rgb;
+        self
+    }
+
+    fn push(&mut self, p: Point3<f64>) {
+        let shade: f32 = self.shade_rng.random_range(0.85..1.15);
+        self.points.push(p);
+        self.colours.push(self.paint.map(|c| (c * shade).min(1.0)));
     }
 
     /// A rectangle from `origin` along `u` and `v` (their lengths are the sides), sampled on a
@@ -37,7 +59,7 @@ impl Scene {
             for j in 0..nv {
                 let a = ((i as f64 + self.rng.random_range(0.0..1.0)) / nu as f64).min(1.0);
                 let b = ((j as f64 + self.rng.random_range(0.0..1.0)) / nv as f64).min(1.0);
-                self.points.push(Point3::from(origin + u * a + v * b));
+                self.push(Point3::from(origin + u * a + v * b));
             }
         }
     }
@@ -67,7 +89,7 @@ impl Scene {
             let z = 1.0 - 2.0 * (k as f64 + 0.5) / n as f64;
             let r = (1.0 - z * z).sqrt();
             let phi = golden * k as f64;
-            self.points.push(Point3::from(
+            self.push(Point3::from(
                 centre + radius * Vector3::new(r * phi.cos(), r * phi.sin(), z),
             ));
         }
@@ -81,7 +103,7 @@ impl Scene {
             for j in 0..up {
                 let angle = 2.0 * std::f64::consts::PI * i as f64 / around as f64;
                 let z = height * (j as f64 + 0.5) / up as f64;
-                self.points.push(Point3::from(
+                self.push(Point3::from(
                     base + Vector3::new(radius * angle.cos(), radius * angle.sin(), z),
                 ));
             }
@@ -107,15 +129,26 @@ impl Scene {
 /// An indoor-like room, 6 x 5 m with 2.5 m walls on three sides and half of the fourth, and
 /// furniture placed without symmetry.
 fn room(seed: u64) -> Vec<Point3<f64>> {
+    coloured_room(seed).points
+}
+
+/// [`room`] with colours: each wall, the floor and each piece of furniture its own.
+fn coloured_room(seed: u64) -> Scene {
     let mut s = Scene::new(seed);
     let (x, y, z) = (Vector3::x(), Vector3::y(), Vector3::z());
-    s.rectangle(Vector3::zeros(), x * 6.0, y * 5.0);
-    s.rectangle(Vector3::zeros(), y * 5.0, z * 2.5);
-    s.rectangle(Vector3::zeros(), x * 6.0, z * 2.5);
-    s.rectangle(y * 5.0, x * 3.5, z * 2.5);
-    s.rectangle(x * 6.0, y * 5.0, z * 2.5);
-    s.table(Vector3::new(3.1, 2.2, 0.0), 1.4, 0.8, 0.3);
-    s.cuboid(
+    s.paint([0.55, 0.45, 0.35])
+        .rectangle(Vector3::zeros(), x * 6.0, y * 5.0);
+    s.paint([0.7, 0.3, 0.3])
+        .rectangle(Vector3::zeros(), y * 5.0, z * 2.5);
+    s.paint([0.3, 0.6, 0.35])
+        .rectangle(Vector3::zeros(), x * 6.0, z * 2.5);
+    s.paint([0.3, 0.4, 0.75])
+        .rectangle(y * 5.0, x * 3.5, z * 2.5);
+    s.paint([0.75, 0.7, 0.25])
+        .rectangle(x * 6.0, y * 5.0, z * 2.5);
+    s.paint([0.5, 0.25, 0.6])
+        .table(Vector3::new(3.1, 2.2, 0.0), 1.4, 0.8, 0.3);
+    s.paint([0.2, 0.6, 0.65]).cuboid(
         Vector3::new(3.4, 0.5, 0.0),
         Vector3::new(0.9, 0.45, 1.6),
         0.0,
@@ -142,9 +175,10 @@ fn room(seed: u64) -> Vec<Point3<f64>> {
         Vector3::new(0.6, 0.6, 0.5),
         -0.4,
     );
-    s.sphere(Vector3::new(1.2, 4.0, 0.9), 0.25);
+    s.paint([0.8, 0.8, 0.8])
+        .sphere(Vector3::new(1.2, 4.0, 0.9), 0.25);
     s.cylinder(Vector3::new(1.2, 4.0, 0.0), 0.05, 0.65);
-    s.cuboid(
+    s.paint([0.25, 0.25, 0.6]).cuboid(
         Vector3::new(5.2, 1.0, 0.0),
         Vector3::new(1.2, 0.6, 0.75),
         0.0,
@@ -154,9 +188,10 @@ fn room(seed: u64) -> Vec<Point3<f64>> {
         Vector3::new(0.4, 0.4, 1.9),
         0.2,
     );
-    s.cylinder(Vector3::new(4.4, 2.6, 0.0), 0.25, 0.5);
+    s.paint([0.8, 0.5, 0.2])
+        .cylinder(Vector3::new(4.4, 2.6, 0.0), 0.25, 0.5);
     s.table(Vector3::new(5.0, 2.4, 0.0), 0.8, 0.8, 0.0);
-    s.points
+    s
 }
 
 /// Something else entirely: rolling terrain with trees (trunks and crowns) and rocks.
@@ -167,7 +202,7 @@ fn outdoor(seed: u64) -> Vec<Point3<f64>> {
         for j in 0..ny {
             let (x, y) = (i as f64 * STEP, j as f64 * STEP);
             let z = 0.3 * (0.8 * x).sin() * (0.6 * y).cos() + 0.1 * (2.3 * x + 1.1 * y).sin();
-            s.points.push(Point3::new(x, y, z));
+            s.push(Point3::new(x, y, z));
         }
     }
     for k in 0..7 {
@@ -183,9 +218,23 @@ fn outdoor(seed: u64) -> Vec<Point3<f64>> {
 /// A square 5 x 5 m room with four identical cabinets and pillars in four-fold rotational
 /// symmetry about its centre: four transforms explain it equally well.
 fn symmetric_room(seed: u64) -> Vec<Point3<f64>> {
+    coloured_symmetric_room(seed).points
+}
+
+/// [`symmetric_room`] with colours that break the symmetry: a grey floor, and each quarter's
+/// wall, cabinet, pillar and box in a colour of its own, as four identical rooms painted
+/// differently.
+fn coloured_symmetric_room(seed: u64) -> Scene {
+    const QUARTERS: [[Rgb; 3]; 4] = [
+        [[0.7, 0.3, 0.3], [0.3, 0.3, 0.7], [0.8, 0.8, 0.3]],
+        [[0.3, 0.65, 0.3], [0.7, 0.4, 0.2], [0.6, 0.3, 0.7]],
+        [[0.3, 0.4, 0.75], [0.25, 0.6, 0.6], [0.75, 0.3, 0.5]],
+        [[0.75, 0.7, 0.25], [0.5, 0.7, 0.3], [0.3, 0.3, 0.35]],
+    ];
     let mut s = Scene::new(seed);
     let (x, y, z) = (Vector3::x(), Vector3::y(), Vector3::z());
-    s.rectangle(Vector3::zeros(), x * 5.0, y * 5.0);
+    s.paint([0.5, 0.5, 0.5])
+        .rectangle(Vector3::zeros(), x * 5.0, y * 5.0);
     let centre = Vector3::new(2.5, 2.5, 0.0);
     for quarter in 0..4 {
         let r = UnitQuaternion::from_euler_angles(
@@ -195,13 +244,16 @@ fn symmetric_room(seed: u64) -> Vec<Point3<f64>> {
         );
         let at = |p: Vector3<f64>| centre + r * (p - centre);
         let mut part = Scene::new(seed + 1 + quarter);
-        part.rectangle(Vector3::zeros(), x * 5.0, z * 2.5);
-        part.cuboid(
+        let [wall, cabinet, other] = QUARTERS[quarter as usize];
+        part.paint(wall)
+            .rectangle(Vector3::zeros(), x * 5.0, z * 2.5);
+        part.paint(cabinet).cuboid(
             Vector3::new(1.0, 0.4, 0.0),
             Vector3::new(1.0, 0.5, 1.2),
             0.0,
         );
-        part.cylinder(Vector3::new(3.6, 1.3, 0.0), 0.2, 2.5);
+        part.paint(other)
+            .cylinder(Vector3::new(3.6, 1.3, 0.0), 0.2, 2.5);
         part.cuboid(
             Vector3::new(1.8, 1.6, 0.0),
             Vector3::new(0.5, 0.5, 0.6),
@@ -209,8 +261,9 @@ fn symmetric_room(seed: u64) -> Vec<Point3<f64>> {
         );
         s.points
             .extend(part.points.iter().map(|p| Point3::from(at(p.coords))));
+        s.colours.extend(part.colours);
     }
-    s.points
+    s
 }
 
 /// `points` moved by `pose`, with Gaussian noise of `sigma` (metres) per coordinate and
@@ -222,7 +275,21 @@ fn observe(
     outlier_fraction: f64,
     seed: u64,
 ) -> Vec<Point3<f32>> {
+    let colours = vec![[0.5; 3]; points.len()];
+    observe_coloured(points, &colours, pose, sigma, outlier_fraction, seed).0
+}
+
+/// [`observe`] with colours: each point keeps its colour, outliers get random ones.
+fn observe_coloured(
+    points: &[Point3<f64>],
+    colours: &[Rgb],
+    pose: &Isometry3<f64>,
+    sigma: f64,
+    outlier_fraction: f64,
+    seed: u64,
+) -> (Vec<Point3<f32>>, Vec<Rgb>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut colour_rng = ChaCha8Rng::seed_from_u64(seed ^ 0xc010);
     let noise = Normal::new(0.0, sigma.max(1e-12)).unwrap();
     let (mut min, mut max) = (
         Vector3::repeat(f64::INFINITY),
@@ -232,24 +299,44 @@ fn observe(
         min = min.inf(&p.coords);
         max = max.sup(&p.coords);
     }
-    let mut observed: Vec<Point3<f64>> = points
+    let mut observed: Vec<(Point3<f64>, Rgb)> = points
         .iter()
-        .map(|p| p + Vector3::from_fn(|_, _| noise.sample(&mut rng)))
+        .zip(colours)
+        .map(|(p, &c)| (p + Vector3::from_fn(|_, _| noise.sample(&mut rng)), c))
         .collect();
     let outliers = (points.len() as f64 * outlier_fraction / (1.0 - outlier_fraction)) as usize;
     for _ in 0..outliers {
-        observed.push(Point3::from(Vector3::from_fn(|i, _| {
-            rng.random_range(min[i]..max[i])
-        })));
+        let p = Point3::from(Vector3::from_fn(|i, _| rng.random_range(min[i]..max[i])));
+        observed.push((
+            p,
+            std::array::from_fn(|_| colour_rng.random_range(0.0..1.0)),
+        ));
     }
     for i in (1..observed.len()).rev() {
         observed.swap(i, rng.random_range(0..=i));
     }
-    observed.iter().map(|p| (pose * p).cast::<f32>()).collect()
+    observed
+        .iter()
+        .map(|(p, c)| ((pose * p).cast::<f32>(), *c))
+        .unzip()
 }
 
 fn crop(points: &[Point3<f64>], keep: impl Fn(&Point3<f64>) -> bool) -> Vec<Point3<f64>> {
     points.iter().copied().filter(|p| keep(p)).collect()
+}
+
+/// [`crop`] of a scene, with the colours of the points kept.
+fn crop_coloured(
+    scene: &Scene,
+    keep: impl Fn(&Point3<f64>) -> bool,
+) -> (Vec<Point3<f64>>, Vec<Rgb>) {
+    scene
+        .points
+        .iter()
+        .zip(&scene.colours)
+        .filter(|(p, _)| keep(p))
+        .map(|(p, c)| (*p, *c))
+        .unzip()
 }
 
 /// 120 degrees about the vertical, tilted by 15 and 10 degrees, 4.2 m away.
@@ -410,4 +497,154 @@ fn the_configuration_is_validated() {
         config.validate().unwrap_err().0,
         "consensus.map_registration.voxel_m"
     );
+    for (field, set) in [
+        (
+            "colour_weight",
+            (|g| g.colour_weight = -1.0) as fn(&mut MapRegistrationConfig),
+        ),
+        ("colour_tolerance", |g| g.colour_tolerance = 0.0),
+        ("min_colour_kappa", |g| g.min_colour_kappa = 1.5),
+        ("min_colour_comparisons", |g| g.min_colour_comparisons = 0),
+        ("colour_confirmed_overlap_fraction", |g| {
+            g.colour_confirmed_overlap_fraction = -0.1
+        }),
+        ("colour_confirmed_kappa", |g| {
+            g.colour_confirmed_kappa = f64::NAN
+        }),
+    ] {
+        let mut config = slam_core::config::Config::default();
+        set(&mut config.consensus.map_registration);
+        assert_eq!(
+            config.validate().unwrap_err().0,
+            format!("consensus.map_registration.{field}")
+        );
+    }
+}
+
+#[test]
+fn a_room_ambiguous_in_geometry_is_registered_by_its_colours() {
+    // The four-fold symmetric room of the test above, each quarter painted its own colours; the
+    // target seen with a darker exposure.
+    let scene = coloured_symmetric_room(9);
+    let truth = far_pose();
+    let (source, source_colours) = observe_coloured(
+        &scene.points,
+        &scene.colours,
+        &Isometry3::identity(),
+        0.01,
+        0.0,
+        2,
+    );
+    let (target, target_colours) =
+        observe_coloured(&scene.points, &scene.colours, &truth, 0.01, 0.0, 3);
+    let target_colours: Vec<Rgb> = target_colours.iter().map(|c| c.map(|v| v * 0.6)).collect();
+    let config = MapRegistrationConfig::default();
+    let geometry_only = register_maps(&source, &target, &config);
+    assert!(
+        matches!(geometry_only.verdict, Err(MapRejection::Ambiguous { .. })),
+        "{}",
+        report(&geometry_only)
+    );
+    let result = register_maps(
+        MapPoints::coloured(&source, Some(&source_colours)),
+        MapPoints::coloured(&target, Some(&target_colours)),
+        &config,
+    );
+    assert!(result.is_accepted(), "{}", report(&result));
+    let (rotation_deg, translation_m) = errors(&result.target_from_source, &truth);
+    assert!(
+        rotation_deg < 1.0 && translation_m < 0.02,
+        "off by {rotation_deg:.3} degrees, {translation_m:.4} m\n{}",
+        report(&result)
+    );
+    let s = &result.scores;
+    assert!(s.colour && s.ambiguity_ratio < 0.5, "{}", report(&result));
+    assert!(
+        s.colour_agreement > 0.9 && s.colour_kappa > 0.8,
+        "{}",
+        report(&result)
+    );
+}
+
+#[test]
+fn an_overlap_whose_colours_disagree_is_refused() {
+    // The overlapping room parts, registered by geometry alone (no colour in the descriptors):
+    // with the same colours (the target brighter) the overlap agrees; with the target's colour
+    // channels rotated (every surface another hue) it is refused.
+    let truth = far_pose();
+    let scene = coloured_room(1);
+    let (left, left_colours) = crop_coloured(&scene, |p| p.x < 3.9);
+    let (right, right_colours) = crop_coloured(&scene, |p| p.x > 2.7);
+    let (source, source_colours) =
+        observe_coloured(&left, &left_colours, &Isometry3::identity(), 0.01, 0.2, 2);
+    let (target, target_colours) = observe_coloured(&right, &right_colours, &truth, 0.01, 0.2, 3);
+    let config = MapRegistrationConfig {
+        colour_weight: 0.0,
+        ..MapRegistrationConfig::default()
+    };
+    let brighter: Vec<Rgb> = target_colours
+        .iter()
+        .map(|c| c.map(|v| (v * 1.3).min(1.0)))
+        .collect();
+    let agreeing = register_maps(
+        MapPoints::coloured(&source, Some(&source_colours)),
+        MapPoints::coloured(&target, Some(&brighter)),
+        &config,
+    );
+    assert!(agreeing.is_accepted(), "{}", report(&agreeing));
+    assert!(agreeing.scores.colour_kappa > 0.6, "{}", report(&agreeing));
+    let rotated: Vec<Rgb> = target_colours.iter().map(|c| [c[2], c[0], c[1]]).collect();
+    let result = register_maps(
+        MapPoints::coloured(&source, Some(&source_colours)),
+        MapPoints::coloured(&target, Some(&rotated)),
+        &config,
+    );
+    let (rotation_deg, translation_m) = errors(&result.target_from_source, &truth);
+    assert!(
+        rotation_deg < 1.0 && translation_m < 0.02,
+        "{}",
+        report(&result)
+    );
+    let Err(MapRejection::ColourDisagreement {
+        compared, kappa, ..
+    }) = result.verdict
+    else {
+        panic!("{}", report(&result));
+    };
+    assert!(compared > 1000 && kappa < 0.15, "{}", report(&result));
+}
+
+#[test]
+fn colours_of_one_map_only_are_not_used() {
+    let truth = far_pose();
+    let (source, target) = overlapping_parts(&truth);
+    let config = MapRegistrationConfig {
+        max_points: 4000,
+        ..MapRegistrationConfig::default()
+    };
+    let strip = |mut r: MapRegistration| {
+        r.elapsed_ms = 0.0;
+        r.scores.timings = Default::default();
+        r
+    };
+    let plain = strip(register_maps(&source, &target, &config));
+    let colours = vec![[0.3f32, 0.6, 0.2]; source.len()];
+    let one_side = strip(register_maps(
+        MapPoints::coloured(&source, Some(&colours)),
+        &target,
+        &config,
+    ));
+    assert!(!one_side.scores.colour);
+    assert_eq!(
+        serde_json::to_string(&plain.scores).unwrap(),
+        serde_json::to_string(&one_side.scores).unwrap()
+    );
+    assert_eq!(plain.target_from_source, one_side.target_from_source);
+    // Colours that are not one per point are ignored too.
+    let wrong_length = strip(register_maps(
+        MapPoints::coloured(&source, Some(&colours[1..])),
+        MapPoints::coloured(&target, Some(&colours)),
+        &config,
+    ));
+    assert!(!wrong_length.scores.colour);
 }
