@@ -643,7 +643,10 @@ impl Config {
             fraction(field, v)?;
         }
         for (field, v) in [
-            ("consensus.map_registration.depth_check_points", g.depth_check_points),
+            (
+                "consensus.map_registration.depth_check_points",
+                g.depth_check_points,
+            ),
             ("consensus.map_registration.max_points", g.max_points),
             (
                 "consensus.map_registration.max_matched_features",
