@@ -8,34 +8,15 @@
 //! the patch's intensity-centroid orientation (steered BRIEF). The same place seen from another
 //! distance, another angle or with the camera rolled then gives nearly the same descriptor.
 //!
-//! Why each part, measured with `examples/keyframe_matching.rs` (ground-truth pairs; "correct
-//! nearest neighbour": a keypoint whose nearest descriptor in the other view lies within 3 cm of
-//! its true position):
-//! - Unsteered BRIEF does not survive in-plane rotation: on a synthetic pair whose second camera
-//!   was rolled by 30/60/90 degrees, 9/16/2 keypoints had a correct nearest neighbour instead of
-//!   58 unrolled, and no rolled pair aligned; steered, 53/91/72 and all aligned. Views of a room
-//!   from metres apart differ by 15-60 degrees locally even without roll.
-//! - Strongest-first corners without non-maximum suppression piled up: 80-90 % of the keypoints
-//!   had another within 2 pixels, 35-50 % of an 8x6 grid of the image held one, so a region the
-//!   other view sees often had none (with suppression and the grid: 10-30 %, 75-95 %).
-//! - Choosing the corners before the depth check spent a quarter to a half of the budget on
-//!   corners that could not be lifted (depth edges, holes).
-//! - Patches of the image around the corner change with distance and viewing angle: described
-//!   where the other view truly sees the same place, a synthetic pair 2.2 m and 83 degrees apart
-//!   gave a median of 97 differing bits (of 256) with image patches, 56 with surface patches
-//!   (the nearest wrong keypoint: 32-37).
-//!
-//! Limits, from the same measurements: views 1.5-3.4 m apart whose directions differ by 50-140
-//! degrees (32 synthetic pairs over 4 seeds, 15-40 % co-visible) get 1.8x the correct matches of
-//! unsteered image patches (327 against 182) but mostly still 5-15, below the 15 RANSAC needs:
-//! 6 of the 32 aligned (7 with unsteered image patches, whose inliers are inflated by duplicate
-//! corners); two more had a correct coarse pose that verification refused (17 % inlier fraction
-//! at 20-31 % co-visibility). On redkitchen pairs 1.5-1.7 m apart nothing aligns either way: the
-//! same place differs by 65-85 bits between the views (motion blur, 1.3-2x scale, exposure)
-//! against 30 for the nearest wrong keypoint, and the colour images are not registered to depth
-//! (their edges fit the depth edges best at a 525-530 px focal length and a 2.5 cm baseline, not
-//! the 585 px shared intrinsics), which moves lifted keypoints by 3-10 cm. Such pairs need
-//! map-level registration.
+//! Why each part: unsteered BRIEF does not survive in-plane rotation (views of a room from metres
+//! apart differ by tens of degrees locally even without roll); strongest-first corners without
+//! non-maximum suppression pile up on a few spots, so a region the other view sees often has
+//! none; choosing corners before the depth check spends the budget on corners that cannot be
+//! lifted; image patches change with distance and viewing angle, surface patches much less.
+//! Views metres apart whose directions differ by more than ~50 degrees still mostly give fewer
+//! matches than RANSAC needs: such pairs are linked by map-level registration
+//! ([`crate::map_registration`]). The measurements (`examples/keyframe_matching.rs`) are in
+//! docs/benchmarks.md.
 //!
 //! A keypoint is kept only if its depth is trustworthy (see
 //! [`AlignmentConfig::max_depth_spread_fraction`]); it is then a 3-D point in the camera frame.

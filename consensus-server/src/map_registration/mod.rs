@@ -41,63 +41,19 @@
 //! stage is parallel (rayon) except RANSAC, which is sequential so that the result depends on
 //! the seed only; timings per stage go to `tracing` at debug level and into the scores.
 //!
-//! **Measured** with `mac-ego3d bench map-registration` (2-core development machine, load ~2;
-//! maps of ~50k points, every 10th frame back-projected with the ground-truth poses and coloured
-//! by its pixels, map B in a random frame; success = accepted and within 5 cm and 2 degrees at
-//! map B's centre; `--no-colour` registers the same maps without their colours):
-//!
-//! | maps | true overlap | with colour: median (max) time, accepted / success / wrong | without colour |
-//! |---|---:|---:|---:|
-//! | synthetic, 2 agents x 300 frames (default) | 80-97 % | 590 (801) ms, 10 / 10 / 0 of 10 | 282 ms, 10 / 10 / 0 |
-//! | synthetic, 2 agents x 100 frames | 4-41 % | 497 (735) ms, 18 / 18 / 0 of 20 | 172 ms, 5 / 5 / 0 |
-//! | redkitchen 0..100 vs 500..600 | 62 % | 188 (211) ms, 10 / 10 / 0 of 10 | 186 ms, 10 / 10 / 0 |
-//! | redkitchen 100..180 vs 850..950 | 3 % | 188 (237) ms, 0 / 0 / 0 of 10 (refused) | 207 ms, 0 / 0 / 0 |
-//!
-//! Without colour the results are those of the geometry-only pipeline, bit for bit. On
-//! redkitchen the estimate is 0.9-1.1 degrees and ~2 cm from the ground truth every time, with
-//! or without colour: G-ICP started *at* the ground truth converges to the same pose with a lower
-//! residual (14.4 against 16.6 mm), so the difference is the ground truth's (KinectFusion) own
-//! inconsistency between the two stretches. Time splits roughly into downsampling 30-60 ms,
-//! descriptors 80-100 ms, matching 55-65 ms, RANSAC 5-40 ms without colour and 100-450 ms with
-//! it (colour makes most correspondences of a true transform inliers, and every sample drawn from
-//! them is refitted), refinement 50-500 ms.
-//!
-//! **Colour.** Geometry alone cannot tell a box-shaped room from itself turned by 90 or 180
-//! degrees: with little true overlap (the synthetic agents over 100 frames) the turned room
-//! often overlaps *more* than the true pose (0.6-0.7 of the smaller map against 0.04-0.16), so
-//! neither the overlap nor the residual can refuse it, and without colour only the
-//! correspondence evidence does (at least `min_consistent_correspondences`, twice the best
-//! distinct alternative's support), at the cost of recall: 15 of the 20 pairs were refused,
-//! their best transforms (right or turned) with 11-19 supporters, or ambiguous. The walls of the
-//! room differ in colour, and the hue part of the descriptors lets the true correspondences find
-//! each other: 33-114 supporters on the 18 pairs accepted, runner-ups 10-26. What was measured
-//! (synthetic 100 frames, 20 pairs; redkitchen 0..100 vs 500..600, 10 runs):
-//!
-//! - descriptor weight of the hue histogram: 0.6: 15/20, 0.75: 17/20, 1.0: 17/20 (18/20 with
-//!   the colour-confirmed overlap below); redkitchen inliers 42-55 at 1.0 (40-55 without
-//!   colour). With a relative-intensity histogram (texture contrast) as a further part: 0.25:
-//!   14/20, 0.5: 17/20, 1.0: 17/20, but redkitchen lost up to a third of its inliers (28-41 at
-//!   1.0; intensity ratios change with the camera's exposure curve): dropped.
-//! - a colour gate on correspondences (drop a match whose signatures differ): on top of the
-//!   descriptor weight it changed nothing (17/20); alone it dropped three quarters of the
-//!   geometric matches and the support of the true pose with them (4-5/20): dropped.
-//! - the verification's colour kappa, on poses forced through (no ambiguity or support limits,
-//!   geometry-only descriptors): true poses 0.89-0.98 on the synthetic maps, 0.34-0.37 on
-//!   redkitchen; turned synthetic rooms 0.25-0.58 (their floors agree; they overlap 26-50 %);
-//!   wrong redkitchen poses -0.13 to 0.16, and 0.19 for redkitchen laid onto the synthetic room
-//!   (merge test, 36 supporters, 7.5 % overlap). So `min_colour_kappa` (0.25, between those and
-//!   the true 0.34) refuses poses whose colours are unrelated, not a turned room whose floor
-//!   matches; those are left to the correspondence evidence and, between agents, to the
-//!   free-space check of [`crate::map_links`] (the wide-baseline merge test: one turned room,
-//!   kappa 0.29, caught there). A kappa of 0.75 or more, which no wrong pose reached, confirms a
-//!   pose well enough to accept an overlap down to 3 % (the wide-baseline agents' maps share
-//!   3.7 % at 5 cm, kappa 0.88; synthetic pair 16 of the bench, 9 %, kappa 0.90).
-//!
-//! Colour has a cost in chance support: matches concentrate in regions of distinctive colour, so
-//! a wrong transform that lays one such region onto a similar one collects more of them (on
-//! redkitchen 100..180 vs 850..950 the best wrong transform has 24-27 supporters with colour
-//! against 9-12 without). Those are refused as ambiguous (the next wrong transform is nearly as
-//! good), and with the ambiguity test disabled still by overlap (7-9 %) or colour kappa.
+//! **Why colour.** Geometry alone cannot tell a box-shaped room from itself turned by 90 or 180
+//! degrees: with little true overlap the turned room often overlaps *more* than the true pose,
+//! so neither the overlap nor the residual can refuse it, and only the correspondence evidence
+//! does (enough supporters, twice the best distinct alternative's), at the cost of recall. The
+//! walls of a room differ in colour, and the hue part of the descriptors lets the true
+//! correspondences find each other. The verification's colour kappa refuses poses whose colours
+//! are unrelated (another room), not a turned room whose floor matches; those are left to the
+//! correspondence evidence and, between agents, to the free-space check of [`crate::map_links`].
+//! A kappa well above anything a wrong pose reaches confirms a pose enough to accept a small
+//! overlap (`colour_confirmed_*`). Colour also raises chance support (matches concentrate in
+//! regions of distinctive colour), which the ambiguity test absorbs. The measurements behind
+//! these choices, per stage and per variant tried, are in docs/benchmarks.md
+//! (`mac-ego3d bench map-registration`).
 //!
 //! The information matrix treats residuals as independent and is therefore optimistic.
 
