@@ -26,7 +26,7 @@ enum Command {
     /// Write the embedded synthetic multi-agent dataset in the 7-Scenes layout.
     Synth(cmd::synth::SynthArgs),
     /// Render a saved 3DGS map (PLY) from a camera pose to PNG (colour, 16-bit depth in mm).
-    Render(cmd::render_map::RenderArgs),
+    Render(cmd::render::RenderArgs),
     /// Inspect datasets.
     #[command(subcommand)]
     Dataset(cmd::dataset::DatasetCommand),
@@ -48,7 +48,7 @@ fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match &cli.command {
         Command::Synth(args) => cmd::synth::run(args),
-        Command::Render(args) => cmd::render_map::run(args),
+        Command::Render(args) => cmd::render::run(args),
         Command::Dataset(c) => cmd::dataset::run(c),
         Command::Eval(c) => cmd::eval::run(c),
         Command::Bench(c) => cmd::bench::run(c),

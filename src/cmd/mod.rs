@@ -1,17 +1,12 @@
-//! One module per subcommand.
+//! One module per subcommand; nested subcommands (`bench ...`, `eval ...`) are folders.
 
 pub mod bench;
 pub mod config;
 pub mod dataset;
 pub mod eval;
-pub mod ipc;
-pub mod map_registration_bench;
 pub mod plot;
 pub mod render;
-pub mod render_map;
-pub mod swarm_report;
 pub mod synth;
-pub mod tracking;
 
 /// Prints `value` as one JSON object on stdout.
 pub fn print_json(value: &impl serde::Serialize) -> anyhow::Result<()> {

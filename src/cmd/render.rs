@@ -1,346 +1,155 @@
-//! `mac-ego3d bench render`: timings of the render-core device pipeline (forward, forward +
-//! backward, full optimisation iteration, radix sort, forward stages) on a synthetic
-//! indoor-map-like scene. Figures are wall-clock on the machine it runs on.
+//! `mac-ego3d render`: renders a saved 3DGS map (PLY) from any viewpoint with render-core and
+//! writes the colour image and a 16-bit depth PNG (millimetres).
 
 use std::path::PathBuf;
 
-use anyhow::Context;
+use anyhow::{Context, bail};
 use clap::Args;
-use render_core::bench::{
-    BenchCase, BenchConfig, DEFAULT_GAUSSIAN_COUNTS, DEFAULT_IMAGE_SIZES, DEFAULT_REPEATS,
-    DEFAULT_WARMUP, RasterWorkload, bench_camera, raster_workload, realistic_scene, run_case,
-    run_case_on,
-};
 use render_core::context::GpuContext;
-use render_core::gpu::{GpuRenderer, RendererOptions, StageTimes, Subgroups};
-use render_core::training::TrainingKernels;
-use render_core::{Camera, GaussianCloud, RasterConfig};
-use serde::Serialize;
+use render_core::gpu::{DeviceGaussians, GpuRenderer};
+use render_core::ply::load_ply;
+use render_core::types::{Camera, RenderMode, RigidTransform};
+use slam_core::dataset::{DepthImage, write_depth_png};
 
-use super::{fmt_num, print_json};
-
-const BYTES_PER_MIB: f64 = 1024.0 * 1024.0;
+/// Depth PNG units: millimetres.
+const DEPTH_UNITS_PER_METRE: f64 = 1000.0;
+/// Pixels whose accumulated opacity is below this get no depth (0 in the PNG): there the map is
+/// mostly empty and depth / alpha would be a guess.
+const MIN_ALPHA_FOR_DEPTH: f32 = 0.5;
 
 #[derive(Args)]
-pub struct BenchRenderArgs {
-    /// Scene sizes (number of Gaussians), comma-separated; every one is measured at every
-    /// image size.
-    #[arg(long, value_delimiter = ',', default_values_t = DEFAULT_GAUSSIAN_COUNTS)]
-    gaussians: Vec<usize>,
-    /// Image sizes "WxH", comma-separated [default: 320x240,640x480].
-    #[arg(long, value_delimiter = ',')]
-    sizes: Option<Vec<String>>,
-    /// One image size instead of --sizes (with --height); with --map, the size its
-    /// --intrinsics are for.
-    #[arg(long, requires = "height")]
-    width: Option<u32>,
-    #[arg(long, requires = "width")]
-    height: Option<u32>,
-    /// Timed runs per measurement (the median is reported).
-    #[arg(long, default_value_t = DEFAULT_REPEATS)]
-    repeats: usize,
-    /// Untimed warm-up runs per measurement.
-    #[arg(long, default_value_t = DEFAULT_WARMUP)]
-    warmup: usize,
-    /// Time the forward pass only (skip forward + backward and the optimisation iteration).
+pub struct RenderArgs {
+    /// Gaussian map in the standard 3DGS PLY layout.
     #[arg(long)]
-    forward_only: bool,
-    /// Use the rasterizer kernels without subgroup operations even when the adapter has them.
-    #[arg(long)]
-    no_subgroups: bool,
-    #[arg(long)]
-    json: bool,
-    /// Also count each case's rasterizer workload on the host: (pixel, splat) evaluations for
-    /// 16- and 8-pixel tiles walked in bands of 16, 8 or 4 rows, against the evaluations that
-    /// change the image (render_core::bench::raster_workload).
-    #[arg(long)]
-    workload: bool,
-    /// Time this map (standard 3DGS PLY, e.g. a SLAM run's map.ply) instead of the synthetic
-    /// scene; needs --pose, --intrinsics, --width and --height (the image size).
-    #[arg(long, requires_all = ["pose", "intrinsics", "width", "height"])]
-    map: Option<PathBuf>,
-    /// With --map: camera-to-world pose, TUM order "tx ty tz qx qy qz qw".
+    map: PathBuf,
+    /// Camera-to-world pose, TUM order: "tx ty tz qx qy qz qw".
     #[arg(long, allow_hyphen_values = true)]
-    pose: Option<String>,
-    /// With --map: pinhole intrinsics "fx,fy,cx,cy" in pixels at --width x --height.
+    pose: String,
+    /// Pinhole intrinsics "fx,fy,cx,cy" in pixels.
     #[arg(long, allow_hyphen_values = true)]
-    intrinsics: Option<String>,
+    intrinsics: String,
+    /// Image size "WxH".
+    #[arg(long, default_value = "640x480")]
+    size: String,
+    /// Output colour PNG.
+    #[arg(long)]
+    out_rgb: PathBuf,
+    /// Output depth PNG (16-bit millimetres, 0 = no surface).
+    #[arg(long)]
+    out_depth: Option<PathBuf>,
 }
 
-#[derive(Serialize)]
-struct StageReport {
-    stage: String,
-    ms: f64,
+fn parse_numbers(
+    text: &str,
+    separator: char,
+    count: usize,
+    what: &str,
+) -> anyhow::Result<Vec<f32>> {
+    let values: Vec<f32> = text
+        .split(separator)
+        .filter(|t| !t.trim().is_empty())
+        .map(|t| t.trim().parse::<f32>().ok().filter(|v| v.is_finite()))
+        .collect::<Option<_>>()
+        .with_context(|| format!("{what} {text:?}: not {count} finite numbers"))?;
+    if values.len() != count {
+        bail!(
+            "{what} {text:?}: expected {count} numbers, found {}",
+            values.len()
+        );
+    }
+    Ok(values)
 }
 
-#[derive(Serialize)]
-struct CaseReport {
-    gaussians: usize,
+/// An image size "WxH" given to option `flag`.
+pub fn parse_size(text: &str, flag: &str) -> anyhow::Result<(u32, u32)> {
+    let (w, h) = text
+        .split_once(['x', 'X'])
+        .with_context(|| format!("{flag} {text:?}: expected WxH, e.g. 640x480"))?;
+    let parse = |v: &str| v.trim().parse::<u32>().ok().filter(|&n| n > 0);
+    match (parse(w), parse(h)) {
+        (Some(w), Some(h)) => Ok((w, h)),
+        _ => bail!("{flag} {text:?}: width and height must be positive integers"),
+    }
+}
+
+/// The camera of `--pose` (camera-to-world, TUM order "tx ty tz qx qy qz qw") and
+/// `--intrinsics` ("fx,fy,cx,cy" in pixels) at `width x height`.
+pub fn camera_from_args(
+    pose: &str,
+    intrinsics: &str,
     width: u32,
     height: u32,
-    intersections: u32,
-    forward_ms: f64,
-    forward_backward_ms: Option<f64>,
-    iteration_ms: Option<f64>,
-    sort_ms: f64,
-    /// Most device memory held by buffers at once during the case, MiB.
-    peak_device_mib: f64,
-    forward_stages: Vec<StageReport>,
-    iteration_stages: Vec<StageReport>,
-    /// With `--workload`: rasterizer work per tile size and band height.
-    #[serde(skip_serializing_if = "Vec::is_empty")]
-    workload: Vec<WorkloadReport>,
-}
-
-#[derive(Serialize)]
-struct WorkloadReport {
-    tile_size: u32,
-    band_rows: u32,
-    pairs: u64,
-    band_steps: u64,
-    evaluations: u64,
-    visible_evaluations: u64,
-}
-
-impl From<RasterWorkload> for WorkloadReport {
-    fn from(w: RasterWorkload) -> Self {
-        Self {
-            tile_size: w.tile_size,
-            band_rows: w.band_rows,
-            pairs: w.pairs,
-            band_steps: w.band_steps,
-            evaluations: w.evaluations,
-            visible_evaluations: w.visible_evaluations,
-        }
+) -> anyhow::Result<Camera> {
+    let pose = parse_numbers(pose, ' ', 7, "--pose")?;
+    let k = parse_numbers(intrinsics, ',', 4, "--intrinsics")?;
+    let (fx, fy, cx, cy) = (k[0], k[1], k[2], k[3]);
+    if fx <= 0.0 || fy <= 0.0 {
+        bail!("--intrinsics: focal lengths must be positive, got fx={fx} fy={fy}");
     }
-}
-
-/// (tile size, band rows) counted by `--workload`: this renderer's 16-pixel tiles (a band is
-/// the rows of one subgroup, 8 on lavapipe) and what smaller bands or tiles would do.
-const WORKLOAD_LAYOUTS: [(u32, u32); 5] = [(16, 16), (16, 8), (16, 4), (8, 8), (8, 4)];
-
-fn workload_reports(cloud: &GaussianCloud, camera: &Camera) -> anyhow::Result<Vec<WorkloadReport>> {
-    WORKLOAD_LAYOUTS
-        .iter()
-        .map(|&(tile, band)| {
-            raster_workload(cloud, camera, &RasterConfig::default(), tile, band)
-                .map(WorkloadReport::from)
-                .map_err(anyhow::Error::from)
-        })
-        .collect()
-}
-
-#[derive(Serialize)]
-struct BenchRenderReport {
-    adapter: String,
-    repeats: usize,
-    cases: Vec<CaseReport>,
-}
-
-impl From<BenchCase> for CaseReport {
-    fn from(case: BenchCase) -> Self {
-        Self {
-            gaussians: case.gaussians,
-            width: case.width,
-            height: case.height,
-            intersections: case.intersections,
-            forward_ms: case.forward_ms,
-            forward_backward_ms: case.forward_backward_ms,
-            iteration_ms: case.iteration_ms,
-            sort_ms: case.sort_ms,
-            peak_device_mib: case.peak_device_bytes as f64 / BYTES_PER_MIB,
-            forward_stages: stage_reports(case.stages),
-            iteration_stages: stage_reports(case.iteration_stages),
-            workload: Vec::new(),
-        }
+    let quaternion_norm = pose[3..7].iter().map(|v| v * v).sum::<f32>().sqrt();
+    if quaternion_norm < 1e-6 {
+        bail!("--pose: the quaternion (qx qy qz qw) has zero length");
     }
-}
-
-fn stage_reports(stages: StageTimes) -> Vec<StageReport> {
-    stages
-        .0
-        .into_iter()
-        .map(|(stage, ms)| StageReport {
-            stage: stage.to_owned(),
-            ms,
-        })
-        .collect()
-}
-
-/// The image sizes to measure: --width x --height when given, else --sizes.
-fn image_sizes(args: &BenchRenderArgs) -> anyhow::Result<Vec<(u32, u32)>> {
-    let sizes = match (args.width, args.height) {
-        (Some(width), Some(height)) => {
-            anyhow::ensure!(
-                width > 0 && height > 0,
-                "--width and --height must be positive"
-            );
-            vec![(width, height)]
-        }
-        _ => match &args.sizes {
-            Some(sizes) => sizes
-                .iter()
-                .map(|size| super::render_map::parse_size(size, "--sizes"))
-                .collect::<anyhow::Result<_>>()?,
-            None => DEFAULT_IMAGE_SIZES.to_vec(),
-        },
-    };
-    anyhow::ensure!(!sizes.is_empty(), "--sizes needs at least one size");
-    Ok(sizes)
-}
-
-pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
-    anyhow::ensure!(
-        !args.gaussians.is_empty(),
-        "--gaussians needs at least one size"
+    // TUM order is qx qy qz qw; render-core takes w first.
+    let world_from_camera = RigidTransform::from_quaternion_translation(
+        [pose[6], pose[3], pose[4], pose[5]],
+        [pose[0], pose[1], pose[2]],
     );
-    let sizes = image_sizes(args)?;
+    Ok(Camera::from_world_from_camera(
+        world_from_camera,
+        [fx, fy, cx, cy],
+        width,
+        height,
+    ))
+}
+
+pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
+    let (width, height) = parse_size(&args.size, "--size")?;
+    let camera = camera_from_args(&args.pose, &args.intrinsics, width, height)?;
+    let map = load_ply(&args.map).with_context(|| format!("reading map {}", args.map.display()))?;
+
     let context = GpuContext::new().context("creating the wgpu device")?;
-    let renderer = GpuRenderer::with_options(
-        &context,
-        RendererOptions {
-            subgroups: if args.no_subgroups {
-                Subgroups::Never
-            } else {
-                Subgroups::Auto
-            },
-            ..RendererOptions::default()
-        },
-    );
-    let kernels = TrainingKernels::new(&context);
-    let config = BenchConfig {
-        gaussian_counts: args.gaussians.clone(),
-        warmup: args.warmup,
-        repeats: args.repeats.max(1),
-        iteration: !args.forward_only,
-        ..BenchConfig::default()
-    };
-    let mut cases = Vec::with_capacity(config.gaussian_counts.len() * sizes.len());
-    if let (Some(path), Some(pose), Some(intrinsics)) = (&args.map, &args.pose, &args.intrinsics) {
-        let (width, height) = sizes[0];
-        let camera = super::render_map::camera_from_args(pose, intrinsics, width, height)?;
-        let map = render_core::ply::load_ply(path)
-            .with_context(|| format!("reading map {}", path.display()))?;
-        if !args.json {
-            eprintln!(
-                "measuring {} ({} Gaussians) at {width}x{height} ...",
-                path.display(),
-                map.len(),
-            );
-        }
-        let case = run_case_on(&context, &renderer, &kernels, &config, &map, &camera)
-            .with_context(|| format!("benchmarking {}", path.display()))?;
-        let mut report = CaseReport::from(case);
-        if args.workload {
-            report.workload = workload_reports(&map, &camera)?;
-        }
-        cases.push(report);
-    }
-    let synthetic_sizes = if args.map.is_none() {
-        sizes.as_slice()
-    } else {
-        &[]
-    };
-    for &(width, height) in synthetic_sizes {
-        let config = BenchConfig {
-            width,
-            height,
-            ..config.clone()
-        };
-        for &count in &config.gaussian_counts {
-            if !args.json {
-                eprintln!("measuring {count} Gaussians at {width}x{height} ...");
-            }
-            let case = run_case(&context, &renderer, &kernels, &config, count)
-                .with_context(|| format!("benchmarking {count} Gaussians at {width}x{height}"))?;
-            let mut report = CaseReport::from(case);
-            if args.workload {
-                let camera = bench_camera(width, height);
-                let scene = realistic_scene(&camera, count, config.seed);
-                report.workload = workload_reports(&scene, &camera)?;
-            }
-            cases.push(report);
-        }
-    }
-    let report = BenchRenderReport {
-        adapter: if renderer.uses_subgroups {
-            context.describe()
-        } else {
-            format!("{}, rasterizers without subgroups", context.describe())
-        },
-        repeats: config.repeats,
-        cases,
-    };
-    if args.json {
-        return print_json(&report);
-    }
-    let optional = |v: Option<f64>| v.map_or_else(|| "-".to_owned(), |ms| fmt_num(ms, 1));
-    println!(
-        "render benchmark (median of {} runs, ms): {}",
-        report.repeats, report.adapter
-    );
-    println!(
-        "  {:>10} {:>9} {:>11} {:>10} {:>12} {:>11} {:>9} {:>11}",
-        "gaussians", "size", "pairs", "forward", "fwd+bwd", "iteration", "sort", "peak MiB"
-    );
-    for case in &report.cases {
-        println!(
-            "  {:>10} {:>9} {:>11} {:>10} {:>12} {:>11} {:>9} {:>11}",
-            case.gaussians,
-            format!("{}x{}", case.width, case.height),
-            case.intersections,
-            fmt_num(case.forward_ms, 1),
-            optional(case.forward_backward_ms),
-            optional(case.iteration_ms),
-            fmt_num(case.sort_ms, 1),
-            fmt_num(case.peak_device_mib, 1)
-        );
-    }
-    println!("forward stages (each submitted and waited for separately, ms):");
-    for case in &report.cases {
-        let stages: Vec<String> = case
-            .forward_stages
+    let gaussians = DeviceGaussians::upload(&context, &map).context("uploading the map")?;
+    let output =
+        GpuRenderer::new(&context).render(&context, &gaussians, &camera, RenderMode::RgbD)?;
+
+    let rgb_values = output.rgb.as_ref().context("renderer returned no colour")?;
+    let rgb = image::RgbImage::from_fn(width, height, |x, y| {
+        let c = rgb_values[(y * width + x) as usize];
+        image::Rgb(c.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8))
+    });
+    rgb.save(&args.out_rgb)
+        .with_context(|| format!("writing {}", args.out_rgb.display()))?;
+    if let Some(path) = &args.out_depth {
+        let composited = output
+            .depth
+            .as_ref()
+            .context("renderer returned no depth")?;
+        let data = composited
             .iter()
-            .map(|s| format!("{} {}", s.stage, fmt_num(s.ms, 1)))
+            .zip(&output.alpha)
+            .map(|(&d, &a)| {
+                if a >= MIN_ALPHA_FOR_DEPTH && d > 0.0 {
+                    d / a
+                } else {
+                    0.0
+                }
+            })
             .collect();
-        println!("  {:>10}: {}", case.gaussians, stages.join(", "));
+        write_depth_png(
+            path,
+            &DepthImage {
+                width,
+                height,
+                data,
+            },
+            DEPTH_UNITS_PER_METRE,
+        )?;
     }
-    if report.cases.iter().any(|c| !c.workload.is_empty()) {
-        println!(
-            "rasterizer workload (host count; evaluations = pixels x splats walked, visible = those that change the image):"
-        );
-        println!(
-            "  {:>10} {:>6} {:>6} {:>11} {:>13} {:>12} {:>8}",
-            "gaussians", "tile", "band", "pairs", "evaluations", "visible", "visible %"
-        );
-        for case in &report.cases {
-            for w in &case.workload {
-                println!(
-                    "  {:>10} {:>6} {:>6} {:>11} {:>13} {:>12} {:>8}",
-                    case.gaussians,
-                    w.tile_size,
-                    w.band_rows,
-                    w.pairs,
-                    w.evaluations,
-                    w.visible_evaluations,
-                    fmt_num(
-                        100.0 * w.visible_evaluations as f64 / w.evaluations.max(1) as f64,
-                        1
-                    )
-                );
-            }
-        }
-    }
-    if report.cases.iter().any(|c| !c.iteration_stages.is_empty()) {
-        println!("iteration stages (each submitted and waited for separately, ms):");
-        for case in &report.cases {
-            let stages: Vec<String> = case
-                .iteration_stages
-                .iter()
-                .map(|s| format!("{} {}", s.stage, fmt_num(s.ms, 1)))
-                .collect();
-            println!("  {:>10}: {}", case.gaussians, stages.join(", "));
-        }
-    }
+    eprintln!(
+        "rendered {} Gaussians at {width}x{height} on {}",
+        map.len(),
+        context.describe()
+    );
     Ok(())
 }

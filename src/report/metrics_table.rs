@@ -227,7 +227,7 @@ pub fn metrics_table(metrics: &Map<String, Value>) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cmd::swarm_report::SwarmMetrics;
+    use crate::cmd::eval::swarm::SwarmMetrics;
 
     fn example() -> SwarmMetrics {
         SwarmMetrics {

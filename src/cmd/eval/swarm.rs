@@ -24,7 +24,7 @@ use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
 use slam_core::metrics::lpips::Lpips;
 use slam_core::trajectory::Trajectory;
 
-use super::{fmt_num, print_json};
+use crate::cmd::{fmt_num, print_json};
 
 #[derive(Args)]
 pub struct SwarmArgs {

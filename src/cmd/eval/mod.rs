@@ -14,6 +14,8 @@ use slam_core::trajectory::{Trajectory, TrajectoryFormat};
 
 use super::{fmt_num, print_json};
 
+pub mod swarm;
+
 #[derive(Subcommand)]
 pub enum EvalCommand {
     /// Absolute trajectory error. Give --gt/--est once, or once per agent for joint ATE (one
@@ -26,7 +28,7 @@ pub enum EvalCommand {
     /// Depth L1 (cm) over pixels with valid reference depth, from 16-bit depth PNGs.
     Depth(DepthArgs),
     /// A swarm run's figures (joint ATE, closures, latency, bandwidth) -> DIR/metrics.json.
-    Swarm(super::swarm_report::SwarmArgs),
+    Swarm(swarm::SwarmArgs),
 }
 
 #[derive(Args)]
@@ -95,7 +97,7 @@ pub fn run(command: &EvalCommand) -> anyhow::Result<()> {
         EvalCommand::Image(a) => run_image(a),
         EvalCommand::Lpips(a) => run_lpips(a),
         EvalCommand::Depth(a) => run_depth(a),
-        EvalCommand::Swarm(a) => super::swarm_report::run(a),
+        EvalCommand::Swarm(a) => swarm::run(a),
     }
 }
 

@@ -33,7 +33,7 @@ use slam_core::dataset::{self, FrameRange};
 use slam_core::metrics::stats::median;
 use slam_core::registration::{PointTree, points_from_depth};
 
-use super::{fmt_num, print_json};
+use crate::cmd::{fmt_num, print_json};
 
 /// Success thresholds against ground truth.
 const SUCCESS_TRANSLATION_M: f64 = 0.05;

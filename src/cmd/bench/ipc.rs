@@ -10,7 +10,7 @@ use std::time::Duration;
 use protocol::bench::{IpcBenchConfig, PeerCommand, run_ipc_bench};
 use protocol::transport::TransportConfig;
 
-use super::{fmt_num, print_json};
+use crate::cmd::{fmt_num, print_json};
 
 #[derive(Args)]
 pub struct IpcArgs {

@@ -17,6 +17,11 @@ use slam_core::trajectory::Trajectory;
 
 use super::{fmt_num, print_json};
 
+mod ipc;
+mod map_registration;
+mod render;
+mod tracking;
+
 #[derive(Subcommand)]
 pub enum BenchCommand {
     /// Frame reader throughput: sequential decoding and the prefetching source.
@@ -24,16 +29,16 @@ pub enum BenchCommand {
     /// Timings of the evaluation metrics on frames of a dataset.
     Metrics(MetricsArgs),
     /// Timings of the Gaussian-splat renderer (forward, backward, optimisation iteration).
-    Render(super::render::BenchRenderArgs),
+    Render(render::BenchRenderArgs),
     /// G-ICP odometry: per-frame tracking time and ATE.
-    Tracking(super::tracking::TrackingArgs),
+    Tracking(tracking::TrackingArgs),
     /// Global registration of two agents' maps without an initial guess, against ground truth.
-    MapRegistration(super::map_registration_bench::MapRegistrationArgs),
+    MapRegistration(map_registration::MapRegistrationArgs),
     /// Latency and throughput of the agent <-> consensus IPC transport between two processes.
-    Ipc(super::ipc::IpcArgs),
+    Ipc(ipc::IpcArgs),
     /// Peer process of `bench ipc` (started by it).
     #[command(hide = true)]
-    IpcPeer(super::ipc::IpcPeerArgs),
+    IpcPeer(ipc::IpcPeerArgs),
 }
 
 #[derive(Args)]
@@ -264,10 +269,10 @@ pub fn run(command: &BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Readers(a) => run_readers(a),
         BenchCommand::Metrics(a) => run_metrics(a),
-        BenchCommand::Render(a) => super::render::run_bench(a),
-        BenchCommand::Tracking(a) => super::tracking::run(a),
-        BenchCommand::MapRegistration(a) => super::map_registration_bench::run(a),
-        BenchCommand::Ipc(a) => super::ipc::run(a),
-        BenchCommand::IpcPeer(a) => super::ipc::run_peer(a),
+        BenchCommand::Render(a) => render::run_bench(a),
+        BenchCommand::Tracking(a) => tracking::run(a),
+        BenchCommand::MapRegistration(a) => map_registration::run(a),
+        BenchCommand::Ipc(a) => ipc::run(a),
+        BenchCommand::IpcPeer(a) => ipc::run_peer(a),
     }
 }

@@ -15,7 +15,7 @@ use slam_core::metrics::stats::{median, quantile};
 use slam_core::registration::{Odometry, OdometryMode, TrackingOutcome};
 use slam_core::trajectory::Trajectory;
 
-use super::{fmt_num, print_json};
+use crate::cmd::{fmt_num, print_json};
 
 #[derive(Args)]
 pub struct TrackingArgs {

@@ -1,0 +1,346 @@
+//! `mac-ego3d bench render`: timings of the render-core device pipeline (forward, forward +
+//! backward, full optimisation iteration, radix sort, forward stages) on a synthetic
+//! indoor-map-like scene. Figures are wall-clock on the machine it runs on.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Args;
+use render_core::bench::{
+    BenchCase, BenchConfig, DEFAULT_GAUSSIAN_COUNTS, DEFAULT_IMAGE_SIZES, DEFAULT_REPEATS,
+    DEFAULT_WARMUP, RasterWorkload, bench_camera, raster_workload, realistic_scene, run_case,
+    run_case_on,
+};
+use render_core::context::GpuContext;
+use render_core::gpu::{GpuRenderer, RendererOptions, StageTimes, Subgroups};
+use render_core::training::TrainingKernels;
+use render_core::{Camera, GaussianCloud, RasterConfig};
+use serde::Serialize;
+
+use crate::cmd::{fmt_num, print_json};
+
+const BYTES_PER_MIB: f64 = 1024.0 * 1024.0;
+
+#[derive(Args)]
+pub struct BenchRenderArgs {
+    /// Scene sizes (number of Gaussians), comma-separated; every one is measured at every
+    /// image size.
+    #[arg(long, value_delimiter = ',', default_values_t = DEFAULT_GAUSSIAN_COUNTS)]
+    gaussians: Vec<usize>,
+    /// Image sizes "WxH", comma-separated [default: 320x240,640x480].
+    #[arg(long, value_delimiter = ',')]
+    sizes: Option<Vec<String>>,
+    /// One image size instead of --sizes (with --height); with --map, the size its
+    /// --intrinsics are for.
+    #[arg(long, requires = "height")]
+    width: Option<u32>,
+    #[arg(long, requires = "width")]
+    height: Option<u32>,
+    /// Timed runs per measurement (the median is reported).
+    #[arg(long, default_value_t = DEFAULT_REPEATS)]
+    repeats: usize,
+    /// Untimed warm-up runs per measurement.
+    #[arg(long, default_value_t = DEFAULT_WARMUP)]
+    warmup: usize,
+    /// Time the forward pass only (skip forward + backward and the optimisation iteration).
+    #[arg(long)]
+    forward_only: bool,
+    /// Use the rasterizer kernels without subgroup operations even when the adapter has them.
+    #[arg(long)]
+    no_subgroups: bool,
+    #[arg(long)]
+    json: bool,
+    /// Also count each case's rasterizer workload on the host: (pixel, splat) evaluations for
+    /// 16- and 8-pixel tiles walked in bands of 16, 8 or 4 rows, against the evaluations that
+    /// change the image (render_core::bench::raster_workload).
+    #[arg(long)]
+    workload: bool,
+    /// Time this map (standard 3DGS PLY, e.g. a SLAM run's map.ply) instead of the synthetic
+    /// scene; needs --pose, --intrinsics, --width and --height (the image size).
+    #[arg(long, requires_all = ["pose", "intrinsics", "width", "height"])]
+    map: Option<PathBuf>,
+    /// With --map: camera-to-world pose, TUM order "tx ty tz qx qy qz qw".
+    #[arg(long, allow_hyphen_values = true)]
+    pose: Option<String>,
+    /// With --map: pinhole intrinsics "fx,fy,cx,cy" in pixels at --width x --height.
+    #[arg(long, allow_hyphen_values = true)]
+    intrinsics: Option<String>,
+}
+
+#[derive(Serialize)]
+struct StageReport {
+    stage: String,
+    ms: f64,
+}
+
+#[derive(Serialize)]
+struct CaseReport {
+    gaussians: usize,
+    width: u32,
+    height: u32,
+    intersections: u32,
+    forward_ms: f64,
+    forward_backward_ms: Option<f64>,
+    iteration_ms: Option<f64>,
+    sort_ms: f64,
+    /// Most device memory held by buffers at once during the case, MiB.
+    peak_device_mib: f64,
+    forward_stages: Vec<StageReport>,
+    iteration_stages: Vec<StageReport>,
+    /// With `--workload`: rasterizer work per tile size and band height.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    workload: Vec<WorkloadReport>,
+}
+
+#[derive(Serialize)]
+struct WorkloadReport {
+    tile_size: u32,
+    band_rows: u32,
+    pairs: u64,
+    band_steps: u64,
+    evaluations: u64,
+    visible_evaluations: u64,
+}
+
+impl From<RasterWorkload> for WorkloadReport {
+    fn from(w: RasterWorkload) -> Self {
+        Self {
+            tile_size: w.tile_size,
+            band_rows: w.band_rows,
+            pairs: w.pairs,
+            band_steps: w.band_steps,
+            evaluations: w.evaluations,
+            visible_evaluations: w.visible_evaluations,
+        }
+    }
+}
+
+/// (tile size, band rows) counted by `--workload`: this renderer's 16-pixel tiles (a band is
+/// the rows of one subgroup, 8 on lavapipe) and what smaller bands or tiles would do.
+const WORKLOAD_LAYOUTS: [(u32, u32); 5] = [(16, 16), (16, 8), (16, 4), (8, 8), (8, 4)];
+
+fn workload_reports(cloud: &GaussianCloud, camera: &Camera) -> anyhow::Result<Vec<WorkloadReport>> {
+    WORKLOAD_LAYOUTS
+        .iter()
+        .map(|&(tile, band)| {
+            raster_workload(cloud, camera, &RasterConfig::default(), tile, band)
+                .map(WorkloadReport::from)
+                .map_err(anyhow::Error::from)
+        })
+        .collect()
+}
+
+#[derive(Serialize)]
+struct BenchRenderReport {
+    adapter: String,
+    repeats: usize,
+    cases: Vec<CaseReport>,
+}
+
+impl From<BenchCase> for CaseReport {
+    fn from(case: BenchCase) -> Self {
+        Self {
+            gaussians: case.gaussians,
+            width: case.width,
+            height: case.height,
+            intersections: case.intersections,
+            forward_ms: case.forward_ms,
+            forward_backward_ms: case.forward_backward_ms,
+            iteration_ms: case.iteration_ms,
+            sort_ms: case.sort_ms,
+            peak_device_mib: case.peak_device_bytes as f64 / BYTES_PER_MIB,
+            forward_stages: stage_reports(case.stages),
+            iteration_stages: stage_reports(case.iteration_stages),
+            workload: Vec::new(),
+        }
+    }
+}
+
+fn stage_reports(stages: StageTimes) -> Vec<StageReport> {
+    stages
+        .0
+        .into_iter()
+        .map(|(stage, ms)| StageReport {
+            stage: stage.to_owned(),
+            ms,
+        })
+        .collect()
+}
+
+/// The image sizes to measure: --width x --height when given, else --sizes.
+fn image_sizes(args: &BenchRenderArgs) -> anyhow::Result<Vec<(u32, u32)>> {
+    let sizes = match (args.width, args.height) {
+        (Some(width), Some(height)) => {
+            anyhow::ensure!(
+                width > 0 && height > 0,
+                "--width and --height must be positive"
+            );
+            vec![(width, height)]
+        }
+        _ => match &args.sizes {
+            Some(sizes) => sizes
+                .iter()
+                .map(|size| crate::cmd::render::parse_size(size, "--sizes"))
+                .collect::<anyhow::Result<_>>()?,
+            None => DEFAULT_IMAGE_SIZES.to_vec(),
+        },
+    };
+    anyhow::ensure!(!sizes.is_empty(), "--sizes needs at least one size");
+    Ok(sizes)
+}
+
+pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        !args.gaussians.is_empty(),
+        "--gaussians needs at least one size"
+    );
+    let sizes = image_sizes(args)?;
+    let context = GpuContext::new().context("creating the wgpu device")?;
+    let renderer = GpuRenderer::with_options(
+        &context,
+        RendererOptions {
+            subgroups: if args.no_subgroups {
+                Subgroups::Never
+            } else {
+                Subgroups::Auto
+            },
+            ..RendererOptions::default()
+        },
+    );
+    let kernels = TrainingKernels::new(&context);
+    let config = BenchConfig {
+        gaussian_counts: args.gaussians.clone(),
+        warmup: args.warmup,
+        repeats: args.repeats.max(1),
+        iteration: !args.forward_only,
+        ..BenchConfig::default()
+    };
+    let mut cases = Vec::with_capacity(config.gaussian_counts.len() * sizes.len());
+    if let (Some(path), Some(pose), Some(intrinsics)) = (&args.map, &args.pose, &args.intrinsics) {
+        let (width, height) = sizes[0];
+        let camera = crate::cmd::render::camera_from_args(pose, intrinsics, width, height)?;
+        let map = render_core::ply::load_ply(path)
+            .with_context(|| format!("reading map {}", path.display()))?;
+        if !args.json {
+            eprintln!(
+                "measuring {} ({} Gaussians) at {width}x{height} ...",
+                path.display(),
+                map.len(),
+            );
+        }
+        let case = run_case_on(&context, &renderer, &kernels, &config, &map, &camera)
+            .with_context(|| format!("benchmarking {}", path.display()))?;
+        let mut report = CaseReport::from(case);
+        if args.workload {
+            report.workload = workload_reports(&map, &camera)?;
+        }
+        cases.push(report);
+    }
+    let synthetic_sizes = if args.map.is_none() {
+        sizes.as_slice()
+    } else {
+        &[]
+    };
+    for &(width, height) in synthetic_sizes {
+        let config = BenchConfig {
+            width,
+            height,
+            ..config.clone()
+        };
+        for &count in &config.gaussian_counts {
+            if !args.json {
+                eprintln!("measuring {count} Gaussians at {width}x{height} ...");
+            }
+            let case = run_case(&context, &renderer, &kernels, &config, count)
+                .with_context(|| format!("benchmarking {count} Gaussians at {width}x{height}"))?;
+            let mut report = CaseReport::from(case);
+            if args.workload {
+                let camera = bench_camera(width, height);
+                let scene = realistic_scene(&camera, count, config.seed);
+                report.workload = workload_reports(&scene, &camera)?;
+            }
+            cases.push(report);
+        }
+    }
+    let report = BenchRenderReport {
+        adapter: if renderer.uses_subgroups {
+            context.describe()
+        } else {
+            format!("{}, rasterizers without subgroups", context.describe())
+        },
+        repeats: config.repeats,
+        cases,
+    };
+    if args.json {
+        return print_json(&report);
+    }
+    let optional = |v: Option<f64>| v.map_or_else(|| "-".to_owned(), |ms| fmt_num(ms, 1));
+    println!(
+        "render benchmark (median of {} runs, ms): {}",
+        report.repeats, report.adapter
+    );
+    println!(
+        "  {:>10} {:>9} {:>11} {:>10} {:>12} {:>11} {:>9} {:>11}",
+        "gaussians", "size", "pairs", "forward", "fwd+bwd", "iteration", "sort", "peak MiB"
+    );
+    for case in &report.cases {
+        println!(
+            "  {:>10} {:>9} {:>11} {:>10} {:>12} {:>11} {:>9} {:>11}",
+            case.gaussians,
+            format!("{}x{}", case.width, case.height),
+            case.intersections,
+            fmt_num(case.forward_ms, 1),
+            optional(case.forward_backward_ms),
+            optional(case.iteration_ms),
+            fmt_num(case.sort_ms, 1),
+            fmt_num(case.peak_device_mib, 1)
+        );
+    }
+    println!("forward stages (each submitted and waited for separately, ms):");
+    for case in &report.cases {
+        let stages: Vec<String> = case
+            .forward_stages
+            .iter()
+            .map(|s| format!("{} {}", s.stage, fmt_num(s.ms, 1)))
+            .collect();
+        println!("  {:>10}: {}", case.gaussians, stages.join(", "));
+    }
+    if report.cases.iter().any(|c| !c.workload.is_empty()) {
+        println!(
+            "rasterizer workload (host count; evaluations = pixels x splats walked, visible = those that change the image):"
+        );
+        println!(
+            "  {:>10} {:>6} {:>6} {:>11} {:>13} {:>12} {:>8}",
+            "gaussians", "tile", "band", "pairs", "evaluations", "visible", "visible %"
+        );
+        for case in &report.cases {
+            for w in &case.workload {
+                println!(
+                    "  {:>10} {:>6} {:>6} {:>11} {:>13} {:>12} {:>8}",
+                    case.gaussians,
+                    w.tile_size,
+                    w.band_rows,
+                    w.pairs,
+                    w.evaluations,
+                    w.visible_evaluations,
+                    fmt_num(
+                        100.0 * w.visible_evaluations as f64 / w.evaluations.max(1) as f64,
+                        1
+                    )
+                );
+            }
+        }
+    }
+    if report.cases.iter().any(|c| !c.iteration_stages.is_empty()) {
+        println!("iteration stages (each submitted and waited for separately, ms):");
+        for case in &report.cases {
+            let stages: Vec<String> = case
+                .iteration_stages
+                .iter()
+                .map(|s| format!("{} {}", s.stage, fmt_num(s.ms, 1)))
+                .collect();
+            println!("  {:>10}: {}", case.gaussians, stages.join(", "));
+        }
+    }
+    Ok(())
+}
