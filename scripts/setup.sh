@@ -64,6 +64,21 @@ if ! command -v cargo >/dev/null 2>&1; then
   exit 1
 fi
 
+# The test command checks formatting and lints too: rustup installs add the two components when a
+# toolchain lacks them (distribution packages of cargo ship them as rustfmt / rust-clippy).
+for pair in fmt:rustfmt clippy:clippy; do
+  subcommand=${pair%%:*} component=${pair##*:}
+  if ! cargo "$subcommand" --version >/dev/null 2>&1; then
+    if command -v rustup >/dev/null 2>&1; then
+      log "adding the toolchain's $component component"
+      rustup component add "$component" >/dev/null
+    else
+      log "cargo $subcommand not found: install it (rustup component add $component, or your distribution's package)"
+      exit 1
+    fi
+  fi
+done
+
 # Whether $1 is an npz (a zip) holding every array alexnet.npz must hold (what
 # slam_core::metrics::lpips loads); without python3, only the zip signature is checked.
 valid_npz() {

@@ -19,6 +19,12 @@ if [[ "${XDG_RUNTIME_DIR:-}" != /* ]]; then
   trap 'rm -rf "$XDG_RUNTIME_DIR"' EXIT
 fi
 
+# Formatting and lints first: they fail in seconds, the tests take minutes.
+echo "[test] cargo fmt --check"
+cargo fmt --all --check
+echo "[test] cargo clippy (warnings are errors)"
+cargo clippy --workspace --all-targets --quiet -- -D warnings
+
 repo_root=$(pwd)
 export MAC_EGO3D_SHARED="${MAC_EGO3D_SHARED:-$repo_root/../shared}"
 required=(

@@ -8,7 +8,9 @@
 //! - [`mapper`]: the mapping thread (render-core on the device; render-core's `DeviceMap` keeps
 //!   Gaussians and Adam state together through appends and pruning);
 //! - [`evaluation`]: rendering quality at the estimated poses;
-//! - [`run`]: the standalone run and its outputs;
+//! - [`pipeline`]: the per-frame stages (track, decide keyframe, seed, publish, hand to the
+//!   mapper, apply corrections);
+//! - [`run`]: one run: the frame loop over those stages, then its outputs;
 //! - [`swarm`]: the link to the consensus, [`corrections`]: its corrections applied to the local
 //!   maps, and [`link_schedule`]: simulated intermittent links;
 //! - [`progress`]: progress.json for the swarm launcher's progress line.
@@ -17,6 +19,7 @@ pub mod corrections;
 pub mod evaluation;
 pub mod link_schedule;
 pub mod mapper;
+pub mod pipeline;
 pub mod progress;
 pub mod run;
 pub mod seeding;

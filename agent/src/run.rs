@@ -1,6 +1,6 @@
-//! One agent run (SPEC section 3): frame source -> G-ICP tracking -> keyframes -> seeding ->
-//! mapping thread; then the outputs a user opens: trajectory.tum, map.ply, metrics.json and
-//! renders next to ground truth.
+//! One agent run (docs/method.md, One agent): frame source -> G-ICP tracking -> keyframes ->
+//! seeding -> publishing -> mapping thread, one [`AgentPipeline`] stage each; then the outputs a
+//! user opens: trajectory.tum, map.ply, metrics.json and renders next to ground truth.
 //!
 //! The tracking loop never waits for the mapper (keyframes go over a channel). A stop request
 //! (SIGINT / SIGTERM in the binary) ends the loop after the current frame; everything computed
@@ -14,25 +14,24 @@ use std::time::Instant;
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::Isometry3;
-use render_core::types::RigidTransform;
+use render_core::types::GaussianCloud;
 use serde::Serialize;
-use slam_core::config::{Config, TrackingKeyframeSeeds};
+use slam_core::config::Config;
 use slam_core::dataset::{self, Dataset, FrameRange};
 use slam_core::metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate};
 use slam_core::metrics::lpips::Lpips;
 use slam_core::metrics::stats::{median, quantile};
-use slam_core::registration::odometry::{Odometry, OdometryMode, TrackingOutcome};
 use slam_core::trajectory::Trajectory;
 
-use crate::corrections::{LocalCorrectionStats, LocalCorrections, LocalMaps};
+use crate::corrections::LocalCorrectionStats;
 use crate::evaluation::{
     FrameQuality, MapRenderer, QualitySummary, comparison_path, evaluate_frame,
 };
-use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe, MappingStats};
-use crate::progress::{Progress, ProgressFile, Stage};
-use crate::seeding::{CoverageIndex, SeedFrame, seed_gaussians};
+use crate::mapper::{MappingOutcome, MappingStats};
+use crate::pipeline::{AgentPipeline, TrackedPose, progress_snapshot};
+use crate::progress::{ProgressFile, Stage};
 use crate::source::FrameSource;
-use crate::swarm::{PublishableKeyframe, SwarmLink, SwarmSummary, run_anchor};
+use crate::swarm::{SwarmLink, SwarmSummary};
 
 /// Synthetic scene used when no dataset is given: three agents' loops, this agent's share.
 pub const DEFAULT_SYNTHETIC_AGENTS: usize = 3;
@@ -129,15 +128,6 @@ pub struct AgentMetrics {
     pub local_corrections: Option<LocalCorrectionStats>,
 }
 
-/// One frame's estimate.
-#[derive(Clone, Copy)]
-struct TrackedPose {
-    position: usize,
-    timestamp: f64,
-    world_from_camera: Isometry3<f64>,
-    ground_truth: Option<Isometry3<f64>>,
-}
-
 /// Runs one agent without a consensus process and writes its outputs to `options.out`.
 pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Result<AgentMetrics> {
     run_agent(options, stop, None)
@@ -149,7 +139,7 @@ pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Resu
 pub fn run_agent(
     options: &AgentOptions,
     stop: &AtomicBool,
-    mut swarm: Option<SwarmLink>,
+    swarm: Option<SwarmLink>,
 ) -> anyhow::Result<AgentMetrics> {
     let _span = tracing::info_span!("agent", id = options.agent_id).entered();
     std::fs::create_dir_all(&options.out)
@@ -171,182 +161,35 @@ pub fn run_agent(
     let in_swarm = swarm.is_some();
     let started = Instant::now();
     let mut source = FrameSource::new(dataset.clone(), options.decode_workers.max(1), config.noise);
-    let mut odometry = Odometry::new(
-        OdometryMode::FrameToModel,
-        &config.tracking,
-        &config.keyframes,
-    );
-    let mapper =
-        Mapper::spawn(&config.tracking, &config.mapping).context("starting the mapping thread")?;
-    let mut coverage = CoverageIndex::new(config.keyframes.mapping_seed_min_distance_sq_m2.sqrt());
-    // Consensus corrections of the local maps (swarm only; the identity when standalone).
-    let mut corrections = LocalCorrections::new(&config.consensus.local_corrections);
+    let mut agent = AgentPipeline::new(config, &options.dataset, swarm, dataset.len())?;
     let progress = progress_bar(dataset.len());
     let mut progress_file = ProgressFile::new(&options.out);
     let frames_total = Some(dataset.len());
-    let snapshot =
-        |stage: Stage, frames_done: usize, keyframes: usize, swarm: &Option<SwarmLink>| {
-            let link = swarm.as_ref().map(SwarmLink::status);
-            Progress {
-                stage,
-                frames_done,
-                frames_total,
-                keyframes,
-                link_up: link.map(|l| l.up),
-                queued_keyframes: link.map(|l| l.queued_keyframes),
-            }
-        };
-    progress_file.write(&snapshot(Stage::Tracking, 0, 0, &swarm));
+    progress_file.write(&agent.progress(Stage::Tracking, frames_total));
 
-    let mut poses: Vec<TrackedPose> = Vec::with_capacity(dataset.len());
-    let mut tracking_ms: Vec<f64> = Vec::with_capacity(dataset.len());
-    let (mut tracking_keyframes, mut mapping_keyframes) = (0usize, 0usize);
-    let mut frames_since_tracking_keyframe = 0usize;
     let mut interrupted = false;
     {
         let _span = tracing::info_span!("tracking").entered();
         for item in source.by_ref() {
             let clock = Instant::now();
             let frame = &item.frame;
-            if let Some(swarm) = swarm.as_mut()
-                && !swarm.is_announced()
-            {
-                // Announced with the first frame: the one the tracked frame starts at.
-                let anchor = run_anchor(&options.dataset, frame.index, frame.timestamp);
-                swarm.announce(&frame.intrinsics, anchor);
+            agent.announce(frame);
+            let tracked = agent.track(&item);
+            if let Some(decision) = agent.decide_keyframe(frame, &tracked) {
+                let keyframe_id = agent.next_keyframe_id();
+                let seeds = agent.seed(keyframe_id, frame, &tracked, &decision);
+                agent.publish(keyframe_id, frame, &tracked, &seeds);
+                agent.hand_to_mapper(keyframe_id, frame, &tracked, decision, seeds);
             }
-            let tracker_first_point = odometry.next_point_id();
-            let tracked = odometry.track(&frame.depth, &frame.intrinsics);
-            if odometry.next_point_id() > tracker_first_point {
-                corrections.record_tracker_points(tracker_first_point, frame.timestamp);
-            }
-            // Tracking runs in the local-map frame; outputs use the tracked frame
-            // (crate::corrections).
-            let tracked_pose = corrections.to_tracked(frame.timestamp, &tracked.world_from_camera);
-            let usable = item.has_depth
-                && matches!(
-                    tracked.outcome,
-                    TrackingOutcome::Initialised
-                        | TrackingOutcome::Tracked
-                        | TrackingOutcome::TrackedNotConverged
-                );
-            frames_since_tracking_keyframe += 1;
-            let uncovered_points = || {
-                let seed_frame = SeedFrame {
-                    points: &tracked.frame_points,
-                    world_from_camera: &tracked.world_from_camera,
-                    rgb: &frame.rgb,
-                    intrinsics: &frame.intrinsics,
-                };
-                coverage.uncovered(
-                    &seed_frame,
-                    config.keyframes.mapping_seed_min_distance_sq_m2,
-                )
-            };
-            let keyframe = if let Some(trackable) = &tracked.trackable {
-                frames_since_tracking_keyframe = 0;
-                let selected = match config.keyframes.tracking_keyframe_seeds {
-                    TrackingKeyframeSeeds::All => vec![true; trackable.len()],
-                    TrackingKeyframeSeeds::Uncovered => uncovered_points(),
-                };
-                Some((KeyframeKind::Tracking, selected))
-            } else if usable
-                && frames_since_tracking_keyframe
-                    .is_multiple_of(config.keyframes.mapping_keyframe_every)
-            {
-                Some((KeyframeKind::Mapping, uncovered_points()))
-            } else {
-                None
-            };
-            if let Some((kind, selected)) = keyframe {
-                let seed_frame = SeedFrame {
-                    points: &tracked.frame_points,
-                    world_from_camera: &tracked.world_from_camera,
-                    rgb: &frame.rgb,
-                    intrinsics: &frame.intrinsics,
-                };
-                let new_gaussians =
-                    seed_gaussians(&seed_frame, &selected, &config.tracking, &config.keyframes);
-                corrections.record_coverage_points(coverage.next_id(), frame.timestamp);
-                coverage.insert(&new_gaussians);
-                let keyframe_id = tracking_keyframes + mapping_keyframes;
-                corrections.record_keyframe(keyframe_id, frame.timestamp, tracked_pose);
-                if let Some(swarm) = swarm.as_mut() {
-                    // Published in the tracked frame, the consensus's frame for this agent.
-                    let mut gaussians = new_gaussians.clone();
-                    gaussians.transform_rigid(&RigidTransform::from(
-                        &corrections.tracked_from_local(frame.timestamp),
-                    ));
-                    swarm.on_keyframe(PublishableKeyframe {
-                        keyframe_id: keyframe_id as u64,
-                        frame_index: frame.index as u64,
-                        timestamp_s: frame.timestamp,
-                        agent_from_camera: tracked_pose,
-                        intrinsics: frame.intrinsics,
-                        rgb: frame.rgb.clone(),
-                        depth: frame.depth.clone(),
-                        gaussians,
-                    });
-                }
-                match kind {
-                    KeyframeKind::Tracking => tracking_keyframes += 1,
-                    KeyframeKind::Mapping => mapping_keyframes += 1,
-                }
-                tracing::debug!(
-                    frame = frame.index,
-                    ?kind,
-                    new_gaussians = new_gaussians.len(),
-                    "keyframe"
-                );
-                mapper.add_keyframe(MappingKeyframe {
-                    keyframe_id,
-                    frame_index: frame.index,
-                    kind,
-                    world_from_camera: tracked.world_from_camera,
-                    intrinsics: frame.intrinsics,
-                    rgb: frame.rgb.clone(),
-                    depth: frame.depth.clone(),
-                    new_gaussians,
-                });
-            }
-            if let Some(swarm) = swarm.as_mut()
-                && let Some(correction) = swarm.after_frame()
-            {
-                corrections.apply(
-                    &correction,
-                    frame.timestamp,
-                    LocalMaps {
-                        odometry: &mut odometry,
-                        coverage: &mut coverage,
-                        mapper: &mapper,
-                    },
-                );
-            }
-            tracking_ms.push(clock.elapsed().as_secs_f64() * 1e3);
-            poses.push(TrackedPose {
-                position: item.position,
-                timestamp: frame.timestamp,
-                world_from_camera: tracked_pose,
-                ground_truth: frame.world_from_camera_gt,
-            });
+            agent.apply_corrections(frame);
+            agent.record(&item, &tracked, clock);
+
             progress.inc(1);
-            progress_file.update(|| {
-                snapshot(
-                    Stage::Tracking,
-                    poses.len(),
-                    tracking_keyframes + mapping_keyframes,
-                    &swarm,
-                )
-            });
-            if poses.len().is_multiple_of(PROGRESS_MESSAGE_EVERY) {
-                progress.set_message(format!(
-                    "{} keyframes, {} Gaussians, {} mapping iterations",
-                    tracking_keyframes + mapping_keyframes,
-                    mapper.progress.gaussians.load(Ordering::Relaxed),
-                    mapper.progress.iterations.load(Ordering::Relaxed)
-                ));
+            progress_file.update(|| agent.progress(Stage::Tracking, frames_total));
+            if agent.frames_done().is_multiple_of(PROGRESS_MESSAGE_EVERY) {
+                progress.set_message(agent.progress_message());
             }
-            let stopped_by_consensus = swarm.as_ref().and_then(|s| s.stop_requested());
+            let stopped_by_consensus = agent.stop_requested_by_consensus();
             if stop.load(Ordering::Relaxed) || stopped_by_consensus.is_some() {
                 tracing::warn!(
                     frame = frame.index,
@@ -360,72 +203,52 @@ pub fn run_agent(
     }
     let loop_seconds = started.elapsed().as_secs_f64();
     progress.finish_and_clear();
-    let keyframes = tracking_keyframes + mapping_keyframes;
-    progress_file.write(&snapshot(Stage::Finishing, poses.len(), keyframes, &swarm));
+    progress_file.write(&agent.progress(Stage::Finishing, frames_total));
+    let run = agent.finish();
     let refine_iterations = if interrupted {
         0
     } else {
         options.refine_iterations
     };
-    let outcome = mapper.finish(refine_iterations)?;
+    let outcome = run.mapper.finish(refine_iterations)?;
 
     // Outputs that need no rendering first: an interrupted evaluation still leaves these.
-    let trajectory =
-        Trajectory::from_pairs(poses.iter().map(|p| (p.timestamp, p.world_from_camera)));
-    let trajectory_path = options.out.join("trajectory.tum");
-    trajectory.write_tum(&trajectory_path)?;
-    // Ground truth next to the estimate (evaluation only: evo and the swarm report read it).
-    let ground_truth: Vec<(f64, Isometry3<f64>)> = poses
-        .iter()
-        .filter_map(|p| Some((p.timestamp, p.ground_truth?)))
-        .collect();
-    if !ground_truth.is_empty() {
-        Trajectory::from_pairs(ground_truth).write_tum(&options.out.join("groundtruth.tum"))?;
-    }
-    let map_path = options.out.join("map.ply");
-    render_core::ply::save_ply(&map_path, &outcome.realtime_map)
-        .with_context(|| format!("writing {}", map_path.display()))?;
-    if let Some((refined_map, _)) = &outcome.refined {
-        let path = options.out.join("map_refined.ply");
-        render_core::ply::save_ply(&path, refined_map)
-            .with_context(|| format!("writing {}", path.display()))?;
-    }
+    let trajectory = write_trajectories(&run.poses, &options.out)?;
+    write_maps(&outcome, &options.out)?;
     // The consensus reads trajectory.tum once this agent has said goodbye, so that goes first;
     // the evaluation below takes a while and needs nothing from the swarm.
-    let swarm_summary = swarm.map(|link| link.finish(&outcome.realtime_map));
-    let ate_stats = trajectory_ate(&poses, &trajectory);
+    let swarm_summary = run.swarm.map(|link| link.finish(&outcome.realtime_map));
+    let ate_stats = trajectory_ate(&run.poses, &trajectory);
 
     // The map is in the local-map frame: each frame is rendered where the corrections applied
     // to the map put it (the tracked pose when none were).
-    let evaluated: Vec<TrackedPose> = poses
+    let evaluated: Vec<TrackedPose> = run
+        .poses
         .iter()
         .enumerate()
         .filter(|(i, _)| i % options.eval_every.max(1) == 0)
         .map(|(_, p)| TrackedPose {
-            world_from_camera: corrections.applied().at(p.timestamp) * p.world_from_camera,
+            world_from_camera: run.corrections.applied().at(p.timestamp) * p.world_from_camera,
             ..*p
         })
         .collect();
-    let realtime_quality = evaluate_map(
-        &outcome.realtime_map,
-        &dataset,
-        &evaluated,
-        lpips.as_ref(),
-        Some(&options.out.join("renders")),
-        options.comparison_renders,
-    )?;
+    let evaluate = |map: &GaussianCloud, renders: &str| {
+        evaluate_map(
+            map,
+            &dataset,
+            &evaluated,
+            lpips.as_ref(),
+            Some(&options.out.join(renders)),
+            options.comparison_renders,
+        )
+    };
+    let realtime_quality = evaluate(&outcome.realtime_map, "renders")?;
     let refined = match &outcome.refined {
-        Some((map, stats)) => {
-            let quality = evaluate_map(
-                map,
-                &dataset,
-                &evaluated,
-                lpips.as_ref(),
-                Some(&options.out.join("renders_refined")),
-                options.comparison_renders,
-            )?;
-            Some(map_metrics(&quality, map.len(), stats))
-        }
+        Some((map, stats)) => Some(map_metrics(
+            &evaluate(map, "renders_refined")?,
+            map.len(),
+            stats,
+        )),
         None => None,
     };
     let realtime = map_metrics(
@@ -433,8 +256,9 @@ pub fn run_agent(
         outcome.realtime_map.len(),
         &outcome.realtime,
     );
-    let stats = odometry.stats();
+    let tracking = run.odometry.stats();
     let source_stats = source.stats();
+    let frames = run.poses.len();
     let metrics = AgentMetrics {
         agent_id: options.agent_id,
         dataset: dataset.describe(),
@@ -446,23 +270,23 @@ pub fn run_agent(
         ssim: realtime.ssim,
         lpips: realtime.lpips,
         depth_l1_cm: realtime.depth_l1_cm,
-        frames: poses.len(),
-        keyframes: tracking_keyframes + mapping_keyframes,
-        tracking_keyframes,
-        mapping_keyframes,
+        frames,
+        keyframes: run.keyframes.total(),
+        tracking_keyframes: run.keyframes.tracking,
+        mapping_keyframes: run.keyframes.mapping,
         gaussians: outcome.realtime_map.len(),
-        tracking_ms_median: median(&tracking_ms).unwrap_or(0.0),
-        tracking_ms_p90: quantile(&tracking_ms, 0.9).unwrap_or(0.0),
+        tracking_ms_median: median(&run.tracking_ms).unwrap_or(0.0),
+        tracking_ms_p90: quantile(&run.tracking_ms, 0.9).unwrap_or(0.0),
         mapping_iters_per_s: outcome.realtime.iterations_per_second(),
         mapping_iters: outcome.realtime.iterations,
         fps: if loop_seconds > 0.0 {
-            poses.len() as f64 / loop_seconds
+            frames as f64 / loop_seconds
         } else {
             0.0
         },
         wall_s: started.elapsed().as_secs_f64(),
-        tracking_failures: stats.failures,
-        reinitialisations: stats.reinitialisations,
+        tracking_failures: tracking.failures,
+        reinitialisations: tracking.reinitialisations,
         frames_missing: source_stats.frames_missing,
         frames_broken: source_stats.frames_broken,
         frames_without_depth: source_stats.frames_without_depth,
@@ -473,13 +297,48 @@ pub fn run_agent(
         interrupted,
         refined,
         swarm: swarm_summary,
-        local_corrections: in_swarm.then(|| corrections.stats().clone()),
+        local_corrections: in_swarm.then(|| run.corrections.stats().clone()),
     };
     let metrics_path = options.out.join("metrics.json");
     std::fs::write(&metrics_path, serde_json::to_string_pretty(&metrics)?)
         .with_context(|| format!("writing {}", metrics_path.display()))?;
-    progress_file.write(&snapshot(Stage::Done, poses.len(), keyframes, &None));
+    progress_file.write(&progress_snapshot(
+        Stage::Done,
+        frames,
+        frames_total,
+        run.keyframes.total(),
+        None,
+    ));
     Ok(metrics)
+}
+
+/// trajectory.tum (the estimate, in the tracked frame) and, when the dataset has ground
+/// truth, groundtruth.tum next to it (evo and the swarm report read both).
+fn write_trajectories(poses: &[TrackedPose], out: &Path) -> anyhow::Result<Trajectory> {
+    let trajectory =
+        Trajectory::from_pairs(poses.iter().map(|p| (p.timestamp, p.world_from_camera)));
+    trajectory.write_tum(&out.join("trajectory.tum"))?;
+    let ground_truth: Vec<(f64, Isometry3<f64>)> = poses
+        .iter()
+        .filter_map(|p| Some((p.timestamp, p.ground_truth?)))
+        .collect();
+    if !ground_truth.is_empty() {
+        Trajectory::from_pairs(ground_truth).write_tum(&out.join("groundtruth.tum"))?;
+    }
+    Ok(trajectory)
+}
+
+/// map.ply (the real-time map) and map_refined.ply (after the optional refinement).
+fn write_maps(outcome: &MappingOutcome, out: &Path) -> anyhow::Result<()> {
+    let map_path = out.join("map.ply");
+    render_core::ply::save_ply(&map_path, &outcome.realtime_map)
+        .with_context(|| format!("writing {}", map_path.display()))?;
+    if let Some((refined_map, _)) = &outcome.refined {
+        let path = out.join("map_refined.ply");
+        render_core::ply::save_ply(&path, refined_map)
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
 }
 
 /// Frames between progress-message updates.
@@ -515,7 +374,7 @@ fn trajectory_ate(poses: &[TrackedPose], estimate: &Trajectory) -> Option<AteSta
 }
 
 fn evaluate_map(
-    map: &render_core::types::GaussianCloud,
+    map: &GaussianCloud,
     dataset: &Arc<dyn Dataset>,
     evaluated: &[TrackedPose],
     lpips: Option<&Lpips>,

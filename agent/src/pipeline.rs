@@ -1,0 +1,380 @@
+//! The agent's per-frame work (docs/method.md, One agent), one method per stage: track the
+//! frame, decide whether it is a keyframe, seed Gaussians from it, publish it to the swarm,
+//! hand it to the mapper, then apply what the consensus sent back. [`crate::run`] drives these
+//! stages frame by frame and writes the outputs.
+//!
+//! Tracking never waits for the mapper: keyframes go to the mapping thread over a channel.
+
+use std::time::Instant;
+
+use nalgebra::Isometry3;
+use render_core::types::{GaussianCloud, RigidTransform};
+use slam_core::config::{Config, TrackingKeyframeSeeds};
+use slam_core::dataset::Frame;
+use slam_core::registration::odometry::{Odometry, OdometryMode, TrackedFrame, TrackingOutcome};
+
+use crate::corrections::{LocalCorrections, LocalMaps};
+use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe};
+use crate::progress::{Progress, Stage};
+use crate::seeding::{CoverageIndex, SeedFrame, seed_gaussians};
+use crate::source::SourceFrame;
+use crate::swarm::{PublishableKeyframe, SwarmLink, run_anchor};
+
+/// One frame's estimate, as the outputs report it.
+#[derive(Clone, Copy)]
+pub struct TrackedPose {
+    /// Position in the frame source (what `Dataset::load` takes).
+    pub position: usize,
+    pub timestamp: f64,
+    /// In the tracked frame (the consensus's frame for this agent).
+    pub world_from_camera: Isometry3<f64>,
+    pub ground_truth: Option<Isometry3<f64>>,
+}
+
+/// Keyframes made so far, by the rule that made them.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct KeyframeCounts {
+    pub tracking: usize,
+    pub mapping: usize,
+}
+
+impl KeyframeCounts {
+    pub fn total(&self) -> usize {
+        self.tracking + self.mapping
+    }
+}
+
+/// The tracker's answer for one frame.
+pub struct Tracked {
+    /// In the local-map frame, where tracking and mapping run.
+    pub local: TrackedFrame,
+    /// The same pose in the tracked frame (crate::corrections explains the two frames).
+    pub world_from_camera: Isometry3<f64>,
+    /// Depth was present and the tracker found a pose: the frame may become a mapping keyframe.
+    pub usable: bool,
+}
+
+/// A frame the keyframe rule selected, with the points that seed new Gaussians.
+pub struct KeyframeDecision {
+    pub kind: KeyframeKind,
+    pub seed_mask: Vec<bool>,
+}
+
+/// What the frame loop leaves for the outputs.
+pub struct FinishedPipeline {
+    pub mapper: Mapper,
+    pub swarm: Option<SwarmLink>,
+    pub odometry: Odometry,
+    pub corrections: LocalCorrections,
+    pub poses: Vec<TrackedPose>,
+    pub tracking_ms: Vec<f64>,
+    pub keyframes: KeyframeCounts,
+}
+
+/// The per-frame state of one agent.
+pub struct AgentPipeline<'a> {
+    config: &'a Config,
+    /// The dataset argument, which names the run in the swarm announcement.
+    dataset_spec: &'a str,
+    odometry: Odometry,
+    mapper: Mapper,
+    coverage: CoverageIndex,
+    /// Consensus corrections of the local maps (the identity when standalone).
+    corrections: LocalCorrections,
+    swarm: Option<SwarmLink>,
+    keyframes: KeyframeCounts,
+    frames_since_tracking_keyframe: usize,
+    poses: Vec<TrackedPose>,
+    tracking_ms: Vec<f64>,
+}
+
+impl<'a> AgentPipeline<'a> {
+    pub fn new(
+        config: &'a Config,
+        dataset_spec: &'a str,
+        swarm: Option<SwarmLink>,
+        frames_expected: usize,
+    ) -> anyhow::Result<Self> {
+        use anyhow::Context;
+        Ok(Self {
+            config,
+            dataset_spec,
+            odometry: Odometry::new(
+                OdometryMode::FrameToModel,
+                &config.tracking,
+                &config.keyframes,
+            ),
+            mapper: Mapper::spawn(&config.tracking, &config.mapping)
+                .context("starting the mapping thread")?,
+            coverage: CoverageIndex::new(config.keyframes.mapping_seed_min_distance_sq_m2.sqrt()),
+            corrections: LocalCorrections::new(&config.consensus.local_corrections),
+            swarm,
+            keyframes: KeyframeCounts::default(),
+            frames_since_tracking_keyframe: 0,
+            poses: Vec::with_capacity(frames_expected),
+            tracking_ms: Vec::with_capacity(frames_expected),
+        })
+    }
+
+    /// Announces this agent to the consensus with its first frame, the one its run starts at.
+    pub fn announce(&mut self, frame: &Frame) {
+        if let Some(swarm) = self.swarm.as_mut()
+            && !swarm.is_announced()
+        {
+            let anchor = run_anchor(self.dataset_spec, frame.index, frame.timestamp);
+            swarm.announce(&frame.intrinsics, anchor);
+        }
+    }
+
+    /// Frame-to-model G-ICP against the trackable Gaussians (docs/method.md, Tracking).
+    pub fn track(&mut self, item: &SourceFrame) -> Tracked {
+        let frame = &item.frame;
+        let tracker_first_point = self.odometry.next_point_id();
+        let local = self.odometry.track(&frame.depth, &frame.intrinsics);
+        if self.odometry.next_point_id() > tracker_first_point {
+            self.corrections
+                .record_tracker_points(tracker_first_point, frame.timestamp);
+        }
+        let world_from_camera = self
+            .corrections
+            .to_tracked(frame.timestamp, &local.world_from_camera);
+        let usable = item.has_depth
+            && matches!(
+                local.outcome,
+                TrackingOutcome::Initialised
+                    | TrackingOutcome::Tracked
+                    | TrackingOutcome::TrackedNotConverged
+            );
+        Tracked {
+            local,
+            world_from_camera,
+            usable,
+        }
+    }
+
+    /// The keyframe rule (docs/method.md, Keyframes): a tracking keyframe when too few points
+    /// found the map (the tracker decides and marks the trackable points), else a mapping
+    /// keyframe every `mapping_keyframe_every` frames since the last tracking keyframe.
+    pub fn decide_keyframe(
+        &mut self,
+        frame: &Frame,
+        tracked: &Tracked,
+    ) -> Option<KeyframeDecision> {
+        self.frames_since_tracking_keyframe += 1;
+        let keyframes = &self.config.keyframes;
+        if let Some(trackable) = &tracked.local.trackable {
+            self.frames_since_tracking_keyframe = 0;
+            let seed_mask = match keyframes.tracking_keyframe_seeds {
+                TrackingKeyframeSeeds::All => vec![true; trackable.len()],
+                TrackingKeyframeSeeds::Uncovered => self.uncovered_points(frame, tracked),
+            };
+            return Some(KeyframeDecision {
+                kind: KeyframeKind::Tracking,
+                seed_mask,
+            });
+        }
+        let mapping_due = self
+            .frames_since_tracking_keyframe
+            .is_multiple_of(keyframes.mapping_keyframe_every);
+        (tracked.usable && mapping_due).then(|| KeyframeDecision {
+            kind: KeyframeKind::Mapping,
+            seed_mask: self.uncovered_points(frame, tracked),
+        })
+    }
+
+    /// New Gaussians from the keyframe's selected points (docs/method.md, Seeding); they join
+    /// the coverage index that decides later keyframes' seeds.
+    pub fn seed(
+        &mut self,
+        keyframe_id: usize,
+        frame: &Frame,
+        tracked: &Tracked,
+        decision: &KeyframeDecision,
+    ) -> GaussianCloud {
+        let seeds = seed_gaussians(
+            &seed_frame(frame, tracked),
+            &decision.seed_mask,
+            &self.config.tracking,
+            &self.config.keyframes,
+        );
+        self.corrections
+            .record_coverage_points(self.coverage.next_id(), frame.timestamp);
+        self.coverage.insert(&seeds);
+        self.corrections
+            .record_keyframe(keyframe_id, frame.timestamp, tracked.world_from_camera);
+        seeds
+    }
+
+    /// Queues the keyframe for the consensus (swarm only), in the tracked frame, the
+    /// consensus's frame for this agent; the link decides when it goes out (every T_comm).
+    pub fn publish(
+        &mut self,
+        keyframe_id: usize,
+        frame: &Frame,
+        tracked: &Tracked,
+        seeds: &GaussianCloud,
+    ) {
+        let Some(swarm) = self.swarm.as_mut() else {
+            return;
+        };
+        let mut gaussians = seeds.clone();
+        gaussians.transform_rigid(&RigidTransform::from(
+            &self.corrections.tracked_from_local(frame.timestamp),
+        ));
+        swarm.on_keyframe(PublishableKeyframe {
+            keyframe_id: keyframe_id as u64,
+            frame_index: frame.index as u64,
+            timestamp_s: frame.timestamp,
+            agent_from_camera: tracked.world_from_camera,
+            intrinsics: frame.intrinsics,
+            rgb: frame.rgb.clone(),
+            depth: frame.depth.clone(),
+            gaussians,
+        });
+    }
+
+    /// Hands the keyframe and its new Gaussians to the mapping thread (docs/method.md, Map
+    /// optimisation), in the local-map frame.
+    pub fn hand_to_mapper(
+        &mut self,
+        keyframe_id: usize,
+        frame: &Frame,
+        tracked: &Tracked,
+        decision: KeyframeDecision,
+        seeds: GaussianCloud,
+    ) {
+        match decision.kind {
+            KeyframeKind::Tracking => self.keyframes.tracking += 1,
+            KeyframeKind::Mapping => self.keyframes.mapping += 1,
+        }
+        tracing::debug!(
+            frame = frame.index,
+            kind = ?decision.kind,
+            new_gaussians = seeds.len(),
+            "keyframe"
+        );
+        self.mapper.add_keyframe(MappingKeyframe {
+            keyframe_id,
+            frame_index: frame.index,
+            kind: decision.kind,
+            world_from_camera: tracked.local.world_from_camera,
+            intrinsics: frame.intrinsics,
+            rgb: frame.rgb.clone(),
+            depth: frame.depth.clone(),
+            new_gaussians: seeds,
+        });
+    }
+
+    /// Applies a correction the consensus sent (swarm only) to the tracker's model, the coverage
+    /// index and the mapper's map.
+    pub fn apply_corrections(&mut self, frame: &Frame) {
+        let Some(correction) = self.swarm.as_mut().and_then(SwarmLink::after_frame) else {
+            return;
+        };
+        self.corrections.apply(
+            &correction,
+            frame.timestamp,
+            LocalMaps {
+                odometry: &mut self.odometry,
+                coverage: &mut self.coverage,
+                mapper: &self.mapper,
+            },
+        );
+    }
+
+    /// Keeps the frame's pose and its time in the loop (started at `clock`).
+    pub fn record(&mut self, item: &SourceFrame, tracked: &Tracked, clock: Instant) {
+        self.tracking_ms.push(clock.elapsed().as_secs_f64() * 1e3);
+        self.poses.push(TrackedPose {
+            position: item.position,
+            timestamp: item.frame.timestamp,
+            world_from_camera: tracked.world_from_camera,
+            ground_truth: item.frame.world_from_camera_gt,
+        });
+    }
+
+    /// The next keyframe's id: keyframes are numbered in the order they are made.
+    pub fn next_keyframe_id(&self) -> usize {
+        self.keyframes.total()
+    }
+
+    /// The consensus asked this agent to stop: its reason.
+    pub fn stop_requested_by_consensus(&self) -> Option<&str> {
+        self.swarm.as_ref().and_then(|s| s.stop_requested())
+    }
+
+    /// A one-line summary for the progress bar.
+    pub fn progress_message(&self) -> String {
+        use std::sync::atomic::Ordering;
+        let progress = &self.mapper.progress;
+        format!(
+            "{} keyframes, {} Gaussians, {} mapping iterations",
+            self.keyframes.total(),
+            progress.gaussians.load(Ordering::Relaxed),
+            progress.iterations.load(Ordering::Relaxed)
+        )
+    }
+
+    /// What progress.json says now.
+    pub fn progress(&self, stage: Stage, frames_total: Option<usize>) -> Progress {
+        progress_snapshot(
+            stage,
+            self.poses.len(),
+            frames_total,
+            self.keyframes.total(),
+            self.swarm.as_ref(),
+        )
+    }
+
+    pub fn frames_done(&self) -> usize {
+        self.poses.len()
+    }
+
+    pub fn finish(self) -> FinishedPipeline {
+        FinishedPipeline {
+            mapper: self.mapper,
+            swarm: self.swarm,
+            odometry: self.odometry,
+            corrections: self.corrections,
+            poses: self.poses,
+            tracking_ms: self.tracking_ms,
+            keyframes: self.keyframes,
+        }
+    }
+
+    /// The frame's points not yet covered by the map: mapping keyframes seed only these.
+    fn uncovered_points(&self, frame: &Frame, tracked: &Tracked) -> Vec<bool> {
+        self.coverage.uncovered(
+            &seed_frame(frame, tracked),
+            self.config.keyframes.mapping_seed_min_distance_sq_m2,
+        )
+    }
+}
+
+/// Progress of a run, with the swarm link's state when there is one.
+pub fn progress_snapshot(
+    stage: Stage,
+    frames_done: usize,
+    frames_total: Option<usize>,
+    keyframes: usize,
+    swarm: Option<&SwarmLink>,
+) -> Progress {
+    let link = swarm.map(SwarmLink::status);
+    Progress {
+        stage,
+        frames_done,
+        frames_total,
+        keyframes,
+        link_up: link.map(|l| l.up),
+        queued_keyframes: link.map(|l| l.queued_keyframes),
+    }
+}
+
+fn seed_frame<'f>(frame: &'f Frame, tracked: &'f Tracked) -> SeedFrame<'f> {
+    SeedFrame {
+        points: &tracked.local.frame_points,
+        world_from_camera: &tracked.local.world_from_camera,
+        rgb: &frame.rgb,
+        intrinsics: &frame.intrinsics,
+    }
+}
