@@ -73,7 +73,7 @@ fn multiagent_replica_uses_the_replica_sensor_and_tcomm() {
     let single = load("replica.toml");
     assert_eq!(
         multi.consensus.t_comm, 150,
-        "SPEC section 4: T_comm 150 on Replica"
+        "T_comm 150 on Replica (docs/method.md, The consensus: selection)"
     );
     assert_eq!(multi.tracking, single.tracking);
     assert_eq!(multi.mapping, single.mapping);

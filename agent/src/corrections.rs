@@ -1,4 +1,4 @@
-//! Consensus corrections applied to the agent's local maps between frames (SPEC section 4,
+//! Consensus corrections applied to the agent's local maps between frames (docs/method.md, Corrections and the world frame;
 //! step 4; `[consensus.local_corrections]`).
 //!
 //! A correction carries `world_from_agent` and the corrected world pose of every keyframe the

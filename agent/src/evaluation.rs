@@ -1,4 +1,4 @@
-//! Rendering quality of a map (SPEC section 7): the map rendered at the estimated camera poses of
+//! Rendering quality of a map (docs/method.md, Metrics): the map rendered at the estimated camera poses of
 //! evaluation frames, against the frames' images. PSNR over the whole image, SSIM zero-padded
 //! (3DGS style), LPIPS (AlexNet) when weights are given, depth L1 in cm over valid ground-truth
 //! pixels (a hole in the render counts its full error).

@@ -1,4 +1,4 @@
-//! The mac-ego3d agent (SPEC section 3): one OS process per agent running
+//! The mac-ego3d agent (docs/method.md, One agent): one OS process per agent running
 //! frame source -> G-ICP tracking -> keyframes -> Gaussian map optimisation.
 //!
 //! - [`source`]: frames in order, decoded ahead, sanitised, missing ones skipped and counted;

@@ -1,4 +1,4 @@
-//! Simulated intermittent links (issue 7, item 3): a schedule file says, per agent, in which time
+//! Simulated intermittent links: a schedule file says, per agent, in which time
 //! windows its link to the consensus is up, so a swarm on one host behaves like robots that lose
 //! and regain their radio.
 //!

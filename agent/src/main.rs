@@ -1,4 +1,4 @@
-//! `mac-agent`: one agent process (SPEC section 3).
+//! `mac-agent`: one agent process (docs/method.md, One agent).
 //!
 //! `mac-agent --config configs/7scenes.toml --dataset PATH [--frames 0..600] --agent-id 0
 //! --standalone --out DIR` tracks and maps one sequence and writes DIR/trajectory.tum,
@@ -33,7 +33,7 @@ use slam_core::dataset::FrameRange;
     about = "One mac-ego3d agent: RGB-D tracking and Gaussian mapping"
 )]
 struct Args {
-    /// Configuration file (configs/*.toml); SPEC defaults when absent.
+    /// Configuration file (configs/*.toml); the built-in defaults (those of configs/7scenes.toml) when absent.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Dataset directory (7-Scenes, Replica, TUM) or a `synthetic:...` spec; the embedded

@@ -1,4 +1,4 @@
-//! Optimisation step 2 of SPEC section 3: the mapping thread.
+//! The mapping thread (docs/method.md, Map optimisation and Pruning).
 //!
 //! The tracker hands every keyframe (its images, its pose and the Gaussians it seeds) to
 //! [`Mapper::spawn`]'s thread over a channel and never waits: the send is non-blocking and the
@@ -189,7 +189,7 @@ struct MapperState {
     raster: RasterConfig,
     prune_criteria: PruneCriteria,
     config: MappingConfig,
-    /// Multiplies the mean learning rate (SPEC: "x scene scale"), fixed at the first keyframe.
+    /// Multiplies the mean learning rate (the method scales it by the scene's size), fixed at the first keyframe.
     scene_scale: Option<f64>,
     progress: Arc<MapperProgress>,
     stats: MappingStats,

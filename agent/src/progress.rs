@@ -1,5 +1,5 @@
 //! `progress.json` in the agent's output directory: how far the run is, for
-//! `scripts/launch_swarm.sh`'s progress line (issue 7, item 2).
+//! `scripts/launch_swarm.sh`'s progress line.
 //!
 //! Written from the tracking loop at most every [`PROGRESS_FILE_EVERY`], so it costs one small
 //! write twice a second; atomically (a temporary file renamed over the old one), so a reader

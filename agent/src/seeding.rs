@@ -1,4 +1,4 @@
-//! Optimisation step 1 of SPEC section 3: new Gaussians from a keyframe's points.
+//! Seeding (docs/method.md, Seeding): new Gaussians from a keyframe's points.
 //!
 //! A keyframe's back-projected points (camera frame, each with its G-ICP covariance and the pixel
 //! it came from) become Gaussians in the agent's world frame:
@@ -9,7 +9,7 @@
 //! - scale: see [`SeedScale`]; the normal axis is `sqrt(covariance_epsilon)` times the tangent
 //!   axes, the G-ICP plane shape.
 //!
-//! Which points seed (the SPEC rule, applied by [`crate::mapper`]'s caller): every point at a
+//! Which points seed (the method's rule, applied by [`crate::mapper`]'s caller): every point at a
 //! tracking keyframe; at a mapping keyframe only the points no Gaussian covers yet
 //! ([`CoverageIndex`]).
 
@@ -22,9 +22,10 @@ use slam_core::registration::covariance::{Covariance, smallest_eigenvector};
 use slam_core::registration::points::PointCloud;
 use slam_core::registration::voxel_map::{MapPoint, MapPointId, VoxelMap};
 
-/// SPEC seeding scale: `sqrt(eigenvalue) / max(1, SPEC_DEPTH_FACTOR * z^SPEC_DEPTH_EXPONENT)`.
-const SPEC_DEPTH_FACTOR: f64 = 2.0;
-const SPEC_DEPTH_EXPONENT: f64 = 1.5;
+/// The published seeding scale (docs/method.md, Seeding):
+/// `sqrt(eigenvalue) / max(1, PUBLISHED_DEPTH_FACTOR * z^PUBLISHED_DEPTH_EXPONENT)`.
+const PUBLISHED_DEPTH_FACTOR: f64 = 2.0;
+const PUBLISHED_DEPTH_EXPONENT: f64 = 1.5;
 
 fn logit(probability: f64) -> f32 {
     (probability / (1.0 - probability)).ln() as f32
@@ -67,7 +68,7 @@ pub fn seed_gaussians(
             None => -camera_point.coords.normalize(),
         };
         let tangent_sigma = match keyframes.seed_scale {
-            SeedScale::Spec => 1.0 / (SPEC_DEPTH_FACTOR * depth.powf(SPEC_DEPTH_EXPONENT)).max(1.0),
+            SeedScale::Spec => 1.0 / (PUBLISHED_DEPTH_FACTOR * depth.powf(PUBLISHED_DEPTH_EXPONENT)).max(1.0),
             SeedScale::SampleFootprint => {
                 keyframes.footprint_sigma_per_spacing * tracking.pixel_stride as f64 * depth / focal
             }

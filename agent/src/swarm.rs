@@ -1,4 +1,4 @@
-//! The agent's side of the swarm (SPEC sections 4.1 and 5): every T_comm frames it publishes its
+//! The agent's side of the swarm (docs/method.md, The consensus: selection, and Protocol): every T_comm frames it publishes its
 //! latest keyframe (global descriptor, RGB-D image, the keyframe's Gaussians) to the consensus,
 //! receives corrections between frames, sends heartbeats, and at the end publishes its final map
 //! and says goodbye.

@@ -1,4 +1,4 @@
-//! End to end with an intermittent link (issue 7, item 3): the consensus plus two agent processes
+//! End to end with an intermittent link: the consensus plus two agent processes
 //! on the synthetic scene, over iceoryx2, agent 1's link down for a while by its link schedule.
 //! The agents are real `mac-agent` processes; the consensus runs the process's own `run` on a
 //! thread of the test (its binary belongs to another package, which Cargo does not build for

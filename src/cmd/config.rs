@@ -10,7 +10,7 @@ use slam_core::config::Config;
 
 #[derive(Args)]
 pub struct ConfigArgs {
-    /// Configuration file to start from (the SPEC defaults without it).
+    /// Configuration file to start from (the built-in defaults without it).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Override one key: `--set consensus.t_comm=30`, `--set noise.target=rgb`. Repeatable.

@@ -1,4 +1,4 @@
-//! DIR/report.html of a swarm run (issue 7): one self-contained file that opens offline: the
+//! DIR/report.html of a swarm run: one self-contained file that opens offline: the
 //! metrics table, top-down trajectories under the joint alignment, per-agent ATE over time, the
 //! merged map's renders next to ground-truth frames, and the consensus's closure events on a
 //! timeline. Charts are inline SVG, images `data:` URIs; nothing is fetched.

@@ -28,7 +28,7 @@ pub struct TrackingArgs {
     /// Align each frame to the previous one, or to the map of keyframe points.
     #[arg(long, default_value_t = OdometryMode::FrameToModel)]
     mode: OdometryMode,
-    /// Configuration file (its [tracking] and [keyframes] sections). Default: the SPEC defaults.
+    /// Configuration file (its [tracking] and [keyframes] sections). Default: the built-in defaults.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Write the estimated trajectory here (TUM format).

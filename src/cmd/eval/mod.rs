@@ -1,4 +1,4 @@
-//! `mac-ego3d eval ...`: trajectory, image, LPIPS and depth metrics (SPEC section 7).
+//! `mac-ego3d eval ...`: trajectory, image, LPIPS and depth metrics (docs/method.md, Metrics).
 
 use std::path::{Path, PathBuf};
 

@@ -1,4 +1,4 @@
-//! `mac-ego3d eval swarm --dir DIR`: the figures of one swarm run (issue 7's metrics.json) from
+//! `mac-ego3d eval swarm --dir DIR`: the figures of one swarm run (its metrics.json) from
 //! what its processes wrote: DIR/consensus.json, DIR/agent_K.tum (world frame, by the
 //! consensus), DIR/agent_K/{metrics.json, groundtruth.tum} (by each agent).
 //!
