@@ -11,13 +11,13 @@
 //! - [`pipeline`]: the per-frame stages (track, decide keyframe, seed, publish, hand to the
 //!   mapper, apply corrections);
 //! - [`run`]: one run: the frame loop over those stages, then its outputs;
-//! - [`swarm`]: the link to the consensus, [`corrections`]: its corrections applied to the local
+//! - [`swarm`]: the link to the consensus, [`local_corrections`]: its corrections applied to the local
 //!   maps, and [`link_schedule`]: simulated intermittent links;
 //! - [`progress`]: progress.json for the swarm launcher's progress line.
 
-pub mod corrections;
 pub mod evaluation;
 pub mod link_schedule;
+pub mod local_corrections;
 pub mod mapper;
 pub mod pipeline;
 pub mod progress;

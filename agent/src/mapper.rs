@@ -99,7 +99,7 @@ pub enum MapperError {
 
 enum Command {
     Keyframe(Box<MappingKeyframe>),
-    /// A consensus correction ([`crate::corrections`]): the move of each keyframe's part of the
+    /// A consensus correction ([`crate::local_corrections`]): the move of each keyframe's part of the
     /// map, indexed by keyframe id (keyframes made later stay).
     Correct(Vec<RigidTransform>),
     Finish {

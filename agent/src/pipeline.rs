@@ -13,7 +13,7 @@ use slam_core::config::{Config, TrackingKeyframeSeeds};
 use slam_core::dataset::Frame;
 use slam_core::registration::odometry::{Odometry, OdometryMode, TrackedFrame, TrackingOutcome};
 
-use crate::corrections::{LocalCorrections, LocalMaps};
+use crate::local_corrections::{LocalCorrections, LocalMaps};
 use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe};
 use crate::progress::{Progress, Stage};
 use crate::seeding::{CoverageIndex, SeedFrame, seed_gaussians};
@@ -48,7 +48,7 @@ impl KeyframeCounts {
 pub struct Tracked {
     /// In the local-map frame, where tracking and mapping run.
     pub local: TrackedFrame,
-    /// The same pose in the tracked frame (crate::corrections explains the two frames).
+    /// The same pose in the tracked frame (crate::local_corrections explains the two frames).
     pub world_from_camera: Isometry3<f64>,
     /// Depth was present and the tracker found a pose: the frame may become a mapping keyframe.
     pub usable: bool,

@@ -23,10 +23,10 @@ use slam_core::metrics::lpips::Lpips;
 use slam_core::metrics::stats::{median, quantile};
 use slam_core::trajectory::Trajectory;
 
-use crate::corrections::LocalCorrectionStats;
 use crate::evaluation::{
     FrameQuality, MapRenderer, QualitySummary, comparison_path, evaluate_frame,
 };
+use crate::local_corrections::LocalCorrectionStats;
 use crate::mapper::{MappingOutcome, MappingStats};
 use crate::pipeline::{AgentPipeline, TrackedPose, progress_snapshot};
 use crate::progress::{ProgressFile, Stage};

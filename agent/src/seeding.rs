@@ -68,7 +68,9 @@ pub fn seed_gaussians(
             None => -camera_point.coords.normalize(),
         };
         let tangent_sigma = match keyframes.seed_scale {
-            SeedScale::Spec => 1.0 / (PUBLISHED_DEPTH_FACTOR * depth.powf(PUBLISHED_DEPTH_EXPONENT)).max(1.0),
+            SeedScale::Spec => {
+                1.0 / (PUBLISHED_DEPTH_FACTOR * depth.powf(PUBLISHED_DEPTH_EXPONENT)).max(1.0)
+            }
             SeedScale::SampleFootprint => {
                 keyframes.footprint_sigma_per_spacing * tracking.pixel_stride as f64 * depth / focal
             }

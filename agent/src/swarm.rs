@@ -35,10 +35,10 @@ use slam_core::dataset::DepthImage;
 use slam_core::descriptor::GlobalDescriptorExtractor;
 use slam_core::se3::isometry_to_tum;
 
-use crate::corrections::ReceivedCorrection;
 use crate::link_schedule::{
     BoundedQueue, CorrectionArrival, CorrectionGate, LinkPlan, LinkSummary,
 };
+use crate::local_corrections::ReceivedCorrection;
 
 /// Heartbeat period: the consensus learns that a quiet agent is still alive.
 const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
