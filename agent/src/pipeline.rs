@@ -60,10 +60,9 @@ pub struct KeyframeDecision {
     pub seed_mask: Vec<bool>,
 }
 
-/// What the frame loop leaves for the outputs.
+/// What the frame loop leaves for the outputs (the mapper and the swarm link are handed back
+/// separately: finishing them consumes them).
 pub struct FinishedPipeline {
-    pub mapper: Mapper,
-    pub swarm: Option<SwarmLink>,
     pub odometry: Odometry,
     pub corrections: LocalCorrections,
     pub poses: Vec<TrackedPose>,
@@ -330,16 +329,15 @@ impl<'a> AgentPipeline<'a> {
         self.poses.len()
     }
 
-    pub fn finish(self) -> FinishedPipeline {
-        FinishedPipeline {
-            mapper: self.mapper,
-            swarm: self.swarm,
+    pub fn finish(self) -> (Mapper, Option<SwarmLink>, FinishedPipeline) {
+        let finished = FinishedPipeline {
             odometry: self.odometry,
             corrections: self.corrections,
             poses: self.poses,
             tracking_ms: self.tracking_ms,
             keyframes: self.keyframes,
-        }
+        };
+        (self.mapper, self.swarm, finished)
     }
 
     /// The frame's points not yet covered by the map: mapping keyframes seed only these.

@@ -28,9 +28,9 @@ use crate::evaluation::{
 };
 use crate::local_corrections::LocalCorrectionStats;
 use crate::mapper::{MappingOutcome, MappingStats};
-use crate::pipeline::{AgentPipeline, TrackedPose, progress_snapshot};
+use crate::pipeline::{AgentPipeline, FinishedPipeline, TrackedPose, progress_snapshot};
 use crate::progress::{ProgressFile, Stage};
-use crate::source::FrameSource;
+use crate::source::{FrameSource, SourceStats};
 use crate::swarm::{SwarmLink, SwarmSummary};
 
 /// Synthetic scene used when no dataset is given: three agents' loops, this agent's share.
@@ -150,13 +150,13 @@ pub fn run_agent(
     );
     tracing::info!(dataset = %dataset.describe(), frames = dataset.len(), "agent starting");
     let config = &options.config;
-    let lpips = match &options.lpips_weights {
-        Some(path) => Some(
-            Lpips::load(path)
-                .with_context(|| format!("loading LPIPS weights {}", path.display()))?,
-        ),
-        None => None,
-    };
+    let lpips = options
+        .lpips_weights
+        .as_deref()
+        .map(|path| {
+            Lpips::load(path).with_context(|| format!("loading LPIPS weights {}", path.display()))
+        })
+        .transpose()?;
 
     let in_swarm = swarm.is_some();
     let started = Instant::now();
@@ -204,22 +204,63 @@ pub fn run_agent(
     let loop_seconds = started.elapsed().as_secs_f64();
     progress.finish_and_clear();
     progress_file.write(&agent.progress(Stage::Finishing, frames_total));
-    let run = agent.finish();
+    let (mapper, swarm, run) = agent.finish();
     let refine_iterations = if interrupted {
         0
     } else {
         options.refine_iterations
     };
-    let outcome = run.mapper.finish(refine_iterations)?;
+    let outcome = mapper.finish(refine_iterations)?;
 
     // Outputs that need no rendering first: an interrupted evaluation still leaves these.
     let trajectory = write_trajectories(&run.poses, &options.out)?;
     write_maps(&outcome, &options.out)?;
     // The consensus reads trajectory.tum once this agent has said goodbye, so that goes first;
     // the evaluation below takes a while and needs nothing from the swarm.
-    let swarm_summary = run.swarm.map(|link| link.finish(&outcome.realtime_map));
+    let swarm_summary = swarm.map(|link| link.finish(&outcome.realtime_map));
     let ate_stats = trajectory_ate(&run.poses, &trajectory);
 
+    let (realtime, realtime_frames, refined) =
+        evaluate_maps(options, &dataset, &run, &outcome, lpips.as_ref())?;
+    let metrics = agent_metrics(RunRecord {
+        options,
+        dataset: dataset.as_ref(),
+        run: &run,
+        outcome: &outcome,
+        source: source.stats(),
+        loop_seconds,
+        wall_s: started.elapsed().as_secs_f64(),
+        interrupted,
+        ate: ate_stats,
+        realtime,
+        realtime_frames,
+        refined,
+        swarm: swarm_summary,
+        in_swarm,
+    });
+    let metrics_path = options.out.join("metrics.json");
+    std::fs::write(&metrics_path, serde_json::to_string_pretty(&metrics)?)
+        .with_context(|| format!("writing {}", metrics_path.display()))?;
+    progress_file.write(&progress_snapshot(
+        Stage::Done,
+        run.poses.len(),
+        frames_total,
+        run.keyframes.total(),
+        None,
+    ));
+    Ok(metrics)
+}
+
+/// Renders the real-time map (and the refined one, when there is one) at every
+/// `eval_every`-th tracked pose and scores it against the frames: (real-time figures, frames
+/// evaluated, refined figures).
+fn evaluate_maps(
+    options: &AgentOptions,
+    dataset: &Arc<dyn Dataset>,
+    run: &FinishedPipeline,
+    outcome: &MappingOutcome,
+    lpips: Option<&Lpips>,
+) -> anyhow::Result<(MapMetrics, usize, Option<MapMetrics>)> {
     // The map is in the local-map frame: each frame is rendered where the corrections applied
     // to the map put it (the tracked pose when none were).
     let evaluated: Vec<TrackedPose> = run
@@ -235,9 +276,9 @@ pub fn run_agent(
     let evaluate = |map: &GaussianCloud, renders: &str| {
         evaluate_map(
             map,
-            &dataset,
+            dataset,
             &evaluated,
-            lpips.as_ref(),
+            lpips,
             Some(&options.out.join(renders)),
             options.comparison_renders,
         )
@@ -256,16 +297,45 @@ pub fn run_agent(
         outcome.realtime_map.len(),
         &outcome.realtime,
     );
+    Ok((realtime, realtime_quality.frames, refined))
+}
+
+/// What a finished run measured, gathered for metrics.json.
+struct RunRecord<'r> {
+    options: &'r AgentOptions,
+    dataset: &'r dyn Dataset,
+    run: &'r FinishedPipeline,
+    outcome: &'r MappingOutcome,
+    source: &'r SourceStats,
+    /// The frame loop's duration (frames per second).
+    loop_seconds: f64,
+    wall_s: f64,
+    interrupted: bool,
+    ate: Option<AteStats>,
+    realtime: MapMetrics,
+    realtime_frames: usize,
+    refined: Option<MapMetrics>,
+    swarm: Option<SwarmSummary>,
+    in_swarm: bool,
+}
+
+fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
+    let RunRecord {
+        options,
+        run,
+        outcome,
+        realtime,
+        ..
+    } = record;
     let tracking = run.odometry.stats();
-    let source_stats = source.stats();
     let frames = run.poses.len();
-    let metrics = AgentMetrics {
+    AgentMetrics {
         agent_id: options.agent_id,
-        dataset: dataset.describe(),
+        dataset: record.dataset.describe(),
         dataset_spec: options.dataset.clone(),
         frame_range: options.frames.to_string(),
-        ate_rmse_m: ate_stats.as_ref().map(|s| s.rmse),
-        ate_mean_m: ate_stats.as_ref().map(|s| s.mean),
+        ate_rmse_m: record.ate.as_ref().map(|s| s.rmse),
+        ate_mean_m: record.ate.as_ref().map(|s| s.mean),
         psnr: realtime.psnr,
         ssim: realtime.ssim,
         lpips: realtime.lpips,
@@ -279,37 +349,26 @@ pub fn run_agent(
         tracking_ms_p90: quantile(&run.tracking_ms, 0.9).unwrap_or(0.0),
         mapping_iters_per_s: outcome.realtime.iterations_per_second(),
         mapping_iters: outcome.realtime.iterations,
-        fps: if loop_seconds > 0.0 {
-            frames as f64 / loop_seconds
+        fps: if record.loop_seconds > 0.0 {
+            frames as f64 / record.loop_seconds
         } else {
             0.0
         },
-        wall_s: started.elapsed().as_secs_f64(),
+        wall_s: record.wall_s,
         tracking_failures: tracking.failures,
         reinitialisations: tracking.reinitialisations,
-        frames_missing: source_stats.frames_missing,
-        frames_broken: source_stats.frames_broken,
-        frames_without_depth: source_stats.frames_without_depth,
-        eval_frames: realtime_quality.frames,
+        frames_missing: record.source.frames_missing,
+        frames_broken: record.source.frames_broken,
+        frames_without_depth: record.source.frames_without_depth,
+        eval_frames: record.realtime_frames,
         eval_every: options.eval_every.max(1),
-        mapping_image_downscale: config.mapping.image_downscale,
+        mapping_image_downscale: options.config.mapping.image_downscale,
         peak_rss_mib: peak_rss_mib(),
-        interrupted,
-        refined,
-        swarm: swarm_summary,
-        local_corrections: in_swarm.then(|| run.corrections.stats().clone()),
-    };
-    let metrics_path = options.out.join("metrics.json");
-    std::fs::write(&metrics_path, serde_json::to_string_pretty(&metrics)?)
-        .with_context(|| format!("writing {}", metrics_path.display()))?;
-    progress_file.write(&progress_snapshot(
-        Stage::Done,
-        frames,
-        frames_total,
-        run.keyframes.total(),
-        None,
-    ));
-    Ok(metrics)
+        interrupted: record.interrupted,
+        refined: record.refined,
+        swarm: record.swarm,
+        local_corrections: record.in_swarm.then(|| run.corrections.stats().clone()),
+    }
 }
 
 /// trajectory.tum (the estimate, in the tracked frame) and, when the dataset has ground
