@@ -2,8 +2,9 @@
 //! frame source -> G-ICP tracking -> keyframes -> Gaussian map optimisation.
 //!
 //! - [`source`]: frames in order, decoded ahead, sanitised, missing ones skipped and counted;
-//! - tracking: slam-core's frame-to-model G-ICP odometry (its map is the trackable Gaussians'
-//!   means with their G-ICP covariances);
+//! - tracking: frame-to-model G-ICP odometry; its model is a voxel map of the points tracking
+//!   keyframes marked trackable, with their G-ICP covariances (the mapper's optimisation does
+//!   not move them; the consensus's corrections do);
 //! - [`seeding`]: new Gaussians from keyframe points;
 //! - [`mapper`]: the mapping thread (render-core on the device; render-core's `DeviceMap` keeps
 //!   Gaussians and Adam state together through appends and pruning);
