@@ -10,22 +10,17 @@
 //! Gaussians, which reduce sums deterministically. Nothing is read back unless the caller
 //! downloads.
 
-use crate::context::{GpuContext, GpuError};
-use crate::gpu::{
-    DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, StageProfiler, StageTimes, U32_BYTES,
-    VEC4_BYTES, bind_group, dispatch_linear, four_u32,
-};
-use crate::types::{Camera, GaussianGradients, ImageGradients, PoseGradient};
+use bytemuck::Zeroable;
 
-/// Gaussians per invocation of project_backward.wgsl (GAUSSIANS_PER_INVOCATION there) and
-/// its workgroup size.
-const PROJECT_BACKWARD_CHUNK: u32 = 16;
-const PROJECT_BACKWARD_WORKGROUP_SIZE: u32 = 64;
-/// Elements each invocation of reduce.wgsl sums (CHUNK there) and its workgroup size.
-const REDUCE_CHUNK: u32 = 64;
-const REDUCE_WORKGROUP_SIZE: u32 = 64;
-/// Floats of screen-space gradient per Gaussian (mean2d 2, conic 3, opacity, colour 3, depth).
-const SCREEN_GRADIENT_STRIDE: u64 = 10;
+use crate::context::{GpuContext, GpuError};
+use crate::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, StageTimes};
+use crate::passes::{U32_BYTES, VEC4_BYTES, bind_group, dispatch_linear};
+use crate::profile::StageProfiler;
+use crate::types::{Camera, GaussianGradients, ImageGradients, PoseGradient};
+use crate::wgsl::{
+    PROJECT_BACKWARD_CHUNK, PROJECT_BACKWARD_WORKGROUP_SIZE, REDUCE_CHUNK, REDUCE_WORKGROUP_SIZE,
+    ReduceParams, SCREEN_GRADIENT_STRIDE,
+};
 
 /// dL/d(image) on the device: per pixel (r, g, b, depth) and alpha.
 pub struct DeviceImageGradients {
@@ -189,7 +184,7 @@ impl GpuRenderer {
         }
         let screen_gradients = context.storage_buffer(
             "screen_gradients",
-            count * SCREEN_GRADIENT_STRIDE * U32_BYTES,
+            count * u64::from(SCREEN_GRADIENT_STRIDE) * U32_BYTES,
         )?;
         // One pose contribution per chunk of project_backward.
         let pose_chunks = n.div_ceil(PROJECT_BACKWARD_CHUNK);
@@ -275,7 +270,11 @@ impl GpuRenderer {
             let chunks = remaining.div_ceil(REDUCE_CHUNK);
             let output =
                 context.storage_buffer("reduce partial sums", u64::from(chunks) * VEC4_BYTES)?;
-            let params = context.uniform_buffer("reduce params", &four_u32([remaining, 0, 0, 0]));
+            let params = ReduceParams {
+                count: remaining,
+                ..Zeroable::zeroed()
+            };
+            let params = context.uniform_buffer("reduce params", bytemuck::bytes_of(&params));
             let group = bind_group(
                 context,
                 &self.pipelines.reduce,

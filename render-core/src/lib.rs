@@ -27,12 +27,18 @@
 pub mod backward;
 pub mod bench;
 pub mod context;
+mod forward;
+mod gaussians;
 pub mod gpu;
 pub mod map;
+mod passes;
 pub mod ply;
+mod profile;
 pub mod reference;
+mod sort;
 pub mod training;
 pub mod types;
+mod wgsl;
 
 pub use types::{
     Camera, GaussianCloud, GaussianGradients, ImageGradients, PoseGradient, RasterConfig,

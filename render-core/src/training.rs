@@ -10,12 +10,15 @@
 
 use crate::backward::{DeviceGradients, DeviceImageGradients};
 use crate::context::{GpuContext, GpuError};
-use crate::gpu::{
-    DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, PARAMETER_GROUP_WIDTHS, PARAMETER_GROUPS,
-    U32_BYTES, VEC4_BYTES, WORKGROUP_SIZE, bind_group, compute_pipeline, dispatch_linear,
-};
+use crate::gaussians::{PARAMETER_GROUP_WIDTHS, PARAMETER_GROUPS};
+use crate::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId};
+use crate::passes::{U32_BYTES, VEC4_BYTES, bind_group, compute_pipeline, dispatch_linear};
 use crate::types::{Camera, GaussianCloud, ImageGradients, RenderOutput};
-use bytemuck::{Pod, Zeroable};
+use crate::wgsl::{
+    AdamParams, LOSS_RUN, LOSS_WORKGROUP_SIZE, LossParams, ROW_SUMS_PER_PIXEL,
+    SSIM_COEFFICIENTS_PER_PIXEL, WORKGROUP_SIZE, source,
+};
+use bytemuck::Zeroable;
 
 /// SSIM window half-width (11x11 window) and standard deviation.
 pub const SSIM_WINDOW_RADIUS: i32 = 5;
@@ -23,13 +26,6 @@ pub const SSIM_WINDOW_SIGMA: f64 = 1.5;
 /// SSIM stabilisers for data range 1: (0.01)^2 and (0.03)^2.
 pub const SSIM_C1: f64 = 0.0001;
 pub const SSIM_C2: f64 = 0.0009;
-const SSIM_COEFFICIENTS_PER_PIXEL: u64 = 9;
-/// f32 horizontal window sums per pixel (STATS_PER_PIXEL in loss.wgsl).
-const ROW_SUMS_PER_PIXEL: u64 = 15;
-/// Pixels per invocation of the loss kernels (RUN in loss.wgsl).
-const LOSS_RUN: u32 = 64;
-/// Invocations per workgroup of the loss kernels (WORKGROUP_SIZE in loss.wgsl).
-const LOSS_WORKGROUP_SIZE: u32 = 64;
 
 /// Loss weights; [`Default`] is the mapping loss of SPEC section 3.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -281,25 +277,6 @@ impl DeviceTarget {
     }
 }
 
-/// Mirrors `LossParams` in loss.wgsl.
-#[repr(C)]
-#[derive(Clone, Copy, Pod, Zeroable)]
-struct LossParams {
-    image_size: [u32; 4],
-    weights: [f32; 4],
-    normalisers: [f32; 4],
-    partials: [u32; 4],
-}
-
-/// Mirrors `AdamParams` in adam.wgsl.
-#[repr(C)]
-#[derive(Clone, Copy, Pod, Zeroable)]
-struct AdamParams {
-    count: [u32; 4],
-    rates: [f32; 4],
-    corrections: [f32; 4],
-}
-
 /// A loss evaluated on the device; the value stays there until [`DeviceLoss::read`].
 pub struct DeviceLoss {
     /// vec4: (L1 term, SSIM term, depth term, 0), already weighted.
@@ -450,17 +427,14 @@ pub struct TrainingKernels {
     adam: wgpu::ComputePipeline,
 }
 
-const LOSS_WGSL: &str = include_str!("kernels/loss.wgsl");
-const ADAM_WGSL: &str = include_str!("kernels/adam.wgsl");
-
 impl TrainingKernels {
     pub fn new(context: &GpuContext) -> Self {
         let device = &context.device;
         Self {
-            ssim_rows: compute_pipeline(device, "ssim_rows", LOSS_WGSL, "ssim_rows"),
-            ssim_columns: compute_pipeline(device, "ssim_columns", LOSS_WGSL, "ssim_columns"),
-            loss_rows: compute_pipeline(device, "loss_rows", LOSS_WGSL, "loss_rows"),
-            adam: compute_pipeline(device, "adam", ADAM_WGSL, "main"),
+            ssim_rows: compute_pipeline(device, "ssim_rows", &[source::LOSS], "ssim_rows"),
+            ssim_columns: compute_pipeline(device, "ssim_columns", &[source::LOSS], "ssim_columns"),
+            loss_rows: compute_pipeline(device, "loss_rows", &[source::LOSS], "loss_rows"),
+            adam: compute_pipeline(device, "adam", &[source::ADAM], "main"),
         }
     }
 
@@ -494,26 +468,31 @@ impl TrainingKernels {
         let row_runs = runs_per_row * camera.height;
         let column_runs = runs_per_column * camera.width;
         let params = LossParams {
-            image_size: [camera.width, camera.height, runs_per_row, runs_per_column],
-            weights: [
-                weights.l1,
-                weights.ssim,
-                weights.depth,
-                1.0 / weights.depth_truncation,
-            ],
-            normalisers: [1.0 / (3.0 * pixels as f32), valid_normaliser, 0.0, 0.0],
-            partials: [column_runs, 0, 0, 0],
+            width: camera.width,
+            height: camera.height,
+            runs_per_row,
+            runs_per_column,
+            w_l1: weights.l1,
+            w_ssim: weights.ssim,
+            w_depth: weights.depth,
+            inverse_depth_truncation: 1.0 / weights.depth_truncation,
+            rgb_normaliser: 1.0 / (3.0 * pixels as f32),
+            depth_normaliser: valid_normaliser,
+            column_run_count: column_runs,
+            ..Zeroable::zeroed()
         };
         let params_buffer = context.uniform_buffer("loss params", bytemuck::bytes_of(&params));
         let coefficients = context.storage_buffer(
             "ssim coefficients",
-            pixels * SSIM_COEFFICIENTS_PER_PIXEL * U32_BYTES,
+            pixels * u64::from(SSIM_COEFFICIENTS_PER_PIXEL) * U32_BYTES,
         )?;
         let partial_count = column_runs + row_runs;
         let loss_partials =
             context.storage_buffer("loss partials", u64::from(partial_count) * VEC4_BYTES)?;
-        let row_sums =
-            context.storage_buffer("ssim row sums", pixels * ROW_SUMS_PER_PIXEL * U32_BYTES)?;
+        let row_sums = context.storage_buffer(
+            "ssim row sums",
+            pixels * u64::from(ROW_SUMS_PER_PIXEL) * U32_BYTES,
+        )?;
         let mut encoder = context.device.create_command_encoder(&Default::default());
         let ssim_rows_group = bind_group(
             context,
@@ -593,12 +572,8 @@ impl TrainingKernels {
         adam.step += 1;
         let config = adam.config;
         let t = adam.step as i32;
-        let corrections = [
-            1.0 / (1.0 - config.beta1.powi(t)),
-            1.0 / (1.0 - config.beta2.powi(t)),
-            0.0,
-            0.0,
-        ];
+        let bias_correction1 = 1.0 / (1.0 - config.beta1.powi(t));
+        let bias_correction2 = 1.0 / (1.0 - config.beta2.powi(t));
         let groups = [
             (config.means, &gaussians.means, &gradients.v_means),
             (
@@ -626,9 +601,14 @@ impl TrainingKernels {
                 continue;
             }
             let params = AdamParams {
-                count: [elements, 0, 0, 0],
-                rates: [learning_rate, config.beta1, config.beta2, config.epsilon],
-                corrections,
+                count: elements,
+                learning_rate,
+                beta1: config.beta1,
+                beta2: config.beta2,
+                epsilon: config.epsilon,
+                bias_correction1,
+                bias_correction2,
+                ..Zeroable::zeroed()
             };
             let params_buffer = context.uniform_buffer("adam params", bytemuck::bytes_of(&params));
             let (m, v) = &adam.moments[group];

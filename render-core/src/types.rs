@@ -42,6 +42,12 @@ pub mod constants {
     pub const DEPTH_KEY_BITS: u32 = 24;
     /// Low mantissa bits of the camera z the depth sort key drops.
     pub const DEPTH_KEY_DROPPED_BITS: u32 = 4;
+    /// The largest depth sort key of a visible splat, one below the culled key's
+    /// [`DEPTH_KEY_BITS`] low bits.
+    pub const LARGEST_VISIBLE_DEPTH_KEY: u32 = (1 << DEPTH_KEY_BITS) - 2;
+    /// The depth sort key of a culled splat: above every visible key, so culled splats sort
+    /// last.
+    pub const CULLED_DEPTH_KEY: u32 = u32::MAX;
 }
 
 /// The key splats are depth-sorted by (ascending; ties keep the Gaussian order): camera z's
@@ -50,14 +56,13 @@ pub mod constants {
 /// bits. Positive floats order like their bit patterns, so the key orders like z. Dropping 4 of
 /// the 23 mantissa bits merges depths closer than 2^-19 of z (6 um at 3 m) into one key; 24
 /// bits then span 2^(24+4-23) = 32 binades above the near plane (0.01 m to 4.3e7 m). Farther
-/// splats share the largest key; `u32::MAX` (culled) stays above every visible key.
+/// splats share the largest key; [`constants::CULLED_DEPTH_KEY`] stays above every visible key.
 /// project.wgsl computes the same key.
 pub fn depth_sort_key(camera_z: f32) -> u32 {
-    let largest_visible = (1u32 << constants::DEPTH_KEY_BITS) - 2;
     let above_near = camera_z
         .to_bits()
         .saturating_sub(constants::NEAR_PLANE.to_bits());
-    (above_near >> constants::DEPTH_KEY_DROPPED_BITS).min(largest_visible)
+    (above_near >> constants::DEPTH_KEY_DROPPED_BITS).min(constants::LARGEST_VISIBLE_DEPTH_KEY)
 }
 
 /// A set of 3D Gaussians in structure-of-arrays layout, all vectors of equal length.

@@ -12,8 +12,9 @@
 // per Gaussian).
 // Invariants: the splat order and skip rules are identical to the forward pass; a splat whose
 // alpha hit the cap gets no opacity/footprint gradient.
-// The `#gradient_atomics` line is replaced by the launcher with atomics_float.wgsl or
-// atomics_cas.wgsl (compare-exchange fallback when float atomics are unavailable).
+// `add_gradient` and binding 10 (screen_gradients) come from atomics_float.wgsl or
+// atomics_cas.wgsl (compare-exchange fallback when float atomics are unavailable), which the
+// launcher puts in front of this file.
 @group(0) @binding(0) var<uniform> params: RenderParams;
 @group(0) @binding(1) var<storage, read> tile_ranges: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read> intersection_gaussians: array<u32>;
@@ -26,12 +27,9 @@
 @group(0) @binding(8) var<storage, read> v_rgbd: array<vec4<f32>>;
 @group(0) @binding(9) var<storage, read> v_alpha: array<f32>;
 
-#gradient_atomics
-
 const THREADS_PER_TILE: u32 = TILE_SIZE;
 const GROUP_COLUMNS: vec4<u32> = vec4<u32>(0u, 1u, 2u, 3u);
 // Per-Gaussian layout of screen_gradients.
-const SCREEN_GRADIENT_STRIDE: u32 = 10u;
 const V_MEAN2D: u32 = 0u;
 const V_CONIC: u32 = 2u;
 const V_OPACITY: u32 = 5u;
@@ -65,7 +63,7 @@ struct PixelGradients {
 }
 
 fn load_group(first_column: u32, row: u32) -> PixelGradients {
-    let width = params.image_size.x;
+    let width = params.width;
     let columns = vec4<u32>(first_column) + GROUP_COLUMNS;
     var group: PixelGradients;
     group.x = vec4<f32>(columns);
@@ -77,7 +75,7 @@ fn load_group(first_column: u32, row: u32) -> PixelGradients {
     group.v_depth = vec4<f32>(0.0);
     group.behind = vec4<f32>(0.0);
     for (var k = 0u; k < 4u; k++) {
-        if columns[k] < width && row < params.image_size.y {
+        if columns[k] < width && row < params.height {
             let pixel_index = row * width + columns[k];
             group.last_entry[k] = pixel_last_entry[pixel_index];
             let transmittance = pixel_transmittance[pixel_index];
@@ -165,8 +163,8 @@ fn accumulate(group: ptr<function, PixelGradients>, pixel_y: f32, splat: Splat,
     if !any(in_list) {
         return false;
     }
-    let min_alpha = params.thresholds.x;
-    let max_alpha = params.thresholds.y;
+    let min_alpha = params.min_splat_alpha;
+    let max_alpha = params.max_splat_alpha;
     let conic = splat.conic;
     let offset_x = (*group).x - splat.position.x;
     let offset_y = pixel_y - splat.position.y;

@@ -55,7 +55,7 @@ fn new_group(first_column: u32, row: u32) -> PixelGroup {
     var group: PixelGroup;
     group.columns = columns;
     group.x = vec4<f32>(columns);
-    group.done = columns >= vec4<u32>(params.image_size.x) | vec4<bool>(row >= params.image_size.y);
+    group.done = columns >= vec4<u32>(params.width) | vec4<bool>(row >= params.height);
     group.transmittance = vec4<f32>(1.0);
     group.red = vec4<f32>(0.0);
     group.green = vec4<f32>(0.0);
@@ -70,9 +70,9 @@ fn new_group(first_column: u32, row: u32) -> PixelGroup {
 // `ratio_growth` is row_ratio_growth(splat.conic) (common.wgsl), computed once per splat.
 fn composite(group: ptr<function, PixelGroup>, pixel_y: f32, splat: Splat, ratio_growth: f32,
              entry: u32) {
-    let min_alpha = params.thresholds.x;
-    let max_alpha = params.thresholds.y;
-    let min_transmittance = params.thresholds.z;
+    let min_alpha = params.min_splat_alpha;
+    let max_alpha = params.max_splat_alpha;
+    let min_transmittance = params.min_transmittance;
     let value = row_gaussian_values(splat.conic, (*group).x.x - splat.position.x,
                                     pixel_y - splat.position.y, ratio_growth);
     let alpha = min(vec4<f32>(max_alpha), splat.position.z * value);
@@ -94,10 +94,10 @@ fn composite(group: ptr<function, PixelGroup>, pixel_y: f32, splat: Splat, ratio
 // Writes the final colour, depth, alpha, transmittance and last entry of the group's pixels
 // inside the image.
 fn write_group(group: PixelGroup, row: u32) {
-    let width = params.image_size.x;
+    let width = params.width;
     for (var k = 0u; k < 4u; k++) {
         let column = group.columns[k];
-        if column < width && row < params.image_size.y {
+        if column < width && row < params.height {
             let pixel_index = row * width + column;
             out_rgbd[pixel_index] = vec4<f32>(group.red[k], group.green[k], group.blue[k], group.depth[k]);
             out_alpha[pixel_index] = 1.0 - group.transmittance[k];

@@ -27,7 +27,7 @@ fn main(
     @builtin(local_invocation_index) local_index: u32,
     @builtin(subgroup_invocation_id) lane: u32,
 ) {
-    let tile_id = workgroup_id.y * params.image_size.z + workgroup_id.x;
+    let tile_id = workgroup_id.y * params.tiles_x + workgroup_id.x;
     let tile_origin = workgroup_id.xy * TILE_SIZE;
     let row = tile_origin.y + local_index;
     let range = tile_ranges[tile_id];
@@ -47,7 +47,7 @@ fn main(
         var reaches_rows = false;
         if start + lane < range.y {
             mine = load_splat(intersection_gaussians[start + lane]);
-            let extent = visible_half_extent(mine.position.z, mine.conic, params.thresholds.x);
+            let extent = visible_half_extent(mine.position.z, mine.conic, params.min_splat_alpha);
             reaches_rows = !misses_span(mine.position.y, extent.y, rows_low, rows_high);
         }
         // Only the loaded splats that reach the subgroup's rows, in lane (= list) order.
