@@ -15,7 +15,6 @@
 //!   stable compaction, rigid transform) and [`map::DeviceMap`], which keeps the Adam state in
 //!   step with them.
 //! - [`backward`]: per-Gaussian and camera-pose gradients on the device.
-//! - [`bench`](mod@bench): the render benchmark behind `mac-ego3d bench render`.
 //! - [`training`]: L1 / SSIM / depth-L1 loss with gradients and Adam on the device, plus the CPU
 //!   reference loss.
 //!
@@ -25,7 +24,6 @@
 //! `TrainingKernels::adam_step`.
 
 pub mod backward;
-pub mod bench;
 pub mod context;
 mod forward;
 mod gaussians;

@@ -243,7 +243,7 @@ struct PixelResult {
 }
 
 /// A splat evaluated at a pixel centre, where it reaches the pixel.
-pub(crate) struct SplatAtPixel {
+pub struct SplatAtPixel {
     /// Pixel centre minus the splat's mean.
     pub offset: [f64; 2],
     /// exp(power), before the opacity.
@@ -258,7 +258,7 @@ pub(crate) struct SplatAtPixel {
 /// match it to a few ulps: they step exp along rows, see `row_gaussian_values` in
 /// common.wgsl); `None` where it adds nothing (positive power, or alpha below
 /// `min_splat_alpha`).
-pub(crate) fn splat_at_pixel(
+pub fn splat_at_pixel(
     splat: &ProjectedGaussian,
     pixel: [f64; 2],
     config: &RasterConfig,

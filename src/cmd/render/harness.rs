@@ -8,14 +8,14 @@
 
 use std::time::Instant;
 
-use crate::backward::DeviceImageGradients;
-use crate::context::{GpuContext, GpuError};
-use crate::gpu::{DeviceGaussians, DeviceSortBench, GpuRenderer, StageTimes};
-use crate::reference::{ProjectedGaussian, project_and_sort, splat_at_pixel};
-use crate::training::{
+use render_core::backward::DeviceImageGradients;
+use render_core::context::{GpuContext, GpuError};
+use render_core::gpu::{DeviceGaussians, DeviceSortBench, GpuRenderer, StageTimes};
+use render_core::reference::{ProjectedGaussian, project_and_sort, splat_at_pixel};
+use render_core::training::{
     AdamConfig, DeviceAdam, DeviceTarget, LossWeights, TargetImage, TrainingKernels,
 };
-use crate::types::{Camera, GaussianCloud, RasterConfig, RigidTransform};
+use render_core::{Camera, GaussianCloud, RasterConfig, RigidTransform};
 
 /// Focal length of the benchmark camera at 640 pixels of width (a Kinect-like sensor);
 /// other widths scale it so that the field of view stays the same.
@@ -657,7 +657,7 @@ fn time_sort(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::reference;
+    use render_core::reference;
 
     #[test]
     fn raster_workload_counts_band_steps_and_visible_pixels() {
