@@ -49,7 +49,7 @@ const GROWTH_DENOMINATOR: u64 = 2;
 /// Smallest capacity a growth produces, so that small maps do not re-allocate per batch.
 pub const MIN_GROWN_CAPACITY: usize = 256;
 
-/// Which Gaussians a pruning pass removes (SPEC section 3). A Gaussian with any non-finite
+/// Which Gaussians a pruning pass removes (docs/method.md, One agent: Pruning). A Gaussian with any non-finite
 /// parameter is always removed.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PruneCriteria {
@@ -73,7 +73,7 @@ impl Default for PruneCriteria {
 }
 
 impl PruneCriteria {
-    /// tau_s for Replica-like scenes (SPEC section 3).
+    /// tau_s for Replica-like scenes (docs/method.md, One agent: Pruning).
     pub const REPLICA_MAX_SCALE_M: f32 = 0.25;
 
     fn validate(&self) -> Result<(), GpuError> {

@@ -6,7 +6,7 @@
 //! compared pixel by pixel, and it provides the analytic backward pass that the GPU backward is
 //! checked against and that finite differences check here.
 //!
-//! Image model (SPEC section 2), per pixel `p` with splats sorted front to back by camera z
+//! Image model (docs/method.md, The map), per pixel `p` with splats sorted front to back by camera z
 //! (ties broken by Gaussian index):
 //! `alpha_i = min(max_alpha, opacity_i * exp(-0.5 d^T conic_i d))`, `d = p - mean2d_i`,
 //! splats with `alpha_i < min_alpha` skipped, compositing stops before a splat that would

@@ -1,7 +1,8 @@
 //! Image losses (L1, SSIM, depth L1) with gradients, and Adam, on the device; plus the CPU
 //! reference of the loss used as the test oracle.
 //!
-//! Loss (SPEC sections 3 and 4):
+//! Loss (docs/method.md, One agent: Map optimisation; the consensus's joint refinement uses the
+//! same loss):
 //! `w_l1 * mean|rgb - target| + w_ssim * (1 - mean SSIM) + w_depth * mean_valid |d - d*| / truncation`
 //! where rgb and d are the rendered (alpha-composited) colour and depth, the means run over
 //! pixels and channels, and the depth mean over pixels whose target depth is > 0 (the validity
@@ -27,7 +28,7 @@ pub const SSIM_WINDOW_SIGMA: f64 = 1.5;
 pub const SSIM_C1: f64 = 0.0001;
 pub const SSIM_C2: f64 = 0.0009;
 
-/// Loss weights; [`Default`] is the mapping loss of SPEC section 3.
+/// Loss weights; [`Default`] is the mapping loss (docs/method.md, One agent: Map optimisation).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LossWeights {
     pub l1: f32,
@@ -305,7 +306,7 @@ pub struct AdamConfig {
 }
 
 impl Default for AdamConfig {
-    /// SPEC section 3 mapping rates (the mean rate is to be multiplied by the scene scale).
+    /// The mapping rates of docs/method.md, One agent: Map optimisation (the mean rate is to be multiplied by the scene scale).
     fn default() -> Self {
         Self {
             means: 5e-6,
@@ -545,11 +546,10 @@ impl TrainingKernels {
     }
 
     /// One Adam step on every group with a non-zero learning rate, over every Gaussian (plain
-    /// Adam: one the frame did not see still moves by its momentum). A "selective" step over the
-    /// Gaussians in view only was tried: 4-6 ms cheaper at 81k Gaussians, but redkitchen 0..300
-    /// mapped 0.2 dB worse, real-time (17.44 vs 17.67 dB) and after 300 refinement iterations
-    /// (20.35 vs 20.51 dB), two runs each: with so few iterations per keyframe the momentum
-    /// carries the Gaussians on in the right direction. Submits work; reads nothing back.
+    /// Adam: one the frame did not see still moves by its momentum). Not a "selective" step over
+    /// the Gaussians in view only: it is slightly cheaper but mapped measurably worse (see
+    /// docs/benchmarks.md): with so few iterations per keyframe the momentum carries the
+    /// Gaussians on in the right direction. Submits work; reads nothing back.
     pub fn adam_step(
         &self,
         context: &GpuContext,

@@ -11,7 +11,8 @@
 
 use glam::{DMat3, DQuat, DVec3, Mat3, Quat, Vec3};
 
-/// Activation and rasterisation constants from SPEC section 2 and the 3DGS reference.
+/// Activation and rasterisation constants of the image model (docs/method.md, The map) and the
+/// 3DGS reference.
 pub mod constants {
     /// Side of a square screen tile in pixels.
     pub const TILE_SIZE: u32 = 16;
@@ -467,8 +468,9 @@ pub struct ImageGradients {
     pub v_alpha: Vec<f32>,
 }
 
-/// Rasterisation thresholds. [`RasterConfig::default`] is SPEC section 2 and is what the
-/// wgpu renderer uses; the smooth variant exists for finite-difference tests only.
+/// Rasterisation thresholds. [`RasterConfig::default`] holds the image model's thresholds
+/// (docs/method.md, The map: [`constants::MIN_SPLAT_ALPHA`], [`constants::MAX_SPLAT_ALPHA`],
+/// [`constants::MIN_TRANSMITTANCE`]) and is what the wgpu renderer uses; the smooth variant exists for finite-difference tests only.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RasterConfig {
     pub min_splat_alpha: f32,

@@ -1,5 +1,5 @@
-// adam: one Adam step on one parameter group, one invocation per f32 element (256 per
-// workgroup, linear id over a 2D grid). Bias corrections are computed on the host from the step
+// adam: one Adam step on one parameter group, one invocation per f32 element
+// (WORKGROUP_SIZE per workgroup, linear id over a 2D grid). Bias corrections are computed on the host from the step
 // count, so nothing is read back. A non-finite gradient element is treated as zero so one bad
 // pixel cannot poison the parameters.
 
@@ -15,7 +15,7 @@ fn main(
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let index = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * WORKGROUP_SIZE + local_index;
+    let index = linear_workgroup(workgroup_id, workgroup_count) * WORKGROUP_SIZE + local_index;
     if index >= adam_params.count {
         return;
     }

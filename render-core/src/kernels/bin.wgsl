@@ -20,8 +20,8 @@
 // - `emit_pairs` (same walk): writes each kept pair's Gaussian at the next slot of its
 //   (tile, block) entry, so each tile's list is in depth order (blocks in order, Gaussians in
 //   order within a block). Afterwards (tile, last block) holds the end of the tile's list.
-// - `tile_ranges_from_table` (one invocation per tile, WORKGROUP_SIZE per workgroup): [start, end) of each
-//   tile's list: end from (tile, last block), start from the previous tile's end (0 first).
+// - `tile_ranges_from_table` (one invocation per tile, WORKGROUP_SIZE per workgroup):
+//   [start, end) of each tile's list: end from (tile, last block), start from the previous tile's end (0 first).
 // On CPU adapters (lavapipe) one serial walk per block costs a few memory accesses per pair,
 // where a radix sort of the pairs costs dozens.
 // Invariants: only this block's invocation touches a (tile, block) entry (no atomics); the
@@ -50,7 +50,7 @@ fn pair_status_from_scan() {
 
 fn linear_index(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32,
                 workgroup_size: u32) -> u32 {
-    return (workgroup_id.y * workgroup_count.x + workgroup_id.x) * workgroup_size + local_index;
+    return linear_workgroup(workgroup_id, workgroup_count) * workgroup_size + local_index;
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)

@@ -75,7 +75,7 @@ struct Run {
 
 fn run_of(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32,
           along_rows: bool) -> Run {
-    let index = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * LOSS_WORKGROUP_SIZE + local_index;
+    let index = linear_workgroup(workgroup_id, workgroup_count) * LOSS_WORKGROUP_SIZE + local_index;
     let width = loss_params.width;
     let height = loss_params.height;
     if along_rows {
@@ -284,7 +284,7 @@ fn ssim_columns(
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let run_index = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * LOSS_WORKGROUP_SIZE + local_index;
+    let run_index = linear_workgroup(workgroup_id, workgroup_count) * LOSS_WORKGROUP_SIZE + local_index;
     let run = run_of(workgroup_id, workgroup_count, local_index, false);
     if !run.valid {
         return;
@@ -349,7 +349,7 @@ fn loss_rows(
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let run_index = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * LOSS_WORKGROUP_SIZE + local_index;
+    let run_index = linear_workgroup(workgroup_id, workgroup_count) * LOSS_WORKGROUP_SIZE + local_index;
     let run = run_of(workgroup_id, workgroup_count, local_index, true);
     if !run.valid {
         return;

@@ -1,7 +1,8 @@
-// prune: one invocation per live Gaussian (WORKGROUP_SIZE per workgroup, linear workgroup id over a 2D
-// grid). Writes keep_flags[i] = 1 when Gaussian i survives the prune criteria (SPEC section 3)
-// and 0 when it is removed: any non-finite parameter, opacity below the minimum, largest scale
-// above the maximum, or largest scale above max_elongation x the sum of the other two.
+// prune: one invocation per live Gaussian (WORKGROUP_SIZE per workgroup, linear workgroup id
+// over a 2D grid). Writes keep_flags[i] = 1 when Gaussian i survives the prune criteria
+// (docs/method.md, One agent: Pruning) and 0 when it is removed: any non-finite parameter,
+// opacity below the minimum, largest scale above the maximum, or largest scale above
+// max_elongation x the sum of the other two.
 // The host passes the opacity test as a logit threshold and the size test as a log-scale
 // threshold, so both compare the stored values directly (exactly as PruneCriteria::keeps does
 // on the host, with no activation function whose rounding could differ).

@@ -13,9 +13,10 @@
 // whatever the condition and only save loop trips (see render-core/README.md).
 // Two splats per trip of the compositing loop: a SIMD CPU adapter (lavapipe) writes every
 // value a loop carries (the pixel state) back through a blend with the execution mask once per
-// trip, so two splats per trip halve that traffic (forward -10 % at 100k, 640x480). Without a
-// second splat, a copy of the first with zero opacity stands in: it touches no pixel. (The same
-// in the backward pass was slower: its two splats' gradient sums do not fit the registers.)
+// trip, so two splats per trip halve that traffic (a measurably faster forward pass, see
+// docs/benchmarks.md). Without a second splat, a copy of the first with zero opacity stands
+// in: it touches no pixel. (The same in the backward pass was slower: its two splats'
+// gradient sums do not fit the registers.)
 // Invariants: the loop bounds and the shuffle source lane are subgroup-uniform; lanes are
 // assumed to be numbered 0 .. active - 1 (active = number of invocations in the subgroup,
 // which may be fewer than subgroup_size for a small workgroup); the subgroup size is never

@@ -14,7 +14,7 @@ fn main(
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let chunk = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * REDUCE_WORKGROUP_SIZE + local_index;
+    let chunk = linear_workgroup(workgroup_id, workgroup_count) * REDUCE_WORKGROUP_SIZE + local_index;
     let first = chunk * REDUCE_CHUNK;
     if first >= reduce_params.count {
         return;

@@ -13,7 +13,7 @@
 @group(0) @binding(2) var<storage, read_write> block_sums: array<u32>;
 
 fn chunk_index(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32) -> u32 {
-    return (workgroup_id.y * workgroup_count.x + workgroup_id.x) * SERIAL_WORKGROUP_SIZE + local_index;
+    return linear_workgroup(workgroup_id, workgroup_count) * SERIAL_WORKGROUP_SIZE + local_index;
 }
 
 @compute @workgroup_size(SERIAL_WORKGROUP_SIZE)

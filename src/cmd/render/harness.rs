@@ -55,7 +55,7 @@ const MARGIN_PIXELS: f32 = 24.0;
 /// Depth of the synthetic target image used by the loss (metres).
 const TARGET_DEPTH: f32 = 2.5;
 
-/// The benchmark's default cases (issue 3): these Gaussian counts at these image sizes, each
+/// The benchmark's default cases: these Gaussian counts at these image sizes, each
 /// figure the median of [`DEFAULT_REPEATS`] runs after [`DEFAULT_WARMUP`] untimed ones.
 pub const DEFAULT_GAUSSIAN_COUNTS: [usize; 3] = [10_000, 100_000, 300_000];
 pub const DEFAULT_IMAGE_SIZES: [(u32, u32); 2] = [(320, 240), (640, 480)];
