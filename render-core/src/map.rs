@@ -302,6 +302,32 @@ enum Selection<'a> {
     Mask(&'a [bool]),
 }
 
+/// One flag per Gaussian before a compaction: whether it was kept. A mask is its own answer;
+/// the prune kernel's verdicts are read back from the scanned flags (the compaction's only
+/// read-back: the scan gives both the flags and the kept count).
+fn kept_flags(
+    context: &GpuContext,
+    selection: &Selection,
+    kept_through: &wgpu::Buffer,
+    count: u32,
+) -> Result<Vec<bool>, GpuError> {
+    Ok(match selection {
+        Selection::Mask(keep) => keep.to_vec(),
+        Selection::Criteria(_) => {
+            let kept_through: Vec<u32> = context.read_vec(kept_through, count as usize)?;
+            let mut previous = 0;
+            kept_through
+                .iter()
+                .map(|&through| {
+                    let kept = through > previous;
+                    previous = through;
+                    kept
+                })
+                .collect()
+        }
+    })
+}
+
 impl DeviceGaussians {
     /// Appends `cloud` on the device and returns the indices the new Gaussians got. Uploads
     /// only the new Gaussians; when the capacity is exceeded the buffers grow (x1.5, see the
@@ -515,50 +541,7 @@ impl DeviceGaussians {
         let kernels = MapKernels::of(context);
         let mut encoder = context.device.create_command_encoder(&Default::default());
         // Keep flags (0/1 per Gaussian), turned in place into their inclusive prefix sum.
-        let kept_through = match selection {
-            Selection::Criteria(criteria) => {
-                let flags = context.storage_buffer("keep flags", u64::from(n) * U32_BYTES)?;
-                let [opacity_logit_threshold, max_log_scale, max_elongation, _] =
-                    criteria.thresholds();
-                let params = PruneParams {
-                    count: n,
-                    opacity_logit_threshold,
-                    max_log_scale,
-                    max_elongation,
-                    ..Zeroable::zeroed()
-                };
-                let params_buffer =
-                    context.uniform_buffer("prune params", bytemuck::bytes_of(&params));
-                let group = bind_group(
-                    context,
-                    &kernels.prune,
-                    &[
-                        (0, &params_buffer),
-                        (1, &self.means),
-                        (2, &self.log_scales),
-                        (3, &self.quaternions),
-                        (4, &self.opacity_logits),
-                        (5, &self.colours),
-                        (6, &flags),
-                    ],
-                );
-                dispatch_linear(
-                    &mut encoder,
-                    &kernels.prune,
-                    &group,
-                    n.div_ceil(WORKGROUP_SIZE),
-                );
-                flags
-            }
-            Selection::Mask(keep) => {
-                let flags: Vec<u32> = keep.iter().map(|&kept| u32::from(kept)).collect();
-                context.storage_buffer_init(
-                    "keep flags",
-                    bytemuck::cast_slice(&flags),
-                    VEC4_BYTES as usize,
-                )
-            }
-        };
+        let kept_through = self.encode_keep_flags(context, kernels, &mut encoder, &selection)?;
         inclusive_scan(context, &mut encoder, kernels.scan(), &kept_through, n)?;
         let parameters = self.parameter_buffers();
         let mut compacted = Vec::with_capacity(PARAMETER_GROUPS);
@@ -593,22 +576,7 @@ impl DeviceGaussians {
             }
         }
         context.queue.submit([encoder.finish()]);
-        let kept = match selection {
-            Selection::Mask(keep) => keep.to_vec(),
-            Selection::Criteria(_) => {
-                // The only read-back: the scan gives both the flags and the kept count.
-                let kept_through: Vec<u32> = context.read_vec(&kept_through, self.len())?;
-                let mut previous = 0;
-                kept_through
-                    .iter()
-                    .map(|&through| {
-                        let kept = through > previous;
-                        previous = through;
-                        kept
-                    })
-                    .collect()
-            }
-        };
+        let kept = kept_flags(context, &selection, &kept_through, n)?;
         let kept_count = kept.iter().filter(|&&k| k).count();
         let removed = self.len() - kept_count;
         let [means, log_scales, quaternions, opacity_logits, colours]: [wgpu::Buffer;
@@ -633,6 +601,57 @@ impl DeviceGaussians {
             adam.gaussian_layout = self.layout;
         }
         Ok(PruneReport { kept, removed })
+    }
+
+    /// Encodes the keep flags of `selection` (1 per kept Gaussian): the prune kernel's
+    /// verdicts, or the caller's mask uploaded.
+    fn encode_keep_flags(
+        &self,
+        context: &GpuContext,
+        kernels: &MapKernels,
+        encoder: &mut wgpu::CommandEncoder,
+        selection: &Selection,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let n = self.count;
+        Ok(match *selection {
+            Selection::Criteria(criteria) => {
+                let flags = context.storage_buffer("keep flags", u64::from(n) * U32_BYTES)?;
+                let [opacity_logit_threshold, max_log_scale, max_elongation, _] =
+                    criteria.thresholds();
+                let params = PruneParams {
+                    count: n,
+                    opacity_logit_threshold,
+                    max_log_scale,
+                    max_elongation,
+                    ..Zeroable::zeroed()
+                };
+                let params_buffer =
+                    context.uniform_buffer("prune params", bytemuck::bytes_of(&params));
+                let group = bind_group(
+                    context,
+                    &kernels.prune,
+                    &[
+                        (0, &params_buffer),
+                        (1, &self.means),
+                        (2, &self.log_scales),
+                        (3, &self.quaternions),
+                        (4, &self.opacity_logits),
+                        (5, &self.colours),
+                        (6, &flags),
+                    ],
+                );
+                dispatch_linear(encoder, &kernels.prune, &group, n.div_ceil(WORKGROUP_SIZE));
+                flags
+            }
+            Selection::Mask(keep) => {
+                let flags: Vec<u32> = keep.iter().map(|&kept| u32::from(kept)).collect();
+                context.storage_buffer_init(
+                    "keep flags",
+                    bytemuck::cast_slice(&flags),
+                    VEC4_BYTES as usize,
+                )
+            }
+        })
     }
 }
 
