@@ -278,6 +278,32 @@ impl DeviceTarget {
     }
 }
 
+/// The loss kernels' parameters for `camera`'s image: run counts (runs of LOSS_RUN pixels per
+/// row and per column), weights, and the normalisers that turn sums into means.
+fn loss_params(camera: &Camera, target: &DeviceTarget, weights: &LossWeights) -> LossParams {
+    let pixels = camera.pixel_count() as u64;
+    let depth_normaliser = if target.valid_depth_pixels > 0 {
+        1.0 / target.valid_depth_pixels as f32
+    } else {
+        0.0
+    };
+    let runs_per_column = camera.height.div_ceil(LOSS_RUN);
+    LossParams {
+        width: camera.width,
+        height: camera.height,
+        runs_per_row: camera.width.div_ceil(LOSS_RUN),
+        runs_per_column,
+        w_l1: weights.l1,
+        w_ssim: weights.ssim,
+        w_depth: weights.depth,
+        inverse_depth_truncation: 1.0 / weights.depth_truncation,
+        rgb_normaliser: 1.0 / (3.0 * pixels as f32),
+        depth_normaliser,
+        column_run_count: runs_per_column * camera.width,
+        ..Zeroable::zeroed()
+    }
+}
+
 /// A loss evaluated on the device; the value stays there until [`DeviceLoss::read`].
 pub struct DeviceLoss {
     /// vec4: (L1 term, SSIM term, depth term, 0), already weighted.
@@ -459,29 +485,9 @@ impl TrainingKernels {
             ));
         }
         let pixels = camera.pixel_count() as u64;
-        let valid_normaliser = if target.valid_depth_pixels > 0 {
-            1.0 / target.valid_depth_pixels as f32
-        } else {
-            0.0
-        };
-        let runs_per_row = camera.width.div_ceil(LOSS_RUN);
-        let runs_per_column = camera.height.div_ceil(LOSS_RUN);
-        let row_runs = runs_per_row * camera.height;
-        let column_runs = runs_per_column * camera.width;
-        let params = LossParams {
-            width: camera.width,
-            height: camera.height,
-            runs_per_row,
-            runs_per_column,
-            w_l1: weights.l1,
-            w_ssim: weights.ssim,
-            w_depth: weights.depth,
-            inverse_depth_truncation: 1.0 / weights.depth_truncation,
-            rgb_normaliser: 1.0 / (3.0 * pixels as f32),
-            depth_normaliser: valid_normaliser,
-            column_run_count: column_runs,
-            ..Zeroable::zeroed()
-        };
+        let params = loss_params(camera, target, weights);
+        let row_runs = params.runs_per_row * camera.height;
+        let column_runs = params.column_run_count;
         let params_buffer = context.uniform_buffer("loss params", bytemuck::bytes_of(&params));
         let coefficients = context.storage_buffer(
             "ssim coefficients",
