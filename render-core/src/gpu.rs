@@ -9,7 +9,8 @@
 //!   counter table is filled by one serial walk per block, exclusive-scanned, and a second
 //!   walk writes every Gaussian into its tiles' lists. Each tile's list comes out in depth
 //!   order without sorting the pairs.
-//! - rasterize (rasterize_pixels.wgsl + rasterize_subgroup.wgsl, or rasterize.wgsl without
+//! - rasterize (rasterize_tiles.wgsl + rasterize_pixels.wgsl + rasterize_subgroup.wgsl, or
+//!   rasterize.wgsl without
 //!   subgroups, see [`Subgroups`]): one workgroup of 16 invocations per 16x16 tile, 16 pixels
 //!   per invocation.
 //!
@@ -268,11 +269,16 @@ impl GpuRenderer {
             count_pairs: pipeline("count_pairs", &[source::BIN], "count_pairs"),
             emit_pairs: pipeline("emit_pairs", &[source::BIN], "emit_pairs"),
             tile_ranges: pipeline("tile_ranges", &[source::BIN], "tile_ranges_from_table"),
-            rasterize: pipeline("rasterize", &[source::RASTERIZE_PIXELS, rasterize], "main"),
+            rasterize: pipeline(
+                "rasterize",
+                &[source::RASTERIZE_TILES, source::RASTERIZE_PIXELS, rasterize],
+                "main",
+            ),
             rasterize_backward: pipeline(
                 "rasterize_backward",
                 &[
                     atomics,
+                    source::RASTERIZE_TILES,
                     source::RASTERIZE_BACKWARD_PIXELS,
                     rasterize_backward,
                 ],

@@ -412,11 +412,13 @@ pub(crate) mod source {
     pub(crate) const SCAN: &str = include_str!("kernels/scan.wgsl");
     pub(crate) const SORT: &str = include_str!("kernels/sort.wgsl");
     pub(crate) const BIN: &str = include_str!("kernels/bin.wgsl");
-    /// Bindings and per-pixel compositing shared by the two forward rasterizers.
+    /// Bindings 0-5, thread-mapping constants and `Splat`, shared by all four rasterizers.
+    pub(crate) const RASTERIZE_TILES: &str = include_str!("kernels/rasterize_tiles.wgsl");
+    /// Output bindings and per-pixel compositing shared by the two forward rasterizers.
     pub(crate) const RASTERIZE_PIXELS: &str = include_str!("kernels/rasterize_pixels.wgsl");
     pub(crate) const RASTERIZE: &str = include_str!("kernels/rasterize.wgsl");
     pub(crate) const RASTERIZE_SUBGROUP: &str = include_str!("kernels/rasterize_subgroup.wgsl");
-    /// Bindings and per-pixel gradients shared by the two backward rasterizers.
+    /// Bindings 6-9 and per-pixel gradients shared by the two backward rasterizers.
     pub(crate) const RASTERIZE_BACKWARD_PIXELS: &str =
         include_str!("kernels/rasterize_backward_pixels.wgsl");
     pub(crate) const RASTERIZE_BACKWARD: &str = include_str!("kernels/rasterize_backward.wgsl");

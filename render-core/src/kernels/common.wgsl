@@ -11,6 +11,15 @@ const MAX_ABS_OPACITY_LOGIT: f32 = 80.0;
 // bit per tile), which the binning then follows.
 const MAX_MASKED_TILES: u32 = 32u;
 
+// Offsets of dL/d(mean2d, conic, opacity, colour, depth) within a Gaussian's
+// SCREEN_GRADIENT_STRIDE floats of screen_gradients (rasterize_backward writes them,
+// project_backward reads them).
+const V_MEAN2D: u32 = 0u;
+const V_CONIC: u32 = 2u;
+const V_OPACITY: u32 = 5u;
+const V_COLOUR: u32 = 6u;
+const V_DEPTH: u32 = 9u;
+
 // NaN/Inf test on the bit pattern: WGSL lets compilers assume finite maths, so `x != x`
 // is not a reliable NaN test.
 fn is_finite(x: f32) -> bool {

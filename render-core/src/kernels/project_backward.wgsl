@@ -77,11 +77,13 @@ fn chain_gaussian(index: u32) -> PoseGradient {
         return PoseGradient(zero3, zero3);
     }
     let g = index * SCREEN_GRADIENT_STRIDE;
-    let v_mean2d = vec2<f32>(screen_gradients[g], screen_gradients[g + 1u]);
-    let v_conic = vec3<f32>(screen_gradients[g + 2u], screen_gradients[g + 3u], screen_gradients[g + 4u]);
-    let v_opacity = screen_gradients[g + 5u];
-    let v_colour = vec3<f32>(screen_gradients[g + 6u], screen_gradients[g + 7u], screen_gradients[g + 8u]);
-    let v_depth = screen_gradients[g + 9u];
+    let v_mean2d = vec2<f32>(screen_gradients[g + V_MEAN2D], screen_gradients[g + V_MEAN2D + 1u]);
+    let v_conic = vec3<f32>(screen_gradients[g + V_CONIC], screen_gradients[g + V_CONIC + 1u],
+                            screen_gradients[g + V_CONIC + 2u]);
+    let v_opacity = screen_gradients[g + V_OPACITY];
+    let v_colour = vec3<f32>(screen_gradients[g + V_COLOUR], screen_gradients[g + V_COLOUR + 1u],
+                             screen_gradients[g + V_COLOUR + 2u]);
+    let v_depth = screen_gradients[g + V_DEPTH];
 
     // Forward recomputation (identical to project.wgsl).
     let mean = vec3<f32>(means[3u * index], means[3u * index + 1u], means[3u * index + 2u]);

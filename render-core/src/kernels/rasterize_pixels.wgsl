@@ -1,41 +1,18 @@
-// rasterize, shared part: bindings and the per-pixel compositing of the forward rasterizer,
-// prepended (after common.wgsl) to rasterize.wgsl or rasterize_subgroup.wgsl, which differ
-// only in how the splats of a tile reach the invocations.
-// Thread mapping (both variants): one workgroup per 16x16 tile, THREADS_PER_TILE = 16
-// invocations; invocation r shades tile row r, 16 pixels held as 4 PixelGroups of 4 pixels
-// (columns 4g .. 4g + 3 of the tile, as vec4 components). On CPU adapters (lavapipe) every
+// rasterize, shared part: output bindings and the per-pixel compositing of the forward
+// rasterizer, between rasterize_tiles.wgsl and rasterize.wgsl or rasterize_subgroup.wgsl,
+// which differ only in how the splats of a tile reach the invocations.
+// Thread mapping (both variants, see rasterize_tiles.wgsl): invocation r shades tile row r,
+// 16 pixels held as 4 PixelGroups of 4 pixels. On CPU adapters (lavapipe) every
 // load inside a loop is a per-lane scalar gather costing as much as dozens of arithmetic
 // operations, paid per invocation: 16 pixels per invocation pay one splat load for 16 pixels.
 // Per (pixel, splat) the arithmetic is that of the CPU reference in the same order (a skipped
 // splat adds exactly 0), so both variants give bit-identical images.
 
-@group(0) @binding(0) var<uniform> params: RenderParams;
-@group(0) @binding(1) var<storage, read> tile_ranges: array<vec2<u32>>;
-@group(0) @binding(2) var<storage, read> intersection_gaussians: array<u32>;
-@group(0) @binding(3) var<storage, read> splat_position: array<vec4<f32>>;
-@group(0) @binding(4) var<storage, read> splat_conic: array<vec4<f32>>;
-@group(0) @binding(5) var<storage, read> splat_colour: array<vec4<f32>>;
 // r, g, b, depth (alpha-composited, not normalised)
 @group(0) @binding(6) var<storage, read_write> out_rgbd: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read_write> out_alpha: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_transmittance: array<f32>;
 @group(0) @binding(9) var<storage, read_write> out_last_entry: array<u32>;
-
-const THREADS_PER_TILE: u32 = TILE_SIZE;
-// Column offsets of the 4 pixels of a group relative to its first column.
-const GROUP_COLUMNS: vec4<u32> = vec4<u32>(0u, 1u, 2u, 3u);
-
-// One splat as the compositing needs it.
-struct Splat {
-    // mean2d.x, mean2d.y, opacity, camera z
-    position: vec4<f32>,
-    conic: vec3<f32>,
-    colour: vec3<f32>,
-}
-
-fn load_splat(gaussian: u32) -> Splat {
-    return Splat(splat_position[gaussian], splat_conic[gaussian].xyz, splat_colour[gaussian].xyz);
-}
 
 // Compositing state of 4 pixels of one row.
 struct PixelGroup {
