@@ -10,8 +10,7 @@
 //!   walk writes every Gaussian into its tiles' lists. Each tile's list comes out in depth
 //!   order without sorting the pairs.
 //! - rasterize (rasterize_tiles.wgsl + rasterize_pixels.wgsl + rasterize_subgroup.wgsl, or
-//!   rasterize.wgsl without
-//!   subgroups, see [`Subgroups`]): one workgroup of 16 invocations per 16x16 tile, 16 pixels
+//!   rasterize.wgsl without subgroups, see [`Subgroups`]): one workgroup of 16 invocations per 16x16 tile, 16 pixels
 //!   per invocation.
 //!
 //! Why the kernels look the way they do: on CPU adapters (lavapipe, the target of this crate
