@@ -10,22 +10,17 @@
 //! Gaussians, which reduce sums deterministically. Nothing is read back unless the caller
 //! downloads.
 
-use crate::context::{GpuContext, GpuError};
-use crate::gpu::{
-    DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, StageProfiler, StageTimes, U32_BYTES,
-    VEC4_BYTES, bind_group, dispatch_linear, four_u32,
-};
-use crate::types::{Camera, GaussianGradients, ImageGradients, PoseGradient};
+use bytemuck::Zeroable;
 
-/// Gaussians per invocation of project_backward.wgsl (GAUSSIANS_PER_INVOCATION there) and
-/// its workgroup size.
-const PROJECT_BACKWARD_CHUNK: u32 = 16;
-const PROJECT_BACKWARD_WORKGROUP_SIZE: u32 = 64;
-/// Elements each invocation of reduce.wgsl sums (CHUNK there) and its workgroup size.
-const REDUCE_CHUNK: u32 = 64;
-const REDUCE_WORKGROUP_SIZE: u32 = 64;
-/// Floats of screen-space gradient per Gaussian (mean2d 2, conic 3, opacity, colour 3, depth).
-const SCREEN_GRADIENT_STRIDE: u64 = 10;
+use crate::context::{GpuContext, GpuError};
+use crate::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, StageTimes};
+use crate::passes::{U32_BYTES, VEC4_BYTES, bind_group, dispatch_linear};
+use crate::profile::StageProfiler;
+use crate::types::{Camera, GaussianGradients, ImageGradients, PoseGradient};
+use crate::wgsl::{
+    PROJECT_BACKWARD_CHUNK, PROJECT_BACKWARD_WORKGROUP_SIZE, REDUCE_CHUNK, REDUCE_WORKGROUP_SIZE,
+    ReduceParams, SCREEN_GRADIENT_STRIDE,
+};
 
 /// dL/d(image) on the device: per pixel (r, g, b, depth) and alpha.
 pub struct DeviceImageGradients {
@@ -104,6 +99,22 @@ pub struct DeviceGradients {
 }
 
 impl DeviceGradients {
+    /// Gradient buffers for `count` Gaussians of arrangement `layout` (written by the
+    /// backward pass).
+    fn allocate(context: &GpuContext, count: u32, layout: LayoutId) -> Result<Self, GpuError> {
+        let n = u64::from(count);
+        Ok(Self {
+            count,
+            gaussian_layout: layout,
+            v_means: context.storage_buffer("v_means", n * 3 * U32_BYTES)?,
+            v_log_scales: context.storage_buffer("v_log_scales", n * 3 * U32_BYTES)?,
+            v_quaternions: context.storage_buffer("v_quaternions", n * VEC4_BYTES)?,
+            v_opacity_logits: context.storage_buffer("v_opacity_logits", n * U32_BYTES)?,
+            v_colours: context.storage_buffer("v_colours", n * 3 * U32_BYTES)?,
+            v_pose: context.storage_buffer("v_pose", 2 * VEC4_BYTES)?,
+        })
+    }
+
     /// Reads back the camera-pose gradient alone (48 bytes): what a pose optimiser needs each
     /// iteration, without the per-Gaussian gradients.
     pub fn read_pose(&self, context: &GpuContext) -> Result<PoseGradient, GpuError> {
@@ -151,57 +162,59 @@ impl GpuRenderer {
         stage_times: Option<&mut StageTimes>,
     ) -> Result<DeviceGradients, GpuError> {
         let mut profiler = StageProfiler::new(context, stage_times)?;
-        if gaussians.layout != frame.gaussian_layout {
-            return Err(GpuError::InvalidInput(
-                "the frame was rendered before the Gaussians were appended to, pruned or \
-                 reordered: render again"
-                    .into(),
-            ));
-        }
-        if gaussians.len() != frame.gaussian_count as usize {
-            return Err(GpuError::InvalidInput(format!(
-                "frame was rendered from {} Gaussians, got {}",
-                frame.gaussian_count,
-                gaussians.len()
-            )));
-        }
-        if (image_gradients.width, image_gradients.height)
-            != (frame.camera.width, frame.camera.height)
-        {
-            return Err(GpuError::InvalidInput(
-                "image gradients and frame differ in size".into(),
-            ));
-        }
+        validate_backward(gaussians, frame, image_gradients)?;
         let n = frame.gaussian_count;
-        let count = u64::from(n);
-        let gradients = DeviceGradients {
-            count: n,
-            gaussian_layout: gaussians.layout,
-            v_means: context.storage_buffer("v_means", count * 3 * U32_BYTES)?,
-            v_log_scales: context.storage_buffer("v_log_scales", count * 3 * U32_BYTES)?,
-            v_quaternions: context.storage_buffer("v_quaternions", count * VEC4_BYTES)?,
-            v_opacity_logits: context.storage_buffer("v_opacity_logits", count * U32_BYTES)?,
-            v_colours: context.storage_buffer("v_colours", count * 3 * U32_BYTES)?,
-            v_pose: context.storage_buffer("v_pose", 2 * VEC4_BYTES)?,
-        };
+        let gradients = DeviceGradients::allocate(context, n, gaussians.layout)?;
         if n == 0 {
             return Ok(gradients);
         }
         let screen_gradients = context.storage_buffer(
             "screen_gradients",
-            count * SCREEN_GRADIENT_STRIDE * U32_BYTES,
+            u64::from(n) * u64::from(SCREEN_GRADIENT_STRIDE) * U32_BYTES,
         )?;
-        // One pose contribution per chunk of project_backward.
-        let pose_chunks = n.div_ceil(PROJECT_BACKWARD_CHUNK);
-        let pose_translation =
-            context.storage_buffer("pose_translation", u64::from(pose_chunks) * VEC4_BYTES)?;
-        let pose_rotation =
-            context.storage_buffer("pose_rotation", u64::from(pose_chunks) * VEC4_BYTES)?;
-        let p = &self.pipelines;
         let mut encoder = context.device.create_command_encoder(&Default::default());
-        let raster_group = bind_group(
+        self.encode_rasterize_backward(
             context,
-            &p.rasterize_backward,
+            &mut encoder,
+            frame,
+            image_gradients,
+            &screen_gradients,
+        );
+        profiler.mark(context, &mut encoder, "rasterize backward")?;
+        let pose = self.encode_project_backward(
+            context,
+            &mut encoder,
+            gaussians,
+            frame,
+            &screen_gradients,
+            &gradients,
+        )?;
+        profiler.mark(context, &mut encoder, "project backward")?;
+        let [translation, rotation] = pose;
+        let chunks = n.div_ceil(PROJECT_BACKWARD_CHUNK);
+        let translation_sum = self.reduce_vec4(context, &mut encoder, translation, chunks)?;
+        let rotation_sum = self.reduce_vec4(context, &mut encoder, rotation, chunks)?;
+        encoder.copy_buffer_to_buffer(&translation_sum, 0, &gradients.v_pose, 0, VEC4_BYTES);
+        encoder.copy_buffer_to_buffer(&rotation_sum, 0, &gradients.v_pose, VEC4_BYTES, VEC4_BYTES);
+        profiler.mark(context, &mut encoder, "pose sum")?;
+        context.queue.submit([encoder.finish()]);
+        Ok(gradients)
+    }
+
+    /// rasterize_backward: dL/d(screen-space splat) per Gaussian into `screen_gradients`, one
+    /// workgroup per tile.
+    fn encode_rasterize_backward(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        frame: &DeviceFrame,
+        image_gradients: &DeviceImageGradients,
+        screen_gradients: &wgpu::Buffer,
+    ) {
+        let pipeline = &self.pipelines.rasterize_backward;
+        let group = bind_group(
+            context,
+            pipeline,
             &[
                 (0, &frame.params_buffer),
                 (1, &frame.tile_ranges),
@@ -213,20 +226,36 @@ impl GpuRenderer {
                 (7, &frame.last_entry),
                 (8, &image_gradients.v_rgbd),
                 (9, &image_gradients.v_alpha),
-                (10, &screen_gradients),
+                (10, screen_gradients),
             ],
         );
         let (tiles_x, tiles_y) = frame.camera.tile_counts();
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&p.rasterize_backward);
-            pass.set_bind_group(0, &raster_group, &[]);
-            pass.dispatch_workgroups(tiles_x, tiles_y, 1);
-        }
-        profiler.mark(context, &mut encoder, "rasterize backward")?;
-        let project_group = bind_group(
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &group, &[]);
+        pass.dispatch_workgroups(tiles_x, tiles_y, 1);
+    }
+
+    /// project_backward: parameter gradients into `gradients`; returns the per-chunk pose
+    /// contributions (translation, rotation) for the reduction.
+    fn encode_project_backward(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        gaussians: &DeviceGaussians,
+        frame: &DeviceFrame,
+        screen_gradients: &wgpu::Buffer,
+        gradients: &DeviceGradients,
+    ) -> Result<[wgpu::Buffer; 2], GpuError> {
+        // One pose contribution per chunk of project_backward.
+        let chunks = frame.gaussian_count.div_ceil(PROJECT_BACKWARD_CHUNK);
+        let pose_bytes = u64::from(chunks) * VEC4_BYTES;
+        let pose_translation = context.storage_buffer("pose_translation", pose_bytes)?;
+        let pose_rotation = context.storage_buffer("pose_rotation", pose_bytes)?;
+        let pipeline = &self.pipelines.project_backward;
+        let group = bind_group(
             context,
-            &p.project_backward,
+            pipeline,
             &[
                 (0, &frame.params_buffer),
                 (1, &gaussians.means),
@@ -234,7 +263,7 @@ impl GpuRenderer {
                 (3, &gaussians.quaternions),
                 (4, &gaussians.opacity_logits),
                 (5, &frame.splat_conic),
-                (6, &screen_gradients),
+                (6, screen_gradients),
                 (7, &gradients.v_means),
                 (8, &gradients.v_log_scales),
                 (9, &gradients.v_quaternions),
@@ -244,21 +273,9 @@ impl GpuRenderer {
                 (13, &pose_rotation),
             ],
         );
-        dispatch_linear(
-            &mut encoder,
-            &p.project_backward,
-            &project_group,
-            pose_chunks.div_ceil(PROJECT_BACKWARD_WORKGROUP_SIZE),
-        );
-        profiler.mark(context, &mut encoder, "project backward")?;
-        let translation_sum =
-            self.reduce_vec4(context, &mut encoder, pose_translation, pose_chunks)?;
-        let rotation_sum = self.reduce_vec4(context, &mut encoder, pose_rotation, pose_chunks)?;
-        encoder.copy_buffer_to_buffer(&translation_sum, 0, &gradients.v_pose, 0, VEC4_BYTES);
-        encoder.copy_buffer_to_buffer(&rotation_sum, 0, &gradients.v_pose, VEC4_BYTES, VEC4_BYTES);
-        profiler.mark(context, &mut encoder, "pose sum")?;
-        context.queue.submit([encoder.finish()]);
-        Ok(gradients)
+        let workgroups = chunks.div_ceil(PROJECT_BACKWARD_WORKGROUP_SIZE);
+        dispatch_linear(encoder, pipeline, &group, workgroups);
+        Ok([pose_translation, pose_rotation])
     }
 
     /// Sums `count` vec4 of `input`; returns a buffer whose first vec4 is the total.
@@ -275,7 +292,11 @@ impl GpuRenderer {
             let chunks = remaining.div_ceil(REDUCE_CHUNK);
             let output =
                 context.storage_buffer("reduce partial sums", u64::from(chunks) * VEC4_BYTES)?;
-            let params = context.uniform_buffer("reduce params", &four_u32([remaining, 0, 0, 0]));
+            let params = ReduceParams {
+                count: remaining,
+                ..Zeroable::zeroed()
+            };
+            let params = context.uniform_buffer("reduce params", bytemuck::bytes_of(&params));
             let group = bind_group(
                 context,
                 &self.pipelines.reduce,
@@ -292,4 +313,34 @@ impl GpuRenderer {
         }
         Ok(current)
     }
+}
+
+/// The frame must come from these very Gaussians (same arrangement and count), and the image
+/// gradients must be of the frame's size.
+fn validate_backward(
+    gaussians: &DeviceGaussians,
+    frame: &DeviceFrame,
+    image_gradients: &DeviceImageGradients,
+) -> Result<(), GpuError> {
+    if gaussians.layout != frame.gaussian_layout {
+        return Err(GpuError::InvalidInput(
+            "the frame was rendered before the Gaussians were appended to, pruned or \
+             reordered: render again"
+                .into(),
+        ));
+    }
+    if gaussians.len() != frame.gaussian_count as usize {
+        return Err(GpuError::InvalidInput(format!(
+            "frame was rendered from {} Gaussians, got {}",
+            frame.gaussian_count,
+            gaussians.len()
+        )));
+    }
+    if (image_gradients.width, image_gradients.height) != (frame.camera.width, frame.camera.height)
+    {
+        return Err(GpuError::InvalidInput(
+            "image gradients and frame differ in size".into(),
+        ));
+    }
+    Ok(())
 }

@@ -9,13 +9,15 @@
 //! - [`ply`]: 3DGS PLY import/export.
 //! - [`context`]: the wgpu adapter/device and its capabilities (float atomics, subgroups,
 //!   storage-binding limit).
-//! - [`gpu`]: device-resident Gaussians and the forward pipeline (project, radix sort, tile
-//!   binning, rasterize).
+//! - [`gpu`]: device-resident Gaussians ([`gpu::DeviceGaussians`]) and the forward renderer
+//!   (project, radix sort, tile binning, rasterize; the steps of one frame are in `forward.rs`,
+//!   the radix sort in `sort.rs`, pipeline and dispatch helpers in `passes.rs`).
 //! - [`map`]: in-place edits of the device map (append with amortised growth, prune/retain by
 //!   stable compaction, rigid transform) and [`map::DeviceMap`], which keeps the Adam state in
 //!   step with them.
 //! - [`backward`]: per-Gaussian and camera-pose gradients on the device.
-//! - [`bench`](mod@bench): the render benchmark behind `mac-ego3d bench render`.
+//! - `wgsl.rs`: the WGSL/Rust contract: every constant and uniform struct shared with the
+//!   kernels, defined once in Rust and prepended to every kernel as a generated WGSL prelude.
 //! - [`training`]: L1 / SSIM / depth-L1 loss with gradients and Adam on the device, plus the CPU
 //!   reference loss.
 //!
@@ -25,14 +27,19 @@
 //! `TrainingKernels::adam_step`.
 
 pub mod backward;
-pub mod bench;
 pub mod context;
+mod forward;
+mod gaussians;
 pub mod gpu;
 pub mod map;
+mod passes;
 pub mod ply;
+mod profile;
 pub mod reference;
+mod sort;
 pub mod training;
 pub mod types;
+mod wgsl;
 
 pub use types::{
     Camera, GaussianCloud, GaussianGradients, ImageGradients, PoseGradient, RasterConfig,

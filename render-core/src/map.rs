@@ -27,13 +27,20 @@ use std::ops::Range;
 
 use crate::backward::DeviceGradients;
 use crate::context::{GpuContext, GpuError};
-use crate::gpu::{
-    COMMON_WGSL, DeviceGaussians, LayoutId, PARAMETER_GROUP_WIDTHS, PARAMETER_GROUPS, SCAN_WGSL,
-    ScanPipelines, U32_BYTES, VEC4_BYTES, WORKGROUP_SIZE, bind_group, compute_pipeline,
-    dispatch_linear, four_u32, inclusive_scan,
+use bytemuck::Zeroable;
+
+use crate::gaussians::{PARAMETER_GROUP_WIDTHS, PARAMETER_GROUPS};
+use crate::gpu::{DeviceGaussians, LayoutId};
+use crate::passes::{
+    ScanPipelines, U32_BYTES, VEC4_BYTES, bind_group, compute_pipeline, dispatch_linear,
+    inclusive_scan,
 };
 use crate::training::{AdamConfig, DeviceAdam, TrainingKernels, zero_moments};
 use crate::types::{GaussianCloud, RigidTransform};
+use crate::wgsl::{
+    CompactParams, GroupTransform, PruneParams, TRANSFORM_ALL, TRANSFORM_BY_GROUP, TransformParams,
+    WORKGROUP_SIZE, source,
+};
 
 /// Capacity after a growth is at least the old capacity times
 /// GROWTH_NUMERATOR / GROWTH_DENOMINATOR (amortised O(1) copies per appended Gaussian).
@@ -42,11 +49,7 @@ const GROWTH_DENOMINATOR: u64 = 2;
 /// Smallest capacity a growth produces, so that small maps do not re-allocate per batch.
 pub const MIN_GROWN_CAPACITY: usize = 256;
 
-const PRUNE_WGSL: &str = include_str!("kernels/prune.wgsl");
-const COMPACT_WGSL: &str = include_str!("kernels/compact.wgsl");
-const TRANSFORM_WGSL: &str = include_str!("kernels/transform.wgsl");
-
-/// Which Gaussians a pruning pass removes (SPEC section 3). A Gaussian with any non-finite
+/// Which Gaussians a pruning pass removes (docs/method.md, One agent: Pruning). A Gaussian with any non-finite
 /// parameter is always removed.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PruneCriteria {
@@ -70,7 +73,7 @@ impl Default for PruneCriteria {
 }
 
 impl PruneCriteria {
-    /// tau_s for Replica-like scenes (SPEC section 3).
+    /// tau_s for Replica-like scenes (docs/method.md, One agent: Pruning).
     pub const REPLICA_MAX_SCALE_M: f32 = 0.25;
 
     fn validate(&self) -> Result<(), GpuError> {
@@ -153,36 +156,18 @@ pub struct PruneReport {
     pub removed: usize,
 }
 
-/// Mirrors `PruneParams` in prune.wgsl.
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct PruneParams {
-    count: [u32; 4],
-    thresholds: [f32; 4],
-}
-
-/// Mirrors `GroupTransform` in transform.wgsl.
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct GroupTransform {
-    rows: [[f32; 4]; 3],
-    rotation_quaternion: [f32; 4],
-}
-
 impl From<&RigidTransform> for GroupTransform {
     fn from(transform: &RigidTransform) -> Self {
         let r = transform.rotation;
         let t = transform.translation;
         Self {
-            rows: std::array::from_fn(|i| [r[i][0], r[i][1], r[i][2], t[i]]),
+            row0: [r[0][0], r[0][1], r[0][2], t[0]],
+            row1: [r[1][0], r[1][1], r[1][2], t[1]],
+            row2: [r[2][0], r[2][1], r[2][2], t[2]],
             rotation_quaternion: transform.rotation_quaternion(),
         }
     }
 }
-
-/// `group_mode` of transform.wgsl: one transform for every Gaussian, or one per group.
-const TRANSFORM_ALL: u32 = 0;
-const TRANSFORM_BY_GROUP: u32 = 1;
 
 /// Compiled kernels of the map edits; one set per [`GpuContext`], built on first use.
 pub(crate) struct MapKernels {
@@ -197,18 +182,14 @@ impl MapKernels {
     fn of(context: &GpuContext) -> &MapKernels {
         context.map_kernels.get_or_init(|| {
             let device = &context.device;
-            let with_common = |source: &str| format!("{COMMON_WGSL}\n{source}");
+            let pipeline =
+                |label, parts: &[&str], entry| compute_pipeline(device, label, parts, entry);
             MapKernels {
-                prune: compute_pipeline(device, "prune", &with_common(PRUNE_WGSL), "main"),
-                compact: compute_pipeline(device, "compact", &with_common(COMPACT_WGSL), "main"),
-                transform: compute_pipeline(
-                    device,
-                    "transform",
-                    &with_common(TRANSFORM_WGSL),
-                    "main",
-                ),
-                scan_blocks: compute_pipeline(device, "scan_blocks", SCAN_WGSL, "scan_blocks"),
-                scan_add: compute_pipeline(device, "scan_add", SCAN_WGSL, "add_block_offsets"),
+                prune: pipeline("prune", &[source::PRUNE], "main"),
+                compact: pipeline("compact", &[source::COMPACT], "main"),
+                transform: pipeline("transform", &[source::TRANSFORM], "main"),
+                scan_blocks: pipeline("scan_blocks", &[source::SCAN], "scan_blocks"),
+                scan_add: pipeline("scan_add", &[source::SCAN], "add_block_offsets"),
             }
         })
     }
@@ -290,7 +271,12 @@ fn compact_buffer(
 ) -> Result<wgpu::Buffer, GpuError> {
     let destination =
         context.storage_buffer("compacted", u64::from(capacity) * group_stride(width))?;
-    let params = context.uniform_buffer("compact params", &four_u32([count, width, 0, 0]));
+    let params = CompactParams {
+        count,
+        width,
+        ..Zeroable::zeroed()
+    };
+    let params = context.uniform_buffer("compact params", bytemuck::bytes_of(&params));
     let group = bind_group(
         context,
         &kernels.compact,
@@ -314,6 +300,32 @@ fn compact_buffer(
 enum Selection<'a> {
     Criteria(&'a PruneCriteria),
     Mask(&'a [bool]),
+}
+
+/// One flag per Gaussian before a compaction: whether it was kept. A mask is its own answer;
+/// the prune kernel's verdicts are read back from the scanned flags (the compaction's only
+/// read-back: the scan gives both the flags and the kept count).
+fn kept_flags(
+    context: &GpuContext,
+    selection: &Selection,
+    kept_through: &wgpu::Buffer,
+    count: u32,
+) -> Result<Vec<bool>, GpuError> {
+    Ok(match selection {
+        Selection::Mask(keep) => keep.to_vec(),
+        Selection::Criteria(_) => {
+            let kept_through: Vec<u32> = context.read_vec(kept_through, count as usize)?;
+            let mut previous = 0;
+            kept_through
+                .iter()
+                .map(|&through| {
+                    let kept = through > previous;
+                    previous = through;
+                    kept
+                })
+                .collect()
+        }
+    })
 }
 
 impl DeviceGaussians {
@@ -459,7 +471,12 @@ impl DeviceGaussians {
         };
         let params_buffer = context.uniform_buffer(
             "transform params",
-            &four_u32([self.count, mode, transforms.len() as u32, 0]),
+            bytemuck::bytes_of(&TransformParams {
+                gaussian_count: self.count,
+                group_mode: mode,
+                transform_count: transforms.len() as u32,
+                padding0: 0,
+            }),
         );
         let transforms_buffer = context.storage_buffer_init(
             "transforms",
@@ -524,45 +541,7 @@ impl DeviceGaussians {
         let kernels = MapKernels::of(context);
         let mut encoder = context.device.create_command_encoder(&Default::default());
         // Keep flags (0/1 per Gaussian), turned in place into their inclusive prefix sum.
-        let kept_through = match selection {
-            Selection::Criteria(criteria) => {
-                let flags = context.storage_buffer("keep flags", u64::from(n) * U32_BYTES)?;
-                let params = PruneParams {
-                    count: [n, 0, 0, 0],
-                    thresholds: criteria.thresholds(),
-                };
-                let params_buffer =
-                    context.uniform_buffer("prune params", bytemuck::bytes_of(&params));
-                let group = bind_group(
-                    context,
-                    &kernels.prune,
-                    &[
-                        (0, &params_buffer),
-                        (1, &self.means),
-                        (2, &self.log_scales),
-                        (3, &self.quaternions),
-                        (4, &self.opacity_logits),
-                        (5, &self.colours),
-                        (6, &flags),
-                    ],
-                );
-                dispatch_linear(
-                    &mut encoder,
-                    &kernels.prune,
-                    &group,
-                    n.div_ceil(WORKGROUP_SIZE),
-                );
-                flags
-            }
-            Selection::Mask(keep) => {
-                let flags: Vec<u32> = keep.iter().map(|&kept| u32::from(kept)).collect();
-                context.storage_buffer_init(
-                    "keep flags",
-                    bytemuck::cast_slice(&flags),
-                    VEC4_BYTES as usize,
-                )
-            }
-        };
+        let kept_through = self.encode_keep_flags(context, kernels, &mut encoder, &selection)?;
         inclusive_scan(context, &mut encoder, kernels.scan(), &kept_through, n)?;
         let parameters = self.parameter_buffers();
         let mut compacted = Vec::with_capacity(PARAMETER_GROUPS);
@@ -597,22 +576,7 @@ impl DeviceGaussians {
             }
         }
         context.queue.submit([encoder.finish()]);
-        let kept = match selection {
-            Selection::Mask(keep) => keep.to_vec(),
-            Selection::Criteria(_) => {
-                // The only read-back: the scan gives both the flags and the kept count.
-                let kept_through: Vec<u32> = context.read_vec(&kept_through, self.len())?;
-                let mut previous = 0;
-                kept_through
-                    .iter()
-                    .map(|&through| {
-                        let kept = through > previous;
-                        previous = through;
-                        kept
-                    })
-                    .collect()
-            }
-        };
+        let kept = kept_flags(context, &selection, &kept_through, n)?;
         let kept_count = kept.iter().filter(|&&k| k).count();
         let removed = self.len() - kept_count;
         let [means, log_scales, quaternions, opacity_logits, colours]: [wgpu::Buffer;
@@ -637,6 +601,57 @@ impl DeviceGaussians {
             adam.gaussian_layout = self.layout;
         }
         Ok(PruneReport { kept, removed })
+    }
+
+    /// Encodes the keep flags of `selection` (1 per kept Gaussian): the prune kernel's
+    /// verdicts, or the caller's mask uploaded.
+    fn encode_keep_flags(
+        &self,
+        context: &GpuContext,
+        kernels: &MapKernels,
+        encoder: &mut wgpu::CommandEncoder,
+        selection: &Selection,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let n = self.count;
+        Ok(match *selection {
+            Selection::Criteria(criteria) => {
+                let flags = context.storage_buffer("keep flags", u64::from(n) * U32_BYTES)?;
+                let [opacity_logit_threshold, max_log_scale, max_elongation, _] =
+                    criteria.thresholds();
+                let params = PruneParams {
+                    count: n,
+                    opacity_logit_threshold,
+                    max_log_scale,
+                    max_elongation,
+                    ..Zeroable::zeroed()
+                };
+                let params_buffer =
+                    context.uniform_buffer("prune params", bytemuck::bytes_of(&params));
+                let group = bind_group(
+                    context,
+                    &kernels.prune,
+                    &[
+                        (0, &params_buffer),
+                        (1, &self.means),
+                        (2, &self.log_scales),
+                        (3, &self.quaternions),
+                        (4, &self.opacity_logits),
+                        (5, &self.colours),
+                        (6, &flags),
+                    ],
+                );
+                dispatch_linear(encoder, &kernels.prune, &group, n.div_ceil(WORKGROUP_SIZE));
+                flags
+            }
+            Selection::Mask(keep) => {
+                let flags: Vec<u32> = keep.iter().map(|&kept| u32::from(kept)).collect();
+                context.storage_buffer_init(
+                    "keep flags",
+                    bytemuck::cast_slice(&flags),
+                    VEC4_BYTES as usize,
+                )
+            }
+        })
     }
 }
 

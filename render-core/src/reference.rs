@@ -6,7 +6,7 @@
 //! compared pixel by pixel, and it provides the analytic backward pass that the GPU backward is
 //! checked against and that finite differences check here.
 //!
-//! Image model (SPEC section 2), per pixel `p` with splats sorted front to back by camera z
+//! Image model (docs/method.md, The map), per pixel `p` with splats sorted front to back by camera z
 //! (ties broken by Gaussian index):
 //! `alpha_i = min(max_alpha, opacity_i * exp(-0.5 d^T conic_i d))`, `d = p - mean2d_i`,
 //! splats with `alpha_i < min_alpha` skipped, compositing stops before a splat that would
@@ -243,7 +243,7 @@ struct PixelResult {
 }
 
 /// A splat evaluated at a pixel centre, where it reaches the pixel.
-pub(crate) struct SplatAtPixel {
+pub struct SplatAtPixel {
     /// Pixel centre minus the splat's mean.
     pub offset: [f64; 2],
     /// exp(power), before the opacity.
@@ -258,7 +258,7 @@ pub(crate) struct SplatAtPixel {
 /// match it to a few ulps: they step exp along rows, see `row_gaussian_values` in
 /// common.wgsl); `None` where it adds nothing (positive power, or alpha below
 /// `min_splat_alpha`).
-pub(crate) fn splat_at_pixel(
+pub fn splat_at_pixel(
     splat: &ProjectedGaussian,
     pixel: [f64; 2],
     config: &RasterConfig,

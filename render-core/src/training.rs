@@ -1,7 +1,8 @@
 //! Image losses (L1, SSIM, depth L1) with gradients, and Adam, on the device; plus the CPU
 //! reference of the loss used as the test oracle.
 //!
-//! Loss (SPEC sections 3 and 4):
+//! Loss (docs/method.md, One agent: Map optimisation; the consensus's joint refinement uses the
+//! same loss):
 //! `w_l1 * mean|rgb - target| + w_ssim * (1 - mean SSIM) + w_depth * mean_valid |d - d*| / truncation`
 //! where rgb and d are the rendered (alpha-composited) colour and depth, the means run over
 //! pixels and channels, and the depth mean over pixels whose target depth is > 0 (the validity
@@ -10,12 +11,15 @@
 
 use crate::backward::{DeviceGradients, DeviceImageGradients};
 use crate::context::{GpuContext, GpuError};
-use crate::gpu::{
-    DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, PARAMETER_GROUP_WIDTHS, PARAMETER_GROUPS,
-    U32_BYTES, VEC4_BYTES, WORKGROUP_SIZE, bind_group, compute_pipeline, dispatch_linear,
-};
+use crate::gaussians::{PARAMETER_GROUP_WIDTHS, PARAMETER_GROUPS};
+use crate::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId};
+use crate::passes::{U32_BYTES, VEC4_BYTES, bind_group, compute_pipeline, dispatch_linear};
 use crate::types::{Camera, GaussianCloud, ImageGradients, RenderOutput};
-use bytemuck::{Pod, Zeroable};
+use crate::wgsl::{
+    AdamParams, LOSS_RUN, LOSS_WORKGROUP_SIZE, LossParams, ROW_SUMS_PER_PIXEL,
+    SSIM_COEFFICIENTS_PER_PIXEL, WORKGROUP_SIZE, source,
+};
+use bytemuck::Zeroable;
 
 /// SSIM window half-width (11x11 window) and standard deviation.
 pub const SSIM_WINDOW_RADIUS: i32 = 5;
@@ -23,15 +27,8 @@ pub const SSIM_WINDOW_SIGMA: f64 = 1.5;
 /// SSIM stabilisers for data range 1: (0.01)^2 and (0.03)^2.
 pub const SSIM_C1: f64 = 0.0001;
 pub const SSIM_C2: f64 = 0.0009;
-const SSIM_COEFFICIENTS_PER_PIXEL: u64 = 9;
-/// f32 horizontal window sums per pixel (STATS_PER_PIXEL in loss.wgsl).
-const ROW_SUMS_PER_PIXEL: u64 = 15;
-/// Pixels per invocation of the loss kernels (RUN in loss.wgsl).
-const LOSS_RUN: u32 = 64;
-/// Invocations per workgroup of the loss kernels (WORKGROUP_SIZE in loss.wgsl).
-const LOSS_WORKGROUP_SIZE: u32 = 64;
 
-/// Loss weights; [`Default`] is the mapping loss of SPEC section 3.
+/// Loss weights; [`Default`] is the mapping loss (docs/method.md, One agent: Map optimisation).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LossWeights {
     pub l1: f32,
@@ -281,23 +278,30 @@ impl DeviceTarget {
     }
 }
 
-/// Mirrors `LossParams` in loss.wgsl.
-#[repr(C)]
-#[derive(Clone, Copy, Pod, Zeroable)]
-struct LossParams {
-    image_size: [u32; 4],
-    weights: [f32; 4],
-    normalisers: [f32; 4],
-    partials: [u32; 4],
-}
-
-/// Mirrors `AdamParams` in adam.wgsl.
-#[repr(C)]
-#[derive(Clone, Copy, Pod, Zeroable)]
-struct AdamParams {
-    count: [u32; 4],
-    rates: [f32; 4],
-    corrections: [f32; 4],
+/// The loss kernels' parameters for `camera`'s image: run counts (runs of LOSS_RUN pixels per
+/// row and per column), weights, and the normalisers that turn sums into means.
+fn loss_params(camera: &Camera, target: &DeviceTarget, weights: &LossWeights) -> LossParams {
+    let pixels = camera.pixel_count() as u64;
+    let depth_normaliser = if target.valid_depth_pixels > 0 {
+        1.0 / target.valid_depth_pixels as f32
+    } else {
+        0.0
+    };
+    let runs_per_column = camera.height.div_ceil(LOSS_RUN);
+    LossParams {
+        width: camera.width,
+        height: camera.height,
+        runs_per_row: camera.width.div_ceil(LOSS_RUN),
+        runs_per_column,
+        w_l1: weights.l1,
+        w_ssim: weights.ssim,
+        w_depth: weights.depth,
+        inverse_depth_truncation: 1.0 / weights.depth_truncation,
+        rgb_normaliser: 1.0 / (3.0 * pixels as f32),
+        depth_normaliser,
+        column_run_count: runs_per_column * camera.width,
+        ..Zeroable::zeroed()
+    }
 }
 
 /// A loss evaluated on the device; the value stays there until [`DeviceLoss::read`].
@@ -328,7 +332,7 @@ pub struct AdamConfig {
 }
 
 impl Default for AdamConfig {
-    /// SPEC section 3 mapping rates (the mean rate is to be multiplied by the scene scale).
+    /// The mapping rates of docs/method.md, One agent: Map optimisation (the mean rate is to be multiplied by the scene scale).
     fn default() -> Self {
         Self {
             means: 5e-6,
@@ -450,17 +454,14 @@ pub struct TrainingKernels {
     adam: wgpu::ComputePipeline,
 }
 
-const LOSS_WGSL: &str = include_str!("kernels/loss.wgsl");
-const ADAM_WGSL: &str = include_str!("kernels/adam.wgsl");
-
 impl TrainingKernels {
     pub fn new(context: &GpuContext) -> Self {
         let device = &context.device;
         Self {
-            ssim_rows: compute_pipeline(device, "ssim_rows", LOSS_WGSL, "ssim_rows"),
-            ssim_columns: compute_pipeline(device, "ssim_columns", LOSS_WGSL, "ssim_columns"),
-            loss_rows: compute_pipeline(device, "loss_rows", LOSS_WGSL, "loss_rows"),
-            adam: compute_pipeline(device, "adam", ADAM_WGSL, "main"),
+            ssim_rows: compute_pipeline(device, "ssim_rows", &[source::LOSS], "ssim_rows"),
+            ssim_columns: compute_pipeline(device, "ssim_columns", &[source::LOSS], "ssim_columns"),
+            loss_rows: compute_pipeline(device, "loss_rows", &[source::LOSS], "loss_rows"),
+            adam: compute_pipeline(device, "adam", &[source::ADAM], "main"),
         }
     }
 
@@ -484,36 +485,21 @@ impl TrainingKernels {
             ));
         }
         let pixels = camera.pixel_count() as u64;
-        let valid_normaliser = if target.valid_depth_pixels > 0 {
-            1.0 / target.valid_depth_pixels as f32
-        } else {
-            0.0
-        };
-        let runs_per_row = camera.width.div_ceil(LOSS_RUN);
-        let runs_per_column = camera.height.div_ceil(LOSS_RUN);
-        let row_runs = runs_per_row * camera.height;
-        let column_runs = runs_per_column * camera.width;
-        let params = LossParams {
-            image_size: [camera.width, camera.height, runs_per_row, runs_per_column],
-            weights: [
-                weights.l1,
-                weights.ssim,
-                weights.depth,
-                1.0 / weights.depth_truncation,
-            ],
-            normalisers: [1.0 / (3.0 * pixels as f32), valid_normaliser, 0.0, 0.0],
-            partials: [column_runs, 0, 0, 0],
-        };
+        let params = loss_params(camera, target, weights);
+        let row_runs = params.runs_per_row * camera.height;
+        let column_runs = params.column_run_count;
         let params_buffer = context.uniform_buffer("loss params", bytemuck::bytes_of(&params));
         let coefficients = context.storage_buffer(
             "ssim coefficients",
-            pixels * SSIM_COEFFICIENTS_PER_PIXEL * U32_BYTES,
+            pixels * u64::from(SSIM_COEFFICIENTS_PER_PIXEL) * U32_BYTES,
         )?;
         let partial_count = column_runs + row_runs;
         let loss_partials =
             context.storage_buffer("loss partials", u64::from(partial_count) * VEC4_BYTES)?;
-        let row_sums =
-            context.storage_buffer("ssim row sums", pixels * ROW_SUMS_PER_PIXEL * U32_BYTES)?;
+        let row_sums = context.storage_buffer(
+            "ssim row sums",
+            pixels * u64::from(ROW_SUMS_PER_PIXEL) * U32_BYTES,
+        )?;
         let mut encoder = context.device.create_command_encoder(&Default::default());
         let ssim_rows_group = bind_group(
             context,
@@ -566,11 +552,10 @@ impl TrainingKernels {
     }
 
     /// One Adam step on every group with a non-zero learning rate, over every Gaussian (plain
-    /// Adam: one the frame did not see still moves by its momentum). A "selective" step over the
-    /// Gaussians in view only was tried: 4-6 ms cheaper at 81k Gaussians, but redkitchen 0..300
-    /// mapped 0.2 dB worse, real-time (17.44 vs 17.67 dB) and after 300 refinement iterations
-    /// (20.35 vs 20.51 dB), two runs each: with so few iterations per keyframe the momentum
-    /// carries the Gaussians on in the right direction. Submits work; reads nothing back.
+    /// Adam: one the frame did not see still moves by its momentum). Not a "selective" step over
+    /// the Gaussians in view only: it is slightly cheaper but mapped measurably worse (see
+    /// docs/benchmarks.md): with so few iterations per keyframe the momentum carries the
+    /// Gaussians on in the right direction. Submits work; reads nothing back.
     pub fn adam_step(
         &self,
         context: &GpuContext,
@@ -593,12 +578,8 @@ impl TrainingKernels {
         adam.step += 1;
         let config = adam.config;
         let t = adam.step as i32;
-        let corrections = [
-            1.0 / (1.0 - config.beta1.powi(t)),
-            1.0 / (1.0 - config.beta2.powi(t)),
-            0.0,
-            0.0,
-        ];
+        let bias_correction1 = 1.0 / (1.0 - config.beta1.powi(t));
+        let bias_correction2 = 1.0 / (1.0 - config.beta2.powi(t));
         let groups = [
             (config.means, &gaussians.means, &gradients.v_means),
             (
@@ -626,9 +607,14 @@ impl TrainingKernels {
                 continue;
             }
             let params = AdamParams {
-                count: [elements, 0, 0, 0],
-                rates: [learning_rate, config.beta1, config.beta2, config.epsilon],
-                corrections,
+                count: elements,
+                learning_rate,
+                beta1: config.beta1,
+                beta2: config.beta2,
+                epsilon: config.epsilon,
+                bias_correction1,
+                bias_correction2,
+                ..Zeroable::zeroed()
             };
             let params_buffer = context.uniform_buffer("adam params", bytemuck::bytes_of(&params));
             let (m, v) = &adam.moments[group];

@@ -9,7 +9,10 @@
 //! - Colours are SH degree 0 already converted to linear RGB in `[0, 1]` (not `f_dc`); see
 //!   [`crate::ply`] for the `f_dc` conversion used in files.
 
-/// Activation and rasterisation constants from SPEC section 2 and the 3DGS reference.
+use glam::{DMat3, DQuat, DVec3, Mat3, Quat, Vec3};
+
+/// Activation and rasterisation constants of the image model (docs/method.md, The map) and the
+/// 3DGS reference.
 pub mod constants {
     /// Side of a square screen tile in pixels.
     pub const TILE_SIZE: u32 = 16;
@@ -42,6 +45,12 @@ pub mod constants {
     pub const DEPTH_KEY_BITS: u32 = 24;
     /// Low mantissa bits of the camera z the depth sort key drops.
     pub const DEPTH_KEY_DROPPED_BITS: u32 = 4;
+    /// The largest depth sort key of a visible splat, one below the culled key's
+    /// [`DEPTH_KEY_BITS`] low bits.
+    pub const LARGEST_VISIBLE_DEPTH_KEY: u32 = (1 << DEPTH_KEY_BITS) - 2;
+    /// The depth sort key of a culled splat: above every visible key, so culled splats sort
+    /// last.
+    pub const CULLED_DEPTH_KEY: u32 = u32::MAX;
 }
 
 /// The key splats are depth-sorted by (ascending; ties keep the Gaussian order): camera z's
@@ -50,14 +59,13 @@ pub mod constants {
 /// bits. Positive floats order like their bit patterns, so the key orders like z. Dropping 4 of
 /// the 23 mantissa bits merges depths closer than 2^-19 of z (6 um at 3 m) into one key; 24
 /// bits then span 2^(24+4-23) = 32 binades above the near plane (0.01 m to 4.3e7 m). Farther
-/// splats share the largest key; `u32::MAX` (culled) stays above every visible key.
+/// splats share the largest key; [`constants::CULLED_DEPTH_KEY`] stays above every visible key.
 /// project.wgsl computes the same key.
 pub fn depth_sort_key(camera_z: f32) -> u32 {
-    let largest_visible = (1u32 << constants::DEPTH_KEY_BITS) - 2;
     let above_near = camera_z
         .to_bits()
         .saturating_sub(constants::NEAR_PLANE.to_bits());
-    (above_near >> constants::DEPTH_KEY_DROPPED_BITS).min(largest_visible)
+    (above_near >> constants::DEPTH_KEY_DROPPED_BITS).min(constants::LARGEST_VISIBLE_DEPTH_KEY)
 }
 
 /// A set of 3D Gaussians in structure-of-arrays layout, all vectors of equal length.
@@ -232,106 +240,54 @@ impl RigidTransform {
         }
     }
 
+    /// The rotation as a glam matrix (glam is column-major, `rotation` row-major).
+    fn matrix(&self) -> Mat3 {
+        Mat3::from_cols_array_2d(&self.rotation).transpose()
+    }
+
+    fn from_parts(rotation: Mat3, translation: Vec3) -> Self {
+        Self {
+            rotation: rotation.transpose().to_cols_array_2d(),
+            translation: translation.to_array(),
+        }
+    }
+
     /// The inverse transform.
     pub fn inverse(&self) -> Self {
-        let r = &self.rotation;
-        let rotation_t = [
-            [r[0][0], r[1][0], r[2][0]],
-            [r[0][1], r[1][1], r[2][1]],
-            [r[0][2], r[1][2], r[2][2]],
-        ];
-        let t = self.translation;
-        let translation = [0, 1, 2].map(|i| {
-            -(rotation_t[i][0] * t[0] + rotation_t[i][1] * t[1] + rotation_t[i][2] * t[2])
-        });
-        Self {
-            rotation: rotation_t,
-            translation,
-        }
+        let rotation_t = self.matrix().transpose();
+        Self::from_parts(rotation_t, -(rotation_t * Vec3::from(self.translation)))
     }
 
     /// `self * inner`: applies `inner` first, then `self`.
     pub fn compose(&self, inner: &RigidTransform) -> Self {
-        let (a, b) = (&self.rotation, &inner.rotation);
-        let rotation = std::array::from_fn(|i| {
-            std::array::from_fn(|j| (0..3).map(|k| a[i][k] * b[k][j]).sum())
-        });
-        Self {
-            rotation,
-            translation: self.transform_point(inner.translation),
-        }
+        Self::from_parts(
+            self.matrix() * inner.matrix(),
+            Vec3::from(self.transform_point(inner.translation)),
+        )
     }
 
     /// The unit quaternion `[w, x, y, z]` of the rotation (with `w >= 0`), computed in f64
-    /// with Shepperd's method (stable for every angle) and normalised.
+    /// (glam's `from_mat3` pivots on the largest component, so it is stable for every angle)
+    /// and normalised.
     pub fn rotation_quaternion(&self) -> [f32; 4] {
-        let r = self.rotation.map(|row| row.map(f64::from));
-        let trace = r[0][0] + r[1][1] + r[2][2];
-        // Pivot on the largest of w^2, x^2, y^2, z^2 (times 4) so the division is well
-        // conditioned.
-        let q = if trace >= r[0][0] && trace >= r[1][1] && trace >= r[2][2] {
-            let s = 2.0 * (1.0 + trace).sqrt();
-            [
-                0.25 * s,
-                (r[2][1] - r[1][2]) / s,
-                (r[0][2] - r[2][0]) / s,
-                (r[1][0] - r[0][1]) / s,
-            ]
-        } else if r[0][0] >= r[1][1] && r[0][0] >= r[2][2] {
-            let s = 2.0 * (1.0 + r[0][0] - r[1][1] - r[2][2]).sqrt();
-            [
-                (r[2][1] - r[1][2]) / s,
-                0.25 * s,
-                (r[0][1] + r[1][0]) / s,
-                (r[0][2] + r[2][0]) / s,
-            ]
-        } else if r[1][1] >= r[2][2] {
-            let s = 2.0 * (1.0 + r[1][1] - r[0][0] - r[2][2]).sqrt();
-            [
-                (r[0][2] - r[2][0]) / s,
-                (r[0][1] + r[1][0]) / s,
-                0.25 * s,
-                (r[1][2] + r[2][1]) / s,
-            ]
-        } else {
-            let s = 2.0 * (1.0 + r[2][2] - r[0][0] - r[1][1]).sqrt();
-            [
-                (r[1][0] - r[0][1]) / s,
-                (r[0][2] + r[2][0]) / s,
-                (r[1][2] + r[2][1]) / s,
-                0.25 * s,
-            ]
-        };
-        let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
-        q.map(|v| (sign * v / norm) as f32)
+        let q = DQuat::from_mat3(&self.matrix().as_dmat3()).normalize();
+        let q = if q.w < 0.0 { -q } else { q };
+        [q.w, q.x, q.y, q.z].map(|v| v as f32)
     }
 
     /// Applies the transform to a point.
     pub fn transform_point(&self, p: [f32; 3]) -> [f32; 3] {
-        let r = &self.rotation;
-        [0, 1, 2].map(|i| r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2] + self.translation[i])
+        (self.matrix() * Vec3::from(p) + Vec3::from(self.translation)).to_array()
     }
 
     /// Left perturbation `exp(xi) * self` with `xi = [translation (3), rotation (3)]` (see
     /// [`PoseGradient`]); used by finite-difference tests and by pose optimisers.
     pub fn left_perturbed(&self, xi: [f64; 6]) -> Self {
         let (delta_rotation, delta_translation) = se3_exp(xi);
-        let r = self.rotation.map(|row| row.map(f64::from));
-        let t = self.translation.map(f64::from);
-        let mut rotation = [[0.0f32; 3]; 3];
-        let mut translation = [0.0f32; 3];
-        for i in 0..3 {
-            for j in 0..3 {
-                rotation[i][j] = (0..3).map(|k| delta_rotation[i][k] * r[k][j]).sum::<f64>() as f32;
-            }
-            translation[i] = ((0..3).map(|k| delta_rotation[i][k] * t[k]).sum::<f64>()
-                + delta_translation[i]) as f32;
-        }
-        Self {
-            rotation,
-            translation,
-        }
+        let rotation = delta_rotation * self.matrix().as_dmat3();
+        let translation =
+            delta_rotation * DVec3::from(self.translation.map(f64::from)) + delta_translation;
+        Self::from_parts(rotation.as_mat3(), translation.as_vec3())
     }
 }
 
@@ -350,56 +306,30 @@ impl From<&nalgebra::Isometry3<f64>> for RigidTransform {
 
 /// Hamilton product `a * b` of quaternions `[w, x, y, z]` (rotation `b` first, then `a`).
 pub fn quaternion_multiply(a: [f32; 4], b: [f32; 4]) -> [f32; 4] {
-    let [aw, ax, ay, az] = a;
-    let [bw, bx, by, bz] = b;
-    [
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ]
+    let quaternion = |[w, x, y, z]: [f32; 4]| Quat::from_xyzw(x, y, z, w);
+    let product = quaternion(a) * quaternion(b);
+    [product.w, product.x, product.y, product.z]
 }
 
 /// Rotation matrix (row-major) of a quaternion `[w, x, y, z]`, normalised here.
 pub(crate) fn rotation_from_quaternion_f64(q: [f64; 4]) -> [[f64; 3]; 3] {
-    let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
-    let [w, x, y, z] = q.map(|v| v / norm);
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
+    let [w, x, y, z] = q;
+    let matrix = DMat3::from_quat(DQuat::from_xyzw(x, y, z, w).normalize());
+    matrix.transpose().to_cols_array_2d()
 }
 
 /// SE(3) exponential with `xi = [rho, phi]`: returns (rotation, translation) where the
 /// translation is `V(phi) * rho` (the exact group exponential).
-pub(crate) fn se3_exp(xi: [f64; 6]) -> ([[f64; 3]; 3], [f64; 3]) {
-    let rho = [xi[0], xi[1], xi[2]];
-    let phi = [xi[3], xi[4], xi[5]];
-    let theta = (phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]).sqrt();
-    let skew = [
-        [0.0, -phi[2], phi[1]],
-        [phi[2], 0.0, -phi[0]],
-        [-phi[1], phi[0], 0.0],
-    ];
-    let mut skew2 = [[0.0; 3]; 3];
-    for i in 0..3 {
-        for j in 0..3 {
-            skew2[i][j] = (0..3).map(|k| skew[i][k] * skew[k][j]).sum();
-        }
-    }
+pub(crate) fn se3_exp(xi: [f64; 6]) -> (DMat3, DVec3) {
+    let rho = DVec3::new(xi[0], xi[1], xi[2]);
+    let phi = DVec3::new(xi[3], xi[4], xi[5]);
+    let theta = phi.length();
+    let skew = DMat3::from_cols(
+        DVec3::new(0.0, phi.z, -phi.y),
+        DVec3::new(-phi.z, 0.0, phi.x),
+        DVec3::new(phi.y, -phi.x, 0.0),
+    );
+    let skew2 = skew * skew;
     // Taylor expansions below this angle avoid 0/0 in the closed forms.
     const SMALL_ANGLE: f64 = 1e-8;
     let (a, b, c) = if theta < SMALL_ANGLE {
@@ -411,17 +341,9 @@ pub(crate) fn se3_exp(xi: [f64; 6]) -> ([[f64; 3]; 3], [f64; 3]) {
             (theta - theta.sin()) / (theta * theta * theta),
         )
     };
-    let mut rotation = [[0.0; 3]; 3];
-    let mut v = [[0.0; 3]; 3];
-    for i in 0..3 {
-        for j in 0..3 {
-            let identity = if i == j { 1.0 } else { 0.0 };
-            rotation[i][j] = identity + a * skew[i][j] + b * skew2[i][j];
-            v[i][j] = identity + b * skew[i][j] + c * skew2[i][j];
-        }
-    }
-    let translation = [0, 1, 2].map(|i| (0..3).map(|k| v[i][k] * rho[k]).sum());
-    (rotation, translation)
+    let rotation = DMat3::IDENTITY + skew * a + skew2 * b;
+    let v = DMat3::IDENTITY + skew * b + skew2 * c;
+    (rotation, v * rho)
 }
 
 /// A pinhole camera (OpenCV axes, no distortion).
@@ -546,8 +468,9 @@ pub struct ImageGradients {
     pub v_alpha: Vec<f32>,
 }
 
-/// Rasterisation thresholds. [`RasterConfig::default`] is SPEC section 2 and is what the
-/// wgpu renderer uses; the smooth variant exists for finite-difference tests only.
+/// Rasterisation thresholds. [`RasterConfig::default`] holds the image model's thresholds
+/// (docs/method.md, The map: [`constants::MIN_SPLAT_ALPHA`], [`constants::MAX_SPLAT_ALPHA`],
+/// [`constants::MIN_TRANSMITTANCE`]) and is what the wgpu renderer uses; the smooth variant exists for finite-difference tests only.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RasterConfig {
     pub min_splat_alpha: f32,

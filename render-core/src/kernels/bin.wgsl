@@ -2,12 +2,12 @@
 // without sorting the tile/Gaussian pairs. The depth-sorted Gaussians are split into blocks
 // of bin_params.block_size; the table holds one counter per (tile, block), tile-major
 // (table[tile * block_count + block]).
-// - `gather_counts` (one invocation per element, 256 per workgroup):
+// - `gather_counts` (one invocation per element, WORKGROUP_SIZE per workgroup):
 //   sorted_tile_counts[k] = tile_counts[sorted_gaussians[k]] (inclusive-scanned next, which
 //   gives every Gaussian the depth-order index of its first pair).
 // - `pair_status_from_scan` (ONE invocation): pair_status = [pairs kept, pairs needed]; the
 //   needed count is the last scan entry, the kept count is capped at the capacity.
-// - `count_pairs` (one invocation per block, BLOCK_WORKGROUP_SIZE per workgroup, walking its
+// - `count_pairs` (one invocation per block, BIN_WORKGROUP_SIZE per workgroup, walking its
 //   block serially):
 //   adds 1 to (tile, block) for every kept pair of the block's Gaussians: the tiles of the
 //   Gaussian's rectangle (tile_rects: first tile, columns | rows << 16, and for rectangles
@@ -20,23 +20,12 @@
 // - `emit_pairs` (same walk): writes each kept pair's Gaussian at the next slot of its
 //   (tile, block) entry, so each tile's list is in depth order (blocks in order, Gaussians in
 //   order within a block). Afterwards (tile, last block) holds the end of the tile's list.
-// - `tile_ranges_from_table` (one invocation per tile, 256 per workgroup): [start, end) of each
-//   tile's list: end from (tile, last block), start from the previous tile's end (0 first).
+// - `tile_ranges_from_table` (one invocation per tile, WORKGROUP_SIZE per workgroup):
+//   [start, end) of each tile's list: end from (tile, last block), start from the previous tile's end (0 first).
 // On CPU adapters (lavapipe) one serial walk per block costs a few memory accesses per pair,
 // where a radix sort of the pairs costs dozens.
 // Invariants: only this block's invocation touches a (tile, block) entry (no atomics); the
 // table is zeroed by the launcher before `count_pairs`.
-
-struct BinParams {
-    gaussian_count: u32,
-    pair_capacity: u32,
-    tiles_x: u32,
-    tile_count: u32,
-    block_size: u32,
-    block_count: u32,
-    padding0: u32,
-    padding1: u32,
-}
 
 @group(0) @binding(0) var<uniform> bin_params: BinParams;
 @group(0) @binding(1) var<storage, read> sorted_gaussians: array<u32>;
@@ -48,11 +37,6 @@ struct BinParams {
 @group(0) @binding(8) var<storage, read_write> tile_ranges: array<vec2<u32>>;
 // [pairs kept, pairs needed]
 @group(0) @binding(9) var<storage, read_write> pair_status: array<u32>;
-
-// BIN_WORKGROUP_SIZE in gpu.rs.
-const BLOCK_WORKGROUP_SIZE: u32 = 8u;
-// Rectangles of at most this many tiles carry a mask of their binned tiles (project.wgsl).
-const MAX_MASKED_TILES: u32 = 32u;
 
 @compute @workgroup_size(1)
 fn pair_status_from_scan() {
@@ -66,16 +50,16 @@ fn pair_status_from_scan() {
 
 fn linear_index(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32,
                 workgroup_size: u32) -> u32 {
-    return (workgroup_id.y * workgroup_count.x + workgroup_id.x) * workgroup_size + local_index;
+    return linear_workgroup(workgroup_id, workgroup_count) * workgroup_size + local_index;
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP_SIZE)
 fn gather_counts(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let k = linear_index(workgroup_id, workgroup_count, local_index, 256u);
+    let k = linear_index(workgroup_id, workgroup_count, local_index, WORKGROUP_SIZE);
     if k < bin_params.gaussian_count {
         sorted_tile_counts[k] = tile_counts[sorted_gaussians[k]];
     }
@@ -131,37 +115,37 @@ fn walk_block(block: u32, emit: bool) {
     }
 }
 
-@compute @workgroup_size(BLOCK_WORKGROUP_SIZE)
+@compute @workgroup_size(BIN_WORKGROUP_SIZE)
 fn count_pairs(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let block = linear_index(workgroup_id, workgroup_count, local_index, BLOCK_WORKGROUP_SIZE);
+    let block = linear_index(workgroup_id, workgroup_count, local_index, BIN_WORKGROUP_SIZE);
     if block < bin_params.block_count {
         walk_block(block, false);
     }
 }
 
-@compute @workgroup_size(BLOCK_WORKGROUP_SIZE)
+@compute @workgroup_size(BIN_WORKGROUP_SIZE)
 fn emit_pairs(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let block = linear_index(workgroup_id, workgroup_count, local_index, BLOCK_WORKGROUP_SIZE);
+    let block = linear_index(workgroup_id, workgroup_count, local_index, BIN_WORKGROUP_SIZE);
     if block < bin_params.block_count {
         walk_block(block, true);
     }
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP_SIZE)
 fn tile_ranges_from_table(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let tile = linear_index(workgroup_id, workgroup_count, local_index, 256u);
+    let tile = linear_index(workgroup_id, workgroup_count, local_index, WORKGROUP_SIZE);
     if tile >= bin_params.tile_count {
         return;
     }

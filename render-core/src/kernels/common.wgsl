@@ -1,27 +1,24 @@
-// Shared declarations, prepended to the render kernels (project, rasterize forward and
-// backward) and the map-editing kernels by the Rust launcher.
-// Must match `RenderParams` in render-core/src/gpu.rs field for field (all 16-byte vectors).
-struct RenderParams {
-    // Rows of camera_from_world's rotation; w holds the translation component.
-    camera_row0: vec4<f32>,
-    camera_row1: vec4<f32>,
-    camera_row2: vec4<f32>,
-    // fx, fy, cx, cy
-    intrinsics: vec4<f32>,
-    // width, height, tiles_x, tiles_y
-    image_size: vec4<u32>,
-    // gaussian count, intersection count, unused, unused
-    counts: vec4<u32>,
-    // min splat alpha, max splat alpha, min transmittance, low-pass variance
-    thresholds: vec4<f32>,
-    // near plane, max log-scale, min quaternion norm^2, extent in sigmas
-    culling: vec4<f32>,
-    // min x/z, max x/z, min y/z, max y/z of projected means (frustum plus guard band)
-    frustum: vec4<f32>,
-}
+// Shared WGSL declarations and helpers. The launcher (render-core/src/wgsl.rs, `compose`)
+// puts the generated prelude (every constant and uniform struct shared with the host) and then
+// this file in front of every kernel.
 
-const TILE_SIZE: u32 = 16u;
 const FLOAT_EXPONENT_MASK: u32 = 0x7f800000u;
+
+// exp() of larger magnitudes overflows f32; the sigmoid is saturated long before (project and
+// project_backward clamp opacity logits to it).
+const MAX_ABS_OPACITY_LOGIT: f32 = 80.0;
+// Tile rectangles of at most this many tiles get a per-tile ellipse test in project (one mask
+// bit per tile), which the binning then follows.
+const MAX_MASKED_TILES: u32 = 32u;
+
+// Offsets of dL/d(mean2d, conic, opacity, colour, depth) within a Gaussian's
+// SCREEN_GRADIENT_STRIDE floats of screen_gradients (rasterize_backward writes them,
+// project_backward reads them).
+const V_MEAN2D: u32 = 0u;
+const V_CONIC: u32 = 2u;
+const V_OPACITY: u32 = 5u;
+const V_COLOUR: u32 = 6u;
+const V_DEPTH: u32 = 9u;
 
 // NaN/Inf test on the bit pattern: WGSL lets compilers assume finite maths, so `x != x`
 // is not a reliable NaN test.
@@ -44,7 +41,7 @@ const EXTENT_PIXEL_MARGIN: f32 = 0.01;
 const UNBOUNDED_EXTENT: f32 = 1e30;
 
 // Half extents (x, y) in pixels, around the splat's mean, of the pixels where its alpha
-// opacity * exp(-0.5 d^T conic d) reaches min_alpha (the params.thresholds.x of a render): the
+// opacity * exp(-0.5 d^T conic d) reaches min_alpha (the params.min_splat_alpha of a render): the
 // bounding box of the ellipse d^T conic d <= r^2, r^2 = 2 ln(opacity / min alpha), whose half
 // extents are sqrt(r^2 * covariance_xx) and sqrt(r^2 * covariance_yy), the covariance being the
 // conic's inverse. Outside the box the splat adds exactly nothing, so a rasterizer may skip it

@@ -1,5 +1,5 @@
 // compact: stable stream compaction of one per-Gaussian array, one invocation per 32-bit
-// element (256 per workgroup, linear workgroup id over a 2D grid); element e belongs to
+// element (WORKGROUP_SIZE per workgroup, linear workgroup id over a 2D grid); element e belongs to
 // Gaussian e / width. kept_through[i] is the inclusive prefix sum of the keep flags, so
 // Gaussian i is kept iff kept_through[i] exceeds kept_through[i - 1] (or is 1 for i = 0), and
 // it lands in slot kept_through[i] - 1: kept Gaussians keep their relative order.
@@ -8,26 +8,18 @@
 // the slots of kept Gaussians in `destination_values`, a different buffer, so nothing is
 // overwritten before it is read.
 
-struct CompactParams {
-    count: u32,
-    // 32-bit values per Gaussian in this array
-    width: u32,
-    padding0: u32,
-    padding1: u32,
-}
-
 @group(0) @binding(0) var<uniform> compact_params: CompactParams;
 @group(0) @binding(1) var<storage, read> kept_through: array<u32>;
 @group(0) @binding(2) var<storage, read> source_values: array<u32>;
 @group(0) @binding(3) var<storage, read_write> destination_values: array<u32>;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP_SIZE)
 fn main(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let element = linear_workgroup(workgroup_id, workgroup_count) * 256u + local_index;
+    let element = linear_workgroup(workgroup_id, workgroup_count) * WORKGROUP_SIZE + local_index;
     let width = compact_params.width;
     if element >= compact_params.count * width {
         return;

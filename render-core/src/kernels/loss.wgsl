@@ -2,14 +2,14 @@
 // and its gradient w.r.t. the rendered rgb and depth. The 11x11 Gaussian window (sigma 1.5)
 // is separable and the padding is ZERO (3DGS convention), so every windowed sum is a
 // horizontal pass over rows and a vertical pass over columns, in either order.
-// Thread mapping: every kernel is one invocation per RUN = 64 consecutive pixels of one row
+// Thread mapping: every kernel is one invocation per LOSS_RUN = 64 consecutive pixels of one row
 // (horizontal passes) or one column (vertical pass), 64 invocations per workgroup, linear run
 // index over a 2D grid. An invocation streams its run through an 11-entry window held in
 // registers (s0 .. s10, shifted by one pixel per step), so each input is loaded about once per
 // output instead of 11 times: on CPU adapters (lavapipe) every load is a per-lane scalar
 // gather and dominates the cost.
 // - `ssim_rows`: row sums of x, y, x^2, y^2, xy (rgb each) -> row_sums (15 floats per pixel).
-// - `ssim_columns`: walks rows y0 - 5 .. y0 + RUN + 5 of its column: the windowed statistics
+// - `ssim_columns`: walks rows y0 - 5 .. y0 + LOSS_RUN + 5 of its column: the windowed statistics
 //   of rendered x and target y (vertical pass over row_sums), the SSIM value and the three
 //   coefficient maps (a, b, c) the SSIM gradient needs, then at once the vertical pass of
 //   those coefficients (a second window over the coefficients just computed; the 5 rows on
@@ -26,17 +26,6 @@
 // Invariants: every in-image pixel writes all of its outputs; pixels outside the image read
 // as zero and are never written; no atomics (deterministic).
 
-struct LossParams {
-    // width, height, runs per row (horizontal passes), runs per column (vertical pass)
-    image_size: vec4<u32>,
-    // w_l1, w_ssim, w_depth, 1 / depth_truncation
-    weights: vec4<f32>,
-    // 1 / (3 * pixels), 1 / valid depth pixels (0 if none), unused, unused
-    normalisers: vec4<f32>,
-    // number of column runs (offset of the row runs' partials in loss_partials), unused x3
-    partials: vec4<u32>,
-}
-
 @group(0) @binding(0) var<uniform> loss_params: LossParams;
 @group(0) @binding(1) var<storage, read> rendered: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> target_rgbd: array<vec4<f32>>;
@@ -48,15 +37,6 @@ struct LossParams {
 @group(0) @binding(6) var<storage, read_write> v_alpha: array<f32>;
 // Horizontal-pass results: 15 floats per pixel (statistics).
 @group(0) @binding(7) var<storage, read_write> row_sums: array<f32>;
-
-const WINDOW_RADIUS: i32 = 5;
-const WINDOW_SIGMA: f32 = 1.5;
-const SSIM_C1: f32 = 0.0001; // (0.01 * data range 1)^2
-const SSIM_C2: f32 = 0.0009; // (0.03 * data range 1)^2
-const RUN: u32 = 64u;
-const WORKGROUP_SIZE: u32 = 64u;
-const STATS_PER_PIXEL: u32 = 15u;
-const COEFFICIENTS_PER_PIXEL: u32 = 9u;
 
 // Normalised 1D window weights by distance from the centre (0 .. 5).
 struct Weights {
@@ -71,7 +51,7 @@ struct Weights {
 fn window_weights() -> Weights {
     // Sum of the unnormalised window over its taps; exp is computed once per invocation.
     var total = 0.0;
-    for (var d = -WINDOW_RADIUS; d <= WINDOW_RADIUS; d++) {
+    for (var d = -SSIM_WINDOW_RADIUS; d <= SSIM_WINDOW_RADIUS; d++) {
         total += raw_weight(d);
     }
     return Weights(raw_weight(0) / total, raw_weight(1) / total, raw_weight(2) / total,
@@ -79,7 +59,7 @@ fn window_weights() -> Weights {
 }
 
 fn raw_weight(offset: i32) -> f32 {
-    return exp(-f32(offset * offset) / (2.0 * WINDOW_SIGMA * WINDOW_SIGMA));
+    return exp(-f32(offset * offset) / (2.0 * SSIM_WINDOW_SIGMA * SSIM_WINDOW_SIGMA));
 }
 
 fn sign_or_zero(value: f32) -> f32 {
@@ -95,23 +75,23 @@ struct Run {
 
 fn run_of(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32,
           along_rows: bool) -> Run {
-    let index = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * WORKGROUP_SIZE + local_index;
-    let width = loss_params.image_size.x;
-    let height = loss_params.image_size.y;
+    let index = linear_workgroup(workgroup_id, workgroup_count) * LOSS_WORKGROUP_SIZE + local_index;
+    let width = loss_params.width;
+    let height = loss_params.height;
     if along_rows {
-        let runs_per_row = loss_params.image_size.z;
+        let runs_per_row = loss_params.runs_per_row;
         let row = index / runs_per_row;
-        return Run(vec2<u32>((index % runs_per_row) * RUN, row), row < height);
+        return Run(vec2<u32>((index % runs_per_row) * LOSS_RUN, row), row < height);
     }
-    let runs_per_column = loss_params.image_size.w;
+    let runs_per_column = loss_params.runs_per_column;
     let column = index / runs_per_column;
-    return Run(vec2<u32>(column, (index % runs_per_column) * RUN), column < width);
+    return Run(vec2<u32>(column, (index % runs_per_column) * LOSS_RUN), column < width);
 }
 
 // Pixel index of window position `offset` (may be outside the run) or -1 outside the image.
 fn pixel_at(run: Run, offset: i32, along_rows: bool) -> i32 {
-    let width = i32(loss_params.image_size.x);
-    let height = i32(loss_params.image_size.y);
+    let width = i32(loss_params.width);
+    let height = i32(loss_params.height);
     var x = i32(run.start.x);
     var y = i32(run.start.y);
     if along_rows {
@@ -172,7 +152,7 @@ fn load_row_stats(pixel: i32) -> Stats {
     if pixel < 0 {
         return zero_stats();
     }
-    let b = u32(pixel) * STATS_PER_PIXEL;
+    let b = u32(pixel) * ROW_SUMS_PER_PIXEL;
     return Stats(
         vec3<f32>(row_sums[b], row_sums[b + 1u], row_sums[b + 2u]),
         vec3<f32>(row_sums[b + 3u], row_sums[b + 4u], row_sums[b + 5u]),
@@ -182,7 +162,7 @@ fn load_row_stats(pixel: i32) -> Stats {
 }
 
 fn store_row_stats(pixel: u32, s: Stats) {
-    let b = pixel * STATS_PER_PIXEL;
+    let b = pixel * ROW_SUMS_PER_PIXEL;
     for (var c = 0u; c < 3u; c++) {
         row_sums[b + c] = s.mu_x[c];
         row_sums[b + 3u + c] = s.mu_y[c];
@@ -229,14 +209,14 @@ fn load_coefficients(pixel: i32) -> Coefficients {
     if pixel < 0 {
         return zero_coefficients();
     }
-    let b = u32(pixel) * COEFFICIENTS_PER_PIXEL;
+    let b = u32(pixel) * SSIM_COEFFICIENTS_PER_PIXEL;
     return Coefficients(
         vec3<f32>(ssim_coefficients[b], ssim_coefficients[b + 1u], ssim_coefficients[b + 2u]),
         vec3<f32>(ssim_coefficients[b + 3u], ssim_coefficients[b + 4u], ssim_coefficients[b + 5u]),
         vec3<f32>(ssim_coefficients[b + 6u], ssim_coefficients[b + 7u], ssim_coefficients[b + 8u]));
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
+@compute @workgroup_size(LOSS_WORKGROUP_SIZE)
 fn ssim_rows(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
@@ -258,7 +238,7 @@ fn ssim_rows(
     var s8 = pixel_stats(pixel_at(run, 3, true));
     var s9 = pixel_stats(pixel_at(run, 4, true));
     var s10 = pixel_stats(pixel_at(run, 5, true));
-    for (var step = 0; step < i32(RUN); step++) {
+    for (var step = 0; step < i32(LOSS_RUN); step++) {
         let pixel = pixel_at(run, step, true);
         if pixel < 0 {
             break;
@@ -277,7 +257,7 @@ struct PixelSsim {
 }
 
 fn pixel_ssim(stats: Stats) -> PixelSsim {
-    let v_ssim = -loss_params.weights.y * loss_params.normalisers.x;
+    let v_ssim = -loss_params.w_ssim * loss_params.rgb_normaliser;
     let mu_x = stats.mu_x;
     let mu_y = stats.mu_y;
     let sigma_xx = stats.xx - mu_x * mu_x;
@@ -298,13 +278,13 @@ fn pixel_ssim(stats: Stats) -> PixelSsim {
         dot(vec3<f32>(1.0) - ssim, vec3<f32>(1.0)));
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
+@compute @workgroup_size(LOSS_WORKGROUP_SIZE)
 fn ssim_columns(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let run_index = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * WORKGROUP_SIZE + local_index;
+    let run_index = linear_workgroup(workgroup_id, workgroup_count) * LOSS_WORKGROUP_SIZE + local_index;
     let run = run_of(workgroup_id, workgroup_count, local_index, false);
     if !run.valid {
         return;
@@ -335,13 +315,13 @@ fn ssim_columns(
     var c9 = zero_coefficients();
     var c10 = zero_coefficients();
     var ssim_term = 0.0;
-    for (var step = -5; step < i32(RUN) + 5; step++) {
+    for (var step = -SSIM_WINDOW_RADIUS; step < i32(LOSS_RUN) + SSIM_WINDOW_RADIUS; step++) {
         c0 = c1; c1 = c2; c2 = c3; c3 = c4; c4 = c5; c5 = c6; c6 = c7; c7 = c8; c8 = c9; c9 = c10;
         c10 = zero_coefficients();
         if pixel_at(run, step, false) >= 0 {
             let ssim = pixel_ssim(window_stats(w, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10));
             c10 = ssim.coefficients;
-            if step >= 0 && step < i32(RUN) {
+            if step >= 0 && step < i32(LOSS_RUN) {
                 ssim_term += ssim.one_minus_ssim;
             }
         }
@@ -351,7 +331,7 @@ fn ssim_columns(
         let output = pixel_at(run, step - 5, false);
         if step >= 5 && output >= 0 {
             let sums = window_coefficients(w, c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10);
-            let base = u32(output) * COEFFICIENTS_PER_PIXEL;
+            let base = u32(output) * SSIM_COEFFICIENTS_PER_PIXEL;
             for (var k = 0u; k < 3u; k++) {
                 ssim_coefficients[base + k] = sums.a[k];
                 ssim_coefficients[base + 3u + k] = sums.b[k];
@@ -360,16 +340,16 @@ fn ssim_columns(
         }
     }
     loss_partials[run_index] =
-        vec4<f32>(0.0, loss_params.weights.y * ssim_term * loss_params.normalisers.x, 0.0, 0.0);
+        vec4<f32>(0.0, loss_params.w_ssim * ssim_term * loss_params.rgb_normaliser, 0.0, 0.0);
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
+@compute @workgroup_size(LOSS_WORKGROUP_SIZE)
 fn loss_rows(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let run_index = (workgroup_id.y * workgroup_count.x + workgroup_id.x) * WORKGROUP_SIZE + local_index;
+    let run_index = linear_workgroup(workgroup_id, workgroup_count) * LOSS_WORKGROUP_SIZE + local_index;
     let run = run_of(workgroup_id, workgroup_count, local_index, true);
     if !run.valid {
         return;
@@ -386,11 +366,11 @@ fn loss_rows(
     var s8 = load_coefficients(pixel_at(run, 3, true));
     var s9 = load_coefficients(pixel_at(run, 4, true));
     var s10 = load_coefficients(pixel_at(run, 5, true));
-    let l1_scale = loss_params.weights.x * loss_params.normalisers.x;
-    let depth_scale = loss_params.weights.z * loss_params.weights.w * loss_params.normalisers.y;
+    let l1_scale = loss_params.w_l1 * loss_params.rgb_normaliser;
+    let depth_scale = loss_params.w_depth * loss_params.inverse_depth_truncation * loss_params.depth_normaliser;
     var l1_term = 0.0;
     var depth_term = 0.0;
-    for (var step = 0; step < i32(RUN); step++) {
+    for (var step = 0; step < i32(LOSS_RUN); step++) {
         let pixel = pixel_at(run, step, true);
         if pixel < 0 {
             break;
@@ -406,17 +386,17 @@ fn loss_rows(
         var v_depth = 0.0;
         if y.w > 0.0 {
             v_depth = depth_scale * sign_or_zero(x.w - y.w);
-            depth_term += abs(x.w - y.w) * loss_params.weights.w;
+            depth_term += abs(x.w - y.w) * loss_params.inverse_depth_truncation;
         }
         v_rgbd[pixel] = vec4<f32>(v_rgb, v_depth);
         v_alpha[pixel] = 0.0;
         s0 = s1; s1 = s2; s2 = s3; s3 = s4; s4 = s5; s5 = s6; s6 = s7; s7 = s8; s8 = s9; s9 = s10;
         s10 = load_coefficients(pixel_at(run, step + 6, true));
     }
-    loss_partials[loss_params.partials.x + run_index] = vec4<f32>(
-        loss_params.weights.x * l1_term * loss_params.normalisers.x,
+    loss_partials[loss_params.column_run_count + run_index] = vec4<f32>(
+        loss_params.w_l1 * l1_term * loss_params.rgb_normaliser,
         0.0,
-        loss_params.weights.z * depth_term * loss_params.normalisers.y,
+        loss_params.w_depth * depth_term * loss_params.depth_normaliser,
         0.0,
     );
 }

@@ -1,4 +1,4 @@
-// project: one invocation per Gaussian (256 per workgroup, linear id over a 2D grid).
+// project: one invocation per Gaussian (WORKGROUP_SIZE per workgroup, linear id over a 2D grid).
 // Transforms the Gaussian into the camera, builds its 2D covariance J W J^T + low-pass, inverts
 // it (conic), and its tile rectangle: the bounding box of the splat's support, i.e. of the
 // 3-sigma square of the reference (radius = 3 sqrt(largest eigenvalue)) intersected with the
@@ -31,19 +31,10 @@
 @group(0) @binding(11) var<storage, read_write> depth_keys: array<u32>;
 @group(0) @binding(12) var<storage, read_write> sort_values: array<u32>;
 
-const CULLED_DEPTH_KEY: u32 = 0xffffffffu;
-// constants::DEPTH_KEY_DROPPED_BITS and the largest key below the culled one in
-// constants::DEPTH_KEY_BITS (24) bits.
-const DEPTH_KEY_DROPPED_BITS: u32 = 4u;
-const LARGEST_VISIBLE_DEPTH_KEY: u32 = 0xfffffeu;
-// exp() of larger magnitudes overflows f32; the sigmoid is saturated long before.
-const MAX_ABS_OPACITY_LOGIT: f32 = 80.0;
 // Added to the squared Mahalanobis radius of the visible ellipse: absorbs f32 rounding of the
 // alpha test so that the box never cuts a pixel the rasterizer would shade.
 const VISIBLE_RADIUS_SQUARED_MARGIN: f32 = 0.01;
 const VISIBLE_RADIUS_RELATIVE_MARGIN: f32 = 1e-4;
-// Rectangles of at most this many tiles get the per-tile ellipse test (one mask bit per tile).
-const MAX_MASKED_TILES: u32 = 32u;
 const ALL_TILES: u32 = 0xffffffffu;
 
 fn quadratic(d: vec2<f32>, conic: vec3<f32>) -> f32 {
@@ -87,14 +78,14 @@ fn quaternion_to_rotation(q: vec4<f32>) -> mat3x3<f32> {
     );
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP_SIZE)
 fn main(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let index = linear_workgroup(workgroup_id, workgroup_count) * 256u + local_index;
-    if index >= params.counts.x {
+    let index = linear_workgroup(workgroup_id, workgroup_count) * WORKGROUP_SIZE + local_index;
+    if index >= params.gaussian_count {
         return;
     }
     sort_values[index] = index;
@@ -114,8 +105,8 @@ fn main(
         cull(index);
         return;
     }
-    let max_log_scale = params.culling.y;
-    if dot(quaternion, quaternion) < params.culling.z || log_scale.x > max_log_scale
+    let max_log_scale = params.max_log_scale;
+    if dot(quaternion, quaternion) < params.min_quaternion_norm_squared || log_scale.x > max_log_scale
         || log_scale.y > max_log_scale || log_scale.z > max_log_scale {
         cull(index);
         return;
@@ -124,14 +115,14 @@ fn main(
         params.camera_row0.xyz, params.camera_row1.xyz, params.camera_row2.xyz));
     let camera_translation = vec3<f32>(params.camera_row0.w, params.camera_row1.w, params.camera_row2.w);
     let p = camera_rotation * mean + camera_translation;
-    if !(is_finite(p.x) && is_finite(p.y) && is_finite(p.z)) || p.z < params.culling.x {
+    if !(is_finite(p.x) && is_finite(p.y) && is_finite(p.z)) || p.z < params.near_plane {
         cull(index);
         return;
     }
     // Far off-axis the linearised projection is meaningless (see FRUSTUM_GUARD_BAND).
     let u = p.x / p.z;
     let v = p.y / p.z;
-    if u < params.frustum.x || u > params.frustum.y || v < params.frustum.z || v > params.frustum.w {
+    if u < params.frustum_min_x || u > params.frustum_max_x || v < params.frustum_min_y || v > params.frustum_max_y {
         cull(index);
         return;
     }
@@ -140,8 +131,8 @@ fn main(
     let scaled_rotation = mat3x3<f32>(rotation[0] * scale.x, rotation[1] * scale.y, rotation[2] * scale.z);
     let world_covariance = scaled_rotation * transpose(scaled_rotation);
     let camera_covariance = camera_rotation * world_covariance * transpose(camera_rotation);
-    let fx = params.intrinsics.x;
-    let fy = params.intrinsics.y;
+    let fx = params.fx;
+    let fy = params.fy;
     // J is 2x3; as a WGSL mat3x2 it has 3 columns of vec2.
     let jacobian = mat3x2<f32>(
         vec2<f32>(fx / p.z, 0.0),
@@ -149,7 +140,7 @@ fn main(
         vec2<f32>(-fx * p.x / (p.z * p.z), -fy * p.y / (p.z * p.z)),
     );
     let cov2d = jacobian * camera_covariance * transpose(jacobian);
-    let low_pass = params.thresholds.w;
+    let low_pass = params.low_pass_variance;
     let cov_xx = cov2d[0][0] + low_pass;
     let cov_xy = cov2d[1][0];
     let cov_yy = cov2d[1][1] + low_pass;
@@ -161,8 +152,8 @@ fn main(
     let conic = vec3<f32>(cov_yy / det, -cov_xy / det, cov_xx / det);
     let mid = 0.5 * (cov_xx + cov_yy);
     let largest_eigenvalue = mid + sqrt(max(mid * mid - det, 0.0));
-    let radius = ceil(params.culling.w * sqrt(largest_eigenvalue));
-    let mean2d = vec2<f32>(fx * p.x / p.z + params.intrinsics.z, fy * p.y / p.z + params.intrinsics.w);
+    let radius = ceil(params.extent_sigmas * sqrt(largest_eigenvalue));
+    let mean2d = vec2<f32>(fx * p.x / p.z + params.cx, fy * p.y / p.z + params.cy);
     if !(is_finite(mean2d.x) && is_finite(mean2d.y) && is_finite(radius) && is_finite(conic.x)
         && is_finite(conic.y) && is_finite(conic.z)) {
         cull(index);
@@ -173,7 +164,7 @@ fn main(
     // Half extents of the support per axis: the 3-sigma square, cut to the bounding box of the
     // ellipse d^T conic d <= 2 ln(opacity / min_alpha) (half extent sqrt(r^2 * cov_xx) in x).
     var half_extent = vec2<f32>(radius);
-    let min_alpha = params.thresholds.x;
+    let min_alpha = params.min_splat_alpha;
     if min_alpha > 0.0 {
         if opacity < min_alpha {
             cull(index);
@@ -186,7 +177,7 @@ fn main(
     }
     // Tile t covers pixel centres t*16 ..= t*16 + 15 (pixel centres at integer coordinates).
     let tile = f32(TILE_SIZE);
-    let last_tile = vec2<f32>(f32(params.image_size.z) - 1.0, f32(params.image_size.w) - 1.0);
+    let last_tile = vec2<f32>(f32(params.tiles_x) - 1.0, f32(params.tiles_y) - 1.0);
     let rect_min = max(ceil((mean2d - half_extent - (tile - 1.0)) / tile), vec2<f32>(0.0));
     let rect_max = min(floor((mean2d + half_extent) / tile), last_tile);
     if rect_min.x > rect_max.x || rect_min.y > rect_max.y {
@@ -232,6 +223,6 @@ fn main(
     tile_rects[index] = vec4<u32>(first_tile, columns | (rows << 16u), tile_mask);
     tile_counts[index] = tile_count;
     // render_core::depth_sort_key (p.z >= the near plane here).
-    let above_near = bitcast<u32>(p.z) - bitcast<u32>(params.culling.x);
+    let above_near = bitcast<u32>(p.z) - bitcast<u32>(params.near_plane);
     depth_keys[index] = min(above_near >> DEPTH_KEY_DROPPED_BITS, LARGEST_VISIBLE_DEPTH_KEY);
 }

@@ -1,4 +1,4 @@
-// project_backward: one invocation per chunk of GAUSSIANS_PER_INVOCATION consecutive
+// project_backward: one invocation per chunk of PROJECT_BACKWARD_CHUNK consecutive
 // Gaussians, walked serially (64 invocations per workgroup, linear id over a 2D grid). For each
 // Gaussian it recomputes the forward projection and chains the accumulated screen-space
 // gradients (mean2d, conic, opacity, colour, depth; written by rasterize_backward) back to the
@@ -25,16 +25,10 @@
 @group(0) @binding(12) var<storage, read_write> pose_translation: array<vec4<f32>>;
 @group(0) @binding(13) var<storage, read_write> pose_rotation: array<vec4<f32>>;
 
-const SCREEN_GRADIENT_STRIDE: u32 = 10u;
-const MAX_ABS_OPACITY_LOGIT: f32 = 80.0;
-
 // Element (row, column) of a column-major matrix.
 fn at(m: mat3x3<f32>, row: u32, column: u32) -> f32 {
     return m[column][row];
 }
-
-const GAUSSIANS_PER_INVOCATION: u32 = 16u;
-const WORKGROUP_SIZE: u32 = 64u;
 
 fn write_gradients(index: u32, v_mean: vec3<f32>, v_log_scale: vec3<f32>, v_quaternion: vec4<f32>,
                    v_logit: f32, v_colour: vec3<f32>) {
@@ -52,18 +46,18 @@ struct PoseGradient {
     rotation: vec3<f32>,
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
+@compute @workgroup_size(PROJECT_BACKWARD_WORKGROUP_SIZE)
 fn main(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let chunk = linear_workgroup(workgroup_id, workgroup_count) * WORKGROUP_SIZE + local_index;
-    let first = chunk * GAUSSIANS_PER_INVOCATION;
-    if first >= params.counts.x {
+    let chunk = linear_workgroup(workgroup_id, workgroup_count) * PROJECT_BACKWARD_WORKGROUP_SIZE + local_index;
+    let first = chunk * PROJECT_BACKWARD_CHUNK;
+    if first >= params.gaussian_count {
         return;
     }
-    let last = min(first + GAUSSIANS_PER_INVOCATION, params.counts.x);
+    let last = min(first + PROJECT_BACKWARD_CHUNK, params.gaussian_count);
     var pose = PoseGradient(vec3<f32>(0.0), vec3<f32>(0.0));
     for (var index = first; index < last; index++) {
         let contribution = chain_gaussian(index);
@@ -83,11 +77,13 @@ fn chain_gaussian(index: u32) -> PoseGradient {
         return PoseGradient(zero3, zero3);
     }
     let g = index * SCREEN_GRADIENT_STRIDE;
-    let v_mean2d = vec2<f32>(screen_gradients[g], screen_gradients[g + 1u]);
-    let v_conic = vec3<f32>(screen_gradients[g + 2u], screen_gradients[g + 3u], screen_gradients[g + 4u]);
-    let v_opacity = screen_gradients[g + 5u];
-    let v_colour = vec3<f32>(screen_gradients[g + 6u], screen_gradients[g + 7u], screen_gradients[g + 8u]);
-    let v_depth = screen_gradients[g + 9u];
+    let v_mean2d = vec2<f32>(screen_gradients[g + V_MEAN2D], screen_gradients[g + V_MEAN2D + 1u]);
+    let v_conic = vec3<f32>(screen_gradients[g + V_CONIC], screen_gradients[g + V_CONIC + 1u],
+                            screen_gradients[g + V_CONIC + 2u]);
+    let v_opacity = screen_gradients[g + V_OPACITY];
+    let v_colour = vec3<f32>(screen_gradients[g + V_COLOUR], screen_gradients[g + V_COLOUR + 1u],
+                             screen_gradients[g + V_COLOUR + 2u]);
+    let v_depth = screen_gradients[g + V_DEPTH];
 
     // Forward recomputation (identical to project.wgsl).
     let mean = vec3<f32>(means[3u * index], means[3u * index + 1u], means[3u * index + 2u]);
@@ -112,8 +108,8 @@ fn chain_gaussian(index: u32) -> PoseGradient {
     let camera_translation = vec3<f32>(params.camera_row0.w, params.camera_row1.w, params.camera_row2.w);
     let p = camera_rotation * mean + camera_translation;
     let camera_covariance = camera_rotation * world_covariance * transpose(camera_rotation);
-    let fx = params.intrinsics.x;
-    let fy = params.intrinsics.y;
+    let fx = params.fx;
+    let fy = params.fy;
     let z2 = p.z * p.z;
     let z3 = z2 * p.z;
     let jacobian = mat3x2<f32>(
@@ -122,7 +118,7 @@ fn chain_gaussian(index: u32) -> PoseGradient {
         vec2<f32>(-fx * p.x / z2, -fy * p.y / z2),
     );
     let cov2d = jacobian * camera_covariance * transpose(jacobian)
-        + mat2x2<f32>(vec2<f32>(params.thresholds.w, 0.0), vec2<f32>(0.0, params.thresholds.w));
+        + mat2x2<f32>(vec2<f32>(params.low_pass_variance, 0.0), vec2<f32>(0.0, params.low_pass_variance));
     let det = cov2d[0][0] * cov2d[1][1] - cov2d[1][0] * cov2d[1][0];
     let conic = mat2x2<f32>(vec2<f32>(cov2d[1][1], -cov2d[0][1]) / det, vec2<f32>(-cov2d[1][0], cov2d[0][0]) / det);
 

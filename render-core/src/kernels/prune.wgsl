@@ -1,20 +1,12 @@
-// prune: one invocation per live Gaussian (256 per workgroup, linear workgroup id over a 2D
-// grid). Writes keep_flags[i] = 1 when Gaussian i survives the prune criteria (SPEC section 3)
-// and 0 when it is removed: any non-finite parameter, opacity below the minimum, largest scale
-// above the maximum, or largest scale above max_elongation x the sum of the other two.
+// prune: one invocation per live Gaussian (WORKGROUP_SIZE per workgroup, linear workgroup id
+// over a 2D grid). Writes keep_flags[i] = 1 when Gaussian i survives the prune criteria
+// (docs/method.md, One agent: Pruning) and 0 when it is removed: any non-finite parameter,
+// opacity below the minimum, largest scale above the maximum, or largest scale above
+// max_elongation x the sum of the other two.
 // The host passes the opacity test as a logit threshold and the size test as a log-scale
 // threshold, so both compare the stored values directly (exactly as PruneCriteria::keeps does
 // on the host, with no activation function whose rounding could differ).
 // Invariant: only indices < count are read or written.
-
-struct PruneParams {
-    count: u32,
-    padding0: u32,
-    padding1: u32,
-    padding2: u32,
-    // opacity logit threshold, largest allowed log-scale, max elongation, unused
-    thresholds: vec4<f32>,
-}
 
 @group(0) @binding(0) var<uniform> prune_params: PruneParams;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -44,13 +36,13 @@ fn is_elongated(log_scale: vec3<f32>, max_elongation: f32) -> bool {
     return largest > max_elongation * others;
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP_SIZE)
 fn main(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let index = linear_workgroup(workgroup_id, workgroup_count) * 256u + local_index;
+    let index = linear_workgroup(workgroup_id, workgroup_count) * WORKGROUP_SIZE + local_index;
     if index >= prune_params.count {
         return;
     }
@@ -64,11 +56,11 @@ fn main(
         && all_finite3(quaternion.xyz) && is_finite(quaternion.w) && is_finite(opacity_logit);
     var keep = false;
     if finite {
-        let transparent = opacity_logit < prune_params.thresholds.x;
+        let transparent = opacity_logit < prune_params.opacity_logit_threshold;
         let largest_log_scale = max(max(log_scale.x, log_scale.y), log_scale.z);
-        let too_large = largest_log_scale > prune_params.thresholds.y;
+        let too_large = largest_log_scale > prune_params.max_log_scale;
         keep = !transparent && !too_large
-            && !is_elongated(log_scale, prune_params.thresholds.z);
+            && !is_elongated(log_scale, prune_params.max_elongation);
     }
     keep_flags[index] = select(0u, 1u, keep);
 }

@@ -21,7 +21,7 @@ fn main(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let tile_id = workgroup_id.y * params.image_size.z + workgroup_id.x;
+    let tile_id = workgroup_id.y * params.tiles_x + workgroup_id.x;
     let tile_origin = workgroup_id.xy * TILE_SIZE;
     let row = tile_origin.y + local_index;
     let pixel_y = f32(row);

@@ -1,9 +1,9 @@
-// rasterize_backward, shared part: bindings and per-pixel gradient arithmetic of the backward
-// rasterizer, prepended (after common.wgsl) to rasterize_backward.wgsl or
+// rasterize_backward, shared part: bindings 6-9 and per-pixel gradient arithmetic of the
+// backward rasterizer, between rasterize_tiles.wgsl and rasterize_backward.wgsl or
 // rasterize_backward_subgroup.wgsl, which differ in how the splats reach the invocations and
 // how the per-splat sums reach screen_gradients.
-// Thread mapping (both variants, as in the forward pass): one workgroup per 16x16 tile, 16
-// invocations, invocation r owns tile row r as 4 PixelGradients groups of 4 pixels. The tile's
+// Thread mapping (both variants, as in the forward pass, see rasterize_tiles.wgsl): invocation
+// r owns tile row r as 4 PixelGradients groups of 4 pixels. The tile's
 // splat list is walked BACK to front; each pixel only considers entries before its recorded
 // last_entry, recomputes each splat's alpha exactly as the forward pass did, recovers the
 // transmittance in front of it as T_before = T_after / (1 - alpha), and adds dL/d(mean2d,
@@ -12,42 +12,14 @@
 // per Gaussian).
 // Invariants: the splat order and skip rules are identical to the forward pass; a splat whose
 // alpha hit the cap gets no opacity/footprint gradient.
-// The `#gradient_atomics` line is replaced by the launcher with atomics_float.wgsl or
-// atomics_cas.wgsl (compare-exchange fallback when float atomics are unavailable).
-@group(0) @binding(0) var<uniform> params: RenderParams;
-@group(0) @binding(1) var<storage, read> tile_ranges: array<vec2<u32>>;
-@group(0) @binding(2) var<storage, read> intersection_gaussians: array<u32>;
-@group(0) @binding(3) var<storage, read> splat_position: array<vec4<f32>>;
-@group(0) @binding(4) var<storage, read> splat_conic: array<vec4<f32>>;
-@group(0) @binding(5) var<storage, read> splat_colour: array<vec4<f32>>;
+// `add_gradient` and binding 10 (screen_gradients) come from atomics_float.wgsl or
+// atomics_cas.wgsl (compare-exchange fallback when float atomics are unavailable), which the
+// launcher puts in front of this file.
 @group(0) @binding(6) var<storage, read> pixel_transmittance: array<f32>;
 @group(0) @binding(7) var<storage, read> pixel_last_entry: array<u32>;
 // dL/d(r, g, b, depth) and dL/d(alpha) per pixel
 @group(0) @binding(8) var<storage, read> v_rgbd: array<vec4<f32>>;
 @group(0) @binding(9) var<storage, read> v_alpha: array<f32>;
-
-#gradient_atomics
-
-const THREADS_PER_TILE: u32 = TILE_SIZE;
-const GROUP_COLUMNS: vec4<u32> = vec4<u32>(0u, 1u, 2u, 3u);
-// Per-Gaussian layout of screen_gradients.
-const SCREEN_GRADIENT_STRIDE: u32 = 10u;
-const V_MEAN2D: u32 = 0u;
-const V_CONIC: u32 = 2u;
-const V_OPACITY: u32 = 5u;
-const V_COLOUR: u32 = 6u;
-const V_DEPTH: u32 = 9u;
-
-struct Splat {
-    // mean2d.x, mean2d.y, opacity, camera z
-    position: vec4<f32>,
-    conic: vec3<f32>,
-    colour: vec3<f32>,
-}
-
-fn load_splat(gaussian: u32) -> Splat {
-    return Splat(splat_position[gaussian], splat_conic[gaussian].xyz, splat_colour[gaussian].xyz);
-}
 
 // Backward state of 4 pixels of one row (vec4 components). Pixels outside the image have
 // last_entry 0 and so consider no splat. `behind` is sum_c v_c * (channel c composited behind
@@ -65,7 +37,7 @@ struct PixelGradients {
 }
 
 fn load_group(first_column: u32, row: u32) -> PixelGradients {
-    let width = params.image_size.x;
+    let width = params.width;
     let columns = vec4<u32>(first_column) + GROUP_COLUMNS;
     var group: PixelGradients;
     group.x = vec4<f32>(columns);
@@ -77,7 +49,7 @@ fn load_group(first_column: u32, row: u32) -> PixelGradients {
     group.v_depth = vec4<f32>(0.0);
     group.behind = vec4<f32>(0.0);
     for (var k = 0u; k < 4u; k++) {
-        if columns[k] < width && row < params.image_size.y {
+        if columns[k] < width && row < params.height {
             let pixel_index = row * width + columns[k];
             group.last_entry[k] = pixel_last_entry[pixel_index];
             let transmittance = pixel_transmittance[pixel_index];
@@ -165,8 +137,8 @@ fn accumulate(group: ptr<function, PixelGradients>, pixel_y: f32, splat: Splat,
     if !any(in_list) {
         return false;
     }
-    let min_alpha = params.thresholds.x;
-    let max_alpha = params.thresholds.y;
+    let min_alpha = params.min_splat_alpha;
+    let max_alpha = params.max_splat_alpha;
     let conic = splat.conic;
     let offset_x = (*group).x - splat.position.x;
     let offset_y = pixel_y - splat.position.y;

@@ -19,7 +19,7 @@ fn main(
     @builtin(local_invocation_index) local_index: u32,
     @builtin(subgroup_invocation_id) lane: u32,
 ) {
-    let tile_id = workgroup_id.y * params.image_size.z + workgroup_id.x;
+    let tile_id = workgroup_id.y * params.tiles_x + workgroup_id.x;
     let tile_origin = workgroup_id.xy * TILE_SIZE;
     let row = tile_origin.y + local_index;
     let pixel_y = f32(row);
@@ -41,7 +41,7 @@ fn main(
         if lane < count {
             my_gaussian = intersection_gaussians[start + end - 1u - lane];
             mine = load_splat(my_gaussian);
-            let extent = visible_half_extent(mine.position.z, mine.conic, params.thresholds.x);
+            let extent = visible_half_extent(mine.position.z, mine.conic, params.min_splat_alpha);
             reaches_rows = !misses_span(mine.position.y, extent.y, rows_low, rows_high);
         }
         var my_gradient = SplatGradient(vec4<f32>(0.0), vec4<f32>(0.0), vec2<f32>(0.0));

@@ -1,41 +1,18 @@
-// rasterize, shared part: bindings and the per-pixel compositing of the forward rasterizer,
-// prepended (after common.wgsl) to rasterize.wgsl or rasterize_subgroup.wgsl, which differ
-// only in how the splats of a tile reach the invocations.
-// Thread mapping (both variants): one workgroup per 16x16 tile, THREADS_PER_TILE = 16
-// invocations; invocation r shades tile row r, 16 pixels held as 4 PixelGroups of 4 pixels
-// (columns 4g .. 4g + 3 of the tile, as vec4 components). On CPU adapters (lavapipe) every
+// rasterize, shared part: output bindings and the per-pixel compositing of the forward
+// rasterizer, between rasterize_tiles.wgsl and rasterize.wgsl or rasterize_subgroup.wgsl,
+// which differ only in how the splats of a tile reach the invocations.
+// Thread mapping (both variants, see rasterize_tiles.wgsl): invocation r shades tile row r,
+// 16 pixels held as 4 PixelGroups of 4 pixels. On CPU adapters (lavapipe) every
 // load inside a loop is a per-lane scalar gather costing as much as dozens of arithmetic
 // operations, paid per invocation: 16 pixels per invocation pay one splat load for 16 pixels.
 // Per (pixel, splat) the arithmetic is that of the CPU reference in the same order (a skipped
 // splat adds exactly 0), so both variants give bit-identical images.
 
-@group(0) @binding(0) var<uniform> params: RenderParams;
-@group(0) @binding(1) var<storage, read> tile_ranges: array<vec2<u32>>;
-@group(0) @binding(2) var<storage, read> intersection_gaussians: array<u32>;
-@group(0) @binding(3) var<storage, read> splat_position: array<vec4<f32>>;
-@group(0) @binding(4) var<storage, read> splat_conic: array<vec4<f32>>;
-@group(0) @binding(5) var<storage, read> splat_colour: array<vec4<f32>>;
 // r, g, b, depth (alpha-composited, not normalised)
 @group(0) @binding(6) var<storage, read_write> out_rgbd: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read_write> out_alpha: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_transmittance: array<f32>;
 @group(0) @binding(9) var<storage, read_write> out_last_entry: array<u32>;
-
-const THREADS_PER_TILE: u32 = TILE_SIZE;
-// Column offsets of the 4 pixels of a group relative to its first column.
-const GROUP_COLUMNS: vec4<u32> = vec4<u32>(0u, 1u, 2u, 3u);
-
-// One splat as the compositing needs it.
-struct Splat {
-    // mean2d.x, mean2d.y, opacity, camera z
-    position: vec4<f32>,
-    conic: vec3<f32>,
-    colour: vec3<f32>,
-}
-
-fn load_splat(gaussian: u32) -> Splat {
-    return Splat(splat_position[gaussian], splat_conic[gaussian].xyz, splat_colour[gaussian].xyz);
-}
 
 // Compositing state of 4 pixels of one row.
 struct PixelGroup {
@@ -55,7 +32,7 @@ fn new_group(first_column: u32, row: u32) -> PixelGroup {
     var group: PixelGroup;
     group.columns = columns;
     group.x = vec4<f32>(columns);
-    group.done = columns >= vec4<u32>(params.image_size.x) | vec4<bool>(row >= params.image_size.y);
+    group.done = columns >= vec4<u32>(params.width) | vec4<bool>(row >= params.height);
     group.transmittance = vec4<f32>(1.0);
     group.red = vec4<f32>(0.0);
     group.green = vec4<f32>(0.0);
@@ -70,9 +47,9 @@ fn new_group(first_column: u32, row: u32) -> PixelGroup {
 // `ratio_growth` is row_ratio_growth(splat.conic) (common.wgsl), computed once per splat.
 fn composite(group: ptr<function, PixelGroup>, pixel_y: f32, splat: Splat, ratio_growth: f32,
              entry: u32) {
-    let min_alpha = params.thresholds.x;
-    let max_alpha = params.thresholds.y;
-    let min_transmittance = params.thresholds.z;
+    let min_alpha = params.min_splat_alpha;
+    let max_alpha = params.max_splat_alpha;
+    let min_transmittance = params.min_transmittance;
     let value = row_gaussian_values(splat.conic, (*group).x.x - splat.position.x,
                                     pixel_y - splat.position.y, ratio_growth);
     let alpha = min(vec4<f32>(max_alpha), splat.position.z * value);
@@ -94,10 +71,10 @@ fn composite(group: ptr<function, PixelGroup>, pixel_y: f32, splat: Splat, ratio
 // Writes the final colour, depth, alpha, transmittance and last entry of the group's pixels
 // inside the image.
 fn write_group(group: PixelGroup, row: u32) {
-    let width = params.image_size.x;
+    let width = params.width;
     for (var k = 0u; k < 4u; k++) {
         let column = group.columns[k];
-        if column < width && row < params.image_size.y {
+        if column < width && row < params.height {
             let pixel_index = row * width + column;
             out_rgbd[pixel_index] = vec4<f32>(group.red[k], group.green[k], group.blue[k], group.depth[k]);
             out_alpha[pixel_index] = 1.0 - group.transmittance[k];

@@ -13,9 +13,10 @@
 // whatever the condition and only save loop trips (see render-core/README.md).
 // Two splats per trip of the compositing loop: a SIMD CPU adapter (lavapipe) writes every
 // value a loop carries (the pixel state) back through a blend with the execution mask once per
-// trip, so two splats per trip halve that traffic (forward -10 % at 100k, 640x480). Without a
-// second splat, a copy of the first with zero opacity stands in: it touches no pixel. (The same
-// in the backward pass was slower: its two splats' gradient sums do not fit the registers.)
+// trip, so two splats per trip halve that traffic (a measurably faster forward pass, see
+// docs/benchmarks.md). Without a second splat, a copy of the first with zero opacity stands
+// in: it touches no pixel. (The same in the backward pass was slower: its two splats'
+// gradient sums do not fit the registers.)
 // Invariants: the loop bounds and the shuffle source lane are subgroup-uniform; lanes are
 // assumed to be numbered 0 .. active - 1 (active = number of invocations in the subgroup,
 // which may be fewer than subgroup_size for a small workgroup); the subgroup size is never
@@ -27,7 +28,7 @@ fn main(
     @builtin(local_invocation_index) local_index: u32,
     @builtin(subgroup_invocation_id) lane: u32,
 ) {
-    let tile_id = workgroup_id.y * params.image_size.z + workgroup_id.x;
+    let tile_id = workgroup_id.y * params.tiles_x + workgroup_id.x;
     let tile_origin = workgroup_id.xy * TILE_SIZE;
     let row = tile_origin.y + local_index;
     let range = tile_ranges[tile_id];
@@ -47,7 +48,7 @@ fn main(
         var reaches_rows = false;
         if start + lane < range.y {
             mine = load_splat(intersection_gaussians[start + lane]);
-            let extent = visible_half_extent(mine.position.z, mine.conic, params.thresholds.x);
+            let extent = visible_half_extent(mine.position.z, mine.conic, params.min_splat_alpha);
             reaches_rows = !misses_span(mine.position.y, extent.y, rows_low, rows_high);
         }
         // Only the loaded splats that reach the subgroup's rows, in lane (= list) order.

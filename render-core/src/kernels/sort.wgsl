@@ -16,14 +16,6 @@
 // Invariants: only keys < count are read or written; every table entry is written by
 // `histogram` before the scan.
 
-struct SortParams {
-    shift: u32,
-    // RADIX - 1, or fewer bits on a last pass that covers the remaining key bits only.
-    digit_mask: u32,
-    block_size: u32,
-    block_count: u32,
-}
-
 @group(0) @binding(0) var<uniform> sort_params: SortParams;
 @group(0) @binding(1) var<storage, read> keys_in: array<u32>;
 @group(0) @binding(2) var<storage, read> values_in: array<u32>;
@@ -33,15 +25,13 @@ struct SortParams {
 // [0]: number of keys to sort.
 @group(0) @binding(6) var<storage, read> sort_count: array<u32>;
 
-const WORKGROUP_SIZE: u32 = 64u;
-const RADIX_BITS: u32 = 8u;
 const RADIX: u32 = 1u << RADIX_BITS;
 
 fn block_index(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32) -> u32 {
-    return (workgroup_id.y * workgroup_count.x + workgroup_id.x) * WORKGROUP_SIZE + local_index;
+    return linear_workgroup(workgroup_id, workgroup_count) * SERIAL_WORKGROUP_SIZE + local_index;
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
+@compute @workgroup_size(SERIAL_WORKGROUP_SIZE)
 fn histogram(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
@@ -64,7 +54,7 @@ fn histogram(
     }
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
+@compute @workgroup_size(SERIAL_WORKGROUP_SIZE)
 fn scatter(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,

@@ -1,5 +1,5 @@
 // transform: applies a rigid transform p -> R p + t to every live Gaussian in place, one
-// invocation per Gaussian (256 per workgroup, linear workgroup id over a 2D grid).
+// invocation per Gaussian (WORKGROUP_SIZE per workgroup, linear workgroup id over a 2D grid).
 // Either one transform for the whole map (an agent-to-world correction: group_mode 0) or one
 // per group, with the group of Gaussian i in group_of[i] (a non-rigid correction that moves each
 // keyframe's Gaussians with their keyframe: group_mode 1); a group index >= transform_count
@@ -9,20 +9,6 @@
 // Log-scales, opacity and colour do not depend on the frame and stay as they are. q_R is the
 // unit quaternion of R, computed on the host, so |q| is preserved.
 // Invariant: only indices < count are read or written; group_of is read only in group mode.
-
-struct TransformParams {
-    // gaussian count, group_mode (0 or 1), transform count, unused
-    counts: vec4<u32>,
-}
-
-struct GroupTransform {
-    // Rows of R; w holds the translation component of that row.
-    row0: vec4<f32>,
-    row1: vec4<f32>,
-    row2: vec4<f32>,
-    // q_R as (w, x, y, z)
-    rotation_quaternion: vec4<f32>,
-}
 
 @group(0) @binding(0) var<uniform> transform_params: TransformParams;
 @group(0) @binding(1) var<storage, read_write> means: array<f32>;
@@ -39,21 +25,21 @@ fn quaternion_multiply(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
     return vec4<f32>(w, vector);
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP_SIZE)
 fn main(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
     @builtin(num_workgroups) workgroup_count: vec3<u32>,
     @builtin(local_invocation_index) local_index: u32,
 ) {
-    let index = linear_workgroup(workgroup_id, workgroup_count) * 256u + local_index;
-    if index >= transform_params.counts.x {
+    let index = linear_workgroup(workgroup_id, workgroup_count) * WORKGROUP_SIZE + local_index;
+    if index >= transform_params.gaussian_count {
         return;
     }
     var group = 0u;
-    if transform_params.counts.y == 1u {
+    if transform_params.group_mode == TRANSFORM_BY_GROUP {
         group = group_of[index];
     }
-    if group >= transform_params.counts.z {
+    if group >= transform_params.transform_count {
         return;
     }
     let transform = transforms[group];

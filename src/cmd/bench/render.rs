@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args;
-use render_core::bench::{
+use harness::{
     BenchCase, BenchConfig, DEFAULT_GAUSSIAN_COUNTS, DEFAULT_IMAGE_SIZES, DEFAULT_REPEATS,
     DEFAULT_WARMUP, RasterWorkload, bench_camera, raster_workload, realistic_scene, run_case,
     run_case_on,
@@ -18,6 +18,10 @@ use render_core::{Camera, GaussianCloud, RasterConfig};
 use serde::Serialize;
 
 use crate::cmd::{fmt_num, print_json};
+
+/// The benchmark's scene, cases and timing loops (kept out of render-core: only this command
+/// uses them).
+mod harness;
 
 const BYTES_PER_MIB: f64 = 1024.0 * 1024.0;
 
@@ -52,7 +56,7 @@ pub struct BenchRenderArgs {
     json: bool,
     /// Also count each case's rasterizer workload on the host: (pixel, splat) evaluations for
     /// 16- and 8-pixel tiles walked in bands of 16, 8 or 4 rows, against the evaluations that
-    /// change the image (render_core::bench::raster_workload).
+    /// change the image (harness::raster_workload).
     #[arg(long)]
     workload: bool,
     /// Time this map (standard 3DGS PLY, e.g. a SLAM run's map.ply) instead of the synthetic

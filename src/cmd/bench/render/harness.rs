@@ -8,14 +8,14 @@
 
 use std::time::Instant;
 
-use crate::backward::DeviceImageGradients;
-use crate::context::{GpuContext, GpuError};
-use crate::gpu::{DeviceGaussians, DeviceSortBench, GpuRenderer, StageTimes};
-use crate::reference::{ProjectedGaussian, project_and_sort, splat_at_pixel};
-use crate::training::{
+use render_core::backward::DeviceImageGradients;
+use render_core::context::{GpuContext, GpuError};
+use render_core::gpu::{DeviceGaussians, DeviceSortBench, GpuRenderer, StageTimes};
+use render_core::reference::{ProjectedGaussian, project_and_sort, splat_at_pixel};
+use render_core::training::{
     AdamConfig, DeviceAdam, DeviceTarget, LossWeights, TargetImage, TrainingKernels,
 };
-use crate::types::{Camera, GaussianCloud, RasterConfig, RigidTransform};
+use render_core::{Camera, GaussianCloud, RasterConfig, RigidTransform};
 
 /// Focal length of the benchmark camera at 640 pixels of width (a Kinect-like sensor);
 /// other widths scale it so that the field of view stays the same.
@@ -55,7 +55,7 @@ const MARGIN_PIXELS: f32 = 24.0;
 /// Depth of the synthetic target image used by the loss (metres).
 const TARGET_DEPTH: f32 = 2.5;
 
-/// The benchmark's default cases (issue 3): these Gaussian counts at these image sizes, each
+/// The benchmark's default cases: these Gaussian counts at these image sizes, each
 /// figure the median of [`DEFAULT_REPEATS`] runs after [`DEFAULT_WARMUP`] untimed ones.
 pub const DEFAULT_GAUSSIAN_COUNTS: [usize; 3] = [10_000, 100_000, 300_000];
 pub const DEFAULT_IMAGE_SIZES: [(u32, u32); 2] = [(320, 240), (640, 480)];
@@ -543,80 +543,8 @@ pub fn run_case_on(
     let stages = StageTimes::median_of(&stage_runs);
 
     let (forward_backward_ms, iteration_ms, iteration_stages) = if config.iteration {
-        let target = DeviceTarget::upload(context, &target_image(&camera))?;
-        let image_gradients = DeviceImageGradients::zeros(context, &camera)?;
-        let weights = LossWeights::default();
-        // Loss gradient computed once: the forward+backward timing reuses it as its input.
-        let frame = renderer.render_frame(context, &gaussians, &camera, &raster)?;
-        kernels.image_loss(
-            context,
-            renderer,
-            &frame,
-            &target,
-            &weights,
-            &image_gradients,
-        )?;
-        let forward_backward_ms = time_ms(context, warmup, repeats, || {
-            let frame = renderer.render_frame(context, &gaussians, &camera, &raster)?;
-            renderer.backward(context, &gaussians, &frame, &image_gradients)?;
-            Ok(())
-        })?;
-        let mut adam = DeviceAdam::new(context, &gaussians, AdamConfig::default())?;
-        let iteration_ms = time_ms(context, warmup, repeats, || {
-            let frame = renderer.render_frame(context, &gaussians, &camera, &raster)?;
-            kernels.image_loss(
-                context,
-                renderer,
-                &frame,
-                &target,
-                &weights,
-                &image_gradients,
-            )?;
-            let gradients = renderer.backward(context, &gaussians, &frame, &image_gradients)?;
-            kernels.adam_step(context, &mut adam, &gaussians, &gradients)
-        })?;
-        let mut runs = Vec::with_capacity(repeats);
-        for _ in 0..repeats.max(1) {
-            let mut times = StageTimes::default();
-            context.wait_idle()?;
-            let mut mark = Instant::now();
-            let mut lap = |times: &mut StageTimes, name: &'static str| -> Result<(), GpuError> {
-                context.wait_idle()?;
-                let now = Instant::now();
-                times.0.push((name, (now - mark).as_secs_f64() * 1e3));
-                mark = now;
-                Ok(())
-            };
-            let frame = renderer.render_frame(context, &gaussians, &camera, &raster)?;
-            lap(&mut times, "forward")?;
-            kernels.image_loss(
-                context,
-                renderer,
-                &frame,
-                &target,
-                &weights,
-                &image_gradients,
-            )?;
-            lap(&mut times, "loss")?;
-            let mut backward_times = StageTimes::default();
-            let gradients = renderer.backward_profiled(
-                context,
-                &gaussians,
-                &frame,
-                &image_gradients,
-                Some(&mut backward_times),
-            )?;
-            lap(&mut StageTimes::default(), "backward")?;
-            times.0.extend(backward_times.0);
-            kernels.adam_step(context, &mut adam, &gaussians, &gradients)?;
-            lap(&mut times, "adam")?;
-            runs.push(times);
-        }
-        (
-            Some(forward_backward_ms),
-            Some(iteration_ms),
-            StageTimes::median_of(&runs),
-        )
+        let timings = time_iteration(context, renderer, kernels, &gaussians, &camera, config)?;
+        (Some(timings.0), Some(timings.1), timings.2)
     } else {
         (None, None, StageTimes::default())
     };
@@ -638,6 +566,94 @@ pub fn run_case_on(
     })
 }
 
+/// Medians of forward + backward and of a full optimisation iteration (forward, loss,
+/// backward, Adam), and the iteration's stages, on `camera`'s view of `gaussians`.
+fn time_iteration(
+    context: &GpuContext,
+    renderer: &GpuRenderer,
+    kernels: &TrainingKernels,
+    gaussians: &DeviceGaussians,
+    camera: &Camera,
+    config: &BenchConfig,
+) -> Result<(f64, f64, StageTimes), GpuError> {
+    let (warmup, repeats) = (config.warmup, config.repeats);
+    let raster = RasterConfig::default();
+    let target = DeviceTarget::upload(context, &target_image(camera))?;
+    let image_gradients = DeviceImageGradients::zeros(context, camera)?;
+    let weights = LossWeights::default();
+    // Loss gradient computed once: the forward+backward timing reuses it as its input.
+    let frame = renderer.render_frame(context, gaussians, camera, &raster)?;
+    kernels.image_loss(
+        context,
+        renderer,
+        &frame,
+        &target,
+        &weights,
+        &image_gradients,
+    )?;
+    let forward_backward_ms = time_ms(context, warmup, repeats, || {
+        let frame = renderer.render_frame(context, gaussians, camera, &raster)?;
+        renderer.backward(context, gaussians, &frame, &image_gradients)?;
+        Ok(())
+    })?;
+    let mut adam = DeviceAdam::new(context, gaussians, AdamConfig::default())?;
+    let iteration_ms = time_ms(context, warmup, repeats, || {
+        let frame = renderer.render_frame(context, gaussians, camera, &raster)?;
+        kernels.image_loss(
+            context,
+            renderer,
+            &frame,
+            &target,
+            &weights,
+            &image_gradients,
+        )?;
+        let gradients = renderer.backward(context, gaussians, &frame, &image_gradients)?;
+        kernels.adam_step(context, &mut adam, gaussians, &gradients)
+    })?;
+    let mut runs = Vec::with_capacity(repeats);
+    for _ in 0..repeats.max(1) {
+        let mut times = StageTimes::default();
+        context.wait_idle()?;
+        let mut mark = Instant::now();
+        let mut lap = |times: &mut StageTimes, name: &'static str| -> Result<(), GpuError> {
+            context.wait_idle()?;
+            let now = Instant::now();
+            times.0.push((name, (now - mark).as_secs_f64() * 1e3));
+            mark = now;
+            Ok(())
+        };
+        let frame = renderer.render_frame(context, gaussians, camera, &raster)?;
+        lap(&mut times, "forward")?;
+        kernels.image_loss(
+            context,
+            renderer,
+            &frame,
+            &target,
+            &weights,
+            &image_gradients,
+        )?;
+        lap(&mut times, "loss")?;
+        let mut backward_times = StageTimes::default();
+        let gradients = renderer.backward_profiled(
+            context,
+            gaussians,
+            &frame,
+            &image_gradients,
+            Some(&mut backward_times),
+        )?;
+        lap(&mut StageTimes::default(), "backward")?;
+        times.0.extend(backward_times.0);
+        kernels.adam_step(context, &mut adam, gaussians, &gradients)?;
+        lap(&mut times, "adam")?;
+        runs.push(times);
+    }
+    Ok((
+        forward_backward_ms,
+        iteration_ms,
+        StageTimes::median_of(&runs),
+    ))
+}
+
 /// Median time of the device radix sort of `count` random full-width keys (with values).
 fn time_sort(
     context: &GpuContext,
@@ -657,7 +673,7 @@ fn time_sort(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::reference;
+    use render_core::reference;
 
     #[test]
     fn raster_workload_counts_band_steps_and_visible_pixels() {

@@ -1,0 +1,222 @@
+//! The device radix sort (sort.wgsl, scan.wgsl): stable, least significant digit first,
+//! RADIX_BITS bits per pass, one invocation walking a block of keys serially. The renderer
+//! sorts depth keys with it; [`GpuRenderer::sort_pairs`] and [`DeviceSortBench`] expose it to
+//! tests and the benchmark.
+
+use crate::context::{GpuContext, GpuError};
+use crate::gpu::GpuRenderer;
+use crate::passes::{
+    U32_BYTES, VEC4_BYTES, bind_group, count_buffer, dispatch_linear, prefix_scan,
+};
+use crate::wgsl::{RADIX_BITS, SERIAL_WORKGROUP_SIZE, SortParams};
+
+const RADIX: u32 = 1 << RADIX_BITS;
+/// Keys per radix-sort invocation: between these bounds, aiming at SORT_BLOCKS_TARGET blocks
+/// (enough invocations to keep every CPU thread busy, few enough that the digit table,
+/// RADIX entries per block, stays small next to the keys).
+const MIN_SORT_BLOCK_SIZE: u32 = 64;
+const MAX_SORT_BLOCK_SIZE: u32 = 1024;
+const SORT_BLOCKS_TARGET: u32 = 256;
+
+impl GpuRenderer {
+    /// Stable LSD radix sort of (key, value) pairs on the low `key_bits` bits, ping-ponging
+    /// between the two buffers of each pair. The number of pairs is read on the device from
+    /// `count_buffer[0]` (so it may come from an earlier kernel) and must not exceed
+    /// `max_count`, which sizes the dispatches and the digit table. Returns which buffer
+    /// (0 or 1) holds the sorted result.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn radix_sort(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        keys: [&wgpu::Buffer; 2],
+        values: [&wgpu::Buffer; 2],
+        count_buffer: &wgpu::Buffer,
+        max_count: u32,
+        key_bits: u32,
+    ) -> Result<usize, GpuError> {
+        let block_size = max_count
+            .div_ceil(SORT_BLOCKS_TARGET)
+            .clamp(MIN_SORT_BLOCK_SIZE, MAX_SORT_BLOCK_SIZE);
+        let block_count = max_count.div_ceil(block_size).max(1);
+        let table_entries = RADIX * block_count;
+        let table = context.storage_buffer("sort table", u64::from(table_entries) * U32_BYTES)?;
+        let workgroups = block_count.div_ceil(SERIAL_WORKGROUP_SIZE);
+        let mut current = 0;
+        for pass in 0..key_bits.div_ceil(RADIX_BITS) {
+            let shift = pass * RADIX_BITS;
+            let digit_bits = RADIX_BITS.min(key_bits - shift);
+            let digit_mask = (1 << digit_bits) - 1;
+            let params = SortParams {
+                shift,
+                digit_mask,
+                block_size,
+                block_count,
+            };
+            let params = context.uniform_buffer("sort params", bytemuck::bytes_of(&params));
+            let histogram_group = bind_group(
+                context,
+                &self.pipelines.sort_histogram,
+                &[
+                    (0, &params),
+                    (1, keys[current]),
+                    (3, &table),
+                    (6, count_buffer),
+                ],
+            );
+            dispatch_linear(
+                encoder,
+                &self.pipelines.sort_histogram,
+                &histogram_group,
+                workgroups,
+            );
+            prefix_scan(
+                context,
+                encoder,
+                self.scan_pipelines(),
+                &table,
+                table_entries,
+                true,
+            )?;
+            let scatter_group = bind_group(
+                context,
+                &self.pipelines.sort_scatter,
+                &[
+                    (0, &params),
+                    (1, keys[current]),
+                    (2, values[current]),
+                    (3, &table),
+                    (4, keys[1 - current]),
+                    (5, values[1 - current]),
+                    (6, count_buffer),
+                ],
+            );
+            dispatch_linear(
+                encoder,
+                &self.pipelines.sort_scatter,
+                &scatter_group,
+                workgroups,
+            );
+            current = 1 - current;
+        }
+        Ok(current)
+    }
+
+    /// Sorts (key, value) pairs on the device by the low `key_bits` bits of the key, stably.
+    /// A host-facing entry to the device radix sort (tests, tools).
+    pub fn sort_pairs(
+        &self,
+        context: &GpuContext,
+        keys: &[u32],
+        values: &[u32],
+        key_bits: u32,
+    ) -> Result<(Vec<u32>, Vec<u32>), GpuError> {
+        if keys.len() != values.len() {
+            return Err(GpuError::InvalidInput(format!(
+                "{} keys but {} values",
+                keys.len(),
+                values.len()
+            )));
+        }
+        let count = u32::try_from(keys.len())
+            .map_err(|_| GpuError::TooLarge("more than u32::MAX pairs".into()))?;
+        let min = VEC4_BYTES as usize;
+        let key_buffers = [
+            context.storage_buffer_init("keys", bytemuck::cast_slice(keys), min),
+            context.storage_buffer("keys scratch", u64::from(count) * U32_BYTES)?,
+        ];
+        let value_buffers = [
+            context.storage_buffer_init("values", bytemuck::cast_slice(values), min),
+            context.storage_buffer("values scratch", u64::from(count) * U32_BYTES)?,
+        ];
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let current = if count > 0 {
+            self.radix_sort(
+                context,
+                &mut encoder,
+                [&key_buffers[0], &key_buffers[1]],
+                [&value_buffers[0], &value_buffers[1]],
+                &count_buffer(context, count),
+                count,
+                key_bits.min(u32::BITS),
+            )?
+        } else {
+            0
+        };
+        context.queue.submit([encoder.finish()]);
+        Ok((
+            context.read_vec(&key_buffers[current], keys.len())?,
+            context.read_vec(&value_buffers[current], keys.len())?,
+        ))
+    }
+}
+
+/// A device radix sort of fixed random input, for benchmarks: every [`DeviceSortBench::sort`]
+/// restores the unsorted input on the device and sorts it (nothing is read back).
+pub struct DeviceSortBench {
+    count: u32,
+    source_keys: wgpu::Buffer,
+    source_values: wgpu::Buffer,
+    keys: [wgpu::Buffer; 2],
+    values: [wgpu::Buffer; 2],
+}
+
+impl DeviceSortBench {
+    pub fn new(context: &GpuContext, keys: &[u32], values: &[u32]) -> Result<Self, GpuError> {
+        if keys.len() != values.len() {
+            return Err(GpuError::InvalidInput(format!(
+                "{} keys but {} values",
+                keys.len(),
+                values.len()
+            )));
+        }
+        let count = u32::try_from(keys.len())
+            .map_err(|_| GpuError::TooLarge("more than u32::MAX pairs".into()))?;
+        let bytes = u64::from(count) * U32_BYTES;
+        let min = VEC4_BYTES as usize;
+        Ok(Self {
+            count,
+            source_keys: context.storage_buffer_init("bench keys", bytemuck::cast_slice(keys), min),
+            source_values: context.storage_buffer_init(
+                "bench values",
+                bytemuck::cast_slice(values),
+                min,
+            ),
+            keys: [
+                context.storage_buffer("keys", bytes)?,
+                context.storage_buffer("keys scratch", bytes)?,
+            ],
+            values: [
+                context.storage_buffer("values", bytes)?,
+                context.storage_buffer("values scratch", bytes)?,
+            ],
+        })
+    }
+
+    /// Restores the input and submits a sort on the low `key_bits` bits (does not wait).
+    pub fn sort(
+        &self,
+        context: &GpuContext,
+        renderer: &GpuRenderer,
+        key_bits: u32,
+    ) -> Result<(), GpuError> {
+        if self.count == 0 {
+            return Ok(());
+        }
+        let bytes = u64::from(self.count) * U32_BYTES;
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        encoder.copy_buffer_to_buffer(&self.source_keys, 0, &self.keys[0], 0, bytes);
+        encoder.copy_buffer_to_buffer(&self.source_values, 0, &self.values[0], 0, bytes);
+        renderer.radix_sort(
+            context,
+            &mut encoder,
+            [&self.keys[0], &self.keys[1]],
+            [&self.values[0], &self.values[1]],
+            &count_buffer(context, self.count),
+            self.count,
+            key_bits.min(u32::BITS),
+        )?;
+        context.queue.submit([encoder.finish()]);
+        Ok(())
+    }
+}
