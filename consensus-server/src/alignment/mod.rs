@@ -18,17 +18,17 @@ pub mod features;
 pub mod ransac;
 pub mod verification;
 
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
 use image::RgbImage;
 use nalgebra::{Isometry3, Point3};
-use serde::Serialize;
-use slam_core::camera::Intrinsics;
-use slam_core::dataset::DepthImage;
-use slam_core::registration::{
+use registration::{
     GicpParams, PointTree, RegistrationFailure, points_from_depth, register_coarse_to_fine,
 };
+use serde::Serialize;
 
-use crate::config::AlignmentConfig;
 use crate::place_recognition::KeyframeRef;
+use config::AlignmentConfig;
 use features::Features;
 use verification::DepthComparison;
 

@@ -7,12 +7,12 @@
 //! to all its inliers. A rigid motion preserves distances, so a sample whose pairwise distances
 //! disagree between the two views is discarded before fitting.
 
+use geometry::se3::umeyama;
 use nalgebra::{Isometry3, Point3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use slam_core::se3::umeyama;
 
-use crate::config::AlignmentConfig;
+use config::AlignmentConfig;
 
 /// Points per minimal sample of a rigid transform.
 const SAMPLE_SIZE: usize = 3;

@@ -69,11 +69,11 @@ mod tests;
 
 use std::time::Instant;
 
+use config::MapRegistrationConfig;
 use nalgebra::{Isometry3, Matrix6, Point3};
+use registration::covariance::smallest_eigenvector;
+use registration::{PointCloud, PointTree, RegistrationFailure};
 use serde::Serialize;
-use slam_core::config::MapRegistrationConfig;
-use slam_core::registration::covariance::smallest_eigenvector;
-use slam_core::registration::{PointCloud, PointTree, RegistrationFailure};
 
 use colour::Rgb;
 use consistency::{RansacParams, find_consensus, transform_difference};

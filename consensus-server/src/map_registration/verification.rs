@@ -46,7 +46,7 @@
 
 use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, RowVector6, Vector3};
 use rayon::prelude::*;
-use slam_core::registration::{
+use registration::{
     GicpParams, PointCloud, PointTree, RegistrationResult, RegistrationTarget, register,
 };
 
