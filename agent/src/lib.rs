@@ -2,7 +2,7 @@
 //! frame source -> G-ICP tracking -> keyframes -> Gaussian map optimisation.
 //!
 //! - [`source`]: frames in order, decoded ahead, sanitised, missing ones skipped and counted;
-//! - tracking: slam-core's frame-to-model G-ICP odometry (its map is the trackable Gaussians'
+//! - tracking: the registration crate's frame-to-model G-ICP odometry (its map is the trackable Gaussians'
 //!   means with their G-ICP covariances);
 //! - [`seeding`]: new Gaussians from keyframe points;
 //! - [`mapper`]: the mapping thread (render-core on the device; render-core's `DeviceMap` keeps

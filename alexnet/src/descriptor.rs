@@ -1,4 +1,5 @@
-//! Global image descriptors for place recognition (SPEC section 4, step 1): every T_comm frames an
+//! Global image descriptors for place recognition (docs/method.md, The consensus:
+//! selection): every T_comm frames an
 //! agent describes its latest keyframe image with one L2-normalised vector; the consensus scores
 //! descriptors by dot product and proposes loop closures above a threshold.
 //!

@@ -224,7 +224,7 @@ mod tests {
         // And tracking keyframes seed only uncovered points (a map 2.3x smaller, more mapping
         // iterations, the same PSNR; figures in configs/7scenes.toml).
         spec.keyframes.tracking_keyframe_seeds = TrackingKeyframeSeeds::Uncovered;
-        assert_eq!(seven, spec, "7-Scenes uses the SPEC defaults");
+        assert_eq!(seven, spec, "7-Scenes uses the method's defaults");
         let replica = Config::load(&configs_dir().join("replica.toml")).unwrap();
         assert_eq!(replica.tracking.pixel_stride, 10);
         assert_eq!(replica.tracking.truncation_m, 12.0);
@@ -250,7 +250,7 @@ mod tests {
         assert_eq!(
             Config::default().keyframes.tracking_keyframe_seeds,
             TrackingKeyframeSeeds::All,
-            "the SPEC rule is the default"
+            "the method's rule is the default"
         );
         std::fs::write(&path, "[keyframes]\ntracking_keyframe_seeds = \"some\"\n").unwrap();
         let err = Config::load(&path).unwrap_err().to_string();

@@ -24,8 +24,8 @@ pub struct MappingConfig {
     pub prune_max_scale_m: f64,
     /// Largest allowed max scale / (sum of the other two).
     pub prune_max_elongation: f64,
-    /// Keyframes are optimised at their resolution divided by this (1 = full resolution, the
-    /// SPEC). On a CPU Vulkan device (lavapipe) a 640x480 iteration costs seconds; a factor of 2
+    /// Keyframes are optimised at their resolution divided by this (1 = full resolution, as
+    /// docs/method.md, One agent: Map optimisation, describes it). On a CPU Vulkan device (lavapipe) a 640x480 iteration costs seconds; a factor of 2
     /// or 4 buys 4x or 16x more iterations for the same time.
     pub image_downscale: u32,
     /// Seed of the mapper's choice of earlier keyframes (runs are repeatable).

@@ -1,5 +1,5 @@
 //! Two agents on 7-Scenes redkitchen (frames 0..600 and 400..1000), each tracked on its own from
-//! identity with slam_core's frame-to-model odometry. The consensus pipeline then runs as the
+//! identity with the registration crate's frame-to-model odometry. The consensus pipeline then runs as the
 //! process will: place recognition over keyframe descriptors (AlexNet GeM), alignment of the
 //! proposed pairs and of each agent's consecutive keyframes, the robust pose graph, and finally
 //! the joint ATE of both agents' corrected trajectories under one alignment to ground truth.

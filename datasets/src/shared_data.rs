@@ -17,7 +17,7 @@ pub fn shared_dir() -> PathBuf {
     if let Some(dir) = std::env::var_os(SHARED_ENV) {
         return PathBuf::from(dir);
     }
-    // slam-core sits one level below the workspace root; resolve the `..`s for readable messages.
+    // This crate sits one level below the workspace root; resolve the `..`s for readable messages.
     let default = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("..")
         .join("..")

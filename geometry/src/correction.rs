@@ -1,4 +1,5 @@
-//! Pose-graph corrections applied to poses and maps that are not keyframes (SPEC section 4).
+//! Pose-graph corrections applied to poses and maps that are not keyframes
+//! (docs/method.md, The consensus: pose graph).
 //!
 //! The consensus moves each keyframe; its *correction* is `world_from_camera_corrected *
 //! agent_from_camera_tracked^-1`, a `world_from_agent` transform valid near that keyframe. A frame

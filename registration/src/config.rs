@@ -77,13 +77,13 @@ pub struct KeyframeConfig {
     pub seed_scale: SeedScale,
     /// With `seed_scale = "sample_footprint"`: the new Gaussian's standard deviation along the
     /// surface in units of the spacing between neighbouring samples. Coverage of a surface grows
-    /// with opacity x (sigma / spacing)^2: at the SPEC's initial opacity 0.1, 2 spacings give a closed
+    /// with opacity x (sigma / spacing)^2: at the default initial opacity 0.1, 2 spacings give a closed
     /// surface from the first render (synthetic scene, no optimisation: PSNR 21.8 dB against
     /// 16.7 dB with 1 spacing).
     pub footprint_sigma_per_spacing: f64,
     /// At a mapping keyframe, points with a map Gaussian closer than sqrt(this) (m^2) are already
-    /// covered and seed nothing. The SPEC says mapping-keyframe Gaussians are never trackable but
-    /// not which points seed them; seeding every point of every 10th frame would grow the map by
+    /// covered and seed nothing. The method (docs/method.md, One agent: Seeding) makes
+    /// mapping-keyframe Gaussians never trackable but does not say which points seed them; seeding every point of every 10th frame would grow the map by
     /// ~11k Gaussians per keyframe on 640x480 input, almost all duplicates of what is there.
     /// The default is the tracking overlap radius (sqrt(5e-4) m, ~2.2 cm).
     pub mapping_seed_min_distance_sq_m2: f64,
@@ -95,7 +95,7 @@ pub struct KeyframeConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum TrackingKeyframeSeeds {
-    /// SPEC section 3 literally: every point. A tracking keyframe still overlaps the map by up to
+    /// The seeding rule of docs/method.md (One agent: Seeding) literally: every point. A tracking keyframe still overlaps the map by up to
     /// `min_overlap_fraction` (70 %), so most of its Gaussians duplicate surfaces the map already
     /// has, stacked in layers the mapper must render and optimise.
     #[default]
@@ -111,7 +111,7 @@ pub enum TrackingKeyframeSeeds {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum SeedScale {
-    /// SPEC section 3 literally: scale = sqrt(eigenvalues of the G-ICP covariance) /
+    /// The seeding rule of docs/method.md (One agent: Seeding) literally: scale = sqrt(eigenvalues of the G-ICP covariance) /
     /// max(1, 2 z^1.5). The G-ICP covariance is normalised (eigenvalues 1, 1, eps), so a point
     /// 2 m away gets a disc of 0.18 m standard deviation: ~10x the spacing of the sampled
     /// points, which on a CPU rasteriser costs tens of millions of tile/Gaussian pairs.

@@ -10,13 +10,14 @@
 //!
 //! where `j(i)` is the single nearest target point to `T a_i` within the correspondence distance
 //! (re-searched at every iteration). The same formula with both covariances is the consensus's
-//! two-keyframe alignment (SPEC section 4, step 3: `Sigma_k + Sigma_l`): it is this function with a
-//! [`super::kdtree::PointTree`] target.
+//! two-keyframe alignment (docs/method.md, The consensus: association and alignment:
+//! `Sigma_k + Sigma_l`): it is this function with a [`crate::kdtree::PointTree`] target.
 //!
 //! **Perturbation:** right (body-frame), `T <- T * (Exp(omega), v)`, the update `delta = (omega, v)`
 //! with `omega` a rotation vector and `v` a translation in the *source* frame. Then
 //! `d(d_i)/d(delta) = [R [a_i]x, -R]`, the form small_gicp uses, and the update's size is directly
-//! the "rotation change" and "translation change" of the SPEC convergence test (|R v| = |v|).
+//! the "rotation change" and "translation change" of the convergence test (docs/method.md, One
+//! agent: Tracking; |R v| = |v|).
 //!
 //! **Levenberg-Marquardt:** each iteration searches correspondences and builds the normal
 //! equations `H = sum J^T W J`, `b = sum J^T W d` at the current pose; then up to
@@ -81,7 +82,7 @@ pub struct GicpParams {
     /// ...and translates less than this (metres).
     pub translation_epsilon_m: f64,
     /// A source point "overlaps" the target when a target point is within this distance of it
-    /// at the final pose (metres; the SPEC keyframe criterion, sqrt(5e-4)).
+    /// at the final pose (metres; the keyframe criterion of docs/method.md, One agent: Keyframes, sqrt(5e-4)).
     pub overlap_distance_m: f64,
     /// The result is a failure when fewer than this fraction of the source points have a
     /// correspondence at the final pose.
@@ -89,7 +90,7 @@ pub struct GicpParams {
 }
 
 impl GicpParams {
-    /// The SPEC tracking parameters (section 3).
+    /// The tracking parameters (docs/method.md, One agent: Tracking).
     pub fn tracking(tracking: &TrackingConfig, keyframes: &KeyframeConfig) -> Self {
         Self {
             max_correspondence_m: tracking.max_correspondence_m,

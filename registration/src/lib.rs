@@ -1,5 +1,6 @@
-//! RGB-D tracking core shared by the agent (frame-to-model tracking, SPEC section 3) and the
-//! consensus (keyframe-to-keyframe alignment, SPEC section 4): a pipeline small enough to read in
+//! RGB-D tracking core shared by the agent (frame-to-model tracking, docs/method.md, One agent)
+//! and the consensus (keyframe-to-keyframe alignment, docs/method.md, The consensus: association
+//! and alignment): a pipeline small enough to read in
 //! one sitting, in the spirit of KISS-ICP.
 //!
 //! 1. [`points`]: back-project every `pixel_stride`-th depth pixel (camera frame), dropping

@@ -16,7 +16,8 @@
 //! 5. keyframes (frame-to-model): when fewer than `keyframes.min_overlap_fraction` of the frame's
 //!    points have a map point within sqrt(`keyframes.overlap_distance_sq_m2`), the frame is a
 //!    tracking keyframe and its points farther than sqrt(`keyframes.trackable_new_distance_sq_m2`)
-//!    from the map join it (the SPEC's trackable-Gaussian rule, with points for Gaussians).
+//!    from the map join it (the trackable-Gaussian rule of docs/method.md, One agent: Keyframes,
+//!    with points for Gaussians).
 
 use std::fmt;
 use std::str::FromStr;
@@ -113,8 +114,8 @@ pub struct TrackedFrame {
     /// The frame's points in its camera frame, with covariances and source pixels (the agent
     /// seeds Gaussians from them).
     pub frame_points: PointCloud,
-    /// At a keyframe: per point of `frame_points`, whether it joined the tracking map (the SPEC's
-    /// trackable flag). `None` on other frames.
+    /// At a keyframe: per point of `frame_points`, whether it joined the tracking map (the
+    /// trackable flag of docs/method.md, One agent: Keyframes). `None` on other frames.
     pub trackable: Option<Vec<bool>>,
     pub timings: StageTimings,
 }
@@ -197,7 +198,8 @@ impl Odometry {
         self.next_point_id
     }
 
-    /// Moves the frame-to-model map non-rigidly (a consensus correction, SPEC section 4): each
+    /// Moves the frame-to-model map non-rigidly (a consensus correction, docs/method.md, The
+    /// consensus: pose graph): each
     /// map point by `transform_of(its id)` (unchanged when `None`), and the last pose by
     /// `current`, the correction at the current frame, so that the next prediction lands in the
     /// moved map. The constant-velocity motion is relative and stays. Returns how many points

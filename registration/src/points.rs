@@ -1,7 +1,7 @@
 //! Step 1 of the pipeline: the points of a depth image.
 //!
-//! Every `pixel_stride`-th pixel in x and y is back-projected through the pinhole model (SPEC
-//! section 3, "point selection"). Pixels without usable depth are dropped: depth <= 0 (the readers
+//! Every `pixel_stride`-th pixel in x and y is back-projected through the pinhole model
+//! (docs/method.md, One agent: Points and covariances). Pixels without usable depth are dropped: depth <= 0 (the readers
 //! store every invalid marker, including 7-Scenes' 65535, as 0), non-finite values (a noisy or
 //! corrupted depth image must not poison the map) and depth at or beyond the truncation distance.
 

@@ -6,8 +6,8 @@
 //! a removal in O(1) without rebalancing, and a nearest-neighbour query bounded by the
 //! correspondence distance only visits the few voxels that can hold an answer. The voxels also
 //! give the frustum selection its granularity: [`VoxelMap::select_view`] marks the voxels that
-//! intersect the predicted view, and queries then ignore the rest (SPEC section 3, "selection of
-//! map candidates").
+//! intersect the predicted view, and queries then ignore the rest (docs/method.md, One agent: Tracking,
+//! the selection of map candidates).
 //!
 //! Query cost: with voxels three times the correspondence distance (the default from
 //! [`VoxelMap::for_correspondence_distance`]), the ball around a query overlaps at most 2 x 2 x 2
@@ -327,8 +327,8 @@ impl VoxelMap {
         self.points.iter().flatten()
     }
 
-    /// Restricts later queries to the voxels that reach into `view` (the candidates of SPEC
-    /// section 3: map points in the predicted view frustum within truncation depth). Returns how
+    /// Restricts later queries to the voxels that reach into `view` (the candidates of docs/method.md,
+    /// One agent: Tracking: map points in the predicted view frustum within truncation depth). Returns how
     /// many voxels were selected. The selection holds until the next call or [`Self::clear_view`];
     /// points inserted meanwhile into new voxels are not selected.
     pub fn select_view(&mut self, view: &ViewFrustum) -> usize {

@@ -74,7 +74,8 @@ pub struct AlignmentConfig {
     /// Neighbours per G-ICP covariance and its plane regularisation (as tracking does).
     pub covariance_neighbours: usize,
     pub covariance_epsilon: f64,
-    /// Coarse-to-fine correspondence distances (metres, largest first; SPEC section 4, step 2).
+    /// Coarse-to-fine correspondence distances (metres, largest first; docs/method.md, The
+    /// consensus: association and alignment).
     pub correspondence_distances_m: Vec<f64>,
     /// Levenberg-Marquardt iterations per stage.
     pub gicp_max_iterations: usize,

@@ -19,7 +19,7 @@ pub use map_registration::MapRegistrationConfig;
 pub use pose_graph::PoseGraphConfig;
 pub use refinement::RefinementConfig;
 
-/// Inter-agent consensus (SPEC section 4).
+/// Inter-agent consensus (docs/method.md, The consensus).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ConsensusConfig {
@@ -30,7 +30,7 @@ pub struct ConsensusConfig {
     /// Descriptor score above which keyframes of different agents propose a loop closure.
     pub tau_other_agent: f64,
     /// Same-agent keyframes closer than this many frames are never proposed as loop closures:
-    /// odometry already links them and their images are trivially alike (SPEC is silent; 10 s).
+    /// odometry already links them and their images are trivially alike (the method does not say; 10 s at 30 Hz).
     pub same_agent_min_frame_gap: usize,
     /// Place-recognition proposals aligned per new keyframe at most (the best-scoring ones):
     /// alignment costs about a second on a CPU, and the best few carry the overlap.
@@ -110,8 +110,9 @@ impl ConsensusConfig {
     }
 }
 
-/// How an agent applies the consensus's corrections to its local maps (SPEC section 4, step 4:
-/// "corrections go back to agents, which apply them to their local maps between frames"): the
+/// How an agent applies the consensus's corrections to its local maps (docs/method.md, The
+/// consensus: pose graph: corrections go back to agents, which apply them to their local maps
+/// between frames): the
 /// `[consensus.local_corrections]` table.
 ///
 /// A correction carries the corrected pose of every keyframe the agent published. The agent

@@ -4,7 +4,8 @@
 use geometry::checks::{FieldError, at_least_one, fraction, non_negative, positive};
 use serde::{Deserialize, Serialize};
 
-/// Joint photometric refinement of the merged world map (SPEC section 4, step 4, second half):
+/// Joint photometric refinement of the merged world map (docs/method.md, The consensus: joint
+/// refinement):
 /// the merged map and the keyframe poses are optimised against every placed keyframe's RGB-D
 /// image with `weight_l1`, `weight_ssim`, `weight_depth` and `weight_pose_consistency` of
 /// `[consensus]`. It runs when the agents are done, before the world map and trajectories are
@@ -20,7 +21,8 @@ pub struct RefinementConfig {
     pub max_seconds: f64,
     /// Views are rendered at their resolution divided by this (as `[mapping] image_downscale`).
     pub image_downscale: u32,
-    /// Learning rates of the Gaussians (SPEC section 3's mapping rates; the mean rate is
+    /// Learning rates of the Gaussians (the mapping rates of docs/method.md, One agent: Map
+    /// optimisation; the mean rate is
     /// multiplied by the map's radius, as the mapper does).
     pub lr_means: f64,
     pub lr_colours: f64,

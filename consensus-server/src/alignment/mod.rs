@@ -5,7 +5,7 @@
 //!    matches, lifted to 3-D with depth, RANSAC over 3-point rigid fits. Needs no initial guess, so
 //!    it works when the cameras are metres and tens of degrees apart.
 //! 2. Refinement: G-ICP between the two keyframes' point clouds with both covariances
-//!    (`Sigma_k + Sigma_l`), coarse-to-fine correspondence distances (slam_core's
+//!    (`Sigma_k + Sigma_l`), coarse-to-fine correspondence distances (the registration crate's
 //!    [`register_coarse_to_fine`]).
 //! 3. Verification ([`verification`]): inlier fraction, point-to-plane residual and depth
 //!    agreement in both directions against [`AlignmentConfig`] thresholds. The result always says
