@@ -222,8 +222,8 @@ pub fn estimate_covariances(tree: &PointTree, neighbours: usize, epsilon: f64) -
 /// certificate of a radius-2 window reaches about 2.5 cells at the image centre for a 640x480,
 /// f = 585 camera, which answers most points of frontal surfaces from 25 candidates; radius 3
 /// (49 candidates, certificate ~3.3 cells) answers surfaces up to roughly 50 degrees from
-/// frontal. On redkitchen (frames 0..299, one thread) the two-step search took the points +
-/// covariances stage from 14.0 to 10.5-11.3 ms per frame against radius 3 alone.
+/// frontal. Trying the small window first makes the points + covariances stage about a quarter
+/// faster than radius 3 alone (timings: docs/benchmarks.md).
 pub const GRID_WINDOW_RADII_CELLS: [usize; 2] = [2, 3];
 
 /// Lower bound on the distance from a point at depth `z` to any point seen through a pixel at

@@ -14,9 +14,8 @@
 //! voxels. The query's own voxel is searched first; a neighbouring voxel is looked up only if its
 //! box is closer than the best match so far, which after alignment (matches a few millimetres
 //! away) usually leaves one hash lookup per query. Hash lookups and the neighbour loop cost more
-//! than scanning a few more points in the home voxel: on redkitchen frames 0..299 (one thread,
-//! ~73k map points) registration took 46-49 ms per frame with voxels of 1 x, 33-35 ms with 2 x and
-//! 29-31 ms with 3 x the correspondence distance.
+//! than scanning a few more points in the home voxel, so larger voxels are faster up to 3 x the
+//! correspondence distance (timings: docs/benchmarks.md).
 
 use nalgebra::{Isometry3, Point3, Vector3};
 use rustc_hash::FxHashMap;
