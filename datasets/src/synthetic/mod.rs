@@ -57,14 +57,14 @@ use texture::mix64;
 
 /// Salts that give each part of the generator its own RNG stream for a seed, so changing one
 /// part (e.g. the number of agents) never moves another (e.g. the furniture).
-pub(super) const SCENE_STREAM: u64 = 0x5CE4_E000_0000_0001;
-pub(super) const TRAJECTORY_STREAM: u64 = 0x7A4E_C700_0000_0002;
+const SCENE_STREAM: u64 = 0x5CE4_E000_0000_0001;
+const TRAJECTORY_STREAM: u64 = 0x7A4E_C700_0000_0002;
 
-pub(super) fn stream_rng(seed: u64, stream: u64) -> ChaCha8Rng {
+fn stream_rng(seed: u64, stream: u64) -> ChaCha8Rng {
     ChaCha8Rng::seed_from_u64(mix64(seed ^ mix64(stream)))
 }
 
-pub(super) fn symmetric(rng: &mut ChaCha8Rng, amplitude: f64) -> f64 {
+fn symmetric(rng: &mut ChaCha8Rng, amplitude: f64) -> f64 {
     rng.random_range(-amplitude..=amplitude)
 }
 
