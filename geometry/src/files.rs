@@ -1,5 +1,9 @@
 //! Errors and number parsing shared by every reader of dataset files: image folders, trajectory
 //! files, calibration files. Each error names the file and, where there is one, the line.
+//!
+//! Here rather than in the `datasets` crate because this crate reads such files too
+//! ([`crate::trajectory::Trajectory::read`], [`crate::camera::Intrinsics::read_k_file`]), and the
+//! metrics read trajectories without depending on the readers.
 
 use std::fmt;
 use std::path::{Path, PathBuf};
