@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Obtain the LPIPS v0.1 AlexNet weights (alexnet.npz) that `slam_core::metrics::lpips` loads.
+# Obtain the LPIPS v0.1 AlexNet weights (alexnet.npz) that `alexnet::lpips` loads.
 #
 # Usage: scripts/get_lpips_weights.sh [OUTPUT_NPZ]      (default: ./weights/lpips/alexnet.npz)
 #

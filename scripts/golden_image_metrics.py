@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
-"""Golden PSNR / SSIM values for slam-core's image metrics, computed with scikit-image.
+"""Golden PSNR / SSIM values for the metrics crate's image metrics, computed with scikit-image.
 
 Used once to write the constants of `real_data_psnr_ssim_match_scikit_image`
-(slam-core/src/metrics/image.rs). JPEG decoders disagree by a few grey levels (chroma
+(metrics/src/image.rs). JPEG decoders disagree by a few grey levels (chroma
 upsampling), so the frames are first decoded by mac-ego3d's own reader and written losslessly:
 
     target/debug/mac-ego3d dataset frame ../shared/datasets/7scenes-redkitchen --frame 0 --rgb /tmp/a.png

@@ -95,7 +95,7 @@ fi
 "$bin/mac-ego3d" config --config "$config" "${overrides[@]}" --out "$run_config.new" ||
   { echo "[swarm] the configuration is refused (above)" >&2; exit 2; }
 mv "$run_config.new" "$run_config"
-# Without --descriptor-weights, every process uses the default weights (slam_core::weights) and
+# Without --descriptor-weights, every process uses the default weights (alexnet::weights) and
 # says in its log when there are none; setup.sh has already said so on the screen.
 weight_args=()
 eval_args=()

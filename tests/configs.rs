@@ -1,10 +1,10 @@
 //! Every shipped configuration (configs/**/*.toml, the per-dataset files and the scenarios under
-//! configs/scenarios/) loads through the real loader, `slam_core::config::Config::load`, which
+//! configs/scenarios/) loads through the real loader, `config::Config::load`, which
 //! refuses unknown keys and out-of-range values.
 
 use std::path::{Path, PathBuf};
 
-use slam_core::config::Config;
+use config::Config;
 
 fn configs_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("configs")

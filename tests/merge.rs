@@ -12,7 +12,7 @@ mod common;
 use std::process::Command;
 
 use common::{AgentSpec, SwarmRun};
-use slam_core::config::Config;
+use config::Config;
 
 /// Bounds of the merge tests: joint ATE on the exact synthetic scene, and on redkitchen.
 const MAX_SYNTHETIC_JOINT_ATE_M: f64 = 0.02;
@@ -31,13 +31,13 @@ fn synthetic_config() -> Config {
 fn redkitchen_config() -> Config {
     let mut config = common::repository_config("configs/7scenes.toml");
     config.consensus.descriptor_weights =
-        Some(slam_core::shared_data::require("weights/lpips/alexnet.npz"));
+        Some(datasets::shared_data::require("weights/lpips/alexnet.npz"));
     config.consensus.refinement.iterations = 0;
     config
 }
 
 fn redkitchen() -> String {
-    slam_core::shared_data::require("datasets/7scenes-redkitchen")
+    datasets::shared_data::require("datasets/7scenes-redkitchen")
         .to_string_lossy()
         .into_owned()
 }

@@ -14,7 +14,7 @@ mod common;
 use std::time::Duration;
 
 use common::{AgentSpec, SwarmRun};
-use slam_core::config::Config;
+use config::Config;
 
 /// Frames per agent: the two synthetic loops overlap within this many frames.
 const FRAMES: usize = 150;
@@ -51,7 +51,7 @@ fn config() -> Config {
     // The pretrained descriptor (shared data): the classical thumbnail rarely proposes the
     // overlapping pair of this scene.
     config.consensus.descriptor_weights =
-        Some(slam_core::shared_data::require("weights/lpips/alexnet.npz"));
+        Some(datasets::shared_data::require("weights/lpips/alexnet.npz"));
     config
 }
 
@@ -77,7 +77,7 @@ fn check(swarm: &SwarmRun, metrics: &serde_json::Value) {
             world.exists(),
             "agent {k} was not placed in the world frame"
         );
-        let poses = slam_core::trajectory::Trajectory::read_tum(&world).unwrap();
+        let poses = geometry::trajectory::Trajectory::read_tum(&world).unwrap();
         assert_eq!(poses.len(), FRAMES, "agent {k}: one world pose per frame");
     }
     let ate = metrics["ate_joint_rmse_m"].as_f64().expect("joint ATE");

@@ -5,17 +5,18 @@
 
 use std::path::{Path, PathBuf};
 
+use alexnet::lpips::Lpips;
+use datasets::Frame;
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
 use image::RgbImage;
+use metrics::depth::depth_l1_cm;
+use metrics::image::image_quality;
 use nalgebra::Isometry3;
 use render_core::context::{GpuContext, GpuError};
 use render_core::gpu::{DeviceGaussians, GpuRenderer};
 use render_core::types::{Camera, GaussianCloud, RenderMode, RenderOutput, RigidTransform};
 use serde::Serialize;
-use slam_core::camera::Intrinsics;
-use slam_core::dataset::{DepthImage, Frame};
-use slam_core::metrics::depth::depth_l1_cm;
-use slam_core::metrics::image::image_quality;
-use slam_core::metrics::lpips::Lpips;
 
 /// Pixels whose accumulated opacity is below this get no depth: there the map is mostly empty and
 /// depth / alpha would be a guess.

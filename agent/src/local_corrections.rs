@@ -20,14 +20,14 @@
 
 use std::time::Instant;
 
+use config::LocalCorrectionConfig;
+use geometry::correction::{CorrectionField, correction};
+use geometry::se3::rotation_angle;
 use nalgebra::Isometry3;
+use registration::odometry::Odometry;
+use registration::voxel_map::MapPointId;
 use render_core::types::RigidTransform;
 use serde::Serialize;
-use slam_core::config::LocalCorrectionConfig;
-use slam_core::correction::{CorrectionField, correction};
-use slam_core::registration::odometry::Odometry;
-use slam_core::registration::voxel_map::MapPointId;
-use slam_core::se3::rotation_angle;
 
 use crate::mapper::Mapper;
 use crate::seeding::CoverageIndex;
@@ -431,9 +431,9 @@ mod tests {
     mod end_to_end {
         use super::*;
         use crate::mapper::Mapper;
-        use slam_core::config::Config;
-        use slam_core::dataset::{self, FrameRange};
-        use slam_core::registration::odometry::OdometryMode;
+        use config::Config;
+        use datasets::{self, FrameRange};
+        use registration::odometry::OdometryMode;
 
         const FRAMES: usize = 24;
         const CORRECT_AFTER: usize = 12;
@@ -449,7 +449,7 @@ mod tests {
         #[test]
         fn tracking_continues_in_the_corrected_map_and_published_poses_do_not_jump() {
             let config = Config::default();
-            let dataset = dataset::open(
+            let dataset = datasets::open(
                 &format!("synthetic:agents=2,agent=0,frames={FRAMES},width=320,height=240"),
                 FrameRange::ALL,
             )

@@ -19,12 +19,12 @@ use std::time::Instant;
 
 use anyhow::bail;
 use clap::Parser;
+use config::Config;
+use datasets::FrameRange;
 use mac_agent::link_schedule::{LinkPlan, LinkSchedule};
 use mac_agent::run::{AgentOptions, metrics_table, run_agent, run_standalone};
 use mac_agent::swarm::SwarmLink;
 use protocol::transport::TransportConfig;
-use slam_core::config::Config;
-use slam_core::dataset::FrameRange;
 
 #[derive(Parser)]
 #[command(
@@ -92,7 +92,7 @@ struct Args {
 fn main() -> anyhow::Result<()> {
     // The link schedule's clock: seconds since the agent started.
     let started = Instant::now();
-    slam_core::process::init_logging();
+    config::process::init_logging();
     let args = Args::parse();
     let schedule = match &args.link_schedule {
         Some(path) => Some(LinkSchedule::load(path)?),
@@ -117,11 +117,11 @@ fn main() -> anyhow::Result<()> {
         }
         config.consensus.descriptor_weights = Some(weights.clone());
     } else if !args.standalone && config.consensus.descriptor_weights.is_none() {
-        config.consensus.descriptor_weights = slam_core::weights::default_alexnet_weights();
+        config.consensus.descriptor_weights = alexnet::weights::default_alexnet_weights();
     }
     let lpips_weights = match &args.lpips_weights {
         Some(path) => Some(path.clone()),
-        None if args.standalone => slam_core::weights::default_alexnet_weights(),
+        None if args.standalone => alexnet::weights::default_alexnet_weights(),
         None => None,
     };
     let frames: FrameRange = args
@@ -143,7 +143,7 @@ fn main() -> anyhow::Result<()> {
         lpips_weights,
         decode_workers: args.decode_workers,
     };
-    let stop = slam_core::process::stop_on_termination_signals()?;
+    let stop = config::process::stop_on_termination_signals()?;
     let metrics = if args.standalone {
         run_standalone(&options, &stop)?
     } else {

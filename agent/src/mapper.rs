@@ -18,20 +18,21 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
+use config::MappingConfig;
 use crossbeam_channel::{Receiver, Sender, TryRecvError};
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
 use image::RgbImage;
 use nalgebra::Isometry3;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use registration::config::TrackingConfig;
 use render_core::backward::DeviceImageGradients;
 use render_core::context::{GpuContext, GpuError};
 use render_core::gpu::GpuRenderer;
 use render_core::map::{DeviceMap, PruneCriteria};
 use render_core::training::{DeviceTarget, LossWeights, TargetImage, TrainingKernels};
 use render_core::types::{Camera, GaussianCloud, RasterConfig, RigidTransform};
-use slam_core::camera::Intrinsics;
-use slam_core::config::{MappingConfig, TrackingConfig};
-use slam_core::dataset::DepthImage;
 
 /// Why a keyframe was made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

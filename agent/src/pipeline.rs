@@ -7,11 +7,12 @@
 
 use std::time::Instant;
 
+use config::Config;
+use datasets::Frame;
 use nalgebra::Isometry3;
+use registration::config::TrackingKeyframeSeeds;
+use registration::odometry::{Odometry, OdometryMode, TrackedFrame, TrackingOutcome};
 use render_core::types::{GaussianCloud, RigidTransform};
-use slam_core::config::{Config, TrackingKeyframeSeeds};
-use slam_core::dataset::Frame;
-use slam_core::registration::odometry::{Odometry, OdometryMode, TrackedFrame, TrackingOutcome};
 
 use crate::local_corrections::{LocalCorrections, LocalMaps};
 use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe};

@@ -11,17 +11,17 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+use alexnet::lpips::Lpips;
 use anyhow::Context;
+use config::Config;
+use datasets::{self, Dataset, FrameRange};
+use geometry::trajectory::Trajectory;
 use indicatif::{ProgressBar, ProgressStyle};
+use metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate};
+use metrics::stats::{median, quantile};
 use nalgebra::Isometry3;
 use render_core::types::GaussianCloud;
 use serde::Serialize;
-use slam_core::config::Config;
-use slam_core::dataset::{self, Dataset, FrameRange};
-use slam_core::metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate};
-use slam_core::metrics::lpips::Lpips;
-use slam_core::metrics::stats::{median, quantile};
-use slam_core::trajectory::Trajectory;
 
 use crate::evaluation::{
     FrameQuality, MapRenderer, QualitySummary, comparison_path, evaluate_frame,
@@ -145,7 +145,7 @@ pub fn run_agent(
     std::fs::create_dir_all(&options.out)
         .with_context(|| format!("creating output directory {}", options.out.display()))?;
     let dataset: Arc<dyn Dataset> = Arc::from(
-        dataset::open(&options.dataset, options.frames)
+        datasets::open(&options.dataset, options.frames)
             .with_context(|| format!("opening dataset {}", options.dataset))?,
     );
     tracing::info!(dataset = %dataset.describe(), frames = dataset.len(), "agent starting");

@@ -13,14 +13,14 @@
 //! tracking keyframe; at a mapping keyframe only the points no Gaussian covers yet
 //! ([`CoverageIndex`]).
 
+use geometry::camera::Intrinsics;
 use image::RgbImage;
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use registration::config::{KeyframeConfig, SeedScale, TrackingConfig};
+use registration::covariance::{Covariance, smallest_eigenvector};
+use registration::points::PointCloud;
+use registration::voxel_map::{MapPoint, MapPointId, VoxelMap};
 use render_core::types::GaussianCloud;
-use slam_core::camera::Intrinsics;
-use slam_core::config::{KeyframeConfig, SeedScale, TrackingConfig};
-use slam_core::registration::covariance::{Covariance, smallest_eigenvector};
-use slam_core::registration::points::PointCloud;
-use slam_core::registration::voxel_map::{MapPoint, MapPointId, VoxelMap};
 
 /// The published seeding scale (docs/method.md, Seeding):
 /// `sqrt(eigenvalue) / max(1, PUBLISHED_DEPTH_FACTOR * z^PUBLISHED_DEPTH_EXPONENT)`.
@@ -197,7 +197,7 @@ impl CoverageIndex {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use slam_core::registration::covariance::Covariance;
+    use registration::covariance::Covariance;
 
     fn one_point_frame(z: f32) -> (PointCloud, RgbImage, Intrinsics) {
         let mut points = PointCloud::from_positions(vec![Point3::new(0.0, 0.0, z)]);

@@ -10,9 +10,10 @@
 
 use std::sync::Arc;
 
-use slam_core::dataset::noise::NoiseConfig;
-use slam_core::dataset::prefetch::Prefetcher;
-use slam_core::dataset::{Dataset, DatasetError, Frame};
+use datasets::noise::NoiseConfig;
+use datasets::prefetch::Prefetcher;
+use datasets::{Dataset, Frame};
+use geometry::files::DatasetError;
 
 /// Decoded frames kept ready per decoding thread: enough to hide a slow PNG, small enough to
 /// bound memory (a 640x480 RGB-D frame is about 2 MB).
@@ -135,10 +136,11 @@ impl Iterator for FrameSource {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use datasets::FrameRange;
+    use datasets::seven_scenes::{SevenScenes, SevenScenesWriter};
+    use geometry::camera::Intrinsics;
+    use geometry::depth::DepthImage;
     use nalgebra::Isometry3;
-    use slam_core::camera::Intrinsics;
-    use slam_core::dataset::seven_scenes::{SevenScenes, SevenScenesWriter};
-    use slam_core::dataset::{DepthImage, FrameRange};
 
     fn frame(index: usize, depth_value: f32) -> Frame {
         let (w, h) = (8, 6);

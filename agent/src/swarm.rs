@@ -17,7 +17,12 @@ use std::collections::VecDeque;
 use std::hash::{Hash, Hasher};
 use std::time::{Duration, Instant};
 
+use alexnet::descriptor::GlobalDescriptorExtractor;
 use anyhow::Context;
+use config::Config;
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
+use geometry::se3::isometry_to_tum;
 use image::RgbImage;
 use nalgebra::Isometry3;
 use protocol::messages::{
@@ -29,11 +34,6 @@ use protocol::transport::{
 };
 use render_core::types::GaussianCloud;
 use serde::Serialize;
-use slam_core::camera::Intrinsics;
-use slam_core::config::Config;
-use slam_core::dataset::DepthImage;
-use slam_core::descriptor::GlobalDescriptorExtractor;
-use slam_core::se3::isometry_to_tum;
 
 use crate::link_schedule::{
     BoundedQueue, CorrectionArrival, CorrectionGate, LinkPlan, LinkSummary,

@@ -20,11 +20,11 @@ use std::sync::atomic::AtomicBool;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use config::Config;
+use geometry::trajectory::Trajectory;
 use mac_consensus::process::{ConsensusOptions, ConsensusReport, run};
+use metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
 use protocol::transport::TransportConfig;
-use slam_core::config::Config;
-use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
-use slam_core::trajectory::Trajectory;
 
 /// Frames per agent: the two synthetic loops overlap within this many frames.
 const FRAMES: usize = 150;
@@ -42,7 +42,7 @@ fn config() -> Config {
     // The pretrained descriptor (shared data): the classical thumbnail rarely proposes the
     // overlapping pair of this scene.
     config.consensus.descriptor_weights =
-        Some(slam_core::shared_data::require("weights/lpips/alexnet.npz"));
+        Some(datasets::shared_data::require("weights/lpips/alexnet.npz"));
     // The map is not what this test is about (tests/swarm.rs checks the refined merged map).
     config.consensus.refinement.iterations = 0;
     config

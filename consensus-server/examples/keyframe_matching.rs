@@ -40,17 +40,18 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use clap::Parser;
+use config::AlignmentConfig;
+use datasets::synthetic::{SyntheticDataset, SyntheticSpec};
+use datasets::{self, Dataset, FrameRange};
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
 use image::RgbImage;
 use mac_consensus::alignment::features::{Features, describe_at, hamming};
 use mac_consensus::alignment::{Keyframe, PreparedKeyframe, align_prepared};
-use mac_consensus::config::AlignmentConfig;
 use mac_consensus::place_recognition::KeyframeRef;
 use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
+use registration::{GicpParams, register_coarse_to_fine};
 use serde::Serialize;
-use slam_core::camera::Intrinsics;
-use slam_core::dataset::synthetic::{SyntheticDataset, SyntheticSpec};
-use slam_core::dataset::{self, Dataset, DepthImage, FrameRange};
-use slam_core::registration::{GicpParams, register_coarse_to_fine};
 
 #[derive(Parser)]
 struct Args {
@@ -275,12 +276,12 @@ fn register_colour(
 
 fn real_pairs(args: &Args) -> anyhow::Result<Vec<Pair>> {
     let spec = args.dataset.clone().unwrap_or_else(|| {
-        slam_core::shared_data::shared_dir()
+        datasets::shared_data::shared_dir()
             .join("datasets/7scenes-redkitchen")
             .to_string_lossy()
             .into_owned()
     });
-    let ds = match dataset::open(&spec, FrameRange::ALL) {
+    let ds = match datasets::open(&spec, FrameRange::ALL) {
         Ok(ds) => ds,
         Err(error) => {
             eprintln!("real-data pairs skipped: {spec}: {error}");

@@ -20,20 +20,20 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::sync::Arc;
 use std::time::Instant;
 
+use geometry::se3::{isometry_from_tum, isometry_to_tum};
 use nalgebra::Isometry3;
 use protocol::messages::FINAL_MAP_KEYFRAME_ID;
 use render_core::types::{GaussianCloud, RigidTransform};
 use serde::Serialize;
-use slam_core::se3::{isometry_from_tum, isometry_to_tum};
 
 use crate::alignment::{AlignmentResult, Keyframe, PreparedKeyframe, Verdict, align_prepared};
-use crate::config::AlignmentConfig;
-use crate::config::ConsensusConfig;
 use crate::map_links::{AgentMap, FinishedMapJob, MapAttemptScores, MapJob, MapScheduler};
 use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
 use crate::pose_graph::{EdgeSigmas, LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
 use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
-use slam_core::correction::{CorrectionField, correction};
+use config::AlignmentConfig;
+use config::ConsensusConfig;
+use geometry::correction::{CorrectionField, correction};
 
 /// One published keyframe as the consensus receives it.
 pub struct KeyframeArrival {

@@ -9,8 +9,8 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
 
+use config::ResendConfig;
 use render_core::types::GaussianCloud;
-use slam_core::config::ResendConfig;
 
 use crate::alignment::Keyframe;
 use crate::engine::KeyframeArrival;
@@ -373,9 +373,9 @@ impl KeyframeInbox {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use geometry::camera::Intrinsics;
+    use geometry::depth::DepthImage;
     use nalgebra::Isometry3;
-    use slam_core::camera::Intrinsics;
-    use slam_core::dataset::DepthImage;
 
     /// Epochs of an agent's first run and of its restart.
     const FIRST_RUN: u64 = 1_000;

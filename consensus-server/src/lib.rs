@@ -23,7 +23,6 @@
 //! agents receive the pose graph's corrections.
 
 pub mod alignment;
-pub mod config;
 pub mod engine;
 pub mod inbox;
 pub mod map_links;
@@ -36,4 +35,4 @@ pub mod wire;
 
 // The wire format and the extractor must agree on the descriptor length.
 const _: () =
-    assert!(protocol::messages::DESCRIPTOR_LEN == slam_core::descriptor::GLOBAL_DESCRIPTOR_LEN);
+    assert!(protocol::messages::DESCRIPTOR_LEN == alexnet::descriptor::GLOBAL_DESCRIPTOR_LEN);

@@ -16,9 +16,9 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
+use config::Config;
 use mac_consensus::process::{ConsensusOptions, run_with_snapshots};
 use protocol::transport::TransportConfig;
-use slam_core::config::Config;
 
 #[derive(Parser)]
 #[command(
@@ -49,7 +49,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
-    slam_core::process::init_logging();
+    config::process::init_logging();
     let args = Args::parse();
     let config = match &args.config {
         Some(path) => Config::load(path)?,
@@ -68,7 +68,7 @@ fn main() -> anyhow::Result<()> {
             })
             .transpose()?,
     };
-    let stop = slam_core::process::stop_on_termination_signals()?;
+    let stop = config::process::stop_on_termination_signals()?;
     let snapshot = Arc::new(AtomicBool::new(false));
     signal_hook::flag::register(signal_hook::consts::SIGUSR1, snapshot.clone())
         .context("installing the handler of SIGUSR1 (snapshots)")?;

@@ -36,11 +36,11 @@ use render_core::types::GaussianCloud;
 
 use crate::alignment::PreparedKeyframe;
 use crate::alignment::verification::{DepthComparison, compare_depth};
-use crate::config::AlignmentConfig;
 use crate::map_registration::colour::Rgb;
 use crate::map_registration::{MapPoints, MapRegistration, register_maps};
 use crate::place_recognition::KeyframeRef;
-use slam_core::config::MapRegistrationConfig;
+use config::AlignmentConfig;
+use config::MapRegistrationConfig;
 
 /// One agent's map as a registration input: points in its own tracked frame, their colours,
 /// and the keyframes that saw them.

@@ -3,9 +3,9 @@
 //! proposes a loop closure: tau_same_agent (0.80) within one agent, tau_other_agent (0.85) between
 //! agents. Proposals are only candidates: association and alignment verify or reject them.
 
+use alexnet::descriptor::score;
+use config::ConsensusConfig;
 use serde::Serialize;
-use slam_core::config::ConsensusConfig;
-use slam_core::descriptor::score;
 
 /// Identifies one keyframe in the swarm.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]

@@ -23,7 +23,11 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use config::Config;
 use crossbeam_channel::{Receiver, Sender, unbounded};
+use geometry::se3::isometry_to_tum;
+use geometry::trajectory::Trajectory;
+use metrics::stats::median;
 use nalgebra::Isometry3;
 use protocol::messages::{
     ControlMessage, FINAL_MAP_KEYFRAME_ID, KeyframePose, LifecycleKind, Pose,
@@ -31,10 +35,6 @@ use protocol::messages::{
 use protocol::transport::{ConsumerLink, Incoming, TransportConfig};
 use render_core::types::GaussianCloud;
 use serde::Serialize;
-use slam_core::config::Config;
-use slam_core::metrics::stats::median;
-use slam_core::se3::isometry_to_tum;
-use slam_core::trajectory::Trajectory;
 
 use crate::alignment::Keyframe;
 use crate::engine::{

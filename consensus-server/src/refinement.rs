@@ -33,6 +33,7 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
+use geometry::camera::Intrinsics;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3, Vector6};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
@@ -44,11 +45,10 @@ use render_core::map::DeviceMap;
 use render_core::training::{AdamConfig, DeviceTarget, LossWeights, TargetImage, TrainingKernels};
 use render_core::types::{Camera, GaussianCloud, RasterConfig, RenderMode, RigidTransform};
 use serde::Serialize;
-use slam_core::camera::Intrinsics;
 
-use crate::config::{ConsensusConfig, RefinementConfig};
 use crate::place_recognition::KeyframeRef;
 use crate::pose_graph::residual::residual;
+use config::{ConsensusConfig, RefinementConfig};
 
 /// Depth errors enter the loss in metres: SPEC's joint loss weights plain depth L1 (the mapper
 /// divides by the truncation distance instead).
@@ -474,7 +474,7 @@ fn mean_psnr(
             .iter()
             .flat_map(|c| c.map(f64::from))
             .collect();
-        total += slam_core::metrics::image::psnr(&reference, &rendered);
+        total += metrics::image::psnr(&reference, &rendered);
     }
     Ok((!views.is_empty()).then(|| total / views.len() as f64))
 }

@@ -1,9 +1,9 @@
 //! Received messages turned into the consensus's own types (the agent owns the other direction).
 
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
 use image::RgbImage;
 use render_core::types::GaussianCloud;
-use slam_core::camera::Intrinsics;
-use slam_core::dataset::DepthImage;
 
 use protocol::messages::{GaussianRecord, Intrinsics as WireIntrinsics, RgbdPixel};
 

@@ -3,13 +3,13 @@
 //! agents' maps do where they overlap), is refined against the views. Runs on the CPU Vulkan
 //! device (lavapipe) in CI.
 
-use mac_consensus::config::ConsensusConfig;
+use config::ConsensusConfig;
+use datasets::synthetic::{SyntheticDataset, SyntheticSpec};
+use datasets::{Dataset, Frame, FrameRange};
 use mac_consensus::place_recognition::KeyframeRef;
 use mac_consensus::refinement::{PoseEdge, RefinementProblem, RefinementView, refine};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use render_core::types::GaussianCloud;
-use slam_core::dataset::synthetic::{SyntheticDataset, SyntheticSpec};
-use slam_core::dataset::{Dataset, Frame, FrameRange};
 
 const WIDTH: u32 = 160;
 const HEIGHT: u32 = 120;

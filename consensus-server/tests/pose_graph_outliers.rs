@@ -7,16 +7,16 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use mac_consensus::config::PoseGraphConfig;
+use config::PoseGraphConfig;
+use datasets::synthetic::{FRAMES_PER_SECOND, SyntheticDataset, SyntheticSpec};
+use datasets::{Dataset, FrameRange};
+use geometry::trajectory::Trajectory;
 use mac_consensus::place_recognition::KeyframeRef;
 use mac_consensus::pose_graph::{LoopClosure, PoseGraph, PoseGraphSolution};
+use metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use slam_core::dataset::synthetic::{FRAMES_PER_SECOND, SyntheticDataset, SyntheticSpec};
-use slam_core::dataset::{Dataset, FrameRange};
-use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
-use slam_core::trajectory::Trajectory;
 
 const AGENTS: usize = 3;
 const FRAMES: usize = 600;

@@ -1,5 +1,5 @@
 //! Two agents on 7-Scenes redkitchen (frames 0..600 and 400..1000), each tracked on its own from
-//! identity with slam_core's frame-to-model odometry. The consensus pipeline then runs as the
+//! identity with the registration crate's frame-to-model odometry. The consensus pipeline then runs as the
 //! process will: place recognition over keyframe descriptors (AlexNet GeM), alignment of the
 //! proposed pairs and of each agent's consecutive keyframes, the robust pose graph, and finally
 //! the joint ATE of both agents' corrected trajectories under one alignment to ground truth.
@@ -9,20 +9,21 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
 
+use alexnet::descriptor::GlobalDescriptorExtractor;
+use config::ConsensusConfig;
+use datasets::prefetch::Prefetcher;
+use datasets::{self, Dataset, FrameRange};
+use geometry::correction::blend;
+use geometry::trajectory::Trajectory;
 use mac_consensus::alignment::{Keyframe, PreparedKeyframe, Verdict, align_prepared};
 use mac_consensus::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
 use mac_consensus::pose_graph::{LoopClosure, PoseGraph};
+use metrics::ate::{Alignment, DEFAULT_MAX_DT, ate, joint_ate};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use slam_core::config::{ConsensusConfig, KeyframeConfig, TrackingConfig};
-use slam_core::correction::blend;
-use slam_core::dataset::prefetch::Prefetcher;
-use slam_core::dataset::{self, Dataset, FrameRange};
-use slam_core::descriptor::GlobalDescriptorExtractor;
-use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, ate, joint_ate};
-use slam_core::registration::{Odometry, OdometryMode};
-use slam_core::trajectory::Trajectory;
+use registration::config::{KeyframeConfig, TrackingConfig};
+use registration::{Odometry, OdometryMode};
 
 /// The two agents' frame ranges: 200 frames of overlap in time, and the second half of agent 1
 /// revisits what agent 0 saw first.
@@ -49,7 +50,7 @@ struct TrackedAgent {
 
 fn track(agent_id: u32, dir: &str, range: &str) -> TrackedAgent {
     let range: FrameRange = range.parse().unwrap();
-    let dataset: Arc<dyn Dataset> = Arc::from(dataset::open(dir, range).unwrap());
+    let dataset: Arc<dyn Dataset> = Arc::from(datasets::open(dir, range).unwrap());
     let mut odometry = Odometry::new(
         OdometryMode::FrameToModel,
         &TrackingConfig::default(),
@@ -123,8 +124,8 @@ fn ground_truth(agent: &TrackedAgent) -> Trajectory {
 
 #[test]
 fn real_data_two_agents_redkitchen_joint_ate_within_5_cm() {
-    let dir = slam_core::shared_data::require("datasets/7scenes-redkitchen");
-    let weights = slam_core::shared_data::require("weights/lpips/alexnet.npz");
+    let dir = datasets::shared_data::require("datasets/7scenes-redkitchen");
+    let weights = datasets::shared_data::require("weights/lpips/alexnet.npz");
     let config = ConsensusConfig::default();
 
     let clock = Instant::now();

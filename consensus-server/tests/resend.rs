@@ -6,10 +6,10 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
+use config::Config;
 use mac_consensus::process::{ConsensusOptions, run};
 use protocol::messages::{ControlMessage, CoordinateFrame, KeyframeDescriptor};
 use protocol::transport::{AgentLink, KeyframeImageMeta, TransportConfig};
-use slam_core::config::Config;
 
 mod common;
 

@@ -7,10 +7,10 @@
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
+use config::Config;
 use mac_consensus::process::{ConsensusOptions, run};
 use protocol::messages::{CoordinateFrame, FINAL_MAP_KEYFRAME_ID, KeyframeDescriptor};
 use protocol::transport::{AgentLink, KeyframeImageMeta, TransportConfig};
-use slam_core::config::Config;
 
 mod common;
 

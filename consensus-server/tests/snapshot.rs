@@ -5,9 +5,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
+use config::Config;
 use mac_consensus::process::{ConsensusOptions, run_with_snapshots};
 use protocol::transport::TransportConfig;
-use slam_core::config::Config;
 
 /// Longer than this without the snapshot means it was never written.
 const SNAPSHOT_TIMEOUT: Duration = Duration::from_secs(60);

@@ -4,13 +4,13 @@
 
 use std::time::Instant;
 
+use config::{AlignmentConfig, PoseGraphConfig};
+use datasets::synthetic::{SyntheticDataset, SyntheticSpec};
+use datasets::{Dataset, FrameRange};
 use mac_consensus::alignment::{Keyframe, Verdict, align};
-use mac_consensus::config::{AlignmentConfig, PoseGraphConfig};
 use mac_consensus::place_recognition::KeyframeRef;
 use mac_consensus::pose_graph::{LoopClosure, PoseGraph};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use slam_core::dataset::synthetic::{SyntheticDataset, SyntheticSpec};
-use slam_core::dataset::{Dataset, FrameRange};
 
 const AGENTS: usize = 2;
 const FRAMES: usize = 300;

@@ -4,12 +4,12 @@
 //! coarse inliers, 15 needed; `examples/keyframe_matching.rs`). Ground truth only picks the
 //! views and scores the estimate.
 
+use config::AlignmentConfig;
+use datasets::synthetic::{SyntheticDataset, SyntheticSpec};
+use datasets::{Dataset, FrameRange};
 use mac_consensus::alignment::{AlignmentResult, Keyframe, Verdict, align};
-use mac_consensus::config::AlignmentConfig;
 use mac_consensus::place_recognition::KeyframeRef;
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
-use slam_core::dataset::synthetic::{SyntheticDataset, SyntheticSpec};
-use slam_core::dataset::{Dataset, FrameRange};
 
 /// The scene of the pairs below: two agents, 300 frames each, the default seed and 640x480.
 fn dataset(agent: usize) -> SyntheticDataset {

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args;
-use slam_core::config::Config;
+use config::Config;
 
 #[derive(Args)]
 pub struct ConfigArgs {

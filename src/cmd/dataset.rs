@@ -6,10 +6,10 @@ use std::path::Path;
 
 use anyhow::Context;
 use clap::{Args, Subcommand};
+use datasets::{self, Dataset, FrameRange};
+use geometry::camera::Intrinsics;
+use geometry::trajectory::Trajectory;
 use serde::Serialize;
-use slam_core::camera::Intrinsics;
-use slam_core::dataset::{self, Dataset, FrameRange};
-use slam_core::trajectory::Trajectory;
 
 use super::{fmt_num, print_json};
 
@@ -184,7 +184,7 @@ fn export_frame(args: &FrameArgs) -> anyhow::Result<()> {
         first: args.frame,
         end: Some(args.frame + 1),
     };
-    let ds = dataset::open(&args.path, range)
+    let ds = datasets::open(&args.path, range)
         .with_context(|| format!("opening dataset {}", args.path))?;
     anyhow::ensure!(
         !ds.is_empty() && ds.frame_index(0) == args.frame,
@@ -198,7 +198,7 @@ fn export_frame(args: &FrameArgs) -> anyhow::Result<()> {
         .save(&args.rgb)
         .with_context(|| format!("writing {}", args.rgb.display()))?;
     if let Some(depth) = &args.depth {
-        dataset::write_depth_png(depth, &frame.depth, MILLIMETRES_PER_METRE)?;
+        datasets::write_depth_png(depth, &frame.depth, MILLIMETRES_PER_METRE)?;
     }
     Ok(())
 }
@@ -213,10 +213,10 @@ pub fn run(command: &DatasetCommand) -> anyhow::Result<()> {
     };
     let path = Path::new(&args.path);
     // A folder of agent folders (synth output, Multi-agent Replica) -> one block per agent.
-    let sources: Vec<String> = if path.is_dir() && dataset::detect_layout(path).is_err() {
-        let agents = dataset::agent_folders(path)?;
+    let sources: Vec<String> = if path.is_dir() && datasets::detect_layout(path).is_err() {
+        let agents = datasets::agent_folders(path)?;
         if agents.is_empty() {
-            dataset::detect_layout(path)?; // reports the unknown layout
+            datasets::detect_layout(path)?; // reports the unknown layout
         }
         agents
             .iter()
@@ -227,7 +227,7 @@ pub fn run(command: &DatasetCommand) -> anyhow::Result<()> {
     };
     let mut infos = Vec::new();
     for source in &sources {
-        let ds = dataset::open(source, args.frames)
+        let ds = datasets::open(source, args.frames)
             .with_context(|| format!("opening dataset {source}"))?;
         infos.push(
             info(ds.as_ref(), args.samples).with_context(|| format!("reading dataset {source}"))?,
@@ -268,8 +268,8 @@ fn posed_frames(
     spec: &str,
     range: FrameRange,
     every: usize,
-) -> anyhow::Result<Vec<(dataset::Frame, nalgebra::Isometry3<f64>)>> {
-    let ds = dataset::open(spec, range).with_context(|| format!("opening dataset {spec}"))?;
+) -> anyhow::Result<Vec<(datasets::Frame, nalgebra::Isometry3<f64>)>> {
+    let ds = datasets::open(spec, range).with_context(|| format!("opening dataset {spec}"))?;
     anyhow::ensure!(!ds.is_empty(), "{spec}: no frames in the range");
     (0..ds.len())
         .step_by(every.max(1))
@@ -286,10 +286,10 @@ fn posed_frames(
 }
 
 fn posed<'a>(
-    frame: &'a dataset::Frame,
+    frame: &'a datasets::Frame,
     pose: &'a nalgebra::Isometry3<f64>,
-) -> slam_core::metrics::covisibility::PosedDepth<'a> {
-    slam_core::metrics::covisibility::PosedDepth {
+) -> metrics::covisibility::PosedDepth<'a> {
+    metrics::covisibility::PosedDepth {
         depth: &frame.depth,
         intrinsics: &frame.intrinsics,
         world_from_camera: pose,
@@ -297,7 +297,7 @@ fn posed<'a>(
 }
 
 fn covisibility(args: &CovisibilityArgs) -> anyhow::Result<()> {
-    use slam_core::metrics::covisibility::{CovisibilityParams, PosedDepth, covisibility_with_any};
+    use metrics::covisibility::{CovisibilityParams, PosedDepth, covisibility_with_any};
     let a = posed_frames(&args.a, args.frames_a, args.every)?;
     let b = posed_frames(&args.b, args.frames_b, args.every)?;
     let a_posed: Vec<PosedDepth> = a.iter().map(|(f, p)| posed(f, p)).collect();

@@ -5,11 +5,12 @@ use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 use clap::Args;
+use datasets::write_depth_png;
+use geometry::depth::DepthImage;
 use render_core::context::GpuContext;
 use render_core::gpu::{DeviceGaussians, GpuRenderer};
 use render_core::ply::load_ply;
 use render_core::types::{Camera, RenderMode, RigidTransform};
-use slam_core::dataset::{DepthImage, write_depth_png};
 
 /// Depth PNG units: millimetres.
 const DEPTH_UNITS_PER_METRE: f64 = 1000.0;

@@ -9,8 +9,8 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
+use datasets::synthetic::{self, SyntheticSpec};
 use indicatif::{ProgressBar, ProgressStyle};
-use slam_core::dataset::synthetic::{self, SyntheticSpec};
 
 #[derive(Args, Debug, Clone)]
 pub struct SynthArgs {

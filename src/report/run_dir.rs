@@ -4,11 +4,11 @@
 
 use std::path::{Path, PathBuf};
 
+use geometry::trajectory::Trajectory;
+use metrics::ate::{Alignment, DEFAULT_MAX_DT, associate, ate, joint_ate};
 use nalgebra::Point3;
 use serde::Deserialize;
 use serde_json::Value;
-use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, associate, ate, joint_ate};
-use slam_core::trajectory::Trajectory;
 
 /// A JSON file, or why it cannot be used.
 pub fn read_json(path: &Path) -> Result<Value, String> {
@@ -85,7 +85,7 @@ fn positions(trajectory: &Trajectory) -> Vec<Point3<f64>> {
 }
 
 /// Every agent's trajectories after the one SE(3) alignment the joint ATE uses
-/// (`slam_core::metrics::ate::joint_ate`), so the plots show what the figure measures.
+/// (`metrics::ate::joint_ate`), so the plots show what the figure measures.
 pub fn load_trajectories(dir: &Path, ids: &[u32]) -> Trajectories {
     let mut notes = Vec::new();
     let mut linked = Vec::new();

@@ -2,8 +2,8 @@
 
 use std::path::Path;
 
+use geometry::trajectory::Trajectory;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use slam_core::trajectory::Trajectory;
 
 use super::*;
 

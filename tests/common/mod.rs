@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
-use slam_core::config::Config;
+use config::Config;
 
 /// A run that takes longer than this has hung.
 pub const RUN_TIMEOUT: Duration = Duration::from_secs(900);
@@ -87,7 +87,7 @@ impl SwarmRun {
     /// headless Vulkan prints no "XDG_RUNTIME_DIR is invalid" lines into the logs.
     pub fn command(&self, program: impl AsRef<std::ffi::OsStr>) -> Command {
         let mut command = Command::new(program);
-        command.env(slam_core::weights::WEIGHTS_ENV, "");
+        command.env(alexnet::weights::WEIGHTS_ENV, "");
         if !std::env::var_os("XDG_RUNTIME_DIR").is_some_and(|dir| Path::new(&dir).is_absolute()) {
             command.env("XDG_RUNTIME_DIR", self.path());
         }

@@ -23,6 +23,8 @@
 
 use std::sync::OnceLock;
 
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
 use image::GrayImage;
 use image::RgbImage;
 use image::imageops::FilterType;
@@ -31,10 +33,8 @@ use nalgebra::{Matrix3, Point3, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use slam_core::camera::Intrinsics;
-use slam_core::dataset::DepthImage;
 
-use crate::config::AlignmentConfig;
+use config::AlignmentConfig;
 
 /// Descriptor length in bits, stored as 128-bit words.
 const DESCRIPTOR_BITS: usize = 256;

@@ -5,7 +5,7 @@
 //!    matches, lifted to 3-D with depth, RANSAC over 3-point rigid fits. Needs no initial guess, so
 //!    it works when the cameras are metres and tens of degrees apart.
 //! 2. Refinement: G-ICP between the two keyframes' point clouds with both covariances
-//!    (`Sigma_k + Sigma_l`), coarse-to-fine correspondence distances (slam_core's
+//!    (`Sigma_k + Sigma_l`), coarse-to-fine correspondence distances (the registration crate's
 //!    [`register_coarse_to_fine`]).
 //! 3. Verification ([`verification`]): inlier fraction, point-to-plane residual and depth
 //!    agreement in both directions against [`AlignmentConfig`] thresholds. The result always says
@@ -18,17 +18,17 @@ pub mod features;
 pub mod ransac;
 pub mod verification;
 
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
 use image::RgbImage;
 use nalgebra::{Isometry3, Point3};
-use serde::Serialize;
-use slam_core::camera::Intrinsics;
-use slam_core::dataset::DepthImage;
-use slam_core::registration::{
+use registration::{
     GicpParams, PointTree, RegistrationFailure, points_from_depth, register_coarse_to_fine,
 };
+use serde::Serialize;
 
-use crate::config::AlignmentConfig;
 use crate::place_recognition::KeyframeRef;
+use config::AlignmentConfig;
 use features::Features;
 use verification::DepthComparison;
 

@@ -2,17 +2,17 @@
 //!
 //! Descriptor matches between two views taken metres and tens of degrees apart are mostly wrong
 //! (repeated texture, similar corners); three correct ones determine the rigid transform. Each
-//! hypothesis is fitted with Umeyama (slam_core's, scale fixed to 1) to three matches and scored by
+//! hypothesis is fitted with Umeyama (the geometry crate's, scale fixed to 1) to three matches and scored by
 //! the matches it places within [`AlignmentConfig::ransac_inlier_distance_m`]; the best is refitted
 //! to all its inliers. A rigid motion preserves distances, so a sample whose pairwise distances
 //! disagree between the two views is discarded before fitting.
 
+use geometry::se3::umeyama;
 use nalgebra::{Isometry3, Point3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use slam_core::se3::umeyama;
 
-use crate::config::AlignmentConfig;
+use config::AlignmentConfig;
 
 /// Points per minimal sample of a rigid transform.
 const SAMPLE_SIZE: usize = 3;

@@ -11,13 +11,13 @@
 //!   directions, so a pose that merely matches one planar region but contradicts the rest of the
 //!   views is refused.
 
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
 use nalgebra::{Isometry3, Point3};
-use slam_core::camera::Intrinsics;
-use slam_core::dataset::DepthImage;
-use slam_core::registration::covariance::smallest_eigenvector;
-use slam_core::registration::{PointTree, RegistrationTarget};
+use registration::covariance::smallest_eigenvector;
+use registration::{PointTree, RegistrationTarget};
 
-use crate::config::AlignmentConfig;
+use config::AlignmentConfig;
 
 /// Projected comparisons of one direction of the depth check.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]

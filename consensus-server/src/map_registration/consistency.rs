@@ -31,10 +31,10 @@
 //!
 //! Deterministic: one ChaCha stream seeded from the configuration, one thread.
 
+use geometry::se3::umeyama;
 use nalgebra::{Isometry3, Point3, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use slam_core::se3::umeyama;
 
 /// Distinct hypotheses kept while sampling.
 const POOL_SIZE: usize = 32;

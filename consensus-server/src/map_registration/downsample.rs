@@ -30,7 +30,7 @@ use std::num::NonZeroUsize;
 use kiddo::SquaredEuclidean;
 use nalgebra::Point3;
 use rayon::prelude::*;
-use slam_core::registration::PointTree;
+use registration::PointTree;
 
 use super::colour::Rgb;
 

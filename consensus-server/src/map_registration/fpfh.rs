@@ -43,8 +43,8 @@
 use kiddo::SquaredEuclidean;
 use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
-use slam_core::registration::PointTree;
-use slam_core::registration::covariance::smallest_eigenvector;
+use registration::PointTree;
+use registration::covariance::smallest_eigenvector;
 
 /// Bins per angle.
 pub const BINS: usize = 11;

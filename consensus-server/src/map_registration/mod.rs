@@ -25,7 +25,7 @@
 //!    and local least-squares refits: the transform most correspondences agree on, and the best
 //!    *distinct* runner-up, whose relative support measures ambiguity (symmetric rooms,
 //!    repeated shelves).
-//! 5. [`verification`]: coarse-to-fine G-ICP from the RANSAC transform (slam_core's, plane to
+//! 5. [`verification`]: coarse-to-fine G-ICP from the RANSAC transform (the registration crate's, plane to
 //!    plane, with each map's covariances), then overlap, point-to-plane residual, the
 //!    information matrix of the estimate and, with colour, how far the overlap's colours agree
 //!    beyond chance (Cohen's kappa of chromaticity agreement).
@@ -69,11 +69,11 @@ mod tests;
 
 use std::time::Instant;
 
+use config::MapRegistrationConfig;
 use nalgebra::{Isometry3, Matrix6, Point3};
+use registration::covariance::smallest_eigenvector;
+use registration::{PointCloud, PointTree, RegistrationFailure};
 use serde::Serialize;
-use slam_core::config::MapRegistrationConfig;
-use slam_core::registration::covariance::smallest_eigenvector;
-use slam_core::registration::{PointCloud, PointTree, RegistrationFailure};
 
 use colour::Rgb;
 use consistency::{RansacParams, find_consensus, transform_difference};

@@ -2,11 +2,11 @@
 //! furniture, an unrelated outdoor-like scene, and a room with four-fold symmetry; each surface
 //! painted its own colour, for the tests with colour.
 
+use config::MapRegistrationConfig;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use slam_core::config::MapRegistrationConfig;
 
 use super::colour::Rgb;
 use super::{MapPoints, MapRegistration, MapRejection, register_maps};
@@ -477,7 +477,7 @@ fn registration_is_deterministic() {
 
 #[test]
 fn the_configuration_is_validated() {
-    let mut config = slam_core::config::Config::default();
+    let mut config = config::Config::default();
     assert_eq!(config.validate(), Ok(()));
     let g = &mut config.consensus.map_registration;
     g.refine_distances_voxels = vec![1.0, 2.0];
@@ -485,13 +485,13 @@ fn the_configuration_is_validated() {
         config.validate().unwrap_err().0,
         "consensus.map_registration.refine_distances_voxels"
     );
-    let mut config = slam_core::config::Config::default();
+    let mut config = config::Config::default();
     config.consensus.map_registration.max_ambiguity_ratio = 1.5;
     assert_eq!(
         config.validate().unwrap_err().0,
         "consensus.map_registration.max_ambiguity_ratio"
     );
-    let mut config = slam_core::config::Config::default();
+    let mut config = config::Config::default();
     config.consensus.map_registration.voxel_m = 0.0;
     assert_eq!(
         config.validate().unwrap_err().0,
@@ -512,7 +512,7 @@ fn the_configuration_is_validated() {
             g.colour_confirmed_kappa = f64::NAN
         }),
     ] {
-        let mut config = slam_core::config::Config::default();
+        let mut config = config::Config::default();
         set(&mut config.consensus.map_registration);
         assert_eq!(
             config.validate().unwrap_err().0,

@@ -1,7 +1,7 @@
 //! Stages 5 and 6: G-ICP refinement of the RANSAC transform, then the figures the verdict and the
 //! pose graph need: overlap, residual and an information matrix of the estimate.
 //!
-//! **Refinement.** slam_core's G-ICP, coarse to fine, with plane-like covariances from each map's
+//! **Refinement.** the registration crate's G-ICP, coarse to fine, with plane-like covariances from each map's
 //! own neighbours (`PointTree::with_covariances`). G-ICP matches plane to plane, so two maps
 //! sampled on different voxel grids align to a fraction of the voxel, which point-to-point
 //! matching of centroids could not do. RANSAC's transform is typically within a voxel and a
@@ -21,7 +21,7 @@
 //!
 //! **Information.** With `r_i = n_i . (T a_i - b_i)` the point-to-plane residual of an overlapping
 //! point and `T <- T Exp(delta)`, `delta = (omega, v)` (rotation first, a right perturbation: the
-//! translation in the source frame, the convention of slam_core's G-ICP and of the pose graph's
+//! translation in the source frame, the convention of the registration crate's G-ICP and of the pose graph's
 //! edge residual), `d r_i / d delta = n_i^T R [-[a_i]x, I]`, and the information is
 //! `sum J_i^T J_i / sigma^2` with `sigma` the measured RMS residual (floored). It treats the
 //! residuals as independent, which they are not (a map's error is correlated over metres: drift,
@@ -46,7 +46,7 @@
 
 use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, RowVector6, Vector3};
 use rayon::prelude::*;
-use slam_core::registration::{
+use registration::{
     GicpParams, PointCloud, PointTree, RegistrationResult, RegistrationTarget, register,
 };
 
@@ -73,7 +73,7 @@ const COARSE_STAGE_POINT_STEP: usize = 2;
 /// The coarse stages stop at this multiple of the final convergence thresholds.
 const COARSE_STAGE_EPSILON_FACTOR: f64 = 10.0;
 
-/// Coarse-to-fine G-ICP from `initial`: one slam_core G-ICP run per coarse distance on the
+/// Coarse-to-fine G-ICP from `initial`: one G-ICP run (registration crate) per coarse distance on the
 /// feature-level maps `coarse` (every [`COARSE_STAGE_POINT_STEP`]-th source point, looser
 /// convergence thresholds), then one at the fine distance on the refinement-level maps `fine`
 /// (every point; the same maps as `coarse` when the feature level was not coarsened). Each

@@ -14,7 +14,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use nalgebra::Isometry3;
 
-use crate::config::PoseGraphConfig;
+use config::PoseGraphConfig;
 
 /// The transform between two agents' frames implied by one inter-agent loop closure.
 #[derive(Debug, Clone, Copy)]

@@ -29,13 +29,13 @@ pub mod solver;
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use slam_core::correction;
+use geometry::correction;
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
-use crate::config::PoseGraphConfig;
 use crate::place_recognition::KeyframeRef;
+use config::PoseGraphConfig;
 use initial::ImpliedTransform;
 use solver::Edge;
 

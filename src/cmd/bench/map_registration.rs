@@ -24,14 +24,14 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args;
+use config::{Config, MapRegistrationConfig};
+use datasets::{self, FrameRange};
 use mac_consensus::map_registration::colour::Rgb;
 use mac_consensus::map_registration::{MapPoints, MapRegistration, register_maps};
+use metrics::stats::median;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use registration::{PointTree, points_from_depth};
 use serde::Serialize;
-use slam_core::config::{Config, MapRegistrationConfig};
-use slam_core::dataset::{self, FrameRange};
-use slam_core::metrics::stats::median;
-use slam_core::registration::{PointTree, points_from_depth};
 
 use crate::cmd::{fmt_num, print_json};
 
@@ -190,7 +190,7 @@ fn build_map(
     args: &MapRegistrationArgs,
     seed: u64,
 ) -> anyhow::Result<Map> {
-    let ds = dataset::open(spec, frames).with_context(|| format!("opening {spec}"))?;
+    let ds = datasets::open(spec, frames).with_context(|| format!("opening {spec}"))?;
     anyhow::ensure!(!ds.is_empty(), "{spec}: no frames in {frames}");
     let mut points = Vec::new();
     let mut colours = Vec::new();
@@ -398,7 +398,7 @@ pub fn run(args: &MapRegistrationArgs) -> anyhow::Result<()> {
     let report = Report {
         data,
         colour: !args.no_colour,
-        threads: slam_core::registration::worker_threads(),
+        threads: registration::worker_threads(),
         median_time_ms: median(&times).unwrap_or(f64::NAN),
         accepted,
         successes,

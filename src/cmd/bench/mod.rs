@@ -4,16 +4,16 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use alexnet::lpips::Lpips;
 use anyhow::Context;
 use clap::{Args, Subcommand};
+use datasets::{self, Dataset, FrameRange, prefetch::Prefetcher};
+use geometry::trajectory::Trajectory;
+use metrics::ate::{Alignment, DEFAULT_MAX_DT, ate};
+use metrics::depth::depth_l1_cm;
+use metrics::image::image_quality;
 use nalgebra::{Isometry3, Translation3};
 use serde::Serialize;
-use slam_core::dataset::{self, Dataset, FrameRange, prefetch::Prefetcher};
-use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, ate};
-use slam_core::metrics::depth::depth_l1_cm;
-use slam_core::metrics::image::image_quality;
-use slam_core::metrics::lpips::Lpips;
-use slam_core::trajectory::Trajectory;
 
 use super::{fmt_num, print_json};
 
@@ -73,7 +73,7 @@ pub struct MetricsArgs {
 
 fn default_dataset(given: &Option<String>) -> String {
     given.clone().unwrap_or_else(|| {
-        slam_core::shared_data::shared_dir()
+        datasets::shared_data::shared_dir()
             .join("datasets/7scenes-redkitchen")
             .to_string_lossy()
             .into_owned()
@@ -94,7 +94,7 @@ struct ReadersReport {
 fn run_readers(args: &ReadersArgs) -> anyhow::Result<()> {
     let spec = default_dataset(&args.dataset);
     let ds: Arc<dyn Dataset> =
-        Arc::from(dataset::open(&spec, args.frames).with_context(|| format!("opening {spec}"))?);
+        Arc::from(datasets::open(&spec, args.frames).with_context(|| format!("opening {spec}"))?);
     let n = ds.len();
     // Warm the page cache once so both runs measure decoding, not the first disk read.
     for i in 0..n {
@@ -167,7 +167,7 @@ struct MetricsReport {
 
 fn run_metrics(args: &MetricsArgs) -> anyhow::Result<()> {
     let spec = default_dataset(&args.dataset);
-    let ds = dataset::open(&spec, FrameRange::ALL).with_context(|| format!("opening {spec}"))?;
+    let ds = datasets::open(&spec, FrameRange::ALL).with_context(|| format!("opening {spec}"))?;
     let a = ds.load(0)?;
     let b = ds.load(ds.len().min(11) - 1)?;
     // ATE of the ground truth against a perturbed copy of itself: a realistic pair count.
@@ -206,7 +206,7 @@ fn run_metrics(args: &MetricsArgs) -> anyhow::Result<()> {
             "no weights at {} (scripts/get_lpips_weights.sh)",
             path.display()
         )),
-        None => slam_core::weights::resolve_default().map_err(|missing| missing.to_string()),
+        None => alexnet::weights::resolve_default().map_err(|missing| missing.to_string()),
     };
     let lpips_ms = match weights {
         Ok(weights) => {

@@ -7,13 +7,13 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
+use config::Config;
+use datasets::{self, FrameRange};
+use geometry::trajectory::Trajectory;
+use metrics::ate::{Alignment, DEFAULT_MAX_DT, ate};
+use metrics::stats::{median, quantile};
+use registration::{Odometry, OdometryMode, TrackingOutcome};
 use serde::Serialize;
-use slam_core::config::Config;
-use slam_core::dataset::{self, FrameRange};
-use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, ate};
-use slam_core::metrics::stats::{median, quantile};
-use slam_core::registration::{Odometry, OdometryMode, TrackingOutcome};
-use slam_core::trajectory::Trajectory;
 
 use crate::cmd::{fmt_num, print_json};
 
@@ -65,7 +65,7 @@ struct TrackingReport {
 
 pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     let spec = args.dataset.clone().unwrap_or_else(|| {
-        slam_core::shared_data::shared_dir()
+        datasets::shared_data::shared_dir()
             .join("datasets/7scenes-redkitchen")
             .to_string_lossy()
             .into_owned()
@@ -74,7 +74,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         Some(path) => Config::load(path)?,
         None => Config::default(),
     };
-    let ds = dataset::open(&spec, args.frames).with_context(|| format!("opening {spec}"))?;
+    let ds = datasets::open(&spec, args.frames).with_context(|| format!("opening {spec}"))?;
     anyhow::ensure!(!ds.is_empty(), "{spec}: no frames in {}", args.frames);
     let mut odometry = Odometry::new(args.mode, &config.tracking, &config.keyframes);
     let mut estimate = Trajectory::default();
@@ -128,7 +128,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     let report = TrackingReport {
         dataset: ds.describe(),
         mode: args.mode.to_string(),
-        threads: slam_core::registration::worker_threads(),
+        threads: registration::worker_threads(),
         frames: estimate.len(),
         points_per_frame: points as f64 / estimate.len().max(1) as f64,
         tracking_ms_median: median_or_nan(&times_ms),

@@ -2,15 +2,16 @@
 
 use std::path::{Path, PathBuf};
 
+use alexnet::lpips::Lpips;
 use anyhow::{Context, bail};
 use clap::{Args, Subcommand};
+use datasets::read_depth_u16;
+use geometry::depth::DepthImage;
+use geometry::trajectory::{Trajectory, TrajectoryFormat};
+use metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate, joint_ate};
+use metrics::depth::depth_l1_cm;
+use metrics::image::image_quality;
 use serde::Serialize;
-use slam_core::dataset::{DepthImage, read_depth_u16};
-use slam_core::metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate, joint_ate};
-use slam_core::metrics::depth::depth_l1_cm;
-use slam_core::metrics::image::image_quality;
-use slam_core::metrics::lpips::Lpips;
-use slam_core::trajectory::{Trajectory, TrajectoryFormat};
 
 use super::{fmt_num, print_json};
 
@@ -237,7 +238,7 @@ fn run_image(args: &ImageArgs) -> anyhow::Result<()> {
 fn run_lpips(args: &LpipsArgs) -> anyhow::Result<()> {
     let weights = match &args.weights {
         Some(path) => path.clone(),
-        None => slam_core::weights::resolve_default()?,
+        None => alexnet::weights::resolve_default()?,
     };
     let lpips = Lpips::load(&weights).with_context(|| {
         format!(

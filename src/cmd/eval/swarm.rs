@@ -14,15 +14,15 @@
 
 use std::path::{Path, PathBuf};
 
+use alexnet::lpips::Lpips;
 use anyhow::{Context, bail};
 use clap::Args;
+use datasets::{self, FrameRange};
+use geometry::trajectory::Trajectory;
 use mac_agent::evaluation::{MapRenderer, QualitySummary, evaluate_frame};
+use metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
 use serde::Serialize;
 use serde_json::Value;
-use slam_core::dataset::{self, FrameRange};
-use slam_core::metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
-use slam_core::metrics::lpips::Lpips;
-use slam_core::trajectory::Trajectory;
 
 use crate::cmd::{fmt_num, print_json};
 
@@ -103,7 +103,7 @@ fn merged_map_quality(
     let weights = args
         .lpips_weights
         .clone()
-        .or_else(slam_core::weights::default_alexnet_weights);
+        .or_else(alexnet::weights::default_alexnet_weights);
     let lpips = match &weights {
         Some(path) => Some(
             Lpips::load(path)
@@ -130,7 +130,7 @@ fn merged_map_quality(
         let range: FrameRange = range
             .parse()
             .map_err(|e| anyhow::anyhow!("agent {id}: frame range {range:?}: {e}"))?;
-        let dataset = dataset::open(spec, range)
+        let dataset = datasets::open(spec, range)
             .with_context(|| format!("reopening agent {id}'s frames ({spec})"))?;
         let world = Trajectory::read_tum(&dir.join(format!("agent_{id}.tum")))?;
         let evaluated: Vec<usize> = (0..dataset.len()).step_by(args.render_every).collect();

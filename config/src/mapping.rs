@@ -1,0 +1,83 @@
+//! The `[mapping]` section: map optimisation and pruning, read by the agent's mapper.
+
+use geometry::checks::{FieldError, at_least_one, fraction, non_negative, positive};
+use serde::{Deserialize, Serialize};
+
+/// Map optimisation and pruning.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MappingConfig {
+    pub weight_l1: f64,
+    pub weight_ssim: f64,
+    /// Weight of L1(depth / truncation).
+    pub weight_depth: f64,
+    /// Learning rate of means, multiplied by the scene scale.
+    pub lr_means: f64,
+    pub lr_colours: f64,
+    pub lr_opacity: f64,
+    pub lr_log_scales: f64,
+    pub lr_rotations: f64,
+    /// Prune every n mapper iterations.
+    pub prune_every: usize,
+    pub prune_min_opacity: f64,
+    /// tau_s: largest allowed scale (metres; 1.0, or 0.25 for Replica-like scenes).
+    pub prune_max_scale_m: f64,
+    /// Largest allowed max scale / (sum of the other two).
+    pub prune_max_elongation: f64,
+    /// Keyframes are optimised at their resolution divided by this (1 = full resolution, as
+    /// docs/method.md, One agent: Map optimisation, describes it). On a CPU Vulkan device (lavapipe) a 640x480 iteration costs seconds; a factor of 2
+    /// or 4 buys 4x or 16x more iterations for the same time.
+    pub image_downscale: u32,
+    /// Seed of the mapper's choice of earlier keyframes (runs are repeatable).
+    pub random_seed: u64,
+    /// Read the pair count back every n iterations (one blocking read) to grow the binning
+    /// buffers when the map outgrows them.
+    pub check_pairs_every: usize,
+}
+
+impl Default for MappingConfig {
+    fn default() -> Self {
+        Self {
+            weight_l1: 0.8,
+            weight_ssim: 0.2,
+            weight_depth: 2.0,
+            lr_means: 5e-6,
+            lr_colours: 2.5e-3,
+            lr_opacity: 0.05,
+            lr_log_scales: 0.01,
+            lr_rotations: 0.0,
+            prune_every: 200,
+            prune_min_opacity: 0.005,
+            prune_max_scale_m: 1.0,
+            prune_max_elongation: 10.0,
+            image_downscale: 1,
+            random_seed: 0,
+            check_pairs_every: 50,
+        }
+    }
+}
+
+impl MappingConfig {
+    /// Checks ranges; returns the offending field (`mapping.*`) and why.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        for (field, v) in [
+            ("mapping.weight_l1", self.weight_l1),
+            ("mapping.weight_ssim", self.weight_ssim),
+            ("mapping.weight_depth", self.weight_depth),
+            ("mapping.lr_means", self.lr_means),
+            ("mapping.lr_colours", self.lr_colours),
+            ("mapping.lr_opacity", self.lr_opacity),
+            ("mapping.lr_log_scales", self.lr_log_scales),
+            ("mapping.lr_rotations", self.lr_rotations),
+        ] {
+            non_negative(field, v)?;
+        }
+        at_least_one("mapping.prune_every", self.prune_every)?;
+        fraction("mapping.prune_min_opacity", self.prune_min_opacity)?;
+        positive("mapping.prune_max_scale_m", self.prune_max_scale_m)?;
+        positive("mapping.prune_max_elongation", self.prune_max_elongation)?;
+        at_least_one("mapping.image_downscale", self.image_downscale as usize)?;
+        at_least_one("mapping.check_pairs_every", self.check_pairs_every)?;
+        Ok(())
+    }
+}

@@ -1,0 +1,384 @@
+//! Dataset readers. Every layout yields the same [`Frame`]: RGB u8, depth in metres (invalid = 0),
+//! a timestamp in seconds, the ground-truth `world_from_camera` pose when the dataset has one, and
+//! the intrinsics.
+//!
+//! Layouts (docs/method.md, Datasets): 7-Scenes ([`seven_scenes`]), Replica / Multi-agent Replica
+//! ([`replica`]), TUM RGB-D ([`tum`]) and the embedded procedural scene ([`synthetic`]), which
+//! needs no files at all. [`open`] picks the reader from a path or a `synthetic:` spec string;
+//! [`prefetch::Prefetcher`] decodes frames on worker threads so disk I/O overlaps compute;
+//! [`noise`] degrades frames for robustness runs (the `[noise]` configuration section);
+//! [`shared_data`] finds the real data tests and benchmarks read.
+//!
+//! The image and pose types the frames carry (depth images, intrinsics, trajectories, the file
+//! errors) are the `geometry` crate's, so code that only handles frames need not depend on the
+//! readers.
+
+pub mod noise;
+pub mod prefetch;
+pub mod replica;
+pub mod seven_scenes;
+pub mod shared_data;
+pub mod synthetic;
+pub mod tum;
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
+use geometry::files::DatasetError;
+use image::RgbImage;
+use nalgebra::Isometry3;
+
+/// One RGB-D frame as every part of the system sees it.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    /// Frame number in its sequence (the number in the file name for 7-Scenes and Replica, the
+    /// row of the association for TUM, the render index for the synthetic scene).
+    pub index: usize,
+    /// Seconds. 7-Scenes and Replica have no clock: `index / fps` (30 Hz), as the shared
+    /// groundtruth_tum.txt files use.
+    pub timestamp: f64,
+    pub rgb: RgbImage,
+    pub depth: DepthImage,
+    /// Ground-truth camera-to-world pose, when the dataset has one.
+    pub world_from_camera_gt: Option<Isometry3<f64>>,
+    pub intrinsics: Intrinsics,
+}
+
+/// A source of frames with random access. Implementations are cheap to share between threads:
+/// the prefetcher calls [`Dataset::load`] from several workers at once.
+pub trait Dataset: Send + Sync {
+    /// Human-readable description (layout and path).
+    fn describe(&self) -> String;
+    /// Intrinsics shared by all frames.
+    fn intrinsics(&self) -> Intrinsics;
+    /// Number of frames in the (range-selected) sequence.
+    fn len(&self) -> usize;
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Frame number of the `position`-th frame of the sequence.
+    fn frame_index(&self, position: usize) -> usize;
+    /// Timestamp of the `position`-th frame, without decoding images.
+    fn timestamp(&self, position: usize) -> f64;
+    /// Ground-truth pose of the `position`-th frame, without decoding images. `Ok(None)` when the
+    /// dataset has no ground truth for it.
+    fn ground_truth(&self, position: usize) -> Result<Option<Isometry3<f64>>, DatasetError>;
+    /// Decodes the `position`-th frame.
+    fn load(&self, position: usize) -> Result<Frame, DatasetError>;
+}
+
+/// A half-open range of frame numbers, written `A..B` (B excluded), `A..` (to the end) or `..B`.
+/// `0..600` and `400..1000` split a 1000-frame sequence into two overlapping agents.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct FrameRange {
+    pub first: usize,
+    pub end: Option<usize>,
+}
+
+impl FrameRange {
+    pub const ALL: FrameRange = FrameRange {
+        first: 0,
+        end: None,
+    };
+
+    pub fn contains(&self, frame: usize) -> bool {
+        frame >= self.first && self.end.is_none_or(|end| frame < end)
+    }
+}
+
+impl FromStr for FrameRange {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let bad = || {
+            format!(
+                "invalid frame range {s:?}: expected FIRST..END (END excluded), FIRST.. or ..END"
+            )
+        };
+        let (a, b) = s.trim().split_once("..").ok_or_else(bad)?;
+        let first = if a.is_empty() {
+            0
+        } else {
+            a.trim().parse().map_err(|_| bad())?
+        };
+        let end = if b.is_empty() {
+            None
+        } else {
+            Some(b.trim().parse().map_err(|_| bad())?)
+        };
+        if let Some(end) = end
+            && end <= first
+        {
+            return Err(format!(
+                "invalid frame range {s:?}: END must be greater than FIRST"
+            ));
+        }
+        Ok(Self { first, end })
+    }
+}
+
+impl fmt::Display for FrameRange {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.end {
+            Some(end) => write!(f, "{}..{}", self.first, end),
+            None => write!(f, "{}..", self.first),
+        }
+    }
+}
+
+/// Reads an 8-bit RGB image (PNG or JPEG; grey and RGBA are converted), naming the file on error.
+pub fn read_rgb(path: &Path, index: usize) -> Result<RgbImage, DatasetError> {
+    let bytes = std::fs::read(path).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            DatasetError::MissingFrame {
+                path: path.to_path_buf(),
+                index,
+            }
+        } else {
+            DatasetError::io(path, e)
+        }
+    })?;
+    let img = image::load_from_memory(&bytes).map_err(|e| DatasetError::decode(path, e))?;
+    match img {
+        image::DynamicImage::ImageRgb8(rgb) => Ok(rgb),
+        image::DynamicImage::ImageRgba8(_)
+        | image::DynamicImage::ImageLuma8(_)
+        | image::DynamicImage::ImageLumaA8(_) => Ok(img.to_rgb8()),
+        other => Err(DatasetError::decode(
+            path,
+            format!("expected an 8-bit colour image, found {:?}", other.color()),
+        )),
+    }
+}
+
+/// Reads a 16-bit single-channel depth PNG as raw units, refusing 8-bit or colour PNGs (a common
+/// mistake that would silently scale depth by 256).
+pub fn read_depth_u16(path: &Path, index: usize) -> Result<(u32, u32, Vec<u16>), DatasetError> {
+    let bytes = std::fs::read(path).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            DatasetError::MissingFrame {
+                path: path.to_path_buf(),
+                index,
+            }
+        } else {
+            DatasetError::io(path, e)
+        }
+    })?;
+    let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+        .map_err(|e| DatasetError::decode(path, e))?;
+    match img {
+        image::DynamicImage::ImageLuma16(buf) => {
+            let (w, h) = buf.dimensions();
+            Ok((w, h, buf.into_raw()))
+        }
+        other => Err(DatasetError::decode(
+            path,
+            format!(
+                "depth must be a 16-bit single-channel PNG, found {:?}",
+                other.color()
+            ),
+        )),
+    }
+}
+
+/// Depth encoding of a layout's 16-bit depth PNGs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthEncoding {
+    /// `metres = raw / units_per_metre`.
+    pub units_per_metre: f64,
+    /// A raw value besides 0 that marks a hole (7-Scenes: 65535).
+    pub invalid_raw: Option<u16>,
+}
+
+/// Reads one frame's colour and depth images and checks both against the dataset's image size.
+pub fn read_rgbd(
+    color: &Path,
+    depth: &Path,
+    index: usize,
+    intrinsics: &Intrinsics,
+    encoding: DepthEncoding,
+) -> Result<(RgbImage, DepthImage), DatasetError> {
+    let rgb = read_rgb(color, index)?;
+    check_size(color, intrinsics, rgb.width(), rgb.height())?;
+    let (w, h, raw) = read_depth_u16(depth, index)?;
+    check_size(depth, intrinsics, w, h)?;
+    let depth =
+        DepthImage::from_raw_u16(w, h, &raw, encoding.units_per_metre, encoding.invalid_raw);
+    Ok((rgb, depth))
+}
+
+/// Writes a depth image as a 16-bit PNG in `units_per_metre` (1000 = millimetres).
+pub fn write_depth_png(
+    path: &Path,
+    depth: &DepthImage,
+    units_per_metre: f64,
+) -> Result<(), DatasetError> {
+    let raw = depth.to_raw_u16(units_per_metre);
+    let buf: image::ImageBuffer<image::Luma<u16>, Vec<u16>> =
+        image::ImageBuffer::from_raw(depth.width, depth.height, raw).ok_or_else(|| {
+            DatasetError::Invalid("depth buffer size does not match its dimensions".into())
+        })?;
+    buf.save(path).map_err(|e| DatasetError::decode(path, e))
+}
+
+/// Checks an image against the dataset's expected size.
+pub fn check_size(
+    path: &Path,
+    intrinsics: &Intrinsics,
+    w: u32,
+    h: u32,
+) -> Result<(), DatasetError> {
+    if (w, h) != (intrinsics.width, intrinsics.height) {
+        return Err(DatasetError::SizeMismatch {
+            path: path.to_path_buf(),
+            expected_w: intrinsics.width,
+            expected_h: intrinsics.height,
+            found_w: w,
+            found_h: h,
+        });
+    }
+    Ok(())
+}
+
+/// Opens a dataset from a path or a synthetic spec, detecting the layout:
+/// - `synthetic` or `synthetic:agents=3,agent=1,frames=300,seed=7`: the embedded scene, streamed
+///   without touching disk (see [`synthetic::SyntheticSpec`]);
+/// - a folder with `results/` and `traj.txt`: Replica (NICE-SLAM layout) or one agent of
+///   Multi-agent Replica;
+/// - a folder with `rgb.txt` and `depth.txt`: TUM RGB-D;
+/// - a folder with `frame-XXXXXX.color.{png,jpg}` files: 7-Scenes (also what `mac-ego3d synth`
+///   writes).
+///
+/// `range` selects frame numbers (see [`FrameRange`]).
+pub fn open(spec: &str, range: FrameRange) -> Result<Box<dyn Dataset>, DatasetError> {
+    if spec == "synthetic" || spec.starts_with("synthetic:") {
+        let parsed: synthetic::SyntheticSpec = spec.parse().map_err(DatasetError::Invalid)?;
+        return Ok(Box::new(synthetic::SyntheticDataset::new(parsed, range)?));
+    }
+    let dir = Path::new(spec);
+    match detect_layout(dir)? {
+        Layout::Replica => Ok(Box::new(replica::Replica::open(dir, range)?)),
+        Layout::Tum => Ok(Box::new(tum::Tum::open(dir, range)?)),
+        Layout::SevenScenes => Ok(Box::new(seven_scenes::SevenScenes::open(dir, range)?)),
+    }
+}
+
+/// On-disk layouts [`open`] recognises.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Layout {
+    SevenScenes,
+    Replica,
+    Tum,
+}
+
+/// Recognises the layout of a dataset folder from the files it holds.
+pub fn detect_layout(dir: &Path) -> Result<Layout, DatasetError> {
+    if !dir.is_dir() {
+        return Err(DatasetError::io(
+            dir,
+            std::io::Error::new(std::io::ErrorKind::NotFound, "dataset folder not found"),
+        ));
+    }
+    if dir.join("results").is_dir() && dir.join("traj.txt").is_file() {
+        return Ok(Layout::Replica);
+    }
+    if dir.join("rgb.txt").is_file() && dir.join("depth.txt").is_file() {
+        return Ok(Layout::Tum);
+    }
+    let entries = std::fs::read_dir(dir).map_err(|e| DatasetError::io(dir, e))?;
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let name = name.to_string_lossy();
+        if name.starts_with("frame-")
+            && (name.ends_with(".color.png") || name.ends_with(".color.jpg"))
+        {
+            return Ok(Layout::SevenScenes);
+        }
+    }
+    Err(DatasetError::Invalid(format!(
+        "{}: unknown dataset layout: expected 7-Scenes (frame-XXXXXX.color.png/jpg), Replica \
+         (results/ + traj.txt) or TUM RGB-D (rgb.txt + depth.txt)",
+        dir.display()
+    )))
+}
+
+/// Sub-folders of `dir` that are datasets themselves, sorted by name: the agents of a
+/// multi-agent collection such as Multi-agent Replica (`Apart-0/part_1`, `part_2`, ...) or the
+/// output of `mac-ego3d synth` (`agent_0`, `agent_1`, ...).
+pub fn agent_folders(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
+    let mut found = Vec::new();
+    for entry in std::fs::read_dir(dir)
+        .map_err(|e| DatasetError::io(dir, e))?
+        .flatten()
+    {
+        let path = entry.path();
+        if path.is_dir() && detect_layout(&path).is_ok() {
+            found.push(path);
+        }
+    }
+    // Natural order: agent_2 before agent_10.
+    found.sort_by_key(|p| natural_key(&p.file_name().unwrap_or_default().to_string_lossy()));
+    Ok(found)
+}
+
+/// Sort key that orders a trailing number numerically: ("agent_", 10) after ("agent_", 2).
+fn natural_key(name: &str) -> (String, u64, String) {
+    let digits_start = name.trim_end_matches(|c: char| c.is_ascii_digit()).len();
+    let number = name[digits_start..].parse().unwrap_or(0);
+    (name[..digits_start].to_string(), number, name.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_range_parses_and_refuses() {
+        assert_eq!(
+            "0..600".parse::<FrameRange>().unwrap(),
+            FrameRange {
+                first: 0,
+                end: Some(600)
+            }
+        );
+        assert_eq!(
+            "400..".parse::<FrameRange>().unwrap(),
+            FrameRange {
+                first: 400,
+                end: None
+            }
+        );
+        assert_eq!(
+            "..10".parse::<FrameRange>().unwrap(),
+            FrameRange {
+                first: 0,
+                end: Some(10)
+            }
+        );
+        assert!("5..5".parse::<FrameRange>().is_err());
+        assert!("a..5".parse::<FrameRange>().is_err());
+        assert!("12".parse::<FrameRange>().is_err());
+        let r: FrameRange = "400..1000".parse().unwrap();
+        assert!(r.contains(400) && r.contains(999) && !r.contains(1000) && !r.contains(399));
+        assert_eq!(r.to_string(), "400..1000");
+    }
+
+    #[test]
+    fn agent_folders_sort_naturally() {
+        let dir = tempfile::tempdir().unwrap();
+        for k in [10, 2, 1] {
+            let agent = dir.path().join(format!("agent_{k}"));
+            std::fs::create_dir(&agent).unwrap();
+            std::fs::write(agent.join("frame-000000.color.png"), b"").unwrap();
+        }
+        std::fs::create_dir(dir.path().join("not_a_dataset")).unwrap();
+        let names: Vec<_> = agent_folders(dir.path())
+            .unwrap()
+            .iter()
+            .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names, ["agent_1", "agent_2", "agent_10"]);
+    }
+}

@@ -1,0 +1,397 @@
+//! Microsoft 7-Scenes layout (also what `mac-ego3d synth` writes):
+//! `frame-XXXXXX.color.{png,jpg}`, `frame-XXXXXX.depth.png` (u16 millimetres, 0 and 65535
+//! invalid), `frame-XXXXXX.pose.txt` (4x4 camera-to-world, row-major). An optional
+//! `camera-intrinsics.txt` (3x3 K) overrides the default intrinsics. Frame numbers need not start at
+//! 0 nor be contiguous. The layout has no clock: timestamp = frame number / 30 s.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use nalgebra::Isometry3;
+
+use geometry::camera::Intrinsics;
+use geometry::files::{DatasetError, parse_floats};
+use geometry::se3::pose_from_row_major;
+use geometry::trajectory::NO_CLOCK_FRAMES_PER_SECOND;
+
+use crate::{Dataset, DepthEncoding, Frame, FrameRange, read_rgbd};
+
+/// Kinect v1 defaults of the 7-Scenes release.
+pub const DEFAULT_INTRINSICS: Intrinsics = Intrinsics {
+    fx: 585.0,
+    fy: 585.0,
+    cx: 320.0,
+    cy: 240.0,
+    width: 640,
+    height: 480,
+};
+/// Depth PNG units: millimetres.
+pub const DEPTH_UNITS_PER_METRE: f64 = 1000.0;
+/// Raw depth value the 7-Scenes release uses for holes (besides 0).
+pub const INVALID_DEPTH_RAW: u16 = 65535;
+const DEPTH_ENCODING: DepthEncoding = DepthEncoding {
+    units_per_metre: DEPTH_UNITS_PER_METRE,
+    invalid_raw: Some(INVALID_DEPTH_RAW),
+};
+/// File holding the 3x3 K that overrides [`DEFAULT_INTRINSICS`].
+pub const INTRINSICS_FILE: &str = "camera-intrinsics.txt";
+
+/// One frame's files.
+#[derive(Debug, Clone)]
+struct FrameFiles {
+    number: usize,
+    color: PathBuf,
+}
+
+pub struct SevenScenes {
+    dir: PathBuf,
+    frames: Vec<FrameFiles>,
+    intrinsics: Intrinsics,
+}
+
+impl SevenScenes {
+    /// Indexes the folder (no image is decoded). Frames are the `frame-N.color.*` files whose
+    /// number is in `range`.
+    pub fn open(dir: &Path, range: FrameRange) -> Result<Self, DatasetError> {
+        let mut by_number: BTreeMap<usize, PathBuf> = BTreeMap::new();
+        for entry in std::fs::read_dir(dir).map_err(|e| DatasetError::io(dir, e))? {
+            let entry = entry.map_err(|e| DatasetError::io(dir, e))?;
+            let name = entry.file_name();
+            let name = name.to_string_lossy();
+            let Some(rest) = name.strip_prefix("frame-") else {
+                continue;
+            };
+            let Some((number, ext)) = rest.split_once(".color.") else {
+                continue;
+            };
+            if ext != "png" && ext != "jpg" {
+                continue;
+            }
+            let number: usize = number.parse().map_err(|_| {
+                DatasetError::format(
+                    &entry.path(),
+                    None,
+                    format!("frame number {number:?} is not an integer"),
+                )
+            })?;
+            if !range.contains(number) {
+                continue;
+            }
+            if let Some(previous) = by_number.insert(number, entry.path()) {
+                return Err(DatasetError::Invalid(format!(
+                    "{} and {}: two colour images for frame {number}",
+                    previous.display(),
+                    entry.path().display()
+                )));
+            }
+        }
+        if by_number.is_empty() {
+            return Err(DatasetError::Invalid(format!(
+                "{}: no frame-XXXXXX.color.png/jpg files with frame numbers in {range}",
+                dir.display()
+            )));
+        }
+        let intrinsics_path = dir.join(INTRINSICS_FILE);
+        let intrinsics = if intrinsics_path.is_file() {
+            // The K file has no image size; take it from the first colour image's header.
+            let first = by_number.values().next().expect("at least one frame");
+            let (w, h) = image_size(first)?;
+            Intrinsics::read_k_file(&intrinsics_path, w, h)?
+        } else {
+            DEFAULT_INTRINSICS
+        };
+        let frames = by_number
+            .into_iter()
+            .map(|(number, color)| FrameFiles { number, color })
+            .collect();
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            frames,
+            intrinsics,
+        })
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+}
+
+fn depth_path(dir: &Path, number: usize) -> PathBuf {
+    dir.join(format!("frame-{number:06}.depth.png"))
+}
+
+fn pose_path(dir: &Path, number: usize) -> PathBuf {
+    dir.join(format!("frame-{number:06}.pose.txt"))
+}
+
+fn image_size(path: &Path) -> Result<(u32, u32), DatasetError> {
+    image::image_dimensions(path).map_err(|e| match e {
+        image::ImageError::IoError(io) => DatasetError::io(path, io),
+        other => DatasetError::decode(path, other),
+    })
+}
+
+/// Reads a 4x4 camera-to-world pose file (four rows of four numbers).
+pub fn read_pose_file(path: &Path) -> Result<Isometry3<f64>, DatasetError> {
+    let text = std::fs::read_to_string(path).map_err(|e| DatasetError::io(path, e))?;
+    let mut values = Vec::with_capacity(16);
+    let mut rows = 0;
+    for (line_no, line) in text.lines().enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        let row =
+            parse_floats(line).map_err(|r| DatasetError::format(path, Some(line_no + 1), r))?;
+        if row.len() != 4 {
+            return Err(DatasetError::format(
+                path,
+                Some(line_no + 1),
+                format!("expected 4 numbers, found {}", row.len()),
+            ));
+        }
+        values.extend(row);
+        rows += 1;
+    }
+    if rows != 4 {
+        return Err(DatasetError::format(
+            path,
+            None,
+            format!("expected a 4x4 matrix, found {rows} rows"),
+        ));
+    }
+    pose_from_row_major(&values).map_err(|r| DatasetError::format(path, None, r))
+}
+
+impl Dataset for SevenScenes {
+    fn describe(&self) -> String {
+        format!("7-Scenes layout at {}", self.dir.display())
+    }
+    fn intrinsics(&self) -> Intrinsics {
+        self.intrinsics
+    }
+    fn len(&self) -> usize {
+        self.frames.len()
+    }
+    fn frame_index(&self, position: usize) -> usize {
+        self.frames[position].number
+    }
+    fn timestamp(&self, position: usize) -> f64 {
+        self.frames[position].number as f64 / NO_CLOCK_FRAMES_PER_SECOND
+    }
+    fn ground_truth(&self, position: usize) -> Result<Option<Isometry3<f64>>, DatasetError> {
+        let path = pose_path(&self.dir, self.frames[position].number);
+        if !path.exists() {
+            return Ok(None);
+        }
+        read_pose_file(&path).map(Some)
+    }
+    fn load(&self, position: usize) -> Result<Frame, DatasetError> {
+        let files = &self.frames[position];
+        let depth_file = depth_path(&self.dir, files.number);
+        let (rgb, depth) = read_rgbd(
+            &files.color,
+            &depth_file,
+            files.number,
+            &self.intrinsics,
+            DEPTH_ENCODING,
+        )?;
+        Ok(Frame {
+            index: files.number,
+            timestamp: self.timestamp(position),
+            rgb,
+            depth,
+            world_from_camera_gt: self.ground_truth(position)?,
+            intrinsics: self.intrinsics,
+        })
+    }
+}
+
+/// Writes frames in the 7-Scenes layout: lossless PNG colour, millimetre depth, pose files with
+/// full f64 precision, `camera-intrinsics.txt`, and a `groundtruth_tum.txt` for evaluation tools.
+pub struct SevenScenesWriter {
+    dir: PathBuf,
+    tum_lines: Vec<(f64, Isometry3<f64>)>,
+}
+
+impl SevenScenesWriter {
+    pub fn create(dir: &Path, intrinsics: &Intrinsics) -> Result<Self, DatasetError> {
+        std::fs::create_dir_all(dir).map_err(|e| DatasetError::io(dir, e))?;
+        let k_path = dir.join(INTRINSICS_FILE);
+        let k = format!(
+            "{:.17e} 0 {:.17e}\n0 {:.17e} {:.17e}\n0 0 1\n",
+            intrinsics.fx, intrinsics.cx, intrinsics.fy, intrinsics.cy
+        );
+        std::fs::write(&k_path, k).map_err(|e| DatasetError::io(&k_path, e))?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            tum_lines: Vec::new(),
+        })
+    }
+
+    pub fn write(&mut self, frame: &Frame) -> Result<(), DatasetError> {
+        let color = self.dir.join(format!("frame-{:06}.color.png", frame.index));
+        frame
+            .rgb
+            .save(&color)
+            .map_err(|e| DatasetError::decode(&color, e))?;
+        crate::write_depth_png(
+            &depth_path(&self.dir, frame.index),
+            &frame.depth,
+            DEPTH_UNITS_PER_METRE,
+        )?;
+        if let Some(pose) = &frame.world_from_camera_gt {
+            let path = pose_path(&self.dir, frame.index);
+            let m = pose.to_homogeneous();
+            let mut text = String::new();
+            for r in 0..4 {
+                let row: Vec<String> = (0..4).map(|c| format!("{:.17e}", m[(r, c)])).collect();
+                text.push_str(&row.join(" "));
+                text.push('\n');
+            }
+            std::fs::write(&path, text).map_err(|e| DatasetError::io(&path, e))?;
+            self.tum_lines.push((frame.timestamp, *pose));
+        }
+        Ok(())
+    }
+
+    /// Writes `groundtruth_tum.txt` for the frames written so far.
+    pub fn finish(self) -> Result<PathBuf, DatasetError> {
+        let path = self.dir.join("groundtruth_tum.txt");
+        let mut file = std::fs::File::create(&path).map_err(|e| DatasetError::io(&path, e))?;
+        let traj = geometry::trajectory::Trajectory::from_pairs(self.tum_lines);
+        traj.write_tum_to(&mut file)
+            .map_err(|e| DatasetError::io(&path, e))?;
+        file.flush().map_err(|e| DatasetError::io(&path, e))?;
+        Ok(path)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use geometry::depth::DepthImage;
+    use image::RgbImage;
+
+    fn tiny_frame(index: usize) -> Frame {
+        let mut depth = DepthImage::new(4, 3);
+        depth.data[5] = 1.234;
+        Frame {
+            index,
+            timestamp: index as f64 / NO_CLOCK_FRAMES_PER_SECOND,
+            rgb: RgbImage::from_fn(4, 3, |x, y| {
+                image::Rgb([x as u8 * 10, y as u8 * 20, index as u8])
+            }),
+            depth,
+            world_from_camera_gt: Some(Isometry3::translation(0.1 * index as f64, 0.0, 1.0)),
+            intrinsics: Intrinsics::new(5.0, 5.0, 1.5, 1.0, 4, 3),
+        }
+    }
+
+    #[test]
+    fn write_then_read_round_trips_with_gaps() {
+        let dir = tempfile::tempdir().unwrap();
+        let k = Intrinsics::new(5.0, 5.0, 1.5, 1.0, 4, 3);
+        let mut writer = SevenScenesWriter::create(dir.path(), &k).unwrap();
+        for index in [3, 4, 9] {
+            writer.write(&tiny_frame(index)).unwrap();
+        }
+        writer.finish().unwrap();
+        let ds = SevenScenes::open(dir.path(), FrameRange::ALL).unwrap();
+        assert_eq!(ds.len(), 3);
+        assert_eq!(ds.intrinsics(), k);
+        assert_eq!(ds.frame_index(2), 9);
+        let frame = ds.load(2).unwrap();
+        let expected = tiny_frame(9);
+        assert_eq!(frame.rgb, expected.rgb);
+        assert_eq!(frame.depth.data[5], 1.234);
+        assert_eq!(frame.world_from_camera_gt, expected.world_from_camera_gt);
+        assert_eq!(frame.timestamp, 0.3);
+        let ranged = SevenScenes::open(dir.path(), "4..9".parse().unwrap()).unwrap();
+        assert_eq!(ranged.len(), 1);
+    }
+
+    #[test]
+    fn bad_input_names_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let k = Intrinsics::new(5.0, 5.0, 1.5, 1.0, 4, 3);
+        let mut writer = SevenScenesWriter::create(dir.path(), &k).unwrap();
+        for index in 0..4 {
+            writer.write(&tiny_frame(index)).unwrap();
+        }
+        // 0: depth missing, 1: depth is 8-bit, 2: corrupt colour, 3: malformed pose line.
+        std::fs::remove_file(dir.path().join("frame-000000.depth.png")).unwrap();
+        image::GrayImage::new(4, 3)
+            .save(dir.path().join("frame-000001.depth.png"))
+            .unwrap();
+        std::fs::write(dir.path().join("frame-000002.color.png"), b"not a png").unwrap();
+        std::fs::write(
+            dir.path().join("frame-000003.pose.txt"),
+            "1 0 0 0\n0 1 0 0\n0 0 1 zz\n0 0 0 1\n",
+        )
+        .unwrap();
+        let ds = SevenScenes::open(dir.path(), FrameRange::ALL).unwrap();
+        let e0 = ds.load(0).unwrap_err();
+        assert!(
+            e0.is_missing_frame() && e0.to_string().contains("frame-000000.depth.png"),
+            "{e0}"
+        );
+        let e1 = ds.load(1).unwrap_err().to_string();
+        assert!(
+            e1.contains("frame-000001.depth.png") && e1.contains("16-bit"),
+            "{e1}"
+        );
+        let e2 = ds.load(2).unwrap_err().to_string();
+        assert!(e2.contains("frame-000002.color.png"), "{e2}");
+        let e3 = ds.load(3).unwrap_err().to_string();
+        assert!(e3.contains("frame-000003.pose.txt line 3"), "{e3}");
+    }
+
+    #[test]
+    fn mismatched_sizes_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let k = Intrinsics::new(5.0, 5.0, 1.5, 1.0, 4, 3);
+        let mut writer = SevenScenesWriter::create(dir.path(), &k).unwrap();
+        writer.write(&tiny_frame(0)).unwrap();
+        writer.write(&tiny_frame(1)).unwrap();
+        RgbImage::new(5, 3)
+            .save(dir.path().join("frame-000001.color.png"))
+            .unwrap();
+        let ds = SevenScenes::open(dir.path(), FrameRange::ALL).unwrap();
+        assert!(ds.load(0).is_ok());
+        let err = ds.load(1).unwrap_err().to_string();
+        assert!(
+            err.contains("frame-000001.color.png") && err.contains("5x3"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn real_data_redkitchen_clock_and_poses_match_groundtruth_tum() {
+        use metrics::ate::{Alignment, ate};
+        let dir = crate::shared_data::require("datasets/7scenes-redkitchen");
+        let ds = SevenScenes::open(&dir, FrameRange::ALL).unwrap();
+        assert_eq!(ds.len(), 1000);
+        assert_eq!(ds.intrinsics(), DEFAULT_INTRINSICS);
+        let mut from_reader = geometry::trajectory::Trajectory::default();
+        for i in 0..ds.len() {
+            from_reader.push(ds.timestamp(i), ds.ground_truth(i).unwrap().unwrap());
+        }
+        let tum =
+            geometry::trajectory::Trajectory::read_tum(&dir.join("groundtruth_tum.txt")).unwrap();
+        let r = ate(&tum, &from_reader, Alignment::None, 1e-4).unwrap();
+        assert_eq!(r.stats.pairs, 1000);
+        assert!(
+            r.stats.max < 1e-5,
+            "reader poses differ from groundtruth_tum.txt by {} m",
+            r.stats.max
+        );
+        let frame = ds.load(500).unwrap();
+        assert_eq!((frame.rgb.width(), frame.depth.height), (640, 480));
+        let valid = frame.depth.valid_count() as f64 / frame.depth.data.len() as f64;
+        assert!(
+            valid > 0.5 && frame.depth.data.iter().all(|d| *d < 65.0),
+            "valid {valid}"
+        );
+    }
+}

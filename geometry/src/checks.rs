@@ -1,0 +1,38 @@
+//! Range checks shared by every configuration section's `validate()`: each returns the offending
+//! field (its dotted TOML path, e.g. `tracking.pixel_stride`) and why, so that a configuration
+//! error names the file and the field.
+
+/// The field (dotted TOML path) that is out of range and why.
+pub type FieldError = (&'static str, String);
+
+pub fn positive(field: &'static str, v: f64) -> Result<(), FieldError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err((field, format!("must be a positive number, got {v}")))
+    }
+}
+
+pub fn non_negative(field: &'static str, v: f64) -> Result<(), FieldError> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(())
+    } else {
+        Err((field, format!("must be >= 0, got {v}")))
+    }
+}
+
+pub fn fraction(field: &'static str, v: f64) -> Result<(), FieldError> {
+    if (0.0..=1.0).contains(&v) {
+        Ok(())
+    } else {
+        Err((field, format!("must be in [0, 1], got {v}")))
+    }
+}
+
+pub fn at_least_one(field: &'static str, v: usize) -> Result<(), FieldError> {
+    if v >= 1 {
+        Ok(())
+    } else {
+        Err((field, "must be at least 1".to_string()))
+    }
+}

@@ -1,0 +1,196 @@
+//! The `[tracking]` and `[keyframes]` sections of the configuration file: the parameters the
+//! tracker reads ([`crate::odometry`], [`crate::gicp::GicpParams::tracking`]) and, for keyframes,
+//! the agent's seeding of new Gaussians. `[keyframes]` sits here rather than with the agent
+//! because the odometry decides keyframes itself (overlap with the map); the agent reads the
+//! seeding half of it. Defaults suit a 640x480 sensor (7-Scenes, TUM, the synthetic scene);
+//! Replica-like 1200x680 data overrides `pixel_stride` and `truncation_m`.
+//!
+//! Unknown keys are refused so a typo does not silently fall back to a default. `validate()`
+//! names the offending field by its dotted path in the file.
+
+use geometry::checks::{FieldError, at_least_one, fraction, non_negative, positive};
+use serde::{Deserialize, Serialize};
+
+/// Tracking: point selection, per-point covariances, map-candidate selection and G-ICP.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrackingConfig {
+    /// Back-project every `pixel_stride`-th pixel in x and y (5 for 640x480, 10 for 1200x680).
+    pub pixel_stride: usize,
+    /// Depth at or beyond this is dropped (metres; 10 for 7-Scenes, 12 for Replica).
+    pub truncation_m: f64,
+    /// Neighbours used to estimate each point's covariance.
+    pub covariance_neighbours: usize,
+    /// G-ICP regularisation: singular values become (1, 1, epsilon) (a plane-like ellipse).
+    pub covariance_epsilon: f64,
+    /// Map Gaussians with opacity above this can be tracked against.
+    pub trackable_min_opacity: f64,
+    /// Largest point-to-Gaussian distance accepted as a correspondence (metres).
+    pub max_correspondence_m: f64,
+    /// Levenberg-Marquardt iterations at most.
+    pub max_iterations: usize,
+    /// Converged when the rotation update is below this (radians)...
+    pub rotation_epsilon_rad: f64,
+    /// ...and the translation update below this (metres).
+    pub translation_epsilon_m: f64,
+    /// Predict the next pose with a constant-velocity model instead of the previous pose.
+    pub constant_velocity: bool,
+    /// Tracking fails (too few correspondences) when fewer than this fraction of the frame's
+    /// points have a map point within `max_correspondence_m` after alignment.
+    pub min_inlier_fraction: f64,
+}
+
+impl Default for TrackingConfig {
+    fn default() -> Self {
+        Self {
+            pixel_stride: 5,
+            truncation_m: 10.0,
+            covariance_neighbours: 10,
+            covariance_epsilon: 1e-3,
+            trackable_min_opacity: 0.05,
+            max_correspondence_m: 0.02,
+            max_iterations: 64,
+            rotation_epsilon_rad: 2e-3,
+            translation_epsilon_m: 5e-4,
+            constant_velocity: true,
+            min_inlier_fraction: 0.2,
+        }
+    }
+}
+
+/// Keyframe selection and Gaussian seeding.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct KeyframeConfig {
+    /// A source point overlaps the map when a map neighbour is closer than sqrt(this) (m^2).
+    pub overlap_distance_sq_m2: f64,
+    /// Overlapping fraction below this makes a tracking keyframe.
+    pub min_overlap_fraction: f64,
+    /// Otherwise every n-th frame since the last tracking keyframe is a mapping keyframe.
+    pub mapping_keyframe_every: usize,
+    /// At a tracking keyframe, new Gaussians farther than sqrt(this) from the map (m^2) are
+    /// trackable.
+    pub trackable_new_distance_sq_m2: f64,
+    /// Opacity of a new Gaussian (before the logit).
+    pub initial_opacity: f64,
+    /// How big a new Gaussian is (see [`SeedScale`]).
+    pub seed_scale: SeedScale,
+    /// With `seed_scale = "sample_footprint"`: the new Gaussian's standard deviation along the
+    /// surface in units of the spacing between neighbouring samples. Coverage of a surface grows
+    /// with opacity x (sigma / spacing)^2: at the default initial opacity 0.1, 2 spacings give a closed
+    /// surface from the first render (synthetic scene, no optimisation: PSNR 21.8 dB against
+    /// 16.7 dB with 1 spacing).
+    pub footprint_sigma_per_spacing: f64,
+    /// At a mapping keyframe, points with a map Gaussian closer than sqrt(this) (m^2) are already
+    /// covered and seed nothing. The method (docs/method.md, One agent: Seeding) makes
+    /// mapping-keyframe Gaussians never trackable but does not say which points seed them; seeding every point of every 10th frame would grow the map by
+    /// ~11k Gaussians per keyframe on 640x480 input, almost all duplicates of what is there.
+    /// The default is the tracking overlap radius (sqrt(5e-4) m, ~2.2 cm).
+    pub mapping_seed_min_distance_sq_m2: f64,
+    /// Which points of a tracking keyframe seed Gaussians (see [`TrackingKeyframeSeeds`]).
+    pub tracking_keyframe_seeds: TrackingKeyframeSeeds,
+}
+
+/// Which points of a tracking keyframe become new map Gaussians.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum TrackingKeyframeSeeds {
+    /// The seeding rule of docs/method.md (One agent: Seeding) literally: every point. A tracking keyframe still overlaps the map by up to
+    /// `min_overlap_fraction` (70 %), so most of its Gaussians duplicate surfaces the map already
+    /// has, stacked in layers the mapper must render and optimise.
+    #[default]
+    All,
+    /// Only the points no Gaussian covers yet (`mapping_seed_min_distance_sq_m2`), the mapping
+    /// keyframe rule. Tracking is unaffected: the tracking map takes every new trackable point
+    /// either way; only the mapper's map changes.
+    Uncovered,
+}
+
+/// Size of a newly seeded Gaussian. Both keep the orientation of the point's G-ICP covariance
+/// (wide along the surface, `sqrt(covariance_epsilon)` of that across it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum SeedScale {
+    /// The seeding rule of docs/method.md (One agent: Seeding) literally: scale = sqrt(eigenvalues of the G-ICP covariance) /
+    /// max(1, 2 z^1.5). The G-ICP covariance is normalised (eigenvalues 1, 1, eps), so a point
+    /// 2 m away gets a disc of 0.18 m standard deviation: ~10x the spacing of the sampled
+    /// points, which on a CPU rasteriser costs tens of millions of tile/Gaussian pairs.
+    Spec,
+    /// The disc scales with the point's own sample cell: standard deviation along the surface =
+    /// `footprint_sigma_per_spacing` x the distance between neighbouring samples
+    /// (pixel_stride * z / f), so the surface is closed whatever the depth.
+    #[default]
+    SampleFootprint,
+}
+
+impl Default for KeyframeConfig {
+    fn default() -> Self {
+        Self {
+            overlap_distance_sq_m2: 5e-4,
+            min_overlap_fraction: 0.7,
+            mapping_keyframe_every: 10,
+            trackable_new_distance_sq_m2: 5e-5,
+            initial_opacity: 0.1,
+            seed_scale: SeedScale::default(),
+            footprint_sigma_per_spacing: 2.0,
+            mapping_seed_min_distance_sq_m2: 5e-4,
+            tracking_keyframe_seeds: TrackingKeyframeSeeds::default(),
+        }
+    }
+}
+
+impl TrackingConfig {
+    /// Checks ranges; returns the offending field (`tracking.*`) and why.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        at_least_one("tracking.pixel_stride", self.pixel_stride)?;
+        positive("tracking.truncation_m", self.truncation_m)?;
+        if self.covariance_neighbours < 3 {
+            return Err((
+                "tracking.covariance_neighbours",
+                "a covariance needs at least 3 neighbours".into(),
+            ));
+        }
+        positive("tracking.covariance_epsilon", self.covariance_epsilon)?;
+        fraction("tracking.trackable_min_opacity", self.trackable_min_opacity)?;
+        positive("tracking.max_correspondence_m", self.max_correspondence_m)?;
+        at_least_one("tracking.max_iterations", self.max_iterations)?;
+        positive("tracking.rotation_epsilon_rad", self.rotation_epsilon_rad)?;
+        positive("tracking.translation_epsilon_m", self.translation_epsilon_m)?;
+        fraction("tracking.min_inlier_fraction", self.min_inlier_fraction)?;
+        Ok(())
+    }
+}
+
+impl KeyframeConfig {
+    /// Checks ranges; returns the offending field (`keyframes.*`) and why.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        positive(
+            "keyframes.overlap_distance_sq_m2",
+            self.overlap_distance_sq_m2,
+        )?;
+        fraction("keyframes.min_overlap_fraction", self.min_overlap_fraction)?;
+        at_least_one(
+            "keyframes.mapping_keyframe_every",
+            self.mapping_keyframe_every,
+        )?;
+        positive(
+            "keyframes.trackable_new_distance_sq_m2",
+            self.trackable_new_distance_sq_m2,
+        )?;
+        if !(self.initial_opacity > 0.0 && self.initial_opacity < 1.0) {
+            return Err((
+                "keyframes.initial_opacity",
+                format!("must be in (0, 1), got {}", self.initial_opacity),
+            ));
+        }
+        positive(
+            "keyframes.footprint_sigma_per_spacing",
+            self.footprint_sigma_per_spacing,
+        )?;
+        non_negative(
+            "keyframes.mapping_seed_min_distance_sq_m2",
+            self.mapping_seed_min_distance_sq_m2,
+        )?;
+        Ok(())
+    }
+}
