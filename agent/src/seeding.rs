@@ -68,7 +68,7 @@ pub fn seed_gaussians(
             None => -camera_point.coords.normalize(),
         };
         let tangent_sigma = match keyframes.seed_scale {
-            SeedScale::Spec => {
+            SeedScale::Published => {
                 1.0 / (PUBLISHED_DEPTH_FACTOR * depth.powf(PUBLISHED_DEPTH_EXPONENT)).max(1.0)
             }
             SeedScale::SampleFootprint => {
@@ -241,7 +241,7 @@ mod tests {
         assert!(thin_axis.z.abs() > 0.999, "{thin_axis:?}");
 
         let spec = KeyframeConfig {
-            seed_scale: SeedScale::Spec,
+            seed_scale: SeedScale::Published,
             ..KeyframeConfig::default()
         };
         let cloud = seed_gaussians(&frame, &[true], &tracking, &spec);

@@ -111,11 +111,13 @@ pub enum TrackingKeyframeSeeds {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum SeedScale {
-    /// The seeding rule of docs/method.md (One agent: Seeding) literally: scale = sqrt(eigenvalues of the G-ICP covariance) /
-    /// max(1, 2 z^1.5). The G-ICP covariance is normalised (eigenvalues 1, 1, eps), so a point
+    /// The published seeding rule (docs/method.md, Seeding): scale = sqrt(eigenvalues of the
+    /// G-ICP covariance) / max(1, 2 z^1.5). Written `"published"` (`"spec"`, its former name,
+    /// is still read). The G-ICP covariance is normalised (eigenvalues 1, 1, eps), so a point
     /// 2 m away gets a disc of 0.18 m standard deviation: ~10x the spacing of the sampled
     /// points, which on a CPU rasteriser costs tens of millions of tile/Gaussian pairs.
-    Spec,
+    #[serde(alias = "spec")]
+    Published,
     /// The disc scales with the point's own sample cell: standard deviation along the surface =
     /// `footprint_sigma_per_spacing` x the distance between neighbouring samples
     /// (pixel_stride * z / f), so the surface is closed whatever the depth.
