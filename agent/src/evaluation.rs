@@ -95,12 +95,7 @@ impl MapRenderer {
         world_from_camera: &Isometry3<f64>,
         intrinsics: &Intrinsics,
     ) -> Result<RenderedView, GpuError> {
-        let camera = Camera::from_world_from_camera(
-            RigidTransform::from(world_from_camera),
-            [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy].map(|v| v as f32),
-            intrinsics.width,
-            intrinsics.height,
-        );
+        let camera = Camera::new(RigidTransform::from(world_from_camera), intrinsics);
         let output = match &self.gaussians {
             Some(gaussians) => {
                 self.renderer

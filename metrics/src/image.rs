@@ -94,7 +94,9 @@ pub fn psnr(reference: &[f64], rendered: &[f64]) -> f64 {
     -10.0 * mse.log10()
 }
 
-fn gaussian_window() -> [f64; SSIM_WINDOW] {
+/// The SSIM window's normalised 1-D Gaussian weights (the 2-D window is their outer product);
+/// render-core's training loss uses the same ones.
+pub fn gaussian_window() -> [f64; SSIM_WINDOW] {
     let radius = (SSIM_WINDOW / 2) as f64;
     let mut w = [0.0; SSIM_WINDOW];
     for (i, v) in w.iter_mut().enumerate() {

@@ -21,12 +21,14 @@ use crate::wgsl::{
 };
 use bytemuck::Zeroable;
 
+// SSIM is defined once, by the evaluation metric (metrics::image): the maps are optimised for
+// the SSIM they are scored with.
 /// SSIM window half-width (11x11 window) and standard deviation.
-pub const SSIM_WINDOW_RADIUS: i32 = 5;
-pub const SSIM_WINDOW_SIGMA: f64 = 1.5;
-/// SSIM stabilisers for data range 1: (0.01)^2 and (0.03)^2.
-pub const SSIM_C1: f64 = 0.0001;
-pub const SSIM_C2: f64 = 0.0009;
+pub const SSIM_WINDOW_RADIUS: i32 = (metrics::image::SSIM_WINDOW / 2) as i32;
+pub const SSIM_WINDOW_SIGMA: f64 = metrics::image::SSIM_SIGMA;
+/// SSIM stabilisers for data range 1: K1^2 and K2^2.
+pub const SSIM_C1: f64 = metrics::image::SSIM_K1 * metrics::image::SSIM_K1;
+pub const SSIM_C2: f64 = metrics::image::SSIM_K2 * metrics::image::SSIM_K2;
 
 /// Loss weights; [`Default`] is the mapping loss (docs/method.md, One agent: Map optimisation).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -118,14 +120,6 @@ impl TargetImage {
     }
 }
 
-fn window_weights() -> Vec<f64> {
-    let raw: Vec<f64> = (-SSIM_WINDOW_RADIUS..=SSIM_WINDOW_RADIUS)
-        .map(|d| (-(f64::from(d * d)) / (2.0 * SSIM_WINDOW_SIGMA * SSIM_WINDOW_SIGMA)).exp())
-        .collect();
-    let total: f64 = raw.iter().sum();
-    raw.iter().map(|w| w / total).collect()
-}
-
 /// CPU reference of the loss and of dL/d(rendered rgb, depth) (alpha gradient is zero).
 pub fn reference_image_loss(
     rendered: &RenderOutput,
@@ -137,7 +131,7 @@ pub fn reference_image_loss(
     let rgb = rendered.rgb.as_ref().expect("loss needs the rendered rgb");
     let zero_depth = vec![0.0f32; pixels];
     let depth = rendered.depth.as_ref().unwrap_or(&zero_depth);
-    let window = window_weights();
+    let window = metrics::image::gaussian_window();
     let radius = SSIM_WINDOW_RADIUS as isize;
     let colour_normaliser = 1.0 / (3.0 * pixels as f64);
     let mut loss = 0.0;

@@ -9,6 +9,7 @@
 //! - Colours are SH degree 0 already converted to linear RGB in `[0, 1]` (not `f_dc`); see
 //!   [`crate::ply`] for the `f_dc` conversion used in files.
 
+use geometry::camera::Intrinsics;
 use glam::{DMat3, DQuat, DVec3, Mat3, Quat, Vec3};
 
 /// Activation and rasterisation constants of the image model (docs/method.md, The map) and the
@@ -360,7 +361,19 @@ pub struct Camera {
 }
 
 impl Camera {
-    /// Camera from its pose in the world (`world_from_camera`, i.e. camera-to-world).
+    /// Camera at `world_from_camera` (camera-to-world) with a pinhole's intrinsics and image
+    /// size (geometry's definition; the device takes them as f32).
+    pub fn new(world_from_camera: RigidTransform, intrinsics: &Intrinsics) -> Self {
+        Self::from_world_from_camera(
+            world_from_camera,
+            [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy].map(|v| v as f32),
+            intrinsics.width,
+            intrinsics.height,
+        )
+    }
+
+    /// Camera from its pose in the world (`world_from_camera`, i.e. camera-to-world) and f32
+    /// intrinsics `[fx, fy, cx, cy]` (synthetic test and benchmark cameras).
     pub fn from_world_from_camera(
         world_from_camera: RigidTransform,
         intrinsics: [f32; 4],
