@@ -12,12 +12,13 @@ use iceoryx2::service::port_factory::event::PortFactory as EventService;
 
 use super::error::{port_error, wait_error};
 use super::inbox::Inbox;
-use super::open::{
-    ControlTopic, CorrectionTopic, DescriptorTopic, KeyframeImageTopic, LifecycleTopic, PatchTopic,
-    TopicService, create_node, open_agent_wake, open_consumers_wake, open_lifecycle,
-};
-use super::outbox::{BuiltInPlace, Outbox, Recipients, SendReport, Sent, WhenAbsent};
+use super::open::{create_node, open_agent_wake, open_consumers_wake, open_lifecycle};
+use super::outbox::{BuiltInPlace, Elements, Outbox, Recipients, SendReport, Sent, WhenAbsent};
 use super::sequence::{ReceiveBook, new_epoch};
+use super::topic::{
+    ControlTopic, CorrectionTopic, DescriptorTopic, KeyframeImageTopic, LifecycleTopic, PatchTopic,
+    TopicService,
+};
 use super::traffic::{BandwidthReport, TrafficTable};
 use super::wake::{Receiving, WAKE_GOODBYE_SEEN, Waiting, consumers_wake_event, receive_within};
 use super::{ControlSample, CorrectionSample, Ipc, TransportConfig, TransportError, checks};
@@ -328,7 +329,7 @@ impl AgentLink {
         &mut self,
         keyframe_id: u64,
         frame: CoordinateFrame,
-        records: impl super::outbox::Elements<GaussianRecord>,
+        records: impl Elements<GaussianRecord>,
     ) -> Result<SendReport, TransportError> {
         let count = records.len() as u64;
         let header = |sequence| PatchHeader {
@@ -372,7 +373,7 @@ impl AgentLink {
     fn publish_keyframe_image(
         &mut self,
         meta: &KeyframeImageMeta,
-        pixels: impl super::outbox::Elements<RgbdPixel>,
+        pixels: impl Elements<RgbdPixel>,
     ) -> Result<SendReport, TransportError> {
         checks::keyframe_image(&self.keyframe_image.name, meta, pixels.len())?;
         let header = |sequence| KeyframeImageHeader {

@@ -176,6 +176,18 @@ impl TransportConfig {
         }
     }
 
+    /// First data-segment size of `topic`'s publisher, in payload elements (slice topics;
+    /// descriptors and lifecycle messages are one value each).
+    pub(super) fn initial_capacity(&self, topic: Topic) -> usize {
+        match topic {
+            Topic::Patch => self.initial_patch_records,
+            Topic::KeyframeImage => self.initial_keyframe_image_pixels,
+            Topic::Correction => self.initial_correction_poses,
+            Topic::Control => self.initial_control_bytes,
+            Topic::Descriptor | Topic::Lifecycle => 1,
+        }
+    }
+
     pub(super) fn names(&self) -> ServiceNames {
         ServiceNames::new(&self.namespace)
     }

@@ -12,12 +12,13 @@ use iceoryx2::service::port_factory::event::PortFactory as EventService;
 
 use super::error::port_error;
 use super::inbox::Inbox;
-use super::open::{
-    ControlTopic, CorrectionTopic, DescriptorTopic, KeyframeImageTopic, LifecycleTopic, PatchTopic,
-    TopicService, create_node, open_agent_wake, open_consumers_wake, open_lifecycle,
-};
+use super::open::{create_node, open_agent_wake, open_consumers_wake, open_lifecycle};
 use super::outbox::{Outbox, Recipients, SendReport, Sent, WhenAbsent};
 use super::sequence::{ReceiveBook, new_epoch};
+use super::topic::{
+    ControlTopic, CorrectionTopic, DescriptorTopic, KeyframeImageTopic, LifecycleTopic, PatchTopic,
+    TopicService,
+};
 use super::traffic::{BandwidthReport, TrafficTable};
 use super::wake::{
     Receiving, WAKE_CONSUMER_ATTACHED, WAKE_CONTROL, WAKE_CORRECTION, WAKE_GOODBYE_SEEN, Waiting,

@@ -7,8 +7,9 @@ use iceoryx2::prelude::Node;
 use iceoryx2::sample::Sample;
 
 use super::error::receive_error;
-use super::open::{PayloadShape, Service, TopicService, create_subscriber, open_topic};
+use super::open::{create_subscriber, open_topic};
 use super::sequence::{Delivery, ReceiveBook};
+use super::topic::{PayloadShape, Service, TopicService};
 use super::traffic::TrafficTable;
 use super::{Ipc, TransportConfig, TransportError};
 use crate::messages::Stamp;
@@ -34,8 +35,7 @@ impl<T: TopicService> Inbox<T> {
         config: &TransportConfig,
         agent_id: u32,
     ) -> Result<Self, TransportError> {
-        let name = config.names().topic(agent_id, T::TOPIC);
-        let service = open_topic::<T>(node, config, &name)?;
+        let (name, service) = open_topic::<T>(node, config, agent_id)?;
         Self::on(name, service, config)
     }
 

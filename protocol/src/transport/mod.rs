@@ -13,8 +13,10 @@
 //! everything an agent says fits the typed topics.
 //!
 //! Modules, one concept each:
-//! - [`config`]: [`TransportConfig`] and the [`FullQueuePolicy`] per topic.
+//! - `config`: [`TransportConfig`] and the [`FullQueuePolicy`] per topic.
 //! - `error`: [`TransportError`].
+//! - `topic`: each topic's payload and header types, so a port on the wrong types does not
+//!   compile.
 //! - `open`: the node and every service, with limits from the config; one generic opener for
 //!   all publish-subscribe topics, the shared services sized by the agent count.
 //! - `outbox`: the one send path (delivery handshake, full-queue policy, re-sends).
@@ -87,7 +89,7 @@
 
 mod agent;
 mod checks;
-pub mod config;
+mod config;
 mod consumer;
 mod error;
 mod inbox;
@@ -95,6 +97,7 @@ mod open;
 mod outbox;
 mod samples;
 mod sequence;
+mod topic;
 mod traffic;
 mod wake;
 

@@ -1,20 +1,18 @@
 //! Opening things: the iceoryx2 node, and every service with the limits the swarm's config
-//! gives it. One generic opener serves all publish-subscribe topics ([`open_topic`]); a
-//! [`TopicService`] names each topic's payload and header types, so a port on the wrong types
-//! does not compile. The services shared by the whole swarm (lifecycle, the consumers' wake-up)
-//! are sized by the agent count and opened as their creator sized them ([`open_shared`]).
+//! gives it. One generic opener serves all publish-subscribe topics ([`open_topic`], typed by
+//! [`super::topic`]); the services shared by the whole swarm (lifecycle, the consumers'
+//! wake-up) are sized by the agent count and opened as their creator sized them
+//! ([`open_shared`]).
 
 use std::fmt::Debug;
 
 use iceoryx2::config::Config;
-use iceoryx2::port::ReceiveError;
 use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::{
-    AllocationStrategy, AttributeVerifier, BackpressureStrategy, IceoryxSend, Node, NodeBuilder,
-    NodeName, ServiceName, SignalHandlingMode, ZeroCopySend,
+    AttributeVerifier, BackpressureStrategy, IceoryxSend, Node, NodeBuilder, NodeName, ServiceName,
+    SignalHandlingMode, ZeroCopySend,
 };
-use iceoryx2::sample::Sample;
 use iceoryx2::service::attribute::{AttributeKey, AttributeValue};
 use iceoryx2::service::builder::event::{EventOpenError, EventOpenOrCreateError};
 use iceoryx2::service::builder::publish_subscribe::{
@@ -22,16 +20,11 @@ use iceoryx2::service::builder::publish_subscribe::{
 };
 use iceoryx2::service::port_factory::PortFactory as _;
 use iceoryx2::service::port_factory::event::PortFactory as EventService;
-use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubService;
-use iceoryx2::service::port_factory::publisher::PortFactoryPublisher;
 
 use super::error::{port_error, service_error};
+use super::topic::{LifecycleTopic, PayloadShape, Service, TopicService};
 use super::wake::{AGENT_WAKE_EVENT_IDS, TOPIC_COUNT};
 use super::{FullQueuePolicy, Ipc, TransportConfig, TransportError};
-use crate::messages::{
-    ControlHeader, CorrectionHeader, GaussianRecord, KeyframeDescriptor, KeyframeImageHeader,
-    KeyframePose, Lifecycle, PatchHeader, RgbdPixel,
-};
 use crate::services::Topic;
 
 /// Nodes of crashed processes may hold a service slot until they are cleaned up; this many
@@ -50,150 +43,6 @@ const SWARM_MAX_AGENTS_ATTRIBUTE: &str = "mac.swarm.max_agents";
 /// Opening a shared service races with other processes creating or removing it; this many
 /// rounds of "open as it is, else open-or-create with our limits" settle any such race.
 const SHARED_SERVICE_OPEN_ATTEMPTS: usize = 4;
-
-/// The iceoryx2 service of this process's link.
-pub(super) type Service<T> =
-    PubSubService<Ipc, <T as TopicService>::Payload, <T as TopicService>::Header>;
-
-/// The two payload shapes iceoryx2 serves with separate methods, one value or a slice, behind
-/// one interface so that the code around them is written once.
-pub(super) trait PayloadShape: Debug + IceoryxSend {
-    fn open_or_create<H: Debug + ZeroCopySend>(
-        builder: PubSubBuilder<Self, H, Ipc>,
-    ) -> Result<PubSubService<Ipc, Self, H>, PublishSubscribeOpenOrCreateError>;
-    fn receive<H: Debug + ZeroCopySend>(
-        subscriber: &Subscriber<Ipc, Self, H>,
-    ) -> Result<Option<Sample<Ipc, Self, H>>, ReceiveError>;
-    fn payload<H: ZeroCopySend>(sample: &Sample<Ipc, Self, H>) -> &Self;
-}
-
-impl<P: Debug + ZeroCopySend> PayloadShape for P {
-    fn open_or_create<H: Debug + ZeroCopySend>(
-        builder: PubSubBuilder<Self, H, Ipc>,
-    ) -> Result<PubSubService<Ipc, Self, H>, PublishSubscribeOpenOrCreateError> {
-        builder.open_or_create()
-    }
-    fn receive<H: Debug + ZeroCopySend>(
-        subscriber: &Subscriber<Ipc, Self, H>,
-    ) -> Result<Option<Sample<Ipc, Self, H>>, ReceiveError> {
-        subscriber.receive()
-    }
-    fn payload<H: ZeroCopySend>(sample: &Sample<Ipc, Self, H>) -> &Self {
-        sample.payload()
-    }
-}
-
-impl<E: Debug + ZeroCopySend> PayloadShape for [E] {
-    fn open_or_create<H: Debug + ZeroCopySend>(
-        builder: PubSubBuilder<Self, H, Ipc>,
-    ) -> Result<PubSubService<Ipc, Self, H>, PublishSubscribeOpenOrCreateError> {
-        builder.open_or_create()
-    }
-    fn receive<H: Debug + ZeroCopySend>(
-        subscriber: &Subscriber<Ipc, Self, H>,
-    ) -> Result<Option<Sample<Ipc, Self, H>>, ReceiveError> {
-        subscriber.receive()
-    }
-    fn payload<H: ZeroCopySend>(sample: &Sample<Ipc, Self, H>) -> &Self {
-        sample.payload()
-    }
-}
-
-/// One publish-subscribe topic as iceoryx2 sees it: payload and user-header types, and how its
-/// publisher sizes its data segment.
-pub(super) trait TopicService {
-    type Payload: PayloadShape + ?Sized + 'static;
-    type Header: Debug + ZeroCopySend + Default + 'static;
-    const TOPIC: Topic;
-
-    /// Sizes the publisher's data segment. Fixed-size payloads need nothing; slice topics start
-    /// at the configured capacity and grow by powers of two, so any size that fits in memory
-    /// can be sent (iceoryx2 zeroes a new segment, which holds `max_consumers * (queue depth +
-    /// held samples) + 1` samples of the largest slice).
-    fn data_segment<'a>(
-        publisher: PortFactoryPublisher<'a, Ipc, Self::Payload, Self::Header>,
-        _config: &TransportConfig,
-    ) -> PortFactoryPublisher<'a, Ipc, Self::Payload, Self::Header> {
-        publisher
-    }
-}
-
-pub(super) struct DescriptorTopic;
-pub(super) struct PatchTopic;
-pub(super) struct KeyframeImageTopic;
-pub(super) struct CorrectionTopic;
-pub(super) struct ControlTopic;
-pub(super) struct LifecycleTopic;
-
-impl TopicService for DescriptorTopic {
-    type Payload = KeyframeDescriptor;
-    type Header = ();
-    const TOPIC: Topic = Topic::Descriptor;
-}
-
-impl TopicService for LifecycleTopic {
-    type Payload = Lifecycle;
-    type Header = ();
-    const TOPIC: Topic = Topic::Lifecycle;
-}
-
-/// A slice topic's data segment: `initial` elements, growing by powers of two.
-fn growing<'a, E: Debug + ZeroCopySend, H: Debug + ZeroCopySend>(
-    publisher: PortFactoryPublisher<'a, Ipc, [E], H>,
-    initial: usize,
-) -> PortFactoryPublisher<'a, Ipc, [E], H> {
-    publisher
-        .initial_max_slice_len(initial)
-        .allocation_strategy(AllocationStrategy::PowerOfTwo)
-}
-
-impl TopicService for PatchTopic {
-    type Payload = [GaussianRecord];
-    type Header = PatchHeader;
-    const TOPIC: Topic = Topic::Patch;
-    fn data_segment<'a>(
-        publisher: PortFactoryPublisher<'a, Ipc, Self::Payload, Self::Header>,
-        config: &TransportConfig,
-    ) -> PortFactoryPublisher<'a, Ipc, Self::Payload, Self::Header> {
-        growing(publisher, config.initial_patch_records)
-    }
-}
-
-impl TopicService for KeyframeImageTopic {
-    type Payload = [RgbdPixel];
-    type Header = KeyframeImageHeader;
-    const TOPIC: Topic = Topic::KeyframeImage;
-    fn data_segment<'a>(
-        publisher: PortFactoryPublisher<'a, Ipc, Self::Payload, Self::Header>,
-        config: &TransportConfig,
-    ) -> PortFactoryPublisher<'a, Ipc, Self::Payload, Self::Header> {
-        growing(publisher, config.initial_keyframe_image_pixels)
-    }
-}
-
-impl TopicService for CorrectionTopic {
-    type Payload = [KeyframePose];
-    type Header = CorrectionHeader;
-    const TOPIC: Topic = Topic::Correction;
-    fn data_segment<'a>(
-        publisher: PortFactoryPublisher<'a, Ipc, Self::Payload, Self::Header>,
-        config: &TransportConfig,
-    ) -> PortFactoryPublisher<'a, Ipc, Self::Payload, Self::Header> {
-        growing(publisher, config.initial_correction_poses)
-    }
-}
-
-impl TopicService for ControlTopic {
-    type Payload = [u8];
-    type Header = ControlHeader;
-    const TOPIC: Topic = Topic::Control;
-    fn data_segment<'a>(
-        publisher: PortFactoryPublisher<'a, Ipc, Self::Payload, Self::Header>,
-        config: &TransportConfig,
-    ) -> PortFactoryPublisher<'a, Ipc, Self::Payload, Self::Header> {
-        growing(publisher, config.initial_control_bytes)
-    }
-}
 
 /// Who publishes on a topic.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -320,15 +169,18 @@ fn pub_sub_builder<T: TopicService>(
         .user_header::<T::Header>()
 }
 
-/// Opens (or creates) the service `name` of topic `T` with the limits the config gives it.
+/// Opens (or creates) agent `agent_id`'s service of topic `T` with the limits the config gives
+/// it; returns it with its name.
 pub(super) fn open_topic<T: TopicService>(
     node: &Node<Ipc>,
     config: &TransportConfig,
-    name: &str,
-) -> Result<Service<T>, TransportError> {
+    agent_id: u32,
+) -> Result<(String, Service<T>), TransportError> {
+    let name = config.names().topic(agent_id, T::TOPIC);
     let builder =
-        PubSubLimits::of(config, T::TOPIC).apply(pub_sub_builder::<T>(node, &service_name(name)?));
-    T::Payload::open_or_create(builder).map_err(|e| service_error(name, e))
+        PubSubLimits::of(config, T::TOPIC).apply(pub_sub_builder::<T>(node, &service_name(&name)?));
+    let service = T::Payload::open_or_create(builder).map_err(|e| service_error(&name, e))?;
+    Ok((name, service))
 }
 
 /// Creates the publisher of topic `T` on `service`. A full queue is not waited for inside
@@ -344,7 +196,7 @@ pub(super) fn create_publisher<T: TopicService>(
         .publisher_builder()
         .max_loaned_samples(PUBLISHER_MAX_LOANS)
         .backpressure_strategy(BackpressureStrategy::DiscardData);
-    T::data_segment(builder, config)
+    T::Payload::data_segment(builder, config.initial_capacity(T::TOPIC))
         .create()
         .map_err(|e| match e {
             // An agent's own topic admits one publisher: this is a live twin with the same id.

@@ -30,7 +30,8 @@ use iceoryx2::sample_mut_uninit::SampleMutUninit;
 use iceoryx2::service::port_factory::PortFactory as _;
 
 use super::error::{loan_error, send_error};
-use super::open::{Service, TopicService, create_publisher, open_topic};
+use super::open::{create_publisher, open_topic};
+use super::topic::{Service, TopicService};
 use super::wake::{notify, wait_for_event};
 use super::{FullQueuePolicy, Ipc, TransportConfig, TransportError};
 
@@ -95,8 +96,7 @@ impl<T: TopicService> Outbox<T> {
         config: &TransportConfig,
         agent_id: u32,
     ) -> Result<Self, TransportError> {
-        let name = config.names().topic(agent_id, T::TOPIC);
-        let service = open_topic::<T>(node, config, &name)?;
+        let (name, service) = open_topic::<T>(node, config, agent_id)?;
         Self::on(name, service, config, agent_id)
     }
 
