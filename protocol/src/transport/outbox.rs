@@ -4,16 +4,20 @@
 //! [`FullQueuePolicy`] when a receiver's queue is full. [`Outbox::send_value`] and
 //! [`Outbox::send_slice`] only adapt the two payload shapes iceoryx2 loans.
 //!
-//! Why the bounded re-send is ours and not iceoryx2's. iceoryx2 0.10 has a backpressure
-//! strategy (`RetryUntilDelivered` or `DiscardData`) and a publisher backpressure handler that
-//! can bound the retry by time. It is not used, because it decides per receiver, inside
-//! `send()`: a full queue of any one subscriber blocks the send until that subscriber has room.
-//! The transport's rule is different: a send is done when `required_consumers` receivers have
-//! the message, so a second consumer (an observer) that reads slowly must not hold up an agent
-//! whose consensus already has it. So publishers use `DiscardData`, `send()` reports how many
-//! receivers it reached, and [`Outbox::deliver`] re-sends the same message (same sequence
-//! number; receivers drop the duplicates) while a required receiver's queue is full, up to
-//! `full_queue_timeout`, watching the shutdown flag and waking the receivers between tries.
+//! Why the bounded re-send is ours and not iceoryx2's. iceoryx2 0.10 offers a backpressure
+//! strategy per publisher (`RetryUntilDelivered`, unbounded, or `DiscardData`) and a
+//! backpressure handler (`set_backpressure_handler`, told the retries and the time elapsed) that
+//! could bound the retry by time and watch a shutdown flag. Neither is used, because both decide
+//! per subscriber inside `send()`: while any one subscriber's queue is full, `send()` waits for
+//! that subscriber. The transport's rule is different: a send is done when `required_consumers`
+//! receivers have the message, so a second consumer (an observer) that reads slowly does not hold
+//! up an agent whose consensus already has it. iceoryx2 cannot express "enough receivers", so
+//! publishers use `DiscardData`, `send()` reports how many receivers it reached, and
+//! [`Outbox::deliver`] re-sends the same message (same sequence number; receivers drop the
+//! duplicates) while a required receiver's queue is full, up to `full_queue_timeout`, watching
+//! the shutdown flag and waking the receivers between tries. Publisher history stays off (see
+//! the delivery handshake in the module documentation of `transport`), and the subscriber
+//! buffer is iceoryx2's own: the topic's queue depth.
 
 use std::cell::Cell;
 use std::fmt::Debug;
