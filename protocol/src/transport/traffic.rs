@@ -24,8 +24,9 @@ pub struct TopicTraffic {
     pub messages: u64,
     /// Payload plus user-header bytes.
     pub bytes: u64,
-    /// Sent only: bytes the transport copied from caller memory into shared memory. Zero for
-    /// in-place builds ([`AgentLink::send_patch_with`]); receivers never copy.
+    /// Sent only: payload bytes the transport copied from caller memory into shared memory
+    /// (headers, which the transport builds, are not counted). Zero for in-place builds
+    /// ([`super::AgentLink::send_patch_with`]); receivers never copy.
     pub bytes_copied: u64,
     /// Sent only: messages that failed with [`TransportError::QueueFull`] (not in `messages`).
     pub full_queue_failures: u64,
