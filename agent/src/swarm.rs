@@ -25,6 +25,7 @@ use geometry::depth::DepthImage;
 use geometry::se3::isometry_to_tum;
 use image::RgbImage;
 use nalgebra::Isometry3;
+use protocol::convert::{gaussian_record, rgbd_pixel};
 use protocol::messages::{
     ControlMessage, CoordinateFrame, FINAL_MAP_KEYFRAME_ID, GaussianRecord,
     Intrinsics as WireIntrinsics, KeyframeDescriptor, Pose, RgbdPixel,
@@ -214,7 +215,7 @@ impl SwarmLink {
             return;
         }
         self.announced = true;
-        self.pending_hello = Some((wire_intrinsics(intrinsics), run_anchor));
+        self.pending_hello = Some((WireIntrinsics::from(intrinsics), run_anchor));
         if self.refresh_link_state() {
             self.deliver_pending_hello();
         } else {
@@ -483,7 +484,7 @@ impl SwarmLink {
             keyframe.timestamp_s,
         );
         message.camera_to_agent_world = Pose::from(&keyframe.agent_from_camera);
-        message.intrinsics = wire_intrinsics(&keyframe.intrinsics);
+        message.intrinsics = WireIntrinsics::from(&keyframe.intrinsics);
         anyhow::ensure!(
             descriptor.len() == message.descriptor.len(),
             "descriptor has {} values, the wire carries {}",
@@ -749,52 +750,9 @@ fn config_hash(config: &Config) -> u64 {
     hasher.finish()
 }
 
-fn wire_intrinsics(intrinsics: &Intrinsics) -> WireIntrinsics {
-    WireIntrinsics {
-        fx: intrinsics.fx,
-        fy: intrinsics.fy,
-        cx: intrinsics.cx,
-        cy: intrinsics.cy,
-        width: intrinsics.width,
-        height: intrinsics.height,
-    }
-}
-
-/// Row-major pixel `i` of a keyframe as an RGB-D wire pixel; invalid or out-of-range depth
-/// becomes 0 (invalid). Both images have the same size (checked in `prepare`).
-fn rgbd_pixel(rgb: &RgbImage, depth: &DepthImage, i: usize) -> RgbdPixel {
-    let colour = &rgb.as_raw()[3 * i..3 * i + 3];
-    RgbdPixel::new([colour[0], colour[1], colour[2]], depth.data[i])
-}
-
-/// Gaussian `i` of `cloud` as a wire record.
-fn gaussian_record(cloud: &GaussianCloud, i: usize) -> GaussianRecord {
-    GaussianRecord {
-        mean: cloud.means[i],
-        log_scale: cloud.log_scales[i],
-        rotation_wxyz: cloud.quaternions[i],
-        opacity_logit: cloud.opacity_logits[i],
-        colour: cloud.colours[i],
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn depth_out_of_range_or_invalid_is_sent_as_zero() {
-        let rgb = RgbImage::from_pixel(4, 1, image::Rgb([1, 2, 3]));
-        let depth = DepthImage {
-            width: 4,
-            height: 1,
-            data: vec![1.2345, f32::NAN, -1.0, 100.0],
-        };
-        let pixels: Vec<RgbdPixel> = (0..4).map(|i| rgbd_pixel(&rgb, &depth, i)).collect();
-        let mm: Vec<u16> = pixels.iter().map(|p| p.depth_mm).collect();
-        assert_eq!(mm, vec![1235, 0, 0, 0]);
-        assert_eq!(pixels[0].rgb, [1, 2, 3]);
-    }
 
     /// The keyframe messages waiting at `consumer`.
     #[derive(Default)]

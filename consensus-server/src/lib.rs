@@ -17,7 +17,6 @@
 //! - [`engine`]: the consensus state (keyframes, candidates, decisions), free of transport;
 //! - [`inbox`]: joins each keyframe's messages, drops repeats, says what to re-request;
 //! - [`process`]: the `mac-consensus` process around it (iceoryx2, worker thread, outputs);
-//! - [`wire`]: received messages as the consensus's own types.
 //!
 //! Refinement runs once the agents are done (before the outputs are written); during the run the
 //! agents receive the pose graph's corrections.
@@ -31,7 +30,6 @@ pub mod place_recognition;
 pub mod pose_graph;
 pub mod process;
 pub mod refinement;
-pub mod wire;
 
 // The wire format and the extractor must agree on the descriptor length.
 const _: () =

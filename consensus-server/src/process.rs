@@ -29,6 +29,7 @@ use geometry::se3::isometry_to_tum;
 use geometry::trajectory::Trajectory;
 use metrics::stats::median;
 use nalgebra::Isometry3;
+use protocol::convert;
 use protocol::messages::{
     ControlMessage, FINAL_MAP_KEYFRAME_ID, KeyframePose, LifecycleKind, Pose,
 };
@@ -43,7 +44,6 @@ use crate::engine::{
 use crate::inbox::KeyframeInbox;
 use crate::place_recognition::KeyframeRef;
 use crate::refinement::{self, RefinementReport};
-use crate::wire;
 
 /// What to run and where to write.
 #[derive(Debug, Clone)]
@@ -452,12 +452,12 @@ fn handle(
                 agent_id,
                 keyframe_id: header.keyframe_id,
             };
-            let (rgb, depth) = wire::rgbd_images(header.width, header.height, image.pixels());
+            let (rgb, depth) = convert::rgbd_images(header.width, header.height, image.pixels());
             let keyframe = Keyframe {
                 id,
                 rgb,
                 depth,
-                intrinsics: wire::intrinsics(&header.intrinsics),
+                intrinsics: (&header.intrinsics).into(),
                 agent_from_camera: header.camera_to_agent_world.to_isometry(),
             };
             if let Some(arrival) = inbox.image(
@@ -490,7 +490,7 @@ fn handle(
                 // on other frames.
                 return Ok(());
             }
-            let (cloud, dropped) = wire::gaussian_cloud(patch.records());
+            let (cloud, dropped) = convert::gaussian_cloud(patch.records());
             if dropped > 0 {
                 tracing::warn!(
                     agent_id,

@@ -98,8 +98,8 @@ pub struct Intrinsics {
     pub height: u32,
 }
 
-/// Inter-agent selection input (SPEC 4.1): the latest keyframe's global descriptor and pose.
-/// Topic `mac/agent/{id}/descriptor`, agent -> consensus.
+/// Inter-agent selection input (docs/method.md, The consensus: selection): the latest
+/// keyframe's global descriptor and pose. Topic `mac/agent/{id}/descriptor`, agent -> consensus.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
 #[repr(C)]
 #[type_name("mac.v2.KeyframeDescriptor")]
@@ -147,7 +147,8 @@ impl KeyframeDescriptor {
         true
     }
 
-    /// Dot-product similarity of two descriptors (SPEC 4.1 score).
+    /// Dot-product similarity of two descriptors: the selection score (docs/method.md, The
+    /// consensus: selection).
     pub fn score(&self, other: &KeyframeDescriptor) -> f32 {
         self.descriptor
             .iter()
@@ -157,7 +158,7 @@ impl KeyframeDescriptor {
     }
 }
 
-/// One Gaussian of the map (SPEC 2). 14 f32 = 56 bytes, no padding.
+/// One Gaussian of the map (docs/method.md, The map). 14 f32 = 56 bytes, no padding.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
 #[repr(C)]
 #[type_name("mac.v2.GaussianRecord")]
