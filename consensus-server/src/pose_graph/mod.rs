@@ -1,4 +1,4 @@
-//! The robust pose graph over all agents' keyframes (SPEC section 4, step 4).
+//! The robust pose graph over all agents' keyframes (docs/method.md, The consensus: pose graph).
 //!
 //! Nodes: keyframes, each with its pose in its own agent's frame (from tracking; agents start at
 //! identity). Edges: odometry between consecutive keyframes of an agent (the relative pose
