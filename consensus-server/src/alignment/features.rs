@@ -15,7 +15,7 @@
 //! lifted; image patches change with distance and viewing angle, surface patches much less.
 //! Views metres apart whose directions differ by more than ~50 degrees still mostly give fewer
 //! matches than RANSAC needs: such pairs are linked by map-level registration
-//! ([`crate::map_registration`]). The measurements (`examples/keyframe_matching.rs`) are in
+//! ([`crate::map_registration`]). The measurements (`examples/keyframe_matching`) are in
 //! docs/benchmarks.md.
 //!
 //! A keypoint is kept only if its depth is trustworthy (see
@@ -677,8 +677,8 @@ fn two_nearest(query: &Descriptor, candidates: &[Descriptor]) -> Option<(usize, 
 ///
 /// Mutual only: every keypoint's nearest neighbour in either direction keeps about twice the
 /// correct matches but four times the wrong ones, which uniform 3-point RANSAC cannot sort out
-/// within its budget (measured on the synthetic pairs of `examples/keyframe_matching.rs`: one
-/// pair in twelve fewer aligned).
+/// within its budget (on the synthetic pairs of `examples/keyframe_matching`, fewer pairs aligned:
+/// docs/benchmarks.md).
 pub fn match_features(
     source: &Features,
     target: &Features,
