@@ -114,7 +114,7 @@ pub fn register_maps<'a, 'b>(
     .entered();
     let mut scores = MapRegistrationScores::new(source.points.len(), target.points.len());
     scores.colour = use_colour;
-    let (Ok(outcome) | Err(outcome)) = run_stages(source, target, config, &mut scores);
+    let outcome = run_stages(source, target, config, &mut scores).unwrap_or_else(Outcome::from);
     match &outcome.verdict {
         Ok(()) => tracing::debug!("map registration accepted"),
         Err(reason) => tracing::debug!(%reason, "map registration refused"),
@@ -128,26 +128,41 @@ pub fn register_maps<'a, 'b>(
     }
 }
 
-/// Where the stages ended: the estimate so far, the verdict and, once the verification ran, the
-/// information matrix.
+/// Where the stages ended: the estimate, the verdict and the information matrix of the
+/// verification.
 struct Outcome {
     target_from_source: Isometry3<f64>,
     verdict: Result<(), MapRejection>,
     information: Option<Matrix6<f64>>,
 }
 
-impl Outcome {
-    fn refused(target_from_source: Isometry3<f64>, reason: MapRejection) -> Self {
+/// A registration a stage refused before the verification: the estimate so far and why.
+struct Refusal {
+    target_from_source: Isometry3<f64>,
+    reason: MapRejection,
+}
+
+impl Refusal {
+    fn new(target_from_source: Isometry3<f64>, reason: MapRejection) -> Self {
         Self {
             target_from_source,
-            verdict: Err(reason),
+            reason,
+        }
+    }
+}
+
+impl From<Refusal> for Outcome {
+    fn from(refusal: Refusal) -> Self {
+        Self {
+            target_from_source: refusal.target_from_source,
+            verdict: Err(refusal.reason),
             information: None,
         }
     }
 }
 
-/// A stage's result, or the outcome of a registration it refused.
-type Stage<T> = Result<T, Outcome>;
+/// A stage's result, or the registration it refused.
+type Stage<T> = Result<T, Refusal>;
 
 /// The stages of the module documentation, in order; each fills its part of `scores`.
 fn run_stages(
@@ -215,8 +230,8 @@ struct Levels<'c> {
 }
 
 impl<'c> Levels<'c> {
-    /// 1. Downsampling: from the clean finest level `clean`, the feature level and the
-    ///    refinement level.
+    /// Stage 1, downsampling: from the clean finest level `clean`, the feature level and the
+    /// refinement level.
     fn new(
         clean: &'c (Cloud, Cloud, f64),
         started: Instant,
@@ -259,7 +274,7 @@ impl<'c> Levels<'c> {
                 target_points: scores.target_points,
                 required: MIN_POINTS,
             };
-            return Err(Outcome::refused(Isometry3::identity(), reason));
+            return Err(Refusal::new(Isometry3::identity(), reason));
         }
         Ok(Self {
             source: source_down,
@@ -270,7 +285,7 @@ impl<'c> Levels<'c> {
     }
 }
 
-/// 2. Normals and descriptors of both feature-level maps.
+/// Stage 2: normals and descriptors of both feature-level maps.
 fn describe(
     source: Cow<'_, Cloud>,
     target: Cow<'_, Cloud>,
@@ -298,12 +313,12 @@ fn describe(
             target_features: scores.target_features,
             required: MIN_POINTS,
         };
-        return Err(Outcome::refused(Isometry3::identity(), reason));
+        return Err(Refusal::new(Isometry3::identity(), reason));
     }
     Ok((source_map, target_map))
 }
 
-/// 3. Correspondences between the two maps' descriptors.
+/// Stage 3: correspondences between the two maps' descriptors.
 fn match_features(
     source_map: &PreparedMap,
     target_map: &PreparedMap,
@@ -331,13 +346,13 @@ fn match_features(
             found: matches.len(),
             required: config.min_consistent_correspondences,
         };
-        return Err(Outcome::refused(Isometry3::identity(), reason));
+        return Err(Refusal::new(Isometry3::identity(), reason));
     }
     Ok(matches)
 }
 
-/// 4. The consistent subset: RANSAC's best transform, refused when too few correspondences
-/// support it or a distinct runner-up is nearly as well supported.
+/// Stage 4, the consistent subset: RANSAC's best transform, refused when too few
+/// correspondences support it or a distinct runner-up is nearly as well supported.
 fn consistent_transform(
     source_map: &PreparedMap,
     target_map: &PreparedMap,
@@ -389,7 +404,7 @@ fn consistent_transform(
             found: 0,
             required: config.min_consistent_correspondences,
         };
-        return Err(Outcome::refused(Isometry3::identity(), reason));
+        return Err(Refusal::new(Isometry3::identity(), reason));
     };
     let coarse = best.target_from_source;
     if best_support < config.min_consistent_correspondences {
@@ -397,7 +412,7 @@ fn consistent_transform(
             found: best_support,
             required: config.min_consistent_correspondences,
         };
-        return Err(Outcome::refused(coarse, reason));
+        return Err(Refusal::new(coarse, reason));
     }
     if scores.ambiguity_ratio > config.max_ambiguity_ratio {
         let reason = MapRejection::Ambiguous {
@@ -408,7 +423,7 @@ fn consistent_transform(
             rotation_deg: scores.runner_up_rotation_deg,
             translation_m: scores.runner_up_translation_m,
         };
-        return Err(Outcome::refused(coarse, reason));
+        return Err(Refusal::new(coarse, reason));
     }
     Ok(coarse)
 }
@@ -451,8 +466,8 @@ struct FineLevel<'m> {
     distance_m: f64,
 }
 
-/// 5. G-ICP refinement from RANSAC's `coarse` transform: the coarse distances on the feature
-/// level, the finest on `fine`.
+/// Stage 5, G-ICP refinement from RANSAC's `coarse` transform: the coarse distances on the
+/// feature level, the finest on `fine`.
 fn refine_transform(
     (source_map, target_map): (&PreparedMap, &PreparedMap),
     fine: &FineLevel<'_>,
@@ -488,7 +503,7 @@ fn refine_transform(
         "refined"
     );
     if let Some(failure) = refined.failure.clone().filter(|f| !f.pose_is_usable()) {
-        return Err(Outcome::refused(
+        return Err(Refusal::new(
             coarse,
             MapRejection::RefinementFailed(failure),
         ));
@@ -496,8 +511,8 @@ fn refine_transform(
     Ok(refined.target_from_source)
 }
 
-/// 6. Verification of `estimate` on the fine level: overlap, residual, information and colour,
-/// and the verdict they give.
+/// Stage 6, verification of `estimate` on the fine level: overlap, residual, information and
+/// colour, and the verdict they give.
 fn verify(
     fine: &FineLevel<'_>,
     estimate: Isometry3<f64>,
