@@ -55,7 +55,7 @@ use mac_consensus::config::AlignmentConfig;
 
 use measure::measure;
 
-/// The command line (see the module documentation).
+// The command line (see the module documentation).
 #[derive(Parser)]
 struct Args {
     /// 7-Scenes-layout folder with ground truth (default: the shared redkitchen frames).
