@@ -32,7 +32,7 @@ pub(super) struct Candidate {
 }
 
 /// One queued alignment with what it needs, free of the engine (see
-/// [`Engine::next_alignment`]).
+/// [`Engine::next_alignment`](super::Engine::next_alignment)).
 pub struct AlignmentJob {
     pub(super) candidate: Candidate,
     pub(super) source: Arc<PreparedKeyframe>,
@@ -76,7 +76,7 @@ impl Job {
     }
 }
 
-/// A [`Job`]'s outcome, for [`Engine::record`].
+/// A [`Job`]'s outcome, for [`Engine::record`](super::Engine::record).
 pub enum Finished {
     Keyframes(Box<FinishedAlignment>),
     Maps(Box<FinishedMapJob>),

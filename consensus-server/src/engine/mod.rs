@@ -17,8 +17,8 @@
 //! replace nothing and propose nothing.
 //!
 //! Files: this one holds the engine's intake, job scheduling, recording and solving;
-//! [`jobs`] the work it hands to the aligner thread; [`records`] what it records per keyframe
-//! and attempt; [`world`] what it produces at the end (merged map, refinement problem, world
+//! `jobs.rs` the work it hands to the aligner thread; `records.rs` what it records per keyframe
+//! and attempt; `world.rs` what it produces at the end (merged map, refinement problem, world
 //! trajectories).
 
 mod jobs;

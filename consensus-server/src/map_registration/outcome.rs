@@ -131,11 +131,11 @@ pub struct MapRegistrationScores {
     pub overlap_fraction: f64,
     /// RMS point-to-plane distance of the overlapping points (metres).
     pub residual_m: f64,
-    /// Marginal standard deviations of the estimate (see [`verification`]).
+    /// Marginal standard deviations of the estimate (see [`verification`](super::verification)).
     pub rotation_sigma_deg: f64,
     pub translation_sigma_m: f64,
     /// Overlapping points compared in colour, the fraction of them that agree, the fraction that
-    /// agree when paired at random, and Cohen's kappa of the two (see [`verification`]; NaN when
+    /// agree when paired at random, and Cohen's kappa of the two (see [`verification`](super::verification); NaN when
     /// none were compared, the kappa also when the colours cannot tell).
     pub colour_compared: usize,
     pub colour_agreement: f64,
@@ -183,7 +183,7 @@ impl MapRegistrationScores {
     }
 }
 
-/// The outcome of [`register_maps`].
+/// The outcome of [`register_maps`](super::register_maps).
 #[derive(Debug, Clone, PartialEq)]
 pub struct MapRegistration {
     /// The estimate: maps source-map points into the target map's frame. The refined one when
@@ -195,7 +195,7 @@ pub struct MapRegistration {
     /// Information matrix of `target_from_source` (6x6; rotation first, then translation; a right
     /// perturbation `T Exp(delta)`, the pose graph's edge convention), from the point-to-plane
     /// residuals at the solution; `None` when refinement did not run. Optimistic: see
-    /// [`verification`].
+    /// [`verification`](super::verification).
     pub information: Option<Matrix6<f64>>,
     pub elapsed_ms: f64,
 }

@@ -1,6 +1,6 @@
 //! The `mac-consensus` process: receives every agent's keyframes over iceoryx2, runs the
-//! [`Engine`] on a worker thread, sends corrections back, and writes the world map, the agents'
-//! world trajectories and consensus.json at the end.
+//! [`Engine`](crate::engine::Engine) on a worker thread, sends corrections back, and writes the
+//! world map, the agents' world trajectories and consensus.json at the end.
 //!
 //! Threads, and why:
 //! - the main thread owns the transport (iceoryx2 ports stay on the thread that made them): it
@@ -8,16 +8,17 @@
 //!   (they arrive on different topics, in any order; [`crate::inbox`]), asks agents to publish
 //!   again what arrived incomplete, and sends corrections as soon as the worker has them. It
 //!   never aligns or solves, so agents are never blocked by the consensus;
-//! - the worker thread owns the [`Engine`]: preparing keyframes and solving the pose graph
-//!   (about a millisecond) as soon as a keyframe arrives or an alignment finishes;
+//! - the worker thread owns the [`Engine`](crate::engine::Engine): preparing keyframes and
+//!   solving the pose graph (about a millisecond) as soon as a keyframe arrives or an alignment
+//!   finishes;
 //! - an aligner thread aligns candidate pairs one at a time (about a second each on a CPU,
 //!   longer under load), so no keyframe waits for an alignment before it is placed.
 //!
 //! The run ends when every expected agent has said goodbye and the worker has aligned every
 //! queued candidate, or on SIGINT/SIGTERM (the stop flag); either way every output is written.
 //!
-//! Files: [`main_thread`] (transport, routing, corrections), [`worker`] (engine, aligner,
-//! progress), [`outputs`] (consensus.json, map, trajectories, the final refinement).
+//! Files: `main_thread.rs` (transport, routing, corrections), `worker.rs` (engine, aligner,
+//! progress), `outputs.rs` (consensus.json, map, trajectories, the final refinement).
 
 mod main_thread;
 mod outputs;

@@ -31,7 +31,7 @@
 //! (and, on a view's first visit and every `CHECK_PAIRS_EVERY` iterations, the tile-pair count
 //! that grows the binning buffers) is read back inside the loop.
 //!
-//! The map's side runs on the device ([`device`]), the poses' on the host ([`poses`]).
+//! The map's side runs on the device (`device.rs`), the poses' on the host (`poses.rs`).
 
 mod device;
 mod poses;
