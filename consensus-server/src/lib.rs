@@ -1,8 +1,12 @@
-//! The mac-ego3d consensus process (SPEC section 4): selection (place recognition over keyframe
-//! descriptors), association and alignment between agents, robust pose-graph and joint map
-//! optimisation, corrections back to the agents.
+//! The mac-ego3d consensus process (docs/method.md, The consensus): selection (place recognition
+//! over keyframe descriptors), association and alignment between agents, robust pose-graph and
+//! joint map optimisation, corrections back to the agents.
 //!
-//! Built so far:
+//! Modules, in the order a keyframe meets them:
+//! - [`process`]: the `mac-consensus` process (iceoryx2 on the main thread, a worker thread for
+//!   the engine, an aligner thread, the outputs);
+//! - [`inbox`]: joins each keyframe's messages, drops repeats, says what to re-request;
+//! - [`engine`]: the consensus state (keyframes, candidates, decisions), free of transport;
 //! - [`place_recognition`]: the descriptor database that proposes loop closures;
 //! - [`alignment`]: verified relative pose of two keyframes (features + RANSAC, G-ICP, checks);
 //! - [`map_registration`]: verified transform between two agents' maps without an initial guess
@@ -13,10 +17,8 @@
 //!   frame in the world and corrected keyframe poses;
 //! - [`refinement`]: joint photometric refinement of the merged world map and the keyframe
 //!   poses through render-core, with the pose-consistency term over the pose graph's edges;
-//! - [`config`]: their parameters;
-//! - [`engine`]: the consensus state (keyframes, candidates, decisions), free of transport;
-//! - [`inbox`]: joins each keyframe's messages, drops repeats, says what to re-request;
-//! - [`process`]: the `mac-consensus` process around it (iceoryx2, worker thread, outputs);
+//!
+//! Their parameters are the config crate's `[consensus.*]` sections.
 //!
 //! Refinement runs once the agents are done (before the outputs are written); during the run the
 //! agents receive the pose graph's corrections.

@@ -1,4 +1,4 @@
-//! `mac-consensus`: the consensus process (SPEC section 4).
+//! `mac-consensus`: the consensus process (docs/method.md, The consensus).
 //!
 //! `mac-consensus --config configs/7scenes.toml --out DIR [--agents N] [--namespace mac]`
 //! listens for every agent's keyframes, aligns and optimises them, sends corrections back, and
@@ -27,7 +27,7 @@ use protocol::transport::TransportConfig;
     about = "The mac-ego3d consensus: place recognition, alignment and pose graph over all agents"
 )]
 struct Args {
-    /// Configuration file (configs/*.toml); SPEC defaults when absent.
+    /// Configuration file (configs/*.toml); the built-in defaults when absent.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Output directory (agents write theirs to DIR/agent_K).

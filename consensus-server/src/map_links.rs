@@ -1,5 +1,5 @@
 //! Links between agents found by registering their maps (see [`crate::map_registration`] for the
-//! registration itself and docs/method.md, "Map-level registration", for why).
+//! registration itself and docs/method.md, The consensus: association and alignment, for why).
 //!
 //! Keyframe-to-keyframe alignment needs two views that see the same surfaces from similar
 //! viewpoints. Two agents that walk the same room facing other ways rarely have such a pair, while

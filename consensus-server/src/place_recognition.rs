@@ -1,7 +1,7 @@
-//! Selection (SPEC section 4, step 1): the consensus keeps every keyframe descriptor it has
-//! received and scores each new one against all stored ones by dot product. A score above tau
-//! proposes a loop closure: tau_same_agent (0.80) within one agent, tau_other_agent (0.85) between
-//! agents. Proposals are only candidates: association and alignment verify or reject them.
+//! Selection (docs/method.md, The consensus: selection): the consensus keeps every keyframe
+//! descriptor it has received and scores each new one against all stored ones by dot product. A
+//! score above tau proposes a loop closure: tau_same_agent (0.80) within one agent,
+//! tau_other_agent (0.85) between agents. Proposals are only candidates: association and alignment verify or reject them.
 
 use alexnet::descriptor::score;
 use config::ConsensusConfig;

@@ -1,5 +1,5 @@
 //! Two agents on 7-Scenes redkitchen (frames 0..600 and 400..1000), each tracked on its own from
-//! identity with the registration crate's frame-to-model odometry. The consensus pipeline then runs as the
+//! identity with slam_core's frame-to-model odometry. The consensus pipeline then runs as the
 //! process will: place recognition over keyframe descriptors (AlexNet GeM), alignment of the
 //! proposed pairs and of each agent's consecutive keyframes, the robust pose graph, and finally
 //! the joint ATE of both agents' corrected trajectories under one alignment to ground truth.
@@ -18,7 +18,7 @@ use geometry::trajectory::Trajectory;
 use mac_consensus::alignment::{Keyframe, PreparedKeyframe, Verdict, align_prepared};
 use mac_consensus::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
 use mac_consensus::pose_graph::{LoopClosure, PoseGraph};
-use metrics::ate::{Alignment, DEFAULT_MAX_DT, ate, joint_ate};
+use metrics::ate::{Alignment, DEFAULT_MAX_DT, JointAte, ate, joint_ate};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -135,6 +135,86 @@ fn real_data_two_agents_redkitchen_joint_ate_within_5_cm() {
         .map(|(id, range)| track(id as u32, dir.to_str().unwrap(), range))
         .collect();
     let tracking_time = clock.elapsed();
+    report_tracking(&agents);
+
+    let clock = Instant::now();
+    let selection = select(&agents, &weights, &config);
+    let selection_time = clock.elapsed();
+
+    let clock = Instant::now();
+    let aligned = align_candidates(&agents, &selection, &config);
+    let alignment_time = clock.elapsed();
+
+    let clock = Instant::now();
+    let solution = aligned.graph.solve(&config.pose_graph).unwrap();
+    let graph_time = clock.elapsed();
+    let candidates = &selection.candidates;
+    let proposed = selection.proposed;
+    let inter_agent_candidates = candidates
+        .iter()
+        .filter(|(s, t)| s.agent_id != t.agent_id)
+        .count();
+    let inter_accepted = solution
+        .loops
+        .iter()
+        .filter(|l| l.inter_agent && l.accepted)
+        .count();
+    eprintln!(
+        "{proposed} pairs proposed by place recognition ({inter_agent_candidates} inter-agent), \
+         {} consecutive; alignment accepted {}, rejected {:?}; pose graph accepted {} \
+         ({inter_accepted} inter-agent), rejected {}",
+        candidates.len() - proposed,
+        aligned.graph.loop_count(),
+        aligned.rejections,
+        solution.accepted_loops(),
+        solution.loops.len() - solution.accepted_loops()
+    );
+    let world_from_agent1 = solution.world_from_agent[&1].expect("agent 1 linked to the world");
+    eprintln!("world_from_agent1: {world_from_agent1}");
+
+    let joint = joint_ate_of(&agents, &solution.corrections);
+    eprintln!(
+        "joint ATE {:.2} cm (agent 0 {:.2} cm, agent 1 {:.2} cm under the joint alignment)",
+        joint.joint.rmse * 100.0,
+        joint.per_agent_joint_aligned[0].rmse * 100.0,
+        joint.per_agent_joint_aligned[1].rmse * 100.0
+    );
+    eprintln!(
+        "time: tracking {:.1} s, descriptors {:.1} s, alignment {:.1} s, pose graph {:.2} s",
+        tracking_time.as_secs_f64(),
+        selection_time.as_secs_f64(),
+        alignment_time.as_secs_f64(),
+        graph_time.as_secs_f64()
+    );
+    assert!(inter_accepted > 0, "no inter-agent closure survived");
+    assert!(
+        joint.joint.rmse <= MAX_JOINT_ATE_M,
+        "joint ATE {} m",
+        joint.joint.rmse
+    );
+
+    // The same graph with 30 % of the accepted closures replaced by random transforms.
+    let (wrong, corrupted) = with_random_closures(&aligned.graph, &aligned.closures);
+    let robust = corrupted.solve(&config.pose_graph).unwrap();
+    let wrong_accepted = wrong.iter().filter(|&&k| robust.loops[k].accepted).count();
+    let robust_joint = joint_ate_of(&agents, &robust.corrections);
+    eprintln!(
+        "with {} of {} closures replaced by random transforms: {wrong_accepted} of them \
+         accepted, joint ATE {:.2} cm",
+        wrong.len(),
+        aligned.closures.len(),
+        robust_joint.joint.rmse * 100.0
+    );
+    assert_eq!(wrong_accepted, 0, "random closures accepted");
+    assert!(
+        robust_joint.joint.rmse <= MAX_JOINT_ATE_M,
+        "joint ATE {} m with random closures",
+        robust_joint.joint.rmse
+    );
+}
+
+/// Each agent's own ATE (self-aligned) and keyframe count.
+fn report_tracking(agents: &[TrackedAgent]) {
     for (id, agent) in agents.iter().enumerate() {
         let estimate = Trajectory::from_pairs(agent.frames.iter().map(|(t, p, _)| (*t, *p)));
         let own = ate(
@@ -150,18 +230,32 @@ fn real_data_two_agents_redkitchen_joint_ate_within_5_cm() {
             agent.keyframes.len()
         );
     }
+}
 
-    // Selection: keyframes arrive in time order (both agents run at once).
-    let clock = Instant::now();
-    let extractor = GlobalDescriptorExtractor::from_weights(Some(&weights));
+/// The pairs to align: place recognition's proposals, then each agent's consecutive keyframes.
+struct Selection<'a> {
+    /// Keyframes in arrival order.
+    arrivals: Vec<(usize, &'a Keyframe)>,
+    /// (source, target) keyframe pairs to align.
+    candidates: Vec<(KeyframeRef, KeyframeRef)>,
+    /// How many of `candidates` place recognition proposed (the first ones).
+    proposed: usize,
+}
+
+/// Selection: keyframes arrive in time order (both agents run at once).
+fn select<'a>(
+    agents: &'a [TrackedAgent],
+    weights: &std::path::Path,
+    config: &ConsensusConfig,
+) -> Selection<'a> {
+    let extractor = GlobalDescriptorExtractor::from_weights(Some(weights));
     assert_eq!(extractor.kind(), "alexnet-gem");
     let mut arrivals: Vec<(usize, &Keyframe)> = agents
         .iter()
         .flat_map(|a| a.keyframes.iter().map(|(position, k)| (*position, k)))
         .collect();
     arrivals.sort_by_key(|(position, k)| (*position, k.id));
-    let mut database = PlaceDatabase::new(SelectionThresholds::from_config(&config));
-    // (source, target) keyframe pairs to align.
+    let mut database = PlaceDatabase::new(SelectionThresholds::from_config(config));
     let mut candidates: Vec<(KeyframeRef, KeyframeRef)> = Vec::new();
     for (_, keyframe) in &arrivals {
         let descriptor = extractor.describe(&keyframe.rgb).unwrap();
@@ -177,16 +271,35 @@ fn real_data_two_agents_redkitchen_joint_ate_within_5_cm() {
     let proposed = candidates.len();
     // Consecutive keyframes of one agent are aligned too: the verified relative pose corrects
     // tracking where it slipped between them (redkitchen has 20 cm slips over 20 frames).
-    for agent in &agents {
+    for agent in agents {
         for pair in agent.keyframes.windows(2) {
             candidates.push((pair[1].1.id, pair[0].1.id));
         }
     }
-    let selection_time = clock.elapsed();
+    Selection {
+        arrivals,
+        candidates,
+        proposed,
+    }
+}
 
-    // Association and alignment of every candidate pair.
-    let clock = Instant::now();
-    let prepared: BTreeMap<KeyframeRef, PreparedKeyframe> = arrivals
+/// The pose graph with every verified closure, and what alignment refused.
+struct Aligned {
+    graph: PoseGraph,
+    closures: Vec<LoopClosure>,
+    /// Rejections per reason.
+    rejections: BTreeMap<String, usize>,
+}
+
+/// Association and alignment of every candidate pair; accepted closures are scored against the
+/// ground truth (printed only).
+fn align_candidates(
+    agents: &[TrackedAgent],
+    selection: &Selection<'_>,
+    config: &ConsensusConfig,
+) -> Aligned {
+    let prepared: BTreeMap<KeyframeRef, PreparedKeyframe> = selection
+        .arrivals
         .iter()
         .map(|(_, k)| (k.id, PreparedKeyframe::new((*k).clone(), &config.alignment)))
         .collect();
@@ -202,7 +315,7 @@ fn real_data_two_agents_redkitchen_joint_ate_within_5_cm() {
         .collect();
     let mut closure_errors_mm = Vec::new();
     let mut closures = Vec::new();
-    for (source, target) in &candidates {
+    for (source, target) in &selection.candidates {
         let result = align_prepared(&prepared[source], &prepared[target], &config.alignment);
         match &result.verdict {
             Verdict::Accepted => {
@@ -236,7 +349,6 @@ fn real_data_two_agents_redkitchen_joint_ate_within_5_cm() {
             }
         }
     }
-    let alignment_time = clock.elapsed();
     closure_errors_mm.sort_by(f64::total_cmp);
     if let (Some(median), Some(worst)) = (
         closure_errors_mm.get(closure_errors_mm.len() / 2),
@@ -246,88 +358,23 @@ fn real_data_two_agents_redkitchen_joint_ate_within_5_cm() {
             "accepted closures against ground truth: median {median:.1} mm, worst {worst:.1} mm"
         );
     }
+    Aligned {
+        graph,
+        closures,
+        rejections,
+    }
+}
 
-    let clock = Instant::now();
-    let solution = graph.solve(&config.pose_graph).unwrap();
-    let graph_time = clock.elapsed();
-    let inter_agent_candidates = candidates
-        .iter()
-        .filter(|(s, t)| s.agent_id != t.agent_id)
-        .count();
-    let inter_accepted = solution
-        .loops
-        .iter()
-        .filter(|l| l.inter_agent && l.accepted)
-        .count();
-    eprintln!(
-        "{proposed} pairs proposed by place recognition ({inter_agent_candidates} inter-agent), \
-         {} consecutive; alignment accepted {}, rejected {rejections:?}; pose graph accepted {} \
-         ({inter_accepted} inter-agent), rejected {}",
-        candidates.len() - proposed,
-        graph.loop_count(),
-        solution.accepted_loops(),
-        solution.loops.len() - solution.accepted_loops()
-    );
-    let world_from_agent1 = solution.world_from_agent[&1].expect("agent 1 linked to the world");
-    eprintln!("world_from_agent1: {world_from_agent1}");
-
+/// The joint ATE of both agents' corrected trajectories under one alignment.
+fn joint_ate_of(
+    agents: &[TrackedAgent],
+    corrections: &BTreeMap<KeyframeRef, Isometry3<f64>>,
+) -> JointAte {
     let pairs: Vec<(Trajectory, Trajectory)> = agents
         .iter()
-        .map(|a| {
-            (
-                ground_truth(a),
-                corrected_trajectory(a, &solution.corrections),
-            )
-        })
+        .map(|a| (ground_truth(a), corrected_trajectory(a, corrections)))
         .collect();
-    let joint = joint_ate(&pairs, Alignment::Se3, DEFAULT_MAX_DT).unwrap();
-    eprintln!(
-        "joint ATE {:.2} cm (agent 0 {:.2} cm, agent 1 {:.2} cm under the joint alignment)",
-        joint.joint.rmse * 100.0,
-        joint.per_agent_joint_aligned[0].rmse * 100.0,
-        joint.per_agent_joint_aligned[1].rmse * 100.0
-    );
-    eprintln!(
-        "time: tracking {:.1} s, descriptors {:.1} s, alignment {:.1} s, pose graph {:.2} s",
-        tracking_time.as_secs_f64(),
-        selection_time.as_secs_f64(),
-        alignment_time.as_secs_f64(),
-        graph_time.as_secs_f64()
-    );
-    assert!(inter_accepted > 0, "no inter-agent closure survived");
-    assert!(
-        joint.joint.rmse <= MAX_JOINT_ATE_M,
-        "joint ATE {} m",
-        joint.joint.rmse
-    );
-
-    // The same graph with 30 % of the accepted closures replaced by random transforms.
-    let (wrong, corrupted) = with_random_closures(&graph, &closures);
-    let robust = corrupted.solve(&config.pose_graph).unwrap();
-    let wrong_accepted = wrong.iter().filter(|&&k| robust.loops[k].accepted).count();
-    let pairs: Vec<(Trajectory, Trajectory)> = agents
-        .iter()
-        .map(|a| {
-            (
-                ground_truth(a),
-                corrected_trajectory(a, &robust.corrections),
-            )
-        })
-        .collect();
-    let robust_joint = joint_ate(&pairs, Alignment::Se3, DEFAULT_MAX_DT).unwrap();
-    eprintln!(
-        "with {} of {} closures replaced by random transforms: {wrong_accepted} of them \
-         accepted, joint ATE {:.2} cm",
-        wrong.len(),
-        closures.len(),
-        robust_joint.joint.rmse * 100.0
-    );
-    assert_eq!(wrong_accepted, 0, "random closures accepted");
-    assert!(
-        robust_joint.joint.rmse <= MAX_JOINT_ATE_M,
-        "joint ATE {} m with random closures",
-        robust_joint.joint.rmse
-    );
+    joint_ate(&pairs, Alignment::Se3, DEFAULT_MAX_DT).unwrap()
 }
 
 /// Share of closures replaced by random transforms in the robustness check.

@@ -1,7 +1,7 @@
 //! Keyframe alignment where the two views differ a lot: a camera rolled by 90 degrees about its
 //! optical axis, and two agents 1.5 m apart looking 36 degrees apart at the same corner of the
 //! synthetic room. Both failed with unsteered BRIEF on strongest-first FAST corners (6 and 7
-//! coarse inliers, 15 needed; `examples/keyframe_matching.rs`). Ground truth only picks the
+//! coarse inliers, 15 needed; `examples/keyframe_matching/`). Ground truth only picks the
 //! views and scores the estimate.
 
 use config::AlignmentConfig;

@@ -1,5 +1,6 @@
-//! Keyframe-to-keyframe alignment (SPEC section 4, steps 2 and 3): the relative pose of two
-//! RGB-D keyframes, from the same agent or from two agents whose frames are unrelated.
+//! Keyframe-to-keyframe alignment (docs/method.md, The consensus: association and alignment):
+//! the relative pose of two RGB-D keyframes, from the same agent or from two agents whose frames
+//! are unrelated.
 //!
 //! 1. Coarse ([`features`], [`ransac`]): FAST + BRIEF keypoints on both images, mutual ratio-test
 //!    matches, lifted to 3-D with depth, RANSAC over 3-point rigid fits. Needs no initial guess, so
@@ -220,41 +221,9 @@ pub fn align_prepared(
         result
     };
 
-    let matches = features::match_features(&source.features, &target.features, config);
-    if matches.len() < config.min_coarse_inliers {
-        let reason = RejectionReason::TooFewMatches {
-            found: matches.len(),
-            required: config.min_coarse_inliers,
-        };
-        return reject(result, reason);
-    }
-    let (source_points, target_points): (Vec<Point3<f64>>, Vec<Point3<f64>>) = matches
-        .iter()
-        .map(|&(i, j)| {
-            (
-                source.features.camera_points[i],
-                target.features.camera_points[j],
-            )
-        })
-        .unzip();
-    let coarse = ransac::register(&source_points, &target_points, config);
-    let inliers = coarse.as_ref().map_or(0, |c| c.inliers.len());
-    result.coarse = Some(CoarseScores {
-        source_keypoints: source.features.len(),
-        target_keypoints: target.features.len(),
-        matches: matches.len(),
-        inliers,
-        ransac_iterations: coarse.as_ref().map_or(0, |c| c.iterations),
-    });
-    let coarse = match coarse {
-        Some(coarse) if inliers >= config.min_coarse_inliers => coarse,
-        _ => {
-            let reason = RejectionReason::TooFewCoarseInliers {
-                found: inliers,
-                required: config.min_coarse_inliers,
-            };
-            return reject(result, reason);
-        }
+    let coarse = match coarse_estimate(source, target, config, &mut result) {
+        Ok(coarse) => coarse,
+        Err(reason) => return reject(result, reason),
     };
     result.target_camera_from_source_camera = coarse.target_from_source;
 
@@ -278,36 +247,106 @@ pub fn align_prepared(
     result.target_camera_from_source_camera = estimate;
 
     let _span = tracing::debug_span!("verify").entered();
-    let finest = finest_distance(config);
-    let (residual_m, _) =
-        verification::point_to_plane_rms(&source.cloud, &target.cloud, &estimate, finest);
-    let source_in_target = verification::compare_depth(
-        source.cloud.positions(),
-        &estimate,
-        &target.keyframe.depth,
-        &target.keyframe.intrinsics,
-        config,
-    );
-    let target_in_source = verification::compare_depth(
-        target.cloud.positions(),
-        &estimate.inverse(),
-        &source.keyframe.depth,
-        &source.keyframe.intrinsics,
-        config,
-    );
+    let measured = Measured::of(source, target, &estimate, config);
     let scores = RefinementScores {
         gicp_iterations: refined.iterations,
         converged: refined.converged,
         inlier_fraction: refined.inlier_fraction(),
-        residual_m,
-        source_in_target: source_in_target.into(),
-        target_in_source: target_in_source.into(),
+        residual_m: measured.residual_m,
+        source_in_target: measured.source_in_target.into(),
+        target_in_source: measured.target_in_source.into(),
     };
     result.refinement = Some(scores);
     tracing::debug!(?scores, "refined");
-    match verify(&scores, source_in_target, target_in_source, config) {
+    match verify(
+        &scores,
+        measured.source_in_target,
+        measured.target_in_source,
+        config,
+    ) {
         Some(reason) => reject(result, reason),
         None => result,
+    }
+}
+
+/// Coarse stage: descriptor matches lifted to 3-D, then RANSAC; its scores go into `result`.
+fn coarse_estimate(
+    source: &PreparedKeyframe,
+    target: &PreparedKeyframe,
+    config: &AlignmentConfig,
+    result: &mut AlignmentResult,
+) -> Result<ransac::CoarseEstimate, RejectionReason> {
+    let matches = features::match_features(&source.features, &target.features, config);
+    if matches.len() < config.min_coarse_inliers {
+        return Err(RejectionReason::TooFewMatches {
+            found: matches.len(),
+            required: config.min_coarse_inliers,
+        });
+    }
+    let (source_points, target_points): (Vec<Point3<f64>>, Vec<Point3<f64>>) = matches
+        .iter()
+        .map(|&(i, j)| {
+            (
+                source.features.camera_points[i],
+                target.features.camera_points[j],
+            )
+        })
+        .unzip();
+    let coarse = ransac::register(&source_points, &target_points, config);
+    let inliers = coarse.as_ref().map_or(0, |c| c.inliers.len());
+    result.coarse = Some(CoarseScores {
+        source_keypoints: source.features.len(),
+        target_keypoints: target.features.len(),
+        matches: matches.len(),
+        inliers,
+        ransac_iterations: coarse.as_ref().map_or(0, |c| c.iterations),
+    });
+    match coarse {
+        Some(coarse) if inliers >= config.min_coarse_inliers => Ok(coarse),
+        _ => Err(RejectionReason::TooFewCoarseInliers {
+            found: inliers,
+            required: config.min_coarse_inliers,
+        }),
+    }
+}
+
+/// What the verification measures of a refined estimate: the point-to-plane residual at the
+/// finest distance and the depth agreement in both directions.
+struct Measured {
+    residual_m: f64,
+    source_in_target: DepthComparison,
+    target_in_source: DepthComparison,
+}
+
+impl Measured {
+    fn of(
+        source: &PreparedKeyframe,
+        target: &PreparedKeyframe,
+        estimate: &Isometry3<f64>,
+        config: &AlignmentConfig,
+    ) -> Self {
+        let finest = finest_distance(config);
+        let (residual_m, _) =
+            verification::point_to_plane_rms(&source.cloud, &target.cloud, estimate, finest);
+        let source_in_target = verification::compare_depth(
+            source.cloud.positions(),
+            estimate,
+            &target.keyframe.depth,
+            &target.keyframe.intrinsics,
+            config,
+        );
+        let target_in_source = verification::compare_depth(
+            target.cloud.positions(),
+            &estimate.inverse(),
+            &source.keyframe.depth,
+            &source.keyframe.intrinsics,
+            config,
+        );
+        Self {
+            residual_m,
+            source_in_target,
+            target_in_source,
+        }
     }
 }
 
@@ -359,7 +398,8 @@ fn finest_distance(config: &AlignmentConfig) -> f64 {
         .unwrap_or(DEFAULT_FINEST_DISTANCE_M)
 }
 
-/// Correspondence distance when the configuration lists none: the SPEC's tracking distance.
+/// Correspondence distance when the configuration lists none: the agent's tracking distance
+/// (docs/method.md, One agent: Tracking), 2 cm.
 const DEFAULT_FINEST_DISTANCE_M: f64 = 0.02;
 
 fn gicp_params(config: &AlignmentConfig) -> GicpParams {

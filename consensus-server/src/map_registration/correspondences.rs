@@ -16,10 +16,9 @@
 //! which is the product of the two counts.
 //!
 //! The search compares every pair, once, for both directions ([`nearest_brute_force_both_ways`]).
-//! kiddo's kd-tree in 33 (now 43) dimensions ([`nearest_kd_tree`], kept as a second implementation the
-//! tests compare) was slower at these sizes: on the unit test's room, 9.4k x 8.8k descriptors,
-//! 2.5 s for both directions against 0.9 s by brute force (two cores, loaded machine); kd-trees
-//! prune little in 33 dimensions. With 3000 descriptors per map the brute force takes 110-170 ms.
+//! kiddo's kd-tree in 33 (now 43) dimensions ([`nearest_kd_tree`], kept as a second
+//! implementation the tests compare) was slower at these sizes, by a factor of about three on the
+//! unit test's room (docs/benchmarks.md): kd-trees prune little in that many dimensions.
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;

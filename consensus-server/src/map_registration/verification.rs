@@ -8,8 +8,8 @@
 //! degree or two; the coarse stages pull in from there on the feature-level maps (half their
 //! points). The final stage runs on the refinement-level maps, which keep the finest voxel up to
 //! their own, larger point budget: when a large map coarsened the feature level, the final
-//! stage and the verification still see the finer surfaces (on the unit test's room, 10 cm
-//! feature voxels left 0.4 degrees of error, a final stage at 7 cm about a tenth of that).
+//! stage and the verification still see the finer surfaces, which cuts the rotation error by
+//! about a factor of ten (docs/benchmarks.md).
 //!
 //! **Overlap and residual.** After alignment, a source point overlaps when a target point lies
 //! within the finest refinement distance; the overlap fraction counts them relative to the
@@ -283,94 +283,65 @@ fn largest_eigenvalue(block: &Matrix3<f64>) -> f64 {
     block.symmetric_eigenvalues().max()
 }
 
-/// Overlap, residual and information of `source` placed onto `target` by `target_from_source`,
-/// and with `colours` their colour agreement. `target_normals[j]` is target point j's normal
-/// (`None`: not used for the residual).
-pub fn measure_overlap(
-    source: &[Point3<f32>],
-    target: &PointTree,
-    target_normals: &[Option<Vector3<f32>>],
-    target_from_source: &Isometry3<f64>,
-    overlap_distance_m: f64,
-    sigma_floor_m: f64,
-    colours: Option<ColourCheck<'_>>,
-) -> Overlap {
-    let limit_sq = (overlap_distance_m * overlap_distance_m) as f32;
-    let rotation = target_from_source
-        .rotation
-        .to_rotation_matrix()
-        .into_inner();
-    let sums = source
-        .par_chunks(POINTS_PER_TASK)
-        .enumerate()
-        .map(|(chunk_index, chunk)| {
-            let mut sums = Sums::zero();
-            for (offset, a) in chunk.iter().enumerate() {
-                let a = a.cast::<f64>();
-                let moved = target_from_source * a;
-                let Some((j, _)) = target.nearest_within(&moved.cast::<f32>(), limit_sq) else {
-                    continue;
-                };
-                sums.overlapping += 1;
-                if let Some(check) = &colours {
-                    let i = chunk_index * POINTS_PER_TASK + offset;
-                    let pair = (
-                        check.source.get(i).and_then(chromaticity),
-                        check.target.get(j as usize).and_then(chromaticity),
-                    );
-                    if let (Some(s), Some(t)) = pair {
-                        let distance_sq = (s[0] - t[0]).powi(2) + (s[1] - t[1]).powi(2);
-                        let limit = check.tolerance * check.tolerance;
-                        sums.colour_agreeing += usize::from(distance_sq <= limit);
-                        sums.colour_pairs.push((s, t));
-                    }
-                }
-                let Some(normal) = target_normals.get(j as usize).copied().flatten() else {
-                    continue;
-                };
-                let n = normal.cast::<f64>();
-                let b = target.position(j).cast::<f64>();
-                let r = n.dot(&(moved - b));
-                sums.planar += 1;
-                sums.residual_sq += r * r;
-                sums.centre += a.coords;
-                // J = n^T R [-[a]x, I] = [(a x R^T n)^T, (R^T n)^T].
-                let m = rotation.transpose() * n;
-                let rot = a.coords.cross(&m);
-                let j_row = RowVector6::new(rot.x, rot.y, rot.z, m.x, m.y, m.z);
-                sums.hessian += j_row.transpose() * j_row;
-            }
-            sums
-        })
-        .reduce(Sums::zero, Sums::add);
-    let colour_chance = colours.map_or(f64::NAN, |check| {
-        chance_agreement(&sums.colour_pairs, check.tolerance)
-    });
-    let smaller = source.len().min(target.len());
-    let fraction = if smaller == 0 {
-        0.0
-    } else {
-        (sums.overlapping as f64 / smaller as f64).min(1.0)
-    };
-    if sums.planar == 0 {
-        return Overlap {
-            overlapping: sums.overlapping,
-            fraction,
-            residual_m: f64::NAN,
-            information: Matrix6::zeros(),
-            rotation_sigma_rad: f64::INFINITY,
-            translation_sigma_m: f64::INFINITY,
-            colour_compared: sums.colour_pairs.len(),
-            colour_agreeing: sums.colour_agreeing,
-            colour_chance,
+/// What one pass over the source points compares them with: the target map (and its normals)
+/// and the colours, the transform placing the source, and the overlap distance.
+struct Placement<'a> {
+    target: &'a PointTree,
+    target_normals: &'a [Option<Vector3<f32>>],
+    target_from_source: &'a Isometry3<f64>,
+    /// `target_from_source`'s rotation as a matrix.
+    rotation: Matrix3<f64>,
+    limit_sq: f32,
+    colours: Option<ColourCheck<'a>>,
+}
+
+impl Placement<'_> {
+    /// Adds source point `i` (`a`) to `sums`: whether it overlaps, its colour pair, and with a
+    /// target normal its point-to-plane residual and Jacobian.
+    fn add_point(&self, sums: &mut Sums, i: usize, a: &Point3<f32>) {
+        let a = a.cast::<f64>();
+        let moved = self.target_from_source * a;
+        let Some((j, _)) = self
+            .target
+            .nearest_within(&moved.cast::<f32>(), self.limit_sq)
+        else {
+            return;
         };
+        sums.overlapping += 1;
+        if let Some(check) = &self.colours {
+            let pair = (
+                check.source.get(i).and_then(chromaticity),
+                check.target.get(j as usize).and_then(chromaticity),
+            );
+            if let (Some(s), Some(t)) = pair {
+                let distance_sq = (s[0] - t[0]).powi(2) + (s[1] - t[1]).powi(2);
+                let limit = check.tolerance * check.tolerance;
+                sums.colour_agreeing += usize::from(distance_sq <= limit);
+                sums.colour_pairs.push((s, t));
+            }
+        }
+        let Some(normal) = self.target_normals.get(j as usize).copied().flatten() else {
+            return;
+        };
+        let n = normal.cast::<f64>();
+        let b = self.target.position(j).cast::<f64>();
+        let r = n.dot(&(moved - b));
+        sums.planar += 1;
+        sums.residual_sq += r * r;
+        sums.centre += a.coords;
+        // J = n^T R [-[a]x, I] = [(a x R^T n)^T, (R^T n)^T].
+        let m = self.rotation.transpose() * n;
+        let rot = a.coords.cross(&m);
+        let j_row = RowVector6::new(rot.x, rot.y, rot.z, m.x, m.y, m.z);
+        sums.hessian += j_row.transpose() * j_row;
     }
-    let residual_m = (sums.residual_sq / sums.planar as f64).sqrt();
-    let sigma = residual_m.max(sigma_floor_m);
-    let information = sums.hessian / (sigma * sigma);
+}
+
+/// Marginal standard deviations of rotation (radians) and translation (metres) of `information`
+/// (about the source origin) re-expressed at `centre`; infinite when it is singular.
+fn sigmas_at(information: &Matrix6<f64>, centre: &Vector3<f64>) -> (f64, f64) {
     // Re-expressed at the overlap's centre c: v_c = v + omega x c, so delta_c = A delta with
     // A = [[I, 0], [-[c]x, I]], and the information about c is A^-T H A^-1.
-    let centre = sums.centre / sums.planar as f64;
     let mut a_inverse = Matrix6::identity();
     a_inverse
         .fixed_view_mut::<3, 3>(3, 0)
@@ -384,17 +355,73 @@ pub fn measure_overlap(
         None => (f64::INFINITY, f64::INFINITY),
     };
     let sanitise = |s: f64| if s.is_finite() { s } else { f64::INFINITY };
-    Overlap {
+    (sanitise(rotation_sigma_rad), sanitise(translation_sigma_m))
+}
+
+/// Overlap, residual and information of `source` placed onto `target` by `target_from_source`,
+/// and with `colours` their colour agreement. `target_normals[j]` is target point j's normal
+/// (`None`: not used for the residual).
+pub fn measure_overlap(
+    source: &[Point3<f32>],
+    target: &PointTree,
+    target_normals: &[Option<Vector3<f32>>],
+    target_from_source: &Isometry3<f64>,
+    overlap_distance_m: f64,
+    sigma_floor_m: f64,
+    colours: Option<ColourCheck<'_>>,
+) -> Overlap {
+    let placement = Placement {
+        target,
+        target_normals,
+        target_from_source,
+        rotation: target_from_source
+            .rotation
+            .to_rotation_matrix()
+            .into_inner(),
+        limit_sq: (overlap_distance_m * overlap_distance_m) as f32,
+        colours,
+    };
+    let sums = source
+        .par_chunks(POINTS_PER_TASK)
+        .enumerate()
+        .map(|(chunk_index, chunk)| {
+            let mut sums = Sums::zero();
+            for (offset, a) in chunk.iter().enumerate() {
+                placement.add_point(&mut sums, chunk_index * POINTS_PER_TASK + offset, a);
+            }
+            sums
+        })
+        .reduce(Sums::zero, Sums::add);
+    let colour_chance = colours.map_or(f64::NAN, |check| {
+        chance_agreement(&sums.colour_pairs, check.tolerance)
+    });
+    let smaller = source.len().min(target.len());
+    let fraction = if smaller == 0 {
+        0.0
+    } else {
+        (sums.overlapping as f64 / smaller as f64).min(1.0)
+    };
+    let mut overlap = Overlap {
         overlapping: sums.overlapping,
         fraction,
-        residual_m,
-        information,
-        rotation_sigma_rad: sanitise(rotation_sigma_rad),
-        translation_sigma_m: sanitise(translation_sigma_m),
+        residual_m: f64::NAN,
+        information: Matrix6::zeros(),
+        rotation_sigma_rad: f64::INFINITY,
+        translation_sigma_m: f64::INFINITY,
         colour_compared: sums.colour_pairs.len(),
         colour_agreeing: sums.colour_agreeing,
         colour_chance,
+    };
+    if sums.planar == 0 {
+        return overlap;
     }
+    overlap.residual_m = (sums.residual_sq / sums.planar as f64).sqrt();
+    let sigma = overlap.residual_m.max(sigma_floor_m);
+    overlap.information = sums.hessian / (sigma * sigma);
+    let centre = sums.centre / sums.planar as f64;
+    (overlap.rotation_sigma_rad, overlap.translation_sigma_m) =
+        sigmas_at(&overlap.information, &centre);
+    overlap
 }
 
 #[cfg(test)]

@@ -1,4 +1,4 @@
-//! The robust pose graph over all agents' keyframes (SPEC section 4, step 4).
+//! The robust pose graph over all agents' keyframes (docs/method.md, The consensus: pose graph).
 //!
 //! Nodes: keyframes, each with its pose in its own agent's frame (from tracking; agents start at
 //! identity). Edges: odometry between consecutive keyframes of an agent (the relative pose
@@ -11,8 +11,8 @@
 //! 3. A final solve with the accepted closures only.
 //!
 //! Solver: our own dense Levenberg-Marquardt over nalgebra, not a factor-graph crate. The graph
-//! is small (one node per published keyframe: tens to a few hundred 6-DoF poses; the redkitchen
-//! swarm solves in about 0.5 ms), GNC needs the per-edge weights changed between LM solves, and
+//! is small (one node per published keyframe: tens to a few hundred 6-DoF poses, solved in well
+//! under a millisecond), GNC needs the per-edge weights changed between LM solves, and
 //! the candidate crates bring a second linear-algebra stack (tiny-solver 0.18: faer plus
 //! nalgebra 0.34, the workspace pins 0.35). The residual and its closed-form Jacobians are unit
 //! tested against finite differences ([`residual`]).

@@ -15,25 +15,34 @@
 //!
 //! Duplicate keyframes (a message that arrived twice, or an agent that restarted and re-sent)
 //! replace nothing and propose nothing.
+//!
+//! Files: this one holds the engine's intake, job scheduling, recording and solving;
+//! `jobs.rs` the work it hands to the aligner thread; `records.rs` what it records per keyframe
+//! and attempt; `world.rs` what it produces at the end (merged map, refinement problem, world
+//! trajectories).
+
+mod jobs;
+mod records;
+mod world;
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::sync::Arc;
 use std::time::Instant;
 
-use geometry::se3::{isometry_from_tum, isometry_to_tum};
-use nalgebra::Isometry3;
+use geometry::se3::isometry_to_tum;
 use protocol::messages::FINAL_MAP_KEYFRAME_ID;
-use render_core::types::{GaussianCloud, RigidTransform};
-use serde::Serialize;
+use render_core::types::GaussianCloud;
 
-use crate::alignment::{AlignmentResult, Keyframe, PreparedKeyframe, Verdict, align_prepared};
-use crate::map_links::{AgentMap, FinishedMapJob, MapAttemptScores, MapJob, MapScheduler};
+use crate::alignment::{Keyframe, PreparedKeyframe, Verdict};
+use crate::map_links::{AgentMap, FinishedMapJob, MapJob, MapScheduler};
 use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
 use crate::pose_graph::{EdgeSigmas, LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
-use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
-use config::AlignmentConfig;
 use config::ConsensusConfig;
-use geometry::correction::{CorrectionField, correction};
+
+use jobs::Candidate;
+pub use jobs::{AlignmentJob, CandidateSource, Finished, FinishedAlignment, Job};
+pub use records::{AttemptKind, ClosureEvent, KeyframeInfo};
+use world::agent_range;
 
 /// One published keyframe as the consensus receives it.
 pub struct KeyframeArrival {
@@ -46,126 +55,7 @@ pub struct KeyframeArrival {
     pub gaussians: GaussianCloud,
 }
 
-/// Why a pair was aligned.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum CandidateSource {
-    /// Consecutive published keyframes of one agent.
-    Odometry,
-    /// Proposed by place recognition.
-    PlaceRecognition,
-    /// Two agents' maps registered with each other ([`crate::map_links`]); the keyframes are
-    /// the link's ends (or each agent's newest keyframe when the registration was not used).
-    MapRegistration,
-}
-
-#[derive(Debug, Clone, Copy)]
-struct Candidate {
-    source: KeyframeRef,
-    target: KeyframeRef,
-    score: Option<f32>,
-    origin: CandidateSource,
-}
-
-/// One queued alignment with what it needs, free of the engine (see
-/// [`Engine::next_alignment`]).
-pub struct AlignmentJob {
-    candidate: Candidate,
-    source: Arc<PreparedKeyframe>,
-    target: Arc<PreparedKeyframe>,
-    config: AlignmentConfig,
-}
-
-impl AlignmentJob {
-    /// Aligns the pair (about a second on a CPU).
-    pub fn run(self) -> FinishedAlignment {
-        let clock = Instant::now();
-        let result = align_prepared(&self.source, &self.target, &self.config);
-        FinishedAlignment {
-            candidate: self.candidate,
-            result,
-            alignment_ms: clock.elapsed().as_secs_f64() * 1e3,
-        }
-    }
-}
-
-/// An [`AlignmentJob`]'s outcome.
-pub struct FinishedAlignment {
-    candidate: Candidate,
-    result: AlignmentResult,
-    alignment_ms: f64,
-}
-
-/// Work for the aligner thread: a keyframe pair or two agents' maps.
-/// Boxed: a job is made a few times a second and moved across threads.
-pub enum Job {
-    Keyframes(Box<AlignmentJob>),
-    Maps(Box<MapJob>),
-}
-
-impl Job {
-    pub fn run(self) -> Finished {
-        match self {
-            Job::Keyframes(job) => Finished::Keyframes(Box::new(job.run())),
-            Job::Maps(job) => Finished::Maps(Box::new(job.run())),
-        }
-    }
-}
-
-/// A [`Job`]'s outcome, for [`Engine::record`].
-pub enum Finished {
-    Keyframes(Box<FinishedAlignment>),
-    Maps(Box<FinishedMapJob>),
-}
-
-/// What was compared to decide an attempt (consensus.json).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum AttemptKind {
-    /// Two keyframes' images and depth.
-    Keyframe,
-    /// Two agents' maps.
-    Map,
-}
-
-/// One alignment decision (consensus.json).
-#[derive(Debug, Clone, Serialize)]
-pub struct ClosureEvent {
-    /// Seconds since the engine started.
-    pub at_s: f64,
-    pub source: KeyframeRef,
-    pub target: KeyframeRef,
-    pub origin: CandidateSource,
-    pub inter_agent: bool,
-    /// Descriptor score (place-recognition candidates only).
-    pub score: Option<f32>,
-    /// Alignment verified the pair.
-    pub verified: bool,
-    /// Keyframe pair or agents' maps.
-    pub kind: AttemptKind,
-    /// Inlier correspondences of the coarse registration (features or map points).
-    pub inliers: Option<usize>,
-    /// Overlap after alignment: the fraction of source points with a target point within the
-    /// finest correspondence distance.
-    pub overlap: Option<f64>,
-    /// The map registration's figures (map attempts only).
-    pub map: Option<MapAttemptScores>,
-    /// Why alignment rejected it.
-    pub rejection: Option<String>,
-    /// Whether the latest pose-graph solve kept it (verified pairs only; `None` before a solve).
-    pub accepted_by_pose_graph: Option<bool>,
-    pub alignment_ms: f64,
-}
-
-/// What the engine knows about one keyframe besides its images.
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct KeyframeInfo {
-    pub frame_index: u64,
-    pub timestamp_s: f64,
-    /// `[tx, ty, tz, qx, qy, qz, qw]` (TUM order).
-    pub agent_from_camera: [f64; 7],
-}
-
+/// The consensus state: see the module documentation.
 pub struct Engine {
     config: ConsensusConfig,
     started: Instant,
@@ -530,169 +420,5 @@ impl Engine {
 
     pub fn solve_ms(&self) -> &[f64] {
         &self.solve_ms
-    }
-
-    /// The merged map in the world frame: each linked agent's final map moved by its
-    /// `world_from_agent`, or, for an agent that sent none, its keyframes' Gaussians moved by each
-    /// keyframe's correction. Agents not linked to the world are left out (their frame is
-    /// unknown); the count of those Gaussians is returned too.
-    pub fn merged_map(&self) -> (GaussianCloud, usize) {
-        let mut merged = GaussianCloud::default();
-        let mut unplaced = 0;
-        for (agent_id, cloud) in &self.final_maps {
-            match self
-                .solution
-                .as_ref()
-                .and_then(|s| s.world_from_agent.get(agent_id).copied().flatten())
-            {
-                Some(world_from_agent) => {
-                    merged.extend_from(&transformed(cloud, &world_from_agent))
-                }
-                None => unplaced += cloud.len(),
-            }
-        }
-        for (id, cloud) in &self.gaussians {
-            if self.final_maps.contains_key(&id.agent_id) {
-                continue;
-            }
-            match self.solution.as_ref().and_then(|s| s.corrections.get(id)) {
-                Some(correction) => merged.extend_from(&transformed(cloud, correction)),
-                None => unplaced += cloud.len(),
-            }
-        }
-        (merged, unplaced)
-    }
-
-    /// The joint refinement of `map` (the merged world map, [`Engine::merged_map`]) over every
-    /// keyframe the pose graph placed in the world, with the pose graph's odometry edges
-    /// (consecutive keyframes of one agent, as tracked) and accepted loop closures. `None` before
-    /// a solution exists.
-    pub fn refinement_problem(&self, map: GaussianCloud) -> Option<RefinementProblem> {
-        let solution = self.solution.as_ref()?;
-        let mut index = BTreeMap::new();
-        let mut views = Vec::new();
-        for (id, world_from_camera) in &solution.world_from_camera {
-            let Some(prepared) = self.prepared.get(id) else {
-                continue;
-            };
-            let keyframe = &prepared.keyframe;
-            index.insert(*id, views.len());
-            views.push(RefinementView {
-                id: *id,
-                world_from_camera: *world_from_camera,
-                intrinsics: keyframe.intrinsics,
-                rgb8: keyframe.rgb.as_raw().clone(),
-                depth_m: keyframe.depth.data.clone(),
-            });
-        }
-        let mut edges = Vec::new();
-        // Keyframes are ordered by agent, then id: neighbours of one agent are odometry edges.
-        let placed: Vec<&KeyframeRef> = index.keys().collect();
-        for pair in placed.windows(2) {
-            let (a, b) = (pair[0], pair[1]);
-            if a.agent_id != b.agent_id {
-                continue;
-            }
-            let tracked_a = isometry_from_info(&self.info[a]);
-            let tracked_b = isometry_from_info(&self.info[b]);
-            edges.push(PoseEdge {
-                i: index[a],
-                j: index[b],
-                camera_i_from_camera_j: tracked_a.inverse() * tracked_b,
-            });
-        }
-        let loops = self.graph.loops();
-        for decision in solution.loops.iter().filter(|d| d.accepted) {
-            let closure = &loops[decision.index];
-            if let (Some(&i), Some(&j)) = (index.get(&closure.target), index.get(&closure.source)) {
-                edges.push(PoseEdge {
-                    i,
-                    j,
-                    camera_i_from_camera_j: closure.target_camera_from_source_camera,
-                });
-            }
-        }
-        // Agent 0's first keyframe defines the world frame.
-        let anchor = index
-            .iter()
-            .find(|(id, _)| id.agent_id == 0)
-            .map(|(_, &view)| view);
-        Some(RefinementProblem {
-            map,
-            views,
-            edges,
-            anchor,
-        })
-    }
-
-    /// Replaces the pose graph's keyframe poses by refined ones (and their corrections, which the
-    /// world trajectories blend).
-    pub fn apply_refined_poses(&mut self, refined: &BTreeMap<KeyframeRef, Isometry3<f64>>) {
-        let Some(solution) = self.solution.as_mut() else {
-            return;
-        };
-        for (id, world_from_camera) in refined {
-            let Some(info) = self.info.get(id) else {
-                continue;
-            };
-            if let Some(stored) = solution.world_from_camera.get_mut(id) {
-                *stored = *world_from_camera;
-                solution.corrections.insert(
-                    *id,
-                    correction(world_from_camera, &isometry_from_info(info)),
-                );
-            }
-        }
-    }
-
-    /// A per-frame trajectory of `agent_id` (tracked in its own frame, `(timestamp,
-    /// agent_from_camera)`) in the world frame: each frame gets the correction blended between
-    /// the published keyframes before and after it in time. `None` when the agent is not linked
-    /// to the world.
-    pub fn world_trajectory(
-        &self,
-        agent_id: u32,
-        tracked: &[(f64, Isometry3<f64>)],
-    ) -> Option<Vec<(f64, Isometry3<f64>)>> {
-        let solution = self.solution.as_ref()?;
-        let field = CorrectionField::from_anchors(
-            self.info
-                .iter()
-                .filter(|(id, _)| id.agent_id == agent_id)
-                .filter_map(|(id, info)| Some((info.timestamp_s, *solution.corrections.get(id)?))),
-        );
-        if field.is_empty() {
-            return None;
-        }
-        Some(
-            tracked
-                .iter()
-                .map(|(t, agent_from_camera)| (*t, field.at(*t) * agent_from_camera))
-                .collect(),
-        )
-    }
-}
-
-/// The tracked `agent_from_camera` of a keyframe (stored in TUM order, always a valid pose).
-fn isometry_from_info(info: &KeyframeInfo) -> Isometry3<f64> {
-    isometry_from_tum(&info.agent_from_camera).expect("stored from an isometry")
-}
-
-/// `cloud` moved by the rigid `transform` (render-core's host transform, in f32).
-fn transformed(cloud: &GaussianCloud, transform: &Isometry3<f64>) -> GaussianCloud {
-    let rigid = RigidTransform::from(transform);
-    let mut out = cloud.clone();
-    out.transform_rigid(&rigid);
-    out
-}
-
-/// Every keyframe of one agent in a map keyed by [`KeyframeRef`] (ordered by agent, then id).
-fn agent_range(agent_id: u32) -> std::ops::RangeInclusive<KeyframeRef> {
-    KeyframeRef {
-        agent_id,
-        keyframe_id: 0,
-    }..=KeyframeRef {
-        agent_id,
-        keyframe_id: u64::MAX,
     }
 }

@@ -1,0 +1,179 @@
+//! What the engine produces at the end of a run: the merged world map, the joint refinement's
+//! problem (and its refined poses taken back), and each agent's world trajectory.
+
+use std::collections::BTreeMap;
+
+use geometry::correction::{CorrectionField, correction};
+use geometry::se3::isometry_from_tum;
+use nalgebra::Isometry3;
+use render_core::types::{GaussianCloud, RigidTransform};
+
+use super::{Engine, KeyframeInfo};
+use crate::place_recognition::KeyframeRef;
+use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
+
+impl Engine {
+    /// The merged map in the world frame: each linked agent's final map moved by its
+    /// `world_from_agent`, or, for an agent that sent none, its keyframes' Gaussians moved by each
+    /// keyframe's correction. Agents not linked to the world are left out (their frame is
+    /// unknown); the count of those Gaussians is returned too.
+    pub fn merged_map(&self) -> (GaussianCloud, usize) {
+        let mut merged = GaussianCloud::default();
+        let mut unplaced = 0;
+        for (agent_id, cloud) in &self.final_maps {
+            match self
+                .solution
+                .as_ref()
+                .and_then(|s| s.world_from_agent.get(agent_id).copied().flatten())
+            {
+                Some(world_from_agent) => {
+                    merged.extend_from(&transformed(cloud, &world_from_agent))
+                }
+                None => unplaced += cloud.len(),
+            }
+        }
+        for (id, cloud) in &self.gaussians {
+            if self.final_maps.contains_key(&id.agent_id) {
+                continue;
+            }
+            match self.solution.as_ref().and_then(|s| s.corrections.get(id)) {
+                Some(correction) => merged.extend_from(&transformed(cloud, correction)),
+                None => unplaced += cloud.len(),
+            }
+        }
+        (merged, unplaced)
+    }
+
+    /// The joint refinement of `map` (the merged world map, [`Engine::merged_map`]) over every
+    /// keyframe the pose graph placed in the world, with the pose graph's odometry edges
+    /// (consecutive keyframes of one agent, as tracked) and accepted loop closures. `None` before
+    /// a solution exists.
+    pub fn refinement_problem(&self, map: GaussianCloud) -> Option<RefinementProblem> {
+        let solution = self.solution.as_ref()?;
+        let mut index = BTreeMap::new();
+        let mut views = Vec::new();
+        for (id, world_from_camera) in &solution.world_from_camera {
+            let Some(prepared) = self.prepared.get(id) else {
+                continue;
+            };
+            let keyframe = &prepared.keyframe;
+            index.insert(*id, views.len());
+            views.push(RefinementView {
+                id: *id,
+                world_from_camera: *world_from_camera,
+                intrinsics: keyframe.intrinsics,
+                rgb8: keyframe.rgb.as_raw().clone(),
+                depth_m: keyframe.depth.data.clone(),
+            });
+        }
+        let mut edges = Vec::new();
+        // Keyframes are ordered by agent, then id: neighbours of one agent are odometry edges.
+        let placed: Vec<&KeyframeRef> = index.keys().collect();
+        for pair in placed.windows(2) {
+            let (a, b) = (pair[0], pair[1]);
+            if a.agent_id != b.agent_id {
+                continue;
+            }
+            let tracked_a = isometry_from_info(&self.info[a]);
+            let tracked_b = isometry_from_info(&self.info[b]);
+            edges.push(PoseEdge {
+                i: index[a],
+                j: index[b],
+                camera_i_from_camera_j: tracked_a.inverse() * tracked_b,
+            });
+        }
+        let loops = self.graph.loops();
+        for decision in solution.loops.iter().filter(|d| d.accepted) {
+            let closure = &loops[decision.index];
+            if let (Some(&i), Some(&j)) = (index.get(&closure.target), index.get(&closure.source)) {
+                edges.push(PoseEdge {
+                    i,
+                    j,
+                    camera_i_from_camera_j: closure.target_camera_from_source_camera,
+                });
+            }
+        }
+        // Agent 0's first keyframe defines the world frame.
+        let anchor = index
+            .iter()
+            .find(|(id, _)| id.agent_id == 0)
+            .map(|(_, &view)| view);
+        Some(RefinementProblem {
+            map,
+            views,
+            edges,
+            anchor,
+        })
+    }
+
+    /// Replaces the pose graph's keyframe poses by refined ones (and their corrections, which the
+    /// world trajectories blend).
+    pub fn apply_refined_poses(&mut self, refined: &BTreeMap<KeyframeRef, Isometry3<f64>>) {
+        let Some(solution) = self.solution.as_mut() else {
+            return;
+        };
+        for (id, world_from_camera) in refined {
+            let Some(info) = self.info.get(id) else {
+                continue;
+            };
+            if let Some(stored) = solution.world_from_camera.get_mut(id) {
+                *stored = *world_from_camera;
+                solution.corrections.insert(
+                    *id,
+                    correction(world_from_camera, &isometry_from_info(info)),
+                );
+            }
+        }
+    }
+
+    /// A per-frame trajectory of `agent_id` (tracked in its own frame, `(timestamp,
+    /// agent_from_camera)`) in the world frame: each frame gets the correction blended between
+    /// the published keyframes before and after it in time. `None` when the agent is not linked
+    /// to the world.
+    pub fn world_trajectory(
+        &self,
+        agent_id: u32,
+        tracked: &[(f64, Isometry3<f64>)],
+    ) -> Option<Vec<(f64, Isometry3<f64>)>> {
+        let solution = self.solution.as_ref()?;
+        let field = CorrectionField::from_anchors(
+            self.info
+                .iter()
+                .filter(|(id, _)| id.agent_id == agent_id)
+                .filter_map(|(id, info)| Some((info.timestamp_s, *solution.corrections.get(id)?))),
+        );
+        if field.is_empty() {
+            return None;
+        }
+        Some(
+            tracked
+                .iter()
+                .map(|(t, agent_from_camera)| (*t, field.at(*t) * agent_from_camera))
+                .collect(),
+        )
+    }
+}
+
+/// The tracked `agent_from_camera` of a keyframe (stored in TUM order, always a valid pose).
+fn isometry_from_info(info: &KeyframeInfo) -> Isometry3<f64> {
+    isometry_from_tum(&info.agent_from_camera).expect("stored from an isometry")
+}
+
+/// `cloud` moved by the rigid `transform` (render-core's host transform, in f32).
+fn transformed(cloud: &GaussianCloud, transform: &Isometry3<f64>) -> GaussianCloud {
+    let rigid = RigidTransform::from(transform);
+    let mut out = cloud.clone();
+    out.transform_rigid(&rigid);
+    out
+}
+
+/// Every keyframe of one agent in a map keyed by [`KeyframeRef`] (ordered by agent, then id).
+pub(super) fn agent_range(agent_id: u32) -> std::ops::RangeInclusive<KeyframeRef> {
+    KeyframeRef {
+        agent_id,
+        keyframe_id: 0,
+    }..=KeyframeRef {
+        agent_id,
+        keyframe_id: u64::MAX,
+    }
+}

@@ -1,0 +1,478 @@
+//! The main thread: owns the transport, routes every received message (lifecycle, keyframe
+//! parts through the [`KeyframeInbox`], Gaussians) to the worker, asks agents to publish again
+//! what arrived incomplete, forwards every solution to the agents as corrections, and keeps the
+//! per-agent records.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use crossbeam_channel::Sender;
+use geometry::se3::isometry_to_tum;
+use nalgebra::Isometry3;
+use protocol::messages::{
+    ControlMessage, FINAL_MAP_KEYFRAME_ID, GaussianRecord, KeyframeImageHeader, KeyframePose,
+    Lifecycle, LifecycleKind, Pose, RgbdPixel,
+};
+use protocol::transport::{ConsumerLink, Incoming};
+
+use super::ConsensusOptions;
+use super::outputs::AgentRecord;
+use super::worker::{SnapshotRequest, SolutionUpdate, WorkerHandle, WorkerInput};
+use crate::alignment::Keyframe;
+use crate::engine::KeyframeArrival;
+use crate::inbox::KeyframeInbox;
+use crate::place_recognition::KeyframeRef;
+use protocol::convert;
+
+/// The main thread's state: the transport and what it learnt of each agent.
+pub(super) struct Listener {
+    link: ConsumerLink,
+    started: Instant,
+    agents: BTreeMap<u32, AgentRecord>,
+    first_seen: BTreeMap<u32, Instant>,
+    /// Agents that said goodbye (and did not come back).
+    finished: BTreeSet<u32>,
+    inbox: KeyframeInbox,
+    /// The latest solution's frame of each linked agent.
+    world_from_agent: BTreeMap<u32, Isometry3<f64>>,
+    latencies: Vec<f64>,
+}
+
+impl Listener {
+    pub fn new(link: ConsumerLink, options: &ConsensusOptions, started: Instant) -> Self {
+        Self {
+            link,
+            started,
+            agents: BTreeMap::new(),
+            first_seen: BTreeMap::new(),
+            finished: BTreeSet::new(),
+            inbox: KeyframeInbox::new(options.config.consensus.resend.clone()),
+            world_from_agent: BTreeMap::new(),
+            latencies: Vec::new(),
+        }
+    }
+
+    /// Receives and routes messages until every expected agent has said goodbye or `stop` is
+    /// raised (then, with `stop_agents_wait`, until the running agents are done or the wait is
+    /// over); writes a snapshot each time `snapshot` is raised. Returns whether it was stopped.
+    pub fn listen(
+        &mut self,
+        worker: &WorkerHandle,
+        options: &ConsensusOptions,
+        stop: &AtomicBool,
+        snapshot: &AtomicBool,
+    ) -> anyhow::Result<bool> {
+        let mut interrupted = false;
+        // When the agents were asked to stop (with `stop_agents_wait`).
+        let mut agents_asked_to_stop: Option<Instant> = None;
+        loop {
+            if stop.load(Ordering::Relaxed) {
+                interrupted = true;
+                if !self.waits_for_agents(options.stop_agents_wait, &mut agents_asked_to_stop) {
+                    tracing::warn!("stop requested: writing outputs");
+                    break;
+                }
+            }
+            if let Some(expected) = options.expected_agents
+                && (0..expected).all(|id| self.finished.contains(&id))
+            {
+                tracing::info!("every agent said goodbye");
+                break;
+            }
+            self.receive(options.transport.wait_slice, &worker.inputs)?;
+            request_resends(
+                &mut self.link,
+                &mut self.inbox,
+                &self.finished,
+                &mut self.agents,
+            );
+            for update in worker.solutions.try_iter() {
+                self.apply_solution(update);
+            }
+            self.latencies.extend(worker.latencies.try_iter());
+            if snapshot.swap(false, Ordering::Relaxed) {
+                tracing::info!("snapshot requested: writing the outputs as they stand");
+                self.request_snapshot(&worker.inputs)?;
+            }
+        }
+        Ok(interrupted)
+    }
+
+    /// After a stop request: whether to go on receiving (the agents' last keyframes, final maps
+    /// and goodbyes). Only with `stop_agents_wait`: the running agents are asked to stop once,
+    /// and waited for until they are done or the wait is over.
+    fn waits_for_agents(
+        &mut self,
+        stop_agents_wait: Option<Duration>,
+        asked_at: &mut Option<Instant>,
+    ) -> bool {
+        let running = running_agents(&self.agents, &self.finished);
+        let Some(wait_for_agents) = stop_agents_wait else {
+            return false;
+        };
+        let asked = *asked_at.get_or_insert_with(|| {
+            ask_agents_to_stop(&mut self.link, &running);
+            Instant::now()
+        });
+        let waiting = !running.is_empty() && asked.elapsed() < wait_for_agents;
+        if !waiting && !running.is_empty() {
+            tracing::warn!(
+                agents = ?running,
+                "agents did not say goodbye within {wait_for_agents:?}"
+            );
+        }
+        waiting
+    }
+
+    /// Waits up to `wait` for one message and routes it.
+    fn receive(&mut self, wait: Duration, to_worker: &Sender<WorkerInput>) -> anyhow::Result<()> {
+        match self.link.recv_timeout(wait) {
+            Ok(Some(message)) => {
+                let agent_id = message.agent_id();
+                let record = self.agents.entry(agent_id).or_default();
+                self.first_seen.entry(agent_id).or_insert_with(Instant::now);
+                if matches!(
+                    message.delivery(),
+                    protocol::transport::Delivery::Gap { .. }
+                ) {
+                    record.gaps += 1;
+                    tracing::warn!(agent_id, topic = %message.topic(), "messages lost");
+                }
+                let mut route = Route {
+                    agent_id,
+                    epoch: message.stamp().epoch,
+                    record,
+                    inbox: &mut self.inbox,
+                    to_worker,
+                };
+                route.message(message, &mut self.finished)?;
+            }
+            Ok(None) => {}
+            Err(error) => tracing::warn!(%error, "receive failed"),
+        }
+        Ok(())
+    }
+
+    /// Sends `update` to the agents as corrections and keeps its agents' frames.
+    fn apply_solution(&mut self, update: SolutionUpdate) {
+        send_corrections(&mut self.link, &update, &self.inbox, &mut self.agents);
+        self.world_from_agent = update.world_from_agent;
+    }
+
+    /// Asks the worker to write the outputs as they stand.
+    fn request_snapshot(&self, to_worker: &Sender<WorkerInput>) -> anyhow::Result<()> {
+        let mut records = self.agents.clone();
+        fill_records(
+            &mut records,
+            &self.world_from_agent,
+            &self.link,
+            &self.first_seen,
+        );
+        fill_inbox_counts(&mut records, &self.inbox);
+        to_worker
+            .send(WorkerInput::Snapshot(Box::new(SnapshotRequest {
+                agents: records,
+                latencies: self.latencies.clone(),
+                wall_s: self.started.elapsed().as_secs_f64(),
+            })))
+            .context("the consensus worker stopped")
+    }
+
+    /// Once the worker is done: its last `updates` sent as corrections, its last `latencies`
+    /// kept; returns the completed per-agent records and every latency.
+    pub fn finish(
+        mut self,
+        updates: Vec<SolutionUpdate>,
+        latencies: Vec<f64>,
+    ) -> (BTreeMap<u32, AgentRecord>, Vec<f64>) {
+        for update in updates {
+            self.apply_solution(update);
+        }
+        self.latencies.extend(latencies);
+        fill_records(
+            &mut self.agents,
+            &self.world_from_agent,
+            &self.link,
+            &self.first_seen,
+        );
+        fill_inbox_counts(&mut self.agents, &self.inbox);
+        for (agent_id, record) in self.agents.iter_mut() {
+            if record.keyframes_incomplete > 0 {
+                tracing::warn!(
+                    agent_id,
+                    keyframes = record.keyframes_incomplete,
+                    "keyframes never arrived complete"
+                );
+            }
+        }
+        (self.agents, self.latencies)
+    }
+}
+
+/// One received message on its way: who sent it, and where its parts go.
+struct Route<'a> {
+    agent_id: u32,
+    epoch: u64,
+    record: &'a mut AgentRecord,
+    inbox: &'a mut KeyframeInbox,
+    to_worker: &'a Sender<WorkerInput>,
+}
+
+impl Route<'_> {
+    /// Routes the message by kind.
+    fn message(&mut self, message: Incoming, finished: &mut BTreeSet<u32>) -> anyhow::Result<()> {
+        match message {
+            Incoming::Lifecycle(lifecycle) => {
+                self.lifecycle(&lifecycle, finished);
+                Ok(())
+            }
+            Incoming::Descriptor(descriptor) => {
+                let id = KeyframeRef {
+                    agent_id: self.agent_id,
+                    keyframe_id: descriptor.keyframe_id,
+                };
+                match self.inbox.descriptor(
+                    id,
+                    self.epoch,
+                    descriptor.descriptor.to_vec(),
+                    Instant::now(),
+                ) {
+                    Some(arrival) => self.forward(arrival),
+                    None => Ok(()),
+                }
+            }
+            Incoming::KeyframeImage(image) => self.keyframe_image(image.header(), image.pixels()),
+            Incoming::Patch(patch) => self.patch(patch.header().keyframe_id, patch.records()),
+        }
+    }
+
+    /// Hello (a restart is back in the run), alive, or goodbye.
+    fn lifecycle(&mut self, lifecycle: &Lifecycle, finished: &mut BTreeSet<u32>) {
+        let (agent_id, record) = (self.agent_id, &mut *self.record);
+        match lifecycle.kind() {
+            Ok(LifecycleKind::Hello) => {
+                record.hellos += 1;
+                if record.hellos > 1 && record.config_hash != lifecycle.config_hash {
+                    tracing::warn!(agent_id, "agent restarted with a different configuration");
+                }
+                record.config_hash = lifecycle.config_hash;
+                self.inbox.hello(agent_id, self.epoch, lifecycle.run_anchor);
+                // A restarted agent is back in the run; its previous process's incomplete
+                // keyframes are gone with it.
+                finished.remove(&agent_id);
+                if record.hellos > 1 {
+                    self.inbox.forget_incomplete(agent_id);
+                }
+                tracing::info!(agent_id, "agent joined");
+            }
+            Ok(LifecycleKind::Alive) => {}
+            Ok(LifecycleKind::Goodbye) => {
+                record.goodbyes += 1;
+                finished.insert(agent_id);
+                tracing::info!(agent_id, "agent left");
+            }
+            Err(error) => tracing::warn!(agent_id, %error, "lifecycle message ignored"),
+        }
+    }
+
+    /// A keyframe's RGB-D image, to the inbox.
+    fn keyframe_image(
+        &mut self,
+        header: &KeyframeImageHeader,
+        pixels: &[RgbdPixel],
+    ) -> anyhow::Result<()> {
+        let id = KeyframeRef {
+            agent_id: self.agent_id,
+            keyframe_id: header.keyframe_id,
+        };
+        let (rgb, depth) = convert::rgbd_images(header.width, header.height, pixels);
+        let keyframe = Keyframe {
+            id,
+            rgb,
+            depth,
+            intrinsics: (&header.intrinsics).into(),
+            agent_from_camera: header.camera_to_agent_world.to_isometry(),
+        };
+        match self.inbox.image(
+            id,
+            self.epoch,
+            keyframe,
+            header.frame_index,
+            header.timestamp_s,
+            Instant::now(),
+        ) {
+            Some(arrival) => self.forward(arrival),
+            None => Ok(()),
+        }
+    }
+
+    /// A keyframe's Gaussians, or the agent's final map, to the worker unless repeated or from
+    /// a run restarted on other frames.
+    fn patch(&mut self, keyframe_id: u64, records: &[GaussianRecord]) -> anyhow::Result<()> {
+        let agent_id = self.agent_id;
+        let id = KeyframeRef {
+            agent_id,
+            keyframe_id,
+        };
+        if id.keyframe_id == FINAL_MAP_KEYFRAME_ID {
+            if self.inbox.ignores(agent_id, self.epoch) {
+                tracing::warn!(
+                    agent_id,
+                    "final map of a run restarted on other frames (a frame of its own): \
+                     ignored"
+                );
+                return Ok(());
+            }
+        } else if !self.inbox.patch(id, self.epoch, Instant::now()) {
+            // Already stored (a resend crossing a late original), or from a run restarted
+            // on other frames.
+            return Ok(());
+        }
+        let (cloud, dropped) = convert::gaussian_cloud(records);
+        if dropped > 0 {
+            tracing::warn!(
+                agent_id,
+                dropped,
+                "patch records with non-finite values dropped"
+            );
+        }
+        self.record.gaussians_received += cloud.len();
+        self.to_worker
+            .send(WorkerInput::Gaussians(id, cloud))
+            .context("the consensus worker stopped")
+    }
+
+    /// Hands a keyframe whose descriptor and image are both there to the worker.
+    fn forward(&mut self, arrival: KeyframeArrival) -> anyhow::Result<()> {
+        self.record.keyframes += 1;
+        self.to_worker
+            .send(WorkerInput::Keyframe(Box::new(arrival), Instant::now()))
+            .context("the consensus worker stopped")
+    }
+}
+
+/// Asks agents to publish again the keyframes that waited too long for a missing part.
+fn request_resends(
+    link: &mut ConsumerLink,
+    inbox: &mut KeyframeInbox,
+    finished: &BTreeSet<u32>,
+    agents: &mut BTreeMap<u32, AgentRecord>,
+) {
+    for request in inbox.due_requests(Instant::now(), finished) {
+        let agent_id = request.keyframe.agent_id;
+        tracing::warn!(
+            agent_id,
+            keyframe_id = request.keyframe.keyframe_id,
+            reason = %request.reason,
+            "keyframe incomplete: asking the agent to publish it again"
+        );
+        agents.entry(agent_id).or_default().resend_requests += 1;
+        let message = ControlMessage::ResendKeyframe {
+            keyframe_id: request.keyframe.keyframe_id,
+            reason: request.reason,
+        };
+        if let Err(error) = link.send_control(agent_id, &message) {
+            // Asked again after the next wait, up to the configured number of requests.
+            tracing::debug!(agent_id, %error, "resend request not delivered");
+        }
+    }
+}
+
+/// Sends each agent linked to the world its frame and its keyframes' corrected poses.
+fn send_corrections(
+    link: &mut ConsumerLink,
+    update: &SolutionUpdate,
+    inbox: &KeyframeInbox,
+    agents: &mut BTreeMap<u32, AgentRecord>,
+) {
+    for (agent_id, world_from_agent) in &update.world_from_agent {
+        if inbox.latest_is_foreign(*agent_id) {
+            // Its keyframe ids name other frames in the running process.
+            agents.entry(*agent_id).or_default().corrections_withheld += 1;
+            continue;
+        }
+        let poses: Vec<KeyframePose> = update
+            .world_from_camera
+            .iter()
+            .filter(|(id, _)| id.agent_id == *agent_id)
+            .map(|(id, pose)| KeyframePose {
+                keyframe_id: id.keyframe_id,
+                camera_to_world: Pose::from(pose),
+            })
+            .collect();
+        let record = agents.entry(*agent_id).or_default();
+        match link.send_correction(*agent_id, Pose::from(world_from_agent), &poses) {
+            Ok(_) => record.corrections_sent += 1,
+            Err(error) => {
+                // An agent that left or crashed simply misses this correction; the final
+                // outputs carry it anyway.
+                record.corrections_undelivered += 1;
+                tracing::debug!(agent_id, %error, "correction not delivered");
+            }
+        }
+    }
+}
+
+/// Agents that said hello and have not said goodbye since.
+fn running_agents(agents: &BTreeMap<u32, AgentRecord>, finished: &BTreeSet<u32>) -> Vec<u32> {
+    agents
+        .iter()
+        .filter(|(id, record)| record.hellos > 0 && !finished.contains(id))
+        .map(|(id, _)| *id)
+        .collect()
+}
+
+/// Sends `ControlMessage::Shutdown` to each of `agent_ids`.
+fn ask_agents_to_stop(link: &mut ConsumerLink, agent_ids: &[u32]) {
+    if agent_ids.is_empty() {
+        return;
+    }
+    tracing::warn!(
+        agents = ?agent_ids,
+        "stop requested: asking the running agents to stop and send their final maps"
+    );
+    let message = ControlMessage::Shutdown {
+        reason: "the consensus was asked to stop".into(),
+    };
+    for &agent_id in agent_ids {
+        if let Err(error) = link.send_control(agent_id, &message) {
+            tracing::warn!(agent_id, %error, "stop request not delivered");
+        }
+    }
+}
+
+/// Copies the inbox's per-agent counts into the records.
+fn fill_inbox_counts(agents: &mut BTreeMap<u32, AgentRecord>, inbox: &KeyframeInbox) {
+    for (agent_id, record) in agents.iter_mut() {
+        record.keyframes_incomplete = inbox.incomplete(*agent_id);
+        record.duplicate_parts = inbox.duplicates(*agent_id);
+        record.keyframe_id_conflicts = inbox.conflicts(*agent_id);
+        record.restarts_on_other_frames = inbox.foreign_incarnations(*agent_id);
+        record.restart_parts_ignored = inbox.foreign_parts(*agent_id);
+        record.last_run_on_other_frames = inbox.latest_is_foreign(*agent_id);
+    }
+}
+
+/// Completes the per-agent records with what the transport and the solution know.
+fn fill_records(
+    agents: &mut BTreeMap<u32, AgentRecord>,
+    world_from_agent: &BTreeMap<u32, Isometry3<f64>>,
+    link: &ConsumerLink,
+    first_seen: &BTreeMap<u32, Instant>,
+) {
+    let bandwidth = link.bandwidth();
+    for (id, record) in agents.iter_mut() {
+        record.world_from_agent = world_from_agent.get(id).map(isometry_to_tum);
+        record.bytes_received = bandwidth
+            .entries
+            .iter()
+            .filter(|e| e.agent_id == *id)
+            .map(|e| e.traffic.bytes)
+            .sum();
+        record.seconds_seen = first_seen
+            .get(id)
+            .map_or(0.0, |at| at.elapsed().as_secs_f64());
+    }
+}

@@ -1,0 +1,105 @@
+//! The `mac-consensus` process: receives every agent's keyframes over iceoryx2, runs the
+//! [`Engine`](crate::engine::Engine) on a worker thread, sends corrections back, and writes the
+//! world map, the agents' world trajectories and consensus.json at the end.
+//!
+//! Threads, and why:
+//! - the main thread owns the transport (iceoryx2 ports stay on the thread that made them): it
+//!   waits on the consumers' event (no spinning), joins each keyframe's descriptor and image
+//!   (they arrive on different topics, in any order; [`crate::inbox`]), asks agents to publish
+//!   again what arrived incomplete, and sends corrections as soon as the worker has them. It
+//!   never aligns or solves, so agents are never blocked by the consensus;
+//! - the worker thread owns the [`Engine`](crate::engine::Engine): preparing keyframes and
+//!   solving the pose graph (about a millisecond) as soon as a keyframe arrives or an alignment
+//!   finishes;
+//! - an aligner thread aligns candidate pairs one at a time (about a second each on a CPU,
+//!   longer under load), so no keyframe waits for an alignment before it is placed.
+//!
+//! The run ends when every expected agent has said goodbye and the worker has aligned every
+//! queued candidate, or on SIGINT/SIGTERM (the stop flag); either way every output is written.
+//!
+//! Files: `main_thread.rs` (transport, routing, corrections), `worker.rs` (engine, aligner,
+//! progress), `outputs.rs` (consensus.json, map, trajectories, the final refinement).
+
+mod main_thread;
+mod outputs;
+mod worker;
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use config::Config;
+use protocol::transport::{ConsumerLink, TransportConfig};
+
+use main_thread::Listener;
+pub use outputs::{AgentRecord, ConsensusReport, PairAttempts, agent_trajectory_path};
+use outputs::{OutputKind, WorldMap, refine_world_map, write_outputs};
+use worker::{ProgressStage, WorkerHandle, write_progress};
+
+/// What to run and where to write.
+#[derive(Debug, Clone)]
+pub struct ConsensusOptions {
+    pub config: Config,
+    pub transport: TransportConfig,
+    /// Output directory; agent K's own outputs are expected in `out/agent_K/`.
+    pub out: PathBuf,
+    /// Agents the run waits for: it ends once all of them have said goodbye. `None`: run until
+    /// stopped.
+    pub expected_agents: Option<u32>,
+    /// On a stop request (SIGINT / SIGTERM), ask every agent still running to stop too
+    /// (`ControlMessage::Shutdown`: each finishes its frame, sends its final map and says
+    /// goodbye) and wait up to this long for their goodbyes before writing the outputs, so
+    /// the outputs include everything the agents had. `None`: stop at once and leave the
+    /// agents running (they go on without a consensus).
+    pub stop_agents_wait: Option<Duration>,
+}
+
+/// Runs the consensus until the expected agents are done or `stop` is raised.
+pub fn run(options: &ConsensusOptions, stop: &AtomicBool) -> anyhow::Result<ConsensusReport> {
+    run_with_snapshots(options, stop, &AtomicBool::new(false))
+}
+
+/// [`run`], and each time `snapshot` is raised (the flag is lowered again), the outputs are
+/// written as they stand (merged map without refinement, world trajectories, consensus.json with
+/// `snapshot: true`) while the run goes on.
+pub fn run_with_snapshots(
+    options: &ConsensusOptions,
+    stop: &AtomicBool,
+    snapshot: &AtomicBool,
+) -> anyhow::Result<ConsensusReport> {
+    let _span = tracing::info_span!("consensus").entered();
+    std::fs::create_dir_all(&options.out)
+        .with_context(|| format!("creating output directory {}", options.out.display()))?;
+    let started = Instant::now();
+    let link = ConsumerLink::open(&options.transport).context("opening the transport")?;
+    tracing::info!(namespace = %options.transport.namespace, "consensus listening");
+    let worker = WorkerHandle::spawn(options.clone())?;
+    let mut listener = Listener::new(link, options, started);
+    let interrupted = listener.listen(&worker, options, stop, snapshot)?;
+
+    let (mut engine, updates, latencies) = worker.finish()?;
+    let (agents, latencies) = listener.finish(updates, latencies);
+    let (map, unplaced) = engine.merged_map();
+    write_progress(&options.out, &engine, ProgressStage::Refining);
+    let (map, refinement) = refine_world_map(options, &mut engine, map, interrupted)?;
+    let report = write_outputs(
+        options,
+        &engine,
+        WorldMap {
+            map,
+            unplaced,
+            refinement,
+        },
+        agents,
+        latencies,
+        started.elapsed().as_secs_f64(),
+        if interrupted {
+            OutputKind::Interrupted
+        } else {
+            OutputKind::Final
+        },
+    )?;
+    write_progress(&options.out, &engine, ProgressStage::Done);
+    Ok(report)
+}

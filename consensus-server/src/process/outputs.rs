@@ -1,0 +1,281 @@
+//! What the process writes: consensus.json (the per-agent records and the tally of every
+//! attempt), the merged world map (jointly refined at the end of a run), and each agent's world
+//! trajectory.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use geometry::trajectory::Trajectory;
+use metrics::stats::median;
+use nalgebra::Isometry3;
+use render_core::types::GaussianCloud;
+use serde::Serialize;
+
+use super::ConsensusOptions;
+use crate::engine::{AttemptKind, ClosureEvent, Engine, KeyframeInfo};
+use crate::place_recognition::KeyframeRef;
+use crate::refinement::{self, RefinementReport};
+
+/// Per agent, what the process saw of it.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct AgentRecord {
+    pub hellos: usize,
+    pub goodbyes: usize,
+    pub config_hash: u64,
+    pub keyframes: usize,
+    pub gaussians_received: usize,
+    pub gaps: usize,
+    /// `ResendKeyframe` requests sent for keyframes that arrived incomplete.
+    pub resend_requests: usize,
+    /// Keyframes still missing a part at the end (descriptor, image or patch).
+    pub keyframes_incomplete: usize,
+    /// Keyframe parts that arrived more than once (ignored).
+    pub duplicate_parts: usize,
+    /// Keyframe images whose id this agent had already used for another frame (ignored): a
+    /// restart that did not re-run the same frames numbers its keyframes from 0 again.
+    pub keyframe_id_conflicts: usize,
+    /// Restarts found to run on other frames (their hello's run anchor differs from the
+    /// agent's first run's): each tracks in a frame of its own, which the consensus cannot
+    /// place, so everything such a run publishes is ignored (see `KeyframeInbox`).
+    pub restarts_on_other_frames: usize,
+    /// Keyframe parts (descriptors, images, patches, final map) of those restarts, ignored.
+    pub restart_parts_ignored: usize,
+    /// Whether the agent's last run was such a restart: its corrections are withheld (they
+    /// would name keyframes it does not have) and its trajectory file, written in its own
+    /// frame, is not turned into a world trajectory.
+    pub last_run_on_other_frames: bool,
+    /// Corrections not sent because the agent's running process is such a restart.
+    pub corrections_withheld: usize,
+    pub corrections_sent: usize,
+    pub corrections_undelivered: usize,
+    /// `world_from_agent` as `[tx, ty, tz, qx, qy, qz, qw]` (TUM order); absent when the agent
+    /// was never linked to the world.
+    pub world_from_agent: Option<[f64; 7]>,
+    pub bytes_received: u64,
+    pub seconds_seen: f64,
+}
+
+/// consensus.json.
+#[derive(Debug, Clone, Serialize)]
+pub struct ConsensusReport {
+    pub agents: BTreeMap<u32, AgentRecord>,
+    pub keyframes: usize,
+    pub closures_proposed: usize,
+    pub closures_verified: usize,
+    pub closures_rejected_by_alignment: usize,
+    pub loop_closures_accepted: usize,
+    pub loop_closures_rejected: usize,
+    pub inter_agent_closures_accepted: usize,
+    /// From a keyframe's arrival to the first correction that includes it.
+    pub consensus_latency_ms_median: Option<f64>,
+    pub consensus_latency_ms: Vec<f64>,
+    pub pose_graph_solve_ms_median: Option<f64>,
+    pub merged_gaussians: usize,
+    pub unplaced_gaussians: usize,
+    /// The joint photometric refinement of the merged map (`null`: not run).
+    pub refinement: Option<RefinementReport>,
+    pub wall_s: f64,
+    pub interrupted: bool,
+    /// Written on request while the run went on (no refinement; later outputs replace it).
+    pub snapshot: bool,
+    /// Per pair of agents (`"A-B"`, A < B), what linking them took: every attempt is in
+    /// `events` (with its kind, inliers, overlap and reason); this is their tally.
+    pub agent_pairs: BTreeMap<String, PairAttempts>,
+    pub events: Vec<ClosureEvent>,
+    pub keyframe_info: Vec<(KeyframeRef, KeyframeInfo)>,
+}
+
+/// The inter-agent attempts of one pair of agents (consensus.json `agent_pairs`).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct PairAttempts {
+    pub keyframe_attempts: usize,
+    pub map_attempts: usize,
+    /// Attempts that alignment or map registration verified.
+    pub verified: usize,
+    /// Verified attempts the robust pose graph kept.
+    pub accepted: usize,
+    /// Why the most recent refused attempt was refused.
+    pub last_rejection: Option<String>,
+}
+
+/// Tallies the inter-agent attempts of `events` per pair of agents.
+fn pair_attempts(events: &[ClosureEvent]) -> BTreeMap<String, PairAttempts> {
+    let mut pairs: BTreeMap<(u32, u32), PairAttempts> = BTreeMap::new();
+    for event in events.iter().filter(|e| e.inter_agent) {
+        let (a, b) = (event.source.agent_id, event.target.agent_id);
+        let pair = pairs.entry((a.min(b), a.max(b))).or_default();
+        match event.kind {
+            AttemptKind::Keyframe => pair.keyframe_attempts += 1,
+            AttemptKind::Map => pair.map_attempts += 1,
+        }
+        pair.verified += usize::from(event.verified);
+        pair.accepted += usize::from(event.accepted_by_pose_graph == Some(true));
+        if let Some(reason) = &event.rejection {
+            pair.last_rejection = Some(reason.clone());
+        }
+    }
+    pairs
+        .into_iter()
+        .map(|((a, b), attempts)| (format!("{a}-{b}"), attempts))
+        .collect()
+}
+
+/// The agent's own per-frame trajectory (its frame), written by the agent next to ours.
+pub fn agent_trajectory_path(out: &Path, agent_id: u32) -> PathBuf {
+    out.join(format!("agent_{agent_id}")).join("trajectory.tum")
+}
+
+/// The merged world map as written.
+pub(super) struct WorldMap {
+    pub map: GaussianCloud,
+    /// Gaussians of agents not placed in the world (left out of `map`).
+    pub unplaced: usize,
+    pub refinement: Option<RefinementReport>,
+}
+
+/// The joint photometric refinement of the merged map (skipped when turned off, when the run was
+/// interrupted, or before any solution); the refined keyframe poses go into the engine, so the
+/// world trajectories follow them. The unrefined map is kept as map_realtime.ply. A refinement
+/// that fails is logged and the unrefined map is used: nothing computed is lost.
+pub(super) fn refine_world_map(
+    options: &ConsensusOptions,
+    engine: &mut Engine,
+    map: GaussianCloud,
+    interrupted: bool,
+) -> anyhow::Result<(GaussianCloud, Option<RefinementReport>)> {
+    let consensus = &options.config.consensus;
+    if consensus.refinement.iterations == 0 || interrupted || map.is_empty() {
+        return Ok((map, None));
+    }
+    let Some(problem) = engine.refinement_problem(map.clone()) else {
+        return Ok((map, None));
+    };
+    let realtime_path = options.out.join("map_realtime.ply");
+    render_core::ply::save_ply(&realtime_path, &map)
+        .with_context(|| format!("writing {}", realtime_path.display()))?;
+    match refinement::refine(problem, consensus) {
+        Ok(outcome) => {
+            if consensus.refinement.refine_poses {
+                engine.apply_refined_poses(&outcome.world_from_camera);
+            }
+            Ok((outcome.map, Some(outcome.report)))
+        }
+        Err(error) => {
+            tracing::error!(%error, "joint refinement failed: writing the unrefined map");
+            Ok((map, None))
+        }
+    }
+}
+
+/// Why outputs are written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum OutputKind {
+    /// Every expected agent said goodbye.
+    Final,
+    /// SIGINT / SIGTERM.
+    Interrupted,
+    /// On request while the run goes on.
+    Snapshot,
+}
+
+/// Writes map.ply, every linked agent's world trajectory and consensus.json.
+pub(super) fn write_outputs(
+    options: &ConsensusOptions,
+    engine: &Engine,
+    world: WorldMap,
+    agents: BTreeMap<u32, AgentRecord>,
+    latencies: Vec<f64>,
+    wall_s: f64,
+    kind: OutputKind,
+) -> anyhow::Result<ConsensusReport> {
+    let out = &options.out;
+    let WorldMap {
+        map,
+        unplaced,
+        refinement,
+    } = world;
+    let map_path = out.join("map.ply");
+    render_core::ply::save_ply(&map_path, &map)
+        .with_context(|| format!("writing {}", map_path.display()))?;
+    write_world_trajectories(out, engine, &agents)?;
+    let events = engine.events().to_vec();
+    let solution = engine.solution();
+    let accepted = solution.map_or(0, |s| s.accepted_loops());
+    let report = ConsensusReport {
+        keyframes: engine.keyframes().len(),
+        closures_proposed: events.len(),
+        closures_verified: events.iter().filter(|e| e.verified).count(),
+        closures_rejected_by_alignment: events.iter().filter(|e| !e.verified).count(),
+        loop_closures_accepted: accepted,
+        loop_closures_rejected: events.len() - accepted,
+        inter_agent_closures_accepted: solution.map_or(0, |s| {
+            s.loops
+                .iter()
+                .filter(|l| l.inter_agent && l.accepted)
+                .count()
+        }),
+        consensus_latency_ms_median: median(&latencies),
+        consensus_latency_ms: latencies,
+        pose_graph_solve_ms_median: median(engine.solve_ms()),
+        merged_gaussians: map.len(),
+        unplaced_gaussians: unplaced,
+        refinement,
+        wall_s,
+        interrupted: kind == OutputKind::Interrupted,
+        snapshot: kind == OutputKind::Snapshot,
+        agents,
+        agent_pairs: pair_attempts(&events),
+        events,
+        keyframe_info: engine.keyframes().iter().map(|(k, v)| (*k, *v)).collect(),
+    };
+    let path = out.join("consensus.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(report)
+}
+
+/// OUT/agent_K.tum: each agent's own trajectory (written by the agent) moved into the world
+/// frame, for every agent linked to it whose last run tracked in the frame the consensus knows.
+fn write_world_trajectories(
+    out: &Path,
+    engine: &Engine,
+    agents: &BTreeMap<u32, AgentRecord>,
+) -> anyhow::Result<()> {
+    for (agent_id, record) in agents {
+        if record.last_run_on_other_frames {
+            tracing::warn!(
+                agent_id,
+                "the agent's last run restarted on other frames, in a frame of its own: no world \
+                 trajectory written from its trajectory file"
+            );
+            continue;
+        }
+        let path = agent_trajectory_path(out, *agent_id);
+        if !path.exists() {
+            tracing::warn!(agent_id, path = %path.display(), "no agent trajectory to correct");
+            continue;
+        }
+        let tracked = Trajectory::read_tum(&path)
+            .with_context(|| format!("reading agent {agent_id}'s trajectory"))?;
+        let pairs: Vec<(f64, Isometry3<f64>)> = tracked
+            .stamps
+            .iter()
+            .copied()
+            .zip(tracked.poses.iter().copied())
+            .collect();
+        match engine.world_trajectory(*agent_id, &pairs) {
+            Some(world) => {
+                let target = out.join(format!("agent_{agent_id}.tum"));
+                Trajectory::from_pairs(world)
+                    .write_tum(&target)
+                    .with_context(|| format!("writing {}", target.display()))?;
+            }
+            None => tracing::warn!(
+                agent_id,
+                "agent not linked to the world frame: no world trajectory written"
+            ),
+        }
+    }
+    Ok(())
+}
