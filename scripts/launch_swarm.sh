@@ -71,7 +71,8 @@ if [[ "${XDG_RUNTIME_DIR:-}" != /* ]]; then
 fi
 
 bash scripts/setup.sh
-bin="target/$profile"
+# Binaries where cargo puts them (CARGO_TARGET_DIR, when set, moves the whole target folder).
+bin="${CARGO_TARGET_DIR:-target}/$profile"
 build_args=(-p mac-agent -p mac-consensus -p mac-ego3d --bins)
 [[ "$profile" == release ]] && build_args+=(--release)
 if [[ -x "$bin/mac-agent" && -x "$bin/mac-consensus" && -x "$bin/mac-ego3d" ]]; then
