@@ -67,7 +67,7 @@ column -s, -t <"$csv" 2>/dev/null || cat "$csv"
 # launch_swarm.sh built the binaries; MAC_EGO3D_PROFILE picks the same build as it did.
 plot="$out/tcomm.png"
 if (($(wc -l <"$csv") > 1)); then
-  if "target/${MAC_EGO3D_PROFILE:-release}/mac-ego3d" plot tcomm --csv "$csv" --out "$plot"; then
+  if "${CARGO_TARGET_DIR:-target}/${MAC_EGO3D_PROFILE:-release}/mac-ego3d" plot tcomm --csv "$csv" --out "$plot"; then
     echo "[tcomm] plots: $plot"
   else
     echo "[tcomm] plotting $csv failed" >&2
