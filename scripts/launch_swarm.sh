@@ -11,8 +11,11 @@
 # --link-schedule FILE simulates intermittent links: per agent, the time windows in which it can
 # talk to the consensus; what it publishes meanwhile is queued and delivered at reconnect (the
 # format is documented in agent/src/link_schedule.rs). The file is checked before anything starts.
-# Ctrl-C is forwarded to every process; each still writes its outputs. A child that dies is
-# reported at once, and every child is reaped (a dead, unreaped child would keep its shared-memory
+# Ctrl-C (or SIGTERM) stops the run in order: the agents finish their frame and hand over their
+# outputs, then the consensus writes the world trajectories and map from them (it waits up to
+# STOP_WAIT_S for the agents' goodbyes). The children run in sessions of their own, so a terminal's
+# Ctrl-C reaches this script only and the order holds; a second Ctrl-C kills everything at once
+# (outputs may then be incomplete). A child that dies is reported at once, and every child is reaped (a dead, unreaped child would keep its shared-memory
 # slots); when agents failed, the consensus is stopped once the others are done.
 # On a terminal, one line shows the progress: frames, keyframes, link state, closures.
 #
@@ -116,24 +119,44 @@ if [[ -n "$link_schedule" ]]; then
   schedule_args=(--link-schedule "$run_schedule")
 fi
 
+# How long an interrupted consensus waits for the agents' final maps and goodbyes.
+STOP_WAIT_S=60
+# Children run in sessions of their own (setsid), so the Ctrl-C a terminal sends to its foreground
+# process group reaches this script only, which stops them in order (see the header).
+detach=()
+command -v setsid >/dev/null 2>&1 && detach=(setsid)
+
 # One namespace per run, so two runs on one host never share services.
 namespace="mac$$"
 pids=()
 names=()
-cleanup() {
-  for pid in "${pids[@]}"; do kill -TERM "$pid" 2>/dev/null || true; done
+interrupts=0
+# First interrupt: agents get SIGTERM (finish the frame, write outputs, say goodbye), the consensus
+# SIGINT (it asks agents it still hears from to stop, waits for their goodbyes, then writes). A
+# second interrupt kills every child.
+on_interrupt() {
+  clear_progress
+  interrupts=$((interrupts + 1))
+  if ((interrupts == 1)); then
+    echo "[swarm] interrupted: the agents finish their frame and hand over their outputs, then the consensus writes the world outputs (Ctrl-C again to stop everything now)" >&2
+    for pid in "${pids[@]:1}"; do kill -TERM "$pid" 2>/dev/null || true; done
+    kill -INT "${pids[0]}" 2>/dev/null || true
+  else
+    echo "[swarm] interrupted again: killing every process (outputs may be incomplete)" >&2
+    for pid in "${pids[@]}"; do kill -KILL "$pid" 2>/dev/null || true; done
+  fi
 }
 show_progress=0
 [[ -t 1 ]] && show_progress=1
 # Erases the progress line before a message is printed.
 clear_progress() { if ((show_progress)); then printf '\r\033[K'; fi; }
-trap 'clear_progress; echo "[swarm] interrupted: stopping every process (each writes its outputs)" >&2; cleanup' INT TERM
+trap on_interrupt INT TERM
 
 # Progress files of the previous run in this folder would show stale figures.
 rm -f "$out"/agent_*/progress.json "$out/consensus_progress.json"
 
-"$bin/mac-consensus" --config "$run_config" --out "$out" --agents "$agents" \
-  --namespace "$namespace" >"$out/consensus.log" 2>&1 &
+"${detach[@]}" "$bin/mac-consensus" --config "$run_config" --out "$out" --agents "$agents" \
+  --namespace "$namespace" --stop-agents "$STOP_WAIT_S" >"$out/consensus.log" 2>&1 &
 pids+=($!)
 names+=(consensus)
 for ((k = 0; k < agents; k++)); do
@@ -152,7 +175,7 @@ for ((k = 0; k < agents; k++)); do
     dataset="synthetic:agents=$agents,agent=$k,frames=$frames"
     range=".."
   fi
-  "$bin/mac-agent" --config "$run_config" --dataset "$dataset" --frames "$range" --agent-id "$k" \
+  "${detach[@]}" "$bin/mac-agent" --config "$run_config" --dataset "$dataset" --frames "$range" --agent-id "$k" \
     --namespace "$namespace" --out "$out/agent_$k" "${weight_args[@]}" "${schedule_args[@]}" \
     >"$out/agent_$k.log" 2>&1 &
   pids+=($!)
