@@ -1,0 +1,151 @@
+//! scripts/launch_swarm.sh as a user runs it from a terminal. A terminal's Ctrl-C sends SIGINT to
+//! the whole foreground process group at once; the run must still end in order (the agents
+//! finish their frame and write their outputs, then the consensus writes the world outputs from
+//! them) and leave a complete result.
+
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Command, ExitStatus};
+use std::time::{Duration, Instant};
+
+const AGENTS: usize = 2;
+const FRAMES: usize = 150;
+/// Frames every agent has tracked before the interrupt: mid-run, after its first publications.
+const INTERRUPT_AFTER_FRAMES: u64 = 40;
+const TIMEOUT: Duration = Duration::from_secs(600);
+
+/// The target folder the test binaries were built in (launch_swarm.sh finds the binaries there).
+fn target_dir() -> PathBuf {
+    Path::new(env!("CARGO_BIN_EXE_mac-ego3d"))
+        .ancestors()
+        .nth(2)
+        .expect("binaries live in <target>/<profile>/")
+        .to_path_buf()
+}
+
+fn frames_done(progress: &Path) -> Option<u64> {
+    let text = std::fs::read_to_string(progress).ok()?;
+    let json: serde_json::Value = serde_json::from_str(&text).ok()?;
+    json["frames_done"].as_u64()
+}
+
+fn wait_with_timeout(child: &mut std::process::Child, timeout: Duration) -> Option<ExitStatus> {
+    let started = Instant::now();
+    while started.elapsed() < timeout {
+        if let Some(status) = child.try_wait().unwrap() {
+            return Some(status);
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    None
+}
+
+fn lines(path: &Path) -> usize {
+    std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .count()
+}
+
+#[test]
+fn ctrl_c_to_the_whole_process_group_leaves_every_agents_outputs_and_the_world_outputs() {
+    let repository = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = tempfile::tempdir().unwrap();
+    let runtime = tempfile::tempdir().unwrap();
+    // The profile folder these binaries were built in (`debug` under `cargo test`).
+    let binaries = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
+    let profile = binaries.file_name().unwrap().to_str().unwrap();
+    let mut child = Command::new("bash")
+        .arg(repository.join("scripts/launch_swarm.sh"))
+        .args([
+            "--agents",
+            &AGENTS.to_string(),
+            "--frames",
+            &FRAMES.to_string(),
+        ])
+        .arg("--out")
+        .arg(out.path())
+        .env("MAC_EGO3D_PROFILE", profile)
+        .env("CARGO_TARGET_DIR", target_dir())
+        .env("XDG_RUNTIME_DIR", runtime.path())
+        // As a terminal's foreground job: its own process group, SIGINT at its default action.
+        .process_group(0)
+        .stdout(std::fs::File::create(out.path().join("launch.log")).unwrap())
+        .stderr(std::fs::File::create(out.path().join("launch.err")).unwrap())
+        .spawn()
+        .unwrap();
+    let log = || {
+        std::fs::read_to_string(out.path().join("launch.err")).unwrap_or_default()
+            + &std::fs::read_to_string(out.path().join("launch.log")).unwrap_or_default()
+    };
+
+    let started = Instant::now();
+    loop {
+        let done: Vec<Option<u64>> = (0..AGENTS)
+            .map(|k| frames_done(&out.path().join(format!("agent_{k}/progress.json"))))
+            .collect();
+        if done
+            .iter()
+            .all(|d| d.is_some_and(|f| f >= INTERRUPT_AFTER_FRAMES))
+        {
+            break;
+        }
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the swarm ended before the interrupt:\n{}",
+            log()
+        );
+        assert!(
+            started.elapsed() < TIMEOUT,
+            "agents never reached frame {INTERRUPT_AFTER_FRAMES}:\n{}",
+            log()
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    // What a terminal's Ctrl-C does: SIGINT to every process of the foreground group.
+    let status = Command::new("kill")
+        .args(["-INT", "--", &format!("-{}", child.id())])
+        .status()
+        .unwrap();
+    assert!(status.success());
+
+    let status = wait_with_timeout(&mut child, TIMEOUT).unwrap_or_else(|| {
+        let _ = Command::new("kill")
+            .args(["-KILL", "--", &format!("-{}", child.id())])
+            .status();
+        panic!("the interrupted swarm did not end:\n{}", log())
+    });
+    assert!(status.success(), "launch_swarm.sh failed:\n{}", log());
+    assert!(log().contains("interrupted"), "{}", log());
+
+    let consensus: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.path().join("consensus.json")).unwrap())
+            .unwrap();
+    assert_eq!(consensus["interrupted"], true);
+    for k in 0..AGENTS {
+        // Every agent handed over its trajectory, and it stopped early.
+        let own = out.path().join(format!("agent_{k}/trajectory.tum"));
+        let tracked = lines(&own);
+        assert!(
+            tracked >= INTERRUPT_AFTER_FRAMES as usize && tracked < FRAMES,
+            "agent {k}: {tracked} poses in {}",
+            own.display()
+        );
+        assert_eq!(
+            consensus["agents"][k.to_string()]["goodbyes"],
+            1,
+            "agent {k}"
+        );
+        // Agent 0 defines the world frame; every agent the consensus placed has its world
+        // trajectory, with every pose the agent tracked.
+        let placed = !consensus["agents"][k.to_string()]["world_from_agent"].is_null();
+        assert!(placed || k != 0, "agent 0 must be placed");
+        if placed {
+            let world = out.path().join(format!("agent_{k}.tum"));
+            assert_eq!(lines(&world), tracked, "agent {k}: {}", world.display());
+        }
+    }
+    assert!(out.path().join("map.ply").exists());
+    assert!(out.path().join("metrics.json").exists());
+}
