@@ -15,7 +15,7 @@
 use iceoryx2::prelude::ZeroCopySend;
 use serde::{Deserialize, Serialize};
 
-/// Version of the shared-memory layouts below. Baked into every `type_name` as `v1`; bump both
+/// Version of the shared-memory layouts below. Baked into every `type_name` as `v2`; bump both
 /// together when a layout changes.
 pub const WIRE_VERSION: u32 = 2;
 
