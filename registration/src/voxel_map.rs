@@ -1,9 +1,9 @@
 //! The tracking target: an incremental voxel hash map of map points (or trackable Gaussians) with
 //! covariances, KISS-ICP style.
 //!
-//! Why a voxel hash and not a kd-tree: the map changes at every tracking keyframe (new Gaussians)
-//! and whenever the mapper prunes or moves Gaussians. A hash map of voxels absorbs an insertion or
-//! a removal in O(1) without rebalancing, and a nearest-neighbour query bounded by the
+//! Why a voxel hash and not a kd-tree: the map grows at every tracking keyframe (its trackable
+//! points) and moves when a consensus correction arrives (the mapper's optimisation does not move
+//! it). A hash map of voxels absorbs an insertion or a removal in O(1) without rebalancing, and a nearest-neighbour query bounded by the
 //! correspondence distance only visits the few voxels that can hold an answer. The voxels also
 //! give the frustum selection its granularity: [`VoxelMap::select_view`] marks the voxels that
 //! intersect the predicted view, and queries then ignore the rest (docs/method.md, One agent: Tracking,
