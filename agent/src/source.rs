@@ -152,6 +152,7 @@ mod tests {
             rgb: image::RgbImage::from_pixel(w, h, image::Rgb([100, 150, 200])),
             depth,
             world_from_camera_gt: Some(Isometry3::identity()),
+            ground_truth_error: None,
             intrinsics: Intrinsics::new(10.0, 10.0, 3.5, 2.5, w, h),
         }
     }

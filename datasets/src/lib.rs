@@ -44,6 +44,10 @@ pub struct Frame {
     pub depth: DepthImage,
     /// Ground-truth camera-to-world pose, when the dataset has one.
     pub world_from_camera_gt: Option<Isometry3<f64>>,
+    /// Why the frame's ground-truth pose could not be read (the message names the file), when
+    /// its pose file is there but broken. The frame itself is fine: it is tracked and mapped, and
+    /// only left out of the evaluation.
+    pub ground_truth_error: Option<String>,
     pub intrinsics: Intrinsics,
 }
 

@@ -51,10 +51,12 @@ pub struct SevenScenes {
 }
 
 impl SevenScenes {
-    /// Indexes the folder (no image is decoded). Frames are the `frame-N.color.*` files whose
-    /// number is in `range`.
+    /// Indexes the folder (no image is decoded). Frames are the frame numbers in `range` that
+    /// have any of the three files (colour, depth, pose): a frame whose colour image is missing
+    /// while its depth or pose is there is indexed, so that loading it reports the missing file
+    /// instead of the frame vanishing from the sequence unnoticed.
     pub fn open(dir: &Path, range: FrameRange) -> Result<Self, DatasetError> {
-        let mut by_number: BTreeMap<usize, PathBuf> = BTreeMap::new();
+        let mut colors: BTreeMap<usize, Option<PathBuf>> = BTreeMap::new();
         for entry in std::fs::read_dir(dir).map_err(|e| DatasetError::io(dir, e))? {
             let entry = entry.map_err(|e| DatasetError::io(dir, e))?;
             let name = entry.file_name();
@@ -62,10 +64,11 @@ impl SevenScenes {
             let Some(rest) = name.strip_prefix("frame-") else {
                 continue;
             };
-            let Some((number, ext)) = rest.split_once(".color.") else {
+            let Some((number, kind)) = rest.split_once('.') else {
                 continue;
             };
-            if ext != "png" && ext != "jpg" {
+            let is_color = matches!(kind, "color.png" | "color.jpg");
+            if !is_color && kind != "depth.png" && kind != "pose.txt" {
                 continue;
             }
             let number: usize = number.parse().map_err(|_| {
@@ -78,7 +81,11 @@ impl SevenScenes {
             if !range.contains(number) {
                 continue;
             }
-            if let Some(previous) = by_number.insert(number, entry.path()) {
+            let color = colors.entry(number).or_default();
+            if !is_color {
+                continue;
+            }
+            if let Some(previous) = color.replace(entry.path()) {
                 return Err(DatasetError::Invalid(format!(
                     "{} and {}: two colour images for frame {number}",
                     previous.display(),
@@ -86,24 +93,28 @@ impl SevenScenes {
                 )));
             }
         }
-        if by_number.is_empty() {
+        let Some(first_color) = colors.values().flatten().next().cloned() else {
             return Err(DatasetError::Invalid(format!(
                 "{}: no frame-XXXXXX.color.png/jpg files with frame numbers in {range}",
                 dir.display()
             )));
-        }
+        };
         let intrinsics_path = dir.join(INTRINSICS_FILE);
         let intrinsics = if intrinsics_path.is_file() {
             // The K file has no image size; take it from the first colour image's header.
-            let first = by_number.values().next().expect("at least one frame");
-            let (w, h) = image_size(first)?;
+            let (w, h) = image_size(&first_color)?;
             Intrinsics::read_k_file(&intrinsics_path, w, h)?
         } else {
             DEFAULT_INTRINSICS
         };
-        let frames = by_number
+        let frames = colors
             .into_iter()
-            .map(|(number, color)| FrameFiles { number, color })
+            .map(|(number, color)| FrameFiles {
+                number,
+                // Named in the missing-frame warning when absent; PNG is what the layout's
+                // writers produce.
+                color: color.unwrap_or_else(|| dir.join(format!("frame-{number:06}.color.png"))),
+            })
             .collect();
         Ok(Self {
             dir: dir.to_path_buf(),
@@ -196,12 +207,18 @@ impl Dataset for SevenScenes {
             &self.intrinsics,
             DEPTH_ENCODING,
         )?;
+        // A broken pose file costs the frame its place in the evaluation, not its tracking.
+        let (world_from_camera_gt, ground_truth_error) = match self.ground_truth(position) {
+            Ok(pose) => (pose, None),
+            Err(error) => (None, Some(error.to_string())),
+        };
         Ok(Frame {
             index: files.number,
             timestamp: self.timestamp(position),
             rgb,
             depth,
-            world_from_camera_gt: self.ground_truth(position)?,
+            world_from_camera_gt,
+            ground_truth_error,
             intrinsics: self.intrinsics,
         })
     }
@@ -284,6 +301,7 @@ mod tests {
             }),
             depth,
             world_from_camera_gt: Some(Isometry3::translation(0.1 * index as f64, 0.0, 1.0)),
+            ground_truth_error: None,
             intrinsics: Intrinsics::new(5.0, 5.0, 1.5, 1.0, 4, 3),
         }
     }
@@ -343,8 +361,59 @@ mod tests {
         );
         let e2 = ds.load(2).unwrap_err().to_string();
         assert!(e2.contains("frame-000002.color.png"), "{e2}");
-        let e3 = ds.load(3).unwrap_err().to_string();
+        // A broken pose file leaves the frame usable, without ground truth.
+        let f3 = ds.load(3).unwrap();
+        assert!(f3.world_from_camera_gt.is_none());
+        let e3 = f3.ground_truth_error.unwrap();
         assert!(e3.contains("frame-000003.pose.txt line 3"), "{e3}");
+    }
+
+    #[test]
+    fn missing_colour_and_broken_poses_are_reported_not_dropped() {
+        let dir = tempfile::tempdir().unwrap();
+        let k = Intrinsics::new(5.0, 5.0, 1.5, 1.0, 4, 3);
+        let mut writer = SevenScenesWriter::create(dir.path(), &k).unwrap();
+        for index in 0..5 {
+            writer.write(&tiny_frame(index)).unwrap();
+        }
+        // 1: colour gone (depth and pose there), 2: pose cut short, 3: pose not rigid,
+        // 4: pose with NaN.
+        std::fs::remove_file(dir.path().join("frame-000001.color.png")).unwrap();
+        let pose_2 = dir.path().join("frame-000002.pose.txt");
+        let text = std::fs::read_to_string(&pose_2).unwrap();
+        std::fs::write(&pose_2, &text[..text.len() / 2]).unwrap();
+        std::fs::write(
+            dir.path().join("frame-000003.pose.txt"),
+            "2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n",
+        )
+        .unwrap();
+        std::fs::write(
+            dir.path().join("frame-000004.pose.txt"),
+            "1 0 0 NaN\n0 1 0 0\n0 0 1 0\n0 0 0 1\n",
+        )
+        .unwrap();
+        let ds = SevenScenes::open(dir.path(), FrameRange::ALL).unwrap();
+        assert_eq!(ds.len(), 5, "the frame without colour is still indexed");
+        let e1 = ds.load(1).unwrap_err();
+        assert!(
+            e1.is_missing_frame() && e1.to_string().contains("frame-000001.color.png"),
+            "{e1}"
+        );
+        for (position, expected) in [
+            (2, "frame-000002.pose.txt"),
+            (3, "not orthonormal"),
+            (4, "not a finite number"),
+        ] {
+            let frame = ds.load(position).unwrap();
+            assert!(frame.world_from_camera_gt.is_none());
+            let error = frame.ground_truth_error.unwrap();
+            assert!(
+                error.contains(&format!("frame-{position:06}.pose.txt")) && error.contains(expected),
+                "{error}"
+            );
+        }
+        let intact = ds.load(0).unwrap();
+        assert!(intact.world_from_camera_gt.is_some() && intact.ground_truth_error.is_none());
     }
 
     #[test]
