@@ -2,7 +2,7 @@
 //! `frame-XXXXXX.color.{png,jpg}`, `frame-XXXXXX.depth.png` (u16 millimetres, 0 and 65535
 //! invalid), `frame-XXXXXX.pose.txt` (4x4 camera-to-world, row-major). An optional
 //! `camera-intrinsics.txt` (3x3 K) overrides the default intrinsics. Frame numbers need not start at
-//! 0 nor be contiguous. The layout has no clock: timestamp = frame number / 30 s.
+//! 0 nor be contiguous; a hole in a regularly numbered sequence is read as missing frames. The layout has no clock: timestamp = frame number / 30 s.
 
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -52,9 +52,10 @@ pub struct SevenScenes {
 
 impl SevenScenes {
     /// Indexes the folder (no image is decoded). Frames are the frame numbers in `range` that
-    /// have any of the three files (colour, depth, pose): a frame whose colour image is missing
-    /// while its depth or pose is there is indexed, so that loading it reports the missing file
-    /// instead of the frame vanishing from the sequence unnoticed.
+    /// have any of the three files (colour, depth, pose), and the numbers a regularly numbered
+    /// sequence skips ([`fill_numbering_gaps`]): a frame whose colour image or every file is
+    /// missing is indexed, so that loading it reports the missing file instead of the frame
+    /// vanishing from the sequence unnoticed.
     pub fn open(dir: &Path, range: FrameRange) -> Result<Self, DatasetError> {
         let mut colors: BTreeMap<usize, Option<PathBuf>> = BTreeMap::new();
         for entry in std::fs::read_dir(dir).map_err(|e| DatasetError::io(dir, e))? {
@@ -107,13 +108,20 @@ impl SevenScenes {
         } else {
             DEFAULT_INTRINSICS
         };
+        fill_numbering_gaps(&mut colors);
+        // Named in the missing-frame warning of a frame without colour image: the extension of
+        // the sequence's other colour images.
+        let color_extension = first_color.extension().unwrap_or_default().to_os_string();
         let frames = colors
             .into_iter()
             .map(|(number, color)| FrameFiles {
                 number,
-                // Named in the missing-frame warning when absent; PNG is what the layout's
-                // writers produce.
-                color: color.unwrap_or_else(|| dir.join(format!("frame-{number:06}.color.png"))),
+                color: color.unwrap_or_else(|| {
+                    dir.join(format!(
+                        "frame-{number:06}.color.{}",
+                        color_extension.to_string_lossy()
+                    ))
+                }),
             })
             .collect();
         Ok(Self {
@@ -125,6 +133,35 @@ impl SevenScenes {
 
     pub fn dir(&self) -> &Path {
         &self.dir
+    }
+}
+
+/// Indexes the frames a regularly numbered sequence lacks (every file of them deleted or never
+/// copied) as frames without colour image, so that reading them reports each one missing instead
+/// of the sequence closing over the hole. The step is the commonest one between frame numbers (1
+/// for a full sequence, N for one kept every N-th frame); only gaps that are whole multiples of
+/// it count, and nothing outside the first and last frame present is added.
+fn fill_numbering_gaps(frames: &mut BTreeMap<usize, Option<PathBuf>>) {
+    let numbers: Vec<usize> = frames.keys().copied().collect();
+    let mut step_counts: BTreeMap<usize, usize> = BTreeMap::new();
+    for pair in numbers.windows(2) {
+        *step_counts.entry(pair[1] - pair[0]).or_default() += 1;
+    }
+    // The commonest step; the smaller one on a tie.
+    let Some(step) = step_counts
+        .iter()
+        .max_by_key(|(step, count)| (**count, std::cmp::Reverse(**step)))
+        .map(|(step, _)| *step)
+    else {
+        return;
+    };
+    for pair in numbers.windows(2) {
+        let gap = pair[1] - pair[0];
+        if gap > step && gap.is_multiple_of(step) {
+            for absent in (pair[0] + step..pair[1]).step_by(step) {
+                frames.insert(absent, None);
+            }
+        }
     }
 }
 
@@ -316,10 +353,16 @@ mod tests {
         }
         writer.finish().unwrap();
         let ds = SevenScenes::open(dir.path(), FrameRange::ALL).unwrap();
-        assert_eq!(ds.len(), 3);
+        // 5..=8 are a hole in a sequence numbered in steps of 1: missing frames.
+        assert_eq!(ds.len(), 7);
         assert_eq!(ds.intrinsics(), k);
-        assert_eq!(ds.frame_index(2), 9);
-        let frame = ds.load(2).unwrap();
+        assert_eq!(ds.frame_index(6), 9);
+        let hole = ds.load(2).unwrap_err();
+        assert!(
+            hole.is_missing_frame() && hole.to_string().contains("frame-000005.color.png"),
+            "{hole}"
+        );
+        let frame = ds.load(6).unwrap();
         let expected = tiny_frame(9);
         assert_eq!(frame.rgb, expected.rgb);
         assert_eq!(frame.depth.data[5], 1.234);
