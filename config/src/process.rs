@@ -51,7 +51,10 @@ mod tests {
     fn an_output_folder_that_is_a_file_is_refused_naming_it() {
         let dir = tempfile::tempdir().unwrap();
         prepare_output_dir(&dir.path().join("a/b")).unwrap();
-        assert_eq!(std::fs::read_dir(dir.path().join("a/b")).unwrap().count(), 0);
+        assert_eq!(
+            std::fs::read_dir(dir.path().join("a/b")).unwrap().count(),
+            0
+        );
         let file = dir.path().join("taken");
         std::fs::write(&file, "").unwrap();
         for out in [file.clone(), file.join("run")] {

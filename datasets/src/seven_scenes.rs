@@ -451,7 +451,8 @@ mod tests {
             assert!(frame.world_from_camera_gt.is_none());
             let error = frame.ground_truth_error.unwrap();
             assert!(
-                error.contains(&format!("frame-{position:06}.pose.txt")) && error.contains(expected),
+                error.contains(&format!("frame-{position:06}.pose.txt"))
+                    && error.contains(expected),
                 "{error}"
             );
         }
