@@ -143,6 +143,9 @@ fn main() -> anyhow::Result<()> {
         lpips_weights,
         decode_workers: args.decode_workers,
     };
+    // Before joining the swarm: an agent that could not write its outputs should not announce
+    // itself to the consensus.
+    config::process::prepare_output_dir(&options.out)?;
     let stop = config::process::stop_on_termination_signals()?;
     let metrics = if args.standalone {
         run_standalone(&options, &stop)?

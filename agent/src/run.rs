@@ -6,6 +6,7 @@
 //! (SIGINT / SIGTERM in the binary) ends the loop after the current frame; everything computed
 //! so far is still written.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -108,8 +109,13 @@ pub struct AgentMetrics {
     pub wall_s: f64,
     pub tracking_failures: usize,
     pub reinitialisations: usize,
+    /// Frames skipped because a file is missing (the log names it).
     pub frames_missing: usize,
+    /// Frames skipped because a file could not be decoded or validated (the log names it).
     pub frames_broken: usize,
+    /// Tracked frames whose ground-truth pose file is broken (the log names it): left out of
+    /// the ATE only.
+    pub ground_truth_broken: usize,
     pub frames_without_depth: usize,
     pub eval_frames: usize,
     pub eval_every: usize,
@@ -142,8 +148,7 @@ pub fn run_agent(
     swarm: Option<SwarmLink>,
 ) -> anyhow::Result<AgentMetrics> {
     let _span = tracing::info_span!("agent", id = options.agent_id).entered();
-    std::fs::create_dir_all(&options.out)
-        .with_context(|| format!("creating output directory {}", options.out.display()))?;
+    config::process::prepare_output_dir(&options.out)?;
     let dataset: Arc<dyn Dataset> = Arc::from(
         datasets::open(&options.dataset, options.frames)
             .with_context(|| format!("opening dataset {}", options.dataset))?,
@@ -239,7 +244,8 @@ pub fn run_agent(
         in_swarm,
     });
     let metrics_path = options.out.join("metrics.json");
-    std::fs::write(&metrics_path, serde_json::to_string_pretty(&metrics)?)
+    let json = serde_json::to_string_pretty(&metrics)?;
+    geometry::files::write_whole(&metrics_path, |file| file.write_all(json.as_bytes()))
         .with_context(|| format!("writing {}", metrics_path.display()))?;
     progress_file.write(&progress_snapshot(
         Stage::Done,
@@ -359,6 +365,7 @@ fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
         reinitialisations: tracking.reinitialisations,
         frames_missing: record.source.frames_missing,
         frames_broken: record.source.frames_broken,
+        ground_truth_broken: record.source.ground_truth_broken,
         frames_without_depth: record.source.frames_without_depth,
         eval_frames: record.realtime_frames,
         eval_every: options.eval_every.max(1),
@@ -539,6 +546,17 @@ pub fn metrics_table(metrics: &AgentMetrics) -> String {
         ("frames per second".into(), format!("{:.2}", metrics.fps)),
         ("peak RSS MiB".into(), opt(metrics.peak_rss_mib, 1.0, 0)),
     ];
+    // Bad input shows here as well as in the log, where each file is named.
+    if metrics.frames_missing + metrics.frames_broken + metrics.ground_truth_broken > 0 {
+        rows.push((
+            "frames skipped missing / broken".into(),
+            format!("{} / {}", metrics.frames_missing, metrics.frames_broken),
+        ));
+        rows.push((
+            "broken ground-truth poses".into(),
+            metrics.ground_truth_broken.to_string(),
+        ));
+    }
     if let Some(refined) = &metrics.refined {
         rows.push((
             format!("refined ({} iterations) PSNR dB", refined.mapping_iters),

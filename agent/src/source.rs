@@ -3,6 +3,9 @@
 //! - a missing frame (file not there) is skipped with a warning and counted;
 //! - a broken frame (corrupt image, wrong bit depth, wrong size, bad pose file) is skipped with an
 //!   error log naming the file, and counted; the run goes on, nothing computed is lost;
+//! - a frame whose ground-truth pose file is broken (truncated, NaN, not rigid) is tracked and
+//!   mapped as usual, with a warning naming the file, and counted: only the evaluation, which
+//!   needs ground truth, leaves it out;
 //! - NaN, infinite and negative depth become invalid (0) and are counted;
 //! - a frame with no valid depth at all is still yielded (tracking must see the gap in time) but
 //!   flagged, so the mapper can leave the map untouched;
@@ -30,6 +33,9 @@ pub struct SourceStats {
     pub frames_broken: usize,
     /// Yielded frames without a single valid depth pixel.
     pub frames_without_depth: usize,
+    /// Yielded frames whose ground-truth pose file is there but broken: tracked, left out of the
+    /// evaluation.
+    pub ground_truth_broken: usize,
     /// Depth pixels that were NaN, infinite or negative and were made invalid.
     pub depth_pixels_sanitized: usize,
 }
@@ -79,6 +85,14 @@ impl FrameSource {
 
     /// Prepares one decoded frame: depth hygiene, noise, bookkeeping.
     fn prepare(&mut self, position: usize, mut frame: Frame) -> SourceFrame {
+        if let Some(error) = &frame.ground_truth_error {
+            tracing::warn!(
+                frame = frame.index,
+                %error,
+                "ground-truth pose unusable: the frame is tracked but left out of the evaluation"
+            );
+            self.stats.ground_truth_broken += 1;
+        }
         let sanitized = frame.depth.sanitize();
         if sanitized > 0 {
             tracing::warn!(
@@ -152,6 +166,7 @@ mod tests {
             rgb: image::RgbImage::from_pixel(w, h, image::Rgb([100, 150, 200])),
             depth,
             world_from_camera_gt: Some(Isometry3::identity()),
+            ground_truth_error: None,
             intrinsics: Intrinsics::new(10.0, 10.0, 3.5, 2.5, w, h),
         }
     }

@@ -267,6 +267,16 @@ mod tests {
             err.contains("bad.toml") && err.contains("pixel_strde"),
             "{err}"
         );
+        // A value of the wrong type: the message quotes the line, so the field is named.
+        std::fs::write(&path, "[tracking]\npixel_stride = \"five\"\n").unwrap();
+        let err = Config::load(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("bad.toml")
+                && err.contains("line 2")
+                && err.contains("pixel_stride")
+                && err.contains("expected usize"),
+            "{err}"
+        );
         std::fs::write(&path, "[keyframes]\nmin_overlap_fraction = 1.5\n").unwrap();
         let err = Config::load(&path).unwrap_err().to_string();
         assert!(err.contains("keyframes.min_overlap_fraction"), "{err}");

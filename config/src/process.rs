@@ -1,6 +1,7 @@
 //! Start-up shared by the workspace's binaries (`mac-agent`, `mac-consensus`, `mac-ego3d`):
 //! logging and the stop flag raised by termination signals, set up the same way everywhere.
 
+use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
@@ -27,4 +28,38 @@ pub fn stop_on_termination_signals() -> anyhow::Result<Arc<AtomicBool>> {
             .with_context(|| format!("installing the handler of signal {signal}"))?;
     }
     Ok(stop)
+}
+
+/// Creates a process's output folder and checks that files can be created in it, so that a run
+/// into a folder it cannot write (a file in its place, no permission, a read-only mount) stops
+/// at start with an error naming the folder, not after minutes of work when the first output is
+/// written.
+pub fn prepare_output_dir(dir: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("creating output directory {}", dir.display()))?;
+    let probe = dir.join(format!(".write-check-{}", std::process::id()));
+    std::fs::File::create(&probe)
+        .and_then(|_| std::fs::remove_file(&probe))
+        .with_context(|| format!("output directory {} is not writable", dir.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_output_folder_that_is_a_file_is_refused_naming_it() {
+        let dir = tempfile::tempdir().unwrap();
+        prepare_output_dir(&dir.path().join("a/b")).unwrap();
+        assert_eq!(
+            std::fs::read_dir(dir.path().join("a/b")).unwrap().count(),
+            0
+        );
+        let file = dir.path().join("taken");
+        std::fs::write(&file, "").unwrap();
+        for out in [file.clone(), file.join("run")] {
+            let error = format!("{:#}", prepare_output_dir(&out).unwrap_err());
+            assert!(error.contains(&out.display().to_string()), "{error}");
+        }
+    }
 }

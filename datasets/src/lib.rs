@@ -44,6 +44,10 @@ pub struct Frame {
     pub depth: DepthImage,
     /// Ground-truth camera-to-world pose, when the dataset has one.
     pub world_from_camera_gt: Option<Isometry3<f64>>,
+    /// Why the frame's ground-truth pose could not be read (the message names the file), when
+    /// its pose file is there but broken. The frame itself is fine: it is tracked and mapped, and
+    /// only left out of the evaluation.
+    pub ground_truth_error: Option<String>,
     pub intrinsics: Intrinsics,
 }
 
@@ -140,6 +144,12 @@ pub fn read_rgb(path: &Path, index: usize) -> Result<RgbImage, DatasetError> {
             DatasetError::io(path, e)
         }
     })?;
+    if is_truncated_jpeg(&bytes) {
+        return Err(DatasetError::decode(
+            path,
+            "JPEG without its end-of-image marker: the file is truncated",
+        ));
+    }
     let img = image::load_from_memory(&bytes).map_err(|e| DatasetError::decode(path, e))?;
     match img {
         image::DynamicImage::ImageRgb8(rgb) => Ok(rgb),
@@ -151,6 +161,17 @@ pub fn read_rgb(path: &Path, index: usize) -> Result<RgbImage, DatasetError> {
             format!("expected an 8-bit colour image, found {:?}", other.color()),
         )),
     }
+}
+
+/// A JPEG (starts with the SOI marker) that does not end with the EOI marker `FF D9` (trailing
+/// zero padding allowed). The JPEG decoder fills a cut-short file's missing rows with grey
+/// instead of failing, which would hand tracking and mapping an image that is partly made up.
+fn is_truncated_jpeg(bytes: &[u8]) -> bool {
+    if !bytes.starts_with(&[0xFF, 0xD8]) {
+        return false;
+    }
+    let end = bytes.iter().rposition(|b| *b != 0).map_or(0, |i| i + 1);
+    !bytes[..end].ends_with(&[0xFF, 0xD9])
 }
 
 /// Reads a 16-bit single-channel depth PNG as raw units, refusing 8-bit or colour PNGs (a common
@@ -333,6 +354,23 @@ fn natural_key(name: &str) -> (String, u64, String) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_truncated_jpeg_is_refused_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frame-000000.color.jpg");
+        let image = RgbImage::from_fn(64, 48, |x, y| image::Rgb([x as u8 * 4, y as u8 * 5, 90]));
+        image.save(&path).unwrap();
+        let complete = read_rgb(&path, 0).unwrap();
+        assert_eq!(complete.dimensions(), (64, 48));
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+        let error = read_rgb(&path, 0).unwrap_err().to_string();
+        assert!(
+            error.contains("frame-000000.color.jpg") && error.contains("truncated"),
+            "{error}"
+        );
+    }
 
     #[test]
     fn frame_range_parses_and_refuses() {

@@ -119,6 +119,7 @@ mod tests {
             rgb: image::RgbImage::from_pixel(w, h, image::Rgb([128, 128, 128])),
             depth,
             world_from_camera_gt: None,
+            ground_truth_error: None,
             intrinsics: Intrinsics::new(50.0, 50.0, 31.5, 31.5, w, h),
         }
     }

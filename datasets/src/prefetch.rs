@@ -154,6 +154,7 @@ mod tests {
                 rgb: image::RgbImage::new(2, 2),
                 depth: DepthImage::new(2, 2),
                 world_from_camera_gt: None,
+                ground_truth_error: None,
                 intrinsics: self.intrinsics(),
             })
         }

@@ -145,6 +145,7 @@ impl Dataset for Replica {
             rgb,
             depth,
             world_from_camera_gt: self.ground_truth(position)?,
+            ground_truth_error: None,
             intrinsics: self.intrinsics,
         })
     }

@@ -2,7 +2,7 @@
 //! `frame-XXXXXX.color.{png,jpg}`, `frame-XXXXXX.depth.png` (u16 millimetres, 0 and 65535
 //! invalid), `frame-XXXXXX.pose.txt` (4x4 camera-to-world, row-major). An optional
 //! `camera-intrinsics.txt` (3x3 K) overrides the default intrinsics. Frame numbers need not start at
-//! 0 nor be contiguous. The layout has no clock: timestamp = frame number / 30 s.
+//! 0 nor be contiguous; a hole in a regularly numbered sequence is read as missing frames. The layout has no clock: timestamp = frame number / 30 s.
 
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -51,10 +51,13 @@ pub struct SevenScenes {
 }
 
 impl SevenScenes {
-    /// Indexes the folder (no image is decoded). Frames are the `frame-N.color.*` files whose
-    /// number is in `range`.
+    /// Indexes the folder (no image is decoded). Frames are the frame numbers in `range` that
+    /// have any of the three files (colour, depth, pose), and the numbers a regularly numbered
+    /// sequence skips ([`fill_numbering_gaps`]): a frame whose colour image or every file is
+    /// missing is indexed, so that loading it reports the missing file instead of the frame
+    /// vanishing from the sequence unnoticed.
     pub fn open(dir: &Path, range: FrameRange) -> Result<Self, DatasetError> {
-        let mut by_number: BTreeMap<usize, PathBuf> = BTreeMap::new();
+        let mut colors: BTreeMap<usize, Option<PathBuf>> = BTreeMap::new();
         for entry in std::fs::read_dir(dir).map_err(|e| DatasetError::io(dir, e))? {
             let entry = entry.map_err(|e| DatasetError::io(dir, e))?;
             let name = entry.file_name();
@@ -62,10 +65,11 @@ impl SevenScenes {
             let Some(rest) = name.strip_prefix("frame-") else {
                 continue;
             };
-            let Some((number, ext)) = rest.split_once(".color.") else {
+            let Some((number, kind)) = rest.split_once('.') else {
                 continue;
             };
-            if ext != "png" && ext != "jpg" {
+            let is_color = matches!(kind, "color.png" | "color.jpg");
+            if !is_color && kind != "depth.png" && kind != "pose.txt" {
                 continue;
             }
             let number: usize = number.parse().map_err(|_| {
@@ -78,7 +82,11 @@ impl SevenScenes {
             if !range.contains(number) {
                 continue;
             }
-            if let Some(previous) = by_number.insert(number, entry.path()) {
+            let color = colors.entry(number).or_default();
+            if !is_color {
+                continue;
+            }
+            if let Some(previous) = color.replace(entry.path()) {
                 return Err(DatasetError::Invalid(format!(
                     "{} and {}: two colour images for frame {number}",
                     previous.display(),
@@ -86,24 +94,35 @@ impl SevenScenes {
                 )));
             }
         }
-        if by_number.is_empty() {
+        let Some(first_color) = colors.values().flatten().next().cloned() else {
             return Err(DatasetError::Invalid(format!(
                 "{}: no frame-XXXXXX.color.png/jpg files with frame numbers in {range}",
                 dir.display()
             )));
-        }
+        };
         let intrinsics_path = dir.join(INTRINSICS_FILE);
         let intrinsics = if intrinsics_path.is_file() {
             // The K file has no image size; take it from the first colour image's header.
-            let first = by_number.values().next().expect("at least one frame");
-            let (w, h) = image_size(first)?;
+            let (w, h) = image_size(&first_color)?;
             Intrinsics::read_k_file(&intrinsics_path, w, h)?
         } else {
             DEFAULT_INTRINSICS
         };
-        let frames = by_number
+        fill_numbering_gaps(&mut colors);
+        // Named in the missing-frame warning of a frame without colour image: the extension of
+        // the sequence's other colour images.
+        let color_extension = first_color.extension().unwrap_or_default().to_os_string();
+        let frames = colors
             .into_iter()
-            .map(|(number, color)| FrameFiles { number, color })
+            .map(|(number, color)| FrameFiles {
+                number,
+                color: color.unwrap_or_else(|| {
+                    dir.join(format!(
+                        "frame-{number:06}.color.{}",
+                        color_extension.to_string_lossy()
+                    ))
+                }),
+            })
             .collect();
         Ok(Self {
             dir: dir.to_path_buf(),
@@ -114,6 +133,35 @@ impl SevenScenes {
 
     pub fn dir(&self) -> &Path {
         &self.dir
+    }
+}
+
+/// Indexes the frames a regularly numbered sequence lacks (every file of them deleted or never
+/// copied) as frames without colour image, so that reading them reports each one missing instead
+/// of the sequence closing over the hole. The step is the commonest one between frame numbers (1
+/// for a full sequence, N for one kept every N-th frame); only gaps that are whole multiples of
+/// it count, and nothing outside the first and last frame present is added.
+fn fill_numbering_gaps(frames: &mut BTreeMap<usize, Option<PathBuf>>) {
+    let numbers: Vec<usize> = frames.keys().copied().collect();
+    let mut step_counts: BTreeMap<usize, usize> = BTreeMap::new();
+    for pair in numbers.windows(2) {
+        *step_counts.entry(pair[1] - pair[0]).or_default() += 1;
+    }
+    // The commonest step; the smaller one on a tie.
+    let Some(step) = step_counts
+        .iter()
+        .max_by_key(|(step, count)| (**count, std::cmp::Reverse(**step)))
+        .map(|(step, _)| *step)
+    else {
+        return;
+    };
+    for pair in numbers.windows(2) {
+        let gap = pair[1] - pair[0];
+        if gap > step && gap.is_multiple_of(step) {
+            for absent in (pair[0] + step..pair[1]).step_by(step) {
+                frames.insert(absent, None);
+            }
+        }
     }
 }
 
@@ -196,12 +244,18 @@ impl Dataset for SevenScenes {
             &self.intrinsics,
             DEPTH_ENCODING,
         )?;
+        // A broken pose file costs the frame its place in the evaluation, not its tracking.
+        let (world_from_camera_gt, ground_truth_error) = match self.ground_truth(position) {
+            Ok(pose) => (pose, None),
+            Err(error) => (None, Some(error.to_string())),
+        };
         Ok(Frame {
             index: files.number,
             timestamp: self.timestamp(position),
             rgb,
             depth,
-            world_from_camera_gt: self.ground_truth(position)?,
+            world_from_camera_gt,
+            ground_truth_error,
             intrinsics: self.intrinsics,
         })
     }
@@ -284,6 +338,7 @@ mod tests {
             }),
             depth,
             world_from_camera_gt: Some(Isometry3::translation(0.1 * index as f64, 0.0, 1.0)),
+            ground_truth_error: None,
             intrinsics: Intrinsics::new(5.0, 5.0, 1.5, 1.0, 4, 3),
         }
     }
@@ -298,10 +353,16 @@ mod tests {
         }
         writer.finish().unwrap();
         let ds = SevenScenes::open(dir.path(), FrameRange::ALL).unwrap();
-        assert_eq!(ds.len(), 3);
+        // 5..=8 are a hole in a sequence numbered in steps of 1: missing frames.
+        assert_eq!(ds.len(), 7);
         assert_eq!(ds.intrinsics(), k);
-        assert_eq!(ds.frame_index(2), 9);
-        let frame = ds.load(2).unwrap();
+        assert_eq!(ds.frame_index(6), 9);
+        let hole = ds.load(2).unwrap_err();
+        assert!(
+            hole.is_missing_frame() && hole.to_string().contains("frame-000005.color.png"),
+            "{hole}"
+        );
+        let frame = ds.load(6).unwrap();
         let expected = tiny_frame(9);
         assert_eq!(frame.rgb, expected.rgb);
         assert_eq!(frame.depth.data[5], 1.234);
@@ -343,8 +404,60 @@ mod tests {
         );
         let e2 = ds.load(2).unwrap_err().to_string();
         assert!(e2.contains("frame-000002.color.png"), "{e2}");
-        let e3 = ds.load(3).unwrap_err().to_string();
+        // A broken pose file leaves the frame usable, without ground truth.
+        let f3 = ds.load(3).unwrap();
+        assert!(f3.world_from_camera_gt.is_none());
+        let e3 = f3.ground_truth_error.unwrap();
         assert!(e3.contains("frame-000003.pose.txt line 3"), "{e3}");
+    }
+
+    #[test]
+    fn missing_colour_and_broken_poses_are_reported_not_dropped() {
+        let dir = tempfile::tempdir().unwrap();
+        let k = Intrinsics::new(5.0, 5.0, 1.5, 1.0, 4, 3);
+        let mut writer = SevenScenesWriter::create(dir.path(), &k).unwrap();
+        for index in 0..5 {
+            writer.write(&tiny_frame(index)).unwrap();
+        }
+        // 1: colour gone (depth and pose there), 2: pose cut short, 3: pose not rigid,
+        // 4: pose with NaN.
+        std::fs::remove_file(dir.path().join("frame-000001.color.png")).unwrap();
+        let pose_2 = dir.path().join("frame-000002.pose.txt");
+        let text = std::fs::read_to_string(&pose_2).unwrap();
+        std::fs::write(&pose_2, &text[..text.len() / 2]).unwrap();
+        std::fs::write(
+            dir.path().join("frame-000003.pose.txt"),
+            "2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n",
+        )
+        .unwrap();
+        std::fs::write(
+            dir.path().join("frame-000004.pose.txt"),
+            "1 0 0 NaN\n0 1 0 0\n0 0 1 0\n0 0 0 1\n",
+        )
+        .unwrap();
+        let ds = SevenScenes::open(dir.path(), FrameRange::ALL).unwrap();
+        assert_eq!(ds.len(), 5, "the frame without colour is still indexed");
+        let e1 = ds.load(1).unwrap_err();
+        assert!(
+            e1.is_missing_frame() && e1.to_string().contains("frame-000001.color.png"),
+            "{e1}"
+        );
+        for (position, expected) in [
+            (2, "frame-000002.pose.txt"),
+            (3, "not orthonormal"),
+            (4, "not a finite number"),
+        ] {
+            let frame = ds.load(position).unwrap();
+            assert!(frame.world_from_camera_gt.is_none());
+            let error = frame.ground_truth_error.unwrap();
+            assert!(
+                error.contains(&format!("frame-{position:06}.pose.txt"))
+                    && error.contains(expected),
+                "{error}"
+            );
+        }
+        let intact = ds.load(0).unwrap();
+        assert!(intact.world_from_camera_gt.is_some() && intact.ground_truth_error.is_none());
     }
 
     #[test]

@@ -208,6 +208,7 @@ impl Dataset for Tum {
             rgb,
             depth,
             world_from_camera_gt: f.world_from_camera_gt,
+            ground_truth_error: None,
             intrinsics: self.intrinsics,
         })
     }

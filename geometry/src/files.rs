@@ -84,3 +84,52 @@ pub fn parse_floats(line: &str) -> Result<Vec<f64>, String> {
         })
         .collect()
 }
+
+/// Writes `path` whole or not at all: `write` fills a temporary file next to it (`NAME.partial`,
+/// same folder, so the rename cannot cross file systems), which is renamed over `path` once
+/// complete and flushed. A reader never sees a half-written output, and a write that fails (a
+/// full disk) leaves what `path` held before; the temporary file is removed then. The error is
+/// `write`'s own; callers name `path` in it.
+pub fn write_whole<E: From<std::io::Error>>(
+    path: &Path,
+    write: impl FnOnce(&mut std::fs::File) -> Result<(), E>,
+) -> Result<(), E> {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".partial");
+    let temporary = path.with_file_name(name);
+    let written = std::fs::File::create(&temporary)
+        .map_err(E::from)
+        .and_then(|mut file| {
+            write(&mut file)?;
+            // Data the kernel could not place (delayed allocation) surfaces here, not at close.
+            file.sync_data().map_err(E::from)
+        })
+        .and_then(|()| std::fs::rename(&temporary, path).map_err(E::from));
+    if written.is_err() {
+        // Best effort: the error that matters is the write's.
+        let _ = std::fs::remove_file(&temporary);
+    }
+    written
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+
+    #[test]
+    fn a_failed_write_keeps_the_previous_file_and_leaves_no_partial_one() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.txt");
+        write_whole(&path, |file| file.write_all(b"first")).unwrap();
+        let failed = write_whole(&path, |file| {
+            file.write_all(b"half")?;
+            Err(std::io::Error::other("disk full"))
+        });
+        assert!(failed.is_err());
+        assert_eq!(std::fs::read(&path).unwrap(), b"first");
+        assert!(!dir.path().join("out.txt.partial").exists());
+        write_whole(&path, |file| file.write_all(b"second")).unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"second");
+    }
+}

@@ -141,13 +141,14 @@ impl Trajectory {
         Ok(())
     }
 
+    /// Writes the TUM file, whole or not at all ([`crate::files::write_whole`]).
     pub fn write_tum(&self, path: &Path) -> Result<(), DatasetError> {
-        let mut file = std::io::BufWriter::new(
-            std::fs::File::create(path).map_err(|e| DatasetError::io(path, e))?,
-        );
-        self.write_tum_to(&mut file)
-            .map_err(|e| DatasetError::io(path, e))?;
-        file.flush().map_err(|e| DatasetError::io(path, e))
+        crate::files::write_whole(path, |file| {
+            let mut buffered = std::io::BufWriter::new(file);
+            self.write_tum_to(&mut buffered)?;
+            buffered.flush()
+        })
+        .map_err(|e| DatasetError::io(path, e))
     }
 }
 

@@ -356,7 +356,7 @@ pub fn load_ply(path: impl AsRef<Path>) -> Result<GaussianCloud, PlyError> {
     read_ply(std::fs::File::open(path)?)
 }
 
-/// Writes a 3DGS PLY file.
+/// Writes a 3DGS PLY file, whole or not at all ([`geometry::files::write_whole`]).
 pub fn save_ply(path: impl AsRef<Path>, cloud: &GaussianCloud) -> Result<(), PlyError> {
-    write_ply(std::fs::File::create(path)?, cloud)
+    geometry::files::write_whole(path.as_ref(), |file| write_ply(file, cloud))
 }

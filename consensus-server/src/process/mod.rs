@@ -69,8 +69,7 @@ pub fn run_with_snapshots(
     snapshot: &AtomicBool,
 ) -> anyhow::Result<ConsensusReport> {
     let _span = tracing::info_span!("consensus").entered();
-    std::fs::create_dir_all(&options.out)
-        .with_context(|| format!("creating output directory {}", options.out.display()))?;
+    config::process::prepare_output_dir(&options.out)?;
     let started = Instant::now();
     let link = ConsumerLink::open(&options.transport).context("opening the transport")?;
     tracing::info!(namespace = %options.transport.namespace, "consensus listening");

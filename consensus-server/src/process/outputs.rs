@@ -3,6 +3,7 @@
 //! trajectory.
 
 use std::collections::BTreeMap;
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
@@ -230,7 +231,8 @@ pub(super) fn write_outputs(
         keyframe_info: engine.keyframes().iter().map(|(k, v)| (*k, *v)).collect(),
     };
     let path = out.join("consensus.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&report)?)
+    let json = serde_json::to_string_pretty(&report)?;
+    geometry::files::write_whole(&path, |file| file.write_all(json.as_bytes()))
         .with_context(|| format!("writing {}", path.display()))?;
     Ok(report)
 }

@@ -84,6 +84,7 @@ impl Dataset for SyntheticDataset {
             rgb,
             depth,
             world_from_camera_gt: Some(pose),
+            ground_truth_error: None,
             intrinsics: self.intrinsics,
         })
     }
