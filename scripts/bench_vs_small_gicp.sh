@@ -158,6 +158,7 @@ import datetime, json, os, sys
 keys = ["command", "dataset", "frames", "threads", "repeats", "omp_wait_policy", "config",
         "load_before", "load_after", "commit"]
 context = dict(zip(keys, sys.argv[1:]))
+context["threads"], context["repeats"] = int(context["threads"]), int(context["repeats"])
 context["date"] = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 context["cores"] = os.cpu_count()
 print(json.dumps(context))
