@@ -1,8 +1,10 @@
 //! `mac-ego3d bench tracking`: G-ICP odometry over a dataset from the identity pose, timed per
 //! frame (points, covariances, alignment and map update; image decoding is excluded), with the
-//! trajectory's ATE against ground truth.
+//! trajectory's ATE against ground truth. `--dump-points` also writes the frames' points so an
+//! outside tracker can run on exactly the same input (scripts/bench_vs_small_gicp.sh).
 
-use std::path::PathBuf;
+use std::io::Write;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
@@ -12,6 +14,7 @@ use datasets::{self, FrameRange};
 use geometry::trajectory::Trajectory;
 use metrics::ate::{Alignment, DEFAULT_MAX_DT, ate};
 use metrics::stats::{median, quantile};
+use nalgebra::Point3;
 use registration::{Odometry, OdometryMode, TrackingOutcome};
 use serde::Serialize;
 
@@ -34,8 +37,67 @@ pub struct TrackingArgs {
     /// Write the estimated trajectory here (TUM format).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Also write each tracked frame's points, as the tracker back-projected them (pixel stride,
+    /// truncation, intrinsics applied), to this folder: DIR/points-NNNNNN.f32 (x y z per point,
+    /// little-endian f32, camera frame, metres; NNNNNN is the frame number) and DIR/frames.tsv
+    /// (timestamp and file name per frame, in tracking order). Written after each frame's timing;
+    /// the file writes still disturb the caches, so time with a run without it.
+    #[arg(long)]
+    dump_points: Option<PathBuf>,
     #[arg(long)]
     json: bool,
+}
+
+/// Writes frames' points for `--dump-points`: one raw f32 file per frame plus an index.
+struct PointDump {
+    dir: PathBuf,
+    index: std::io::BufWriter<std::fs::File>,
+}
+
+impl PointDump {
+    const INDEX: &str = "frames.tsv";
+
+    fn create(dir: &Path) -> anyhow::Result<Self> {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        let path = dir.join(Self::INDEX);
+        let mut index = std::io::BufWriter::new(
+            std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?,
+        );
+        writeln!(
+            index,
+            "# timestamp\tpoints file (x y z little-endian f32, camera frame, m)"
+        )
+        .with_context(|| format!("writing {}", path.display()))?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            index,
+        })
+    }
+
+    fn write(
+        &mut self,
+        frame_index: usize,
+        timestamp: f64,
+        points: &[Point3<f32>],
+    ) -> anyhow::Result<()> {
+        let name = format!("points-{frame_index:06}.f32");
+        let path = self.dir.join(&name);
+        let bytes: Vec<u8> = points
+            .iter()
+            .flat_map(|p| [p.x, p.y, p.z])
+            .flat_map(f32::to_le_bytes)
+            .collect();
+        std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+        // The timestamp as the TUM writer prints it, so trajectories match the ground truth.
+        writeln!(self.index, "{timestamp:.6}\t{name}")
+            .with_context(|| format!("writing {}", self.dir.join(Self::INDEX).display()))
+    }
+
+    fn finish(mut self) -> anyhow::Result<()> {
+        self.index
+            .flush()
+            .with_context(|| format!("writing {}", self.dir.join(Self::INDEX).display()))
+    }
 }
 
 #[derive(Serialize)]
@@ -83,6 +145,11 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     let mut iterations = Vec::with_capacity(ds.len());
     let mut stage_ms: [Vec<f64>; 3] = Default::default();
     let mut points = 0usize;
+    let mut dump = args
+        .dump_points
+        .as_deref()
+        .map(PointDump::create)
+        .transpose()?;
     for position in 0..ds.len() {
         let frame = match ds.load(position) {
             Ok(frame) => frame,
@@ -106,10 +173,20 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
             iterations.push(registration.iterations as f64);
         }
         points += tracked.points;
+        if let Some(dump) = dump.as_mut() {
+            dump.write(
+                frame.index,
+                frame.timestamp,
+                &tracked.frame_points.positions,
+            )?;
+        }
         estimate.push(frame.timestamp, tracked.world_from_camera);
         if let Some(gt) = frame.world_from_camera_gt {
             ground_truth.push(frame.timestamp, gt);
         }
+    }
+    if let Some(dump) = dump {
+        dump.finish()?;
     }
     if let Some(out) = &args.out {
         estimate

@@ -1,0 +1,305 @@
+#!/usr/bin/env python3
+"""small_gicp frame-to-model odometry on points dumped by `mac-ego3d bench tracking --dump-points`,
+and the side-by-side table of scripts/bench_vs_small_gicp.sh.
+
+  small_gicp_odometry.py track --points DIR --voxel M --threads N --out TRAJ.tum > RUN.json
+  small_gicp_odometry.py report --runs DIR [--json FILE]
+
+`track` needs numpy and small_gicp (the script's virtual environment); `report` and the helpers
+it uses need only the standard library, so the repository's tests run them without either.
+
+Tracking (`track`), per frame, on exactly the points our tracker used (same depth frames, pixel
+stride, truncation and intrinsics: they are our tracker's own back-projection):
+  1. small_gicp.PointCloud, a KdTree and `--neighbours` nearest-neighbour covariances;
+  2. G-ICP against a small_gicp.GaussianVoxelMap (VGICP: each voxel holds the Gaussian of the
+     points inserted into it) from a constant-velocity guess (the previous pose advanced by the
+     last frame-to-frame motion);
+  3. the frame's points are inserted into the voxel map at the estimated pose (every frame, with
+     the map's least-recently-used voxel removal: small_gicp's own incremental odometry).
+The timed region is steps 1-3 (what `bench tracking` times for ours, except that ours also
+back-projects the depth image, which favours small_gicp slightly); reading the points file and the
+float32 -> float64 conversion small_gicp's API takes are outside it. The first frame only seeds the
+map and is not timed, as in `bench tracking`.
+
+The JSON printed by `track` uses `bench tracking --json`'s key names for the figures both have
+(tracking_ms_median, tracking_ms_p90, points_ms_median, registration_ms_median,
+map_update_ms_median), so `report` treats both trackers alike.
+"""
+
+import argparse
+import glob
+import json
+import math
+import os
+import sys
+import time
+
+# The frames index `mac-ego3d bench tracking --dump-points` writes (see its --help).
+FRAMES_INDEX = "frames.tsv"
+# Configurations `report` compares ours against carry this prefix; ours is "ours".
+SMALL_GICP_PREFIX = "small_gicp"
+OURS = "ours"
+
+
+def read_frames_index(points_dir):
+    """(timestamp text, points file path) per frame, in tracking order."""
+    path = os.path.join(points_dir, FRAMES_INDEX)
+    frames = []
+    with open(path, encoding="utf-8") as index:
+        for number, line in enumerate(index, start=1):
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            fields = line.split("\t")
+            if len(fields) != 2:
+                raise ValueError(f"{path}:{number}: expected 'timestamp<TAB>file', got {line!r}")
+            stamp, name = fields
+            float(stamp)  # a malformed timestamp fails here, naming nothing worse than the line
+            frames.append((stamp, os.path.join(points_dir, name)))
+    if not frames:
+        raise ValueError(f"{path}: no frames")
+    return frames
+
+
+def quantile(values, q):
+    """Linear-interpolation quantile (numpy's default), q in [0, 1]; NaN for no values."""
+    if not values:
+        return math.nan
+    ordered = sorted(values)
+    position = q * (len(ordered) - 1)
+    low = math.floor(position)
+    high = min(low + 1, len(ordered) - 1)
+    return ordered[low] + (ordered[high] - ordered[low]) * (position - low)
+
+
+def median(values):
+    return quantile(values, 0.5)
+
+
+def tum_line(stamp, pose):
+    """One TUM line (timestamp tx ty tz qx qy qz qw) of a 4x4 camera-to-world pose (nested lists)."""
+    qx, qy, qz, qw = quaternion_from_rotation([row[:3] for row in pose[:3]])
+    t = [pose[0][3], pose[1][3], pose[2][3]]
+    return f"{stamp} {t[0]!r} {t[1]!r} {t[2]!r} {qx!r} {qy!r} {qz!r} {qw!r}"
+
+
+def quaternion_from_rotation(r):
+    """(x, y, z, w) of a 3x3 rotation matrix, w >= 0 (Shepperd's method: stable for any angle)."""
+    trace = r[0][0] + r[1][1] + r[2][2]
+    if trace > 0.0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        q = ((r[2][1] - r[1][2]) / s, (r[0][2] - r[2][0]) / s, (r[1][0] - r[0][1]) / s, s / 4.0)
+    elif r[0][0] > r[1][1] and r[0][0] > r[2][2]:
+        s = 2.0 * math.sqrt(1.0 + r[0][0] - r[1][1] - r[2][2])
+        q = (s / 4.0, (r[0][1] + r[1][0]) / s, (r[0][2] + r[2][0]) / s, (r[2][1] - r[1][2]) / s)
+    elif r[1][1] > r[2][2]:
+        s = 2.0 * math.sqrt(1.0 + r[1][1] - r[0][0] - r[2][2])
+        q = ((r[0][1] + r[1][0]) / s, s / 4.0, (r[1][2] + r[2][1]) / s, (r[0][2] - r[2][0]) / s)
+    else:
+        s = 2.0 * math.sqrt(1.0 + r[2][2] - r[0][0] - r[1][1])
+        q = ((r[0][2] + r[2][0]) / s, (r[1][2] + r[2][1]) / s, s / 4.0, (r[1][0] - r[0][1]) / s)
+    norm = math.sqrt(sum(c * c for c in q))
+    sign = 1.0 if q[3] >= 0.0 else -1.0
+    return tuple(sign * c / norm for c in q)
+
+
+def track(args):
+    import numpy as np
+    import small_gicp
+
+    frames = read_frames_index(args.points)
+    world_from_camera = np.eye(4)
+    velocity = np.eye(4)
+    voxel_map = small_gicp.GaussianVoxelMap(args.voxel)
+    poses = []
+    times_ms, stage_ms, iterations = [], ([], [], []), []
+    points = 0
+    for stamp, path in frames:
+        cloud_f32 = np.fromfile(path, dtype="<f4")
+        if cloud_f32.size % 3:
+            raise ValueError(f"{path}: {cloud_f32.size} floats, not x y z triples")
+        xyz = cloud_f32.reshape(-1, 3).astype(np.float64)
+        points += len(xyz)
+        start = time.perf_counter()
+        cloud = small_gicp.PointCloud(xyz)
+        tree = small_gicp.KdTree(cloud, num_threads=args.threads)
+        small_gicp.estimate_covariances(
+            cloud, tree, num_neighbors=args.neighbours, num_threads=args.threads
+        )
+        covariances_done = time.perf_counter()
+        if not poses:
+            voxel_map.insert(cloud, world_from_camera)
+            poses.append((stamp, world_from_camera.copy()))
+            continue
+        world_from_previous = world_from_camera
+        result = small_gicp.align(
+            voxel_map,
+            cloud,
+            init_T_target_source=world_from_previous @ velocity,
+            max_correspondence_distance=args.max_correspondence,
+            num_threads=args.threads,
+            max_iterations=args.max_iterations,
+        )
+        registered = time.perf_counter()
+        world_from_camera = np.array(result.T_target_source)
+        velocity = np.linalg.inv(world_from_previous) @ world_from_camera
+        voxel_map.insert(cloud, world_from_camera)
+        end = time.perf_counter()
+        times_ms.append((end - start) * 1e3)
+        stage_ms[0].append((covariances_done - start) * 1e3)
+        stage_ms[1].append((registered - covariances_done) * 1e3)
+        stage_ms[2].append((end - registered) * 1e3)
+        iterations.append(result.iterations)
+        poses.append((stamp, world_from_camera.copy()))
+    with open(args.out, "w", encoding="utf-8") as out:
+        out.write("# timestamp tx ty tz qx qy qz qw (camera-to-world)\n")
+        for stamp, pose in poses:
+            out.write(tum_line(stamp, pose.tolist()) + "\n")
+    report = {
+        "tracker": f"small_gicp {small_gicp_version()} GaussianVoxelMap (VGICP), frame-to-model",
+        "voxel_m": args.voxel,
+        "max_correspondence_m": args.max_correspondence,
+        "covariance_neighbours": args.neighbours,
+        "max_iterations": args.max_iterations,
+        "threads": args.threads,
+        "frames": len(poses),
+        "points_per_frame": points / len(poses),
+        "tracking_ms_median": median(times_ms),
+        "tracking_ms_p90": quantile(times_ms, 0.9),
+        "tracking_ms_max": quantile(times_ms, 1.0),
+        "points_ms_median": median(stage_ms[0]),
+        "registration_ms_median": median(stage_ms[1]),
+        "map_update_ms_median": median(stage_ms[2]),
+        "iterations_median": median(iterations),
+        "map_voxels": voxel_map.size(),
+    }
+    json.dump(report, sys.stdout, indent=2)
+    print()
+
+
+def small_gicp_version():
+    from importlib import metadata
+
+    try:
+        return metadata.version("small_gicp")
+    except metadata.PackageNotFoundError:
+        return "(version unknown)"
+
+
+def summarise(runs_dir):
+    """Per configuration: the medians over repeats of each run's figures.
+
+    `runs_dir` holds CONFIG-rN.json (a run's `bench tracking --json` or `track` output) and
+    CONFIG-rN.ate.json (`mac-ego3d eval ate --json` of that run's trajectory).
+    """
+    by_config = {}
+    for path in sorted(glob.glob(os.path.join(runs_dir, "*-r*.json"))):
+        if path.endswith(".ate.json"):
+            continue
+        config, _, repeat = os.path.basename(path)[: -len(".json")].rpartition("-r")
+        if not config or not repeat.isdigit():
+            raise ValueError(f"{path}: expected a name CONFIG-rN.json")
+        with open(path, encoding="utf-8") as f:
+            run = json.load(f)
+        ate_path = path[: -len(".json")] + ".ate.json"
+        try:
+            with open(ate_path, encoding="utf-8") as f:
+                run["ate_rmse_m"] = json.load(f)["rmse"]
+        except FileNotFoundError:
+            raise ValueError(f"{ate_path}: missing (the ATE of {path})") from None
+        by_config.setdefault(config, []).append(run)
+    if OURS not in by_config:
+        raise ValueError(f"{runs_dir}: no {OURS}-rN.json run")
+    keys = [
+        "tracking_ms_median",
+        "tracking_ms_p90",
+        "points_ms_median",
+        "registration_ms_median",
+        "map_update_ms_median",
+        "iterations_median",
+        "points_per_frame",
+        "ate_rmse_m",
+    ]
+    summary = {}
+    for config, runs in by_config.items():
+        row = {"repeats": len(runs), "frames": runs[0].get("frames")}
+        for key in keys:
+            row[key] = median([r[key] for r in runs if r.get(key) is not None])
+        row["tracking_ms_median_spread"] = [
+            min(r["tracking_ms_median"] for r in runs),
+            max(r["tracking_ms_median"] for r in runs),
+        ]
+        summary[config] = row
+    ours = summary[OURS]
+    for config, row in summary.items():
+        if config != OURS:
+            row["ours_over_this_ms_median"] = ours["tracking_ms_median"] / row["tracking_ms_median"]
+            row["ours_over_this_ms_p90"] = ours["tracking_ms_p90"] / row["tracking_ms_p90"]
+    return summary
+
+
+def table(summary):
+    """The side-by-side table, ours first, as text."""
+    header = (
+        f"{'tracker':<24} {'runs':>4} {'ms med':>7} {'ms p90':>7} {'spread':>13} "
+        f"{'ATE cm':>7} {'ours/this':>9}  {'points/reg/map ms':>18}"
+    )
+    lines = [header]
+    for config in [OURS] + sorted(c for c in summary if c != OURS):
+        row = summary[config]
+        low, high = row["tracking_ms_median_spread"]
+        ratio = row.get("ours_over_this_ms_median")
+        stages = "/".join(
+            f"{row[k]:.2f}"
+            for k in ("points_ms_median", "registration_ms_median", "map_update_ms_median")
+        )
+        lines.append(
+            f"{config:<24} {row['repeats']:>4} {row['tracking_ms_median']:>7.2f} "
+            f"{row['tracking_ms_p90']:>7.2f} {f'{low:.2f}-{high:.2f}':>13} "
+            f"{row['ate_rmse_m'] * 100:>7.2f} {'' if ratio is None else f'{ratio:.2f}':>9}  "
+            f"{stages:>18}"
+        )
+    return "\n".join(lines)
+
+
+def report(args):
+    summary = summarise(args.runs)
+    print(table(summary))
+    if args.json:
+        document = {"context": json.loads(args.context) if args.context else {}, "trackers": summary}
+        with open(args.json, "w", encoding="utf-8") as out:
+            json.dump(document, out, indent=2)
+            out.write("\n")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    t = commands.add_parser("track", help="small_gicp odometry over dumped points")
+    t.add_argument("--points", required=True, help="folder written by bench tracking --dump-points")
+    t.add_argument("--voxel", type=float, required=True, help="GaussianVoxelMap voxel size, m")
+    t.add_argument("--threads", type=int, default=2)
+    t.add_argument("--neighbours", type=int, default=10, help="k of the covariances (ours: 10)")
+    t.add_argument(
+        "--max-correspondence",
+        type=float,
+        default=1.0,
+        help="small_gicp's max_correspondence_distance, m (its default)",
+    )
+    t.add_argument("--max-iterations", type=int, default=20, help="small_gicp's default")
+    t.add_argument("--out", required=True, help="trajectory to write (TUM)")
+    r = commands.add_parser("report", help="table and JSON of the runs in a folder")
+    r.add_argument("--runs", required=True, help="folder of CONFIG-rN.json and CONFIG-rN.ate.json")
+    r.add_argument("--json", help="write the summary here")
+    r.add_argument("--context", help="JSON object stored as the summary's context")
+    args = parser.parse_args(argv)
+    try:
+        (track if args.command == "track" else report)(args)
+    except (OSError, ValueError) as error:
+        print(f"small_gicp_odometry.py: {error}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
