@@ -27,6 +27,10 @@ declare -A PACKAGES=(
   [mesa-vulkan-drivers]=/usr/share/doc/mesa-vulkan-drivers
   [pkg-config]=/usr/share/doc/pkg-config
   [fonts-dejavu-core]=/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf
+  # The weights fetch and the peer benchmarks (small_gicp) run Python in a virtual environment;
+  # tests check the benchmark's Python driver.
+  [python3]=/usr/share/doc/python3
+  [python3-venv]=/usr/share/doc/python3-venv
 )
 
 missing=()
