@@ -466,13 +466,11 @@ fn scene_scale(first: &GaussianCloud) -> f64 {
 /// The keyframe's camera and target at mapping resolution (`downscale` x smaller).
 fn keyframe_target(keyframe: &MappingKeyframe, downscale: u32) -> (Camera, TargetImage) {
     let target = downscale_target(&keyframe.rgb, &keyframe.depth, downscale);
-    // The target's own size: box filtering drops a partial last block, which rounding the
-    // scaled intrinsics' size need not.
-    let intrinsics = Intrinsics {
-        width: target.width,
-        height: target.height,
-        ..keyframe.intrinsics.scaled(1.0 / f64::from(downscale))
-    };
+    let intrinsics = keyframe.intrinsics.binned(downscale);
+    debug_assert_eq!(
+        (intrinsics.width, intrinsics.height),
+        (target.width, target.height)
+    );
     let camera = Camera::new(
         RigidTransform::from(&keyframe.world_from_camera),
         &intrinsics,

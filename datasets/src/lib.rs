@@ -134,16 +134,7 @@ impl fmt::Display for FrameRange {
 
 /// Reads an 8-bit RGB image (PNG or JPEG; grey and RGBA are converted), naming the file on error.
 pub fn read_rgb(path: &Path, index: usize) -> Result<RgbImage, DatasetError> {
-    let bytes = std::fs::read(path).map_err(|e| {
-        if e.kind() == std::io::ErrorKind::NotFound {
-            DatasetError::MissingFrame {
-                path: path.to_path_buf(),
-                index,
-            }
-        } else {
-            DatasetError::io(path, e)
-        }
-    })?;
+    let bytes = read_frame_file(path, index)?;
     if is_truncated_jpeg(&bytes) {
         return Err(DatasetError::decode(
             path,
@@ -163,6 +154,20 @@ pub fn read_rgb(path: &Path, index: usize) -> Result<RgbImage, DatasetError> {
     }
 }
 
+/// The bytes of one of frame `index`'s files; a file that is not there is a missing frame.
+fn read_frame_file(path: &Path, index: usize) -> Result<Vec<u8>, DatasetError> {
+    std::fs::read(path).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            DatasetError::MissingFrame {
+                path: path.to_path_buf(),
+                index,
+            }
+        } else {
+            DatasetError::io(path, e)
+        }
+    })
+}
+
 /// A JPEG (starts with the SOI marker) that does not end with the EOI marker `FF D9` (trailing
 /// zero padding allowed). The JPEG decoder fills a cut-short file's missing rows with grey
 /// instead of failing, which would hand tracking and mapping an image that is partly made up.
@@ -177,16 +182,7 @@ fn is_truncated_jpeg(bytes: &[u8]) -> bool {
 /// Reads a 16-bit single-channel depth PNG as raw units, refusing 8-bit or colour PNGs (a common
 /// mistake that would silently scale depth by 256).
 pub fn read_depth_u16(path: &Path, index: usize) -> Result<(u32, u32, Vec<u16>), DatasetError> {
-    let bytes = std::fs::read(path).map_err(|e| {
-        if e.kind() == std::io::ErrorKind::NotFound {
-            DatasetError::MissingFrame {
-                path: path.to_path_buf(),
-                index,
-            }
-        } else {
-            DatasetError::io(path, e)
-        }
-    })?;
+    let bytes = read_frame_file(path, index)?;
     let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
         .map_err(|e| DatasetError::decode(path, e))?;
     match img {

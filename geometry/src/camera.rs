@@ -57,6 +57,18 @@ impl Intrinsics {
             && pixel.y < self.height as f64 - 0.5
     }
 
+    /// The same camera for the image binned by `factor` (each pixel the mean of a `factor` x
+    /// `factor` block, a partial last block dropped, as render-core's `TargetImage::downscaled`
+    /// does): scaled about pixel corners, with the size rounded down as the binning does.
+    pub fn binned(&self, factor: u32) -> Self {
+        let factor = factor.max(1);
+        Self {
+            width: self.width / factor,
+            height: self.height / factor,
+            ..self.scaled(1.0 / f64::from(factor))
+        }
+    }
+
     /// The same camera for an image scaled by `factor` (e.g. 0.5 for half resolution).
     pub fn scaled(&self, factor: f64) -> Self {
         let width = (self.width as f64 * factor).round() as u32;
@@ -135,6 +147,18 @@ impl Intrinsics {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn binned_intrinsics_drop_the_partial_last_block_and_keep_the_image_edges() {
+        let k = Intrinsics::new(525.0, 520.0, 319.5, 239.5, 641, 481);
+        let half = k.binned(2);
+        assert_eq!((half.width, half.height), (320, 240));
+        assert_eq!((half.fx, half.fy), (262.5, 260.0));
+        // Pixel corners stay put: the left edge -0.5 maps to -0.5, the centre to the centre.
+        assert_eq!((half.cx, half.cy), (159.5, 119.5));
+        assert_eq!(k.binned(0), k.binned(1));
+        assert_eq!((k.binned(1).width, k.binned(1).fx), (641, 525.0));
+    }
 
     #[test]
     fn project_inverts_back_project() {

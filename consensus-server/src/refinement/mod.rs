@@ -152,14 +152,10 @@ fn prepare(view: &RefinementView, downscale: u32) -> Result<PreparedView, Refine
         });
     }
     let target = TargetImage::downscaled(width, height, &view.rgb8, &view.depth_m, downscale);
-    // The target's own size: box filtering drops a partial last block, which rounding the
-    // scaled intrinsics' size need not.
-    let intrinsics = Intrinsics {
-        width: target.width,
-        height: target.height,
-        ..view.intrinsics.scaled(1.0 / f64::from(downscale.max(1)))
-    };
-    Ok(PreparedView { intrinsics, target })
+    Ok(PreparedView {
+        intrinsics: view.intrinsics.binned(downscale),
+        target,
+    })
 }
 
 /// Runs the refinement of `problem` (see the module documentation).
