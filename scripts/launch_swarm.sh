@@ -5,6 +5,7 @@
 #   scripts/launch_swarm.sh [--config FILE] [--agents N] [--agent DATASET[:FIRST..END]]...
 #                           [--tcomm K] [--link-schedule FILE] [--noise rgb|depth|rgbd]
 #                           [--frames N] [--descriptor-weights FILE] [--out DIR]
+#                           [--transport iceoryx2|zenoh]
 #
 # With no arguments: the embedded synthetic scene, 3 agents (synthetic:agents=3,agent=K).
 # --agent repeats, one dataset (and frame range) per agent; agent K is the K-th --agent.
@@ -17,6 +18,10 @@
 # Ctrl-C reaches this script only and the order holds; a second Ctrl-C kills everything at once
 # (outputs may then be incomplete). A child that dies is reported at once, and every child is reaped (a dead, unreaped child would keep its shared-memory
 # slots); when agents failed, the consensus is stopped once the others are done.
+# --transport zenoh (root only) runs the consensus and each agent as a simulated host of its own
+# (scripts/simulated_host.sh: own mount namespace, private /dev/shm and iceoryx2 root, own
+# mac-bridge), all joined by zenoh over TCP on 127.0.0.1; metrics.json then counts each agent's
+# bytes on the network. The default, iceoryx2, runs everything on this host's shared memory.
 # On a terminal, one line shows the progress: frames, keyframes, link state, closures.
 #
 # The AlexNet weights (global descriptor, LPIPS) are the cached ones scripts/setup.sh fetches
@@ -39,6 +44,9 @@ weights=""
 specs=()
 link_schedule=""
 profile="${MAC_EGO3D_PROFILE:-release}"
+# --- transport (cross-host bridge) ---
+transport=iceoryx2
+# --- end transport ---
 
 usage() { sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//'; }
 while (($#)); do
@@ -52,6 +60,7 @@ while (($#)); do
     --descriptor-weights) weights="$2"; shift 2 ;;
     --out) out="$2"; shift 2 ;;
     --link-schedule) link_schedule="$2"; shift 2 ;;
+    --transport) transport="$2"; shift 2 ;;
     -h | --help) usage; exit 0 ;;
     *) echo "[swarm] unknown argument: $1" >&2; usage >&2; exit 2 ;;
   esac
@@ -62,6 +71,13 @@ fi
 [[ -f "$config" ]] || { echo "[swarm] --config $config: no such file" >&2; exit 2; }
 [[ -z "$link_schedule" || -f "$link_schedule" ]] ||
   { echo "[swarm] --link-schedule $link_schedule: no such file" >&2; exit 2; }
+# --- transport (cross-host bridge) ---
+case "$transport" in
+  iceoryx2) ;;
+  zenoh) (($(id -u) == 0)) || { echo "[swarm] --transport zenoh simulates hosts with mount namespaces: run as root" >&2; exit 2; } ;;
+  *) echo "[swarm] --transport $transport: expected iceoryx2 or zenoh" >&2; exit 2 ;;
+esac
+# --- end transport ---
 
 # Mesa's Vulkan loader path (libwayland, probing for a display) prints "error: XDG_RUNTIME_DIR
 # is invalid or not set in the environment." in every process when the variable is unset, as on a
@@ -77,6 +93,7 @@ bash scripts/setup.sh
 # Binaries where cargo puts them (CARGO_TARGET_DIR, when set, moves the whole target folder).
 bin="${CARGO_TARGET_DIR:-target}/$profile"
 build_args=(-p mac-agent -p mac-consensus -p mac-ego3d --bins)
+[[ "$transport" == zenoh ]] && build_args+=(-p mac-bridge)
 [[ "$profile" == release ]] && build_args+=(--release)
 if [[ -x "$bin/mac-agent" && -x "$bin/mac-consensus" && -x "$bin/mac-ego3d" ]]; then
   echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; up to date unless the sources changed)" >&2
@@ -155,7 +172,26 @@ trap on_interrupt INT TERM
 # Progress files of the previous run in this folder would show stale figures.
 rm -f "$out"/agent_*/progress.json "$out/consensus_progress.json"
 
-"${detach[@]}" "$bin/mac-consensus" --config "$run_config" --out "$out" --agents "$agents" \
+# --- transport (cross-host bridge) ---
+# With zenoh, every process below runs on a simulated host of its own: `on_host NAME BRIDGE_ARGS
+# -- PROGRAM` (the consensus host listens on a free port of 127.0.0.1, agent hosts connect).
+consensus_host=()
+if [[ "$transport" == zenoh ]]; then
+  zenoh_port="$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')"
+  consensus_host=(scripts/simulated_host.sh "$bin/mac-bridge" --role consumers --namespace "$namespace"
+    --agents "$agents" --listen "tcp/127.0.0.1:$zenoh_port" --report "$out/bridge_consensus.json" --)
+  echo "[swarm] transport zenoh: simulated hosts joined over tcp/127.0.0.1:$zenoh_port; bridge logs in $out/*.log"
+fi
+# The command prefix that runs agent K on its own simulated host (empty with iceoryx2).
+agent_host_of() {
+  agent_host=()
+  [[ "$transport" == zenoh ]] || return 0
+  agent_host=(scripts/simulated_host.sh "$bin/mac-bridge" --role agents --namespace "$namespace"
+    --agents "$agents" --local-agent "$1" --connect "tcp/127.0.0.1:$zenoh_port"
+    --report "$out/bridge_agent_$1.json" --)
+}
+# --- end transport ---
+"${detach[@]}" "${consensus_host[@]}" "$bin/mac-consensus" --config "$run_config" --out "$out" --agents "$agents" \
   --namespace "$namespace" --stop-agents "$STOP_WAIT_S" >"$out/consensus.log" 2>&1 &
 pids+=($!)
 names+=(consensus)
@@ -175,7 +211,8 @@ for ((k = 0; k < agents; k++)); do
     dataset="synthetic:agents=$agents,agent=$k,frames=$frames"
     range=".."
   fi
-  "${detach[@]}" "$bin/mac-agent" --config "$run_config" --dataset "$dataset" --frames "$range" --agent-id "$k" \
+  agent_host_of "$k"
+  "${detach[@]}" "${agent_host[@]}" "$bin/mac-agent" --config "$run_config" --dataset "$dataset" --frames "$range" --agent-id "$k" \
     --namespace "$namespace" --out "$out/agent_$k" "${weight_args[@]}" "${schedule_args[@]}" \
     >"$out/agent_$k.log" 2>&1 &
   pids+=($!)
@@ -287,6 +324,38 @@ if ((show_progress)); then
 fi
 
 "$bin/mac-ego3d" eval swarm --dir "$out" "${eval_args[@]}" || failed=1
+# --- transport (cross-host bridge) ---
+# metrics.json says which transport carried the run and, over zenoh, each agent's traffic on the
+# network as its host's bridge counted it (relayed bytes, both directions, and the mean rate).
+if [[ -f "$out/metrics.json" ]]; then
+  python3 - "$out" "$transport" "$agents" <<'PY' || failed=1
+import json, os, sys
+out, transport, agents = sys.argv[1], sys.argv[2], int(sys.argv[3])
+path = os.path.join(out, "metrics.json")
+metrics = json.load(open(path))
+metrics["transport"] = transport
+if transport == "zenoh":
+    network = {}
+    for k in range(agents):
+        report_path = os.path.join(out, f"bridge_agent_{k}.json")
+        if not os.path.exists(report_path):
+            network[str(k)] = None
+            continue
+        report = json.load(open(report_path))
+        traffic = report["agents"].get(str(k), {})
+        sent, received = traffic.get("bytes_to_network", 0), traffic.get("bytes_from_network", 0)
+        elapsed = report["elapsed_s"]
+        network[str(k)] = {
+            "bytes_to_network": sent,
+            "bytes_from_network": received,
+            "elapsed_s": elapsed,
+            "kb_per_s_to_network": sent / 1000 / elapsed if elapsed > 0 else None,
+        }
+    metrics["network_bytes_per_agent"] = network
+json.dump(metrics, open(path, "w"), indent=2)
+PY
+fi
+# --- end transport ---
 if [[ -f "$out/report.html" ]]; then
   # Absolute paths: this script ran from the repository root, the user may be elsewhere.
   dir="$(cd "$out" && pwd)"
