@@ -45,6 +45,9 @@ struct Reaped(Child);
 
 impl Drop for Reaped {
     fn drop(&mut self) {
+        if self.0.try_wait().ok().flatten().is_some() {
+            return;
+        }
         // SIGTERM first: a bridge stops in order.
         let _ = Command::new("kill")
             .args(["-TERM", &self.0.id().to_string()])
