@@ -93,7 +93,6 @@ bash scripts/setup.sh
 # Binaries where cargo puts them (CARGO_TARGET_DIR, when set, moves the whole target folder).
 bin="${CARGO_TARGET_DIR:-target}/$profile"
 build_args=(-p mac-agent -p mac-consensus -p mac-ego3d --bins)
-[[ "$transport" == zenoh ]] && build_args+=(-p mac-bridge)
 [[ "$profile" == release ]] && build_args+=(--release)
 if [[ -x "$bin/mac-agent" && -x "$bin/mac-consensus" && -x "$bin/mac-ego3d" ]]; then
   echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; up to date unless the sources changed)" >&2
@@ -101,6 +100,15 @@ else
   echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; the first build takes several minutes, progress below)" >&2
 fi
 cargo build "${build_args[@]}"
+# --- transport (cross-host bridge) ---
+# Built on its own: in one invocation with the others, cargo would unify the features of their
+# shared dependencies with zenoh's and rebuild them all.
+if [[ "$transport" == zenoh ]]; then
+  bridge_args=(-p mac-bridge)
+  [[ "$profile" == release ]] && bridge_args+=(--release)
+  cargo build "${bridge_args[@]}"
+fi
+# --- end transport ---
 
 # Per-run config: the given one, with T_comm and noise overridden when asked, resolved and
 # validated by mac-ego3d (every key listed, so the run folder says exactly what ran).
