@@ -8,11 +8,13 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 const AGENTS: usize = 2;
-const FRAMES: usize = 100;
-/// Joint ATE over zenoh within this fraction of the iceoryx2 run's (plus `ATE_FLOOR_M`, the
-/// run-to-run noise of the consensus's timing on a loaded machine at millimetre ATE).
+const FRAMES: usize = 150;
+/// Joint ATE over zenoh within this fraction of the iceoryx2 run's, plus `ATE_FLOOR_M`: at
+/// sub-millimetre to millimetre ATE the consensus's own run-to-run spread (its alignments and
+/// time-bounded refinement depend on thread timing) is larger than 10 %: two runs over
+/// iceoryx2 measured 0.09 and 1.8 mm, two over zenoh 1.0 and 2.5 mm.
 const ATE_TOLERANCE: f64 = 0.10;
-const ATE_FLOOR_M: f64 = 0.001;
+const ATE_FLOOR_M: f64 = 0.005;
 /// The joint refinement at the end is bounded by time; a short bound keeps the test short and
 /// is the same in both runs.
 const REFINEMENT_SECONDS: f64 = 5.0;
@@ -49,7 +51,12 @@ fn run_swarm(transport: &str, config: &Path, out: &Path) -> serde_json::Value {
     let target = binaries().parent().unwrap();
     let output = Command::new("bash")
         .arg(repository.join("scripts/launch_swarm.sh"))
-        .args(["--agents", &AGENTS.to_string(), "--frames", &FRAMES.to_string()])
+        .args([
+            "--agents",
+            &AGENTS.to_string(),
+            "--frames",
+            &FRAMES.to_string(),
+        ])
         .args(["--transport", transport])
         .arg("--config")
         .arg(config)
@@ -91,11 +98,32 @@ fn synthetic_swarm_over_zenoh_matches_iceoryx2() {
     );
     assert_eq!(local["agents_not_linked"], networked["agents_not_linked"]);
 
+    // The consensus got every agent's keyframes, complete and without sequence gaps, exactly
+    // as many as on one host; every goodbye crossed.
+    let consensus = |out: &str| -> serde_json::Value {
+        let path = dir.path().join(out).join("consensus.json");
+        serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+    };
+    let (local_consensus, networked_consensus) = (consensus("iceoryx2"), consensus("zenoh"));
+    for k in 0..AGENTS {
+        let agent = &networked_consensus["agents"][k.to_string()];
+        let local_agent = &local_consensus["agents"][k.to_string()];
+        assert_eq!(agent["keyframes"], local_agent["keyframes"], "agent {k}");
+        assert!(agent["keyframes"].as_u64().unwrap() > 0, "agent {k}");
+        for field in ["gaps", "keyframes_incomplete", "resend_requests"] {
+            assert_eq!(agent[field], 0, "agent {k}: {field}");
+        }
+        assert_eq!(agent["goodbyes"], 1, "agent {k}");
+    }
+
     // Every agent's keyframes crossed the network: its bridge counted them.
     for k in 0..AGENTS {
         let sent = networked["network_bytes_per_agent"][k.to_string()]["bytes_to_network"]
             .as_u64()
             .unwrap_or(0);
-        assert!(sent > 1_000_000, "agent {k} put {sent} bytes on the network");
+        assert!(
+            sent > 1_000_000,
+            "agent {k} put {sent} bytes on the network"
+        );
     }
 }

@@ -72,7 +72,10 @@ enum AgentHostInbound {
 }
 
 /// Runs the bridge of a host whose agents are `local_agents` until `stop`.
-pub async fn run_agent_host(context: BridgeContext, local_agents: Vec<u32>) -> Result<NetworkTraffic> {
+pub async fn run_agent_host(
+    context: BridgeContext,
+    local_agents: Vec<u32>,
+) -> Result<NetworkTraffic> {
     let (inbound_tx, inbound_rx) = crossbeam_channel::bounded(INBOUND_QUEUE);
     let ingress = spawn("ingress", &context.stop, {
         let (context, local_agents) = (context.clone(), local_agents.clone());
@@ -80,7 +83,11 @@ pub async fn run_agent_host(context: BridgeContext, local_agents: Vec<u32>) -> R
     })?;
     let mut subscribers = Vec::new();
     for &agent_id in &local_agents {
-        for last in [Topic::Correction.name(), Topic::Control.name(), GOODBYE_SEEN] {
+        for last in [
+            Topic::Correction.name(),
+            Topic::Control.name(),
+            GOODBYE_SEEN,
+        ] {
             let key = format!("{}/agent/{agent_id}/{last}", context.transport.namespace);
             let tx = inbound_tx.clone();
             let subscriber = context
@@ -119,7 +126,8 @@ pub async fn run_agent_host(context: BridgeContext, local_agents: Vec<u32>) -> R
     }
     tracing::info!("consumer host reachable: attaching to the local agents");
     let egress = spawn("egress", &context.stop, {
-        let (context, local_agents, tx) = (context.clone(), local_agents.clone(), inbound_tx.clone());
+        let (context, local_agents, tx) =
+            (context.clone(), local_agents.clone(), inbound_tx.clone());
         move || agent_host_egress(&context, &local_agents, &tx)
     })?;
     drop(inbound_tx);
@@ -145,7 +153,11 @@ fn agent_host_ingress(
         };
         match item {
             AgentHostInbound::Message(message) => {
-                traffic.count_in(message.agent_id, topic_label(message.topic), message.bytes.len());
+                traffic.count_in(
+                    message.agent_id,
+                    topic_label(message.topic),
+                    message.bytes.len(),
+                );
                 if let Err(e) = ingress.forward(&message) {
                     tracing::warn!(agent_id = message.agent_id, topic = %message.topic, error = %e,
                         "could not hand a relayed message to its agent");
@@ -175,7 +187,11 @@ fn agent_host_egress(
             continue;
         };
         let key = context.keys.topic(message.agent_id, message.topic);
-        traffic.count_out(message.agent_id, topic_label(message.topic), message.bytes.len());
+        traffic.count_out(
+            message.agent_id,
+            topic_label(message.topic),
+            message.bytes.len(),
+        );
         publishers.put(&key, message.bytes)?;
     }
     Ok(traffic)
@@ -194,7 +210,12 @@ pub async fn run_consumer_host(context: BridgeContext) -> Result<NetworkTraffic>
         move || consumer_host_egress(&context)
     })?;
     let mut subscribers = Vec::new();
-    for topic in [Topic::Lifecycle, Topic::Descriptor, Topic::KeyframeImage, Topic::Patch] {
+    for topic in [
+        Topic::Lifecycle,
+        Topic::Descriptor,
+        Topic::KeyframeImage,
+        Topic::Patch,
+    ] {
         let key = context.keys.topic_of_every_agent(topic);
         let (tx, keys) = (inbound_tx.clone(), context.keys.clone());
         let subscriber = context
@@ -254,7 +275,11 @@ fn consumer_host_ingress(
             Err(RecvTimeoutError::Timeout) => continue,
             Err(RecvTimeoutError::Disconnected) => break,
         };
-        traffic.count_in(message.agent_id, topic_label(message.topic), message.bytes.len());
+        traffic.count_in(
+            message.agent_id,
+            topic_label(message.topic),
+            message.bytes.len(),
+        );
         match ingress.forward(&message) {
             Ok(_) => {}
             Err(TransportError::ShutdownRequested) => break,
@@ -275,7 +300,11 @@ fn consumer_host_egress(context: &BridgeContext) -> Result<NetworkTraffic> {
             None => {}
             Some(ConsumerHostOutgoing::Message(message)) => {
                 let key = context.keys.topic(message.agent_id, message.topic);
-                traffic.count_out(message.agent_id, topic_label(message.topic), message.bytes.len());
+                traffic.count_out(
+                    message.agent_id,
+                    topic_label(message.topic),
+                    message.bytes.len(),
+                );
                 publishers.put(&key, message.bytes)?;
             }
             Some(ConsumerHostOutgoing::GoodbyeSeen { agent_id }) => {
@@ -356,7 +385,10 @@ async fn wait_for_token(context: &BridgeContext, key: &str) -> Result<bool> {
             }
         }
         if last_said.elapsed() >= Duration::from_secs(10) {
-            tracing::info!(waited_s = start.elapsed().as_secs(), "still no consumer host");
+            tracing::info!(
+                waited_s = start.elapsed().as_secs(),
+                "still no consumer host"
+            );
             last_said = Instant::now();
         }
         tokio::time::sleep(Duration::from_millis(50)).await;

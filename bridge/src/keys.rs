@@ -35,7 +35,11 @@ impl SwarmKeys {
 
     /// Key of agent `agent_id`'s `topic` (lifecycle included: one key per agent).
     pub fn topic(&self, agent_id: u32, topic: Topic) -> String {
-        format!("{}/{}", self.agent_prefix(&agent_id.to_string()), topic.name())
+        format!(
+            "{}/{}",
+            self.agent_prefix(&agent_id.to_string()),
+            topic.name()
+        )
     }
 
     /// Every agent's `topic` (a subscription on the consumer host).
@@ -44,7 +48,10 @@ impl SwarmKeys {
     }
 
     pub fn goodbye_seen(&self, agent_id: u32) -> String {
-        format!("{}/{GOODBYE_SEEN}", self.agent_prefix(&agent_id.to_string()))
+        format!(
+            "{}/{GOODBYE_SEEN}",
+            self.agent_prefix(&agent_id.to_string())
+        )
     }
 
     pub fn consumers_bridge(&self) -> String {
@@ -83,7 +90,10 @@ mod tests {
         let names = ServiceNames::new("mac7");
         assert_eq!(keys.topic(3, Topic::Patch), names.patch(3));
         assert_eq!(keys.topic(2, Topic::Lifecycle), "mac7/agent/2/lifecycle");
-        assert_eq!(keys.parse("mac7/agent/12/correction"), Some((12, "correction")));
+        assert_eq!(
+            keys.parse("mac7/agent/12/correction"),
+            Some((12, "correction"))
+        );
         assert_eq!(keys.parse(&keys.goodbye_seen(4)), Some((4, GOODBYE_SEEN)));
         assert_eq!(keys.parse("mac8/agent/1/patch"), None);
         assert_eq!(keys.parse("mac7/agent/x/patch"), None);

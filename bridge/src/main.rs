@@ -35,7 +35,10 @@ enum Role {
 }
 
 #[derive(Debug, Parser)]
-#[command(version, about = "Joins this host's iceoryx2 swarm to other hosts over zenoh")]
+#[command(
+    version,
+    about = "Joins this host's iceoryx2 swarm to other hosts over zenoh"
+)]
 struct Cli {
     #[arg(long, value_enum)]
     role: Role,
@@ -93,12 +96,19 @@ fn main() -> Result<()> {
 
 fn transport_config(cli: &Cli) -> Result<TransportConfig> {
     let Some(path) = &cli.transport_config else {
-        return Ok(TransportConfig::for_swarm(cli.namespace.clone(), cli.agents));
+        return Ok(TransportConfig::for_swarm(
+            cli.namespace.clone(),
+            cli.agents,
+        ));
     };
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("--transport-config {}", path.display()))?;
-    let mut config: TransportConfig = serde_json::from_str(&text)
-        .with_context(|| format!("--transport-config {}: not a transport config", path.display()))?;
+    let mut config: TransportConfig = serde_json::from_str(&text).with_context(|| {
+        format!(
+            "--transport-config {}: not a transport config",
+            path.display()
+        )
+    })?;
     config.namespace = cli.namespace.clone();
     if let Some(agents) = cli.agents {
         config.max_agents = agents;

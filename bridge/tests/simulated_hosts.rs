@@ -78,7 +78,8 @@ fn agent_on_host_a() {
     println!("epoch={}", link.epoch());
     link.announce(SAMPLE_INTRINSICS, 7, 0).unwrap();
     for keyframe in 0..DESCRIPTORS {
-        link.send_descriptor(&synthetic_descriptor(keyframe)).unwrap();
+        link.send_descriptor(&synthetic_descriptor(keyframe))
+            .unwrap();
     }
     link.send_patch_with(
         DESCRIPTORS,
@@ -95,7 +96,10 @@ fn agent_on_host_a() {
         "correction poses={} sequence={} in_order={}",
         correction.poses().len(),
         correction.header().stamp.sequence,
-        matches!(correction.delivery, Delivery::NewIncarnation { missed: 0, .. })
+        matches!(
+            correction.delivery,
+            Delivery::NewIncarnation { missed: 0, .. }
+        )
     );
     drop(correction);
     link.close().unwrap();
@@ -129,7 +133,14 @@ fn large_patch_and_stamps_cross_between_simulated_hosts() {
     let mut agent = Reaped(
         Command::new(repository.join("scripts/simulated_host.sh"))
             .arg(bridge)
-            .args(["--role", "agents", "--local-agent", "0", "--connect", &endpoint])
+            .args([
+                "--role",
+                "agents",
+                "--local-agent",
+                "0",
+                "--connect",
+                &endpoint,
+            ])
             .args(swarm)
             .arg("--")
             .arg(std::env::current_exe().unwrap())
@@ -206,7 +217,10 @@ fn large_patch_and_stamps_cross_between_simulated_hosts() {
     }];
     let start = Instant::now();
     while consumer.send_correction(0, Pose::IDENTITY, &poses).is_err() {
-        assert!(start.elapsed() < TIMEOUT, "the correction could not be sent");
+        assert!(
+            start.elapsed() < TIMEOUT,
+            "the correction could not be sent"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
     assert_eq!(next_line("correction "), "poses=1 sequence=0 in_order=true");

@@ -39,7 +39,9 @@ pub const CONSUMER_AGENT_ID: u32 = u32::MAX;
 pub const FINAL_MAP_KEYFRAME_ID: u64 = u64::MAX;
 
 /// Sender identity and ordering, carried by every message.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize,
+)]
 #[repr(C)]
 #[type_name("mac.v2.Stamp")]
 pub struct Stamp {
@@ -89,7 +91,9 @@ impl Default for Pose {
 }
 
 /// Pinhole intrinsics of the camera that produced a keyframe, in pixels.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize,
+)]
 #[repr(C)]
 #[type_name("mac.v2.Intrinsics")]
 pub struct Intrinsics {
@@ -162,7 +166,9 @@ impl KeyframeDescriptor {
 }
 
 /// One Gaussian of the map (docs/method.md, The map). 14 f32 = 56 bytes, no padding.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize,
+)]
 #[repr(C)]
 #[type_name("mac.v2.GaussianRecord")]
 pub struct GaussianRecord {
@@ -239,7 +245,9 @@ impl PatchHeader {
 /// alignment 2, no padding (the explicit `reserved` byte fills the hole before `depth_mm`).
 /// Millimetres in a `u16` cover 0.001 m to 65.535 m, beyond the range of any RGB-D sensor, at a
 /// third of the size of an RGB + f32 depth layout.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize,
+)]
 #[repr(C)]
 #[type_name("mac.v2.RgbdPixel")]
 pub struct RgbdPixel {
@@ -314,7 +322,9 @@ impl KeyframeImageHeader {
 }
 
 /// An updated keyframe pose inside a correction.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize,
+)]
 #[repr(C)]
 #[type_name("mac.v2.KeyframePose")]
 pub struct KeyframePose {

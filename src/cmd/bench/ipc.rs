@@ -181,7 +181,9 @@ fn across_simulated_hosts(
         std::env::temp_dir().join(format!("{}-transport.json", config.namespace));
     std::fs::write(&transport_file, serde_json::to_string(&transport)?)
         .with_context(|| format!("writing {}", transport_file.display()))?;
-    let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let bridge_args = |role: &str| -> Vec<String> {
         [
@@ -207,7 +209,10 @@ fn across_simulated_hosts(
         .with_context(|| format!("starting {}", bridge.display()))?;
     let driver_bridge = StopOnDrop(driver_bridge);
     // The peer's host: the peer and a consumer-role bridge that connects.
-    let mut host_args = vec!["RUST_LOG=warn".to_string(), host_script.display().to_string()];
+    let mut host_args = vec![
+        "RUST_LOG=warn".to_string(),
+        host_script.display().to_string(),
+    ];
     host_args.push(bridge.display().to_string());
     host_args.extend(bridge_args("consumers"));
     host_args.extend(["--connect".to_string(), endpoint, "--".to_string()]);

@@ -209,7 +209,10 @@ impl AgentHostEgress {
         }
     }
 
-    fn receive_descriptor(&mut self, slot: usize) -> Result<Option<RelayedMessage>, TransportError> {
+    fn receive_descriptor(
+        &mut self,
+        slot: usize,
+    ) -> Result<Option<RelayedMessage>, TransportError> {
         let (agent, sources) = &self.agents[slot];
         let agent = *agent;
         let received = sources.descriptor.receive(
@@ -272,7 +275,10 @@ impl Receiving for AgentHostEgress {
     }
 }
 
-pub(super) fn check_agent_id(config: &TransportConfig, agent_id: u32) -> Result<(), TransportError> {
+pub(super) fn check_agent_id(
+    config: &TransportConfig,
+    agent_id: u32,
+) -> Result<(), TransportError> {
     if agent_id >= config.max_agents {
         return Err(TransportError::AgentIdOutOfRange {
             agent_id,

@@ -10,9 +10,7 @@ use std::time::Duration;
 
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
-use iceoryx2::prelude::{
-    CallbackProgression, Node, SignalHandlingMode, WaitSetBuilder,
-};
+use iceoryx2::prelude::{CallbackProgression, Node, SignalHandlingMode, WaitSetBuilder};
 use iceoryx2::service::port_factory::event::PortFactory as EventService;
 
 use super::super::error::{port_error, wait_error};
@@ -139,10 +137,11 @@ impl ConsumerHostIngress {
             }
             Topic::KeyframeImage => {
                 let name = &publishers.keyframe_image.name;
-                let (header, pixels) =
-                    read_slice::<KeyframeImageHeader, RgbdPixel>(name, bytes)?;
+                let (header, pixels) = read_slice::<KeyframeImageHeader, RgbdPixel>(name, bytes)?;
                 check_owner(name, &header.stamp, agent_id)?;
-                publishers.keyframe_image.send_slice(&to, |_| header, pixels)
+                publishers
+                    .keyframe_image
+                    .send_slice(&to, |_| header, pixels)
             }
             Topic::Lifecycle => {
                 let name = &self.lifecycle.name;
@@ -215,9 +214,10 @@ impl ConsumerHostEgress {
         let agents = (0..config.max_agents)
             .map(|agent_id| {
                 let wake_service = open_agent_wake(&node, config, agent_id)?;
-                let listener = wake_service.listener_builder().create().map_err(|e| {
-                    port_error(&config.names().agent_wake(agent_id), "listener", e)
-                })?;
+                let listener = wake_service
+                    .listener_builder()
+                    .create()
+                    .map_err(|e| port_error(&config.names().agent_wake(agent_id), "listener", e))?;
                 Ok(AgentInboxes {
                     correction: Inbox::open(&node, config, agent_id)?,
                     control: Inbox::open(&node, config, agent_id)?,
