@@ -96,7 +96,9 @@ fn synthetic_swarm_over_zenoh_matches_iceoryx2() {
         (networked_ate - local_ate).abs() <= ATE_TOLERANCE * local_ate + ATE_FLOOR_M,
         "joint ATE over zenoh {networked_ate} m, over iceoryx2 {local_ate} m"
     );
-    assert_eq!(local["agents_not_linked"], networked["agents_not_linked"]);
+    // Not compared: which agents the consensus linked, which like the ATE depends on its
+    // thread timing at this short length (at 100 frames one iceoryx2 run linked agent 1, one
+    // zenoh run did not, with the same keyframes received).
 
     // The consensus got every agent's keyframes, complete and without sequence gaps, exactly
     // as many as on one host; every goodbye crossed.
