@@ -8,8 +8,8 @@
 // by the lane that loaded the splat, which adds them to screen_gradients after the step: one
 // atomic add per component per subgroup instead of one per invocation.
 // Skipping as in rasterize_subgroup.wgsl: the loop runs only over the loaded splats whose
-// visible box (visible_half_extent) reaches the subgroup's rows (a subgroupBallot); exact, such
-// a splat touched none of these pixels in the forward pass either.
+// visible ellipse reaches the subgroup's band (ellipse_misses_box; a subgroupBallot); exact, a
+// skipped splat touched none of these pixels in the forward pass either.
 // Invariants: loop bounds and shuffle source lanes are subgroup-uniform; lanes are assumed to
 // be numbered 0 .. active - 1; the subgroup size is never assumed.
 
@@ -23,8 +23,9 @@ fn main(
     let tile_origin = workgroup_id.xy * TILE_SIZE;
     let row = tile_origin.y + local_index;
     let pixel_y = f32(row);
-    let rows_low = f32(subgroupMin(row));
-    let rows_high = f32(subgroupMax(row));
+    // The subgroup's band of pixel centres: its rows, the tile's columns.
+    let band_low = vec2<f32>(f32(tile_origin.x), f32(subgroupMin(row)));
+    let band_high = vec2<f32>(f32(tile_origin.x + TILE_SIZE - 1u), f32(subgroupMax(row)));
     var group0 = load_group(tile_origin.x, row);
     var group1 = load_group(tile_origin.x + 4u, row);
     var group2 = load_group(tile_origin.x + 8u, row);
@@ -37,16 +38,16 @@ fn main(
         let count = min(lanes, end);
         var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
         var my_gaussian = 0u;
-        var reaches_rows = false;
+        var reaches_band = false;
         if lane < count {
             my_gaussian = intersection_gaussians[start + end - 1u - lane];
             mine = load_splat(my_gaussian);
-            let extent = visible_half_extent(mine.position.z, mine.conic, params.min_splat_alpha);
-            reaches_rows = !misses_span(mine.position.y, extent.y, rows_low, rows_high);
+            reaches_band = !ellipse_misses_box(mine.position.xy, mine.position.z, mine.conic,
+                                               params.min_splat_alpha, band_low, band_high);
         }
         var my_gradient = SplatGradient(vec4<f32>(0.0), vec4<f32>(0.0), vec2<f32>(0.0));
-        // Only the loaded splats that reach the subgroup's rows, in lane (= list) order.
-        var pending = subgroupBallot(reaches_rows);
+        // Only the loaded splats that reach the subgroup's band, in lane (= list) order.
+        var pending = subgroupBallot(reaches_band);
         loop {
             let k = pop_lowest_lane(&pending);
             if k == NO_LANE {

@@ -5,10 +5,11 @@
 // its lane with subgroupShuffle. On lavapipe a load costs the same per lane whether the lanes
 // share the address or not, so this loads each splat once per subgroup instead of once per
 // lane. The subgroup stops once all its pixels have stopped (subgroupAll).
-// Skipping: each lane also tests its splat's visible box (visible_half_extent, common.wgsl,
-// vectorised over the lanes) against the subgroup's rows, and the compositing loop runs only
-// over the splats that reach them (a subgroupBallot, walked lowest lane first = list order).
-// Exact: a skipped splat would have added exactly nothing to these rows. It is a shorter loop
+// Skipping: each lane also tests its splat's visible ellipse against the subgroup's band (its
+// rows x the tile's columns; ellipse_misses_box, common.wgsl, vectorised over the lanes), and
+// the compositing loop runs only over the splats that reach it (a subgroupBallot, walked
+// lowest lane first = list order). Exact: a skipped splat would have added exactly nothing to
+// the band's pixels. It is a shorter loop
 // rather than an `if` because SIMD CPU adapters (lavapipe) run straight-line code masked
 // whatever the condition and only save loop trips (see render-core/README.md).
 // Two splats per trip of the compositing loop: a SIMD CPU adapter (lavapipe) writes every
@@ -34,8 +35,9 @@ fn main(
     let range = tile_ranges[tile_id];
     let lanes = subgroupAdd(1u);
     let pixel_y = f32(row);
-    let rows_low = f32(subgroupMin(row));
-    let rows_high = f32(subgroupMax(row));
+    // The subgroup's band of pixel centres: its rows, the tile's columns.
+    let band_low = vec2<f32>(f32(tile_origin.x), f32(subgroupMin(row)));
+    let band_high = vec2<f32>(f32(tile_origin.x + TILE_SIZE - 1u), f32(subgroupMax(row)));
     var group0 = new_group(tile_origin.x, row);
     var group1 = new_group(tile_origin.x + 4u, row);
     var group2 = new_group(tile_origin.x + 8u, row);
@@ -45,20 +47,20 @@ fn main(
             break;
         }
         var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
-        var reaches_rows = false;
+        var reaches_band = false;
         if start + lane < range.y {
             mine = load_splat(intersection_gaussians[start + lane]);
-            let extent = visible_half_extent(mine.position.z, mine.conic, params.min_splat_alpha);
-            reaches_rows = !misses_span(mine.position.y, extent.y, rows_low, rows_high);
+            reaches_band = !ellipse_misses_box(mine.position.xy, mine.position.z, mine.conic,
+                                               params.min_splat_alpha, band_low, band_high);
         }
-        // Only the loaded splats that reach the subgroup's rows, in lane (= list) order.
-        var pending = subgroupBallot(reaches_rows);
+        // Only the loaded splats that reach the subgroup's band, in lane (= list) order.
+        var pending = subgroupBallot(reaches_band);
         loop {
             let k = pop_lowest_lane(&pending);
             if k == NO_LANE {
                 break;
             }
-            // The next splat reaching the rows, or the stand-in (zero opacity) when none is left.
+            // The next splat reaching the band, or the stand-in (zero opacity) when none is left.
             let next = pop_lowest_lane(&pending);
             let has_next = next != NO_LANE;
             let k2 = select(k, next, has_next);
