@@ -11,10 +11,10 @@ use harness::{
     DEFAULT_WARMUP, RasterWorkload, bench_camera, raster_workload, realistic_scene, run_case,
     run_case_on,
 };
+use render_core::constants::TILE_SIZE;
 use render_core::context::GpuContext;
 use render_core::gpu::{GpuRenderer, RendererOptions, StageTimes, Subgroups};
 use render_core::training::TrainingKernels;
-use render_core::constants::TILE_SIZE;
 use render_core::{Camera, GaussianCloud, RasterConfig};
 use serde::Serialize;
 
@@ -252,12 +252,9 @@ fn renderer_band_rows(context: &GpuContext, renderer: &GpuRenderer) -> Option<u3
 /// A case's evaluations per second (its workload in the renderer's layout over its rasterize
 /// stage) against the peak rate at its size.
 fn rate_report(case: &CaseReport, band_rows: u32, peak: &peak::PeakRate) -> Option<RateReport> {
-    let workload = case
-        .workload
-        .iter()
-        .find(|w| {
-            (w.tile_size, w.band_rows, w.band_columns) == (TILE_SIZE, band_rows, FORWARD_BAND_COLUMNS)
-        })?;
+    let workload = case.workload.iter().find(|w| {
+        (w.tile_size, w.band_rows, w.band_columns) == (TILE_SIZE, band_rows, FORWARD_BAND_COLUMNS)
+    })?;
     let rasterize_ms = case
         .forward_stages
         .iter()
@@ -273,8 +270,7 @@ fn rate_report(case: &CaseReport, band_rows: u32, peak: &peak::PeakRate) -> Opti
         evaluations_per_second,
         peak_evaluations_per_second,
         fraction_of_peak: evaluations_per_second / peak_evaluations_per_second,
-        visible_at_peak_ms: workload.visible_evaluations as f64 / peak_evaluations_per_second
-            * 1e3,
+        visible_at_peak_ms: workload.visible_evaluations as f64 / peak_evaluations_per_second * 1e3,
     })
 }
 
@@ -394,7 +390,10 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
                 Some(peak) => peak,
                 None => {
                     if !args.json {
-                        eprintln!("measuring the peak evaluation rate at {}x{} ...", size.0, size.1);
+                        eprintln!(
+                            "measuring the peak evaluation rate at {}x{} ...",
+                            size.0, size.1
+                        );
                     }
                     let peak = peak::peak_rate(&context, &renderer, &config, size.0, size.1)
                         .with_context(|| format!("peak rate at {}x{}", size.0, size.1))?;
@@ -517,7 +516,15 @@ fn print_rates(report: &BenchRenderReport) {
     );
     println!(
         "  {:>10} {:>9} {:>5} {:>13} {:>12} {:>10} {:>8} {:>9} {:>16}",
-        "gaussians", "size", "band", "evaluations", "visible", "raster ms", "M/s", "% peak", "visible@peak ms"
+        "gaussians",
+        "size",
+        "band",
+        "evaluations",
+        "visible",
+        "raster ms",
+        "M/s",
+        "% peak",
+        "visible@peak ms"
     );
     for case in &report.cases {
         let Some(r) = &case.rate else { continue };

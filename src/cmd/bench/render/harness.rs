@@ -835,4 +835,3 @@ mod tests {
         assert!(covered.iter().all(|&c| c));
     }
 }
-

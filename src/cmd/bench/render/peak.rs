@@ -6,9 +6,9 @@
 //! evaluates pairs on this machine; a real view's rate against it shows how much of its time
 //! goes into pairs it could not have avoided.
 
+use render_core::constants::TILE_SIZE;
 use render_core::context::{GpuContext, GpuError};
 use render_core::gpu::{DeviceGaussians, GpuRenderer, StageTimes};
-use render_core::constants::TILE_SIZE;
 use render_core::{Camera, GaussianCloud, RasterConfig};
 
 use super::harness::{BenchConfig, bench_camera};
@@ -55,8 +55,8 @@ pub fn peak_scene(camera: &Camera) -> GaussianCloud {
     let sigma_pixels = PEAK_SIGMA_DIAGONALS * diagonal;
     let mut cloud = GaussianCloud::default();
     for layer in 0..PEAK_LAYERS {
-        let z = PEAK_NEAREST
-            + (PEAK_FARTHEST - PEAK_NEAREST) * layer as f32 / (PEAK_LAYERS - 1) as f32;
+        let z =
+            PEAK_NEAREST + (PEAK_FARTHEST - PEAK_NEAREST) * layer as f32 / (PEAK_LAYERS - 1) as f32;
         let centre = [
             (camera.width as f32 / 2.0 - camera.cx) * z / camera.fx,
             (camera.height as f32 / 2.0 - camera.cy) * z / camera.fy,
@@ -126,8 +126,8 @@ fn rasterize_ms(stages: &StageTimes) -> Option<f64> {
 
 #[cfg(test)]
 mod tests {
-    use super::*;
     use super::super::harness::raster_workload;
+    use super::*;
 
     #[test]
     fn every_evaluation_of_the_peak_scene_is_visible() {
