@@ -171,7 +171,7 @@ impl From<RasterWorkload> for WorkloadReport {
 
 /// (tile size, band rows, band columns) counted by `--workload`: this renderer's 16-pixel
 /// tiles (a band is the rows of one subgroup, 8 on lavapipe; the forward rasterizer tests
-/// halves of it, the backward the whole band) and what smaller bands or tiles would do.
+/// halves of it, as does the backward) and what other bands or tiles would do.
 const WORKLOAD_LAYOUTS: [(u32, u32, u32); 7] = [
     (16, 16, 16),
     (16, 8, 16),

@@ -124,7 +124,7 @@ pub struct BenchCase {
 /// (where opacity x exp(power) can reach `min_splat_alpha`) reaches, as the renderer's tile
 /// masks do, and walked front to back per band of `band_rows` tile rows, as the subgroup
 /// rasterizers walk them per subgroup, each band tested in parts of `band_columns` columns
-/// (the forward rasterizer's two halves of a tile, the backward's whole tile): a part the
+/// (8, the rasterizers' two halves of a tile; 16, the whole tile): a part the
 /// splat's visible ellipse misses is skipped, any other costs one evaluation per pixel of the
 /// part, until every pixel of the band has terminated.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
