@@ -34,8 +34,8 @@ use registration::config::{KeyframeConfig, TrackingConfig};
 use serde::{Deserialize, Serialize};
 
 pub use consensus::{
-    AlignmentConfig, ConsensusConfig, LocalCorrectionConfig, MapRegistrationConfig,
-    PoseGraphConfig, RefinementConfig, ResendConfig,
+    AlignmentConfig, ConsensusConfig, FalseClosureConfig, LocalCorrectionConfig,
+    MapRegistrationConfig, PoseGraphConfig, RefinementConfig, ResendConfig,
 };
 pub use mapping::MappingConfig;
 
