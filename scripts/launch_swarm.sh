@@ -5,9 +5,13 @@
 #   scripts/launch_swarm.sh [--config FILE] [--agents N] [--agent DATASET[:FIRST..END]]...
 #                           [--tcomm K] [--link-schedule FILE] [--noise rgb|depth|rgbd]
 #                           [--frames N] [--descriptor-weights FILE] [--out DIR]
+#                           [--set KEY=VALUE]...
 #
 # With no arguments: the embedded synthetic scene, 3 agents (synthetic:agents=3,agent=K).
 # --agent repeats, one dataset (and frame range) per agent; agent K is the K-th --agent.
+# --set KEY=VALUE overrides one configuration key for every process of the run (dotted path, as
+# `mac-ego3d config --set`: `--set consensus.t_comm=30`); repeatable, applied after --tcomm and
+# --noise, checked before anything starts.
 # --link-schedule FILE simulates intermittent links: per agent, the time windows in which it can
 # talk to the consensus; what it publishes meanwhile is queued and delivered at reconnect (the
 # format is documented in agent/src/link_schedule.rs). The file is checked before anything starts.
@@ -37,10 +41,12 @@ frames=200
 out=out/swarm
 weights=""
 specs=()
+sets=()
 link_schedule=""
 profile="${MAC_EGO3D_PROFILE:-release}"
 
-usage() { sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//'; }
+# The header above, up to its first line that is not a comment.
+usage() { sed -n '2,/^[^#]/p' "$0" | sed -n 's/^# \{0,1\}//p'; }
 while (($#)); do
   case "$1" in
     --config) config="$2"; shift 2 ;;
@@ -52,6 +58,7 @@ while (($#)); do
     --descriptor-weights) weights="$2"; shift 2 ;;
     --out) out="$2"; shift 2 ;;
     --link-schedule) link_schedule="$2"; shift 2 ;;
+    --set) sets+=("$2"); shift 2 ;;
     -h | --help) usage; exit 0 ;;
     *) echo "[swarm] unknown argument: $1" >&2; usage >&2; exit 2 ;;
   esac
@@ -95,6 +102,9 @@ if [[ -n "$noise" ]]; then
   case "$noise" in rgb | depth | rgbd) ;; *) echo "[swarm] --noise $noise: expected rgb, depth or rgbd" >&2; exit 2 ;; esac
   overrides+=(--set "noise.target=$noise")
 fi
+for pair in "${sets[@]}"; do
+  overrides+=(--set "$pair")
+done
 # Written beside and renamed: the given file may be this very path (a rerun into one folder).
 "$bin/mac-ego3d" config --config "$config" "${overrides[@]}" --out "$run_config.new" ||
   { echo "[swarm] the configuration is refused (above)" >&2; exit 2; }

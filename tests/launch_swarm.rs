@@ -63,6 +63,8 @@ fn ctrl_c_to_the_whole_process_group_leaves_every_agents_outputs_and_the_world_o
             &AGENTS.to_string(),
             "--frames",
             &FRAMES.to_string(),
+            "--set",
+            "consensus.t_comm=45",
         ])
         .arg("--out")
         .arg(out.path())
@@ -123,6 +125,9 @@ fn ctrl_c_to_the_whole_process_group_leaves_every_agents_outputs_and_the_world_o
         serde_json::from_str(&std::fs::read_to_string(out.path().join("consensus.json")).unwrap())
             .unwrap();
     assert_eq!(consensus["interrupted"], true);
+    // `--set` reached the run's configuration, which every process read.
+    let run_config = config::Config::load(&out.path().join("config.toml")).unwrap();
+    assert_eq!(run_config.consensus.t_comm, 45);
     for k in 0..AGENTS {
         // Every agent handed over its trajectory, and it stopped early.
         let own = out.path().join(format!("agent_{k}/trajectory.tum"));
@@ -148,4 +153,27 @@ fn ctrl_c_to_the_whole_process_group_leaves_every_agents_outputs_and_the_world_o
     }
     assert!(out.path().join("map.ply").exists());
     assert!(out.path().join("metrics.json").exists());
+}
+
+/// A wrong `--set` stops the run before any process starts, naming the key.
+#[test]
+fn a_wrong_set_override_is_refused_before_anything_starts() {
+    let repository = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = tempfile::tempdir().unwrap();
+    let binaries = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
+    let profile = binaries.file_name().unwrap().to_str().unwrap();
+    let output = Command::new("bash")
+        .arg(repository.join("scripts/launch_swarm.sh"))
+        .args(["--agents", "1", "--set", "consensus.t_comm=often"])
+        .arg("--out")
+        .arg(out.path())
+        .env("MAC_EGO3D_PROFILE", profile)
+        .env("CARGO_TARGET_DIR", target_dir())
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&output.stderr).to_string()
+        + &String::from_utf8_lossy(&output.stdout);
+    assert_eq!(output.status.code(), Some(2), "{log}");
+    assert!(log.contains("consensus.t_comm"), "{log}");
+    assert!(!out.path().join("consensus.log").exists(), "{log}");
 }
