@@ -37,7 +37,7 @@ pub use consensus::{
     AlignmentConfig, ConsensusConfig, FalseClosureConfig, LocalCorrectionConfig,
     MapRegistrationConfig, PoseGraphConfig, RefinementConfig, ResendConfig,
 };
-pub use mapping::MappingConfig;
+pub use mapping::{MappingConfig, Pace};
 
 /// The whole configuration file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
