@@ -164,7 +164,13 @@ pub(super) fn refine_world_map(
     let realtime_path = options.out.join("map_realtime.ply");
     render_core::ply::save_ply(&realtime_path, &map)
         .with_context(|| format!("writing {}", realtime_path.display()))?;
-    match refinement::refine(problem, consensus) {
+    // Paced runs give the same map on any machine: the refinement runs all its iterations,
+    // however long they take (docs/method.md, Pace).
+    let mut consensus = consensus.clone();
+    if options.config.mapping.pace == config::Pace::Paced {
+        consensus.refinement.max_seconds = f64::INFINITY;
+    }
+    match refinement::refine(problem, &consensus) {
         Ok(outcome) => {
             if consensus.refinement.refine_poses {
                 engine.apply_refined_poses(&outcome.world_from_camera);
