@@ -43,10 +43,7 @@ const KILL_AFTER: Duration = Duration::from_secs(8);
 /// The consensus is killed this long after the swarm started, and started again this long after.
 const CONSENSUS_KILL_AFTER: Duration = Duration::from_secs(10);
 const CONSENSUS_DOWN_FOR: Duration = Duration::from_secs(2);
-/// Joint ATE of a run whose consensus was killed and resumed, relative to the same swarm's
-/// uninterrupted run; the floor keeps millimetre-level noise of a near-exact scene from failing it.
-const MAX_RESUMED_ATE_RATIO: f64 = 1.10;
-const RESUMED_ATE_FLOOR_M: f64 = 0.002;
+
 
 fn config() -> Config {
     let mut config = common::repository_config("configs/synthetic.toml");
@@ -152,15 +149,12 @@ fn real_data_swarm_agent_process_killed_and_restarted_still_gives_a_complete_res
 
 /// The consensus SIGKILLed mid-run and started again on its folder resumes from its store (the
 /// agents keep running meanwhile): the final consensus.json holds every keyframe each agent
-/// delivered, and the joint ATE is that of the same swarm run without the kill.
+/// delivered, and the joint ATE meets the bound the uninterrupted run is held to
+/// (`real_data_swarm_of_two_agent_processes_agrees_on_one_sharp_world`). Not a ratio to an
+/// uninterrupted run made here: two uninterrupted runs of this scene already differ by more than
+/// 10 % (8.2 and 2.8 mm measured), so a ratio would test timing noise and double the test's time.
 #[test]
 fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe() {
-    let reference = swarm("c");
-    reference.run_to_end();
-    let reference_ate = reference.evaluate(0)["ate_joint_rmse_m"]
-        .as_f64()
-        .expect("joint ATE of the uninterrupted run");
-
     let swarm = swarm("d");
     let mut killed = swarm.spawn_consensus_logged("consensus_killed");
     let agents: Vec<_> = (0..2)
@@ -225,9 +219,10 @@ fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe(
     }
     let metrics = swarm.evaluate(0);
     let ate = metrics["ate_joint_rmse_m"].as_f64().expect("joint ATE");
-    eprintln!("joint ATE: uninterrupted {reference_ate} m, consensus killed and resumed {ate} m");
+    eprintln!("joint ATE with the consensus killed and resumed: {ate} m");
+    assert!(ate <= MAX_JOINT_ATE_M, "joint ATE {ate} m after the resume");
     assert!(
-        ate <= (reference_ate * MAX_RESUMED_ATE_RATIO).max(reference_ate + RESUMED_ATE_FLOOR_M),
-        "joint ATE {ate} m after the resume, {reference_ate} m without the kill"
+        metrics["inter_agent_closures_accepted"].as_u64().unwrap() >= 1,
+        "no inter-agent loop closure after the resume"
     );
 }
