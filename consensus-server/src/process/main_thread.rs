@@ -514,11 +514,13 @@ impl Route<'_> {
 
     /// Hands a keyframe whose descriptor and image are both there to the worker.
     fn forward(&mut self, arrival: KeyframeArrival) -> anyhow::Result<()> {
+        // The keyframe's consensus latency counts from here, its commit included.
+        let complete_at = Instant::now();
         let epoch = self.epoch;
         self.commit(|| StoredInput::Keyframe(Box::new(StoredKeyframe::new(&arrival, epoch))))?;
         self.record.keyframes += 1;
         self.to_worker
-            .send(WorkerInput::Keyframe(Box::new(arrival), Instant::now()))
+            .send(WorkerInput::Keyframe(Box::new(arrival), complete_at))
             .context("the consensus worker stopped")
     }
 }
