@@ -213,7 +213,11 @@ fn a_killed_consensus_is_restarted_and_the_run_ends_complete() {
             "the swarm ended before the kill:\n{}",
             log()
         );
-        assert!(started.elapsed() < TIMEOUT, "agents never got going:\n{}", log());
+        assert!(
+            started.elapsed() < TIMEOUT,
+            "agents never got going:\n{}",
+            log()
+        );
         std::thread::sleep(Duration::from_millis(200));
     };
     let status = Command::new("kill")
@@ -229,7 +233,11 @@ fn a_killed_consensus_is_restarted_and_the_run_ends_complete() {
         panic!("the swarm did not end:\n{}", log())
     });
     assert!(status.success(), "launch_swarm.sh failed:\n{}", log());
-    assert!(log().contains("starting it again on its store"), "{}", log());
+    assert!(
+        log().contains("starting it again on its store"),
+        "{}",
+        log()
+    );
     let consensus_log = std::fs::read_to_string(out.path().join("consensus.log")).unwrap();
     assert!(
         consensus_log.contains("resuming the run from its consensus store"),
@@ -256,7 +264,10 @@ fn a_killed_consensus_is_restarted_and_the_run_ends_complete() {
             &std::fs::read_to_string(out.path().join(format!("agent_{k}/metrics.json"))).unwrap(),
         )
         .unwrap();
-        for id in metrics["swarm"]["keyframes_published_ids"].as_array().unwrap() {
+        for id in metrics["swarm"]["keyframes_published_ids"]
+            .as_array()
+            .unwrap()
+        {
             let id = id.as_u64().unwrap();
             assert!(
                 held.contains(&(k as u64, id)),

@@ -44,7 +44,6 @@ const KILL_AFTER: Duration = Duration::from_secs(8);
 const CONSENSUS_KILL_AFTER: Duration = Duration::from_secs(10);
 const CONSENSUS_DOWN_FOR: Duration = Duration::from_secs(2);
 
-
 fn config() -> Config {
     let mut config = common::repository_config("configs/synthetic.toml");
     config.consensus.t_comm = T_COMM;
@@ -195,10 +194,12 @@ fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe(
         })
         .collect();
     for k in 0..2u64 {
-        let text = std::fs::read_to_string(swarm.path().join(format!("agent_{k}/metrics.json")))
-            .unwrap();
+        let text =
+            std::fs::read_to_string(swarm.path().join(format!("agent_{k}/metrics.json"))).unwrap();
         let metrics: serde_json::Value = serde_json::from_str(&text).unwrap();
-        let published = metrics["swarm"]["keyframes_published_ids"].as_array().unwrap();
+        let published = metrics["swarm"]["keyframes_published_ids"]
+            .as_array()
+            .unwrap();
         assert!(!published.is_empty(), "agent {k} published nothing");
         let missing: Vec<u64> = published
             .iter()

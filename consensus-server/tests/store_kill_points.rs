@@ -47,7 +47,9 @@ fn keyframe(keyframe_id: u64) -> StoredInput {
         agent_from_camera: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
         width: WIDTH,
         height: HEIGHT,
-        rgb: (0..pixels * 3).map(|i| (i as u64 ^ keyframe_id) as u8).collect(),
+        rgb: (0..pixels * 3)
+            .map(|i| (i as u64 ^ keyframe_id) as u8)
+            .collect(),
         depth_m: vec![1.5; pixels],
     }))
 }
@@ -83,8 +85,7 @@ fn store_survives_sigkill_at_random_points() {
         // Killed while writing: a random time after its first commit (opening a store that
         // was not closed includes its repair, which takes a while).
         let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
-        let committed_count =
-            |line: String| line.strip_prefix("committed ")?.parse::<usize>().ok();
+        let committed_count = |line: String| line.strip_prefix("committed ")?.parse::<usize>().ok();
         let first = lines
             .by_ref()
             .map_while(Result::ok)
@@ -111,7 +112,10 @@ fn store_survives_sigkill_at_random_points() {
             let StoredInput::Keyframe(stored) = input else {
                 panic!("kill {kill}: input {i} is not a keyframe");
             };
-            assert_eq!(stored.keyframe_id, i as u64, "kill {kill}: inputs out of order");
+            assert_eq!(
+                stored.keyframe_id, i as u64,
+                "kill {kill}: inputs out of order"
+            );
             stored
                 .keyframe()
                 .unwrap_or_else(|e| panic!("kill {kill}: input {i}: {e:#}"));

@@ -108,7 +108,11 @@ impl Listener {
     }
 
     /// Routes one stored input as if it had just arrived.
-    fn replay(&mut self, input: StoredInput, to_worker: &Sender<WorkerInput>) -> anyhow::Result<()> {
+    fn replay(
+        &mut self,
+        input: StoredInput,
+        to_worker: &Sender<WorkerInput>,
+    ) -> anyhow::Result<()> {
         let (agent_id, epoch) = match &input {
             StoredInput::Hello {
                 agent_id, epoch, ..

@@ -84,7 +84,10 @@ fn inputs_come_back_in_order_after_reopening() {
     let (mut store, opened, inputs) = Store::open(dir.path(), &run, false).unwrap();
     assert_eq!(opened, Opened::Resumed);
     assert_eq!(inputs.len(), 3);
-    assert!(matches!(inputs[0], StoredInput::Hello { run_anchor: 77, .. }));
+    assert!(matches!(
+        inputs[0],
+        StoredInput::Hello { run_anchor: 77, .. }
+    ));
     let StoredInput::Keyframe(stored) = &inputs[1] else {
         panic!("second input is not the keyframe");
     };

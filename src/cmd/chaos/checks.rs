@@ -86,7 +86,11 @@ pub fn check_run(
                 "agent {k}: keyframes {missing:?} delivered but not in consensus.json"
             ));
         }
-        check_trajectory(&dir.join(format!("agent_{k}/trajectory.tum")), frames, &mut failures);
+        check_trajectory(
+            &dir.join(format!("agent_{k}/trajectory.tum")),
+            frames,
+            &mut failures,
+        );
         let world = dir.join(format!("agent_{k}.tum"));
         if world.exists() {
             checks.agents_linked += 1;

@@ -15,8 +15,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use clap::Args;
-use rand::{RngExt, SeedableRng};
 use rand::seq::SliceRandom;
+use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
@@ -107,7 +107,11 @@ pub fn run(args: &ChaosArgs) -> anyhow::Result<()> {
     config::Config::load(&args.config)?;
     let run_config = args.out.join("config.toml");
     std::fs::copy(&args.config, &run_config).with_context(|| {
-        format!("copying {} to {}", args.config.display(), run_config.display())
+        format!(
+            "copying {} to {}",
+            args.config.display(),
+            run_config.display()
+        )
     })?;
     let setup = |name: &str| SwarmSetup {
         binaries: binaries.clone(),
@@ -118,15 +122,25 @@ pub fn run(args: &ChaosArgs) -> anyhow::Result<()> {
     };
     let timeout = Duration::from_secs(1800);
 
-    eprintln!("[chaos] reference run (no kills) in {}", args.out.join("reference").display());
+    eprintln!(
+        "[chaos] reference run (no kills) in {}",
+        args.out.join("reference").display()
+    );
     let mut reference = Swarm::start(setup("reference"))?;
     reference.wait_all(timeout)?;
     drop(reference);
 
-    eprintln!("[chaos] run with kills in {}", args.out.join("killed").display());
+    eprintln!(
+        "[chaos] run with kills in {}",
+        args.out.join("killed").display()
+    );
     let plan = kill_plan(args);
     let mut swarm = Swarm::start(setup("killed"))?;
-    let kills = execute(&mut swarm, plan, Duration::from_secs_f64(args.restart_after))?;
+    let kills = execute(
+        &mut swarm,
+        plan,
+        Duration::from_secs_f64(args.restart_after),
+    )?;
     swarm.wait_all(timeout)?;
     drop(swarm);
 
@@ -222,7 +236,12 @@ fn execute(
     Ok(kills)
 }
 
-fn report(args: &ChaosArgs, kills: Vec<Kill>, reference: RunChecks, chaos: RunChecks) -> ChaosReport {
+fn report(
+    args: &ChaosArgs,
+    kills: Vec<Kill>,
+    reference: RunChecks,
+    chaos: RunChecks,
+) -> ChaosReport {
     let mut failures = Vec::new();
     let roles: Vec<Role> = std::iter::once(Role::Consensus)
         .chain((0..args.agents).map(Role::Agent))
@@ -230,7 +249,10 @@ fn report(args: &ChaosArgs, kills: Vec<Kill>, reference: RunChecks, chaos: RunCh
     let kills_per_process: Vec<(String, usize)> = roles
         .iter()
         .map(|role| {
-            let done = kills.iter().filter(|k| k.killed && k.target == *role).count();
+            let done = kills
+                .iter()
+                .filter(|k| k.killed && k.target == *role)
+                .count();
             (role.to_string(), done)
         })
         .collect();
@@ -261,7 +283,8 @@ fn report(args: &ChaosArgs, kills: Vec<Kill>, reference: RunChecks, chaos: RunCh
 }
 
 fn print_table(report: &ChaosReport) {
-    let opt = |v: Option<f64>, scale: f64, d: usize| v.map_or("-".into(), |v| fmt_num(v * scale, d));
+    let opt =
+        |v: Option<f64>, scale: f64, d: usize| v.map_or("-".into(), |v| fmt_num(v * scale, d));
     println!(
         "chaos soak: seed {}, {} agents x {} frames",
         report.seed, report.agents, report.frames
