@@ -96,7 +96,9 @@ impl Swarm {
                 command
                     .args(["--dataset", &setup.datasets[k as usize], "--frames", ".."])
                     .args(["--agent-id", &k.to_string()])
-                    .args(["--eval-every", "0"])
+                    // The agents' own quality figures on every 10th frame (eval swarm's PSNR
+                    // without merged-map renders), no comparison images.
+                    .args(["--eval-every", "10", "--renders", "0"])
                     .arg("--out")
                     .arg(setup.out.join(format!("agent_{k}")));
             }
