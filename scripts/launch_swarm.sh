@@ -5,10 +5,15 @@
 #   scripts/launch_swarm.sh [--config FILE] [--agents N] [--agent DATASET[:FIRST..END]]...
 #                           [--tcomm K] [--link-schedule FILE] [--noise rgb|depth|rgbd]
 #                           [--frames N] [--descriptor-weights FILE] [--out DIR]
+#                           [--set KEY=VALUE]...
+#                           [--no-restart-consensus]
 #                           [--transport iceoryx2|zenoh]
 #
 # With no arguments: the embedded synthetic scene, 3 agents (synthetic:agents=3,agent=K).
 # --agent repeats, one dataset (and frame range) per agent; agent K is the K-th --agent.
+# --set KEY=VALUE overrides one configuration key for every process of the run (dotted path, as
+# `mac-ego3d config --set`: `--set consensus.t_comm=30`); repeatable, applied after --tcomm and
+# --noise, checked before anything starts.
 # --link-schedule FILE simulates intermittent links: per agent, the time windows in which it can
 # talk to the consensus; what it publishes meanwhile is queued and delivered at reconnect (the
 # format is documented in agent/src/link_schedule.rs). The file is checked before anything starts.
@@ -18,6 +23,11 @@
 # Ctrl-C reaches this script only and the order holds; a second Ctrl-C kills everything at once
 # (outputs may then be incomplete). A child that dies is reported at once, and every child is reaped (a dead, unreaped child would keep its shared-memory
 # slots); when agents failed, the consensus is stopped once the others are done.
+# A consensus that dies (killed, crashed) is started again on the run folder, up to
+# CONSENSUS_RESTARTS_MAX times: it resumes from its store (DIR/consensus.redb), the agents
+# publish again what it lost, and the outputs are those of a run without the crash.
+# --no-restart-consensus reports its death instead. Each launch is a new run: the consensus starts
+# with a new run id and --fresh, so an older run's store in DIR is moved aside, never resumed.
 # --transport zenoh (root only) runs the consensus and each agent as a simulated host of its own
 # (scripts/simulated_host.sh: own mount namespace, private /dev/shm and iceoryx2 root, own
 # mac-bridge), all joined by zenoh over TCP on 127.0.0.1; metrics.json then counts each agent's
@@ -42,13 +52,16 @@ frames=200
 out=out/swarm
 weights=""
 specs=()
+sets=()
 link_schedule=""
+restart_consensus=1
 profile="${MAC_EGO3D_PROFILE:-release}"
 # --- transport (cross-host bridge) ---
 transport=iceoryx2
 # --- end transport ---
 
-usage() { sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//'; }
+# The header above, up to its first line that is not a comment.
+usage() { sed -n '2,/^[^#]/p' "$0" | sed -n 's/^# \{0,1\}//p'; }
 while (($#)); do
   case "$1" in
     --config) config="$2"; shift 2 ;;
@@ -60,6 +73,8 @@ while (($#)); do
     --descriptor-weights) weights="$2"; shift 2 ;;
     --out) out="$2"; shift 2 ;;
     --link-schedule) link_schedule="$2"; shift 2 ;;
+    --set) sets+=("$2"); shift 2 ;;
+    --no-restart-consensus) restart_consensus=0; shift ;;
     --transport) transport="$2"; shift 2 ;;
     -h | --help) usage; exit 0 ;;
     *) echo "[swarm] unknown argument: $1" >&2; usage >&2; exit 2 ;;
@@ -120,6 +135,9 @@ if [[ -n "$noise" ]]; then
   case "$noise" in rgb | depth | rgbd) ;; *) echo "[swarm] --noise $noise: expected rgb, depth or rgbd" >&2; exit 2 ;; esac
   overrides+=(--set "noise.target=$noise")
 fi
+for pair in "${sets[@]}"; do
+  overrides+=(--set "$pair")
+done
 # Written beside and renamed: the given file may be this very path (a rerun into one folder).
 "$bin/mac-ego3d" config --config "$config" "${overrides[@]}" --out "$run_config.new" ||
   { echo "[swarm] the configuration is refused (above)" >&2; exit 2; }
@@ -153,6 +171,11 @@ command -v setsid >/dev/null 2>&1 && detach=(setsid)
 
 # One namespace per run, so two runs on one host never share services.
 namespace="mac$$"
+# The run's identity in the consensus store: a restarted consensus resumes this run only.
+run_id="$namespace-$(date +%s)"
+# Restarts of a dead consensus at most (a consensus that cannot start fails fast each time).
+CONSENSUS_RESTARTS_MAX=10
+consensus_restarts=0
 pids=()
 names=()
 interrupts=0
@@ -199,8 +222,17 @@ agent_host_of() {
     --report "$out/bridge_agent_$1.json" --)
 }
 # --- end transport ---
-"${detach[@]}" "${consensus_host[@]}" "$bin/mac-consensus" --config "$run_config" --out "$out" --agents "$agents" \
-  --namespace "$namespace" --stop-agents "$STOP_WAIT_S" >"$out/consensus.log" 2>&1 &
+# Starts the consensus (in the background; its pid in $!): the first start is a new run
+# (--fresh), a restart resumes it from the store. Its log is appended to across restarts.
+start_consensus() {
+  local fresh=()
+  ((consensus_restarts > 0)) || fresh=(--fresh)
+  "${detach[@]}" "${consensus_host[@]}" "$bin/mac-consensus" --config "$run_config" --out "$out" --agents "$agents" \
+    --namespace "$namespace" --run-id "$run_id" "${fresh[@]}" --stop-agents "$STOP_WAIT_S" \
+    >>"$out/consensus.log" 2>&1 &
+}
+: >"$out/consensus.log"
+start_consensus
 pids+=($!)
 names+=(consensus)
 for ((k = 0; k < agents; k++)); do
@@ -305,6 +337,15 @@ while ((${#exit_status[@]} < ${#pids[@]})); do
     if kill -0 "${pids[$i]}" 2>/dev/null; then continue; fi
     status=0
     wait "${pids[$i]}" || status=$?
+    if ((i == 0 && status != 0 && restart_consensus && interrupts == 0 &&
+      consensus_restarts < CONSENSUS_RESTARTS_MAX)); then
+      consensus_restarts=$((consensus_restarts + 1))
+      clear_progress
+      echo "[swarm] the consensus exited with status $status: starting it again on its store (restart $consensus_restarts of at most $CONSENSUS_RESTARTS_MAX; log $out/consensus.log)" >&2
+      start_consensus
+      pids[0]=$!
+      continue
+    fi
     exit_status[$i]=$status
     if ((status != 0)); then
       clear_progress

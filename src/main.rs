@@ -41,6 +41,9 @@ enum Command {
     /// Plots of benchmark tables (PNG).
     #[command(subcommand)]
     Plot(cmd::plot::PlotCommand),
+    /// Soak the swarm under crashes: SIGKILL its processes at seeded random times, start them
+    /// again, check nothing was lost and compare with a run without kills (table + chaos.json).
+    Chaos(cmd::chaos::ChaosArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -54,6 +57,7 @@ fn main() -> std::process::ExitCode {
         Command::Bench(c) => cmd::bench::run(c),
         Command::Plot(c) => cmd::plot::run(c),
         Command::Config(args) => cmd::config::run(args),
+        Command::Chaos(args) => cmd::chaos::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -33,7 +33,9 @@ fn synthetic_sequence(dir: &Path, frames: usize) -> PathBuf {
 /// `mac-agent --standalone` on `dataset`, writing to `out`, with the evaluation cut to one frame.
 fn standalone_agent(dataset: &Path, out: &Path) -> Output {
     Command::new(workspace_binary("mac-agent"))
+        // Every frame: the counts below are of what the source did, not of the clock.
         .args(["--standalone", "--renders", "0", "--eval-every", "1000"])
+        .args(["--pace", "unthrottled"])
         .arg("--dataset")
         .arg(dataset)
         .arg("--out")

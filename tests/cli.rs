@@ -426,5 +426,36 @@ fn bench_render_json_has_every_case_with_its_peak_memory_and_workload() {
             let visible = layout["visible_evaluations"].as_u64().unwrap();
             assert!(visible <= evaluations, "{layout}");
         }
+        // With subgroups of one size (lavapipe: 8) the rate against the peak is known.
+        let adapter = report["adapter"].as_str().unwrap();
+        if adapter.contains("subgroups: true") {
+            let rate = &case["rate"];
+            assert!(
+                rate["evaluations_per_second"].as_f64().unwrap() > 0.0,
+                "{rate}"
+            );
+            assert!(rate["fraction_of_peak"].as_f64().unwrap() > 0.0, "{rate}");
+        }
+    }
+    // One peak measurement per image size, every evaluation of it counted.
+    let peaks = report["peak"].as_array().expect("peak");
+    let peak_sizes: Vec<(u64, u64)> = peaks
+        .iter()
+        .map(|p| (p["width"].as_u64().unwrap(), p["height"].as_u64().unwrap()))
+        .collect();
+    assert_eq!(peak_sizes, [(64, 48), (32, 24)]);
+    for peak in peaks {
+        let tiles_64x48 = 4 * 3;
+        let expected = if peak["width"] == 64 {
+            tiles_64x48
+        } else {
+            2 * 2
+        } * 256
+            * 128;
+        assert_eq!(peak["evaluations"].as_u64().unwrap(), expected, "{peak}");
+        assert!(
+            peak["evaluations_per_second"].as_f64().unwrap() > 0.0,
+            "{peak}"
+        );
     }
 }

@@ -76,7 +76,11 @@ fn run_swarm(transport: &str, config: &Path, out: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap()
 }
 
+/// Two whole swarms take 5-11 minutes on 2 cores, over the suite's budget: run it with
+/// `cargo test --test swarm_zenoh -- --ignored`. CI's short form is bridge/tests/simulated_hosts.rs
+/// (the bridges between two simulated hosts, a 1,000,000-record patch).
 #[test]
+#[ignore = "two swarm runs, 5-11 min on 2 cores: cargo test --test swarm_zenoh -- --ignored"]
 fn synthetic_swarm_over_zenoh_matches_iceoryx2() {
     if !is_root() {
         eprintln!("skipped: simulated hosts need root (unshare --mount)");

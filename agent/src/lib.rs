@@ -11,6 +11,7 @@
 //! - [`evaluation`]: rendering quality at the estimated poses;
 //! - [`pipeline`]: the per-frame stages (track, decide keyframe, seed, publish, hand to the
 //!   mapper, apply corrections);
+//! - [`pace`]: the camera clock of the sensor pace (frames at their timestamps, late ones dropped);
 //! - [`run`]: one run: the frame loop over those stages, then its outputs;
 //! - [`swarm`]: the link to the consensus, [`local_corrections`]: its corrections applied to the local
 //!   maps, and [`link_schedule`]: simulated intermittent links;
@@ -20,6 +21,7 @@ pub mod evaluation;
 pub mod link_schedule;
 pub mod local_corrections;
 pub mod mapper;
+pub mod pace;
 pub mod pipeline;
 pub mod progress;
 pub mod run;

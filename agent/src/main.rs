@@ -12,6 +12,8 @@
 //! --check-link-schedule N` only validates the file for a swarm of N agents and prints every
 //! agent's windows.
 //!
+//! `--pace` overrides `mapping.pace` (sensor, paced, unthrottled).
+//!
 //! DIR/progress.json tells how far the run is (for the swarm launcher's progress line).
 
 use std::path::PathBuf;
@@ -19,7 +21,7 @@ use std::time::Instant;
 
 use anyhow::bail;
 use clap::Parser;
-use config::Config;
+use config::{Config, Pace};
 use datasets::FrameRange;
 use mac_agent::link_schedule::{LinkPlan, LinkSchedule};
 use mac_agent::run::{AgentOptions, metrics_table, run_agent, run_standalone};
@@ -75,6 +77,10 @@ struct Args {
     /// agent's own LPIPS costs it about a second per evaluated frame on a CPU).
     #[arg(long)]
     lpips_weights: Option<PathBuf>,
+    /// Overrides `mapping.pace`: `sensor` (frames at their timestamps, late ones dropped and
+    /// counted), `paced` (each keyframe waits for its mapping budget) or `unthrottled`.
+    #[arg(long, value_parser = ["sensor", "paced", "unthrottled"])]
+    pace: Option<String>,
     /// Frame-decoding threads.
     #[arg(long, default_value_t = 2)]
     decode_workers: usize,
@@ -111,6 +117,13 @@ fn main() -> anyhow::Result<()> {
         Some(path) => Config::load(path)?,
         None => Config::default(),
     };
+    match args.pace.as_deref() {
+        Some("sensor") => config.mapping.pace = Pace::Sensor,
+        Some("paced") => config.mapping.pace = Pace::Paced,
+        Some("unthrottled") => config.mapping.pace = Pace::Unthrottled,
+        // clap admits only the three names.
+        _ => {}
+    }
     if let Some(weights) = &args.descriptor_weights {
         if !weights.is_file() {
             bail!("--descriptor-weights {}: no such file", weights.display());

@@ -8,6 +8,11 @@
 //! are fixed (the agent's poses come from tracking; the consensus refines them). Every
 //! `prune_every` iterations it prunes (opacity, scale, elongation).
 //!
+//! Under `mapping.pace = "paced"` the mapper spends exactly `iterations_per_keyframe` iterations
+//! after each keyframe, then waits for the next one; [`Mapper::wait_for_budget`] is where the
+//! tracker waits for that (docs/method.md, One agent: Pace). Otherwise it iterates whenever it
+//! has a map and no command waits.
+//!
 //! Keyframe targets are uploaded once, when the keyframe arrives. Nothing is read back inside an
 //! iteration except a wait for the device to finish it (so the
 //! host does not queue unbounded work), the pair-count check every `check_pairs_every`
@@ -18,7 +23,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
-use config::MappingConfig;
+use config::{MappingConfig, Pace};
 use crossbeam_channel::{Receiver, Sender, TryRecvError};
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
@@ -118,6 +123,8 @@ pub struct MapperProgress {
 /// Handle of the mapping thread.
 pub struct Mapper {
     commands: Sender<Command>,
+    /// Paced: one message each time the mapper has spent a keyframe's budget.
+    budget_spent: Option<Receiver<()>>,
     thread: JoinHandle<Result<MappingOutcome, MapperError>>,
     pub progress: Arc<MapperProgress>,
 }
@@ -128,17 +135,33 @@ impl Mapper {
         let context = GpuContext::new()?;
         tracing::info!(adapter = %context.describe(), "mapping device");
         let (commands, receiver) = crossbeam_channel::unbounded();
+        let (budget_sender, budget_spent) = match mapping.pace {
+            Pace::Paced => {
+                let (sender, receiver) = crossbeam_channel::unbounded();
+                (Some(sender), Some(receiver))
+            }
+            Pace::Sensor | Pace::Unthrottled => (None, None),
+        };
         let progress = Arc::new(MapperProgress::default());
         let state = MapperState::new(context, tracking, mapping, progress.clone());
         let thread = std::thread::Builder::new()
             .name("mapper".into())
-            .spawn(move || state.run(receiver))
+            .spawn(move || state.run(receiver, budget_sender))
             .expect("spawning the mapping thread");
         Ok(Self {
             commands,
+            budget_spent,
             thread,
             progress,
         })
+    }
+
+    /// Paced: waits until the mapper has spent its iterations on the keyframe sent last (at
+    /// once when the mapping thread has died: `finish` reports that). Otherwise returns at once.
+    pub fn wait_for_budget(&self) {
+        if let Some(budget_spent) = &self.budget_spent {
+            let _ = budget_spent.recv();
+        }
     }
 
     /// Queues a keyframe; never blocks.
@@ -236,13 +259,28 @@ impl MapperState {
         }
     }
 
-    fn run(mut self, commands: Receiver<Command>) -> Result<MappingOutcome, MapperError> {
+    /// The real-time loop, then the optional refinement. `budget_spent` (paced only) hears each
+    /// time a keyframe's iterations are spent.
+    fn run(
+        mut self,
+        commands: Receiver<Command>,
+        budget_spent: Option<Sender<()>>,
+    ) -> Result<MappingOutcome, MapperError> {
         let _span = tracing::info_span!("mapping").entered();
         let started = Instant::now();
+        // Paced: iterations still owed to the newest keyframe.
+        let mut budget_left = 0usize;
         let refine_iterations = loop {
-            // Take every queued keyframe before the next iteration; block only when there is
-            // nothing to optimise yet.
-            let command = if self.map_is_empty() {
+            // Take every queued keyframe before the next iteration; block when there is nothing
+            // to optimise yet, or (paced) when the budget is spent.
+            let idle = self.map_is_empty() || (budget_spent.is_some() && budget_left == 0);
+            if idle && budget_left > 0 {
+                // Nothing to optimise (a keyframe without Gaussians on an empty map): the
+                // budget lapses rather than hold the tracker.
+                budget_left = 0;
+                notify(&budget_spent);
+            }
+            let command = if idle {
                 match commands.recv() {
                     Ok(command) => Some(command),
                     Err(_) => break 0,
@@ -255,10 +293,24 @@ impl MapperState {
                 }
             };
             match command {
-                Some(Command::Keyframe(keyframe)) => self.insert_keyframe(*keyframe)?,
+                Some(Command::Keyframe(keyframe)) => {
+                    self.insert_keyframe(*keyframe)?;
+                    if budget_spent.is_some() {
+                        budget_left += self.config.iterations_per_keyframe;
+                    }
+                }
                 Some(Command::Correct(keyframe_moves)) => self.correct(&keyframe_moves)?,
                 Some(Command::Finish { refine_iterations }) => break refine_iterations,
-                None => self.iterate()?,
+                None => {
+                    let stepped = self.iterate()?;
+                    self.simulate_slower_machine();
+                    if stepped && budget_left > 0 {
+                        budget_left -= 1;
+                        if budget_left == 0 {
+                            notify(&budget_spent);
+                        }
+                    }
+                }
             }
         };
         self.stats.seconds = started.elapsed().as_secs_f64();
@@ -276,6 +328,7 @@ impl MapperState {
             self.unvisited.clear();
             for _ in 0..refine_iterations {
                 self.iterate()?;
+                self.simulate_slower_machine();
             }
             self.stats.seconds = started.elapsed().as_secs_f64();
             self.stats.keyframes = self.keyframes.len();
@@ -288,6 +341,15 @@ impl MapperState {
             realtime,
             refined,
         })
+    }
+
+    /// `simulated_iteration_delay_ms` of extra wall time per iteration.
+    fn simulate_slower_machine(&self) {
+        if self.config.simulated_iteration_delay_ms > 0.0 {
+            std::thread::sleep(std::time::Duration::from_secs_f64(
+                self.config.simulated_iteration_delay_ms / 1e3,
+            ));
+        }
     }
 
     fn map_is_empty(&self) -> bool {
@@ -369,13 +431,14 @@ impl MapperState {
         Ok(())
     }
 
-    /// One Adam iteration on one keyframe.
-    fn iterate(&mut self) -> Result<(), MapperError> {
+    /// One Adam iteration on one keyframe. Returns whether it took the step (not when there is
+    /// nothing to optimise, or when the binning buffers had to grow first).
+    fn iterate(&mut self) -> Result<bool, MapperError> {
         let Some(map) = self.map.as_mut() else {
-            return Ok(());
+            return Ok(false);
         };
         if map.is_empty() || self.keyframes.is_empty() {
-            return Ok(());
+            return Ok(false);
         }
         let index = match self.unvisited.pop() {
             Some(index) => index,
@@ -395,7 +458,7 @@ impl MapperState {
                     capacity = usage.capacity,
                     "pair buffers grown; skipping this iteration"
                 );
-                return Ok(());
+                return Ok(false);
             }
         }
         self.since_pair_check += 1;
@@ -448,7 +511,15 @@ impl MapperState {
             .iterations
             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         self.progress.gaussians.store(map.len(), Ordering::Relaxed);
-        Ok(())
+        Ok(true)
+    }
+}
+
+/// Tells the tracker (paced) that a keyframe's budget is spent.
+fn notify(budget_spent: &Option<Sender<()>>) {
+    if let Some(sender) = budget_spent {
+        // The receiver lives as long as the tracker's handle; gone means the run is over.
+        let _ = sender.send(());
     }
 }
 

@@ -3,7 +3,8 @@
 //! hand it to the mapper, then apply what the consensus sent back. [`crate::run`] drives these
 //! stages frame by frame and writes the outputs.
 //!
-//! Tracking never waits for the mapper: keyframes go to the mapping thread over a channel.
+//! Tracking never waits for the mapper (keyframes go to the mapping thread over a channel),
+//! except under `mapping.pace = "paced"`, where each keyframe waits for its mapping budget.
 
 use std::time::Instant;
 
@@ -234,7 +235,8 @@ impl<'a> AgentPipeline<'a> {
     }
 
     /// Hands the keyframe and its new Gaussians to the mapping thread (docs/method.md, Map
-    /// optimisation), in the local-map frame.
+    /// optimisation), in the local-map frame. Paced (`mapping.pace`), returns once the mapper
+    /// has spent its iterations on it.
     pub fn hand_to_mapper(
         &mut self,
         keyframe_id: usize,
@@ -263,6 +265,7 @@ impl<'a> AgentPipeline<'a> {
             depth: frame.depth.clone(),
             new_gaussians: seeds,
         });
+        self.mapper.wait_for_budget();
     }
 
     /// Applies a correction the consensus sent (swarm only) to the tracker's model, the coverage

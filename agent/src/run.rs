@@ -2,7 +2,9 @@
 //! seeding -> publishing -> mapping thread, one [`AgentPipeline`] stage each; then the outputs a
 //! user opens: trajectory.tum, map.ply, metrics.json and renders next to ground truth.
 //!
-//! The tracking loop never waits for the mapper (keyframes go over a channel). A stop request
+//! `mapping.pace` times the loop: at the camera's timestamps, dropping what a slow agent misses
+//! (`sensor`, [`crate::pace`]); waiting for the mapper's budget at each keyframe (`paced`); or
+//! every frame as fast as possible (`unthrottled`). A stop request
 //! (SIGINT / SIGTERM in the binary) ends the loop after the current frame; everything computed
 //! so far is still written.
 
@@ -14,7 +16,7 @@ use std::time::Instant;
 
 use alexnet::lpips::Lpips;
 use anyhow::Context;
-use config::Config;
+use config::{Config, Pace};
 use datasets::{self, Dataset, FrameRange};
 use geometry::trajectory::Trajectory;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -29,6 +31,7 @@ use crate::evaluation::{
 };
 use crate::local_corrections::LocalCorrectionStats;
 use crate::mapper::{MappingOutcome, MappingStats};
+use crate::pace::SensorClock;
 use crate::pipeline::{AgentPipeline, FinishedPipeline, TrackedPose, progress_snapshot};
 use crate::progress::{ProgressFile, Stage};
 use crate::source::{FrameSource, SourceStats};
@@ -109,6 +112,11 @@ pub struct AgentMetrics {
     pub wall_s: f64,
     pub tracking_failures: usize,
     pub reinitialisations: usize,
+    /// How the loop was timed (`mapping.pace`).
+    pub pace: Pace,
+    /// Sensor pace: frames a live camera would have overwritten before the agent took them
+    /// (not tracked, not in `frames`).
+    pub frames_dropped: usize,
     /// Frames skipped because a file is missing (the log names it).
     pub frames_missing: usize,
     /// Frames skipped because a file could not be decoded or validated (the log names it).
@@ -173,9 +181,17 @@ pub fn run_agent(
     progress_file.write(&agent.progress(Stage::Tracking, frames_total));
 
     let mut interrupted = false;
+    let mut sensor = (config.mapping.pace == Pace::Sensor).then(SensorClock::new);
     {
         let _span = tracing::info_span!("tracking").entered();
         for item in source.by_ref() {
+            if let Some(sensor) = sensor.as_mut() {
+                let next = item.position + 1;
+                let next_timestamp = (next < dataset.len()).then(|| dataset.timestamp(next));
+                if !sensor.take_now(item.frame.timestamp, next_timestamp) {
+                    continue;
+                }
+            }
             let clock = Instant::now();
             let frame = &item.frame;
             agent.announce(frame);
@@ -233,6 +249,7 @@ pub fn run_agent(
         run: &run,
         outcome: &outcome,
         source: source.stats(),
+        frames_dropped: sensor.as_ref().map_or(0, SensorClock::dropped),
         loop_seconds,
         wall_s: started.elapsed().as_secs_f64(),
         interrupted,
@@ -313,6 +330,8 @@ struct RunRecord<'r> {
     run: &'r FinishedPipeline,
     outcome: &'r MappingOutcome,
     source: &'r SourceStats,
+    /// Frames a live camera would have overwritten before the agent took them (sensor pace).
+    frames_dropped: usize,
     /// The frame loop's duration (frames per second).
     loop_seconds: f64,
     wall_s: f64,
@@ -363,6 +382,8 @@ fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
         wall_s: record.wall_s,
         tracking_failures: tracking.failures,
         reinitialisations: tracking.reinitialisations,
+        pace: options.config.mapping.pace,
+        frames_dropped: record.frames_dropped,
         frames_missing: record.source.frames_missing,
         frames_broken: record.source.frames_broken,
         ground_truth_broken: record.source.ground_truth_broken,

@@ -13,7 +13,7 @@
 //! dropped) and delivered in order at reconnect, corrections wait, and heartbeats stop; the end
 //! of the run flushes the queue before the goodbye whatever the schedule says.
 
-use std::collections::VecDeque;
+use std::collections::{BTreeSet, VecDeque};
 use std::hash::{Hash, Hasher};
 use std::time::{Duration, Instant};
 
@@ -90,6 +90,14 @@ pub struct SwarmSummary {
     pub keyframes_resent: usize,
     /// Requests for keyframes this agent no longer held (`[consensus.resend] agent_keeps`).
     pub resend_unavailable: usize,
+    /// Ids of the keyframes delivered to the consensus, ascending.
+    pub keyframes_published_ids: BTreeSet<u64>,
+    /// Times a consensus restarted on its store said it was back
+    /// (`ControlMessage::ConsensusResumed`).
+    pub consensus_resumed: usize,
+    /// Keyframes a resumed consensus lacked that this agent no longer held to publish again
+    /// (`[consensus.resend] agent_keeps`): lost to the consensus.
+    pub keyframes_unrecoverable: Vec<u64>,
     /// The reason the consensus gave when it asked the swarm to stop
     /// (`ControlMessage::Shutdown`); absent when it never did.
     pub stopped_by_consensus: Option<String>,
@@ -181,7 +189,7 @@ impl SwarmLink {
             link,
             extractor,
             t_comm: config.consensus.t_comm,
-            config_hash: config_hash(config),
+            config_hash: config.hash(),
             announced: false,
             latest: None,
             // The first keyframe goes out at once: with the last one (sent at the end) even an
@@ -415,6 +423,9 @@ impl SwarmLink {
         match self.send(&wire) {
             Ok(()) => {
                 self.summary.keyframes_published += 1;
+                self.summary
+                    .keyframes_published_ids
+                    .insert(wire.descriptor.keyframe_id);
                 self.keep_for_resend(wire);
                 true
             }
@@ -586,6 +597,9 @@ impl SwarmLink {
                     // Control messages are only read with the link up.
                     self.send_or_enqueue(wire, true);
                 }
+                ControlMessage::ConsensusResumed { keyframes_held } => {
+                    self.publish_again_what_the_consensus_lacks(&keyframes_held);
+                }
                 ControlMessage::Shutdown { reason } => {
                     tracing::warn!(
                         %reason,
@@ -595,6 +609,49 @@ impl SwarmLink {
                 }
                 other => tracing::debug!(message = ?other, "control message ignored"),
             }
+        }
+    }
+
+    /// A consensus restarted on its store holds `keyframes_held` of this agent: every keyframe
+    /// delivered before that it does not hold was lost with its previous process (or never
+    /// reached it). Those still held here are published again; the others are reported.
+    fn publish_again_what_the_consensus_lacks(&mut self, keyframes_held: &[u64]) {
+        self.summary.consensus_resumed += 1;
+        let held: BTreeSet<u64> = keyframes_held.iter().copied().collect();
+        let (lacking, kept): (VecDeque<WireKeyframe>, VecDeque<WireKeyframe>) =
+            std::mem::take(&mut self.published)
+                .into_iter()
+                .partition(|wire| !held.contains(&wire.descriptor.keyframe_id));
+        self.published = kept;
+        let resent: BTreeSet<u64> = lacking
+            .iter()
+            .map(|wire| wire.descriptor.keyframe_id)
+            .collect();
+        let unrecoverable: Vec<u64> = self
+            .summary
+            .keyframes_published_ids
+            .iter()
+            .filter(|id| !held.contains(id) && !resent.contains(id))
+            .copied()
+            .collect();
+        tracing::info!(
+            held_there = held.len(),
+            publishing_again = resent.len(),
+            unrecoverable = unrecoverable.len(),
+            "the consensus is back"
+        );
+        if !unrecoverable.is_empty() {
+            tracing::warn!(
+                keyframes = ?unrecoverable,
+                "keyframes the consensus lost that this agent no longer holds \
+                 ([consensus.resend] agent_keeps)"
+            );
+            self.summary.keyframes_unrecoverable.extend(unrecoverable);
+        }
+        for wire in lacking {
+            self.summary.keyframes_resent += 1;
+            // Control messages are only read with the link up.
+            self.send_or_enqueue(wire, true);
         }
     }
 
@@ -738,15 +795,6 @@ pub fn run_anchor(dataset: &str, first_frame_index: usize, first_timestamp_s: f6
         .unwrap_or_else(|_| dataset.to_owned());
     let mut hasher = std::collections::hash_map::DefaultHasher::new();
     (identity, first_frame_index, first_timestamp_s.to_bits()).hash(&mut hasher);
-    hasher.finish()
-}
-
-/// A hash of the whole configuration: the consensus warns when agents differ.
-fn config_hash(config: &Config) -> u64 {
-    let mut hasher = std::collections::hash_map::DefaultHasher::new();
-    serde_json::to_string(config)
-        .unwrap_or_default()
-        .hash(&mut hasher);
     hasher.finish()
 }
 

@@ -65,6 +65,8 @@ fn spawn_consensus(
         out: dir.to_path_buf(),
         expected_agents: Some(2),
         stop_agents_wait: None,
+        run_id: None,
+        fresh: false,
     };
     std::thread::spawn(move || run(&options, &stop))
 }
@@ -307,6 +309,8 @@ fn a_stopping_consensus_stops_its_agents_and_keeps_their_final_maps() {
         out: dir.path().to_path_buf(),
         expected_agents: Some(1),
         stop_agents_wait: Some(RUN_TIMEOUT),
+        run_id: None,
+        fresh: false,
     };
     let consensus = {
         let stop = stop.clone();

@@ -34,10 +34,10 @@ use registration::config::{KeyframeConfig, TrackingConfig};
 use serde::{Deserialize, Serialize};
 
 pub use consensus::{
-    AlignmentConfig, ConsensusConfig, LocalCorrectionConfig, MapRegistrationConfig,
-    PoseGraphConfig, RefinementConfig, ResendConfig,
+    AlignmentConfig, ConsensusConfig, FalseClosureConfig, LocalCorrectionConfig,
+    MapRegistrationConfig, PoseGraphConfig, RefinementConfig, ResendConfig,
 };
-pub use mapping::MappingConfig;
+pub use mapping::{MappingConfig, Pace};
 
 /// The whole configuration file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]

@@ -3,10 +3,37 @@
 use geometry::checks::{FieldError, at_least_one, fraction, non_negative, positive};
 use serde::{Deserialize, Serialize};
 
+/// How an agent's frame loop is timed against the camera clock and its mapper (docs/method.md,
+/// One agent: Pace).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Pace {
+    /// Frames arrive at the dataset's own timestamps, as from a live camera; an agent that falls
+    /// behind skips the frames a live driver would have overwritten, and counts them. The honest
+    /// real-time figure.
+    #[default]
+    Sensor,
+    /// The agent takes the next frame only once its mapper has spent
+    /// `iterations_per_keyframe` iterations on the newest keyframe: the same map on any machine
+    /// for a given seed.
+    Paced,
+    /// Every frame, as fast as the agent goes; the mapper iterates while the tracker works
+    /// (batch processing).
+    Unthrottled,
+}
+
 /// Map optimisation and pruning.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MappingConfig {
+    /// `sensor` (default), `paced` or `unthrottled`: see [`Pace`].
+    pub pace: Pace,
+    /// Paced: mapping iterations after each keyframe before the agent takes its next frame. They
+    /// go to the newest keyframe first, then to random earlier ones (the mapper's usual order).
+    pub iterations_per_keyframe: usize,
+    /// Extra wall time per mapping iteration, to see what a slower machine would get (sensor
+    /// pace drops more frames; paced runs take longer and give the same map). 0: none.
+    pub simulated_iteration_delay_ms: f64,
     pub weight_l1: f64,
     pub weight_ssim: f64,
     /// Weight of L1(depth / truncation).
@@ -38,6 +65,9 @@ pub struct MappingConfig {
 impl Default for MappingConfig {
     fn default() -> Self {
         Self {
+            pace: Pace::Sensor,
+            iterations_per_keyframe: 100,
+            simulated_iteration_delay_ms: 0.0,
             weight_l1: 0.8,
             weight_ssim: 0.2,
             weight_depth: 2.0,
@@ -73,6 +103,16 @@ impl MappingConfig {
             non_negative(field, v)?;
         }
         at_least_one("mapping.prune_every", self.prune_every)?;
+        non_negative(
+            "mapping.simulated_iteration_delay_ms",
+            self.simulated_iteration_delay_ms,
+        )?;
+        if self.pace == Pace::Paced {
+            at_least_one(
+                "mapping.iterations_per_keyframe",
+                self.iterations_per_keyframe,
+            )?;
+        }
         fraction("mapping.prune_min_opacity", self.prune_min_opacity)?;
         positive("mapping.prune_max_scale_m", self.prune_max_scale_m)?;
         positive("mapping.prune_max_elongation", self.prune_max_elongation)?;

@@ -351,6 +351,15 @@ impl KeyframeInbox {
         due
     }
 
+    /// Ids of `agent_id`'s keyframes of which every part arrived, in order.
+    pub fn complete_keyframes(&self, agent_id: u32) -> Vec<u64> {
+        self.complete
+            .keys()
+            .filter(|id| id.agent_id == agent_id)
+            .map(|id| id.keyframe_id)
+            .collect()
+    }
+
     /// Keyframes of `agent_id` still missing a part.
     pub fn incomplete(&self, agent_id: u32) -> usize {
         self.pending

@@ -17,6 +17,8 @@
 //!   frame in the world and corrected keyframe poses;
 //! - [`refinement`]: joint photometric refinement of the merged world map and the keyframe
 //!   poses through render-core, with the pose-consistency term over the pose graph's edges;
+//! - [`store`]: every accepted input, committed to a crash-safe database in the run folder
+//!   before it is acted on, so a consensus started again on the folder resumes the run;
 //!
 //! Their parameters are the config crate's `[consensus.*]` sections.
 //!
@@ -32,6 +34,7 @@ pub mod place_recognition;
 pub mod pose_graph;
 pub mod process;
 pub mod refinement;
+pub mod store;
 
 // The wire format and the extractor must agree on the descriptor length.
 const _: () =

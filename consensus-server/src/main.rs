@@ -8,6 +8,13 @@
 //! stand (without the final refinement, `"snapshot": true` in consensus.json) and the run goes on.
 //! With `--stop-agents SECONDS`, SIGINT / SIGTERM first ask every running agent to stop
 //! (`ControlMessage::Shutdown`) and wait up to SECONDS for their final maps and goodbyes.
+//!
+//! Everything the consensus accepts is committed to DIR/consensus.redb before it is acted on.
+//! Started again on a folder whose store belongs to the same run (`--run-id`, the namespace when
+//! not given; the same configuration and `--agents`), it resumes: it replays the store, tells
+//! the running agents it is back and which of their keyframes it holds, and they publish again
+//! what they still hold of the rest. A store of another run is refused; `--fresh` moves it aside
+//! (DIR/consensus.redb.replaced) and starts over.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -46,6 +53,15 @@ struct Args {
     /// writing the outputs. Without it the agents keep running on their own.
     #[arg(long, value_name = "SECONDS")]
     stop_agents: Option<f64>,
+    /// The run this consensus belongs to, recorded in DIR/consensus.redb: started again with
+    /// the same run id (and configuration and --agents) it resumes from the store. Default: the
+    /// namespace.
+    #[arg(long)]
+    run_id: Option<String>,
+    /// Start a new run even if DIR holds a consensus store: the old store is moved aside to
+    /// DIR/consensus.redb.replaced.
+    #[arg(long)]
+    fresh: bool,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -67,6 +83,8 @@ fn main() -> anyhow::Result<()> {
                     .with_context(|| format!("--stop-agents {seconds}: not a number of seconds"))
             })
             .transpose()?,
+        run_id: args.run_id.clone(),
+        fresh: args.fresh,
     };
     let stop = config::process::stop_on_termination_signals()?;
     let snapshot = Arc::new(AtomicBool::new(false));

@@ -32,6 +32,8 @@ fn an_incomplete_keyframe_is_asked_for_again_and_completed() {
         out: dir.path().to_path_buf(),
         expected_agents: Some(1),
         stop_agents_wait: None,
+        run_id: None,
+        fresh: false,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let consensus = {

@@ -57,6 +57,8 @@ fn a_restart_on_other_frames_is_ignored_whole() {
         // Runs until stopped: a goodbye must not end it before the restart.
         expected_agents: None,
         stop_agents_wait: None,
+        run_id: None,
+        fresh: false,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let consensus = {

@@ -23,6 +23,8 @@ fn a_snapshot_is_written_on_request_and_the_run_goes_on() {
         // No agent: the run goes on until stopped.
         expected_agents: None,
         stop_agents_wait: None,
+        run_id: None,
+        fresh: false,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let snapshot = Arc::new(AtomicBool::new(false));

@@ -461,6 +461,10 @@ pub enum ControlMessage {
     /// patch never arrived, a gap on that topic) and asks its agent to publish it again, with
     /// the reason for the log. An agent that no longer holds the keyframe ignores the request.
     ResendKeyframe { keyframe_id: u64, reason: String },
+    /// A consensus restarted on its run's store is back: it holds these keyframes of the agent
+    /// complete. The agent publishes again every keyframe it still holds that is not among
+    /// them (they were lost with the previous consensus process, or never reached it).
+    ConsensusResumed { keyframes_held: Vec<u64> },
 }
 
 #[cfg(test)]

@@ -1,6 +1,7 @@
 //! One module per subcommand; nested subcommands (`bench ...`, `eval ...`) are folders.
 
 pub mod bench;
+pub mod chaos;
 pub mod config;
 pub mod dataset;
 pub mod eval;

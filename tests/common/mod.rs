@@ -95,6 +95,11 @@ impl SwarmRun {
     }
 
     pub fn spawn_consensus(&self) -> Child {
+        self.spawn_consensus_logged("consensus")
+    }
+
+    /// [`Self::spawn_consensus`], logging to `log`.log.
+    pub fn spawn_consensus_logged(&self, log: &str) -> Child {
         self.command(workspace_binary("mac-consensus"))
             .arg("--config")
             .arg(&self.config)
@@ -102,7 +107,7 @@ impl SwarmRun {
             .arg(self.path())
             .args(["--agents", &self.agents.len().to_string()])
             .args(["--namespace", &self.namespace])
-            .stderr(self.log("consensus"))
+            .stderr(self.log(log))
             .spawn()
             .expect("starting mac-consensus")
     }

@@ -5,6 +5,7 @@
 //! defaults suit a 640x480 RGB-D sensor (7-Scenes, TUM, the synthetic scene).
 
 mod alignment;
+mod false_closures;
 mod map_registration;
 mod pose_graph;
 mod refinement;
@@ -15,6 +16,7 @@ use geometry::checks::{FieldError, at_least_one, fraction, non_negative, positiv
 use serde::{Deserialize, Serialize};
 
 pub use alignment::AlignmentConfig;
+pub use false_closures::FalseClosureConfig;
 pub use map_registration::MapRegistrationConfig;
 pub use pose_graph::PoseGraphConfig;
 pub use refinement::RefinementConfig;
@@ -55,6 +57,9 @@ pub struct ConsensusConfig {
     pub resend: ResendConfig,
     /// Map-to-map global registration without an initial guess: `[consensus.map_registration]`.
     pub map_registration: MapRegistrationConfig,
+    /// Deliberately wrong closures for robustness measurements (off by default):
+    /// `[consensus.false_closures]`.
+    pub false_closures: FalseClosureConfig,
 }
 
 impl Default for ConsensusConfig {
@@ -76,6 +81,7 @@ impl Default for ConsensusConfig {
             local_corrections: LocalCorrectionConfig::default(),
             resend: ResendConfig::default(),
             map_registration: MapRegistrationConfig::default(),
+            false_closures: FalseClosureConfig::default(),
         }
     }
 }
@@ -106,6 +112,7 @@ impl ConsensusConfig {
         self.refinement.validate()?;
         self.local_corrections.validate()?;
         self.resend.validate()?;
+        self.false_closures.validate()?;
         self.map_registration.validate()
     }
 }

@@ -21,6 +21,8 @@ pub enum CandidateSource {
     /// Two agents' maps registered with each other ([`crate::map_links`]); the keyframes are
     /// the link's ends (or each agent's newest keyframe when the registration was not used).
     MapRegistration,
+    /// A deliberately wrong closure (`[consensus.false_closures]`), never aligned.
+    Injected,
 }
 
 #[derive(Debug, Clone, Copy)]

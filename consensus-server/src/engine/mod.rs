@@ -19,8 +19,9 @@
 //! Files: this one holds the engine's intake, job scheduling, recording and solving;
 //! `jobs.rs` the work it hands to the aligner thread; `records.rs` what it records per keyframe
 //! and attempt; `world.rs` what it produces at the end (merged map, refinement problem, world
-//! trajectories).
+//! trajectories); `false_closures.rs` the wrong closures injected for robustness measurements.
 
+mod false_closures;
 mod jobs;
 mod records;
 mod world;
@@ -39,6 +40,7 @@ use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
 use crate::pose_graph::{EdgeSigmas, LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
 use config::ConsensusConfig;
 
+use false_closures::FalseClosureInjector;
 use jobs::Candidate;
 pub use jobs::{AlignmentJob, CandidateSource, Finished, FinishedAlignment, Job};
 pub use records::{AttemptKind, ClosureEvent, KeyframeInfo};
@@ -80,11 +82,14 @@ pub struct Engine {
     /// A closure or keyframe arrived since the last solve.
     dirty: bool,
     solve_ms: Vec<f64>,
+    /// Wrong closures added beside the verified ones (`[consensus.false_closures]`; off: `None`).
+    false_closures: Option<FalseClosureInjector>,
 }
 
 impl Engine {
     pub fn new(config: ConsensusConfig) -> Self {
         Self {
+            false_closures: FalseClosureInjector::new(&config.false_closures),
             database: PlaceDatabase::new(SelectionThresholds::from_config(&config)),
             config,
             started: Instant::now(),
@@ -307,13 +312,15 @@ impl Engine {
                     inter_agent = event.inter_agent,
                     "closure verified"
                 );
+                self.events.push(event);
+                self.inject_false_closures();
             }
             Verdict::Rejected(reason) => {
                 tracing::debug!(source = ?event.source, target = ?event.target, %reason, "closure rejected");
                 event.rejection = Some(reason.to_string());
+                self.events.push(event);
             }
         }
-        self.events.push(event);
     }
 
     fn record_map_job(&mut self, done: FinishedMapJob) {
@@ -368,6 +375,9 @@ impl Engine {
                         overlap = event.overlap,
                         "agents linked by map registration"
                     );
+                    self.events.push(event);
+                    self.inject_false_closures();
+                    return;
                 }
                 Err(error) => {
                     tracing::error!(%error, "map link not added");
@@ -377,6 +387,46 @@ impl Engine {
             }
         }
         self.events.push(event);
+    }
+
+    /// Adds the wrong closures due beside the verified ones (`[consensus.false_closures]`),
+    /// each recorded as an event of origin `injected`.
+    fn inject_false_closures(&mut self) {
+        let Some(injector) = self.false_closures.as_mut() else {
+            return;
+        };
+        let mut keyframes_per_agent: BTreeMap<u32, Vec<KeyframeRef>> = BTreeMap::new();
+        for id in self.info.keys() {
+            keyframes_per_agent
+                .entry(id.agent_id)
+                .or_default()
+                .push(*id);
+        }
+        for closure in injector.after_verified(&keyframes_per_agent) {
+            let event = ClosureEvent {
+                at_s: self.started.elapsed().as_secs_f64(),
+                source: closure.source,
+                target: closure.target,
+                origin: CandidateSource::Injected,
+                inter_agent: closure.source.agent_id != closure.target.agent_id,
+                score: None,
+                verified: true,
+                kind: AttemptKind::Keyframe,
+                inliers: None,
+                overlap: None,
+                map: None,
+                rejection: None,
+                accepted_by_pose_graph: None,
+                alignment_ms: 0.0,
+            };
+            tracing::debug!(source = ?event.source, target = ?event.target, "wrong closure injected");
+            // Both ends are known keyframes, so this cannot fail.
+            if self.graph.add_loop(closure).is_ok() {
+                self.closure_events.push(self.events.len());
+                self.events.push(event);
+                self.dirty = true;
+            }
+        }
     }
 
     /// Re-solves the pose graph if anything changed since the last solve. Returns the new

@@ -13,7 +13,7 @@ use geometry::se3::isometry_to_tum;
 use nalgebra::Isometry3;
 use protocol::messages::{
     ControlMessage, FINAL_MAP_KEYFRAME_ID, GaussianRecord, KeyframeImageHeader, KeyframePose,
-    Lifecycle, LifecycleKind, Pose, RgbdPixel,
+    LifecycleKind, Pose, RgbdPixel,
 };
 use protocol::transport::{ConsumerLink, Incoming};
 
@@ -24,6 +24,7 @@ use crate::alignment::Keyframe;
 use crate::engine::KeyframeArrival;
 use crate::inbox::KeyframeInbox;
 use crate::place_recognition::KeyframeRef;
+use crate::store::{Store, StoredInput, StoredKeyframe};
 use protocol::convert;
 
 /// The main thread's state: the transport and what it learnt of each agent.
@@ -38,11 +39,19 @@ pub(super) struct Listener {
     /// The latest solution's frame of each linked agent.
     world_from_agent: BTreeMap<u32, Isometry3<f64>>,
     latencies: Vec<f64>,
+    /// Every accepted input is committed here before it is acted on.
+    store: Store,
 }
 
 impl Listener {
-    pub fn new(link: ConsumerLink, options: &ConsensusOptions, started: Instant) -> Self {
+    pub fn new(
+        link: ConsumerLink,
+        options: &ConsensusOptions,
+        started: Instant,
+        store: Store,
+    ) -> Self {
         Self {
+            store,
             link,
             started,
             agents: BTreeMap::new(),
@@ -51,6 +60,91 @@ impl Listener {
             inbox: KeyframeInbox::new(options.config.consensus.resend.clone()),
             world_from_agent: BTreeMap::new(),
             latencies: Vec::new(),
+        }
+    }
+
+    /// The consensus store's file.
+    pub fn store_path(&self) -> &std::path::Path {
+        self.store.path()
+    }
+
+    /// Replays a resumed store's `inputs` through the routes live messages take (nothing is
+    /// committed again), then tells every agent that may still run that the consensus is back
+    /// and which of its keyframes it holds ([`ControlMessage::ConsensusResumed`]), so the agent
+    /// publishes again what it still holds of the rest.
+    pub fn resume(
+        &mut self,
+        inputs: Vec<StoredInput>,
+        options: &ConsensusOptions,
+        to_worker: &Sender<WorkerInput>,
+    ) -> anyhow::Result<()> {
+        let replayed = inputs.len();
+        for input in inputs {
+            self.replay(input, to_worker)?;
+        }
+        let keyframes: usize = self.agents.values().map(|r| r.keyframes).sum();
+        tracing::info!(
+            inputs = replayed,
+            keyframes,
+            agents = self.agents.len(),
+            finished = self.finished.len(),
+            "resumed from the consensus store: pose graph and map rebuilt from its inputs"
+        );
+        // Agents the store knows, and those the run waits for (an agent whose hello was lost
+        // with the previous process is still running).
+        let mut agents: BTreeSet<u32> = self.agents.keys().copied().collect();
+        agents.extend(0..options.expected_agents.unwrap_or(0));
+        for agent_id in agents.difference(&self.finished) {
+            let message = ControlMessage::ConsensusResumed {
+                keyframes_held: self.inbox.complete_keyframes(*agent_id),
+            };
+            match self.link.send_control(*agent_id, &message) {
+                Ok(_) => tracing::info!(agent_id, "told the agent the consensus is back"),
+                // Not running now: if it comes back, it starts over with a hello.
+                Err(error) => tracing::info!(agent_id, %error, "agent not reached on resume"),
+            }
+        }
+        Ok(())
+    }
+
+    /// Routes one stored input as if it had just arrived.
+    fn replay(
+        &mut self,
+        input: StoredInput,
+        to_worker: &Sender<WorkerInput>,
+    ) -> anyhow::Result<()> {
+        let (agent_id, epoch) = match &input {
+            StoredInput::Hello {
+                agent_id, epoch, ..
+            }
+            | StoredInput::Patch {
+                agent_id, epoch, ..
+            } => (*agent_id, *epoch),
+            StoredInput::Keyframe(keyframe) => (keyframe.agent_id, keyframe.epoch),
+            // A goodbye's epoch is not used.
+            StoredInput::Goodbye { agent_id } => (*agent_id, 0),
+        };
+        let mut route = Route {
+            agent_id,
+            epoch,
+            record: self.agents.entry(agent_id).or_default(),
+            inbox: &mut self.inbox,
+            to_worker,
+            store: None,
+        };
+        match input {
+            StoredInput::Hello {
+                run_anchor,
+                config_hash,
+                ..
+            } => route.hello(run_anchor, config_hash, &mut self.finished),
+            StoredInput::Goodbye { .. } => route.goodbye(&mut self.finished),
+            StoredInput::Keyframe(keyframe) => route.stored_keyframe(&keyframe),
+            StoredInput::Patch {
+                keyframe_id,
+                records,
+                ..
+            } => route.patch(keyframe_id, &records),
         }
     }
 
@@ -146,6 +240,7 @@ impl Listener {
                     record,
                     inbox: &mut self.inbox,
                     to_worker,
+                    store: Some(&mut self.store),
                 };
                 route.message(message, &mut self.finished)?;
             }
@@ -198,6 +293,16 @@ impl Listener {
             &self.first_seen,
         );
         fill_inbox_counts(&mut self.agents, &self.inbox);
+        let write_ms = self.store.keyframe_write_ms();
+        if !write_ms.is_empty() {
+            tracing::info!(
+                keyframes = write_ms.len(),
+                median_ms = metrics::stats::median(write_ms),
+                max_ms = write_ms.iter().copied().fold(0.0, f64::max),
+                store = %self.store.path().display(),
+                "store: keyframe commits"
+            );
+        }
         for (agent_id, record) in self.agents.iter_mut() {
             if record.keyframes_incomplete > 0 {
                 tracing::warn!(
@@ -218,16 +323,33 @@ struct Route<'a> {
     record: &'a mut AgentRecord,
     inbox: &'a mut KeyframeInbox,
     to_worker: &'a Sender<WorkerInput>,
+    /// Where accepted inputs are committed; `None` while replaying the store itself.
+    store: Option<&'a mut Store>,
 }
 
 impl Route<'_> {
+    /// Commits `input` to the store (when live) before the caller acts on it.
+    fn commit(&mut self, input: impl FnOnce() -> StoredInput) -> anyhow::Result<()> {
+        match self.store.as_deref_mut() {
+            Some(store) => store.append(&input()),
+            None => Ok(()),
+        }
+    }
+
     /// Routes the message by kind.
     fn message(&mut self, message: Incoming, finished: &mut BTreeSet<u32>) -> anyhow::Result<()> {
         match message {
-            Incoming::Lifecycle(lifecycle) => {
-                self.lifecycle(&lifecycle, finished);
-                Ok(())
-            }
+            Incoming::Lifecycle(lifecycle) => match lifecycle.kind() {
+                Ok(LifecycleKind::Hello) => {
+                    self.hello(lifecycle.run_anchor, lifecycle.config_hash, finished)
+                }
+                Ok(LifecycleKind::Alive) => Ok(()),
+                Ok(LifecycleKind::Goodbye) => self.goodbye(finished),
+                Err(error) => {
+                    tracing::warn!(agent_id = self.agent_id, %error, "lifecycle message ignored");
+                    Ok(())
+                }
+            },
             Incoming::Descriptor(descriptor) => {
                 let id = KeyframeRef {
                     agent_id: self.agent_id,
@@ -248,33 +370,45 @@ impl Route<'_> {
         }
     }
 
-    /// Hello (a restart is back in the run), alive, or goodbye.
-    fn lifecycle(&mut self, lifecycle: &Lifecycle, finished: &mut BTreeSet<u32>) {
-        let (agent_id, record) = (self.agent_id, &mut *self.record);
-        match lifecycle.kind() {
-            Ok(LifecycleKind::Hello) => {
-                record.hellos += 1;
-                if record.hellos > 1 && record.config_hash != lifecycle.config_hash {
-                    tracing::warn!(agent_id, "agent restarted with a different configuration");
-                }
-                record.config_hash = lifecycle.config_hash;
-                self.inbox.hello(agent_id, self.epoch, lifecycle.run_anchor);
-                // A restarted agent is back in the run; its previous process's incomplete
-                // keyframes are gone with it.
-                finished.remove(&agent_id);
-                if record.hellos > 1 {
-                    self.inbox.forget_incomplete(agent_id);
-                }
-                tracing::info!(agent_id, "agent joined");
-            }
-            Ok(LifecycleKind::Alive) => {}
-            Ok(LifecycleKind::Goodbye) => {
-                record.goodbyes += 1;
-                finished.insert(agent_id);
-                tracing::info!(agent_id, "agent left");
-            }
-            Err(error) => tracing::warn!(agent_id, %error, "lifecycle message ignored"),
+    /// Hello: a (re)started agent is in the run.
+    fn hello(
+        &mut self,
+        run_anchor: u64,
+        config_hash: u64,
+        finished: &mut BTreeSet<u32>,
+    ) -> anyhow::Result<()> {
+        let (agent_id, epoch) = (self.agent_id, self.epoch);
+        self.commit(|| StoredInput::Hello {
+            agent_id,
+            epoch,
+            run_anchor,
+            config_hash,
+        })?;
+        let record = &mut *self.record;
+        record.hellos += 1;
+        if record.hellos > 1 && record.config_hash != config_hash {
+            tracing::warn!(agent_id, "agent restarted with a different configuration");
         }
+        record.config_hash = config_hash;
+        self.inbox.hello(agent_id, epoch, run_anchor);
+        // A restarted agent is back in the run; its previous process's incomplete
+        // keyframes are gone with it.
+        finished.remove(&agent_id);
+        if record.hellos > 1 {
+            self.inbox.forget_incomplete(agent_id);
+        }
+        tracing::info!(agent_id, "agent joined");
+        Ok(())
+    }
+
+    /// Goodbye: the agent is done (until it says hello again).
+    fn goodbye(&mut self, finished: &mut BTreeSet<u32>) -> anyhow::Result<()> {
+        let agent_id = self.agent_id;
+        self.commit(|| StoredInput::Goodbye { agent_id })?;
+        self.record.goodbyes += 1;
+        finished.insert(agent_id);
+        tracing::info!(agent_id, "agent left");
+        Ok(())
     }
 
     /// A keyframe's RGB-D image, to the inbox.
@@ -308,6 +442,37 @@ impl Route<'_> {
         }
     }
 
+    /// A stored keyframe (descriptor and image together), through the inbox as when it came.
+    fn stored_keyframe(&mut self, stored: &StoredKeyframe) -> anyhow::Result<()> {
+        let now = Instant::now();
+        let id = stored.id();
+        let from_descriptor = self
+            .inbox
+            .descriptor(id, self.epoch, stored.descriptor.clone(), now);
+        let arrival = match from_descriptor {
+            Some(arrival) => Some(arrival),
+            None => self.inbox.image(
+                id,
+                self.epoch,
+                stored.keyframe()?,
+                stored.frame_index,
+                stored.timestamp_s,
+                now,
+            ),
+        };
+        match arrival {
+            Some(arrival) => self.forward(arrival),
+            None => {
+                tracing::warn!(
+                    agent_id = id.agent_id,
+                    keyframe_id = id.keyframe_id,
+                    "stored keyframe not taken again on replay"
+                );
+                Ok(())
+            }
+        }
+    }
+
     /// A keyframe's Gaussians, or the agent's final map, to the worker unless repeated or from
     /// a run restarted on other frames.
     fn patch(&mut self, keyframe_id: u64, records: &[GaussianRecord]) -> anyhow::Result<()> {
@@ -330,6 +495,13 @@ impl Route<'_> {
             // on other frames.
             return Ok(());
         }
+        let epoch = self.epoch;
+        self.commit(|| StoredInput::Patch {
+            agent_id,
+            keyframe_id,
+            epoch,
+            records: records.to_vec(),
+        })?;
         let (cloud, dropped) = convert::gaussian_cloud(records);
         if dropped > 0 {
             tracing::warn!(
@@ -346,9 +518,13 @@ impl Route<'_> {
 
     /// Hands a keyframe whose descriptor and image are both there to the worker.
     fn forward(&mut self, arrival: KeyframeArrival) -> anyhow::Result<()> {
+        // The keyframe's consensus latency counts from here, its commit included.
+        let complete_at = Instant::now();
+        let epoch = self.epoch;
+        self.commit(|| StoredInput::Keyframe(Box::new(StoredKeyframe::new(&arrival, epoch))))?;
         self.record.keyframes += 1;
         self.to_worker
-            .send(WorkerInput::Keyframe(Box::new(arrival), Instant::now()))
+            .send(WorkerInput::Keyframe(Box::new(arrival), complete_at))
             .context("the consensus worker stopped")
     }
 }

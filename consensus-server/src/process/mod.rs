@@ -32,6 +32,7 @@ use anyhow::Context;
 use config::Config;
 use protocol::transport::{ConsumerLink, TransportConfig};
 
+use crate::store::{Opened, RunIdentity, Store};
 use main_thread::Listener;
 pub use outputs::{AgentRecord, ConsensusReport, PairAttempts, agent_trajectory_path};
 use outputs::{OutputKind, WorldMap, refine_world_map, write_outputs};
@@ -53,6 +54,12 @@ pub struct ConsensusOptions {
     /// the outputs include everything the agents had. `None`: stop at once and leave the
     /// agents running (they go on without a consensus).
     pub stop_agents_wait: Option<Duration>,
+    /// The run this consensus belongs to (its store, `out/consensus.redb`, records it): a
+    /// consensus started again with the same run id, configuration and agents resumes from the
+    /// store; any other is refused. `None`: the transport's namespace.
+    pub run_id: Option<String>,
+    /// Start over: an existing store is moved aside instead of resumed or refused.
+    pub fresh: bool,
 }
 
 /// Runs the consensus until the expected agents are done or `stop` is raised.
@@ -71,10 +78,29 @@ pub fn run_with_snapshots(
     let _span = tracing::info_span!("consensus").entered();
     config::process::prepare_output_dir(&options.out)?;
     let started = Instant::now();
+    let identity = RunIdentity {
+        run_id: options
+            .run_id
+            .clone()
+            .unwrap_or_else(|| options.transport.namespace.clone()),
+        config_hash: options.config.hash(),
+        agents: options.expected_agents,
+    };
+    // Opened before the transport: a store of another run stops the consensus before any
+    // agent hears of it.
+    let (store, opened, inputs) = Store::open(&options.out, &identity, options.fresh)?;
     let link = ConsumerLink::open(&options.transport).context("opening the transport")?;
     tracing::info!(namespace = %options.transport.namespace, "consensus listening");
     let worker = WorkerHandle::spawn(options.clone())?;
-    let mut listener = Listener::new(link, options, started);
+    let mut listener = Listener::new(link, options, started, store);
+    if opened == Opened::Resumed {
+        tracing::warn!(
+            store = %listener.store_path().display(),
+            inputs = inputs.len(),
+            "resuming the run from its consensus store (start with --fresh to begin anew)"
+        );
+        listener.resume(inputs, options, &worker.inputs)?;
+    }
     let interrupted = listener.listen(&worker, options, stop, snapshot)?;
 
     let (mut engine, updates, latencies) = worker.finish()?;

@@ -14,7 +14,7 @@ use render_core::types::GaussianCloud;
 use serde::Serialize;
 
 use super::ConsensusOptions;
-use crate::engine::{AttemptKind, ClosureEvent, Engine, KeyframeInfo};
+use crate::engine::{AttemptKind, CandidateSource, ClosureEvent, Engine, KeyframeInfo};
 use crate::place_recognition::KeyframeRef;
 use crate::refinement::{self, RefinementReport};
 
@@ -68,6 +68,11 @@ pub struct ConsensusReport {
     pub loop_closures_accepted: usize,
     pub loop_closures_rejected: usize,
     pub inter_agent_closures_accepted: usize,
+    /// Deliberately wrong closures (`[consensus.false_closures]`, 0 when off): how many joined
+    /// the pose graph and how many of them it kept. The `closures_*` and `*_accepted` counts
+    /// above are of the real closures only.
+    pub false_closures_injected: usize,
+    pub false_closures_accepted: usize,
     /// From a keyframe's arrival to the first correction that includes it.
     pub consensus_latency_ms_median: Option<f64>,
     pub consensus_latency_ms: Vec<f64>,
@@ -103,7 +108,11 @@ pub struct PairAttempts {
 /// Tallies the inter-agent attempts of `events` per pair of agents.
 fn pair_attempts(events: &[ClosureEvent]) -> BTreeMap<String, PairAttempts> {
     let mut pairs: BTreeMap<(u32, u32), PairAttempts> = BTreeMap::new();
-    for event in events.iter().filter(|e| e.inter_agent) {
+    // Real attempts only: injected wrong closures were never attempted.
+    let real = events
+        .iter()
+        .filter(|e| e.inter_agent && e.origin != CandidateSource::Injected);
+    for event in real {
         let (a, b) = (event.source.agent_id, event.target.agent_id);
         let pair = pairs.entry((a.min(b), a.max(b))).or_default();
         match event.kind {
@@ -155,7 +164,13 @@ pub(super) fn refine_world_map(
     let realtime_path = options.out.join("map_realtime.ply");
     render_core::ply::save_ply(&realtime_path, &map)
         .with_context(|| format!("writing {}", realtime_path.display()))?;
-    match refinement::refine(problem, consensus) {
+    // Paced runs give the same map on any machine: the refinement runs all its iterations,
+    // however long they take (docs/method.md, Pace).
+    let mut consensus = consensus.clone();
+    if options.config.mapping.pace == config::Pace::Paced {
+        consensus.refinement.max_seconds = f64::INFINITY;
+    }
+    match refinement::refine(problem, &consensus) {
         Ok(outcome) => {
             if consensus.refinement.refine_poses {
                 engine.apply_refined_poses(&outcome.world_from_camera);
@@ -201,21 +216,21 @@ pub(super) fn write_outputs(
         .with_context(|| format!("writing {}", map_path.display()))?;
     write_world_trajectories(out, engine, &agents)?;
     let events = engine.events().to_vec();
-    let solution = engine.solution();
-    let accepted = solution.map_or(0, |s| s.accepted_loops());
+    let (injected, real): (Vec<&ClosureEvent>, Vec<&ClosureEvent>) = events
+        .iter()
+        .partition(|e| e.origin == CandidateSource::Injected);
+    let kept = |e: &&&ClosureEvent| e.accepted_by_pose_graph == Some(true);
+    let accepted = real.iter().filter(kept).count();
     let report = ConsensusReport {
         keyframes: engine.keyframes().len(),
-        closures_proposed: events.len(),
-        closures_verified: events.iter().filter(|e| e.verified).count(),
-        closures_rejected_by_alignment: events.iter().filter(|e| !e.verified).count(),
+        closures_proposed: real.len(),
+        closures_verified: real.iter().filter(|e| e.verified).count(),
+        closures_rejected_by_alignment: real.iter().filter(|e| !e.verified).count(),
         loop_closures_accepted: accepted,
-        loop_closures_rejected: events.len() - accepted,
-        inter_agent_closures_accepted: solution.map_or(0, |s| {
-            s.loops
-                .iter()
-                .filter(|l| l.inter_agent && l.accepted)
-                .count()
-        }),
+        loop_closures_rejected: real.len() - accepted,
+        inter_agent_closures_accepted: real.iter().filter(|e| e.inter_agent).filter(kept).count(),
+        false_closures_injected: injected.len(),
+        false_closures_accepted: injected.iter().filter(kept).count(),
         consensus_latency_ms_median: median(&latencies),
         consensus_latency_ms: latencies,
         pose_graph_solve_ms_median: median(engine.solve_ms()),

@@ -15,7 +15,7 @@ use serde::Serialize;
 
 use super::ConsensusOptions;
 use super::outputs::{AgentRecord, OutputKind, WorldMap, write_outputs};
-use crate::engine::{Engine, Finished, Job, KeyframeArrival};
+use crate::engine::{CandidateSource, ClosureEvent, Engine, Finished, Job, KeyframeArrival};
 use crate::place_recognition::KeyframeRef;
 
 /// Messages to the worker.
@@ -272,7 +272,11 @@ pub(super) fn write_progress(out: &Path, engine: &Engine, stage: ProgressStage) 
         inter_agent_closures: usize,
         pending_alignments: usize,
     }
-    let events = engine.events();
+    let events: Vec<&ClosureEvent> = engine
+        .events()
+        .iter()
+        .filter(|e| e.origin != CandidateSource::Injected)
+        .collect();
     let progress = Progress {
         stage,
         keyframes: engine.keyframes().len(),

@@ -140,6 +140,9 @@ fn describe_control(message: &ControlMessage) -> String {
             keyframe_id,
             reason,
         } => format!("resend_keyframe keyframe={keyframe_id} reason={reason}"),
+        ControlMessage::ConsensusResumed { keyframes_held } => {
+            format!("consensus_resumed held={}", keyframes_held.len())
+        }
     }
 }
 

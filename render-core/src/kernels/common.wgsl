@@ -31,37 +31,51 @@ fn linear_workgroup(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>) -> u32 
     return workgroup_id.y * workgroup_count.x + workgroup_id.x;
 }
 
-// Relative and absolute margins on the squared Mahalanobis radius and on the pixel extent of
-// visible_half_extent: they absorb f32 rounding, so the extent never excludes a pixel where
-// the rasterizer's own alpha test would pass.
-const EXTENT_RADIUS_SQUARED_RELATIVE_MARGIN: f32 = 1e-3;
-const EXTENT_RADIUS_SQUARED_MARGIN: f32 = 0.01;
-const EXTENT_PIXEL_MARGIN: f32 = 0.01;
-// "No bound": larger than any image coordinate.
-const UNBOUNDED_EXTENT: f32 = 1e30;
+// Relative and absolute margins on the squared Mahalanobis radius of visible_radius_squared:
+// they absorb f32 rounding (of the radius, of the quadratic form in ellipse_misses_box and of
+// the rasterizer's own power), so no test built on it ever excludes a pixel where the
+// rasterizer's alpha test would pass.
+const VISIBLE_RADIUS_SQUARED_RELATIVE_MARGIN: f32 = 1e-3;
+const VISIBLE_RADIUS_SQUARED_MARGIN: f32 = 0.01;
 
-// Half extents (x, y) in pixels, around the splat's mean, of the pixels where its alpha
-// opacity * exp(-0.5 d^T conic d) reaches min_alpha (the params.min_splat_alpha of a render): the
-// bounding box of the ellipse d^T conic d <= r^2, r^2 = 2 ln(opacity / min alpha), whose half
-// extents are sqrt(r^2 * covariance_xx) and sqrt(r^2 * covariance_yy), the covariance being the
-// conic's inverse. Outside the box the splat adds exactly nothing, so a rasterizer may skip it
-// for pixels there. Unbounded without an alpha cut-off; NaN for a degenerate conic (every
-// comparison with it is false, so callers must test "outside", never "inside").
-fn visible_half_extent(opacity: f32, conic: vec3<f32>, min_alpha: f32) -> vec2<f32> {
-    if !(min_alpha > 0.0) {
-        return vec2<f32>(UNBOUNDED_EXTENT);
-    }
-    let radius_squared = max(2.0 * log(opacity / min_alpha), 0.0)
-        * (1.0 + EXTENT_RADIUS_SQUARED_RELATIVE_MARGIN) + EXTENT_RADIUS_SQUARED_MARGIN;
-    let determinant = conic.x * conic.z - conic.y * conic.y;
-    let covariance_diagonal = vec2<f32>(conic.z, conic.x) / determinant;
-    return sqrt(radius_squared * covariance_diagonal) + EXTENT_PIXEL_MARGIN;
+// The squared Mahalanobis radius r^2 = 2 ln(opacity / min_alpha) of the ellipse
+// d^T conic d <= r^2 outside which a splat's alpha opacity * exp(-0.5 d^T conic d) stays below
+// min_alpha (the params.min_splat_alpha of a render), with the margins above. Callers handle
+// min_alpha <= 0 (no cut-off, no ellipse) themselves.
+fn visible_radius_squared(opacity: f32, min_alpha: f32) -> f32 {
+    return max(2.0 * log(opacity / min_alpha), 0.0) * (1.0 + VISIBLE_RADIUS_SQUARED_RELATIVE_MARGIN)
+        + VISIBLE_RADIUS_SQUARED_MARGIN;
 }
 
-// Whether the box mean +- half_extent misses the pixel centres low ..= high on one axis
-// (false for NaN extents: such a splat is never skipped).
-fn misses_span(mean: f32, half_extent: f32, low: f32, high: f32) -> bool {
-    return mean - half_extent > high || mean + half_extent < low;
+fn quadratic(d: vec2<f32>, conic: vec3<f32>) -> f32 {
+    return conic.x * d.x * d.x + 2.0 * conic.y * d.x * d.y + conic.z * d.y * d.y;
+}
+
+// Minimum of d^T [[a, b], [b, c]] d over the box low <= d <= high (conic = (a, b, c) positive
+// definite): 0 when the box holds the origin, else the minimum over its four edges, each a
+// 1D quadratic minimised at the clamped stationary point.
+fn box_min_quadratic(low: vec2<f32>, high: vec2<f32>, conic: vec3<f32>) -> f32 {
+    if all(low <= vec2<f32>(0.0)) && all(high >= vec2<f32>(0.0)) {
+        return 0.0;
+    }
+    var best = quadratic(vec2<f32>(low.x, clamp(-conic.y * low.x / conic.z, low.y, high.y)), conic);
+    best = min(best, quadratic(vec2<f32>(high.x, clamp(-conic.y * high.x / conic.z, low.y, high.y)), conic));
+    best = min(best, quadratic(vec2<f32>(clamp(-conic.y * low.y / conic.x, low.x, high.x), low.y), conic));
+    best = min(best, quadratic(vec2<f32>(clamp(-conic.y * high.y / conic.x, low.x, high.x), high.y), conic));
+    return best;
+}
+
+// Whether a splat (mean, opacity, conic) misses every pixel centre of the box low ..= high
+// (image coordinates): its visible ellipse (visible_radius_squared) and the box do not meet,
+// so it adds exactly nothing to those pixels and a rasterizer may skip it there. Never true
+// without an alpha cut-off. The conic must be positive definite (project bins no other).
+fn ellipse_misses_box(mean: vec2<f32>, opacity: f32, conic: vec3<f32>, min_alpha: f32,
+                      low: vec2<f32>, high: vec2<f32>) -> bool {
+    if !(min_alpha > 0.0) {
+        return false;
+    }
+    let nearest = box_min_quadratic(low - mean, high - mean, conic);
+    return nearest > visible_radius_squared(opacity, min_alpha);
 }
 
 const NO_LANE: u32 = 0xffffffffu;

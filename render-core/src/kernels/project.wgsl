@@ -31,29 +31,7 @@
 @group(0) @binding(11) var<storage, read_write> depth_keys: array<u32>;
 @group(0) @binding(12) var<storage, read_write> sort_values: array<u32>;
 
-// Added to the squared Mahalanobis radius of the visible ellipse: absorbs f32 rounding of the
-// alpha test so that the box never cuts a pixel the rasterizer would shade.
-const VISIBLE_RADIUS_SQUARED_MARGIN: f32 = 0.01;
-const VISIBLE_RADIUS_RELATIVE_MARGIN: f32 = 1e-4;
 const ALL_TILES: u32 = 0xffffffffu;
-
-fn quadratic(d: vec2<f32>, conic: vec3<f32>) -> f32 {
-    return conic.x * d.x * d.x + 2.0 * conic.y * d.x * d.y + conic.z * d.y * d.y;
-}
-
-// Minimum of d^T [[a, b], [b, c]] d over the box low <= d <= high (conic = (a, b, c) positive
-// definite): 0 when the box holds the origin, else the minimum over its four edges, each a
-// 1D quadratic minimised at the clamped stationary point.
-fn box_min_quadratic(low: vec2<f32>, high: vec2<f32>, conic: vec3<f32>) -> f32 {
-    if all(low <= vec2<f32>(0.0)) && all(high >= vec2<f32>(0.0)) {
-        return 0.0;
-    }
-    var best = quadratic(vec2<f32>(low.x, clamp(-conic.y * low.x / conic.z, low.y, high.y)), conic);
-    best = min(best, quadratic(vec2<f32>(high.x, clamp(-conic.y * high.x / conic.z, low.y, high.y)), conic));
-    best = min(best, quadratic(vec2<f32>(clamp(-conic.y * low.y / conic.x, low.x, high.x), low.y), conic));
-    best = min(best, quadratic(vec2<f32>(clamp(-conic.y * high.y / conic.x, low.x, high.x), high.y), conic));
-    return best;
-}
 
 fn cull(index: u32) {
     splat_position[index] = vec4<f32>(0.0);
@@ -170,10 +148,8 @@ fn main(
             cull(index);
             return;
         }
-        let visible_radius_squared =
-            2.0 * log(opacity / min_alpha) + VISIBLE_RADIUS_SQUARED_MARGIN;
         half_extent = min(half_extent,
-            sqrt(visible_radius_squared * vec2<f32>(cov_xx, cov_yy)));
+            sqrt(visible_radius_squared(opacity, min_alpha) * vec2<f32>(cov_xx, cov_yy)));
     }
     // Tile t covers pixel centres t*16 ..= t*16 + 15 (pixel centres at integer coordinates).
     let tile = f32(TILE_SIZE);
@@ -193,8 +169,7 @@ fn main(
     var tile_mask = ALL_TILES;
     var tile_count = columns * rows;
     if min_alpha > 0.0 && tile_count <= MAX_MASKED_TILES {
-        let radius_squared = (2.0 * log(opacity / min_alpha)) * (1.0 + VISIBLE_RADIUS_RELATIVE_MARGIN)
-            + VISIBLE_RADIUS_SQUARED_MARGIN;
+        let radius_squared = visible_radius_squared(opacity, min_alpha);
         tile_mask = 0u;
         tile_count = 0u;
         // The tile's column and row advance with i (no integer division: SIMD CPU adapters

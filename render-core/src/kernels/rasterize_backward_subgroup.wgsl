@@ -7,11 +7,51 @@
 // the subgroup's pixels (subgroupAdd, skipped when no pixel of the subgroup sees it) are kept
 // by the lane that loaded the splat, which adds them to screen_gradients after the step: one
 // atomic add per component per subgroup instead of one per invocation.
-// Skipping as in rasterize_subgroup.wgsl: the loop runs only over the loaded splats whose
-// visible box (visible_half_extent) reaches the subgroup's rows (a subgroupBallot); exact, such
-// a splat touched none of these pixels in the forward pass either.
+// Skipping as in rasterize_subgroup.wgsl: the band is processed as two halves of 8 columns,
+// each looping only over the loaded splats whose visible ellipse reaches it
+// (ellipse_misses_box; a subgroupBallot); exact, a skipped splat touched none of the half's
+// pixels in the forward pass either. A splat reaching both halves is summed over each half
+// separately (two subgroup sums) and its lane adds both before the atomic add.
 // Invariants: loop bounds and shuffle source lanes are subgroup-uniform; lanes are assumed to
 // be numbered 0 .. active - 1; the subgroup size is never assumed.
+
+// Columns of one half of the band: two pixel groups.
+const HALF_TILE: u32 = TILE_SIZE / 2u;
+
+fn add_gradients(a: SplatGradient, b: SplatGradient) -> SplatGradient {
+    return SplatGradient(a.a + b.a, a.b + b.b, a.c + b.c);
+}
+
+// Un-composites the loaded splats of `ballot` (lanes, walked lowest first = list order back
+// to front; `mine` is each lane's splat, `last_entry` the list entry of lane 0's) from two
+// pixel groups of each invocation's row (one half of the band), and adds each splat's
+// gradient summed over the subgroup's pixels of the half to `my_gradient` of the lane that
+// loaded it.
+fn accumulate_half(half0: ptr<function, PixelGradients>, half1: ptr<function, PixelGradients>,
+                   ballot: vec4<u32>, mine: Splat, last_entry: u32, pixel_y: f32, lane: u32,
+                   my_gradient: ptr<function, SplatGradient>) {
+    var pending = ballot;
+    loop {
+        let k = pop_lowest_lane(&pending);
+        if k == NO_LANE {
+            break;
+        }
+        let splat = Splat(subgroupShuffle(mine.position, k), subgroupShuffle(mine.conic, k),
+                          subgroupShuffle(mine.colour, k));
+        let entry = last_entry - k;
+        var partials = zero_partials();
+        let ratio_growth = row_ratio_growth(splat.conic);
+        let hit0 = accumulate(half0, pixel_y, splat, ratio_growth, entry, &partials);
+        let hit1 = accumulate(half1, pixel_y, splat, ratio_growth, entry, &partials);
+        if subgroupAny(hit0 || hit1) {
+            let own = total(partials);
+            let summed = SplatGradient(subgroupAdd(own.a), subgroupAdd(own.b), subgroupAdd(own.c));
+            if lane == k {
+                *my_gradient = add_gradients(*my_gradient, summed);
+            }
+        }
+    }
+}
 
 @compute @workgroup_size(THREADS_PER_TILE)
 fn main(
@@ -23,8 +63,13 @@ fn main(
     let tile_origin = workgroup_id.xy * TILE_SIZE;
     let row = tile_origin.y + local_index;
     let pixel_y = f32(row);
-    let rows_low = f32(subgroupMin(row));
-    let rows_high = f32(subgroupMax(row));
+    // The two halves of the subgroup's band of pixel centres: its rows, the tile's left and
+    // right 8 columns.
+    let rows = vec2<f32>(f32(subgroupMin(row)), f32(subgroupMax(row)));
+    let left_low = vec2<f32>(f32(tile_origin.x), rows.x);
+    let left_high = vec2<f32>(f32(tile_origin.x + HALF_TILE - 1u), rows.y);
+    let right_low = vec2<f32>(f32(tile_origin.x + HALF_TILE), rows.x);
+    let right_high = vec2<f32>(f32(tile_origin.x + TILE_SIZE - 1u), rows.y);
     var group0 = load_group(tile_origin.x, row);
     var group1 = load_group(tile_origin.x + 4u, row);
     var group2 = load_group(tile_origin.x + 8u, row);
@@ -37,38 +82,24 @@ fn main(
         let count = min(lanes, end);
         var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
         var my_gaussian = 0u;
-        var reaches_rows = false;
+        var reaches_left = false;
+        var reaches_right = false;
         if lane < count {
             my_gaussian = intersection_gaussians[start + end - 1u - lane];
             mine = load_splat(my_gaussian);
-            let extent = visible_half_extent(mine.position.z, mine.conic, params.min_splat_alpha);
-            reaches_rows = !misses_span(mine.position.y, extent.y, rows_low, rows_high);
+            let min_alpha = params.min_splat_alpha;
+            reaches_left = !ellipse_misses_box(mine.position.xy, mine.position.z, mine.conic,
+                                               min_alpha, left_low, left_high);
+            reaches_right = !ellipse_misses_box(mine.position.xy, mine.position.z, mine.conic,
+                                                min_alpha, right_low, right_high);
         }
         var my_gradient = SplatGradient(vec4<f32>(0.0), vec4<f32>(0.0), vec2<f32>(0.0));
-        // Only the loaded splats that reach the subgroup's rows, in lane (= list) order.
-        var pending = subgroupBallot(reaches_rows);
-        loop {
-            let k = pop_lowest_lane(&pending);
-            if k == NO_LANE {
-                break;
-            }
-            let splat = Splat(subgroupShuffle(mine.position, k), subgroupShuffle(mine.conic, k),
-                              subgroupShuffle(mine.colour, k));
-            let entry = end - 1u - k;
-            var partials = zero_partials();
-            let ratio_growth = row_ratio_growth(splat.conic);
-            let hit0 = accumulate(&group0, pixel_y, splat, ratio_growth, entry, &partials);
-            let hit1 = accumulate(&group1, pixel_y, splat, ratio_growth, entry, &partials);
-            let hit2 = accumulate(&group2, pixel_y, splat, ratio_growth, entry, &partials);
-            let hit3 = accumulate(&group3, pixel_y, splat, ratio_growth, entry, &partials);
-            if subgroupAny(hit0 || hit1 || hit2 || hit3) {
-                let own = total(partials);
-                let summed = SplatGradient(subgroupAdd(own.a), subgroupAdd(own.b), subgroupAdd(own.c));
-                if lane == k {
-                    my_gradient = summed;
-                }
-            }
-        }
+        // Each half un-composites only the loaded splats that reach it, in lane (= list) order;
+        // the halves share no pixel.
+        accumulate_half(&group0, &group1, subgroupBallot(reaches_left), mine, end - 1u, pixel_y,
+                        lane, &my_gradient);
+        accumulate_half(&group2, &group3, subgroupBallot(reaches_right), mine, end - 1u, pixel_y,
+                        lane, &my_gradient);
         if lane < count && !is_zero(my_gradient) {
             add_splat_gradient(my_gaussian, my_gradient);
         }

@@ -11,6 +11,7 @@ use harness::{
     DEFAULT_WARMUP, RasterWorkload, bench_camera, raster_workload, realistic_scene, run_case,
     run_case_on,
 };
+use render_core::constants::TILE_SIZE;
 use render_core::context::GpuContext;
 use render_core::gpu::{GpuRenderer, RendererOptions, StageTimes, Subgroups};
 use render_core::training::TrainingKernels;
@@ -22,6 +23,8 @@ use crate::cmd::{fmt_num, print_json};
 /// The benchmark's scene, cases and timing loops (kept out of render-core: only this command
 /// uses them).
 mod harness;
+/// The peak (pixel, splat) evaluation rate `--workload` compares each case with.
+mod peak;
 
 const BYTES_PER_MIB: f64 = 1024.0 * 1024.0;
 
@@ -56,7 +59,9 @@ pub struct BenchRenderArgs {
     json: bool,
     /// Also count each case's rasterizer workload on the host: (pixel, splat) evaluations for
     /// 16- and 8-pixel tiles walked in bands of 16, 8 or 4 rows, against the evaluations that
-    /// change the image (harness::raster_workload).
+    /// change the image (harness::raster_workload); and time the rasterizer on a scene where
+    /// every evaluation changes the image (peak.rs), to report each case's evaluations per
+    /// second against that peak rate.
     #[arg(long)]
     workload: bool,
     /// Time this map (standard 3DGS PLY, e.g. a SLAM run's map.ply) instead of the synthetic
@@ -94,12 +99,56 @@ struct CaseReport {
     /// With `--workload`: rasterizer work per tile size and band height.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     workload: Vec<WorkloadReport>,
+    /// With `--workload`, when the renderer's band is known (subgroups of one size): its
+    /// evaluations per second against the peak rate at this size.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    rate: Option<RateReport>,
+}
+
+#[derive(Serialize)]
+struct RateReport {
+    /// Tile rows per band of the renderer (its subgroup's rows).
+    band_rows: u32,
+    evaluations: u64,
+    visible_evaluations: u64,
+    /// The forward rasterize stage (submitted and waited for on its own), ms.
+    rasterize_ms: f64,
+    evaluations_per_second: f64,
+    peak_evaluations_per_second: f64,
+    /// evaluations_per_second / peak_evaluations_per_second.
+    fraction_of_peak: f64,
+    /// The rasterize time if only the visible evaluations were made, at the peak rate.
+    visible_at_peak_ms: f64,
+}
+
+#[derive(Serialize)]
+struct PeakReport {
+    width: u32,
+    height: u32,
+    layers: u32,
+    evaluations: u64,
+    rasterize_ms: f64,
+    evaluations_per_second: f64,
+}
+
+impl From<peak::PeakRate> for PeakReport {
+    fn from(p: peak::PeakRate) -> Self {
+        Self {
+            width: p.width,
+            height: p.height,
+            layers: peak::PEAK_LAYERS,
+            evaluations: p.evaluations,
+            rasterize_ms: p.rasterize_ms,
+            evaluations_per_second: p.evaluations_per_second(),
+        }
+    }
 }
 
 #[derive(Serialize)]
 struct WorkloadReport {
     tile_size: u32,
     band_rows: u32,
+    band_columns: u32,
     pairs: u64,
     band_steps: u64,
     evaluations: u64,
@@ -111,6 +160,7 @@ impl From<RasterWorkload> for WorkloadReport {
         Self {
             tile_size: w.tile_size,
             band_rows: w.band_rows,
+            band_columns: w.band_columns,
             pairs: w.pairs,
             band_steps: w.band_steps,
             evaluations: w.evaluations,
@@ -119,15 +169,41 @@ impl From<RasterWorkload> for WorkloadReport {
     }
 }
 
-/// (tile size, band rows) counted by `--workload`: this renderer's 16-pixel tiles (a band is
-/// the rows of one subgroup, 8 on lavapipe) and what smaller bands or tiles would do.
-const WORKLOAD_LAYOUTS: [(u32, u32); 5] = [(16, 16), (16, 8), (16, 4), (8, 8), (8, 4)];
+/// (tile size, band rows, band columns) counted by `--workload`: this renderer's 16-pixel
+/// tiles (a band is the rows of one subgroup, 8 on lavapipe; the forward rasterizer tests
+/// halves of it, as does the backward) and what other bands or tiles would do.
+const WORKLOAD_LAYOUTS: [(u32, u32, u32); 7] = [
+    (16, 16, 16),
+    (16, 8, 16),
+    (16, 8, 8),
+    (16, 4, 16),
+    (16, 4, 8),
+    (8, 8, 8),
+    (8, 4, 8),
+];
 
-fn workload_reports(cloud: &GaussianCloud, camera: &Camera) -> anyhow::Result<Vec<WorkloadReport>> {
-    WORKLOAD_LAYOUTS
+/// Columns of one skip test of the forward subgroup rasterizer (rasterize_subgroup.wgsl
+/// composites each band as two halves).
+const FORWARD_BAND_COLUMNS: u32 = TILE_SIZE / 2;
+
+/// The workload of each of [`WORKLOAD_LAYOUTS`], and of the forward rasterizer's own layout
+/// (16-pixel tiles in bands of `band_rows`, halves of [`FORWARD_BAND_COLUMNS`]) when that is
+/// not among them.
+fn workload_reports(
+    cloud: &GaussianCloud,
+    camera: &Camera,
+    band_rows: Option<u32>,
+) -> anyhow::Result<Vec<WorkloadReport>> {
+    let mut layouts = WORKLOAD_LAYOUTS.to_vec();
+    if let Some(band) = band_rows
+        && !layouts.contains(&(TILE_SIZE, band, FORWARD_BAND_COLUMNS))
+    {
+        layouts.push((TILE_SIZE, band, FORWARD_BAND_COLUMNS));
+    }
+    layouts
         .iter()
-        .map(|&(tile, band)| {
-            raster_workload(cloud, camera, &RasterConfig::default(), tile, band)
+        .map(|&(tile, band, columns)| {
+            raster_workload(cloud, camera, &RasterConfig::default(), tile, band, columns)
                 .map(WorkloadReport::from)
                 .map_err(anyhow::Error::from)
         })
@@ -139,6 +215,9 @@ struct BenchRenderReport {
     adapter: String,
     repeats: usize,
     cases: Vec<CaseReport>,
+    /// With `--workload`: the peak evaluation rate at each image size measured.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    peak: Vec<PeakReport>,
 }
 
 impl From<BenchCase> for CaseReport {
@@ -156,8 +235,43 @@ impl From<BenchCase> for CaseReport {
             forward_stages: stage_reports(case.stages),
             iteration_stages: stage_reports(case.iteration_stages),
             workload: Vec::new(),
+            rate: None,
         }
     }
+}
+
+/// Rows of one band of the renderer's forward rasterizer: one subgroup's rows (one row per
+/// lane, at most a tile's), known when the adapter has a single subgroup size; `None` without
+/// subgroups (the workgroup rasterizer skips no splat) or when the size may vary.
+fn renderer_band_rows(context: &GpuContext, renderer: &GpuRenderer) -> Option<u32> {
+    let info = &context.adapter_info;
+    (renderer.uses_subgroups && info.subgroup_min_size == info.subgroup_max_size)
+        .then(|| info.subgroup_min_size.min(TILE_SIZE))
+}
+
+/// A case's evaluations per second (its workload in the renderer's layout over its rasterize
+/// stage) against the peak rate at its size.
+fn rate_report(case: &CaseReport, band_rows: u32, peak: &peak::PeakRate) -> Option<RateReport> {
+    let workload = case.workload.iter().find(|w| {
+        (w.tile_size, w.band_rows, w.band_columns) == (TILE_SIZE, band_rows, FORWARD_BAND_COLUMNS)
+    })?;
+    let rasterize_ms = case
+        .forward_stages
+        .iter()
+        .find(|s| s.stage == peak::RASTERIZE_STAGE)?
+        .ms;
+    let evaluations_per_second = workload.evaluations as f64 / (rasterize_ms * 1e-3);
+    let peak_evaluations_per_second = peak.evaluations_per_second();
+    Some(RateReport {
+        band_rows,
+        evaluations: workload.evaluations,
+        visible_evaluations: workload.visible_evaluations,
+        rasterize_ms,
+        evaluations_per_second,
+        peak_evaluations_per_second,
+        fraction_of_peak: evaluations_per_second / peak_evaluations_per_second,
+        visible_at_peak_ms: workload.visible_evaluations as f64 / peak_evaluations_per_second * 1e3,
+    })
 }
 
 fn stage_reports(stages: StageTimes) -> Vec<StageReport> {
@@ -219,6 +333,7 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
         iteration: !args.forward_only,
         ..BenchConfig::default()
     };
+    let band_rows = renderer_band_rows(&context, &renderer);
     let mut cases = Vec::with_capacity(config.gaussian_counts.len() * sizes.len());
     if let (Some(path), Some(pose), Some(intrinsics)) = (&args.map, &args.pose, &args.intrinsics) {
         let (width, height) = sizes[0];
@@ -236,7 +351,7 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
             .with_context(|| format!("benchmarking {}", path.display()))?;
         let mut report = CaseReport::from(case);
         if args.workload {
-            report.workload = workload_reports(&map, &camera)?;
+            report.workload = workload_reports(&map, &camera, band_rows)?;
         }
         cases.push(report);
     }
@@ -261,9 +376,32 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
             if args.workload {
                 let camera = bench_camera(width, height);
                 let scene = realistic_scene(&camera, count, config.seed);
-                report.workload = workload_reports(&scene, &camera)?;
+                report.workload = workload_reports(&scene, &camera, band_rows)?;
             }
             cases.push(report);
+        }
+    }
+    let mut peaks: Vec<peak::PeakRate> = Vec::new();
+    if args.workload {
+        for case in &mut cases {
+            let size = (case.width, case.height);
+            let known = peaks.iter().find(|p| (p.width, p.height) == size).copied();
+            let peak = match known {
+                Some(peak) => peak,
+                None => {
+                    if !args.json {
+                        eprintln!(
+                            "measuring the peak evaluation rate at {}x{} ...",
+                            size.0, size.1
+                        );
+                    }
+                    let peak = peak::peak_rate(&context, &renderer, &config, size.0, size.1)
+                        .with_context(|| format!("peak rate at {}x{}", size.0, size.1))?;
+                    peaks.push(peak);
+                    peak
+                }
+            };
+            case.rate = band_rows.and_then(|band| rate_report(case, band, &peak));
         }
     }
     let report = BenchRenderReport {
@@ -274,6 +412,7 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
         },
         repeats: config.repeats,
         cases,
+        peak: peaks.into_iter().map(PeakReport::from).collect(),
     };
     if args.json {
         return print_json(&report);
@@ -311,19 +450,19 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
     }
     if report.cases.iter().any(|c| !c.workload.is_empty()) {
         println!(
-            "rasterizer workload (host count; evaluations = pixels x splats walked, visible = those that change the image):"
+            "rasterizer workload (host count; band = columns x rows of one skip test; evaluations = pixels x splats walked, visible = those that change the image):"
         );
         println!(
-            "  {:>10} {:>6} {:>6} {:>11} {:>13} {:>12} {:>8}",
+            "  {:>10} {:>6} {:>9} {:>11} {:>13} {:>12} {:>8}",
             "gaussians", "tile", "band", "pairs", "evaluations", "visible", "visible %"
         );
         for case in &report.cases {
             for w in &case.workload {
                 println!(
-                    "  {:>10} {:>6} {:>6} {:>11} {:>13} {:>12} {:>8}",
+                    "  {:>10} {:>6} {:>9} {:>11} {:>13} {:>12} {:>8}",
                     case.gaussians,
                     w.tile_size,
-                    w.band_rows,
+                    format!("{}x{}", w.band_columns, w.band_rows),
                     w.pairs,
                     w.evaluations,
                     w.visible_evaluations,
@@ -335,6 +474,7 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
             }
         }
     }
+    print_rates(&report);
     if report.cases.iter().any(|c| !c.iteration_stages.is_empty()) {
         println!("iteration stages (each submitted and waited for separately, ms):");
         for case in &report.cases {
@@ -347,4 +487,58 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// The peak rates and each case's rate against them (`--workload`).
+fn print_rates(report: &BenchRenderReport) {
+    if report.peak.is_empty() {
+        return;
+    }
+    println!(
+        "peak evaluation rate (forward rasterize stage on {} full-view layers, every evaluation visible):",
+        peak::PEAK_LAYERS
+    );
+    for p in &report.peak {
+        println!(
+            "  {:>9}: {} evaluations in {} ms = {} M/s",
+            format!("{}x{}", p.width, p.height),
+            p.evaluations,
+            fmt_num(p.rasterize_ms, 1),
+            fmt_num(p.evaluations_per_second / 1e6, 0)
+        );
+    }
+    if !report.cases.iter().any(|c| c.rate.is_some()) {
+        println!("  (no per-case rate: the renderer's band of rows is not known on this adapter)");
+        return;
+    }
+    println!(
+        "rasterizer rate (renderer's layout; visible at peak = the rasterize time if only visible evaluations were made):"
+    );
+    println!(
+        "  {:>10} {:>9} {:>5} {:>13} {:>12} {:>10} {:>8} {:>9} {:>16}",
+        "gaussians",
+        "size",
+        "band",
+        "evaluations",
+        "visible",
+        "raster ms",
+        "M/s",
+        "% peak",
+        "visible@peak ms"
+    );
+    for case in &report.cases {
+        let Some(r) = &case.rate else { continue };
+        println!(
+            "  {:>10} {:>9} {:>5} {:>13} {:>12} {:>10} {:>8} {:>9} {:>16}",
+            case.gaussians,
+            format!("{}x{}", case.width, case.height),
+            r.band_rows,
+            r.evaluations,
+            r.visible_evaluations,
+            fmt_num(r.rasterize_ms, 1),
+            fmt_num(r.evaluations_per_second / 1e6, 0),
+            fmt_num(100.0 * r.fraction_of_peak, 1),
+            fmt_num(r.visible_at_peak_ms, 1)
+        );
+    }
 }

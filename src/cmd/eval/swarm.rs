@@ -46,6 +46,20 @@ pub struct SwarmArgs {
     lpips_weights: Option<PathBuf>,
 }
 
+impl SwarmArgs {
+    /// The figures of the run in `dir`, rendering every `render_every`-th frame (0: none), with
+    /// no comparison images.
+    pub fn for_dir(dir: &Path, render_every: usize) -> Self {
+        Self {
+            dir: dir.to_path_buf(),
+            json: true,
+            render_every,
+            renders: 0,
+            lpips_weights: None,
+        }
+    }
+}
+
 /// DIR/metrics.json.
 #[derive(Debug, Serialize)]
 pub struct SwarmMetrics {

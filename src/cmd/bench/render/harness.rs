@@ -123,21 +123,24 @@ pub struct BenchCase {
 /// image. Splats are the reference projection's, binned into every tile their visible ellipse
 /// (where opacity x exp(power) can reach `min_splat_alpha`) reaches, as the renderer's tile
 /// masks do, and walked front to back per band of `band_rows` tile rows, as the subgroup
-/// rasterizer walks them per subgroup: a splat whose visible box misses the band's rows is
-/// skipped, any other costs one evaluation per pixel of the band, until every pixel of the
-/// band has terminated.
+/// rasterizers walk them per subgroup, each band tested in parts of `band_columns` columns
+/// (8, the rasterizers' two halves of a tile; 16, the whole tile): a part the
+/// splat's visible ellipse misses is skipped, any other costs one evaluation per pixel of the
+/// part, until every pixel of the band has terminated.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RasterWorkload {
     pub tile_size: u32,
     /// Tile rows one skip test and one early-termination test cover (the subgroup's rows in
     /// the subgroup rasterizer: one row per lane).
     pub band_rows: u32,
+    /// Columns of one skip test (a divisor of `tile_size`).
+    pub band_columns: u32,
     /// Tile/splat pairs. Within 1 % of the renderer's on the benchmark scene, which masks
     /// tiles by the ellipse only for rectangles of up to 32 tiles and adds safety margins.
     pub pairs: u64,
-    /// (band, splat) steps that were not skipped.
+    /// (band part, splat) steps that were not skipped.
     pub band_steps: u64,
-    /// Pixel evaluations: `band_steps` x pixels per band.
+    /// Pixel evaluations: `band_steps` x pixels per band part.
     pub evaluations: u64,
     /// Evaluations where the pixel was still compositing and the splat's alpha reached
     /// `min_splat_alpha`: the part of the arithmetic that changes the image.
@@ -145,7 +148,8 @@ pub struct RasterWorkload {
 }
 
 /// Counts [`RasterWorkload`] for `cloud` seen by `camera` with `tile_size` x `tile_size` tiles
-/// walked in bands of `band_rows` rows (a divisor of `tile_size`). The early-termination test
+/// walked in bands of `band_rows` rows, skip-tested in parts of `band_columns` columns
+/// (divisors of `tile_size`). The early-termination test
 /// runs after every splat here; the kernels test after every batch of one splat per lane, so
 /// they run a few more steps than counted.
 pub fn raster_workload(
@@ -154,11 +158,14 @@ pub fn raster_workload(
     raster: &RasterConfig,
     tile_size: u32,
     band_rows: u32,
+    band_columns: u32,
 ) -> Result<RasterWorkload, GpuError> {
-    if tile_size == 0 || band_rows == 0 || !tile_size.is_multiple_of(band_rows) {
-        return Err(GpuError::InvalidInput(format!(
-            "band of {band_rows} rows does not divide a tile of {tile_size} pixels"
-        )));
+    for (what, length) in [("rows", band_rows), ("columns", band_columns)] {
+        if tile_size == 0 || length == 0 || !tile_size.is_multiple_of(length) {
+            return Err(GpuError::InvalidInput(format!(
+                "band of {length} {what} does not divide a tile of {tile_size} pixels"
+            )));
+        }
     }
     let (width, height) = (camera.width, camera.height);
     let min_transmittance = f64::from(raster.min_transmittance);
@@ -174,6 +181,7 @@ pub fn raster_workload(
     let mut workload = RasterWorkload {
         tile_size,
         band_rows,
+        band_columns,
         pairs: 0,
         band_steps: 0,
         evaluations: 0,
@@ -237,11 +245,18 @@ pub fn raster_workload(
                     if compositing == 0 {
                         break;
                     }
-                    if ellipses[index].misses_rows(band_rows_span) {
+                    let reached_parts = (0..tile_size / band_columns)
+                        .filter(|part| {
+                            let first = f64::from(tile_x * tile_size + part * band_columns);
+                            let columns = (first, first + f64::from(band_columns - 1));
+                            !ellipses[index].misses_box(band_rows_span, columns)
+                        })
+                        .count() as u64;
+                    if reached_parts == 0 {
                         continue;
                     }
-                    workload.band_steps += 1;
-                    workload.evaluations += u64::from(band_pixels);
+                    workload.band_steps += reached_parts;
+                    workload.evaluations += reached_parts * u64::from(band_rows * band_columns);
                     for p in 0..band_pixels {
                         if done[p as usize] {
                             continue;
@@ -269,7 +284,7 @@ pub fn raster_workload(
 
 /// Where a projected splat can reach `min_splat_alpha`: the ellipse conic(offset) <=
 /// radius_squared, radius_squared = 2 ln(opacity / min_alpha), around its mean (the host
-/// counterpart of `visible_half_extent` in common.wgsl, without its safety margins). The conic
+/// counterpart of `visible_radius_squared` in common.wgsl, without its safety margins). The conic
 /// `[a, b, c]` is the quadratic form a dx^2 + 2 b dx dy + c dy^2.
 struct VisibleEllipse {
     mean: [f64; 2],
@@ -298,11 +313,11 @@ impl VisibleEllipse {
         ]
     }
 
-    /// Whether its bounding box misses the rows `y_min ..= y_max` (as the subgroup
-    /// rasterizers' skip test; false for a NaN box, which is never skipped).
-    fn misses_rows(&self, (y_min, y_max): (f64, f64)) -> bool {
-        let [_, half_y] = self.half_extents();
-        self.mean[1] - half_y > y_max || self.mean[1] + half_y < y_min
+    /// Whether it misses the box of pixel centres `columns` x `rows` (inclusive ranges), as
+    /// the subgroup rasterizers' skip test (`ellipse_misses_box` in common.wgsl) decides.
+    fn misses_box(&self, rows: (f64, f64), (x_min, x_max): (f64, f64)) -> bool {
+        self.x_extent(rows)
+            .is_none_or(|(left, right)| right < x_min || left > x_max)
     }
 
     /// Its x range over the rows `y_min ..= y_max`, or `None` when it misses them (or is
@@ -679,11 +694,11 @@ mod tests {
     fn raster_workload_counts_band_steps_and_visible_pixels() {
         // One opaque-ish splat near the corner of a 32x32 image (2x2 tiles of 16), small
         // enough (visible box about 4 pixels each way) to stay inside tile (0, 0)'s first
-        // band of 8 rows.
+        // band of 8 rows and its left 8 columns.
         let camera = bench_camera(32, 32);
         let mut cloud = GaussianCloud::default();
         let depth = 2.0;
-        let (u, v) = (4.0, 3.5);
+        let (u, v) = (3.5, 3.5);
         let mean = [
             (u - camera.cx) / camera.fx * depth,
             (v - camera.cy) / camera.fy * depth,
@@ -699,17 +714,23 @@ mod tests {
             [0.5; 3],
         );
         let raster = RasterConfig::default();
-        let workload = raster_workload(&cloud, &camera, &raster, 16, 8).unwrap();
+        let workload = raster_workload(&cloud, &camera, &raster, 16, 8, 16).unwrap();
         assert_eq!(workload.pairs, 1);
         assert_eq!(workload.band_steps, 1);
         assert_eq!(workload.evaluations, 16 * 8);
+        // It stays in the tile's left half: halves evaluate that half only.
+        let halves = raster_workload(&cloud, &camera, &raster, 16, 8, 8).unwrap();
+        assert_eq!(halves.band_steps, 1);
+        assert_eq!(halves.evaluations, 8 * 8);
+        assert_eq!(halves.visible_evaluations, workload.visible_evaluations);
         assert!(workload.visible_evaluations > 0);
         assert!(workload.visible_evaluations < workload.evaluations);
         // Bands of a whole tile evaluate the tile once; the visible count does not change.
-        let whole = raster_workload(&cloud, &camera, &raster, 16, 16).unwrap();
+        let whole = raster_workload(&cloud, &camera, &raster, 16, 16, 16).unwrap();
         assert_eq!(whole.evaluations, 16 * 16);
         assert_eq!(whole.visible_evaluations, workload.visible_evaluations);
-        assert!(raster_workload(&cloud, &camera, &raster, 16, 5).is_err());
+        assert!(raster_workload(&cloud, &camera, &raster, 16, 5, 16).is_err());
+        assert!(raster_workload(&cloud, &camera, &raster, 16, 8, 5).is_err());
     }
 
     #[test]
@@ -760,8 +781,9 @@ mod tests {
         let camera = bench_camera(160, 120);
         let cloud = realistic_scene(&camera, 5_000, 7);
         let raster = RasterConfig::default();
-        let bands_of_8 = raster_workload(&cloud, &camera, &raster, 16, 8).unwrap();
-        let bands_of_4 = raster_workload(&cloud, &camera, &raster, 16, 4).unwrap();
+        let bands_of_8 = raster_workload(&cloud, &camera, &raster, 16, 8, 16).unwrap();
+        let bands_of_4 = raster_workload(&cloud, &camera, &raster, 16, 4, 16).unwrap();
+        let halves_of_8 = raster_workload(&cloud, &camera, &raster, 16, 8, 8).unwrap();
         assert!(bands_of_8.visible_evaluations > 0);
         assert!(bands_of_8.visible_evaluations <= bands_of_8.evaluations);
         assert!(bands_of_8.evaluations <= bands_of_8.pairs * 16 * 16);
@@ -769,6 +791,12 @@ mod tests {
         assert!(bands_of_4.evaluations <= bands_of_8.evaluations);
         assert_eq!(
             bands_of_4.visible_evaluations,
+            bands_of_8.visible_evaluations
+        );
+        // So do narrower parts.
+        assert!(halves_of_8.evaluations < bands_of_8.evaluations);
+        assert_eq!(
+            halves_of_8.visible_evaluations,
             bands_of_8.visible_evaluations
         );
     }
