@@ -7,6 +7,7 @@
 #                           [--frames N] [--descriptor-weights FILE] [--out DIR]
 #                           [--set KEY=VALUE]...
 #                           [--no-restart-consensus]
+#                           [--transport iceoryx2|zenoh]
 #
 # With no arguments: the embedded synthetic scene, 3 agents (synthetic:agents=3,agent=K).
 # --agent repeats, one dataset (and frame range) per agent; agent K is the K-th --agent.
@@ -27,6 +28,10 @@
 # publish again what it lost, and the outputs are those of a run without the crash.
 # --no-restart-consensus reports its death instead. Each launch is a new run: the consensus starts
 # with a new run id and --fresh, so an older run's store in DIR is moved aside, never resumed.
+# --transport zenoh (root only) runs the consensus and each agent as a simulated host of its own
+# (scripts/simulated_host.sh: own mount namespace, private /dev/shm and iceoryx2 root, own
+# mac-bridge), all joined by zenoh over TCP on 127.0.0.1; metrics.json then counts each agent's
+# bytes on the network. The default, iceoryx2, runs everything on this host's shared memory.
 # On a terminal, one line shows the progress: frames, keyframes, link state, closures.
 #
 # The AlexNet weights (global descriptor, LPIPS) are the cached ones scripts/setup.sh fetches
@@ -51,6 +56,9 @@ sets=()
 link_schedule=""
 restart_consensus=1
 profile="${MAC_EGO3D_PROFILE:-release}"
+# --- transport (cross-host bridge) ---
+transport=iceoryx2
+# --- end transport ---
 
 # The header above, up to its first line that is not a comment.
 usage() { sed -n '2,/^[^#]/p' "$0" | sed -n 's/^# \{0,1\}//p'; }
@@ -67,6 +75,7 @@ while (($#)); do
     --link-schedule) link_schedule="$2"; shift 2 ;;
     --set) sets+=("$2"); shift 2 ;;
     --no-restart-consensus) restart_consensus=0; shift ;;
+    --transport) transport="$2"; shift 2 ;;
     -h | --help) usage; exit 0 ;;
     *) echo "[swarm] unknown argument: $1" >&2; usage >&2; exit 2 ;;
   esac
@@ -77,6 +86,13 @@ fi
 [[ -f "$config" ]] || { echo "[swarm] --config $config: no such file" >&2; exit 2; }
 [[ -z "$link_schedule" || -f "$link_schedule" ]] ||
   { echo "[swarm] --link-schedule $link_schedule: no such file" >&2; exit 2; }
+# --- transport (cross-host bridge) ---
+case "$transport" in
+  iceoryx2) ;;
+  zenoh) (($(id -u) == 0)) || { echo "[swarm] --transport zenoh simulates hosts with mount namespaces: run as root" >&2; exit 2; } ;;
+  *) echo "[swarm] --transport $transport: expected iceoryx2 or zenoh" >&2; exit 2 ;;
+esac
+# --- end transport ---
 
 # Mesa's Vulkan loader path (libwayland, probing for a display) prints "error: XDG_RUNTIME_DIR
 # is invalid or not set in the environment." in every process when the variable is unset, as on a
@@ -99,6 +115,15 @@ else
   echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; the first build takes several minutes, progress below)" >&2
 fi
 cargo build "${build_args[@]}"
+# --- transport (cross-host bridge) ---
+# Built on its own: in one invocation with the others, cargo would unify the features of their
+# shared dependencies with zenoh's and rebuild them all.
+if [[ "$transport" == zenoh ]]; then
+  bridge_args=(-p mac-bridge)
+  [[ "$profile" == release ]] && bridge_args+=(--release)
+  cargo build "${bridge_args[@]}"
+fi
+# --- end transport ---
 
 # Per-run config: the given one, with T_comm and noise overridden when asked, resolved and
 # validated by mac-ego3d (every key listed, so the run folder says exactly what ran).
@@ -178,12 +203,31 @@ trap on_interrupt INT TERM
 # Progress files of the previous run in this folder would show stale figures.
 rm -f "$out"/agent_*/progress.json "$out/consensus_progress.json"
 
+# --- transport (cross-host bridge) ---
+# With zenoh, every process below runs on a simulated host of its own: `on_host NAME BRIDGE_ARGS
+# -- PROGRAM` (the consensus host listens on a free port of 127.0.0.1, agent hosts connect).
+consensus_host=()
+if [[ "$transport" == zenoh ]]; then
+  zenoh_port="$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')"
+  consensus_host=(scripts/simulated_host.sh "$bin/mac-bridge" --role consumers --namespace "$namespace"
+    --agents "$agents" --listen "tcp/127.0.0.1:$zenoh_port" --report "$out/bridge_consensus.json" --)
+  echo "[swarm] transport zenoh: simulated hosts joined over tcp/127.0.0.1:$zenoh_port; bridge logs in $out/*.log"
+fi
+# The command prefix that runs agent K on its own simulated host (empty with iceoryx2).
+agent_host_of() {
+  agent_host=()
+  [[ "$transport" == zenoh ]] || return 0
+  agent_host=(scripts/simulated_host.sh "$bin/mac-bridge" --role agents --namespace "$namespace"
+    --agents "$agents" --local-agent "$1" --connect "tcp/127.0.0.1:$zenoh_port"
+    --report "$out/bridge_agent_$1.json" --)
+}
+# --- end transport ---
 # Starts the consensus (in the background; its pid in $!): the first start is a new run
 # (--fresh), a restart resumes it from the store. Its log is appended to across restarts.
 start_consensus() {
   local fresh=()
   ((consensus_restarts > 0)) || fresh=(--fresh)
-  "${detach[@]}" "$bin/mac-consensus" --config "$run_config" --out "$out" --agents "$agents" \
+  "${detach[@]}" "${consensus_host[@]}" "$bin/mac-consensus" --config "$run_config" --out "$out" --agents "$agents" \
     --namespace "$namespace" --run-id "$run_id" "${fresh[@]}" --stop-agents "$STOP_WAIT_S" \
     >>"$out/consensus.log" 2>&1 &
 }
@@ -207,7 +251,8 @@ for ((k = 0; k < agents; k++)); do
     dataset="synthetic:agents=$agents,agent=$k,frames=$frames"
     range=".."
   fi
-  "${detach[@]}" "$bin/mac-agent" --config "$run_config" --dataset "$dataset" --frames "$range" --agent-id "$k" \
+  agent_host_of "$k"
+  "${detach[@]}" "${agent_host[@]}" "$bin/mac-agent" --config "$run_config" --dataset "$dataset" --frames "$range" --agent-id "$k" \
     --namespace "$namespace" --out "$out/agent_$k" "${weight_args[@]}" "${schedule_args[@]}" \
     >"$out/agent_$k.log" 2>&1 &
   pids+=($!)
@@ -328,6 +373,38 @@ if ((show_progress)); then
 fi
 
 "$bin/mac-ego3d" eval swarm --dir "$out" "${eval_args[@]}" || failed=1
+# --- transport (cross-host bridge) ---
+# metrics.json says which transport carried the run and, over zenoh, each agent's traffic on the
+# network as its host's bridge counted it (relayed bytes, both directions, and the mean rate).
+if [[ -f "$out/metrics.json" ]]; then
+  python3 - "$out" "$transport" "$agents" <<'PY' || failed=1
+import json, os, sys
+out, transport, agents = sys.argv[1], sys.argv[2], int(sys.argv[3])
+path = os.path.join(out, "metrics.json")
+metrics = json.load(open(path))
+metrics["transport"] = transport
+if transport == "zenoh":
+    network = {}
+    for k in range(agents):
+        report_path = os.path.join(out, f"bridge_agent_{k}.json")
+        if not os.path.exists(report_path):
+            network[str(k)] = None
+            continue
+        report = json.load(open(report_path))
+        traffic = report["agents"].get(str(k), {})
+        sent, received = traffic.get("bytes_to_network", 0), traffic.get("bytes_from_network", 0)
+        elapsed = report["elapsed_s"]
+        network[str(k)] = {
+            "bytes_to_network": sent,
+            "bytes_from_network": received,
+            "elapsed_s": elapsed,
+            "kb_per_s_to_network": sent / 1000 / elapsed if elapsed > 0 else None,
+        }
+    metrics["network_bytes_per_agent"] = network
+json.dump(metrics, open(path, "w"), indent=2)
+PY
+fi
+# --- end transport ---
 if [[ -f "$out/report.html" ]]; then
   # Absolute paths: this script ran from the repository root, the user may be elsewhere.
   dir="$(cd "$out" && pwd)"

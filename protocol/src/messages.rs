@@ -9,9 +9,12 @@
 //!   or newer tag is reported as an error instead of being undefined behaviour.
 //! - Every message carries a [`Stamp`] (agent id, incarnation epoch, sequence number); the
 //!   transport fills it in, receivers use it for gap and restart detection.
+//! - Every type is also `bytemuck::Pod` (checked at compile time: no padding, any bit pattern
+//!   valid), so the cross-host relay ([`crate::transport::relay`]) can carry it as plain bytes.
 //! - Type names carry [`WIRE_VERSION`] (`mac.v2.*`): iceoryx2 refuses to connect a process built
 //!   with another layout version to the same service (`IncompatibleTypes`).
 
+use bytemuck::{Pod, Zeroable};
 use iceoryx2::prelude::ZeroCopySend;
 use serde::{Deserialize, Serialize};
 
@@ -36,7 +39,9 @@ pub const CONSUMER_AGENT_ID: u32 = u32::MAX;
 pub const FINAL_MAP_KEYFRAME_ID: u64 = u64::MAX;
 
 /// Sender identity and ordering, carried by every message.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize,
+)]
 #[repr(C)]
 #[type_name("mac.v2.Stamp")]
 pub struct Stamp {
@@ -52,7 +57,7 @@ pub struct Stamp {
 }
 
 /// Rigid transform. `translation` in metres; `rotation_wxyz` a unit quaternion, w first.
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize)]
 #[repr(C)]
 #[type_name("mac.v2.Pose")]
 pub struct Pose {
@@ -86,7 +91,9 @@ impl Default for Pose {
 }
 
 /// Pinhole intrinsics of the camera that produced a keyframe, in pixels.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize,
+)]
 #[repr(C)]
 #[type_name("mac.v2.Intrinsics")]
 pub struct Intrinsics {
@@ -100,7 +107,7 @@ pub struct Intrinsics {
 
 /// Inter-agent selection input (docs/method.md, The consensus: selection): the latest
 /// keyframe's global descriptor and pose. Topic `mac/agent/{id}/descriptor`, agent -> consensus.
-#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("mac.v2.KeyframeDescriptor")]
 pub struct KeyframeDescriptor {
@@ -159,7 +166,9 @@ impl KeyframeDescriptor {
 }
 
 /// One Gaussian of the map (docs/method.md, The map). 14 f32 = 56 bytes, no padding.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize,
+)]
 #[repr(C)]
 #[type_name("mac.v2.GaussianRecord")]
 pub struct GaussianRecord {
@@ -211,7 +220,7 @@ pub struct UnknownTag {
 
 /// User header of a Gaussian patch (topic `mac/agent/{id}/patch`, agent -> consensus); the
 /// payload is a slice of `count` [`GaussianRecord`]s.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("mac.v2.PatchHeader")]
 pub struct PatchHeader {
@@ -236,7 +245,9 @@ impl PatchHeader {
 /// alignment 2, no padding (the explicit `reserved` byte fills the hole before `depth_mm`).
 /// Millimetres in a `u16` cover 0.001 m to 65.535 m, beyond the range of any RGB-D sensor, at a
 /// third of the size of an RGB + f32 depth layout.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize,
+)]
 #[repr(C)]
 #[type_name("mac.v2.RgbdPixel")]
 pub struct RgbdPixel {
@@ -282,7 +293,7 @@ impl RgbdPixel {
 /// consensus); the payload is a slice of `width * height` [`RgbdPixel`]s in row-major order
 /// (row 0 first, left to right). The consensus lifts image features of different agents'
 /// keyframes to 3-D with the depth and these intrinsics to align the agents.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("mac.v2.KeyframeImageHeader")]
 pub struct KeyframeImageHeader {
@@ -311,7 +322,9 @@ impl KeyframeImageHeader {
 }
 
 /// An updated keyframe pose inside a correction.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable, Serialize, Deserialize,
+)]
 #[repr(C)]
 #[type_name("mac.v2.KeyframePose")]
 pub struct KeyframePose {
@@ -322,7 +335,7 @@ pub struct KeyframePose {
 
 /// User header of a correction (topic `mac/agent/{id}/correction`, consensus -> agent `id`); the
 /// payload is a slice of `count` [`KeyframePose`]s.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("mac.v2.CorrectionHeader")]
 pub struct CorrectionHeader {
@@ -366,7 +379,7 @@ impl TryFrom<u32> for LifecycleKind {
 
 /// Heartbeat / lifecycle message (topic `mac/lifecycle`, every process -> every consumer).
 /// A tagged struct rather than an enum so that unknown tags are detectable (see module doc).
-#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("mac.v2.Lifecycle")]
 pub struct Lifecycle {
@@ -420,7 +433,7 @@ impl Lifecycle {
 
 /// User header of a control frame (topic `mac/agent/{id}/control`, consensus -> agent `id`);
 /// the payload is `frame_len` bytes of one [`crate::codec`] frame holding a [`ControlMessage`].
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("mac.v2.ControlHeader")]
 pub struct ControlHeader {

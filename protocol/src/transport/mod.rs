@@ -27,6 +27,7 @@
 //! - `traffic`: bandwidth accounting ([`BandwidthReport`]).
 //! - `samples`: what receivers get ([`Incoming`] and one sample type per topic).
 //! - `agent`, `consumer`: the two endpoints.
+//! - [`relay`]: ports that stand in for processes on other hosts (the cross-host bridge).
 //!
 //! Design choices, and why:
 //! - **Service limits from the config.** iceoryx2's defaults (2 publishers, 20 nodes per service)
@@ -95,6 +96,7 @@ mod error;
 mod inbox;
 mod open;
 mod outbox;
+pub mod relay;
 mod samples;
 mod sequence;
 mod topic;

@@ -82,6 +82,10 @@ pub(super) enum WhenAbsent<'a> {
     /// Fails at once with [`TransportError::Undelivered`] (consumer -> agent: the consensus
     /// never waits for an agent that is not there).
     Fail,
+    /// Waits for them like `Wait`, re-checking every `FULL_QUEUE_RETRY`: for a sender that
+    /// cannot own the agent's wake-up listener (a relay standing in for a remote agent, whose
+    /// listener belongs to the relay's other direction). Only the first sends wait.
+    Poll,
 }
 
 /// Sender side of one topic.
@@ -195,9 +199,7 @@ impl<T: TopicService> Outbox<T> {
         mut send_once: impl FnMut() -> Result<usize, TransportError>,
     ) -> Result<usize, TransportError> {
         let (required, config) = (to.required, to.config);
-        if let WhenAbsent::Wait(listener) = to.when_absent {
-            self.await_attached(required, config, listener, to.shutdown)?;
-        }
+        self.await_required(to)?;
         let wake = || notify(to.wake, to.wake_event, "the receivers");
         if T::TOPIC.is_bulk() && !config.poll_before_wait.is_zero() {
             // Early notice: a blocked receiver wakes while the message is being built (its
@@ -221,13 +223,13 @@ impl<T: TopicService> Outbox<T> {
                     WhenAbsent::Fail => {
                         return Err(self.undelivered(sequence, delivered, required));
                     }
-                    WhenAbsent::Wait(listener) if attached < required => {
+                    WhenAbsent::Wait(_) | WhenAbsent::Poll if attached < required => {
                         // A receiver left after the handshake: wait for one as before.
-                        self.await_attached(required, config, listener, to.shutdown)?;
+                        self.await_required(to)?;
                         continue;
                     }
                     // Leaving right now: the next round tells.
-                    WhenAbsent::Wait(_) => {}
+                    WhenAbsent::Wait(_) | WhenAbsent::Poll => {}
                 }
             }
             let waited = start.elapsed();
@@ -249,6 +251,46 @@ impl<T: TopicService> Outbox<T> {
             }
             // Wake the receivers again: they may be asleep with a full queue of older data.
             wake();
+            std::thread::sleep(FULL_QUEUE_RETRY);
+        }
+    }
+
+    /// Waits for `to.required` receivers as `to.when_absent` says (nothing to do for `Fail`).
+    fn await_required(&self, to: &Recipients) -> Result<(), TransportError> {
+        match to.when_absent {
+            WhenAbsent::Wait(listener) => {
+                self.await_attached(to.required, to.config, listener, to.shutdown)
+            }
+            WhenAbsent::Poll => self.poll_attached(to.required, to.config, to.shutdown),
+            WhenAbsent::Fail => Ok(()),
+        }
+    }
+
+    /// [`Outbox::await_attached`] without a listener: re-checks every `FULL_QUEUE_RETRY`.
+    fn poll_attached(
+        &self,
+        required: usize,
+        config: &TransportConfig,
+        shutdown: &AtomicBool,
+    ) -> Result<(), TransportError> {
+        let start = Instant::now();
+        loop {
+            let attached = self.attached();
+            if attached >= required {
+                return Ok(());
+            }
+            let waited = start.elapsed();
+            if waited >= config.delivery_timeout {
+                return Err(TransportError::NoConsumer {
+                    service: self.name.clone(),
+                    attached,
+                    required,
+                    waited,
+                });
+            }
+            if shutdown.load(Ordering::Relaxed) {
+                return Err(TransportError::ShutdownRequested);
+            }
             std::thread::sleep(FULL_QUEUE_RETRY);
         }
     }

@@ -1,13 +1,22 @@
 //! `mac-ego3d bench ipc`: one-way latency and throughput of the agent -> consensus transport
-//! (iceoryx2 shared memory) between two processes, for a keyframe descriptor and for Gaussian
-//! patches of 10k and 100k records, plus the measured copy count. The peer process is this
-//! binary re-executed with the hidden `bench ipc-peer` subcommand.
+//! between two processes, for a keyframe descriptor and for Gaussian patches of 10k and 100k
+//! records, plus the measured copy count. The peer process is this binary re-executed with the
+//! hidden `bench ipc-peer` subcommand.
+//!
+//! `--transport iceoryx2` (default): both processes on this host's shared memory.
+//! `--transport zenoh` (root): the peer runs on a simulated host of its own
+//! (scripts/simulated_host.sh: private /dev/shm and iceoryx2 root) with a consumer-role
+//! mac-bridge; the driver's host gets an agent-role mac-bridge; the two bridges talk zenoh over
+//! TCP on 127.0.0.1. Latencies then include both bridges and the network stack, and the
+//! acknowledgements come back the same way.
 
 use anyhow::Context;
-use clap::Args;
+use clap::{Args, ValueEnum};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command};
 use std::time::Duration;
 
-use protocol::bench::{IpcBenchConfig, PeerCommand, run_ipc_bench};
+use protocol::bench::{IpcBenchConfig, PeerCommand, bench_transport_config, run_ipc_bench};
 use protocol::transport::TransportConfig;
 
 use crate::cmd::{fmt_num, print_json};
@@ -31,8 +40,19 @@ pub struct IpcArgs {
     /// placement to the scheduler. Default: the first two CPUs this process may use.
     #[arg(long)]
     cpus: Option<String>,
+    /// What carries the messages between the two processes.
+    #[arg(long, value_enum, default_value_t = Transport::Iceoryx2)]
+    transport: Transport,
     #[arg(long)]
     json: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Transport {
+    /// Shared memory on this host.
+    Iceoryx2,
+    /// Two simulated hosts joined by mac-bridge over zenoh (TCP on 127.0.0.1); needs root.
+    Zenoh,
 }
 
 #[derive(Args)]
@@ -59,10 +79,20 @@ pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
         program,
         args: vec!["bench".into(), "ipc-peer".into()],
     };
-    let report = run_ipc_bench(&config, &peer).context("IPC benchmark")?;
+    let report = match args.transport {
+        Transport::Iceoryx2 => run_ipc_bench(&config, &peer).context("IPC benchmark")?,
+        Transport::Zenoh => across_simulated_hosts(&config, peer)?,
+    };
+    let transport = match args.transport {
+        Transport::Iceoryx2 => "iceoryx2",
+        Transport::Zenoh => "zenoh",
+    };
     if args.json {
-        return print_json(&report);
+        let mut json = serde_json::to_value(&report)?;
+        json["transport"] = transport.into();
+        return print_json(&json);
     }
+    println!("transport: {transport}");
     let placement = match report.cpus {
         Some([driver, peer]) => format!("driver on CPU {driver}, peer on CPU {peer}"),
         None => "placed by the scheduler".to_string(),
@@ -130,6 +160,84 @@ pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
         fmt_num(report.receiver_copies_per_patch, 2)
     );
     Ok(())
+}
+
+/// Runs the benchmark with the peer on a simulated host of its own, the two hosts joined by
+/// mac-bridge over zenoh on 127.0.0.1 (see the module documentation).
+fn across_simulated_hosts(
+    config: &IpcBenchConfig,
+    peer: PeerCommand,
+) -> anyhow::Result<protocol::bench::IpcBenchReport> {
+    let bridge = peer.program.with_file_name("mac-bridge");
+    anyhow::ensure!(
+        bridge.exists(),
+        "{} is missing: build it first (cargo build -p mac-bridge, same profile)",
+        bridge.display()
+    );
+    let host_script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/simulated_host.sh");
+    // Both bridges must open the services exactly as the two benchmark processes do.
+    let transport = bench_transport_config(&config.namespace, config.poll_before_wait);
+    let transport_file: PathBuf =
+        std::env::temp_dir().join(format!("{}-transport.json", config.namespace));
+    std::fs::write(&transport_file, serde_json::to_string(&transport)?)
+        .with_context(|| format!("writing {}", transport_file.display()))?;
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let bridge_args = |role: &str| -> Vec<String> {
+        [
+            "--role",
+            role,
+            "--namespace",
+            &config.namespace,
+            "--agents",
+            "1",
+            "--transport-config",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .chain([transport_file.display().to_string()])
+        .collect()
+    };
+    // The driver's host: this process and an agent-role bridge that listens.
+    let driver_bridge = Command::new(&bridge)
+        .args(bridge_args("agents"))
+        .args(["--local-agent", "0", "--listen", &endpoint])
+        .env("RUST_LOG", "warn")
+        .spawn()
+        .with_context(|| format!("starting {}", bridge.display()))?;
+    let driver_bridge = StopOnDrop(driver_bridge);
+    // The peer's host: the peer and a consumer-role bridge that connects.
+    let mut host_args = vec![
+        "RUST_LOG=warn".to_string(),
+        host_script.display().to_string(),
+    ];
+    host_args.push(bridge.display().to_string());
+    host_args.extend(bridge_args("consumers"));
+    host_args.extend(["--connect".to_string(), endpoint, "--".to_string()]);
+    host_args.push(peer.program.display().to_string());
+    host_args.extend(peer.args);
+    let peer = PeerCommand {
+        program: PathBuf::from("env"),
+        args: host_args,
+    };
+    let report = run_ipc_bench(config, &peer).context("IPC benchmark across simulated hosts");
+    drop(driver_bridge);
+    let _ = std::fs::remove_file(&transport_file);
+    report
+}
+
+/// A bridge process, stopped (SIGTERM, then waited for) when the benchmark ends either way.
+struct StopOnDrop(Child);
+
+impl Drop for StopOnDrop {
+    fn drop(&mut self) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.0.id().to_string()])
+            .status();
+        let _ = self.0.wait();
+    }
 }
 
 /// The benchmark's peer process (consumer side).

@@ -1,0 +1,425 @@
+//! The two kinds of host a bridge serves, each with two threads that own the iceoryx2 side
+//! (iceoryx2 ports stay on the thread that made them) while the zenoh session runs on tokio:
+//! - an agent host ([`run_agent_host`]): its agents' messages go out, corrections, control
+//!   messages and goodbye acknowledgements for them come in;
+//! - the consumer host ([`run_consumer_host`]): the remote agents' messages come in, the
+//!   consumers' corrections, control messages and goodbye acknowledgements go out.
+//!
+//! No loops: a bridge subscribes on zenoh only to the direction that enters its host and
+//! publishes only the other (agent hosts: `correction`, `control`, `goodbye_seen` in; the
+//! consumer host: `descriptor`, `patch`, `keyframe_image`, `lifecycle` in), its zenoh ports
+//! exclude its own session (`Locality::Remote`), and on iceoryx2 it receives only from the
+//! processes it stands in front of, never what it published itself.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, anyhow};
+use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
+use protocol::services::Topic;
+use protocol::transport::relay::{
+    AgentHostEgress, AgentHostIngress, ConsumerHostEgress, ConsumerHostIngress,
+    ConsumerHostOutgoing, RelayedMessage,
+};
+use protocol::transport::{TransportConfig, TransportError};
+use zenoh::pubsub::Publisher;
+use zenoh::sample::{Locality, Sample};
+use zenoh::{Session, Wait};
+
+use crate::keys::{GOODBYE_SEEN, SwarmKeys, topic_named};
+use crate::network::{CONGESTION_CONTROL, PRIORITY};
+use crate::report::{NetworkTraffic, topic_label};
+
+/// How often the loops look at the stop flag while nothing arrives.
+const STOP_CHECK: Duration = Duration::from_millis(100);
+
+/// Messages received from zenoh and not yet handed to iceoryx2. Bounded: when the local side
+/// is slow, zenoh's receive path waits, and with `CongestionControl::Block` so does the
+/// sender, instead of this queue growing without limit.
+const INBOUND_QUEUE: usize = 64;
+
+/// Everything a host's bridge shares between its tasks and threads.
+#[derive(Clone)]
+pub struct BridgeContext {
+    pub session: Session,
+    pub keys: SwarmKeys,
+    pub transport: TransportConfig,
+    pub stop: Arc<AtomicBool>,
+}
+
+impl BridgeContext {
+    fn stopping(&self) -> bool {
+        self.stop.load(Ordering::Relaxed)
+    }
+
+    /// Sleeps in short steps until `stop` is set.
+    async fn until_stopped(&self) {
+        while !self.stopping() {
+            tokio::time::sleep(STOP_CHECK).await;
+        }
+    }
+}
+
+/// What enters an agent host from the network.
+enum AgentHostInbound {
+    Message(RelayedMessage),
+    GoodbyeSeen(u32),
+    /// The egress attached to the local agents: wake them.
+    ConsumersAttached,
+}
+
+/// Runs the bridge of a host whose agents are `local_agents` until `stop`.
+pub async fn run_agent_host(
+    context: BridgeContext,
+    local_agents: Vec<u32>,
+) -> Result<NetworkTraffic> {
+    let (inbound_tx, inbound_rx) = crossbeam_channel::bounded(INBOUND_QUEUE);
+    let ingress = spawn("ingress", &context.stop, {
+        let (context, local_agents) = (context.clone(), local_agents.clone());
+        move || agent_host_ingress(&context, &local_agents, &inbound_rx)
+    })?;
+    let mut subscribers = Vec::new();
+    for &agent_id in &local_agents {
+        for last in [
+            Topic::Correction.name(),
+            Topic::Control.name(),
+            GOODBYE_SEEN,
+        ] {
+            let key = format!("{}/agent/{agent_id}/{last}", context.transport.namespace);
+            let tx = inbound_tx.clone();
+            let subscriber = context
+                .session
+                .declare_subscriber(&key)
+                .allowed_origin(Locality::Remote)
+                .callback(move |sample: Sample| {
+                    let bytes = sample.payload().to_bytes().into_owned();
+                    let inbound = match topic_named(last) {
+                        Some(topic) => match RelayedMessage::from_network(agent_id, topic, bytes) {
+                            Ok(message) => AgentHostInbound::Message(message),
+                            Err(e) => {
+                                tracing::warn!(error = %e, "dropped a malformed relayed message");
+                                return;
+                            }
+                        },
+                        None => AgentHostInbound::GoodbyeSeen(agent_id),
+                    };
+                    // Fails only when the ingress has stopped: nothing to deliver to.
+                    let _ = tx.send(inbound);
+                })
+                .await
+                .map_err(|e| anyhow!("zenoh subscriber {key}: {e}"))?;
+            subscribers.push(subscriber);
+        }
+    }
+    let _agent_tokens = declare_tokens(
+        &context,
+        local_agents.iter().map(|&id| context.keys.agent_bridge(id)),
+    )
+    .await?;
+    tracing::info!(agents = ?local_agents, "waiting for a consumer host's bridge");
+    if !wait_for_token(&context, &context.keys.consumers_bridge()).await? {
+        drop(inbound_tx);
+        return join(ingress);
+    }
+    tracing::info!("consumer host reachable: attaching to the local agents");
+    let egress = spawn("egress", &context.stop, {
+        let (context, local_agents, tx) =
+            (context.clone(), local_agents.clone(), inbound_tx.clone());
+        move || agent_host_egress(&context, &local_agents, &tx)
+    })?;
+    drop(inbound_tx);
+    context.until_stopped().await;
+    drop(subscribers);
+    let mut traffic = join(egress)?;
+    traffic.merge(join(ingress)?);
+    Ok(traffic)
+}
+
+fn agent_host_ingress(
+    context: &BridgeContext,
+    local_agents: &[u32],
+    inbound: &Receiver<AgentHostInbound>,
+) -> Result<NetworkTraffic> {
+    let mut ingress = AgentHostIngress::open(&context.transport, local_agents)?;
+    let mut traffic = NetworkTraffic::default();
+    while !context.stopping() {
+        let item = match inbound.recv_timeout(STOP_CHECK) {
+            Ok(item) => item,
+            Err(RecvTimeoutError::Timeout) => continue,
+            Err(RecvTimeoutError::Disconnected) => break,
+        };
+        match item {
+            AgentHostInbound::Message(message) => {
+                traffic.count_in(
+                    message.agent_id,
+                    topic_label(message.topic),
+                    message.bytes.len(),
+                );
+                if let Err(e) = ingress.forward(&message) {
+                    tracing::warn!(agent_id = message.agent_id, topic = %message.topic, error = %e,
+                        "could not hand a relayed message to its agent");
+                }
+            }
+            AgentHostInbound::GoodbyeSeen(agent_id) => {
+                traffic.count_in(agent_id, GOODBYE_SEEN, 0);
+                ingress.acknowledge_goodbye(agent_id)?;
+            }
+            AgentHostInbound::ConsumersAttached => ingress.announce_attached(),
+        }
+    }
+    Ok(traffic)
+}
+
+fn agent_host_egress(
+    context: &BridgeContext,
+    local_agents: &[u32],
+    inbound: &Sender<AgentHostInbound>,
+) -> Result<NetworkTraffic> {
+    let mut egress = AgentHostEgress::open(&context.transport, local_agents)?;
+    let _ = inbound.send(AgentHostInbound::ConsumersAttached);
+    let mut publishers = Publishers::new(context);
+    let mut traffic = NetworkTraffic::default();
+    while !context.stopping() {
+        let Some(message) = egress.recv_timeout(STOP_CHECK)? else {
+            continue;
+        };
+        let key = context.keys.topic(message.agent_id, message.topic);
+        traffic.count_out(
+            message.agent_id,
+            topic_label(message.topic),
+            message.bytes.len(),
+        );
+        publishers.put(&key, message.bytes)?;
+    }
+    Ok(traffic)
+}
+
+/// Runs the bridge of the host that runs the consumers until `stop`.
+pub async fn run_consumer_host(context: BridgeContext) -> Result<NetworkTraffic> {
+    let (inbound_tx, inbound_rx) = crossbeam_channel::bounded::<RelayedMessage>(INBOUND_QUEUE);
+    let (attached_tx, attached_rx) = crossbeam_channel::bounded::<()>(1);
+    let ingress = spawn("ingress", &context.stop, {
+        let context = context.clone();
+        move || consumer_host_ingress(&context, &inbound_rx, &attached_tx)
+    })?;
+    let egress = spawn("egress", &context.stop, {
+        let context = context.clone();
+        move || consumer_host_egress(&context)
+    })?;
+    let mut subscribers = Vec::new();
+    for topic in [
+        Topic::Lifecycle,
+        Topic::Descriptor,
+        Topic::KeyframeImage,
+        Topic::Patch,
+    ] {
+        let key = context.keys.topic_of_every_agent(topic);
+        let (tx, keys) = (inbound_tx.clone(), context.keys.clone());
+        let subscriber = context
+            .session
+            .declare_subscriber(&key)
+            .allowed_origin(Locality::Remote)
+            .callback(move |sample: Sample| {
+                let Some((agent_id, _)) = keys.parse(sample.key_expr().as_str()) else {
+                    tracing::warn!(key = %sample.key_expr(), "dropped a message on a key without an agent id");
+                    return;
+                };
+                let bytes = sample.payload().to_bytes().into_owned();
+                match RelayedMessage::from_network(agent_id, topic, bytes) {
+                    Ok(message) => {
+                        let _ = tx.send(message);
+                    }
+                    Err(e) => tracing::warn!(error = %e, "dropped a malformed relayed message"),
+                }
+            })
+            .await
+            .map_err(|e| anyhow!("zenoh subscriber {key}: {e}"))?;
+        subscribers.push(subscriber);
+    }
+    drop(inbound_tx);
+    // Announced once the local consumers are there, so agent hosts attach to their agents only
+    // when what they relay can be delivered.
+    tracing::info!("waiting for the local consumers");
+    while attached_rx.try_recv().is_err() {
+        if context.stopping() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let _token = declare_tokens(&context, [context.keys.consumers_bridge()]).await?;
+    tracing::info!("consumers attached: announced to agent hosts");
+    context.until_stopped().await;
+    drop(subscribers);
+    let mut traffic = join(ingress)?;
+    traffic.merge(join(egress)?);
+    Ok(traffic)
+}
+
+fn consumer_host_ingress(
+    context: &BridgeContext,
+    inbound: &Receiver<RelayedMessage>,
+    attached: &Sender<()>,
+) -> Result<NetworkTraffic> {
+    let mut ingress = ConsumerHostIngress::open(&context.transport)?;
+    let mut traffic = NetworkTraffic::default();
+    let mut announced = false;
+    while !context.stopping() {
+        if !announced && ingress.consumers_attached() {
+            announced = attached.send(()).is_ok();
+        }
+        let message = match inbound.recv_timeout(Duration::from_millis(20)) {
+            Ok(message) => message,
+            Err(RecvTimeoutError::Timeout) => continue,
+            Err(RecvTimeoutError::Disconnected) => break,
+        };
+        traffic.count_in(
+            message.agent_id,
+            topic_label(message.topic),
+            message.bytes.len(),
+        );
+        match ingress.forward(&message) {
+            Ok(_) => {}
+            Err(TransportError::ShutdownRequested) => break,
+            Err(e) => tracing::warn!(agent_id = message.agent_id, topic = %message.topic,
+                sequence = message.stamp.sequence, error = %e,
+                "could not hand a relayed message to the consumers"),
+        }
+    }
+    Ok(traffic)
+}
+
+fn consumer_host_egress(context: &BridgeContext) -> Result<NetworkTraffic> {
+    let mut egress = ConsumerHostEgress::open(&context.transport)?;
+    let mut publishers = Publishers::new(context);
+    let mut traffic = NetworkTraffic::default();
+    while !context.stopping() {
+        match egress.recv_timeout(STOP_CHECK)? {
+            None => {}
+            Some(ConsumerHostOutgoing::Message(message)) => {
+                let key = context.keys.topic(message.agent_id, message.topic);
+                traffic.count_out(
+                    message.agent_id,
+                    topic_label(message.topic),
+                    message.bytes.len(),
+                );
+                publishers.put(&key, message.bytes)?;
+            }
+            Some(ConsumerHostOutgoing::GoodbyeSeen { agent_id }) => {
+                traffic.count_out(agent_id, GOODBYE_SEEN, 0);
+                publishers.put(&context.keys.goodbye_seen(agent_id), Vec::new())?;
+            }
+        }
+    }
+    Ok(traffic)
+}
+
+/// One declared zenoh publisher per key, made at its first message.
+struct Publishers<'c> {
+    context: &'c BridgeContext,
+    by_key: HashMap<String, Publisher<'static>>,
+}
+
+impl<'c> Publishers<'c> {
+    fn new(context: &'c BridgeContext) -> Self {
+        Self {
+            context,
+            by_key: HashMap::new(),
+        }
+    }
+
+    fn put(&mut self, key: &str, bytes: Vec<u8>) -> Result<()> {
+        if !self.by_key.contains_key(key) {
+            let publisher = self
+                .context
+                .session
+                .declare_publisher(key.to_string())
+                .congestion_control(CONGESTION_CONTROL)
+                .priority(PRIORITY)
+                .allowed_destination(Locality::Remote)
+                .wait()
+                .map_err(|e| anyhow!("zenoh publisher {key}: {e}"))?;
+            self.by_key.insert(key.to_string(), publisher);
+        }
+        self.by_key[key]
+            .put(bytes)
+            .wait()
+            .map_err(|e| anyhow!("zenoh put on {key}: {e}"))
+    }
+}
+
+async fn declare_tokens(
+    context: &BridgeContext,
+    keys: impl IntoIterator<Item = String>,
+) -> Result<Vec<zenoh::liveliness::LivelinessToken>> {
+    let mut tokens = Vec::new();
+    for key in keys {
+        let token = context
+            .session
+            .liveliness()
+            .declare_token(&key)
+            .await
+            .map_err(|e| anyhow!("zenoh liveliness token {key}: {e}"))?;
+        tokens.push(token);
+    }
+    Ok(tokens)
+}
+
+/// Waits until a liveliness token `key` exists on the network; false when stopped first.
+async fn wait_for_token(context: &BridgeContext, key: &str) -> Result<bool> {
+    let start = Instant::now();
+    let mut last_said = start;
+    while !context.stopping() {
+        let replies = context
+            .session
+            .liveliness()
+            .get(key)
+            .timeout(Duration::from_millis(500))
+            .await
+            .map_err(|e| anyhow!("zenoh liveliness query {key}: {e}"))?;
+        while let Ok(reply) = replies.recv_async().await {
+            if reply.result().is_ok() {
+                return Ok(true);
+            }
+        }
+        if last_said.elapsed() >= Duration::from_secs(10) {
+            tracing::info!(
+                waited_s = start.elapsed().as_secs(),
+                "still no consumer host"
+            );
+            last_said = Instant::now();
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    Ok(false)
+}
+
+/// Starts a thread of the bridge; when it fails, the whole bridge stops (the error is
+/// returned at the join).
+fn spawn(
+    name: &str,
+    stop: &Arc<AtomicBool>,
+    work: impl FnOnce() -> Result<NetworkTraffic> + Send + 'static,
+) -> Result<JoinHandle<Result<NetworkTraffic>>> {
+    let stop = Arc::clone(stop);
+    let thread = format!("bridge-{name}");
+    std::thread::Builder::new()
+        .name(thread.clone())
+        .spawn(move || {
+            let outcome = work();
+            if let Err(e) = &outcome {
+                tracing::error!(thread, error = %format!("{e:#}"), "stopping the bridge");
+                stop.store(true, Ordering::Relaxed);
+            }
+            outcome
+        })
+        .with_context(|| format!("starting the {name} thread"))
+}
+
+fn join(handle: JoinHandle<Result<NetworkTraffic>>) -> Result<NetworkTraffic> {
+    handle
+        .join()
+        .map_err(|_| anyhow!("a bridge thread panicked"))?
+}

@@ -1,0 +1,135 @@
+//! The synthetic swarm over zenoh (`scripts/launch_swarm.sh --transport zenoh`: the consensus
+//! and each agent on a simulated host of its own, joined only by their bridges over TCP on
+//! 127.0.0.1) gives the same result as over one host's iceoryx2 shared memory, and metrics.json
+//! says which transport ran and what each agent put on the network. Needs root (mount
+//! namespaces); skipped with a message otherwise.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+const AGENTS: usize = 2;
+const FRAMES: usize = 150;
+/// Joint ATE over zenoh within this fraction of the iceoryx2 run's, plus `ATE_FLOOR_M`: at
+/// sub-millimetre to millimetre ATE the consensus's own run-to-run spread (its alignments and
+/// time-bounded refinement depend on thread timing) is larger than 10 %: two runs over
+/// iceoryx2 measured 0.09 and 1.8 mm, two over zenoh 1.0 and 2.5 mm.
+const ATE_TOLERANCE: f64 = 0.10;
+const ATE_FLOOR_M: f64 = 0.005;
+/// The joint refinement at the end is bounded by time; a short bound keeps the test short and
+/// is the same in both runs.
+const REFINEMENT_SECONDS: f64 = 5.0;
+
+fn binaries() -> &'static Path {
+    Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap()
+}
+
+fn is_root() -> bool {
+    Command::new("id")
+        .arg("-u")
+        .output()
+        .is_ok_and(|out| String::from_utf8_lossy(&out.stdout).trim() == "0")
+}
+
+/// configs/synthetic.toml with a short joint refinement.
+fn short_config(dir: &Path) -> PathBuf {
+    let repository = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(repository.join("configs/synthetic.toml")).unwrap();
+    let mut config: toml::Table = toml::from_str(&text).unwrap();
+    config["consensus"]["refinement"]
+        .as_table_mut()
+        .unwrap()
+        .insert("max_seconds".into(), toml::Value::Float(REFINEMENT_SECONDS));
+    let path = dir.join("synthetic-short.toml");
+    std::fs::write(&path, toml::to_string(&config).unwrap()).unwrap();
+    path
+}
+
+fn run_swarm(transport: &str, config: &Path, out: &Path) -> serde_json::Value {
+    let repository = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let runtime = tempfile::tempdir().unwrap();
+    let profile = binaries().file_name().unwrap().to_str().unwrap();
+    let target = binaries().parent().unwrap();
+    let output = Command::new("bash")
+        .arg(repository.join("scripts/launch_swarm.sh"))
+        .args([
+            "--agents",
+            &AGENTS.to_string(),
+            "--frames",
+            &FRAMES.to_string(),
+        ])
+        .args(["--transport", transport])
+        .arg("--config")
+        .arg(config)
+        .arg("--out")
+        .arg(out)
+        .env("MAC_EGO3D_PROFILE", profile)
+        .env("CARGO_TARGET_DIR", target)
+        .env("XDG_RUNTIME_DIR", runtime.path())
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "launch_swarm.sh --transport {transport} failed:\n{}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap()
+}
+
+/// Two whole swarms take 5-11 minutes on 2 cores, over the suite's budget: run it with
+/// `cargo test --test swarm_zenoh -- --ignored`. CI's short form is bridge/tests/simulated_hosts.rs
+/// (the bridges between two simulated hosts, a 1,000,000-record patch).
+#[test]
+#[ignore = "two swarm runs, 5-11 min on 2 cores: cargo test --test swarm_zenoh -- --ignored"]
+fn synthetic_swarm_over_zenoh_matches_iceoryx2() {
+    if !is_root() {
+        eprintln!("skipped: simulated hosts need root (unshare --mount)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let config = short_config(dir.path());
+    let local = run_swarm("iceoryx2", &config, &dir.path().join("iceoryx2"));
+    let networked = run_swarm("zenoh", &config, &dir.path().join("zenoh"));
+    assert_eq!(local["transport"], "iceoryx2");
+    assert_eq!(networked["transport"], "zenoh");
+    assert!(local.get("network_bytes_per_agent").is_none());
+
+    let ate = |metrics: &serde_json::Value| metrics["ate_joint_rmse_m"].as_f64().unwrap();
+    let (local_ate, networked_ate) = (ate(&local), ate(&networked));
+    assert!(
+        (networked_ate - local_ate).abs() <= ATE_TOLERANCE * local_ate + ATE_FLOOR_M,
+        "joint ATE over zenoh {networked_ate} m, over iceoryx2 {local_ate} m"
+    );
+    // Not compared: which agents the consensus linked, which like the ATE depends on its
+    // thread timing at this short length (at 100 frames one iceoryx2 run linked agent 1, one
+    // zenoh run did not, with the same keyframes received).
+
+    // The consensus got every agent's keyframes, complete and without sequence gaps, exactly
+    // as many as on one host; every goodbye crossed.
+    let consensus = |out: &str| -> serde_json::Value {
+        let path = dir.path().join(out).join("consensus.json");
+        serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+    };
+    let (local_consensus, networked_consensus) = (consensus("iceoryx2"), consensus("zenoh"));
+    for k in 0..AGENTS {
+        let agent = &networked_consensus["agents"][k.to_string()];
+        let local_agent = &local_consensus["agents"][k.to_string()];
+        assert_eq!(agent["keyframes"], local_agent["keyframes"], "agent {k}");
+        assert!(agent["keyframes"].as_u64().unwrap() > 0, "agent {k}");
+        for field in ["gaps", "keyframes_incomplete", "resend_requests"] {
+            assert_eq!(agent[field], 0, "agent {k}: {field}");
+        }
+        assert_eq!(agent["goodbyes"], 1, "agent {k}");
+    }
+
+    // Every agent's keyframes crossed the network: its bridge counted them.
+    for k in 0..AGENTS {
+        let sent = networked["network_bytes_per_agent"][k.to_string()]["bytes_to_network"]
+            .as_u64()
+            .unwrap_or(0);
+        assert!(
+            sent > 1_000_000,
+            "agent {k} put {sent} bytes on the network"
+        );
+    }
+}
