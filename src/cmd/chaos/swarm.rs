@@ -155,12 +155,18 @@ impl Swarm {
     }
 
     /// Waits until every process has ended, up to `timeout` (then kills them all).
-    pub fn wait_all(&mut self, timeout: Duration) -> anyhow::Result<()> {
+    /// Waits until every process has ended; returns how long the first agent to end ran
+    /// (from this call, made right after the start).
+    pub fn wait_all(&mut self, timeout: Duration) -> anyhow::Result<Duration> {
         let started = Instant::now();
+        let mut first_agent_ended = None;
         loop {
             self.reap()?;
+            if first_agent_ended.is_none() && self.agents.iter().any(Option::is_none) {
+                first_agent_ended = Some(started.elapsed());
+            }
             if self.consensus.is_none() && self.agents.iter().all(Option::is_none) {
-                return Ok(());
+                return Ok(first_agent_ended.unwrap_or_else(|| started.elapsed()));
             }
             if started.elapsed() > timeout {
                 for role in std::iter::once(Role::Consensus)
