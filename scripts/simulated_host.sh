@@ -35,6 +35,8 @@ BRIDGE_RESTART_S=1
     child=$!
     status=0
     wait "$child" || status=$?
+    # $$ is this script's own process: once it is gone (killed), nobody needs the bridge.
+    kill -0 $$ 2>/dev/null || exit "$status"
     echo "[host] the bridge exited with status $status: starting it again in ${BRIDGE_RESTART_S} s" >&2
     sleep "$BRIDGE_RESTART_S"
   done

@@ -31,7 +31,9 @@ pub struct Endpoints {
 
 /// Every relayed message crosses with:
 /// - reliability `Reliable` (zenoh's default): a lost packet is re-sent by the link, never
-///   skipped: receivers would see a sequence gap, and a lost keyframe is never acceptable;
+///   skipped: receivers would see a sequence gap, and a lost keyframe is never acceptable
+///   (across a broken link or a restarted bridge, `delivery` re-sends what was not
+///   acknowledged);
 /// - congestion control `Block`: when the network is slower than the agents, the bridge's put
 ///   waits instead of dropping; the wait reaches the agent through the iceoryx2 queues and
 ///   their full-queue policy, like a slow consumer on one host;
