@@ -7,9 +7,9 @@
 //! `--transport zenoh` (root): the peer runs on a simulated host of its own
 //! (scripts/simulated_host.sh: private /dev/shm and iceoryx2 root) with a consumer-role
 //! mac-bridge; the driver's host gets an agent-role mac-bridge; the two bridges talk zenoh over
-//! TLS with mutual authentication on 127.0.0.1 (the bridges' default, with certificates made
-//! for the run by `mac-bridge certs`). Latencies then include both bridges, TLS and the network
-//! stack, and the acknowledgements come back the same way.
+//! plain TCP on 127.0.0.1 (`--insecure-plain-tcp`: over TLS, with the driver's host listening,
+//! the peer's acknowledgements stall; see docs/benchmarks.md). Latencies then include both
+//! bridges and the network stack, and the acknowledgements come back the same way.
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
@@ -52,7 +52,7 @@ pub struct IpcArgs {
 enum Transport {
     /// Shared memory on this host.
     Iceoryx2,
-    /// Two simulated hosts joined by mac-bridge over zenoh (TLS on 127.0.0.1); needs root.
+    /// Two simulated hosts joined by mac-bridge over zenoh (TCP on 127.0.0.1); needs root.
     Zenoh,
 }
 
@@ -185,20 +185,8 @@ fn across_simulated_hosts(
     let port = std::net::TcpListener::bind("127.0.0.1:0")?
         .local_addr()?
         .port();
-    let endpoint = format!("tls/127.0.0.1:{port}");
-    // The driver's host listens: its certificate names the address the peer's bridge dials.
-    let certificates = std::env::temp_dir().join(format!("{}-certs", config.namespace));
-    let _ = std::fs::remove_dir_all(&certificates);
-    let made = Command::new(&bridge)
-        .arg("certs")
-        .arg("--out")
-        .arg(&certificates)
-        .args(["--host", "driver=127.0.0.1", "--host", "peer"])
-        .env("RUST_LOG", "warn")
-        .status()
-        .with_context(|| format!("starting {} certs", bridge.display()))?;
-    anyhow::ensure!(made.success(), "mac-bridge certs failed: {made}");
-    let bridge_args = |role: &str, host: &str| -> Vec<String> {
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let bridge_args = |role: &str| -> Vec<String> {
         [
             "--role",
             role,
@@ -206,10 +194,7 @@ fn across_simulated_hosts(
             &config.namespace,
             "--agents",
             "1",
-            "--host",
-            host,
-            "--certificates",
-            &certificates.display().to_string(),
+            "--insecure-plain-tcp",
             "--transport-config",
         ]
         .iter()
@@ -219,7 +204,7 @@ fn across_simulated_hosts(
     };
     // The driver's host: this process and an agent-role bridge that listens.
     let driver_bridge = Command::new(&bridge)
-        .args(bridge_args("agents", "driver"))
+        .args(bridge_args("agents"))
         .args(["--local-agent", "0", "--listen", &endpoint])
         .env("RUST_LOG", "warn")
         .spawn()
@@ -231,7 +216,7 @@ fn across_simulated_hosts(
         host_script.display().to_string(),
     ];
     host_args.push(bridge.display().to_string());
-    host_args.extend(bridge_args("consumers", "peer"));
+    host_args.extend(bridge_args("consumers"));
     host_args.extend(["--connect".to_string(), endpoint, "--".to_string()]);
     host_args.push(peer.program.display().to_string());
     host_args.extend(peer.args);
@@ -242,7 +227,6 @@ fn across_simulated_hosts(
     let report = run_ipc_bench(config, &peer).context("IPC benchmark across simulated hosts");
     drop(driver_bridge);
     let _ = std::fs::remove_file(&transport_file);
-    let _ = std::fs::remove_dir_all(&certificates);
     report
 }
 
