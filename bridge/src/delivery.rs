@@ -11,9 +11,11 @@
 //! sequence rules), so nothing is lost and nothing is delivered twice.
 //!
 //! While no consumer host is reachable the agent host's bridge detaches from its agents, and they
-//! queue what they publish as during a scheduled link outage; the bound
-//! [`UNACKNOWLEDGED_LIMIT_BYTES`] holds the bridge back (and through the iceoryx2 queues the
-//! agents) when acknowledgements stop coming while the link looks up.
+//! queue what they publish as during a scheduled link outage. The bound
+//! [`UNACKNOWLEDGED_LIMIT_BYTES`] is the flow control between the hosts: it holds the bridge
+//! back (and through the iceoryx2 queues the agents) while the consumer host has not taken what
+//! it was sent, so the consumer host's receive queue stays bounded without ever stalling the
+//! link.
 
 use std::collections::VecDeque;
 
@@ -22,8 +24,9 @@ use protocol::services::Topic;
 use protocol::transport::relay::RelayedMessage;
 
 /// Bytes of unacknowledged messages above which an agent host's bridge takes no more from its
-/// agents: room for a few keyframes (a 640x480 image is 1.8 MB, a patch tens of MB at most).
-pub const UNACKNOWLEDGED_LIMIT_BYTES: usize = 256 << 20;
+/// agents: room for a few keyframes (a 640x480 image is 1.8 MB, a patch tens of MB at most; a
+/// larger message still goes, alone).
+pub const UNACKNOWLEDGED_LIMIT_BYTES: usize = 128 << 20;
 
 /// A consumer host's receipt for one relayed message of agent `agent_id` (the agent is in the
 /// key, the rest in the payload).

@@ -41,9 +41,8 @@ use crate::report::{NetworkTraffic, topic_label};
 /// How often the loops look at the stop flag while nothing arrives.
 const STOP_CHECK: Duration = Duration::from_millis(100);
 
-/// Messages received from zenoh and not yet handed to iceoryx2. Bounded: when the local side
-/// is slow, zenoh's receive path waits, and with `CongestionControl::Block` so does the
-/// sender, instead of this queue growing without limit.
+/// Corrections, control messages and goodbye acknowledgements received from zenoh on an agent
+/// host and not yet handed to iceoryx2. Bounded: they are small and few.
 const INBOUND_QUEUE: usize = 64;
 
 /// Everything a host's bridge shares between its tasks and threads.
@@ -286,7 +285,11 @@ fn agent_host_egress(
 
 /// Runs the bridge of the host that runs the consumers until `stop`.
 pub async fn run_consumer_host(context: BridgeContext) -> Result<NetworkTraffic> {
-    let (inbound_tx, inbound_rx) = crossbeam_channel::bounded::<RelayedMessage>(INBOUND_QUEUE);
+    // Unbounded, so that zenoh's receive path never waits on a slow local consumer: a receive
+    // path that waits stalls the link, and zenoh closes a link whose blocked sends wait longer
+    // than `wait_before_close`. The agent hosts' unacknowledged window
+    // (`delivery::UNACKNOWLEDGED_LIMIT_BYTES` each) bounds what can pile up here.
+    let (inbound_tx, inbound_rx) = crossbeam_channel::unbounded::<RelayedMessage>();
     let (attached_tx, attached_rx) = crossbeam_channel::bounded::<()>(1);
     let ingress = spawn("ingress", &context.stop, {
         let context = context.clone();
