@@ -33,10 +33,11 @@ BRIDGE_RESTART_S=1
   while :; do
     "${bridge[@]}" &
     child=$!
+    # Watches the bridge and this script ($$; once it is gone, killed, nobody needs the bridge).
+    while kill -0 "$child" 2>/dev/null && kill -0 $$ 2>/dev/null; do sleep 0.5; done
+    kill -0 $$ 2>/dev/null || { kill -TERM "$child" 2>/dev/null; wait "$child"; exit; }
     status=0
     wait "$child" || status=$?
-    # $$ is this script's own process: once it is gone (killed), nobody needs the bridge.
-    kill -0 $$ 2>/dev/null || exit "$status"
     echo "[host] the bridge exited with status $status: starting it again in ${BRIDGE_RESTART_S} s" >&2
     sleep "$BRIDGE_RESTART_S"
   done
