@@ -7,7 +7,7 @@
 #                           [--frames N] [--descriptor-weights FILE] [--out DIR]
 #                           [--set KEY=VALUE]...
 #                           [--no-restart-consensus]
-#                           [--transport iceoryx2|zenoh]
+#                           [--transport iceoryx2|zenoh] [--insecure-plain-tcp]
 #
 # With no arguments: the embedded synthetic scene, 3 agents (synthetic:agents=3,agent=K).
 # --agent repeats, one dataset (and frame range) per agent; agent K is the K-th --agent.
@@ -30,8 +30,11 @@
 # with a new run id and --fresh, so an older run's store in DIR is moved aside, never resumed.
 # --transport zenoh (root only) runs the consensus and each agent as a simulated host of its own
 # (scripts/simulated_host.sh: own mount namespace, private /dev/shm and iceoryx2 root, own
-# mac-bridge), all joined by zenoh over TCP on 127.0.0.1; metrics.json then counts each agent's
-# bytes on the network. The default, iceoryx2, runs everything on this host's shared memory.
+# mac-bridge), all joined by zenoh over TLS on 127.0.0.1 with mutual authentication: the run makes
+# its own swarm CA and a certificate per host in DIR/certs (`mac-bridge certs`).
+# --insecure-plain-tcp joins them over plain TCP instead (no authentication; warned about).
+# metrics.json then counts each agent's bytes on the network. The default, iceoryx2, runs
+# everything on this host's shared memory.
 # On a terminal, one line shows the progress: frames, keyframes, link state, closures.
 #
 # The AlexNet weights (global descriptor, LPIPS) are the cached ones scripts/setup.sh fetches
@@ -58,6 +61,7 @@ restart_consensus=1
 profile="${MAC_EGO3D_PROFILE:-release}"
 # --- transport (cross-host bridge) ---
 transport=iceoryx2
+insecure_plain_tcp=0
 # --- end transport ---
 
 # The header above, up to its first line that is not a comment.
@@ -76,6 +80,7 @@ while (($#)); do
     --set) sets+=("$2"); shift 2 ;;
     --no-restart-consensus) restart_consensus=0; shift ;;
     --transport) transport="$2"; shift 2 ;;
+    --insecure-plain-tcp) insecure_plain_tcp=1; shift ;;
     -h | --help) usage; exit 0 ;;
     *) echo "[swarm] unknown argument: $1" >&2; usage >&2; exit 2 ;;
   esac
@@ -92,6 +97,8 @@ case "$transport" in
   zenoh) (($(id -u) == 0)) || { echo "[swarm] --transport zenoh simulates hosts with mount namespaces: run as root" >&2; exit 2; } ;;
   *) echo "[swarm] --transport $transport: expected iceoryx2 or zenoh" >&2; exit 2 ;;
 esac
+((!insecure_plain_tcp)) || [[ "$transport" == zenoh ]] ||
+  { echo "[swarm] --insecure-plain-tcp is for --transport zenoh" >&2; exit 2; }
 # --- end transport ---
 
 # Mesa's Vulkan loader path (libwayland, probing for a display) prints "error: XDG_RUNTIME_DIR
@@ -209,17 +216,35 @@ rm -f "$out"/agent_*/progress.json "$out/consensus_progress.json"
 consensus_host=()
 if [[ "$transport" == zenoh ]]; then
   zenoh_port="$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')"
+  # Each simulated host's link credentials: `bridge_security HOST` sets `security`.
+  if ((insecure_plain_tcp)); then
+    echo "[swarm] WARNING: --insecure-plain-tcp: the simulated hosts talk plain TCP without authentication" >&2
+    zenoh_scheme=tcp
+    bridge_security() { security=(--insecure-plain-tcp); }
+  else
+    zenoh_scheme=tls
+    # A new CA per run: the certificates of an earlier run in this folder are replaced.
+    rm -rf "$out/certs"
+    host_specs=(--host consensus=127.0.0.1)
+    for ((k = 0; k < agents; k++)); do host_specs+=(--host "agent$k"); done
+    "$bin/mac-bridge" certs --out "$out/certs" "${host_specs[@]}" 2>>"$out/certs.log" ||
+      { echo "[swarm] making the run's certificates failed; see $out/certs.log" >&2; exit 1; }
+    bridge_security() { security=(--certificates "$out/certs" --host "$1"); }
+  fi
+  bridge_security consensus
   consensus_host=(scripts/simulated_host.sh "$bin/mac-bridge" --role consumers --namespace "$namespace"
-    --agents "$agents" --listen "tcp/127.0.0.1:$zenoh_port" --report "$out/bridge_consensus.json" --)
-  echo "[swarm] transport zenoh: simulated hosts joined over tcp/127.0.0.1:$zenoh_port; bridge logs in $out/*.log"
+    --agents "$agents" --listen "$zenoh_scheme/127.0.0.1:$zenoh_port" "${security[@]}"
+    --report "$out/bridge_consensus.json" --)
+  echo "[swarm] transport zenoh: simulated hosts joined over $zenoh_scheme/127.0.0.1:$zenoh_port; bridge logs in $out/*.log"
 fi
 # The command prefix that runs agent K on its own simulated host (empty with iceoryx2).
 agent_host_of() {
   agent_host=()
   [[ "$transport" == zenoh ]] || return 0
+  bridge_security "agent$1"
   agent_host=(scripts/simulated_host.sh "$bin/mac-bridge" --role agents --namespace "$namespace"
-    --agents "$agents" --local-agent "$1" --connect "tcp/127.0.0.1:$zenoh_port"
-    --report "$out/bridge_agent_$1.json" --)
+    --agents "$agents" --local-agent "$1" --connect "$zenoh_scheme/127.0.0.1:$zenoh_port"
+    "${security[@]}" --report "$out/bridge_agent_$1.json" --)
 }
 # --- end transport ---
 # Starts the consensus (in the background; its pid in $!): the first start is a new run

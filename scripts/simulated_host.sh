@@ -8,8 +8,10 @@
 #
 # The bridge starts first; PROGRAM runs in the foreground of this script, and SIGTERM/SIGINT
 # sent to the script go to PROGRAM (so a launcher stops it as it would stop the process
-# itself). When PROGRAM ends, the bridge is stopped (it writes its report) and the script exits
-# with PROGRAM's status.
+# itself). A bridge that dies (killed, crashed) is started again after BRIDGE_RESTART_S, as a
+# service manager would on a real host; the bridges re-send what the far side had not
+# acknowledged. When PROGRAM ends, the bridge is stopped (it writes its report) and the script
+# exits with PROGRAM's status.
 set -euo pipefail
 if [[ "${MAC_SIMULATED_HOST_INSIDE:-}" != 1 ]]; then
   (($(id -u) == 0)) || { echo "[host] simulated hosts need root (unshare --mount)" >&2; exit 2; }
@@ -24,7 +26,22 @@ bridge=()
 while (($#)) && [[ "$1" != -- ]]; do bridge+=("$1"); shift; done
 (($#)) || { echo "[host] usage: simulated_host.sh BRIDGE [ARGS...] -- PROGRAM [ARGS...]" >&2; exit 2; }
 shift
-"${bridge[@]}" &
+BRIDGE_RESTART_S=1
+# The bridge's supervisor: SIGTERM stops the current bridge (in order) and the supervisor.
+(
+  trap 'kill -TERM "$child" 2>/dev/null; wait "$child"; exit $?' TERM
+  while :; do
+    "${bridge[@]}" &
+    child=$!
+    # Watches the bridge and this script ($$; once it is gone, killed, nobody needs the bridge).
+    while kill -0 "$child" 2>/dev/null && kill -0 $$ 2>/dev/null; do sleep 0.5; done
+    kill -0 $$ 2>/dev/null || { kill -TERM "$child" 2>/dev/null; wait "$child"; exit; }
+    status=0
+    wait "$child" || status=$?
+    echo "[host] the bridge exited with status $status: starting it again in ${BRIDGE_RESTART_S} s" >&2
+    sleep "$BRIDGE_RESTART_S"
+  done
+) &
 bridge_pid=$!
 "$@" &
 main_pid=$!

@@ -10,12 +10,16 @@
 //! consumer host: `descriptor`, `patch`, `keyframe_image`, `lifecycle` in), its zenoh ports
 //! exclude its own session (`Locality::Remote`), and on iceoryx2 it receives only from the
 //! processes it stands in front of, never what it published itself.
+//!
+//! Faults (module `delivery`): the agent host's bridge attaches to its agents only while a
+//! consumer host is reachable (its liveliness token), keeps what it sent until the consumer
+//! host acknowledges it, and sends the rest again when the consumer host is back.
 
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::{Context, Result, anyhow};
 use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
@@ -26,19 +30,19 @@ use protocol::transport::relay::{
 };
 use protocol::transport::{TransportConfig, TransportError};
 use zenoh::pubsub::Publisher;
-use zenoh::sample::{Locality, Sample};
+use zenoh::sample::{Locality, Sample, SampleKind};
 use zenoh::{Session, Wait};
 
-use crate::keys::{GOODBYE_SEEN, SwarmKeys, topic_named};
+use crate::delivery::{Acknowledgement, UNACKNOWLEDGED_LIMIT_BYTES, Unacknowledged};
+use crate::keys::{DELIVERED, GOODBYE_SEEN, SwarmKeys, topic_named};
 use crate::network::{CONGESTION_CONTROL, PRIORITY};
 use crate::report::{NetworkTraffic, topic_label};
 
 /// How often the loops look at the stop flag while nothing arrives.
 const STOP_CHECK: Duration = Duration::from_millis(100);
 
-/// Messages received from zenoh and not yet handed to iceoryx2. Bounded: when the local side
-/// is slow, zenoh's receive path waits, and with `CongestionControl::Block` so does the
-/// sender, instead of this queue growing without limit.
+/// Corrections, control messages and goodbye acknowledgements received from zenoh on an agent
+/// host and not yet handed to iceoryx2. Bounded: they are small and few.
 const INBOUND_QUEUE: usize = 64;
 
 /// Everything a host's bridge shares between its tasks and threads.
@@ -77,6 +81,7 @@ pub async fn run_agent_host(
     local_agents: Vec<u32>,
 ) -> Result<NetworkTraffic> {
     let (inbound_tx, inbound_rx) = crossbeam_channel::bounded(INBOUND_QUEUE);
+    let (acks_tx, acks_rx) = crossbeam_channel::unbounded();
     let ingress = spawn("ingress", &context.stop, {
         let (context, local_agents) = (context.clone(), local_agents.clone());
         move || agent_host_ingress(&context, &local_agents, &inbound_rx)
@@ -87,9 +92,10 @@ pub async fn run_agent_host(
             Topic::Correction.name(),
             Topic::Control.name(),
             GOODBYE_SEEN,
+            DELIVERED,
         ] {
             let key = format!("{}/agent/{agent_id}/{last}", context.transport.namespace);
-            let tx = inbound_tx.clone();
+            let (tx, acks) = (inbound_tx.clone(), acks_tx.clone());
             let subscriber = context
                 .session
                 .declare_subscriber(&key)
@@ -104,6 +110,15 @@ pub async fn run_agent_host(
                                 return;
                             }
                         },
+                        None if last == DELIVERED => {
+                            match Acknowledgement::from_bytes(&bytes) {
+                                Ok(ack) => {
+                                    let _ = acks.send((agent_id, ack));
+                                }
+                                Err(e) => tracing::warn!(error = %e, "dropped a malformed acknowledgement"),
+                            }
+                            return;
+                        }
                         None => AgentHostInbound::GoodbyeSeen(agent_id),
                     };
                     // Fails only when the ingress has stopped: nothing to deliver to.
@@ -114,21 +129,35 @@ pub async fn run_agent_host(
             subscribers.push(subscriber);
         }
     }
+    drop(acks_tx);
     let _agent_tokens = declare_tokens(
         &context,
         local_agents.iter().map(|&id| context.keys.agent_bridge(id)),
     )
     .await?;
+    let reachable = Arc::new(AtomicBool::new(false));
+    let _consumer_host_watch = context
+        .session
+        .liveliness()
+        .declare_subscriber(context.keys.consumers_bridge())
+        .history(true)
+        .callback({
+            let reachable = Arc::clone(&reachable);
+            move |sample: Sample| {
+                reachable.store(sample.kind() == SampleKind::Put, Ordering::Relaxed);
+            }
+        })
+        .await
+        .map_err(|e| anyhow!("zenoh liveliness subscriber: {e}"))?;
     tracing::info!(agents = ?local_agents, "waiting for a consumer host's bridge");
-    if !wait_for_token(&context, &context.keys.consumers_bridge()).await? {
-        drop(inbound_tx);
-        return join(ingress);
-    }
-    tracing::info!("consumer host reachable: attaching to the local agents");
     let egress = spawn("egress", &context.stop, {
-        let (context, local_agents, tx) =
-            (context.clone(), local_agents.clone(), inbound_tx.clone());
-        move || agent_host_egress(&context, &local_agents, &tx)
+        let context = context.clone();
+        let links = EgressLinks {
+            inbound: inbound_tx.clone(),
+            acknowledgements: acks_rx,
+            reachable,
+        };
+        move || agent_host_egress(&context, &local_agents, &links)
     })?;
     drop(inbound_tx);
     context.until_stopped().await;
@@ -173,16 +202,72 @@ fn agent_host_ingress(
     Ok(traffic)
 }
 
+/// What the egress thread of an agent host hears from the zenoh side.
+struct EgressLinks {
+    inbound: Sender<AgentHostInbound>,
+    acknowledgements: Receiver<(u32, Acknowledgement)>,
+    /// Whether a consumer host's bridge is reachable now (its liveliness token).
+    reachable: Arc<AtomicBool>,
+}
+
+/// Relays the local agents' messages while a consumer host is reachable; see `delivery`.
 fn agent_host_egress(
     context: &BridgeContext,
     local_agents: &[u32],
-    inbound: &Sender<AgentHostInbound>,
+    links: &EgressLinks,
 ) -> Result<NetworkTraffic> {
-    let mut egress = AgentHostEgress::open(&context.transport, local_agents)?;
-    let _ = inbound.send(AgentHostInbound::ConsumersAttached);
     let mut publishers = Publishers::new(context);
     let mut traffic = NetworkTraffic::default();
+    let mut unacknowledged = Unacknowledged::default();
+    let mut attached: Option<AgentHostEgress> = None;
     while !context.stopping() {
+        for (agent_id, ack) in links.acknowledgements.try_iter() {
+            unacknowledged.acknowledge(agent_id, ack);
+        }
+        let reachable = links.reachable.load(Ordering::Relaxed);
+        let Some(egress) = attached.as_mut() else {
+            if !reachable {
+                std::thread::sleep(STOP_CHECK);
+                continue;
+            }
+            if unacknowledged.len() > 0 {
+                tracing::info!(
+                    messages = unacknowledged.len(),
+                    bytes = unacknowledged.bytes(),
+                    "consumer host back: sending again what it had not acknowledged"
+                );
+            }
+            for message in unacknowledged.iter() {
+                let key = context.keys.topic(message.agent_id, message.topic);
+                traffic.count_out(
+                    message.agent_id,
+                    topic_label(message.topic),
+                    message.bytes.len(),
+                );
+                publishers.put(&key, message.bytes.clone())?;
+            }
+            attached = Some(AgentHostEgress::open(&context.transport, local_agents)?);
+            let _ = links.inbound.send(AgentHostInbound::ConsumersAttached);
+            tracing::info!("consumer host reachable: attached to the local agents");
+            continue;
+        };
+        if !reachable {
+            // What the agents already handed over is kept for the consumer host's return; the
+            // agents queue the rest as during a scheduled outage.
+            while let Some(message) = egress.try_recv()? {
+                unacknowledged.push(message);
+            }
+            attached = None;
+            tracing::warn!(
+                unacknowledged = unacknowledged.len(),
+                "consumer host unreachable: detached from the local agents until it is back"
+            );
+            continue;
+        }
+        if unacknowledged.bytes() >= UNACKNOWLEDGED_LIMIT_BYTES {
+            std::thread::sleep(Duration::from_millis(5));
+            continue;
+        }
         let Some(message) = egress.recv_timeout(STOP_CHECK)? else {
             continue;
         };
@@ -192,14 +277,19 @@ fn agent_host_egress(
             topic_label(message.topic),
             message.bytes.len(),
         );
-        publishers.put(&key, message.bytes)?;
+        publishers.put(&key, message.bytes.clone())?;
+        unacknowledged.push(message);
     }
     Ok(traffic)
 }
 
 /// Runs the bridge of the host that runs the consumers until `stop`.
 pub async fn run_consumer_host(context: BridgeContext) -> Result<NetworkTraffic> {
-    let (inbound_tx, inbound_rx) = crossbeam_channel::bounded::<RelayedMessage>(INBOUND_QUEUE);
+    // Unbounded, so that zenoh's receive path never waits on a slow local consumer: a receive
+    // path that waits stalls the link, and zenoh closes a link whose blocked sends wait longer
+    // than `wait_before_close`. The agent hosts' unacknowledged window
+    // (`delivery::UNACKNOWLEDGED_LIMIT_BYTES` each) bounds what can pile up here.
+    let (inbound_tx, inbound_rx) = crossbeam_channel::unbounded::<RelayedMessage>();
     let (attached_tx, attached_rx) = crossbeam_channel::bounded::<()>(1);
     let ingress = spawn("ingress", &context.stop, {
         let context = context.clone();
@@ -264,6 +354,7 @@ fn consumer_host_ingress(
     attached: &Sender<()>,
 ) -> Result<NetworkTraffic> {
     let mut ingress = ConsumerHostIngress::open(&context.transport)?;
+    let mut acknowledgements = Publishers::new(context);
     let mut traffic = NetworkTraffic::default();
     let mut announced = false;
     while !context.stopping() {
@@ -281,7 +372,10 @@ fn consumer_host_ingress(
             message.bytes.len(),
         );
         match ingress.forward(&message) {
-            Ok(_) => {}
+            Ok(_) => {
+                let key = context.keys.delivered(message.agent_id);
+                acknowledgements.put(&key, Acknowledgement::of(&message).to_bytes())?;
+            }
             Err(TransportError::ShutdownRequested) => break,
             Err(e) => tracing::warn!(agent_id = message.agent_id, topic = %message.topic,
                 sequence = message.stamp.sequence, error = %e,
@@ -365,35 +459,6 @@ async fn declare_tokens(
         tokens.push(token);
     }
     Ok(tokens)
-}
-
-/// Waits until a liveliness token `key` exists on the network; false when stopped first.
-async fn wait_for_token(context: &BridgeContext, key: &str) -> Result<bool> {
-    let start = Instant::now();
-    let mut last_said = start;
-    while !context.stopping() {
-        let replies = context
-            .session
-            .liveliness()
-            .get(key)
-            .timeout(Duration::from_millis(500))
-            .await
-            .map_err(|e| anyhow!("zenoh liveliness query {key}: {e}"))?;
-        while let Ok(reply) = replies.recv_async().await {
-            if reply.result().is_ok() {
-                return Ok(true);
-            }
-        }
-        if last_said.elapsed() >= Duration::from_secs(10) {
-            tracing::info!(
-                waited_s = start.elapsed().as_secs(),
-                "still no consumer host"
-            );
-            last_said = Instant::now();
-        }
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    Ok(false)
 }
 
 /// Starts a thread of the bridge; when it fails, the whole bridge stops (the error is

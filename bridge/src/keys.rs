@@ -8,6 +8,8 @@
 //! - `{ns}/agent/{id}/correction`, `.../control`: consumer host -> the agent's host.
 //! - `{ns}/agent/{id}/goodbye_seen`: consumer host -> the agent's host, no payload: a consumer
 //!   acknowledged the agent's goodbye after draining its data.
+//! - `{ns}/agent/{id}/delivered`: consumer host -> the agent's host: the consumers have one of
+//!   the agent's messages (topic and stamp in the payload; see `delivery`).
 //!
 //! Liveliness tokens (zenoh liveliness, gone when the session is):
 //! - `{ns}/bridge/consumers`: a consumer host's bridge whose consumers are attached; agent
@@ -54,6 +56,10 @@ impl SwarmKeys {
         )
     }
 
+    pub fn delivered(&self, agent_id: u32) -> String {
+        format!("{}/{DELIVERED}", self.agent_prefix(&agent_id.to_string()))
+    }
+
     pub fn consumers_bridge(&self) -> String {
         format!("{}/bridge/consumers", self.names.namespace())
     }
@@ -74,6 +80,8 @@ impl SwarmKeys {
 
 /// Last key segment of a goodbye acknowledgement.
 pub const GOODBYE_SEEN: &str = "goodbye_seen";
+/// Last key segment of a delivery acknowledgement.
+pub const DELIVERED: &str = "delivered";
 
 /// The topic whose name is `name`.
 pub fn topic_named(name: &str) -> Option<Topic> {
@@ -95,6 +103,7 @@ mod tests {
             Some((12, "correction"))
         );
         assert_eq!(keys.parse(&keys.goodbye_seen(4)), Some((4, GOODBYE_SEEN)));
+        assert_eq!(keys.parse(&keys.delivered(5)), Some((5, DELIVERED)));
         assert_eq!(keys.parse("mac8/agent/1/patch"), None);
         assert_eq!(keys.parse("mac7/agent/x/patch"), None);
         assert_eq!(topic_named("keyframe_image"), Some(Topic::KeyframeImage));

@@ -5,8 +5,10 @@
 //! iceoryx2 through shared memory, unchanged; messages cross hosts with their typed payloads
 //! and stamps (agent, epoch, sequence) unchanged. The module documentation of `hosts` says how
 //! loops are avoided, `network` which zenoh settings carry the messages and why, `keys` the
-//! key expressions.
+//! key expressions and `certs` the swarm's certificates (`mac-bridge certs`).
 
+mod certs;
+mod delivery;
 mod hosts;
 mod keys;
 mod network;
@@ -18,13 +20,14 @@ use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow, bail};
-use clap::{Parser, ValueEnum};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 use protocol::services::DEFAULT_NAMESPACE;
 use protocol::transport::TransportConfig;
 
+use crate::certs::{HostFiles, HostSpec};
 use crate::hosts::{BridgeContext, run_agent_host, run_consumer_host};
 use crate::keys::SwarmKeys;
-use crate::network::Endpoints;
+use crate::network::{Endpoints, LinkSecurity};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum Role {
@@ -37,11 +40,42 @@ enum Role {
 #[derive(Debug, Parser)]
 #[command(
     version,
-    about = "Joins this host's iceoryx2 swarm to other hosts over zenoh"
+    about = "Joins this host's iceoryx2 swarm to other hosts over zenoh",
+    args_conflicts_with_subcommands = true,
+    subcommand_negates_reqs = true
 )]
 struct Cli {
-    #[arg(long, value_enum)]
-    role: Role,
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    bridge: BridgeArgs,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Makes a new swarm certificate authority and a certificate and key per host.
+    Certs(CertsArgs),
+}
+
+#[derive(Debug, Args)]
+struct CertsArgs {
+    /// Folder to write into (`ca.pem`, `ca.key`, `HOST.pem`, `HOST.key`); existing files are
+    /// never overwritten.
+    #[arg(long)]
+    out: PathBuf,
+    /// A host: `NAME`, or `NAME=ADDRESS,...` with the IP addresses or DNS names other hosts
+    /// connect to it by (needed on the hosts that listen). Repeat for every host.
+    #[arg(long = "host", required = true)]
+    hosts: Vec<HostSpec>,
+    /// Validity of the certificates in days.
+    #[arg(long, default_value_t = 365)]
+    days: u32,
+}
+
+#[derive(Debug, Args)]
+struct BridgeArgs {
+    #[arg(long, value_enum, required = true)]
+    role: Option<Role>,
     /// Swarm namespace (the same on every host and process of the swarm).
     #[arg(long, default_value = DEFAULT_NAMESPACE)]
     namespace: String,
@@ -51,12 +85,22 @@ struct Cli {
     /// With `--role agents`: an agent id this host runs (repeat for several).
     #[arg(long = "local-agent")]
     local_agents: Vec<u32>,
-    /// Zenoh endpoint to listen on, e.g. `tcp/0.0.0.0:7447` (repeatable).
+    /// Zenoh endpoint to listen on, e.g. `tls/0.0.0.0:7447` (repeatable).
     #[arg(long)]
     listen: Vec<String>,
-    /// Zenoh endpoint of another host's bridge, e.g. `tcp/192.168.1.10:7447` (repeatable).
+    /// Zenoh endpoint of another host's bridge, e.g. `tls/192.168.1.10:7447` (repeatable).
     #[arg(long)]
     connect: Vec<String>,
+    /// Folder with the swarm CA's certificate and this host's certificate and key (made by
+    /// `mac-bridge certs`); links are TLS with mutual authentication.
+    #[arg(long, requires = "host", conflicts_with = "insecure_plain_tcp")]
+    certificates: Option<PathBuf>,
+    /// This host's name in `--certificates` (its files are `NAME.pem` and `NAME.key`).
+    #[arg(long, requires = "certificates")]
+    host: Option<String>,
+    /// Plain TCP links without authentication: anyone who reaches a port joins the swarm.
+    #[arg(long)]
+    insecure_plain_tcp: bool,
     /// Transport settings (a JSON `TransportConfig`) when the swarm's processes do not use the
     /// defaults: queue depths and limits must match theirs. `--namespace` and `--agents`
     /// override its namespace and agent range.
@@ -76,10 +120,17 @@ fn main() -> Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
+    if let Some(Command::Certs(args)) = &cli.command {
+        return certs::make(&args.out, &args.hosts, args.days);
+    }
+    let cli = cli.bridge;
+    let Some(role) = cli.role else {
+        bail!("give --role agents|consumers (or the certs subcommand)");
+    };
     if cli.listen.is_empty() && cli.connect.is_empty() {
         bail!("give --listen ENDPOINT (this host accepts connections) and/or --connect ENDPOINT");
     }
-    match (cli.role, cli.local_agents.is_empty()) {
+    match (role, cli.local_agents.is_empty()) {
         (Role::Agents, true) => bail!("--role agents needs at least one --local-agent K"),
         (Role::Consumers, false) => bail!("--local-agent is for --role agents only"),
         _ => {}
@@ -91,10 +142,27 @@ fn main() -> Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
-    runtime.block_on(run(cli, stop))
+    runtime.block_on(run(cli, role, stop))
 }
 
-fn transport_config(cli: &Cli) -> Result<TransportConfig> {
+fn link_security(cli: &BridgeArgs) -> Result<LinkSecurity> {
+    match (&cli.certificates, &cli.host, cli.insecure_plain_tcp) {
+        (Some(folder), Some(host), false) => {
+            Ok(LinkSecurity::MutualTls(HostFiles::in_folder(folder, host)))
+        }
+        (None, None, true) => {
+            tracing::warn!(
+                "--insecure-plain-tcp: links are plain TCP without authentication; anyone who reaches a port can publish into and read from the swarm"
+            );
+            Ok(LinkSecurity::InsecurePlainTcp)
+        }
+        _ => bail!(
+            "give --certificates DIR --host NAME (TLS with mutual authentication; make the files with `mac-bridge certs`), or --insecure-plain-tcp"
+        ),
+    }
+}
+
+fn transport_config(cli: &BridgeArgs) -> Result<TransportConfig> {
     let Some(path) = &cli.transport_config else {
         return Ok(TransportConfig::for_swarm(
             cli.namespace.clone(),
@@ -116,15 +184,16 @@ fn transport_config(cli: &Cli) -> Result<TransportConfig> {
     Ok(config)
 }
 
-async fn run(cli: Cli, stop: Arc<AtomicBool>) -> Result<()> {
+async fn run(cli: BridgeArgs, role: Role, stop: Arc<AtomicBool>) -> Result<()> {
     let endpoints = Endpoints {
         listen: cli.listen.clone(),
         connect: cli.connect.clone(),
     };
-    let session = zenoh::open(network::config(&endpoints)?)
+    let security = link_security(&cli)?;
+    let session = zenoh::open(network::config(&endpoints, &security)?)
         .await
         .map_err(|e| anyhow!("opening the zenoh session ({endpoints:?}): {e}"))?;
-    tracing::info!(zid = %session.zid(), ?endpoints, role = ?cli.role, namespace = %cli.namespace, "zenoh session open");
+    tracing::info!(zid = %session.zid(), ?endpoints, ?role, namespace = %cli.namespace, "zenoh session open");
     let context = BridgeContext {
         session: session.clone(),
         keys: SwarmKeys::new(&cli.namespace),
@@ -132,7 +201,7 @@ async fn run(cli: Cli, stop: Arc<AtomicBool>) -> Result<()> {
         stop,
     };
     let start = Instant::now();
-    let (role, traffic) = match cli.role {
+    let (role, traffic) = match role {
         Role::Agents => ("agents", run_agent_host(context, cli.local_agents).await?),
         Role::Consumers => ("consumers", run_consumer_host(context).await?),
     };

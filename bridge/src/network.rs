@@ -1,10 +1,25 @@
 //! The zenoh session of a bridge: peer mode, only the endpoints given on the command line (no
-//! multicast scouting, so a bridge never reaches hosts it was not told about), and the QoS every
-//! relayed message travels with.
+//! multicast scouting, so a bridge never reaches hosts it was not told about), links
+//! authenticated both ways by TLS, and the QoS every relayed message travels with.
+//!
+//! Authentication ([`LinkSecurity::MutualTls`]): every link is TLS 1.3 with mutual
+//! authentication against the swarm's own CA (`mac-bridge certs`). A listening bridge requires
+//! the connecting bridge's certificate and accepts only one the swarm CA signed; a connecting
+//! bridge checks the listening bridge's certificate and that it names the address of the
+//! endpoint it dialled. A peer without such a certificate fails the handshake, so it never
+//! joins the zenoh session: nothing it publishes reaches the swarm and it cannot subscribe to
+//! anything. Plain TCP ([`LinkSecurity::InsecurePlainTcp`]) is only for an explicit request.
+//!
+//! Name verification stays on: zenoh's connecting side trusts the public web roots next to the
+//! swarm CA, so without it any publicly certified server would pass.
 
-use anyhow::{Context, Result};
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
 use zenoh::Config;
 use zenoh::qos::{CongestionControl, Priority};
+
+use crate::certs::HostFiles;
 
 /// Where a bridge listens and whom it connects to (zenoh endpoints such as
 /// `tcp/192.168.1.10:7447`).
@@ -16,7 +31,9 @@ pub struct Endpoints {
 
 /// Every relayed message crosses with:
 /// - reliability `Reliable` (zenoh's default): a lost packet is re-sent by the link, never
-///   skipped: receivers would see a sequence gap, and a lost keyframe is never acceptable;
+///   skipped: receivers would see a sequence gap, and a lost keyframe is never acceptable
+///   (across a broken link or a restarted bridge, `delivery` re-sends what was not
+///   acknowledged);
 /// - congestion control `Block`: when the network is slower than the agents, the bridge's put
 ///   waits instead of dropping; the wait reaches the agent through the iceoryx2 queues and
 ///   their full-queue policy, like a slow consumer on one host;
@@ -29,8 +46,49 @@ pub struct Endpoints {
 pub const CONGESTION_CONTROL: CongestionControl = CongestionControl::Block;
 pub const PRIORITY: Priority = Priority::Data;
 
+/// How a bridge's links are protected.
+#[derive(Debug, Clone)]
+pub enum LinkSecurity {
+    /// TLS with mutual authentication: this host's files from `mac-bridge certs`. Endpoints
+    /// are `tls/ADDRESS:PORT`.
+    MutualTls(HostFiles),
+    /// Plain TCP: anyone who reaches the port joins the swarm. Endpoints are
+    /// `tcp/ADDRESS:PORT`.
+    InsecurePlainTcp,
+}
+
+impl LinkSecurity {
+    fn scheme(&self) -> &'static str {
+        match self {
+            Self::MutualTls(_) => "tls",
+            Self::InsecurePlainTcp => "tcp",
+        }
+    }
+}
+
+impl Endpoints {
+    /// Every endpoint uses the link `security` asks for, so a TLS bridge never also opens a
+    /// plain port.
+    pub fn check(&self, security: &LinkSecurity) -> Result<()> {
+        let scheme = security.scheme();
+        for endpoint in self.listen.iter().chain(&self.connect) {
+            if endpoint.split_once('/').map(|(s, _)| s) != Some(scheme) {
+                let hint = match security {
+                    LinkSecurity::MutualTls(_) => {
+                        "links are TLS with mutual authentication; plain TCP needs --insecure-plain-tcp"
+                    }
+                    LinkSecurity::InsecurePlainTcp => "--insecure-plain-tcp takes tcp/ endpoints",
+                };
+                bail!("endpoint '{endpoint}': expected {scheme}/ADDRESS:PORT ({hint})");
+            }
+        }
+        Ok(())
+    }
+}
+
 /// The zenoh configuration of a bridge.
-pub fn config(endpoints: &Endpoints) -> Result<Config> {
+pub fn config(endpoints: &Endpoints, security: &LinkSecurity) -> Result<Config> {
+    endpoints.check(security)?;
     let mut config = Config::default();
     let set = |config: &mut Config, key: &str, value: String| {
         config
@@ -52,5 +110,83 @@ pub fn config(endpoints: &Endpoints) -> Result<Config> {
     // A bridge started before its peer keeps trying to connect instead of giving up.
     set(&mut config, "connect/exit_on_failure", "false".into())?;
     set(&mut config, "connect/timeout_ms", "-1".into())?;
+    if let LinkSecurity::MutualTls(files) = security {
+        let path = |path: &Path| -> Result<String> {
+            std::fs::File::open(path).with_context(|| {
+                format!(
+                    "TLS file {} (make the swarm's files with `mac-bridge certs`)",
+                    path.display()
+                )
+            })?;
+            Ok(serde_json::to_string(&path.display().to_string())?)
+        };
+        let tls = "transport/link/tls";
+        set(
+            &mut config,
+            &format!("{tls}/root_ca_certificate"),
+            path(&files.ca_certificate)?,
+        )?;
+        for side in ["listen", "connect"] {
+            set(
+                &mut config,
+                &format!("{tls}/{side}_certificate"),
+                path(&files.certificate)?,
+            )?;
+            set(
+                &mut config,
+                &format!("{tls}/{side}_private_key"),
+                path(&files.private_key)?,
+            )?;
+        }
+        set(&mut config, &format!("{tls}/enable_mtls"), "true".into())?;
+        set(
+            &mut config,
+            &format!("{tls}/verify_name_on_connect"),
+            "true".into(),
+        )?;
+    }
     Ok(config)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn endpoints_must_match_the_link_security() {
+        let tls = LinkSecurity::MutualTls(HostFiles::in_folder(Path::new("certs"), "agent0"));
+        let endpoints = |listen: &str, connect: &str| Endpoints {
+            listen: vec![listen.to_string()],
+            connect: vec![connect.to_string()],
+        };
+        assert!(
+            endpoints("tls/0.0.0.0:7447", "tls/10.0.0.1:7447")
+                .check(&tls)
+                .is_ok()
+        );
+        let plain = endpoints("tls/0.0.0.0:7447", "tcp/10.0.0.1:7447").check(&tls);
+        assert!(format!("{:#}", plain.unwrap_err()).contains("--insecure-plain-tcp"));
+        let insecure = LinkSecurity::InsecurePlainTcp;
+        assert!(
+            endpoints("tcp/0.0.0.0:7447", "tcp/10.0.0.1:7447")
+                .check(&insecure)
+                .is_ok()
+        );
+        assert!(
+            endpoints("tls/0.0.0.0:7447", "tcp/10.0.0.1:7447")
+                .check(&insecure)
+                .is_err()
+        );
+    }
+
+    #[test]
+    fn missing_tls_files_are_named() {
+        let tls = LinkSecurity::MutualTls(HostFiles::in_folder(Path::new("/nonexistent"), "a"));
+        let endpoints = Endpoints {
+            listen: vec!["tls/127.0.0.1:7447".into()],
+            connect: Vec::new(),
+        };
+        let error = format!("{:#}", config(&endpoints, &tls).unwrap_err());
+        assert!(error.contains("/nonexistent/ca.pem"), "{error}");
+    }
 }

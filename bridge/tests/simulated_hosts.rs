@@ -1,4 +1,5 @@
-//! Two simulated hosts joined only by their bridges' zenoh connection over TCP on 127.0.0.1:
+//! Two simulated hosts joined only by their bridges' zenoh connection on 127.0.0.1 (TLS with
+//! mutual authentication, the bridges' default, with certificates from `mac-bridge certs`):
 //! host A (an agent and an agent-role bridge) runs in a mount namespace of its own with a
 //! private /dev/shm and iceoryx2 root (scripts/simulated_host.sh), so no shared memory can reach
 //! host B (this test process as the consumer, and a consumer-role bridge). A message can only
@@ -9,9 +10,12 @@
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+mod common;
+
+use common::{BRIDGE, Reaped, credentials, free_port, is_root, make_certs};
 use protocol::bench::{SAMPLE_INTRINSICS, synthetic_descriptor, synthetic_record};
 use protocol::messages::{CoordinateFrame, KeyframePose, LifecycleKind, Pose};
 use protocol::transport::{AgentLink, ConsumerLink, Delivery, Incoming, TransportConfig};
@@ -24,45 +28,6 @@ const LARGE_PATCH_RECORDS: usize = 1_000_000;
 const DESCRIPTORS: u64 = 3;
 const PATCH_SEED: u64 = 42;
 const TIMEOUT: Duration = Duration::from_secs(120);
-
-fn is_root() -> bool {
-    Command::new("id")
-        .arg("-u")
-        .output()
-        .is_ok_and(|out| String::from_utf8_lossy(&out.stdout).trim() == "0")
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-/// Stops a child at the end of the test, whatever happens.
-struct Reaped(Child);
-
-impl Drop for Reaped {
-    fn drop(&mut self) {
-        if self.0.try_wait().ok().flatten().is_some() {
-            return;
-        }
-        // SIGTERM first: a bridge stops in order.
-        let _ = Command::new("kill")
-            .args(["-TERM", &self.0.id().to_string()])
-            .status();
-        let start = Instant::now();
-        while start.elapsed() < Duration::from_secs(5) {
-            if self.0.try_wait().ok().flatten().is_some() {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 /// The agent of host A: hello, descriptors, one large patch; waits for the correction the
 /// consumer sends back over the network, then says goodbye (which returns only once the far
@@ -113,10 +78,14 @@ fn large_patch_and_stamps_cross_between_simulated_hosts() {
         return;
     }
     let repository = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
-    let bridge = env!("CARGO_BIN_EXE_mac-bridge");
+    let bridge = BRIDGE;
     let namespace = format!("bridgetest{}", std::process::id());
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
     let swarm = ["--namespace", &namespace, "--agents", "1"];
+    let work = tempfile::tempdir().unwrap();
+    let certificates = work.path().join("certs");
+    make_certs(&certificates, &["b=127.0.0.1", "a"]);
+    let credentials = |host: &str| credentials(&certificates, host);
 
     // Host B: this process and the consumer-role bridge.
     let config = TransportConfig::for_swarm(namespace.clone(), Some(1));
@@ -125,6 +94,7 @@ fn large_patch_and_stamps_cross_between_simulated_hosts() {
         Command::new(bridge)
             .args(["--role", "consumers", "--listen", &endpoint])
             .args(swarm)
+            .args(credentials("b"))
             .spawn()
             .unwrap(),
     );
@@ -142,6 +112,7 @@ fn large_patch_and_stamps_cross_between_simulated_hosts() {
                 &endpoint,
             ])
             .args(swarm)
+            .args(credentials("a"))
             .arg("--")
             .arg(std::env::current_exe().unwrap())
             .args(["--exact", "agent_on_host_a", "--ignored", "--nocapture"])

@@ -7,8 +7,9 @@
 //! `--transport zenoh` (root): the peer runs on a simulated host of its own
 //! (scripts/simulated_host.sh: private /dev/shm and iceoryx2 root) with a consumer-role
 //! mac-bridge; the driver's host gets an agent-role mac-bridge; the two bridges talk zenoh over
-//! TCP on 127.0.0.1. Latencies then include both bridges and the network stack, and the
-//! acknowledgements come back the same way.
+//! plain TCP on 127.0.0.1 (`--insecure-plain-tcp`: over TLS, with the driver's host listening,
+//! the peer's acknowledgements stall; see docs/benchmarks.md). Latencies then include both
+//! bridges and the network stack, and the acknowledgements come back the same way.
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
@@ -193,6 +194,7 @@ fn across_simulated_hosts(
             &config.namespace,
             "--agents",
             "1",
+            "--insecure-plain-tcp",
             "--transport-config",
         ]
         .iter()
