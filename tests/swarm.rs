@@ -40,8 +40,9 @@ const MIN_MERGED_PSNR_DB: f64 = 25.0;
 const RENDER_EVERY: usize = 10;
 /// Agent 1 is killed this long after it started (it has published keyframes by then).
 const KILL_AFTER: Duration = Duration::from_secs(8);
-/// The consensus is killed this long after the swarm started, and started again this long after.
-const CONSENSUS_KILL_AFTER: Duration = Duration::from_secs(10);
+/// The consensus is killed once it has verified a closure (so its store holds one), at the
+/// latest this long after the swarm started, and started again this long after.
+const CONSENSUS_KILL_BY: Duration = Duration::from_secs(40);
 const CONSENSUS_DOWN_FOR: Duration = Duration::from_secs(2);
 
 fn config() -> Config {
@@ -163,16 +164,21 @@ fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe(
     let agents: Vec<_> = (0..2)
         .map(|k| swarm.spawn_agent(k, &format!("agent_{k}")))
         .collect();
-    std::thread::sleep(CONSENSUS_KILL_AFTER);
+    wait_for_a_verified_closure(&swarm, CONSENSUS_KILL_BY);
     assert!(
         killed.try_wait().unwrap().is_none(),
         "the consensus finished before it could be killed mid-run"
     );
     killed.kill().unwrap();
     killed.wait().unwrap();
-    let stored_at_kill = std::fs::metadata(swarm.path().join("consensus.redb"))
+    let store = swarm.path().join("consensus.redb");
+    let stored_at_kill = std::fs::metadata(&store)
         .expect("the killed consensus left its store")
         .len();
+    // Read from a copy: the restarted consensus opens the store itself.
+    let copy = swarm.path().join("consensus_at_kill.redb");
+    std::fs::copy(&store, &copy).unwrap();
+    let decided_before_kill = mac_consensus::store::read_decisions(&copy).unwrap();
     std::thread::sleep(CONSENSUS_DOWN_FOR);
     let consensus = swarm.spawn_consensus();
     for (k, agent) in agents.into_iter().enumerate() {
@@ -186,6 +192,7 @@ fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe(
     );
 
     let report = swarm.consensus_report();
+    check_decisions_kept(&decided_before_kill, &report);
     let held: std::collections::BTreeSet<(u64, u64)> = report["keyframe_info"]
         .as_array()
         .unwrap()
@@ -229,6 +236,75 @@ fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe(
     assert!(
         metrics["inter_agent_closures_accepted"].as_u64().unwrap() >= 1,
         "no inter-agent loop closure after the resume"
+    );
+}
+
+/// Waits until the consensus's progress file counts a verified closure, or `limit` is over.
+fn wait_for_a_verified_closure(swarm: &SwarmRun, limit: Duration) {
+    let started = std::time::Instant::now();
+    let progress = swarm.path().join("consensus_progress.json");
+    while started.elapsed() < limit {
+        let verified = std::fs::read_to_string(&progress)
+            .ok()
+            .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+            .and_then(|p| p["closures_verified"].as_u64());
+        if verified.is_some_and(|n| n >= 1) {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+/// Every decision the killed consensus had stored is in the resumed one's consensus.json as it
+/// was made (same pair, verdict and time, so not aligned again) with the same closure transform,
+/// to the 17 significant digits JSON carries (the engine's own test checks the bits).
+fn check_decisions_kept(stored: &[mac_consensus::engine::Decision], report: &serde_json::Value) {
+    assert!(
+        stored.iter().any(|d| d.event.verified),
+        "no verified closure was stored before the kill"
+    );
+    let events = report["events"].as_array().unwrap();
+    let key = |agent: &serde_json::Value, keyframe: &serde_json::Value| {
+        (agent.as_u64().unwrap(), keyframe.as_u64().unwrap())
+    };
+    for decision in stored {
+        let event = &decision.event;
+        let (source, target) = (
+            (u64::from(event.source.agent_id), event.source.keyframe_id),
+            (u64::from(event.target.agent_id), event.target.keyframe_id),
+        );
+        let found = events
+            .iter()
+            .find(|e| {
+                key(&e["source"]["agent_id"], &e["source"]["keyframe_id"]) == source
+                    && key(&e["target"]["agent_id"], &e["target"]["keyframe_id"]) == target
+                    && e["at_s"].as_f64().is_some_and(|at_s| (at_s - event.at_s).abs() < 1e-9)
+            })
+            .unwrap_or_else(|| {
+                panic!("decision {source:?} -> {target:?} at {} s lost", event.at_s)
+            });
+        assert_eq!(found["verified"].as_bool(), Some(event.verified));
+        let Some(measurement) = event.measurement else {
+            continue;
+        };
+        let resumed: Vec<f64> = found["measurement"]["target_camera_from_source_camera"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        for (resumed, stored) in resumed.iter().zip(measurement.target_camera_from_source_camera.0) {
+            assert!(
+                (resumed - stored).abs() <= 1e-15 * stored.abs().max(1.0),
+                "closure {source:?} -> {target:?}: {resumed} resumed, {stored} stored"
+            );
+        }
+    }
+    let verified = stored.iter().filter(|d| d.event.verified).count();
+    eprintln!(
+        "{} decisions ({verified} verified) stored before the kill, all kept by the resumed \
+         consensus",
+        stored.len()
     );
 }
 
