@@ -159,7 +159,11 @@ fn real_data_swarm_agent_process_killed_and_restarted_still_gives_a_complete_res
 /// 10 % (8.2 and 2.8 mm measured), so a ratio would test timing noise and double the test's time.
 #[test]
 fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe() {
-    let swarm = swarm("d");
+    let mut config = config();
+    // No keyframe held in memory: each one the killed consensus lacked comes from the agent's
+    // spool.
+    config.consensus.resend.agent_keeps = 0;
+    let swarm = swarm_with("d", &config);
     let mut killed = swarm.spawn_consensus_logged("consensus_killed");
     let agents: Vec<_> = (0..2)
         .map(|k| swarm.spawn_agent(k, &format!("agent_{k}")))
@@ -221,12 +225,19 @@ fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe(
             missing.is_empty(),
             "agent {k}: keyframes {missing:?} published but not in the final consensus state"
         );
+        assert_eq!(metrics["swarm"]["keyframes_unrecoverable"], serde_json::json!([]));
+        assert_eq!(metrics["swarm"]["spool_failures"], 0);
+        assert!(
+            !swarm.path().join(format!("agent_{k}/keyframe_spool")).exists(),
+            "agent {k}'s spool outlived its run"
+        );
         eprintln!(
             "agent {k}: {} keyframes published, all in consensus.json; told the consensus was \
-             back {} time(s), {} published again",
+             back {} time(s), {} published again, {} spooled",
             published.len(),
             metrics["swarm"]["consensus_resumed"],
-            metrics["swarm"]["keyframes_resent"]
+            metrics["swarm"]["keyframes_resent"],
+            metrics["swarm"]["keyframes_spooled"]
         );
     }
     let metrics = swarm.evaluate(0);

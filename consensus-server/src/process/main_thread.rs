@@ -88,7 +88,7 @@ impl Listener {
             keyframes,
             agents = self.agents.len(),
             finished = self.finished.len(),
-            "resumed from the consensus store: pose graph and map rebuilt from its inputs"
+            "resumed from the consensus store: keyframes and map rebuilt from its inputs, closures from its decisions"
         );
         // Agents the store knows, and those the run waits for (an agent whose hello was lost
         // with the previous process is still running).
