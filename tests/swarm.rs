@@ -225,10 +225,16 @@ fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe(
             missing.is_empty(),
             "agent {k}: keyframes {missing:?} published but not in the final consensus state"
         );
-        assert_eq!(metrics["swarm"]["keyframes_unrecoverable"], serde_json::json!([]));
+        assert_eq!(
+            metrics["swarm"]["keyframes_unrecoverable"],
+            serde_json::json!([])
+        );
         assert_eq!(metrics["swarm"]["spool_failures"], 0);
         assert!(
-            !swarm.path().join(format!("agent_{k}/keyframe_spool")).exists(),
+            !swarm
+                .path()
+                .join(format!("agent_{k}/keyframe_spool"))
+                .exists(),
             "agent {k}'s spool outlived its run"
         );
         eprintln!(
@@ -289,7 +295,9 @@ fn check_decisions_kept(stored: &[mac_consensus::engine::Decision], report: &ser
             .find(|e| {
                 key(&e["source"]["agent_id"], &e["source"]["keyframe_id"]) == source
                     && key(&e["target"]["agent_id"], &e["target"]["keyframe_id"]) == target
-                    && e["at_s"].as_f64().is_some_and(|at_s| (at_s - event.at_s).abs() < 1e-9)
+                    && e["at_s"]
+                        .as_f64()
+                        .is_some_and(|at_s| (at_s - event.at_s).abs() < 1e-9)
             })
             .unwrap_or_else(|| {
                 panic!("decision {source:?} -> {target:?} at {} s lost", event.at_s)
@@ -304,7 +312,10 @@ fn check_decisions_kept(stored: &[mac_consensus::engine::Decision], report: &ser
             .iter()
             .map(|v| v.as_f64().unwrap())
             .collect();
-        for (resumed, stored) in resumed.iter().zip(measurement.target_camera_from_source_camera.0) {
+        for (resumed, stored) in resumed
+            .iter()
+            .zip(measurement.target_camera_from_source_camera.0)
+        {
             assert!(
                 (resumed - stored).abs() <= 1e-15 * stored.abs().max(1.0),
                 "closure {source:?} -> {target:?}: {resumed} resumed, {stored} stored"

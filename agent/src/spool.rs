@@ -94,8 +94,8 @@ impl KeyframeSpool {
         }
         let path = self.path(id);
         let temporary = self.dir.join(format!(".keyframe_{id}.tmp"));
-        let written = std::fs::write(&temporary, &bytes)
-            .and_then(|()| std::fs::rename(&temporary, &path));
+        let written =
+            std::fs::write(&temporary, &bytes).and_then(|()| std::fs::rename(&temporary, &path));
         if let Err(error) = written {
             // Leave nothing half-written behind (it may be what filled the disk).
             let _ = std::fs::remove_file(&temporary);
@@ -205,9 +205,16 @@ mod tests {
         assert!(spool.put(&keyframe(1)).unwrap().is_empty());
         assert!(spool.put(&keyframe(2)).unwrap().is_empty());
         assert_eq!(spool.get(2).unwrap(), Some(keyframe(2)));
-        assert_eq!(spool.put(&keyframe(3)).unwrap(), [1], "the oldest makes room");
+        assert_eq!(
+            spool.put(&keyframe(3)).unwrap(),
+            [1],
+            "the oldest makes room"
+        );
         assert_eq!(spool.ids().collect::<Vec<_>>(), [2, 3]);
-        assert!(spool.put(&keyframe(3)).unwrap().is_empty(), "a keyframe spooled again");
+        assert!(
+            spool.put(&keyframe(3)).unwrap().is_empty(),
+            "a keyframe spooled again"
+        );
         assert_eq!(spool.bytes(), 2 * size);
         assert_eq!(spool.get(1).unwrap(), None);
         spool.confirm([2, 7]).unwrap();

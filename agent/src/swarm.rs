@@ -142,7 +142,9 @@ impl WireKeyframe {
             keyframe_id: self.descriptor.keyframe_id,
             frame_index: self.descriptor.frame_index,
             timestamp_s: self.descriptor.timestamp_s,
-            agent_from_camera: isometry_to_tum(&self.descriptor.camera_to_agent_world.to_isometry()),
+            agent_from_camera: isometry_to_tum(
+                &self.descriptor.camera_to_agent_world.to_isometry(),
+            ),
             intrinsics: (&self.image_meta.intrinsics).into(),
             descriptor: self.descriptor.descriptor.to_vec(),
             width: self.image_meta.width,
@@ -165,8 +167,7 @@ impl WireKeyframe {
             .with_context(|| format!("spooled keyframe {id}: RGB size does not match"))?;
         let agent_from_camera = isometry_from_tum(&spooled.agent_from_camera)
             .map_err(|error| anyhow::anyhow!("spooled keyframe {id}: pose: {error}"))?;
-        let mut descriptor =
-            KeyframeDescriptor::new(id, spooled.frame_index, spooled.timestamp_s);
+        let mut descriptor = KeyframeDescriptor::new(id, spooled.frame_index, spooled.timestamp_s);
         descriptor.camera_to_agent_world = Pose::from(&agent_from_camera);
         descriptor.intrinsics = WireIntrinsics::from(&spooled.intrinsics);
         anyhow::ensure!(
@@ -1226,7 +1227,10 @@ mod tests {
         let again = received_keyframes(&mut consumer);
         assert_eq!(again.ids(), (vec![2, 3], vec![2, 3], vec![2, 3]));
         assert_eq!(again.images[0].1, first.images[1].1, "keyframe 2's pixels");
-        assert_eq!(again.patches[1].1, first.patches[2].1, "keyframe 3's Gaussians");
+        assert_eq!(
+            again.patches[1].1, first.patches[2].1,
+            "keyframe 3's Gaussians"
+        );
         assert_eq!(spooled(&spool), ["keyframe_2.bin", "keyframe_3.bin"]);
         assert!(swarm.summary().keyframes_unrecoverable.is_empty());
 

@@ -409,7 +409,7 @@ impl MapScheduler {
             )
         };
         let last = self.last_attempt.entry(pair).or_insert(counts);
-        *last = ((*last).0.max(counts.0), (*last).1.max(counts.1));
+        *last = (last.0.max(counts.0), last.1.max(counts.1));
     }
 
     /// Records an accepted link between two agents.

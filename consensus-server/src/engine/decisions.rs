@@ -76,7 +76,9 @@ impl Engine {
         let closure = LoopClosure {
             source: event.source,
             target: event.target,
-            target_camera_from_source_camera: measurement.target_camera_from_source_camera.isometry(),
+            target_camera_from_source_camera: measurement
+                .target_camera_from_source_camera
+                .isometry(),
             sigmas: measurement.sigmas,
         };
         match self.graph.add_loop(closure) {
@@ -158,8 +160,7 @@ impl Engine {
             accepted_by_pose_graph: None,
             alignment_ms,
             measurement: verified.then(|| ClosureMeasurement {
-                target_camera_from_source_camera: (&result.target_camera_from_source_camera)
-                    .into(),
+                target_camera_from_source_camera: (&result.target_camera_from_source_camera).into(),
                 sigmas: None,
             }),
         };

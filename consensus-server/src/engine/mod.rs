@@ -42,10 +42,10 @@ use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
 use crate::pose_graph::{PoseGraph, PoseGraphError, PoseGraphSolution};
 use config::ConsensusConfig;
 
+pub use decisions::{Decision, MapAttempt};
 use false_closures::FalseClosureInjector;
 use jobs::Candidate;
 pub use jobs::{AlignmentJob, CandidateSource, Finished, FinishedAlignment, Job};
-pub use decisions::{Decision, MapAttempt};
 pub use records::{AttemptKind, ClosureEvent, ClosureMeasurement, ExactIsometry, KeyframeInfo};
 use world::agent_range;
 

@@ -1,6 +1,6 @@
 use super::*;
-use crate::engine::Decision;
 use crate::alignment::Keyframe;
+use crate::engine::Decision;
 use crate::engine::KeyframeArrival;
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
@@ -214,10 +214,7 @@ fn decisions_and_corrections_come_back_bit_for_bit_after_reopening() {
         let sent = store
             .append_corrections(vec![correction(0, &transform), correction(1, &transform)])
             .unwrap();
-        assert_eq!(
-            sent.iter().map(|c| c.sequence).collect::<Vec<_>>(),
-            [0, 0]
-        );
+        assert_eq!(sent.iter().map(|c| c.sequence).collect::<Vec<_>>(), [0, 0]);
         let sent = store
             .append_corrections(vec![correction(1, &transform.inverse())])
             .unwrap();

@@ -116,7 +116,11 @@ fn a_resumed_engine_takes_the_stored_closures_bit_for_bit_and_aligns_only_new_pa
     assert_eq!(resumed.graph.loops().len(), live.graph.loops().len());
     let (live_solution, resumed_solution) = (
         live.solve_if_changed().unwrap().world_from_camera.clone(),
-        resumed.solve_if_changed().unwrap().world_from_camera.clone(),
+        resumed
+            .solve_if_changed()
+            .unwrap()
+            .world_from_camera
+            .clone(),
     );
     assert_eq!(live_solution, resumed_solution);
 }
