@@ -44,6 +44,12 @@ const KILL_AFTER: Duration = Duration::from_secs(8);
 /// latest this long after the swarm started, and started again this long after.
 const CONSENSUS_KILL_BY: Duration = Duration::from_secs(40);
 const CONSENSUS_DOWN_FOR: Duration = Duration::from_secs(2);
+/// How far the joint ATE of a swarm whose consensus was killed and resumed may lie from the
+/// uninterrupted run's (a fraction of it).
+const MAX_RESUMED_ATE_CHANGE: f64 = 0.1;
+/// Mapping iterations per keyframe of [`timing_independent_config`]: about what the unthrottled
+/// mapper manages on a loaded 2-core machine, so the test takes no longer.
+const PACED_ITERATIONS_PER_KEYFRAME: usize = 5;
 
 fn config() -> Config {
     let mut config = common::repository_config("configs/synthetic.toml");
@@ -151,18 +157,43 @@ fn real_data_swarm_agent_process_killed_and_restarted_still_gives_a_complete_res
     check(&swarm, &metrics);
 }
 
+/// `config()` made independent of when messages arrive, so that two runs give the same result
+/// and a killed run can be compared with an uninterrupted one. In the default configuration the
+/// joint ATE of two uninterrupted runs differed by a factor of three (8.2 and 2.8 mm): the
+/// unthrottled mapper runs as many iterations as time allows (the map, which tracking follows,
+/// depends on the machine's load), agents move their maps by corrections that arrive at
+/// timing-dependent frames, map registration runs on the maps as they stand when it is
+/// scheduled, and the joint refinement stops at a time bound. Here each keyframe gets a fixed
+/// mapping budget, corrections are recorded but not applied, agents meet through keyframe
+/// closures only (more candidates per keyframe, so the closures found do not hang on the order
+/// keyframes arrive in) and the refinement runs its iterations whatever they take: two
+/// uninterrupted runs gave bit-identical agent trajectories and joint ATE 0.5050 / 0.5063 mm.
+fn timing_independent_config() -> Config {
+    let mut config = config();
+    config.mapping.pace = config::Pace::Paced;
+    config.mapping.iterations_per_keyframe = PACED_ITERATIONS_PER_KEYFRAME;
+    config.consensus.local_corrections.apply = false;
+    config.consensus.map_registration.enabled = false;
+    config.consensus.max_candidates_per_keyframe = 10;
+    config.consensus.refinement.max_seconds = 1e4;
+    config
+}
+
 /// The consensus SIGKILLed mid-run and started again on its folder resumes from its store (the
 /// agents keep running meanwhile): the final consensus.json holds every keyframe each agent
-/// delivered, and the joint ATE meets the bound the uninterrupted run is held to
-/// (`real_data_swarm_of_two_agent_processes_agrees_on_one_sharp_world`). Not a ratio to an
-/// uninterrupted run made here: two uninterrupted runs of this scene already differ by more than
-/// 10 % (8.2 and 2.8 mm measured), so a ratio would test timing noise and double the test's time.
+/// delivered and every closure decided before the kill, and the joint ATE is within 10 % of an
+/// uninterrupted run of the same swarm ([`timing_independent_config`]).
 #[test]
 fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe() {
-    let mut config = config();
+    let mut config = timing_independent_config();
     // No keyframe held in memory: each one the killed consensus lacked comes from the agent's
     // spool.
     config.consensus.resend.agent_keeps = 0;
+    let uninterrupted = swarm_with("d-uninterrupted", &config);
+    uninterrupted.run_to_end();
+    let uninterrupted_ate = uninterrupted.evaluate(0)["ate_joint_rmse_m"]
+        .as_f64()
+        .expect("joint ATE of the uninterrupted run");
     let swarm = swarm_with("d", &config);
     let mut killed = swarm.spawn_consensus_logged("consensus_killed");
     let agents: Vec<_> = (0..2)
@@ -248,8 +279,15 @@ fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe(
     }
     let metrics = swarm.evaluate(0);
     let ate = metrics["ate_joint_rmse_m"].as_f64().expect("joint ATE");
-    eprintln!("joint ATE with the consensus killed and resumed: {ate} m");
+    eprintln!(
+        "joint ATE with the consensus killed and resumed: {ate} m, uninterrupted: \
+         {uninterrupted_ate} m"
+    );
     assert!(ate <= MAX_JOINT_ATE_M, "joint ATE {ate} m after the resume");
+    assert!(
+        (ate - uninterrupted_ate).abs() <= MAX_RESUMED_ATE_CHANGE * uninterrupted_ate,
+        "joint ATE {ate} m after the resume, {uninterrupted_ate} m uninterrupted"
+    );
     assert!(
         metrics["inter_agent_closures_accepted"].as_u64().unwrap() >= 1,
         "no inter-agent loop closure after the resume"
