@@ -47,13 +47,6 @@ impl Engine {
         }
     }
 
-    /// [`Self::decide`] and [`Self::apply`] at once (nothing stored in between).
-    pub fn record(&mut self, done: Finished) {
-        if let Some(decision) = self.decide(done) {
-            self.apply(decision);
-        }
-    }
-
     /// Acts on a decision: a closure joins the pose graph (solved at the next
     /// [`Self::solve_if_changed`]), the pair counts as attempted, and the event is recorded for
     /// consensus.json.

@@ -203,9 +203,9 @@ impl Engine {
     }
 
     /// The next piece of work, as a job that can run on any thread while the engine takes
-    /// keyframes and solves; its result goes back through [`Self::record`]. In order: a map
-    /// registration of two agents not linked yet, the next keyframe candidate, a map
-    /// registration that refreshes a link. `None` when nothing is due.
+    /// keyframes and solves; its outcome comes back through [`Self::decide`] and
+    /// [`Self::apply`]. In order: a map registration of two agents not linked yet, the next
+    /// keyframe candidate, a map registration that refreshes a link. `None` when nothing is due.
     pub fn next_job(&mut self) -> Option<Job> {
         if let Some(job) = self.next_map_job(false) {
             return Some(Job::Maps(Box::new(job)));
