@@ -40,9 +40,16 @@ const MIN_MERGED_PSNR_DB: f64 = 25.0;
 const RENDER_EVERY: usize = 10;
 /// Agent 1 is killed this long after it started (it has published keyframes by then).
 const KILL_AFTER: Duration = Duration::from_secs(8);
-/// The consensus is killed this long after the swarm started, and started again this long after.
-const CONSENSUS_KILL_AFTER: Duration = Duration::from_secs(10);
+/// The consensus is killed once it has verified a closure (so its store holds one), at the
+/// latest this long after the swarm started, and started again this long after.
+const CONSENSUS_KILL_BY: Duration = Duration::from_secs(40);
 const CONSENSUS_DOWN_FOR: Duration = Duration::from_secs(2);
+/// How far the joint ATE of a swarm whose consensus was killed and resumed may lie from the
+/// uninterrupted run's (a fraction of it).
+const MAX_RESUMED_ATE_CHANGE: f64 = 0.1;
+/// Mapping iterations per keyframe of [`timing_independent_config`]: about what the unthrottled
+/// mapper manages on a loaded 2-core machine, so the test takes no longer.
+const PACED_ITERATIONS_PER_KEYFRAME: usize = 5;
 
 fn config() -> Config {
     let mut config = common::repository_config("configs/synthetic.toml");
@@ -150,29 +157,63 @@ fn real_data_swarm_agent_process_killed_and_restarted_still_gives_a_complete_res
     check(&swarm, &metrics);
 }
 
+/// `config()` made independent of when messages arrive, so that two runs give the same result
+/// and a killed run can be compared with an uninterrupted one. In the default configuration the
+/// joint ATE of two uninterrupted runs differed by a factor of three (8.2 and 2.8 mm): the
+/// unthrottled mapper runs as many iterations as time allows (the map, which tracking follows,
+/// depends on the machine's load), agents move their maps by corrections that arrive at
+/// timing-dependent frames, map registration runs on the maps as they stand when it is
+/// scheduled, and the joint refinement stops at a time bound. Here each keyframe gets a fixed
+/// mapping budget, corrections are recorded but not applied, agents meet through keyframe
+/// closures only (more candidates per keyframe, so the closures found do not hang on the order
+/// keyframes arrive in) and the refinement runs its iterations whatever they take: two
+/// uninterrupted runs gave bit-identical agent trajectories and joint ATE 0.5050 / 0.5063 mm.
+fn timing_independent_config() -> Config {
+    let mut config = config();
+    config.mapping.pace = config::Pace::Paced;
+    config.mapping.iterations_per_keyframe = PACED_ITERATIONS_PER_KEYFRAME;
+    config.consensus.local_corrections.apply = false;
+    config.consensus.map_registration.enabled = false;
+    config.consensus.max_candidates_per_keyframe = 10;
+    config.consensus.refinement.max_seconds = 1e4;
+    config
+}
+
 /// The consensus SIGKILLed mid-run and started again on its folder resumes from its store (the
 /// agents keep running meanwhile): the final consensus.json holds every keyframe each agent
-/// delivered, and the joint ATE meets the bound the uninterrupted run is held to
-/// (`real_data_swarm_of_two_agent_processes_agrees_on_one_sharp_world`). Not a ratio to an
-/// uninterrupted run made here: two uninterrupted runs of this scene already differ by more than
-/// 10 % (8.2 and 2.8 mm measured), so a ratio would test timing noise and double the test's time.
+/// delivered and every closure decided before the kill, and the joint ATE is within 10 % of an
+/// uninterrupted run of the same swarm ([`timing_independent_config`]).
 #[test]
 fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe() {
-    let swarm = swarm("d");
+    let mut config = timing_independent_config();
+    // No keyframe held in memory: each one the killed consensus lacked comes from the agent's
+    // spool.
+    config.consensus.resend.agent_keeps = 0;
+    let uninterrupted = swarm_with("d-uninterrupted", &config);
+    uninterrupted.run_to_end();
+    let uninterrupted_ate = uninterrupted.evaluate(0)["ate_joint_rmse_m"]
+        .as_f64()
+        .expect("joint ATE of the uninterrupted run");
+    let swarm = swarm_with("d", &config);
     let mut killed = swarm.spawn_consensus_logged("consensus_killed");
     let agents: Vec<_> = (0..2)
         .map(|k| swarm.spawn_agent(k, &format!("agent_{k}")))
         .collect();
-    std::thread::sleep(CONSENSUS_KILL_AFTER);
+    wait_for_a_verified_closure(&swarm, CONSENSUS_KILL_BY);
     assert!(
         killed.try_wait().unwrap().is_none(),
         "the consensus finished before it could be killed mid-run"
     );
     killed.kill().unwrap();
     killed.wait().unwrap();
-    let stored_at_kill = std::fs::metadata(swarm.path().join("consensus.redb"))
+    let store = swarm.path().join("consensus.redb");
+    let stored_at_kill = std::fs::metadata(&store)
         .expect("the killed consensus left its store")
         .len();
+    // Read from a copy: the restarted consensus opens the store itself.
+    let copy = swarm.path().join("consensus_at_kill.redb");
+    std::fs::copy(&store, &copy).unwrap();
+    let decided_before_kill = mac_consensus::store::read_decisions(&copy).unwrap();
     std::thread::sleep(CONSENSUS_DOWN_FOR);
     let consensus = swarm.spawn_consensus();
     for (k, agent) in agents.into_iter().enumerate() {
@@ -186,6 +227,7 @@ fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe(
     );
 
     let report = swarm.consensus_report();
+    check_decisions_kept(&decided_before_kill, &report);
     let held: std::collections::BTreeSet<(u64, u64)> = report["keyframe_info"]
         .as_array()
         .unwrap()
@@ -214,21 +256,115 @@ fn real_data_swarm_consensus_killed_and_restarted_resumes_and_loses_no_keyframe(
             missing.is_empty(),
             "agent {k}: keyframes {missing:?} published but not in the final consensus state"
         );
+        assert_eq!(
+            metrics["swarm"]["keyframes_unrecoverable"],
+            serde_json::json!([])
+        );
+        assert_eq!(metrics["swarm"]["spool_failures"], 0);
+        assert!(
+            !swarm
+                .path()
+                .join(format!("agent_{k}/keyframe_spool"))
+                .exists(),
+            "agent {k}'s spool outlived its run"
+        );
         eprintln!(
             "agent {k}: {} keyframes published, all in consensus.json; told the consensus was \
-             back {} time(s), {} published again",
+             back {} time(s), {} published again, {} spooled",
             published.len(),
             metrics["swarm"]["consensus_resumed"],
-            metrics["swarm"]["keyframes_resent"]
+            metrics["swarm"]["keyframes_resent"],
+            metrics["swarm"]["keyframes_spooled"]
         );
     }
     let metrics = swarm.evaluate(0);
     let ate = metrics["ate_joint_rmse_m"].as_f64().expect("joint ATE");
-    eprintln!("joint ATE with the consensus killed and resumed: {ate} m");
+    eprintln!(
+        "joint ATE with the consensus killed and resumed: {ate} m, uninterrupted: \
+         {uninterrupted_ate} m"
+    );
     assert!(ate <= MAX_JOINT_ATE_M, "joint ATE {ate} m after the resume");
+    assert!(
+        (ate - uninterrupted_ate).abs() <= MAX_RESUMED_ATE_CHANGE * uninterrupted_ate,
+        "joint ATE {ate} m after the resume, {uninterrupted_ate} m uninterrupted"
+    );
     assert!(
         metrics["inter_agent_closures_accepted"].as_u64().unwrap() >= 1,
         "no inter-agent loop closure after the resume"
+    );
+}
+
+/// Waits until the consensus's progress file counts a verified closure, or `limit` is over.
+fn wait_for_a_verified_closure(swarm: &SwarmRun, limit: Duration) {
+    let started = std::time::Instant::now();
+    let progress = swarm.path().join("consensus_progress.json");
+    while started.elapsed() < limit {
+        let verified = std::fs::read_to_string(&progress)
+            .ok()
+            .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+            .and_then(|p| p["closures_verified"].as_u64());
+        if verified.is_some_and(|n| n >= 1) {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+/// Every decision the killed consensus had stored is in the resumed one's consensus.json as it
+/// was made (same pair, verdict and time, so not aligned again) with the same closure transform,
+/// to the 17 significant digits JSON carries (the engine's own test checks the bits).
+fn check_decisions_kept(stored: &[mac_consensus::engine::Decision], report: &serde_json::Value) {
+    assert!(
+        stored.iter().any(|d| d.event.verified),
+        "no verified closure was stored before the kill"
+    );
+    let events = report["events"].as_array().unwrap();
+    let key = |agent: &serde_json::Value, keyframe: &serde_json::Value| {
+        (agent.as_u64().unwrap(), keyframe.as_u64().unwrap())
+    };
+    for decision in stored {
+        let event = &decision.event;
+        let (source, target) = (
+            (u64::from(event.source.agent_id), event.source.keyframe_id),
+            (u64::from(event.target.agent_id), event.target.keyframe_id),
+        );
+        let found = events
+            .iter()
+            .find(|e| {
+                key(&e["source"]["agent_id"], &e["source"]["keyframe_id"]) == source
+                    && key(&e["target"]["agent_id"], &e["target"]["keyframe_id"]) == target
+                    && e["at_s"]
+                        .as_f64()
+                        .is_some_and(|at_s| (at_s - event.at_s).abs() < 1e-9)
+            })
+            .unwrap_or_else(|| {
+                panic!("decision {source:?} -> {target:?} at {} s lost", event.at_s)
+            });
+        assert_eq!(found["verified"].as_bool(), Some(event.verified));
+        let Some(measurement) = event.measurement else {
+            continue;
+        };
+        let resumed: Vec<f64> = found["measurement"]["target_camera_from_source_camera"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        for (resumed, stored) in resumed
+            .iter()
+            .zip(measurement.target_camera_from_source_camera.0)
+        {
+            assert!(
+                (resumed - stored).abs() <= 1e-15 * stored.abs().max(1.0),
+                "closure {source:?} -> {target:?}: {resumed} resumed, {stored} stored"
+            );
+        }
+    }
+    let verified = stored.iter().filter(|d| d.event.verified).count();
+    eprintln!(
+        "{} decisions ({verified} verified) stored before the kill, all kept by the resumed \
+         consensus",
+        stored.len()
     );
 }
 

@@ -27,4 +27,5 @@ pub mod progress;
 pub mod run;
 pub mod seeding;
 pub mod source;
+pub mod spool;
 pub mod swarm;

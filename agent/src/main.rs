@@ -25,6 +25,7 @@ use config::{Config, Pace};
 use datasets::FrameRange;
 use mac_agent::link_schedule::{LinkPlan, LinkSchedule};
 use mac_agent::run::{AgentOptions, metrics_table, run_agent, run_standalone};
+use mac_agent::spool::KEYFRAME_SPOOL_DIR;
 use mac_agent::swarm::SwarmLink;
 use protocol::transport::TransportConfig;
 
@@ -189,7 +190,8 @@ fn main() -> anyhow::Result<()> {
                 ..LinkPlan::always_up()
             },
         };
-        let swarm = SwarmLink::connect(args.agent_id, &transport, &options.config, plan)?;
+        let swarm = SwarmLink::connect(args.agent_id, &transport, &options.config, plan)?
+            .with_spool(&options.out.join(KEYFRAME_SPOOL_DIR))?;
         run_agent(&options, &stop, Some(swarm))?
     };
     println!("agent {} on {}", metrics.agent_id, metrics.dataset);

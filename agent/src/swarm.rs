@@ -15,6 +15,7 @@
 
 use std::collections::{BTreeSet, VecDeque};
 use std::hash::{Hash, Hasher};
+use std::path::Path;
 use std::time::{Duration, Instant};
 
 use alexnet::descriptor::GlobalDescriptorExtractor;
@@ -22,7 +23,7 @@ use anyhow::Context;
 use config::Config;
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
-use geometry::se3::isometry_to_tum;
+use geometry::se3::{isometry_from_tum, isometry_to_tum};
 use image::RgbImage;
 use nalgebra::Isometry3;
 use protocol::convert::{gaussian_record, rgbd_pixel};
@@ -40,6 +41,7 @@ use crate::link_schedule::{
     BoundedQueue, CorrectionArrival, CorrectionGate, LinkPlan, LinkSummary,
 };
 use crate::local_corrections::ReceivedCorrection;
+use crate::spool::{KeyframeSpool, SpooledKeyframe};
 
 /// Heartbeat period: the consensus learns that a quiet agent is still alive.
 const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
@@ -96,8 +98,16 @@ pub struct SwarmSummary {
     /// (`ControlMessage::ConsensusResumed`).
     pub consensus_resumed: usize,
     /// Keyframes a resumed consensus lacked that this agent no longer held to publish again
-    /// (`[consensus.resend] agent_keeps`): lost to the consensus.
+    /// (`[consensus.resend] agent_keeps` in memory, `agent_spool_bytes` on disk): lost to the
+    /// consensus.
     pub keyframes_unrecoverable: Vec<u64>,
+    /// Delivered keyframes written to the spool (beyond `agent_keeps`, not confirmed yet), the
+    /// spool's peak size, keyframes it dropped to stay within `agent_spool_bytes`, and writes
+    /// that failed (a full disk).
+    pub keyframes_spooled: usize,
+    pub spool_peak_bytes: u64,
+    pub keyframes_spool_dropped: Vec<u64>,
+    pub spool_failures: usize,
     /// The reason the consensus gave when it asked the swarm to stop
     /// (`ControlMessage::Shutdown`); absent when it never did.
     pub stopped_by_consensus: Option<String>,
@@ -125,6 +135,76 @@ struct WireKeyframe {
 }
 
 impl WireKeyframe {
+    /// The keyframe as the spool keeps it.
+    fn spooled(&self) -> SpooledKeyframe {
+        let gaussians = &self.gaussians;
+        SpooledKeyframe {
+            keyframe_id: self.descriptor.keyframe_id,
+            frame_index: self.descriptor.frame_index,
+            timestamp_s: self.descriptor.timestamp_s,
+            agent_from_camera: isometry_to_tum(
+                &self.descriptor.camera_to_agent_world.to_isometry(),
+            ),
+            intrinsics: (&self.image_meta.intrinsics).into(),
+            descriptor: self.descriptor.descriptor.to_vec(),
+            width: self.image_meta.width,
+            height: self.image_meta.height,
+            rgb: self.rgb.as_raw().clone(),
+            depth_m: self.depth.data.clone(),
+            means: gaussians.means.clone(),
+            log_scales: gaussians.log_scales.clone(),
+            quaternions: gaussians.quaternions.clone(),
+            opacity_logits: gaussians.opacity_logits.clone(),
+            colours: gaussians.colours.clone(),
+        }
+    }
+
+    /// A spooled keyframe ready to send again; an error names the keyframe when it does not
+    /// read back whole.
+    fn from_spooled(spooled: SpooledKeyframe) -> anyhow::Result<Self> {
+        let id = spooled.keyframe_id;
+        let rgb = RgbImage::from_raw(spooled.width, spooled.height, spooled.rgb)
+            .with_context(|| format!("spooled keyframe {id}: RGB size does not match"))?;
+        let agent_from_camera = isometry_from_tum(&spooled.agent_from_camera)
+            .map_err(|error| anyhow::anyhow!("spooled keyframe {id}: pose: {error}"))?;
+        let mut descriptor = KeyframeDescriptor::new(id, spooled.frame_index, spooled.timestamp_s);
+        descriptor.camera_to_agent_world = Pose::from(&agent_from_camera);
+        descriptor.intrinsics = WireIntrinsics::from(&spooled.intrinsics);
+        anyhow::ensure!(
+            spooled.descriptor.len() == descriptor.descriptor.len(),
+            "spooled keyframe {id}: {} descriptor values, the wire carries {}",
+            spooled.descriptor.len(),
+            descriptor.descriptor.len()
+        );
+        descriptor.descriptor.copy_from_slice(&spooled.descriptor);
+        Ok(Self {
+            image_meta: KeyframeImageMeta {
+                keyframe_id: id,
+                frame_index: spooled.frame_index,
+                timestamp_s: spooled.timestamp_s,
+                camera_to_agent_world: descriptor.camera_to_agent_world,
+                intrinsics: descriptor.intrinsics,
+                width: spooled.width,
+                height: spooled.height,
+            },
+            descriptor,
+            rgb,
+            depth: DepthImage {
+                width: spooled.width,
+                height: spooled.height,
+                data: spooled.depth_m,
+            },
+            gaussians: GaussianCloud {
+                means: spooled.means,
+                log_scales: spooled.log_scales,
+                quaternions: spooled.quaternions,
+                opacity_logits: spooled.opacity_logits,
+                colours: spooled.colours,
+            },
+            due: Instant::now(),
+        })
+    }
+
     fn bytes(&self) -> u64 {
         let pixels = self.image_meta.width as usize * self.image_meta.height as usize;
         (size_of::<KeyframeDescriptor>()
@@ -161,6 +241,12 @@ pub struct SwarmLink {
     /// The last published keyframes, newest last, kept for the consensus's resend requests.
     published: VecDeque<WireKeyframe>,
     keep_published: usize,
+    /// Older delivered keyframes the consensus has not confirmed yet, on disk
+    /// ([`Self::with_spool`]; `None`: only the in-memory ones are kept).
+    spool: Option<KeyframeSpool>,
+    spool_limit_bytes: u64,
+    /// Keyframes the consensus confirmed it stored (named in a correction or a resume).
+    confirmed: BTreeSet<u64>,
 }
 
 impl SwarmLink {
@@ -208,7 +294,17 @@ impl SwarmLink {
             last_presence_check: None,
             published: VecDeque::new(),
             keep_published: config.consensus.resend.agent_keeps,
+            spool: None,
+            spool_limit_bytes: config.consensus.resend.agent_spool_bytes,
+            confirmed: BTreeSet::new(),
         })
+    }
+
+    /// Keeps delivered keyframes beyond the in-memory `agent_keeps` in a spool on disk in `dir`
+    /// until the consensus confirms them ([`crate::spool`]); `dir` is emptied first.
+    pub fn with_spool(mut self, dir: &Path) -> anyhow::Result<Self> {
+        self.spool = Some(KeyframeSpool::open(dir, self.spool_limit_bytes)?);
+        Ok(self)
     }
 
     /// Whether [`Self::announce`] was called (the hello may still wait for the link).
@@ -546,14 +642,59 @@ impl SwarmLink {
         Ok(())
     }
 
+    /// Keeps a delivered keyframe for a resend: the newest `agent_keeps` in memory, older ones
+    /// not confirmed yet in the spool.
     fn keep_for_resend(&mut self, wire: WireKeyframe) {
-        if self.keep_published == 0 {
+        self.published.push_back(wire);
+        while self.published.len() > self.keep_published {
+            let Some(oldest) = self.published.pop_front() else {
+                break;
+            };
+            self.spool_unless_confirmed(&oldest);
+        }
+    }
+
+    fn spool_unless_confirmed(&mut self, wire: &WireKeyframe) {
+        let id = wire.descriptor.keyframe_id;
+        let Some(spool) = self.spool.as_mut() else {
+            return;
+        };
+        if self.confirmed.contains(&id) {
             return;
         }
-        while self.published.len() >= self.keep_published {
-            self.published.pop_front();
+        match spool.put(&wire.spooled()) {
+            Ok(dropped) => {
+                self.summary.keyframes_spooled += 1;
+                self.summary.spool_peak_bytes = self.summary.spool_peak_bytes.max(spool.bytes());
+                if !dropped.is_empty() {
+                    tracing::warn!(
+                        keyframes = ?dropped,
+                        limit_bytes = self.spool_limit_bytes,
+                        "keyframe spool full: the oldest unconfirmed keyframes dropped \
+                         ([consensus.resend] agent_spool_bytes)"
+                    );
+                    self.summary.keyframes_spool_dropped.extend(dropped);
+                }
+            }
+            Err(error) => {
+                self.summary.spool_failures += 1;
+                tracing::error!("{error:#}");
+            }
         }
-        self.published.push_back(wire);
+    }
+
+    /// The consensus stored `ids`: they need not be kept on disk any longer.
+    fn confirm(&mut self, ids: impl IntoIterator<Item = u64>) {
+        let before = self.confirmed.len();
+        self.confirmed.extend(ids);
+        if self.confirmed.len() == before {
+            return;
+        }
+        if let Some(spool) = self.spool.as_mut()
+            && let Err(error) = spool.confirm(self.confirmed.iter().copied())
+        {
+            tracing::warn!("{error:#}");
+        }
     }
 
     /// Answers the consensus's control messages: a keyframe that arrived incomplete there is
@@ -583,7 +724,11 @@ impl SwarmLink {
                         .published
                         .iter()
                         .position(|w| w.descriptor.keyframe_id == keyframe_id);
-                    let Some(wire) = held.and_then(|at| self.published.remove(at)) else {
+                    let wire = match held.and_then(|at| self.published.remove(at)) {
+                        Some(wire) => Some(wire),
+                        None => self.spooled(keyframe_id),
+                    };
+                    let Some(wire) = wire else {
                         self.summary.resend_unavailable += 1;
                         tracing::warn!(
                             keyframe_id,
@@ -618,11 +763,16 @@ impl SwarmLink {
     fn publish_again_what_the_consensus_lacks(&mut self, keyframes_held: &[u64]) {
         self.summary.consensus_resumed += 1;
         let held: BTreeSet<u64> = keyframes_held.iter().copied().collect();
-        let (lacking, kept): (VecDeque<WireKeyframe>, VecDeque<WireKeyframe>) =
+        self.confirm(held.iter().copied());
+        let (mut lacking, kept): (VecDeque<WireKeyframe>, VecDeque<WireKeyframe>) =
             std::mem::take(&mut self.published)
                 .into_iter()
                 .partition(|wire| !held.contains(&wire.descriptor.keyframe_id));
         self.published = kept;
+        // Older ones from the spool, oldest first, ahead of the in-memory ones.
+        for wire in self.spooled_lacking(&held).into_iter().rev() {
+            lacking.push_front(wire);
+        }
         let resent: BTreeSet<u64> = lacking
             .iter()
             .map(|wire| wire.descriptor.keyframe_id)
@@ -644,7 +794,7 @@ impl SwarmLink {
             tracing::warn!(
                 keyframes = ?unrecoverable,
                 "keyframes the consensus lost that this agent no longer holds \
-                 ([consensus.resend] agent_keeps)"
+                 ([consensus.resend] agent_keeps, agent_spool_bytes)"
             );
             self.summary.keyframes_unrecoverable.extend(unrecoverable);
         }
@@ -652,6 +802,34 @@ impl SwarmLink {
             self.summary.keyframes_resent += 1;
             // Control messages are only read with the link up.
             self.send_or_enqueue(wire, true);
+        }
+    }
+
+    /// The spooled keyframes not in `held`, oldest first (they stay spooled until confirmed).
+    fn spooled_lacking(&mut self, held: &BTreeSet<u64>) -> Vec<WireKeyframe> {
+        let lacking: Vec<u64> = self
+            .spool
+            .as_ref()
+            .map(|spool| spool.ids().filter(|id| !held.contains(id)).collect())
+            .unwrap_or_default();
+        lacking
+            .into_iter()
+            .filter_map(|id| self.spooled(id))
+            .collect()
+    }
+
+    /// Spooled keyframe `id`, ready to send again (it stays spooled until confirmed); `None`
+    /// when not spooled, or unreadable (logged).
+    fn spooled(&mut self, id: u64) -> Option<WireKeyframe> {
+        let spool = self.spool.as_ref()?;
+        match spool.get(id).map(|k| k.map(WireKeyframe::from_spooled)) {
+            Ok(Some(Ok(wire))) => Some(wire),
+            Ok(None) => None,
+            Ok(Some(Err(error))) | Err(error) => {
+                self.summary.spool_failures += 1;
+                tracing::error!("{error:#}");
+                None
+            }
         }
     }
 
@@ -680,6 +858,8 @@ impl SwarmLink {
                             .collect(),
                     };
                     self.summary.corrections_received += 1;
+                    // The consensus places only keyframes it has stored.
+                    self.confirm(received.keyframes.iter().map(|(id, _)| *id));
                     match self.corrections.arrive(received, link_up) {
                         CorrectionArrival::Apply(received) => {
                             tracing::debug!(
@@ -765,6 +945,12 @@ impl SwarmLink {
         if let Err(error) = self.link.close() {
             tracing::warn!(%error, "goodbye not acknowledged");
         }
+        // The goodbye waited until the consensus had everything.
+        if let Some(spool) = self.spool.take()
+            && let Err(error) = spool.close()
+        {
+            tracing::warn!("{error:#}");
+        }
         summary
     }
 
@@ -845,12 +1031,25 @@ mod tests {
     fn announced_agent(
         namespace: &str,
     ) -> (protocol::transport::ConsumerLink, SwarmLink, Intrinsics) {
+        announced_agent_with(namespace, &Config::default(), None)
+    }
+
+    /// [`announced_agent`] with `config` (publishing every keyframe) and a keyframe spool in
+    /// `spool`.
+    fn announced_agent_with(
+        namespace: &str,
+        config: &Config,
+        spool: Option<&Path>,
+    ) -> (protocol::transport::ConsumerLink, SwarmLink, Intrinsics) {
         let transport =
             TransportConfig::with_namespace(format!("{namespace}-{}", std::process::id()));
         let consumer = protocol::transport::ConsumerLink::open(&transport).unwrap();
-        let mut config = Config::default();
+        let mut config = config.clone();
         config.consensus.t_comm = 1;
         let mut swarm = SwarmLink::connect(0, &transport, &config, LinkPlan::always_up()).unwrap();
+        if let Some(dir) = spool {
+            swarm = swarm.with_spool(dir).unwrap();
+        }
         let intrinsics = Intrinsics::new(40.0, 40.0, 16.0, 12.0, 32, 24);
         swarm.announce(&intrinsics, run_anchor("synthetic", 0, 0.0));
         (consumer, swarm, intrinsics)
@@ -955,5 +1154,99 @@ mod tests {
         assert_eq!(summary.keyframes_resent, 1);
         assert_eq!(summary.resend_unavailable, 1);
         assert_eq!(summary.send_failures, 0);
+    }
+
+    /// Keyframe `keyframe_id` of a 32x24 camera with two Gaussians.
+    fn small_keyframe(keyframe_id: u64, intrinsics: Intrinsics) -> PublishableKeyframe {
+        let mut gaussians = GaussianCloud::default();
+        for i in 0..2 {
+            let v = (keyframe_id + i) as f32;
+            gaussians.push([v, 1.0, 2.0], [-4.0; 3], [1.0, 0.0, 0.0, v], 0.5, [0.5; 3]);
+        }
+        PublishableKeyframe {
+            keyframe_id,
+            frame_index: keyframe_id * 10,
+            timestamp_s: keyframe_id as f64,
+            agent_from_camera: Isometry3::translation(keyframe_id as f64, 0.0, 0.0),
+            intrinsics,
+            rgb: RgbImage::from_fn(32, 24, |x, y| {
+                image::Rgb([(x * 8) as u8, (y * 10) as u8, keyframe_id as u8])
+            }),
+            depth: DepthImage {
+                width: 32,
+                height: 24,
+                data: vec![1.5; 32 * 24],
+            },
+            gaussians,
+        }
+    }
+
+    #[test]
+    fn keyframes_beyond_those_in_memory_are_spooled_until_confirmed_and_none_is_unrecoverable() {
+        let dir = tempfile::tempdir().unwrap();
+        let spool = dir.path().join(crate::spool::KEYFRAME_SPOOL_DIR);
+        let mut config = Config::default();
+        // Nothing in memory: every keyframe the consensus lacks comes from the spool.
+        config.consensus.resend.agent_keeps = 0;
+        let (mut consumer, mut swarm, intrinsics) =
+            announced_agent_with("spool-agent", &config, Some(&spool));
+        let mut first = Received::default();
+        for keyframe_id in 1..=3 {
+            swarm.on_keyframe(small_keyframe(keyframe_id, intrinsics));
+            swarm.after_frame();
+            // Taken as they come: the patch queue holds few samples.
+            let received = received_keyframes(&mut consumer);
+            first.descriptors.extend(received.descriptors);
+            first.images.extend(received.images);
+            first.patches.extend(received.patches);
+        }
+        assert_eq!(first.ids(), (vec![1, 2, 3], vec![1, 2, 3], vec![1, 2, 3]));
+        let spooled = |spool: &Path| {
+            let mut names: Vec<String> = std::fs::read_dir(spool)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            names.sort();
+            names
+        };
+        assert_eq!(
+            spooled(&spool),
+            ["keyframe_1.bin", "keyframe_2.bin", "keyframe_3.bin"]
+        );
+
+        // A consensus restarted on a store that holds keyframe 1 only.
+        consumer
+            .send_control(
+                0,
+                &ControlMessage::ConsensusResumed {
+                    keyframes_held: vec![1],
+                },
+            )
+            .unwrap();
+        swarm.after_frame();
+        let again = received_keyframes(&mut consumer);
+        assert_eq!(again.ids(), (vec![2, 3], vec![2, 3], vec![2, 3]));
+        assert_eq!(again.images[0].1, first.images[1].1, "keyframe 2's pixels");
+        assert_eq!(
+            again.patches[1].1, first.patches[2].1,
+            "keyframe 3's Gaussians"
+        );
+        assert_eq!(spooled(&spool), ["keyframe_2.bin", "keyframe_3.bin"]);
+        assert!(swarm.summary().keyframes_unrecoverable.is_empty());
+
+        // A correction naming them confirms them.
+        let pose = |keyframe_id| protocol::messages::KeyframePose {
+            keyframe_id,
+            camera_to_world: Pose::IDENTITY,
+        };
+        consumer
+            .send_correction(0, Pose::IDENTITY, &[pose(1), pose(2), pose(3)])
+            .unwrap();
+        swarm.after_frame();
+        assert!(spooled(&spool).is_empty());
+        let summary = swarm.summary();
+        assert_eq!(summary.keyframes_resent, 2);
+        assert_eq!(summary.spool_failures, 0);
+        assert!(summary.keyframes_spooled >= 3);
     }
 }

@@ -431,7 +431,7 @@ mod tests {
         ResendConfig {
             after_s: 2.0,
             max_requests: 2,
-            agent_keeps: 8,
+            ..ResendConfig::default()
         }
     }
 

@@ -30,7 +30,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use nalgebra::{Isometry3, Point3};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use render_core::types::GaussianCloud;
 
@@ -158,6 +158,9 @@ pub struct FinishedMapJob {
     /// agent's newest keyframe.
     pub source_keyframe: Option<KeyframeRef>,
     pub target_keyframe: Option<KeyframeRef>,
+    /// Published keyframes of the source and the target agent when the maps were taken (what
+    /// [`MapScheduler`] schedules the next attempt of the pair by).
+    pub keyframes_at_attempt: (usize, usize),
     pub registration: MapRegistration,
     /// Depth agreement of the source map in the target's keyframes, and the reverse.
     pub source_in_target: DepthComparison,
@@ -189,6 +192,7 @@ impl MapJob {
             target_agent: self.target.agent_id,
             source_keyframe: self.source.latest_keyframe(),
             target_keyframe: self.target.latest_keyframe(),
+            keyframes_at_attempt: (self.source.keyframes.len(), self.target.keyframes.len()),
             source_in_target: DepthComparison::default(),
             target_in_source: DepthComparison::default(),
             closure: None,
@@ -388,6 +392,26 @@ impl MapScheduler {
         Some(pair)
     }
 
+    /// Records an attempt of agents `source` and `target` made elsewhere (a stored decision of
+    /// an earlier process of the run) with `keyframes_at_attempt` published keyframes each: the
+    /// pair is next due once either agent has grown beyond them, as after a live attempt.
+    pub fn record_attempt(
+        &mut self,
+        (source, target): (u32, u32),
+        keyframes_at_attempt: (usize, usize),
+    ) {
+        let (pair, counts) = if source < target {
+            ((source, target), keyframes_at_attempt)
+        } else {
+            (
+                (target, source),
+                (keyframes_at_attempt.1, keyframes_at_attempt.0),
+            )
+        };
+        let last = self.last_attempt.entry(pair).or_insert(counts);
+        *last = (last.0.max(counts.0), last.1.max(counts.1));
+    }
+
     /// Records an accepted link between two agents.
     pub fn mark_linked(&mut self, a: u32, b: u32) {
         *self.linked.entry((a.min(b), a.max(b))).or_default() += 1;
@@ -395,7 +419,7 @@ impl MapScheduler {
 }
 
 /// One map registration attempt as consensus.json reports it (inside the closure event).
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct MapAttemptScores {
     pub source_points: usize,
     pub target_points: usize,

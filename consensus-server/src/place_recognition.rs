@@ -5,10 +5,10 @@
 
 use alexnet::descriptor::score;
 use config::ConsensusConfig;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// Identifies one keyframe in the swarm.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 pub struct KeyframeRef {
     pub agent_id: u32,
     pub keyframe_id: u64,

@@ -199,8 +199,10 @@ impl LocalCorrectionConfig {
 /// consensus notices a keyframe with some parts and not others, waits `after_s` (the parts of
 /// one keyframe go out back to back, so a longer wait means loss, not delay) and asks the agent
 /// to publish it again (`ControlMessage::ResendKeyframe`), at most `max_requests` times. The
-/// agent keeps its last `agent_keeps` published keyframes for that; an older one is gone and
-/// the request is answered by nothing (counted on both sides).
+/// agent keeps its last `agent_keeps` published keyframes in memory for that, and older ones it
+/// delivered on disk (up to `agent_spool_bytes`) until the consensus confirms it stored them (a
+/// correction naming them, or a resumed consensus's list of held keyframes); one gone from both
+/// is answered by nothing (counted on both sides).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ResendConfig {
@@ -211,6 +213,10 @@ pub struct ResendConfig {
     /// Published keyframes an agent keeps for re-sending (each holds its RGB-D image and its
     /// Gaussians: ~2.5 MB at 640x480 plus 56 bytes per Gaussian).
     pub agent_keeps: usize,
+    /// Bytes of older published keyframes an agent keeps on disk (its output folder's
+    /// `keyframe_spool/`) until the consensus confirms it stored them, so a consensus restarted
+    /// on its store can be given every one again; beyond it the oldest are dropped.
+    pub agent_spool_bytes: u64,
 }
 
 impl Default for ResendConfig {
@@ -219,6 +225,7 @@ impl Default for ResendConfig {
             after_s: 2.0,
             max_requests: 3,
             agent_keeps: 8,
+            agent_spool_bytes: 2 << 30,
         }
     }
 }

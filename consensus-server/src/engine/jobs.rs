@@ -3,7 +3,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::alignment::{AlignmentResult, PreparedKeyframe, align_prepared};
 use crate::map_links::{FinishedMapJob, MapJob};
@@ -11,7 +11,7 @@ use crate::place_recognition::KeyframeRef;
 use config::AlignmentConfig;
 
 /// Why a pair was aligned.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum CandidateSource {
     /// Consecutive published keyframes of one agent.

@@ -16,11 +16,13 @@
 //! Duplicate keyframes (a message that arrived twice, or an agent that restarted and re-sent)
 //! replace nothing and propose nothing.
 //!
-//! Files: this one holds the engine's intake, job scheduling, recording and solving;
-//! `jobs.rs` the work it hands to the aligner thread; `records.rs` what it records per keyframe
-//! and attempt; `world.rs` what it produces at the end (merged map, refinement problem, world
+//! Files: this one holds the engine's intake, job scheduling and solving; `jobs.rs` the work it
+//! hands to the aligner thread; `decisions.rs` what a finished job decides and how the pose
+//! graph takes it (live, or stored by an earlier process of the run); `records.rs` what it
+//! records per keyframe and attempt; `world.rs` what it produces at the end (merged map, refinement problem, world
 //! trajectories); `false_closures.rs` the wrong closures injected for robustness measurements.
 
+mod decisions;
 mod false_closures;
 mod jobs;
 mod records;
@@ -34,16 +36,17 @@ use geometry::se3::isometry_to_tum;
 use protocol::messages::FINAL_MAP_KEYFRAME_ID;
 use render_core::types::GaussianCloud;
 
-use crate::alignment::{Keyframe, PreparedKeyframe, Verdict};
-use crate::map_links::{AgentMap, FinishedMapJob, MapJob, MapScheduler};
+use crate::alignment::{Keyframe, PreparedKeyframe};
+use crate::map_links::{AgentMap, MapJob, MapScheduler};
 use crate::place_recognition::{KeyframeRef, PlaceDatabase, SelectionThresholds};
-use crate::pose_graph::{EdgeSigmas, LoopClosure, PoseGraph, PoseGraphError, PoseGraphSolution};
+use crate::pose_graph::{PoseGraph, PoseGraphError, PoseGraphSolution};
 use config::ConsensusConfig;
 
+pub use decisions::{Decision, MapAttempt};
 use false_closures::FalseClosureInjector;
 use jobs::Candidate;
 pub use jobs::{AlignmentJob, CandidateSource, Finished, FinishedAlignment, Job};
-pub use records::{AttemptKind, ClosureEvent, KeyframeInfo};
+pub use records::{AttemptKind, ClosureEvent, ClosureMeasurement, ExactIsometry, KeyframeInfo};
 use world::agent_range;
 
 /// One published keyframe as the consensus receives it.
@@ -84,6 +87,9 @@ pub struct Engine {
     solve_ms: Vec<f64>,
     /// Wrong closures added beside the verified ones (`[consensus.false_closures]`; off: `None`).
     false_closures: Option<FalseClosureInjector>,
+    /// Decisions of an earlier process of the run waiting for their keyframes
+    /// ([`Self::resume_decisions`]).
+    stored_decisions: Vec<Decision>,
 }
 
 impl Engine {
@@ -108,6 +114,7 @@ impl Engine {
             solution: None,
             dirty: false,
             solve_ms: Vec::new(),
+            stored_decisions: Vec::new(),
         }
     }
 
@@ -142,6 +149,9 @@ impl Engine {
                 &self.config.alignment,
             )),
         );
+        // Before its candidates are queued: a pair decided by an earlier process of the run is
+        // taken as decided, not aligned again.
+        self.apply_stored_decisions();
         if let Some(previous) = self.last_of_agent.insert(id.agent_id, id)
             && previous != id
         {
@@ -193,9 +203,9 @@ impl Engine {
     }
 
     /// The next piece of work, as a job that can run on any thread while the engine takes
-    /// keyframes and solves; its result goes back through [`Self::record`]. In order: a map
-    /// registration of two agents not linked yet, the next keyframe candidate, a map
-    /// registration that refreshes a link. `None` when nothing is due.
+    /// keyframes and solves; its outcome comes back through [`Self::decide`] and
+    /// [`Self::apply`]. In order: a map registration of two agents not linked yet, the next
+    /// keyframe candidate, a map registration that refreshes a link. `None` when nothing is due.
     pub fn next_job(&mut self) -> Option<Job> {
         if let Some(job) = self.next_map_job(false) {
             return Some(Job::Maps(Box::new(job)));
@@ -258,175 +268,6 @@ impl Engine {
                 .range(agent_range(agent_id))
                 .map(|(id, prepared)| (prepared, self.gaussians.get(id))),
         )
-    }
-
-    /// Takes a finished job: a verified closure joins the pose graph (solved at the next
-    /// [`Self::solve_if_changed`]); the decision is recorded for consensus.json.
-    pub fn record(&mut self, done: Finished) {
-        match done {
-            Finished::Keyframes(done) => self.record_alignment(*done),
-            Finished::Maps(done) => self.record_map_job(*done),
-        }
-    }
-
-    fn record_alignment(&mut self, done: FinishedAlignment) {
-        let FinishedAlignment {
-            candidate,
-            result,
-            alignment_ms,
-        } = done;
-        let mut event = ClosureEvent {
-            at_s: self.started.elapsed().as_secs_f64(),
-            source: candidate.source,
-            target: candidate.target,
-            origin: candidate.origin,
-            inter_agent: candidate.source.agent_id != candidate.target.agent_id,
-            score: candidate.score,
-            verified: result.is_accepted(),
-            kind: AttemptKind::Keyframe,
-            inliers: result.coarse.map(|c| c.inliers),
-            overlap: result.refinement.map(|r| r.inlier_fraction),
-            map: None,
-            rejection: None,
-            accepted_by_pose_graph: None,
-            alignment_ms,
-        };
-        match result.verdict {
-            Verdict::Accepted => {
-                let closure = LoopClosure {
-                    source: result.source,
-                    target: result.target,
-                    target_camera_from_source_camera: result.target_camera_from_source_camera,
-                    sigmas: None,
-                };
-                // Both ends are in the graph (they were prepared), so this cannot fail.
-                if let Err(error) = self.graph.add_loop(closure) {
-                    tracing::error!(%error, "verified closure not added");
-                } else {
-                    self.closure_events.push(self.events.len());
-                    self.dirty = true;
-                }
-                tracing::info!(
-                    source = ?event.source,
-                    target = ?event.target,
-                    inter_agent = event.inter_agent,
-                    "closure verified"
-                );
-                self.events.push(event);
-                self.inject_false_closures();
-            }
-            Verdict::Rejected(reason) => {
-                tracing::debug!(source = ?event.source, target = ?event.target, %reason, "closure rejected");
-                event.rejection = Some(reason.to_string());
-                self.events.push(event);
-            }
-        }
-    }
-
-    fn record_map_job(&mut self, done: FinishedMapJob) {
-        let (Some(source), Some(target)) = (done.source_keyframe, done.target_keyframe) else {
-            return;
-        };
-        let scores = done.scores();
-        let mut event = ClosureEvent {
-            at_s: self.started.elapsed().as_secs_f64(),
-            source,
-            target,
-            origin: CandidateSource::MapRegistration,
-            inter_agent: true,
-            score: None,
-            verified: done.closure.is_some(),
-            kind: AttemptKind::Map,
-            inliers: Some(scores.consistent_correspondences),
-            overlap: Some(scores.overlap_fraction),
-            map: Some(scores),
-            rejection: done.rejection.as_ref().map(ToString::to_string),
-            accepted_by_pose_graph: None,
-            alignment_ms: done.elapsed_ms,
-        };
-        if let Some(measured) = done.closure {
-            // The registration's own uncertainty, never tighter than a keyframe closure's: the
-            // maps it compares carry each agent's tracking drift.
-            let scores = &done.registration.scores;
-            let closure = LoopClosure {
-                source,
-                target,
-                target_camera_from_source_camera: measured,
-                sigmas: Some(EdgeSigmas {
-                    rotation_rad: scores
-                        .rotation_sigma_deg
-                        .to_radians()
-                        .max(self.config.pose_graph.loop_rotation_sigma_rad),
-                    translation_m: scores
-                        .translation_sigma_m
-                        .max(self.config.pose_graph.loop_translation_sigma_m),
-                }),
-            };
-            match self.graph.add_loop(closure) {
-                Ok(_) => {
-                    self.closure_events.push(self.events.len());
-                    self.map_scheduler
-                        .mark_linked(done.source_agent, done.target_agent);
-                    self.dirty = true;
-                    tracing::info!(
-                        source = ?source,
-                        target = ?target,
-                        inliers = event.inliers,
-                        overlap = event.overlap,
-                        "agents linked by map registration"
-                    );
-                    self.events.push(event);
-                    self.inject_false_closures();
-                    return;
-                }
-                Err(error) => {
-                    tracing::error!(%error, "map link not added");
-                    event.verified = false;
-                    event.rejection = Some(error.to_string());
-                }
-            }
-        }
-        self.events.push(event);
-    }
-
-    /// Adds the wrong closures due beside the verified ones (`[consensus.false_closures]`),
-    /// each recorded as an event of origin `injected`.
-    fn inject_false_closures(&mut self) {
-        let Some(injector) = self.false_closures.as_mut() else {
-            return;
-        };
-        let mut keyframes_per_agent: BTreeMap<u32, Vec<KeyframeRef>> = BTreeMap::new();
-        for id in self.info.keys() {
-            keyframes_per_agent
-                .entry(id.agent_id)
-                .or_default()
-                .push(*id);
-        }
-        for closure in injector.after_verified(&keyframes_per_agent) {
-            let event = ClosureEvent {
-                at_s: self.started.elapsed().as_secs_f64(),
-                source: closure.source,
-                target: closure.target,
-                origin: CandidateSource::Injected,
-                inter_agent: closure.source.agent_id != closure.target.agent_id,
-                score: None,
-                verified: true,
-                kind: AttemptKind::Keyframe,
-                inliers: None,
-                overlap: None,
-                map: None,
-                rejection: None,
-                accepted_by_pose_graph: None,
-                alignment_ms: 0.0,
-            };
-            tracing::debug!(source = ?event.source, target = ?event.target, "wrong closure injected");
-            // Both ends are known keyframes, so this cannot fail.
-            if self.graph.add_loop(closure).is_ok() {
-                self.closure_events.push(self.events.len());
-                self.events.push(event);
-                self.dirty = true;
-            }
-        }
     }
 
     /// Re-solves the pose graph if anything changed since the last solve. Returns the new

@@ -1,14 +1,17 @@
 //! What the engine records: every attempt's decision and each keyframe's tracked pose
 //! (consensus.json).
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
+
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
 use super::CandidateSource;
 use crate::map_links::MapAttemptScores;
 use crate::place_recognition::KeyframeRef;
+use crate::pose_graph::EdgeSigmas;
 
 /// What was compared to decide an attempt (consensus.json).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum AttemptKind {
     /// Two keyframes' images and depth.
@@ -18,7 +21,7 @@ pub enum AttemptKind {
 }
 
 /// One alignment decision (consensus.json).
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ClosureEvent {
     /// Seconds since the engine started.
     pub at_s: f64,
@@ -44,6 +47,42 @@ pub struct ClosureEvent {
     /// Whether the latest pose-graph solve kept it (verified pairs only; `None` before a solve).
     pub accepted_by_pose_graph: Option<bool>,
     pub alignment_ms: f64,
+    /// What joined the pose graph (verified and injected closures; `None` otherwise).
+    pub measurement: Option<ClosureMeasurement>,
+}
+
+/// A closure's relative pose and uncertainty, as the pose graph takes it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ClosureMeasurement {
+    pub target_camera_from_source_camera: ExactIsometry,
+    /// The measurement's own standard deviations; `None`: the configured loop-closure ones.
+    pub sigmas: Option<EdgeSigmas>,
+}
+
+/// A rigid transform kept bit for bit: `[tx, ty, tz, qx, qy, qz, qw]` (TUM order) with the
+/// quaternion as computed, neither renormalised nor sign-flipped, so that a stored closure or
+/// correction reads back as exactly the transform that was used.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct ExactIsometry(pub [f64; 7]);
+
+impl From<&Isometry3<f64>> for ExactIsometry {
+    fn from(pose: &Isometry3<f64>) -> Self {
+        let t = pose.translation.vector;
+        let q = pose.rotation.quaternion();
+        Self([t.x, t.y, t.z, q.i, q.j, q.k, q.w])
+    }
+}
+
+impl ExactIsometry {
+    pub fn isometry(&self) -> Isometry3<f64> {
+        let [tx, ty, tz, qx, qy, qz, qw] = self.0;
+        Isometry3::from_parts(
+            Translation3::new(tx, ty, tz),
+            // Written from a unit quaternion, so unit already; renormalising could change bits.
+            UnitQuaternion::new_unchecked(Quaternion::new(qw, qx, qy, qz)),
+        )
+    }
 }
 
 /// What the engine knows about one keyframe besides its images.

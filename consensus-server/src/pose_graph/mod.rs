@@ -32,7 +32,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use geometry::correction;
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::place_recognition::KeyframeRef;
 use config::PoseGraphConfig;
@@ -57,7 +57,7 @@ pub struct LoopClosure {
 }
 
 /// Standard deviations of a relative-pose measurement (isotropic per block).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct EdgeSigmas {
     pub rotation_rad: f64,
     pub translation_m: f64,

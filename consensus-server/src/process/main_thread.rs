@@ -24,7 +24,7 @@ use crate::alignment::Keyframe;
 use crate::engine::KeyframeArrival;
 use crate::inbox::KeyframeInbox;
 use crate::place_recognition::KeyframeRef;
-use crate::store::{Store, StoredInput, StoredKeyframe};
+use crate::store::{Store, StoredCorrection, StoredInput, StoredKeyframe};
 use protocol::convert;
 
 /// The main thread's state: the transport and what it learnt of each agent.
@@ -88,12 +88,17 @@ impl Listener {
             keyframes,
             agents = self.agents.len(),
             finished = self.finished.len(),
-            "resumed from the consensus store: pose graph and map rebuilt from its inputs"
+            "resumed from the consensus store: keyframes and map rebuilt from its inputs, closures from its decisions"
         );
         // Agents the store knows, and those the run waits for (an agent whose hello was lost
         // with the previous process is still running).
         let mut agents: BTreeSet<u32> = self.agents.keys().copied().collect();
         agents.extend(0..options.expected_agents.unwrap_or(0));
+        let last_corrections = self.store.last_corrections()?;
+        for (agent_id, correction) in &last_corrections {
+            self.world_from_agent
+                .insert(*agent_id, correction.world_from_agent.isometry());
+        }
         for agent_id in agents.difference(&self.finished) {
             let message = ControlMessage::ConsensusResumed {
                 keyframes_held: self.inbox.complete_keyframes(*agent_id),
@@ -102,6 +107,16 @@ impl Listener {
                 Ok(_) => tracing::info!(agent_id, "told the agent the consensus is back"),
                 // Not running now: if it comes back, it starts over with a hello.
                 Err(error) => tracing::info!(agent_id, %error, "agent not reached on resume"),
+            }
+            // The last correction it was sent, again: the agent may have missed it while the
+            // consensus was down, and the next solve may be a while.
+            if let Some(correction) = last_corrections.get(agent_id) {
+                tracing::info!(
+                    agent_id,
+                    sequence = correction.sequence,
+                    "last stored correction sent again"
+                );
+                send_correction(&mut self.link, correction, &mut self.agents);
             }
         }
         Ok(())
@@ -183,7 +198,7 @@ impl Listener {
                 &mut self.agents,
             );
             for update in worker.solutions.try_iter() {
-                self.apply_solution(update);
+                self.apply_solution(update)?;
             }
             self.latencies.extend(worker.latencies.try_iter());
             if snapshot.swap(false, Ordering::Relaxed) {
@@ -250,10 +265,16 @@ impl Listener {
         Ok(())
     }
 
-    /// Sends `update` to the agents as corrections and keeps its agents' frames.
-    fn apply_solution(&mut self, update: SolutionUpdate) {
-        send_corrections(&mut self.link, &update, &self.inbox, &mut self.agents);
+    /// Sends `update` to the agents as corrections (committed to the store first) and keeps
+    /// its agents' frames.
+    fn apply_solution(&mut self, update: SolutionUpdate) -> anyhow::Result<()> {
+        let corrections = corrections_due(&update, &self.inbox, &mut self.agents);
+        let corrections = self.store.append_corrections(corrections)?;
+        for correction in &corrections {
+            send_correction(&mut self.link, correction, &mut self.agents);
+        }
         self.world_from_agent = update.world_from_agent;
+        Ok(())
     }
 
     /// Asks the worker to write the outputs as they stand.
@@ -283,7 +304,10 @@ impl Listener {
         latencies: Vec<f64>,
     ) -> (BTreeMap<u32, AgentRecord>, Vec<f64>) {
         for update in updates {
-            self.apply_solution(update);
+            if let Err(error) = self.apply_solution(update) {
+                // The outputs are written anyway; an agent misses these last corrections.
+                tracing::error!("{error:#}: last corrections not sent");
+            }
         }
         self.latencies.extend(latencies);
         fill_records(
@@ -556,37 +580,59 @@ fn request_resends(
     }
 }
 
-/// Sends each agent linked to the world its frame and its keyframes' corrected poses.
-fn send_corrections(
-    link: &mut ConsumerLink,
+/// The correction of each agent linked to the world: its frame and its keyframes' corrected
+/// poses (numbered by the store).
+fn corrections_due(
     update: &SolutionUpdate,
     inbox: &KeyframeInbox,
     agents: &mut BTreeMap<u32, AgentRecord>,
-) {
+) -> Vec<StoredCorrection> {
+    let mut corrections = Vec::new();
     for (agent_id, world_from_agent) in &update.world_from_agent {
         if inbox.latest_is_foreign(*agent_id) {
             // Its keyframe ids name other frames in the running process.
             agents.entry(*agent_id).or_default().corrections_withheld += 1;
             continue;
         }
-        let poses: Vec<KeyframePose> = update
-            .world_from_camera
-            .iter()
-            .filter(|(id, _)| id.agent_id == *agent_id)
-            .map(|(id, pose)| KeyframePose {
-                keyframe_id: id.keyframe_id,
-                camera_to_world: Pose::from(pose),
-            })
-            .collect();
-        let record = agents.entry(*agent_id).or_default();
-        match link.send_correction(*agent_id, Pose::from(world_from_agent), &poses) {
-            Ok(_) => record.corrections_sent += 1,
-            Err(error) => {
-                // An agent that left or crashed simply misses this correction; the final
-                // outputs carry it anyway.
-                record.corrections_undelivered += 1;
-                tracing::debug!(agent_id, %error, "correction not delivered");
-            }
+        corrections.push(StoredCorrection {
+            agent_id: *agent_id,
+            sequence: 0,
+            world_from_agent: world_from_agent.into(),
+            world_from_camera: update
+                .world_from_camera
+                .iter()
+                .filter(|(id, _)| id.agent_id == *agent_id)
+                .map(|(id, pose)| (id.keyframe_id, pose.into()))
+                .collect(),
+        });
+    }
+    corrections
+}
+
+/// Sends one correction to its agent.
+fn send_correction(
+    link: &mut ConsumerLink,
+    correction: &StoredCorrection,
+    agents: &mut BTreeMap<u32, AgentRecord>,
+) {
+    let agent_id = correction.agent_id;
+    let poses: Vec<KeyframePose> = correction
+        .world_from_camera
+        .iter()
+        .map(|(keyframe_id, pose)| KeyframePose {
+            keyframe_id: *keyframe_id,
+            camera_to_world: Pose::from(&pose.isometry()),
+        })
+        .collect();
+    let world_from_agent = Pose::from(&correction.world_from_agent.isometry());
+    let record = agents.entry(agent_id).or_default();
+    match link.send_correction(agent_id, world_from_agent, &poses) {
+        Ok(_) => record.corrections_sent += 1,
+        Err(error) => {
+            // An agent that left or crashed simply misses this correction; the final
+            // outputs carry it anyway.
+            record.corrections_undelivered += 1;
+            tracing::debug!(agent_id, %error, "correction not delivered");
         }
     }
 }

@@ -91,7 +91,7 @@ pub fn run_with_snapshots(
     let (store, opened, inputs) = Store::open(&options.out, &identity, options.fresh)?;
     let link = ConsumerLink::open(&options.transport).context("opening the transport")?;
     tracing::info!(namespace = %options.transport.namespace, "consensus listening");
-    let worker = WorkerHandle::spawn(options.clone())?;
+    let worker = WorkerHandle::spawn(options.clone(), store.decisions()?, store.decision_log()?)?;
     let mut listener = Listener::new(link, options, started, store);
     if opened == Opened::Resumed {
         tracing::warn!(

@@ -15,8 +15,11 @@ use serde::Serialize;
 
 use super::ConsensusOptions;
 use super::outputs::{AgentRecord, OutputKind, WorldMap, write_outputs};
-use crate::engine::{CandidateSource, ClosureEvent, Engine, Finished, Job, KeyframeArrival};
+use crate::engine::{
+    CandidateSource, ClosureEvent, Decision, Engine, Finished, Job, KeyframeArrival,
+};
 use crate::place_recognition::KeyframeRef;
+use crate::store::DecisionLog;
 
 /// Messages to the worker.
 pub(super) enum WorkerInput {
@@ -48,8 +51,13 @@ pub(super) struct WorkerHandle {
 }
 
 impl WorkerHandle {
-    /// Starts the worker thread (and its aligner thread).
-    pub fn spawn(options: ConsensusOptions) -> anyhow::Result<Self> {
+    /// Starts the worker thread (and its aligner thread). Its engine takes the `decisions` an
+    /// earlier process of the run stored, and commits each new one to `log` before applying it.
+    pub fn spawn(
+        options: ConsensusOptions,
+        decisions: Vec<Decision>,
+        log: DecisionLog,
+    ) -> anyhow::Result<Self> {
         let (input_tx, input_rx) = unbounded::<WorkerInput>();
         let (solution_tx, solution_rx) = unbounded::<SolutionUpdate>();
         let (latency_tx, latency_rx) = unbounded::<f64>();
@@ -57,8 +65,17 @@ impl WorkerHandle {
             .name("consensus-worker".into())
             .spawn(move || {
                 let _span = tracing::info_span!("consensus worker").entered();
+                let mut engine = Engine::new(options.config.consensus.clone());
+                if !decisions.is_empty() {
+                    tracing::info!(
+                        decisions = decisions.len(),
+                        "stored decisions taken: their pairs are not aligned again"
+                    );
+                    engine.resume_decisions(decisions);
+                }
                 let worker = Worker {
-                    engine: Engine::new(options.config.consensus.clone()),
+                    engine,
+                    log,
                     options,
                     waiting: BTreeMap::new(),
                     early_gaussians: BTreeMap::new(),
@@ -111,6 +128,8 @@ fn spawn_aligner(jobs: Receiver<Job>, done: Sender<Finished>) -> JoinHandle<()> 
 /// The worker thread's state.
 struct Worker {
     engine: Engine,
+    /// Every decision is committed here before the engine applies it.
+    log: DecisionLog,
     options: ConsensusOptions,
     /// Keyframes whose first correction has not gone out yet, with their arrival time.
     waiting: BTreeMap<KeyframeRef, Instant>,
@@ -158,7 +177,7 @@ impl Worker {
                 recv(live_done) -> done => match done {
                     Ok(done) => {
                         in_flight = false;
-                        self.engine.record(done);
+                        self.decide(done);
                     }
                     Err(_) => break,
                 },
@@ -180,7 +199,26 @@ impl Worker {
         if aligner.join().is_err() {
             tracing::error!("the consensus aligner thread panicked");
         }
+        let waiting = self.engine.stored_decisions_waiting();
+        if waiting > 0 {
+            tracing::warn!(
+                decisions = waiting,
+                "stored decisions never applied: a keyframe of theirs did not come back"
+            );
+        }
         self.engine
+    }
+
+    /// Commits what a finished job decided, then applies it. A decision the store cannot take
+    /// is not applied either, so that a resume never lacks a closure the pose graph had.
+    fn decide(&mut self, done: Finished) {
+        let Some(decision) = self.engine.decide(done) else {
+            return;
+        };
+        match self.log.append(&decision) {
+            Ok(()) => self.engine.apply(decision),
+            Err(error) => tracing::error!("{error:#}: decision dropped"),
+        }
     }
 
     fn take(&mut self, input: WorkerInput) {

@@ -1,15 +1,17 @@
-//! The consensus's durable store: every input the consensus accepts (agents' hellos and
-//! goodbyes, complete keyframes with their descriptor and RGB-D image, Gaussian patches, final
-//! maps), appended in arrival order to a redb database in the run folder
-//! (`OUT/consensus.redb`) and committed before the consensus acts on it. A consensus started on
-//! that folder replays the inputs through the same path live messages take
-//! ([`crate::process`]), so it rebuilds the same keyframes, pose graph and map (see
-//! docs/architecture.md, The consensus store).
+//! The consensus's durable store, a redb database in the run folder (`OUT/consensus.redb`),
+//! holding three things, each committed before the consensus acts on it:
+//! - every input the consensus accepts (agents' hellos and goodbyes, complete keyframes with
+//!   their descriptor and RGB-D image, Gaussian patches, final maps), in arrival order;
+//! - every alignment and map-registration decision ([`Decision`]: the pair, verified or why
+//!   not, and a verified closure's transform and uncertainty), in the order they were made;
+//! - every correction sent to an agent ([`StoredCorrection`]), per agent in sending order.
 //!
-//! Why inputs and not results: closures, the pose graph and the merged map are functions of the
-//! inputs, and replaying them re-runs the very code that produced them; storing derived state
-//! would be a second description of the engine to keep in step with it. The price is that a
-//! resume re-aligns the stored candidates (seconds per pair on a CPU).
+//! A consensus started on that folder replays the inputs through the same path live messages
+//! take ([`crate::process`]) and hands the decisions to the engine, which applies each one
+//! through its own live step once both keyframes are back ([`crate::engine::Engine::apply`]):
+//! the pose graph gets the very closures it had, no stored pair is aligned again, and there is
+//! one description of the engine, not a second one for the replay. The last correction of each
+//! agent is sent again at once (see docs/architecture.md, The consensus store).
 //!
 //! redb commits are atomic and durable (each commit is flushed to disk before it returns): a
 //! process killed at any point leaves the store as of its last commit, and a file that was not
@@ -20,13 +22,17 @@
 
 mod records;
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
+use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition, TableHandle};
 
-pub use records::{RunIdentity, StoredInput, StoredKeyframe};
+pub use records::{RunIdentity, StoredCorrection, StoredInput, StoredKeyframe};
+
+use crate::engine::Decision;
 
 /// The store's file name in the run folder.
 pub const STORE_FILE: &str = "consensus.redb";
@@ -35,6 +41,11 @@ pub const STORE_FILE: &str = "consensus.redb";
 const INPUTS: TableDefinition<u64, &[u8]> = TableDefinition::new("inputs");
 /// The run the store belongs to: key `IDENTITY_KEY` -> bincode of a [`RunIdentity`].
 const META: TableDefinition<&str, &[u8]> = TableDefinition::new("meta");
+/// Decisions in the order they were made: sequence number -> bincode of a [`Decision`].
+const DECISIONS: TableDefinition<u64, &[u8]> = TableDefinition::new("decisions");
+/// Corrections sent: (agent id, the agent's sequence number) -> bincode of a
+/// [`StoredCorrection`].
+const CORRECTIONS: TableDefinition<(u32, u64), &[u8]> = TableDefinition::new("corrections");
 const IDENTITY_KEY: &str = "run_identity";
 
 /// How the store was opened.
@@ -48,9 +59,12 @@ pub enum Opened {
 
 /// See the module documentation.
 pub struct Store {
-    db: Database,
+    /// Shared with the [`DecisionLog`] of the worker thread (redb serialises writers).
+    db: Arc<Database>,
     path: PathBuf,
     next_sequence: u64,
+    /// Each agent's next correction sequence number.
+    next_correction: BTreeMap<u32, u64>,
     /// Milliseconds each commit of a keyframe took (serialisation, write and flush).
     keyframe_write_ms: Vec<f64>,
 }
@@ -84,9 +98,10 @@ impl Store {
         let db = Database::create(&path)
             .with_context(|| format!("opening the consensus store {}", path.display()))?;
         let mut store = Self {
-            db,
+            db: Arc::new(db),
             path,
             next_sequence: 0,
+            next_correction: BTreeMap::new(),
             keyframe_write_ms: Vec::new(),
         };
         match store.identity()? {
@@ -102,6 +117,11 @@ impl Store {
                 }
                 let inputs = store.inputs()?;
                 store.next_sequence = store.last_sequence()?.map_or(0, |s| s + 1);
+                store.next_correction = store
+                    .last_corrections()?
+                    .into_iter()
+                    .map(|(agent_id, last)| (agent_id, last.sequence + 1))
+                    .collect();
                 Ok((store, Opened::Resumed, inputs))
             }
             None => {
@@ -151,6 +171,81 @@ impl Store {
         Ok(())
     }
 
+    /// Commits the corrections about to be sent (one transaction for all of one solution's),
+    /// numbering each agent's from where its stored ones end; returns them numbered.
+    pub fn append_corrections(
+        &mut self,
+        corrections: Vec<StoredCorrection>,
+    ) -> anyhow::Result<Vec<StoredCorrection>> {
+        let mut numbered = corrections;
+        let mut next = self.next_correction.clone();
+        let mut encoded = Vec::with_capacity(numbered.len());
+        for correction in &mut numbered {
+            let sequence = next.entry(correction.agent_id).or_insert(0);
+            correction.sequence = *sequence;
+            *sequence += 1;
+            encoded.push((
+                (correction.agent_id, correction.sequence),
+                bincode::serde::encode_to_vec(&*correction, bincode::config::standard())
+                    .context("encoding a correction for the consensus store")?,
+            ));
+        }
+        let write = || -> Result<(), redb::Error> {
+            let transaction = self.db.begin_write()?;
+            {
+                let mut table = transaction.open_table(CORRECTIONS)?;
+                for (key, bytes) in &encoded {
+                    table.insert(*key, bytes.as_slice())?;
+                }
+            }
+            transaction.commit()?;
+            Ok(())
+        };
+        write().with_context(|| {
+            format!(
+                "writing corrections to the consensus store {}",
+                self.path.display()
+            )
+        })?;
+        self.next_correction = next;
+        Ok(numbered)
+    }
+
+    /// The last correction stored for each agent.
+    pub fn last_corrections(&self) -> anyhow::Result<BTreeMap<u32, StoredCorrection>> {
+        let mut last = BTreeMap::new();
+        for correction in read_table::<_, StoredCorrection>(&self.db, &self.path, CORRECTIONS)? {
+            last.insert(correction.agent_id, correction);
+        }
+        Ok(last)
+    }
+
+    /// Every stored decision, oldest first.
+    pub fn decisions(&self) -> anyhow::Result<Vec<Decision>> {
+        read_table(&self.db, &self.path, DECISIONS)
+    }
+
+    /// Where the worker thread commits its decisions.
+    pub fn decision_log(&self) -> anyhow::Result<DecisionLog> {
+        let next_sequence = {
+            let context = || format!("reading the consensus store {}", self.path.display());
+            let transaction = self.db.begin_read().with_context(context)?;
+            match transaction.open_table(DECISIONS) {
+                Ok(table) => table
+                    .last()
+                    .with_context(context)?
+                    .map_or(0, |(k, _)| k.value() + 1),
+                Err(redb::TableError::TableDoesNotExist(_)) => 0,
+                Err(error) => return Err(error).with_context(context),
+            }
+        };
+        Ok(DecisionLog {
+            db: Arc::clone(&self.db),
+            path: self.path.clone(),
+            next_sequence,
+        })
+    }
+
     /// Milliseconds each keyframe's commit took, in order.
     pub fn keyframe_write_ms(&self) -> &[f64] {
         &self.keyframe_write_ms
@@ -190,6 +285,8 @@ impl Store {
                 .insert(IDENTITY_KEY, bytes.as_slice())?;
             // Created empty, so a resume of a run that stored nothing yet reads no table error.
             transaction.open_table(INPUTS)?;
+            transaction.open_table(DECISIONS)?;
+            transaction.open_table(CORRECTIONS)?;
             transaction.commit()?;
             Ok(())
         };
@@ -198,24 +295,7 @@ impl Store {
 
     /// Every stored input, oldest first.
     fn inputs(&self) -> anyhow::Result<Vec<StoredInput>> {
-        let context = || format!("reading the consensus store {}", self.path.display());
-        let transaction = self.db.begin_read().with_context(context)?;
-        let table = transaction.open_table(INPUTS).with_context(context)?;
-        let mut inputs = Vec::new();
-        for entry in table.iter().with_context(context)? {
-            let (sequence, value) = entry.with_context(context)?;
-            let (input, _) =
-                bincode::serde::decode_from_slice(value.value(), bincode::config::standard())
-                    .with_context(|| {
-                        format!(
-                            "the consensus store {}: input {} unreadable",
-                            self.path.display(),
-                            sequence.value()
-                        )
-                    })?;
-            inputs.push(input);
-        }
-        Ok(inputs)
+        read_table(&self.db, &self.path, INPUTS)
     }
 
     fn last_sequence(&self) -> anyhow::Result<Option<u64>> {
@@ -224,6 +304,85 @@ impl Store {
         let table = transaction.open_table(INPUTS).with_context(context)?;
         Ok(table.last().with_context(context)?.map(|(k, _)| k.value()))
     }
+}
+
+/// The worker thread's end of the store: decisions are committed here before the engine applies
+/// them.
+pub struct DecisionLog {
+    db: Arc<Database>,
+    path: PathBuf,
+    next_sequence: u64,
+}
+
+impl DecisionLog {
+    /// Appends `decision` and commits; it is on disk when this returns.
+    pub fn append(&mut self, decision: &Decision) -> anyhow::Result<()> {
+        let bytes = bincode::serde::encode_to_vec(decision, bincode::config::standard())
+            .context("encoding a decision for the consensus store")?;
+        let write = || -> Result<(), redb::Error> {
+            let transaction = self.db.begin_write()?;
+            transaction
+                .open_table(DECISIONS)?
+                .insert(self.next_sequence, bytes.as_slice())?;
+            transaction.commit()?;
+            Ok(())
+        };
+        write().with_context(|| {
+            format!(
+                "writing to the consensus store {} (decision {})",
+                self.path.display(),
+                self.next_sequence
+            )
+        })?;
+        self.next_sequence += 1;
+        Ok(())
+    }
+}
+
+/// The decisions in the store at `path`, oldest first, read without resuming it (for
+/// inspection; the store must not be open in a running consensus).
+pub fn read_decisions(path: &Path) -> anyhow::Result<Vec<Decision>> {
+    let db = Database::open(path)
+        .with_context(|| format!("opening the consensus store {}", path.display()))?;
+    read_table(&db, path, DECISIONS)
+}
+
+/// Every value of `table` in key order, decoded; a table that does not exist (a store written
+/// before it was kept) reads as empty.
+fn read_table<K, T>(
+    db: &Database,
+    path: &Path,
+    table: TableDefinition<K, &[u8]>,
+) -> anyhow::Result<Vec<T>>
+where
+    K: redb::Key + 'static,
+    for<'a> K::SelfType<'a>: std::fmt::Debug,
+    T: serde::de::DeserializeOwned,
+{
+    let context = || format!("reading the consensus store {}", path.display());
+    let name = table.name().to_string();
+    let transaction = db.begin_read().with_context(context)?;
+    let table = match transaction.open_table(table) {
+        Ok(table) => table,
+        Err(redb::TableError::TableDoesNotExist(_)) => return Ok(Vec::new()),
+        Err(error) => return Err(error).with_context(context),
+    };
+    let mut values = Vec::new();
+    for entry in table.iter().with_context(context)? {
+        let (key, value) = entry.with_context(context)?;
+        let (decoded, _) =
+            bincode::serde::decode_from_slice(value.value(), bincode::config::standard())
+                .with_context(|| {
+                    format!(
+                        "the consensus store {}: table {}, entry {:?} unreadable",
+                        path.display(),
+                        name,
+                        key.value()
+                    )
+                })?;
+        values.push(decoded);
+    }
+    Ok(values)
 }
 
 #[cfg(test)]

@@ -9,7 +9,7 @@ use protocol::messages::GaussianRecord;
 use serde::{Deserialize, Serialize};
 
 use crate::alignment::Keyframe;
-use crate::engine::KeyframeArrival;
+use crate::engine::{ExactIsometry, KeyframeArrival};
 use crate::place_recognition::KeyframeRef;
 
 /// Which run a store belongs to: a consensus resumes only its own run's store.
@@ -151,4 +151,16 @@ impl StoredKeyframe {
             agent_from_camera,
         })
     }
+}
+
+/// One correction as it was sent to an agent: its frame in the world and its keyframes' poses.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StoredCorrection {
+    pub agent_id: u32,
+    /// The agent's corrections in the order they were sent, from 0, across the run's consensus
+    /// processes.
+    pub sequence: u64,
+    pub world_from_agent: ExactIsometry,
+    /// `(keyframe id, world_from_camera)` of each of the agent's placed keyframes.
+    pub world_from_camera: Vec<(u64, ExactIsometry)>,
 }

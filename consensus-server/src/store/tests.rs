@@ -1,5 +1,6 @@
 use super::*;
 use crate::alignment::Keyframe;
+use crate::engine::Decision;
 use crate::engine::KeyframeArrival;
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
@@ -153,4 +154,105 @@ fn fresh_moves_the_old_store_aside_and_starts_empty() {
     assert_eq!(opened, Opened::New);
     assert!(inputs.is_empty());
     assert!(dir.path().join(format!("{STORE_FILE}.replaced")).exists());
+}
+
+fn decision(source: u64, target: u64, transform: &Isometry3<f64>) -> Decision {
+    let id = |keyframe_id| crate::place_recognition::KeyframeRef {
+        agent_id: 1,
+        keyframe_id,
+    };
+    Decision {
+        event: crate::engine::ClosureEvent {
+            at_s: 1.5,
+            source: id(source),
+            target: id(target),
+            origin: crate::engine::CandidateSource::Odometry,
+            inter_agent: false,
+            score: None,
+            verified: true,
+            kind: crate::engine::AttemptKind::Keyframe,
+            inliers: Some(40),
+            overlap: Some(0.8),
+            map: None,
+            rejection: None,
+            accepted_by_pose_graph: None,
+            alignment_ms: 900.0,
+            measurement: Some(crate::engine::ClosureMeasurement {
+                target_camera_from_source_camera: transform.into(),
+                sigmas: None,
+            }),
+        },
+        map_attempt: None,
+    }
+}
+
+fn correction(agent_id: u32, transform: &Isometry3<f64>) -> StoredCorrection {
+    StoredCorrection {
+        agent_id,
+        sequence: 0,
+        world_from_agent: transform.into(),
+        world_from_camera: vec![(3, (&transform.inverse()).into())],
+    }
+}
+
+#[test]
+fn decisions_and_corrections_come_back_bit_for_bit_after_reopening() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = identity("run-a");
+    // Not a round number in any component, so a lossy encoding would show.
+    let transform = Isometry3::from_parts(
+        Translation3::new(0.1, -1.0 / 3.0, 2.0_f64.sqrt()),
+        UnitQuaternion::from_euler_angles(0.1, 0.2, 0.3),
+    );
+    {
+        let (store, _, _) = Store::open(dir.path(), &run, false).unwrap();
+        let mut log = store.decision_log().unwrap();
+        log.append(&decision(1, 0, &transform)).unwrap();
+        log.append(&decision(2, 1, &transform.inverse())).unwrap();
+        drop(log);
+        let mut store = store;
+        let sent = store
+            .append_corrections(vec![correction(0, &transform), correction(1, &transform)])
+            .unwrap();
+        assert_eq!(sent.iter().map(|c| c.sequence).collect::<Vec<_>>(), [0, 0]);
+        let sent = store
+            .append_corrections(vec![correction(1, &transform.inverse())])
+            .unwrap();
+        assert_eq!(sent[0].sequence, 1);
+    }
+    let decisions = read_decisions(&dir.path().join(STORE_FILE)).unwrap();
+    let (mut store, opened, _) = Store::open(dir.path(), &run, false).unwrap();
+    assert_eq!(opened, Opened::Resumed);
+    let reopened = store.decisions().unwrap();
+    assert_eq!(reopened.len(), 2);
+    assert_eq!(decisions.len(), 2);
+    let measured = |d: &Decision| {
+        d.event
+            .measurement
+            .unwrap()
+            .target_camera_from_source_camera
+            .isometry()
+    };
+    assert_eq!(measured(&reopened[0]), transform);
+    assert_eq!(measured(&reopened[1]), transform.inverse());
+    let last = store.last_corrections().unwrap();
+    assert_eq!(last.len(), 2);
+    assert_eq!(last[&0].sequence, 0);
+    assert_eq!(last[&1].sequence, 1);
+    assert_eq!(last[&1].world_from_agent.isometry(), transform.inverse());
+    assert_eq!(
+        last[&1].world_from_camera[0].1.isometry(),
+        transform.inverse().inverse()
+    );
+    // Numbering goes on where the stored corrections end; decisions append after the stored.
+    let sent = store
+        .append_corrections(vec![correction(1, &transform)])
+        .unwrap();
+    assert_eq!(sent[0].sequence, 2);
+    store
+        .decision_log()
+        .unwrap()
+        .append(&decision(3, 2, &transform))
+        .unwrap();
+    assert_eq!(store.decisions().unwrap().len(), 3);
 }
