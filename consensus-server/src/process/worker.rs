@@ -159,6 +159,7 @@ impl Worker {
                     Ok(done) => {
                         in_flight = false;
                         self.engine.record(done);
+                        super::live::show_closures(&self.options.live_view, &self.engine);
                     }
                     Err(_) => break,
                 },
@@ -234,10 +235,15 @@ impl Worker {
                 .collect(),
             world_from_camera: solution.world_from_camera.clone(),
         };
+        super::live::show_solution(&self.options.live_view, &update.world_from_camera);
         self.waiting.retain(|id, at| {
             if update.world_from_camera.contains_key(id) {
+                let latency_ms = at.elapsed().as_secs_f64() * 1e3;
+                self.options
+                    .live_view
+                    .scalar(live_view::paths::CONSENSUS_LATENCY_MS, latency_ms);
                 // The main thread may be gone at shutdown; the figure is then not needed.
-                let _ = latencies.send(at.elapsed().as_secs_f64() * 1e3);
+                let _ = latencies.send(latency_ms);
                 false
             } else {
                 true
