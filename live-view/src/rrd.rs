@@ -51,7 +51,9 @@ impl RrdSummary {
             self.recording_ids.insert(store.recording_id().to_string());
             let chunk = Chunk::from_arrow_msg(&arrow)
                 .with_context(|| format!("reading a chunk of {}", path.display()))?;
-            let entity = chunk.entity_path().to_string();
+            // Entity paths print with a leading slash; the live view's paths are written without.
+            let path = chunk.entity_path().to_string();
+            let entity = path.trim_start_matches('/').to_string();
             for column in chunk.components().values() {
                 let component = column.descriptor.component.to_string();
                 let list = &column.list_array;

@@ -131,12 +131,14 @@ struct BlockedSink {
 }
 
 impl rerun::sink::LogSink for BlockedSink {
-    fn send(&self, _message: rerun::log::LogMsg) {
-        let _ = self.release.recv();
+    fn send(&self, message: rerun::log::LogMsg) {
+        if matches!(message, rerun::log::LogMsg::ArrowMsg(..)) {
+            let _ = self.release.recv();
+        }
     }
 
-    fn flush_blocking(&self, _timeout: Duration) -> Result<(), rerun::sink::SinkFlushError> {
-        let _ = self.release.recv();
+    fn flush_blocking(&self, timeout: Duration) -> Result<(), rerun::sink::SinkFlushError> {
+        let _ = self.release.recv_timeout(timeout);
         Ok(())
     }
 }
