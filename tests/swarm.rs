@@ -118,8 +118,14 @@ fn check_recordings(swarm: &SwarmRun, dir: &std::path::Path) {
         consensus.scalar_max(paths::CONSENSUS_CLOSURES_ACCEPTED) >= Some(1.0),
         "closures accepted but not shown: {shown}"
     );
-    assert!(consensus.scalar_max(paths::CONSENSUS_LATENCY_MS).is_some(), "{shown}");
-    assert!(consensus.rows(paths::CONSENSUS_MAP, "Points3D:positions") >= 1, "{shown}");
+    assert!(
+        consensus.scalar_max(paths::CONSENSUS_LATENCY_MS).is_some(),
+        "{shown}"
+    );
+    assert!(
+        consensus.rows(paths::CONSENSUS_MAP, "Points3D:positions") >= 1,
+        "{shown}"
+    );
     for k in 0..2u32 {
         assert!(
             consensus.rows(&paths::consensus_trajectory(k), "LineStrips3D:strips") >= 1,
@@ -129,8 +135,7 @@ fn check_recordings(swarm: &SwarmRun, dir: &std::path::Path) {
         let shown = format!("{agent:#?}");
         assert_eq!(agent.recording_ids, consensus.recording_ids, "{shown}");
         let metrics: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string(swarm.path().join(format!("agent_{k}/metrics.json")))
-                .unwrap(),
+            &std::fs::read_to_string(swarm.path().join(format!("agent_{k}/metrics.json"))).unwrap(),
         )
         .unwrap();
         let stats = &metrics["live_view"];
@@ -150,7 +155,10 @@ fn check_recordings(swarm: &SwarmRun, dir: &std::path::Path) {
             (paths::agent_keyframes(k), "Points3D:positions"),
             (paths::agent_map(k), "Points3D:positions"),
         ] {
-            assert!(agent.rows(&entity, component) >= 1, "agent {k}: {entity} {component}: {shown}");
+            assert!(
+                agent.rows(&entity, component) >= 1,
+                "agent {k}: {entity} {component}: {shown}"
+            );
         }
     }
     // Agent 1 was placed in the world (`check`): its frame's transform was logged.

@@ -43,16 +43,17 @@ fn an_agent_with_a_viewer_that_never_answers_finishes_and_counts_its_frames() {
     };
     let metrics = run_standalone(&options, &AtomicBool::new(false)).unwrap();
     assert_eq!(metrics.frames, FRAMES);
-    let stats = metrics.live_view.expect("metrics.json has the live view's figures");
+    let stats = metrics
+        .live_view
+        .expect("metrics.json has the live view's figures");
     assert_eq!(
         (stats.frames_queued + stats.frames_dropped) as usize,
         FRAMES,
         "{stats:?}"
     );
-    let written: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(out.path().join("metrics.json")).unwrap(),
-    )
-    .unwrap();
+    let written: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.path().join("metrics.json")).unwrap())
+            .unwrap();
     assert_eq!(
         written["live_view"]["frames_queued"].as_u64(),
         Some(stats.frames_queued)

@@ -276,10 +276,7 @@ impl LiveView {
         let shared = self.shared.as_ref()?;
         if !shared.finish_requested.swap(true, Ordering::Relaxed) {
             let timeout = shared.settings.finish_timeout;
-            let finished = shared
-                .items
-                .send_timeout(Message::Finish, timeout)
-                .is_ok()
+            let finished = shared.items.send_timeout(Message::Finish, timeout).is_ok()
                 && shared.done.recv_timeout(timeout).is_ok();
             if !finished {
                 tracing::warn!(

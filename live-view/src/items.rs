@@ -291,8 +291,8 @@ fn binned(rgb: &RgbImage, max_width: u32) -> (RgbImage, u32) {
         for dy in 0..factor {
             for dx in 0..factor {
                 let pixel = rgb.get_pixel(x * factor + dx, y * factor + dy);
-                for c in 0..3 {
-                    sum[c] += pixel[c] as u32;
+                for (total, value) in sum.iter_mut().zip(pixel.0) {
+                    *total += value as u32;
                 }
             }
         }

@@ -109,9 +109,16 @@ mod tests {
         let positions: Vec<[f32; 3]> = (0..1001).map(|i| [i as f32, 0.0, 0.0]).collect();
         let colours = vec![[0.0, 0.5, 1.0]; 1001];
         let sampled = ColouredPoints::sampled(&positions, &colours, 100);
-        assert!(sampled.len() <= 100 && sampled.len() >= 50, "{}", sampled.len());
+        assert!(
+            sampled.len() <= 100 && sampled.len() >= 50,
+            "{}",
+            sampled.len()
+        );
         assert_eq!(sampled.colours[0], [0, 128, 255]);
-        assert_eq!(ColouredPoints::sampled(&positions, &colours, 5000).len(), 1001);
+        assert_eq!(
+            ColouredPoints::sampled(&positions, &colours, 5000).len(),
+            1001
+        );
     }
 
     #[test]

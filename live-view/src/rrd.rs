@@ -6,10 +6,10 @@ use std::io::BufReader;
 use std::path::Path;
 
 use anyhow::Context;
-use rerun::external::arrow::array::{Array as _, Float64Array};
-use rerun::log::Chunk;
 use re_log_encoding::DecoderApp;
+use rerun::external::arrow::array::{Array as _, Float64Array};
 use rerun::external::re_log_types::LogMsg;
+use rerun::log::Chunk;
 
 /// The component of a `Scalars` time series.
 const SCALARS: &str = "Scalars:scalars";

@@ -79,19 +79,29 @@ fn a_recording_reads_back_with_every_documented_entity() {
     );
     // One frame in `image_every` carries its image and pinhole.
     let with_image = FRAMES.div_ceil(settings.image_every);
-    assert_eq!(summary.rows(&camera, "EncodedImage:blob"), with_image, "{shown}");
+    assert_eq!(
+        summary.rows(&camera, "EncodedImage:blob"),
+        with_image,
+        "{shown}"
+    );
     assert_eq!(
         summary.rows(&camera, "Pinhole:image_from_camera"),
         with_image,
         "{shown}"
     );
-    assert!(summary.rows(&paths::agent_trajectory(3), "LineStrips3D:strips") >= 1, "{shown}");
+    assert!(
+        summary.rows(&paths::agent_trajectory(3), "LineStrips3D:strips") >= 1,
+        "{shown}"
+    );
     assert_eq!(
         summary.rows(&paths::agent_keyframes(3), "Points3D:positions"),
         2,
         "{shown}"
     );
-    assert!(summary.rows(&paths::agent_map(3), "Points3D:positions") >= 1, "{shown}");
+    assert!(
+        summary.rows(&paths::agent_map(3), "Points3D:positions") >= 1,
+        "{shown}"
+    );
     assert_eq!(
         summary.rows(&paths::agent(3), "Transform3D:translation"),
         1,
@@ -153,11 +163,9 @@ fn a_sink_that_takes_nothing_never_blocks_the_caller_and_drops_are_counted() {
             max_bytes_in_flight: 256 * 1024,
             ..rerun::log::ChunkBatcherConfig::LOW_LATENCY
         })
-        .set_sinks(vec![
-            Box::new(BlockedSink {
-                release: release_rx,
-            }) as Box<dyn rerun::sink::LogSink>,
-        ])
+        .set_sinks(vec![Box::new(BlockedSink {
+            release: release_rx,
+        }) as Box<dyn rerun::sink::LogSink>])
         .unwrap();
     let settings = LiveViewSettings {
         queue_capacity: 4,

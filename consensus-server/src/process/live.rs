@@ -53,7 +53,10 @@ pub(super) fn show_closures(view: &LiveView, engine: &Engine) {
 }
 
 /// Every linked agent's keyframe positions in the world, after a solve.
-pub(super) fn show_solution(view: &LiveView, world_from_camera: &BTreeMap<KeyframeRef, Isometry3<f64>>) {
+pub(super) fn show_solution(
+    view: &LiveView,
+    world_from_camera: &BTreeMap<KeyframeRef, Isometry3<f64>>,
+) {
     if !view.is_enabled() {
         return;
     }
