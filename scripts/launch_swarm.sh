@@ -8,6 +8,7 @@
 #                           [--set KEY=VALUE]...
 #                           [--no-restart-consensus]
 #                           [--transport iceoryx2|zenoh] [--insecure-plain-tcp]
+#                           [--viewer [ADDR]] [--record DIR]
 #
 # With no arguments: the embedded synthetic scene, 3 agents (synthetic:agents=3,agent=K).
 # --agent repeats, one dataset (and frame range) per agent; agent K is the K-th --agent.
@@ -36,6 +37,12 @@
 # metrics.json then counts each agent's bytes on the network. The default, iceoryx2, runs
 # everything on this host's shared memory.
 # On a terminal, one line shows the progress: frames, keyframes, link state, closures.
+# --viewer [ADDR] streams every process to a rerun viewer (ADDR: HOST:PORT, default
+# 127.0.0.1:9876): when `rerun` is on PATH and nothing listens there yet, one is started; else the
+# processes connect to ADDR (a viewer started later still gets what they log from then on).
+# --record DIR writes DIR/consensus.rrd and DIR/agent_K.rrd (one per process; a restarted
+# consensus writes consensus-2.rrd, ...); `rerun DIR/*.rrd` opens them together. Every process
+# logs under one recording id, the run id. Neither ever slows the run (see the live_view crate).
 #
 # The AlexNet weights (global descriptor, LPIPS) are the cached ones scripts/setup.sh fetches
 # ($MAC_EGO3D_WEIGHTS, else ~/.cache/mac-ego3d/weights/lpips/alexnet.npz) unless
@@ -63,6 +70,8 @@ profile="${MAC_EGO3D_PROFILE:-release}"
 transport=iceoryx2
 insecure_plain_tcp=0
 # --- end transport ---
+viewer=""
+record=""
 
 # The header above, up to its first line that is not a comment.
 usage() { sed -n '2,/^[^#]/p' "$0" | sed -n 's/^# \{0,1\}//p'; }
@@ -81,6 +90,10 @@ while (($#)); do
     --no-restart-consensus) restart_consensus=0; shift ;;
     --transport) transport="$2"; shift 2 ;;
     --insecure-plain-tcp) insecure_plain_tcp=1; shift ;;
+    --viewer)
+      # The address is optional: the next argument is it unless it is another option.
+      if (($# > 1)) && [[ "$2" != --* ]]; then viewer="$2"; shift 2; else viewer=127.0.0.1:9876; shift; fi ;;
+    --record) record="$2"; shift 2 ;;
     -h | --help) usage; exit 0 ;;
     *) echo "[swarm] unknown argument: $1" >&2; usage >&2; exit 2 ;;
   esac
@@ -180,6 +193,36 @@ command -v setsid >/dev/null 2>&1 && detach=(setsid)
 namespace="mac$$"
 # The run's identity in the consensus store: a restarted consensus resumes this run only.
 run_id="$namespace-$(date +%s)"
+
+# The rerun live view: every process under one recording id, the run id.
+live_args=()
+if [[ -n "$viewer" ]]; then
+  viewer_host="${viewer%:*}"
+  viewer_port="${viewer##*:}"
+  if [[ "$viewer" != *://* ]] && ! (exec 3<>"/dev/tcp/$viewer_host/$viewer_port") 2>/dev/null; then
+    if command -v rerun >/dev/null 2>&1 && [[ "$viewer_host" == 127.0.0.1 || "$viewer_host" == localhost ]]; then
+      echo "[swarm] starting the rerun viewer (port $viewer_port; log $out/rerun.log)"
+      "${detach[@]}" rerun --port "$viewer_port" >"$out/rerun.log" 2>&1 &
+      for _ in $(seq 50); do
+        (exec 3<>"/dev/tcp/$viewer_host/$viewer_port") 2>/dev/null && break
+        sleep 0.2
+      done
+    else
+      echo "[swarm] no viewer listens at $viewer (and no \`rerun\` on PATH to start one): the processes connect to it and send once a viewer is there; what they cannot send in time is dropped"
+    fi
+  else
+    echo "[swarm] live view: connecting to the rerun viewer at $viewer"
+  fi
+  live_args+=(--viewer "$viewer")
+fi
+if [[ -n "$record" ]]; then
+  mkdir -p "$record"
+  # Recordings of an earlier run into this folder would open beside this run's.
+  rm -f "$record"/consensus*.rrd "$record"/agent_*.rrd
+  live_args+=(--record "$record")
+  echo "[swarm] recording the live view to $record/*.rrd (open with: rerun $record/*.rrd)"
+fi
+((${#live_args[@]} == 0)) || live_args+=(--recording-id "$run_id")
 # Restarts of a dead consensus at most (a consensus that cannot start fails fast each time).
 CONSENSUS_RESTARTS_MAX=10
 consensus_restarts=0
@@ -253,7 +296,7 @@ start_consensus() {
   local fresh=()
   ((consensus_restarts > 0)) || fresh=(--fresh)
   "${detach[@]}" "${consensus_host[@]}" "$bin/mac-consensus" --config "$run_config" --out "$out" --agents "$agents" \
-    --namespace "$namespace" --run-id "$run_id" "${fresh[@]}" --stop-agents "$STOP_WAIT_S" \
+    --namespace "$namespace" --run-id "$run_id" "${fresh[@]}" --stop-agents "$STOP_WAIT_S" "${live_args[@]}" \
     >>"$out/consensus.log" 2>&1 &
 }
 : >"$out/consensus.log"
@@ -278,7 +321,7 @@ for ((k = 0; k < agents; k++)); do
   fi
   agent_host_of "$k"
   "${detach[@]}" "${agent_host[@]}" "$bin/mac-agent" --config "$run_config" --dataset "$dataset" --frames "$range" --agent-id "$k" \
-    --namespace "$namespace" --out "$out/agent_$k" "${weight_args[@]}" "${schedule_args[@]}" \
+    --namespace "$namespace" --out "$out/agent_$k" "${weight_args[@]}" "${schedule_args[@]}" "${live_args[@]}" \
     >"$out/agent_$k.log" 2>&1 &
   pids+=($!)
   names+=("agent $k")

@@ -101,10 +101,86 @@ fn check(swarm: &SwarmRun, metrics: &serde_json::Value) {
     assert!(swarm.path().join("map.ply").exists());
 }
 
+/// The live view each process recorded (`--record`): one recording id for the swarm, every
+/// documented entity, one camera pose per frame the agent logged, and the closures the consensus
+/// accepted.
+fn check_recordings(swarm: &SwarmRun, dir: &std::path::Path) {
+    use live_view::{RrdSummary, paths};
+    let consensus = RrdSummary::read(&dir.join("consensus.rrd")).unwrap();
+    let shown = format!("{consensus:#?}");
+    assert_eq!(
+        consensus.recording_ids.iter().collect::<Vec<_>>(),
+        [&swarm.namespace],
+        "{shown}"
+    );
+    let accepted = swarm.consensus_report()["loop_closures_accepted"]
+        .as_u64()
+        .unwrap();
+    assert!(accepted >= 1, "the consensus accepted no closure");
+    assert!(
+        consensus.rows(paths::CONSENSUS_CLOSURES, "LineStrips3D:strips") >= 1,
+        "{shown}"
+    );
+    assert!(
+        consensus.scalar_max(paths::CONSENSUS_CLOSURES_ACCEPTED) >= Some(1.0),
+        "closures accepted but not shown: {shown}"
+    );
+    assert!(
+        consensus.scalar_max(paths::CONSENSUS_LATENCY_MS).is_some(),
+        "{shown}"
+    );
+    assert!(
+        consensus.rows(paths::CONSENSUS_MAP, "Points3D:positions") >= 1,
+        "{shown}"
+    );
+    for k in 0..2u32 {
+        assert!(
+            consensus.rows(&paths::consensus_trajectory(k), "LineStrips3D:strips") >= 1,
+            "agent {k}: {shown}"
+        );
+        let agent = RrdSummary::read(&dir.join(format!("agent_{k}.rrd"))).unwrap();
+        let shown = format!("{agent:#?}");
+        assert_eq!(agent.recording_ids, consensus.recording_ids, "{shown}");
+        let metrics: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(swarm.path().join(format!("agent_{k}/metrics.json"))).unwrap(),
+        )
+        .unwrap();
+        let stats = &metrics["live_view"];
+        assert_eq!(stats["finished"], true, "agent {k}: {stats}");
+        let logged = stats["frames_queued"].as_u64().unwrap() as usize;
+        let dropped = stats["frames_dropped"].as_u64().unwrap() as usize;
+        assert_eq!(logged + dropped, FRAMES, "agent {k}: {stats}");
+        assert_eq!(
+            agent.rows(&paths::agent_camera(k), "Transform3D:translation"),
+            logged,
+            "agent {k}: one camera pose per frame logged: {shown}"
+        );
+        for (entity, component) in [
+            (paths::agent_camera(k), "Pinhole:image_from_camera"),
+            (paths::agent_camera(k), "EncodedImage:blob"),
+            (paths::agent_trajectory(k), "LineStrips3D:strips"),
+            (paths::agent_keyframes(k), "Points3D:positions"),
+            (paths::agent_map(k), "Points3D:positions"),
+        ] {
+            assert!(
+                agent.rows(&entity, component) >= 1,
+                "agent {k}: {entity} {component}: {shown}"
+            );
+        }
+    }
+    // Agent 1 was placed in the world (`check`): its frame's transform was logged.
+    let agent_1 = RrdSummary::read(&dir.join("agent_1.rrd")).unwrap();
+    assert!(agent_1.rows(&paths::agent(1), "Transform3D:translation") >= 1);
+}
+
 #[test]
 fn real_data_swarm_of_two_agent_processes_agrees_on_one_sharp_world() {
-    let swarm = swarm("a");
+    let mut swarm = swarm("a");
+    // The live view's recordings ride along on this run (a run of their own would double its
+    // minutes in CI).
+    let recordings = swarm.record_live_view();
     swarm.run_to_end();
+    check_recordings(&swarm, &recordings);
     let metrics = swarm.evaluate(RENDER_EVERY);
     eprintln!(
         "joint ATE {:?} m, PSNR {:?} dB, SSIM {:?}, depth L1 {:?} cm, inter-agent closures {:?}, \

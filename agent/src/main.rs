@@ -14,6 +14,10 @@
 //!
 //! `--pace` overrides `mapping.pace` (sensor, paced, unthrottled).
 //!
+//! `--viewer [ADDR]` streams the agent's camera, trajectory, keyframes and map to a rerun viewer,
+//! `--record DIR` writes them to DIR/agent_K.rrd, under `--recording-id` (default: the
+//! namespace); see the `live_view` crate.
+//!
 //! DIR/progress.json tells how far the run is (for the swarm launcher's progress line).
 
 use std::path::PathBuf;
@@ -94,6 +98,8 @@ struct Args {
     /// windows, and exit.
     #[arg(long, value_name = "AGENTS", requires = "link_schedule")]
     check_link_schedule: Option<u32>,
+    #[command(flatten)]
+    live_view: live_view::LiveViewArgs,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -156,6 +162,9 @@ fn main() -> anyhow::Result<()> {
         comparison_renders: args.renders,
         lpips_weights,
         decode_workers: args.decode_workers,
+        live_view: args
+            .live_view
+            .open(&format!("agent_{}", args.agent_id), &args.namespace)?,
     };
     // Before joining the swarm: an agent that could not write its outputs should not announce
     // itself to the consensus.

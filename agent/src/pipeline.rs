@@ -10,6 +10,7 @@ use std::time::Instant;
 
 use config::Config;
 use datasets::Frame;
+use live_view::LiveView;
 use nalgebra::Isometry3;
 use registration::config::TrackingKeyframeSeeds;
 use registration::odometry::{Odometry, OdometryMode, TrackedFrame, TrackingOutcome};
@@ -87,6 +88,10 @@ pub struct AgentPipeline<'a> {
     frames_since_tracking_keyframe: usize,
     poses: Vec<TrackedPose>,
     tracking_ms: Vec<f64>,
+    agent_id: u32,
+    /// Frames, keyframes, seeded points and placements for the rerun viewer (off the hot path:
+    /// each call only queues, or drops when the queue is full).
+    live_view: LiveView,
 }
 
 impl<'a> AgentPipeline<'a> {
@@ -95,6 +100,8 @@ impl<'a> AgentPipeline<'a> {
         dataset_spec: &'a str,
         swarm: Option<SwarmLink>,
         frames_expected: usize,
+        agent_id: u32,
+        live_view: LiveView,
     ) -> anyhow::Result<Self> {
         use anyhow::Context;
         Ok(Self {
@@ -114,6 +121,8 @@ impl<'a> AgentPipeline<'a> {
             frames_since_tracking_keyframe: 0,
             poses: Vec::with_capacity(frames_expected),
             tracking_ms: Vec::with_capacity(frames_expected),
+            agent_id,
+            live_view,
         })
     }
 
@@ -245,6 +254,10 @@ impl<'a> AgentPipeline<'a> {
         decision: KeyframeDecision,
         seeds: GaussianCloud,
     ) {
+        self.live_view
+            .keyframe(self.agent_id, &tracked.local.world_from_camera);
+        self.live_view
+            .map_points(self.agent_id, &seeds.means, &seeds.colours, false);
         match decision.kind {
             KeyframeKind::Tracking => self.keyframes.tracking += 1,
             KeyframeKind::Mapping => self.keyframes.mapping += 1,
@@ -283,6 +296,10 @@ impl<'a> AgentPipeline<'a> {
                 mapper: &self.mapper,
             },
         );
+        // The local-map frame (where the live view shows the agent) is the world frame seen
+        // from the agent's frame: the agent's placement puts it in the world.
+        self.live_view
+            .agent_placement(self.agent_id, &correction.world_from_agent);
     }
 
     /// Keeps the frame's pose and its time in the loop (started at `clock`).
@@ -294,6 +311,13 @@ impl<'a> AgentPipeline<'a> {
             world_from_camera: tracked.world_from_camera,
             ground_truth: item.frame.world_from_camera_gt,
         });
+        self.live_view.frame(
+            self.agent_id,
+            item.frame.index,
+            &tracked.local.world_from_camera,
+            &item.frame.intrinsics,
+            &item.frame.rgb,
+        );
     }
 
     /// The next keyframe's id: keyframes are numbered in the order they are made.

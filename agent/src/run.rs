@@ -20,6 +20,7 @@ use config::{Config, Pace};
 use datasets::{self, Dataset, FrameRange};
 use geometry::trajectory::Trajectory;
 use indicatif::{ProgressBar, ProgressStyle};
+use live_view::{LiveView, LiveViewStats};
 use metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate};
 use metrics::stats::{median, quantile};
 use nalgebra::Isometry3;
@@ -58,6 +59,8 @@ pub struct AgentOptions {
     pub comparison_renders: usize,
     pub lpips_weights: Option<PathBuf>,
     pub decode_workers: usize,
+    /// The rerun live view ([`LiveView::disabled`] unless `--viewer` or `--record`).
+    pub live_view: LiveView,
 }
 
 impl AgentOptions {
@@ -140,6 +143,10 @@ pub struct AgentMetrics {
     /// Swarm mode only: the consensus corrections applied to the local maps.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub local_corrections: Option<LocalCorrectionStats>,
+    /// With `--viewer` or `--record`: what the live view queued and dropped (a full queue drops
+    /// visualisation, never slows the agent).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub live_view: Option<LiveViewStats>,
 }
 
 /// Runs one agent without a consensus process and writes its outputs to `options.out`.
@@ -174,7 +181,14 @@ pub fn run_agent(
     let in_swarm = swarm.is_some();
     let started = Instant::now();
     let mut source = FrameSource::new(dataset.clone(), options.decode_workers.max(1), config.noise);
-    let mut agent = AgentPipeline::new(config, &options.dataset, swarm, dataset.len())?;
+    let mut agent = AgentPipeline::new(
+        config,
+        &options.dataset,
+        swarm,
+        dataset.len(),
+        options.agent_id,
+        options.live_view.clone(),
+    )?;
     let progress = progress_bar(dataset.len());
     let mut progress_file = ProgressFile::new(&options.out);
     let frames_total = Some(dataset.len());
@@ -232,6 +246,7 @@ pub fn run_agent(
         options.refine_iterations
     };
     let outcome = mapper.finish(refine_iterations)?;
+    let live_view = finish_live_view(options, &outcome.realtime_map);
 
     // Outputs that need no rendering first: an interrupted evaluation still leaves these.
     let trajectory = write_trajectories(&run.poses, &options.out)?;
@@ -259,6 +274,7 @@ pub fn run_agent(
         refined,
         swarm: swarm_summary,
         in_swarm,
+        live_view,
     });
     let metrics_path = options.out.join("metrics.json");
     let json = serde_json::to_string_pretty(&metrics)?;
@@ -342,6 +358,7 @@ struct RunRecord<'r> {
     refined: Option<MapMetrics>,
     swarm: Option<SwarmSummary>,
     in_swarm: bool,
+    live_view: Option<LiveViewStats>,
 }
 
 fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
@@ -396,7 +413,23 @@ fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
         refined: record.refined,
         swarm: record.swarm,
         local_corrections: record.in_swarm.then(|| run.corrections.stats().clone()),
+        live_view: record.live_view,
     }
+}
+
+/// Shows the final map in the live view, then lets the view log what it holds (at most its
+/// finish timeout); what it took and dropped.
+fn finish_live_view(options: &AgentOptions, map: &GaussianCloud) -> Option<LiveViewStats> {
+    let view = &options.live_view;
+    view.map_points(options.agent_id, &map.means, &map.colours, true);
+    let stats = view.finish()?;
+    tracing::info!(
+        items_queued = stats.items_queued,
+        items_dropped = stats.items_dropped,
+        frames_dropped = stats.frames_dropped,
+        "live view finished"
+    );
+    Some(stats)
 }
 
 /// trajectory.tum (the estimate, in the tracked frame) and, when the dataset has ground

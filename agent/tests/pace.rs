@@ -36,6 +36,7 @@ fn run(config: Config, out: &Path) -> AgentMetrics {
         comparison_renders: 0,
         lpips_weights: None,
         decode_workers: 1,
+        live_view: live_view::LiveView::disabled(),
     };
     run_standalone(&options, &AtomicBool::new(false)).unwrap()
 }
@@ -124,6 +125,7 @@ fn real_data_paced_redkitchen_map_reaches_its_measured_quality() {
         comparison_renders: 0,
         lpips_weights: None,
         decode_workers: 2,
+        live_view: live_view::LiveView::disabled(),
     };
     let metrics = run_standalone(&options, &AtomicBool::new(false)).unwrap();
     let (psnr, ate) = (metrics.psnr.unwrap(), metrics.ate_rmse_m.unwrap());

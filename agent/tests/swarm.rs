@@ -67,6 +67,7 @@ fn spawn_consensus(
         stop_agents_wait: None,
         run_id: None,
         fresh: false,
+        live_view: live_view::LiveView::disabled(),
     };
     std::thread::spawn(move || run(&options, &stop))
 }
@@ -311,6 +312,7 @@ fn a_stopping_consensus_stops_its_agents_and_keeps_their_final_maps() {
         stop_agents_wait: Some(RUN_TIMEOUT),
         run_id: None,
         fresh: false,
+        live_view: live_view::LiveView::disabled(),
     };
     let consensus = {
         let stop = stop.clone();

@@ -15,6 +15,10 @@
 //! the running agents it is back and which of their keyframes it holds, and they publish again
 //! what they still hold of the rest. A store of another run is refused; `--fresh` moves it aside
 //! (DIR/consensus.redb.replaced) and starts over.
+//!
+//! `--viewer [ADDR]` streams closures, corrected trajectories, the merged map and the figures to
+//! a rerun viewer, `--record DIR` writes them to DIR/consensus.rrd, under `--recording-id`
+//! (default: the run id); see the `live_view` crate.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -62,6 +66,8 @@ struct Args {
     /// DIR/consensus.redb.replaced.
     #[arg(long)]
     fresh: bool,
+    #[command(flatten)]
+    live_view: live_view::LiveViewArgs,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -85,6 +91,10 @@ fn main() -> anyhow::Result<()> {
             .transpose()?,
         run_id: args.run_id.clone(),
         fresh: args.fresh,
+        live_view: args.live_view.open(
+            "consensus",
+            args.run_id.as_deref().unwrap_or(&args.namespace),
+        )?,
     };
     let stop = config::process::stop_on_termination_signals()?;
     let snapshot = Arc::new(AtomicBool::new(false));

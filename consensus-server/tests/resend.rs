@@ -34,6 +34,7 @@ fn an_incomplete_keyframe_is_asked_for_again_and_completed() {
         stop_agents_wait: None,
         run_id: None,
         fresh: false,
+        live_view: live_view::LiveView::disabled(),
     };
     let stop = Arc::new(AtomicBool::new(false));
     let consensus = {

@@ -59,6 +59,7 @@ fn a_restart_on_other_frames_is_ignored_whole() {
         stop_agents_wait: None,
         run_id: None,
         fresh: false,
+        live_view: live_view::LiveView::disabled(),
     };
     let stop = Arc::new(AtomicBool::new(false));
     let consensus = {

@@ -25,6 +25,7 @@ fn a_snapshot_is_written_on_request_and_the_run_goes_on() {
         stop_agents_wait: None,
         run_id: None,
         fresh: false,
+        live_view: live_view::LiveView::disabled(),
     };
     let stop = Arc::new(AtomicBool::new(false));
     let snapshot = Arc::new(AtomicBool::new(false));

@@ -56,6 +56,8 @@ pub struct SwarmRun {
     pub config: PathBuf,
     pub namespace: String,
     pub agents: Vec<AgentSpec>,
+    /// Options every process gets (the live view's `--record DIR`, ...).
+    pub extra_args: Vec<std::ffi::OsString>,
 }
 
 impl SwarmRun {
@@ -70,11 +72,25 @@ impl SwarmRun {
             dir,
             config: written,
             agents,
+            extra_args: Vec::new(),
         }
     }
 
     pub fn path(&self) -> &Path {
         self.dir.path()
+    }
+
+    /// Every process records its live view to `rrd/` of the run folder, under the namespace as
+    /// recording id; the folder.
+    pub fn record_live_view(&mut self) -> PathBuf {
+        let dir = self.path().join("rrd");
+        self.extra_args.extend([
+            "--record".into(),
+            dir.clone().into_os_string(),
+            "--recording-id".into(),
+            self.namespace.clone().into(),
+        ]);
+        dir
     }
 
     pub fn log(&self, name: &str) -> std::fs::File {
@@ -107,6 +123,7 @@ impl SwarmRun {
             .arg(self.path())
             .args(["--agents", &self.agents.len().to_string()])
             .args(["--namespace", &self.namespace])
+            .args(&self.extra_args)
             .stderr(self.log(log))
             .spawn()
             .expect("starting mac-consensus")
@@ -123,6 +140,7 @@ impl SwarmRun {
             .args(["--eval-every", "50", "--renders", "0"])
             .arg("--out")
             .arg(self.path().join(format!("agent_{agent_id}")))
+            .args(&self.extra_args)
             .stderr(self.log(log))
             .spawn()
             .expect("starting mac-agent")

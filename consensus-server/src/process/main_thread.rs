@@ -176,7 +176,9 @@ impl Listener {
         let mut interrupted = false;
         // When the agents were asked to stop (with `stop_agents_wait`).
         let mut agents_asked_to_stop: Option<Instant> = None;
+        let mut bandwidth = super::live::BandwidthProbe::new();
         loop {
+            bandwidth.sample(&options.live_view, &self.link);
             if stop.load(Ordering::Relaxed) {
                 interrupted = true;
                 if !self.waits_for_agents(options.stop_agents_wait, &mut agents_asked_to_stop) {

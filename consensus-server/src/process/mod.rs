@@ -18,8 +18,10 @@
 //! queued candidate, or on SIGINT/SIGTERM (the stop flag); either way every output is written.
 //!
 //! Files: `main_thread.rs` (transport, routing, corrections), `worker.rs` (engine, aligner,
-//! progress), `outputs.rs` (consensus.json, map, trajectories, the final refinement).
+//! progress), `outputs.rs` (consensus.json, map, trajectories, the final refinement), `live.rs`
+//! (what the rerun live view shows).
 
+mod live;
 mod main_thread;
 mod outputs;
 mod worker;
@@ -30,6 +32,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use config::Config;
+use live_view::LiveView;
 use protocol::transport::{ConsumerLink, TransportConfig};
 
 use crate::store::{Opened, RunIdentity, Store};
@@ -60,6 +63,8 @@ pub struct ConsensusOptions {
     pub run_id: Option<String>,
     /// Start over: an existing store is moved aside instead of resumed or refused.
     pub fresh: bool,
+    /// The rerun live view ([`LiveView::disabled`] unless `--viewer` or `--record`).
+    pub live_view: LiveView,
 }
 
 /// Runs the consensus until the expected agents are done or `stop` is raised.
@@ -126,5 +131,12 @@ pub fn run_with_snapshots(
         },
     )?;
     write_progress(&options.out, &engine, ProgressStage::Done);
+    if let Some(stats) = options.live_view.finish() {
+        tracing::info!(
+            items_queued = stats.items_queued,
+            items_dropped = stats.items_dropped,
+            "live view finished"
+        );
+    }
     Ok(report)
 }

@@ -172,6 +172,17 @@ pub(super) fn refine_world_map(
     }
     match refinement::refine(problem, &consensus) {
         Ok(outcome) => {
+            // The loss stays on the device; the refined views' PSNR before and after is what
+            // the refinement reads back.
+            let report = &outcome.report;
+            for psnr in [report.psnr_views_before, report.psnr_views_after]
+                .into_iter()
+                .flatten()
+            {
+                options
+                    .live_view
+                    .scalar(live_view::paths::CONSENSUS_REFINEMENT_PSNR_DB, psnr);
+            }
             if consensus.refinement.refine_poses {
                 engine.apply_refined_poses(&outcome.world_from_camera);
             }
@@ -214,6 +225,7 @@ pub(super) fn write_outputs(
     let map_path = out.join("map.ply");
     render_core::ply::save_ply(&map_path, &map)
         .with_context(|| format!("writing {}", map_path.display()))?;
+    options.live_view.merged_map(&map.means, &map.colours);
     write_world_trajectories(out, engine, &agents)?;
     let events = engine.events().to_vec();
     let (injected, real): (Vec<&ClosureEvent>, Vec<&ClosureEvent>) = events

@@ -178,6 +178,7 @@ impl Worker {
                     Ok(done) => {
                         in_flight = false;
                         self.decide(done);
+                        super::live::show_closures(&self.options.live_view, &self.engine);
                     }
                     Err(_) => break,
                 },
@@ -272,10 +273,15 @@ impl Worker {
                 .collect(),
             world_from_camera: solution.world_from_camera.clone(),
         };
+        super::live::show_solution(&self.options.live_view, &update.world_from_camera);
         self.waiting.retain(|id, at| {
             if update.world_from_camera.contains_key(id) {
+                let latency_ms = at.elapsed().as_secs_f64() * 1e3;
+                self.options
+                    .live_view
+                    .scalar(live_view::paths::CONSENSUS_LATENCY_MS, latency_ms);
                 // The main thread may be gone at shutdown; the figure is then not needed.
-                let _ = latencies.send(at.elapsed().as_secs_f64() * 1e3);
+                let _ = latencies.send(latency_ms);
                 false
             } else {
                 true
