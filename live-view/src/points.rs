@@ -70,7 +70,7 @@ impl BoundedPoints {
     }
 
     fn halve(&mut self) {
-        let keep = |i: &usize| i % 2 == 0;
+        let keep = |i: &usize| i.is_multiple_of(2);
         let positions = std::mem::take(&mut self.points.positions);
         let colours = std::mem::take(&mut self.points.colours);
         self.points.positions = positions
