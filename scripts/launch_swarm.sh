@@ -48,6 +48,9 @@
 # ($MAC_EGO3D_WEIGHTS, else ~/.cache/mac-ego3d/weights/lpips/alexnet.npz) unless
 # --descriptor-weights names a file; without any, the agents use the classical descriptor.
 #
+# Binaries: CARGO_TARGET_DIR (default target)/MAC_EGO3D_PROFILE (default release), built first
+# (MAC_EGO3D_BUILD_AS_TESTS=1: as `cargo test --workspace` builds them; for test harnesses).
+#
 # Output (DIR, default out/swarm): agent_K/ (each agent's own outputs, its frame), agent_K.tum
 # (world frame), map.ply (merged world map), consensus.json, metrics.json, report.html, *.log.
 set -euo pipefail
@@ -129,21 +132,40 @@ bash scripts/setup.sh
 bin="${CARGO_TARGET_DIR:-target}/$profile"
 build_args=(-p mac-agent -p mac-consensus -p mac-ego3d --bins)
 [[ "$profile" == release ]] && build_args+=(--release)
-if [[ -x "$bin/mac-agent" && -x "$bin/mac-consensus" && -x "$bin/mac-ego3d" ]]; then
-  echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; up to date unless the sources changed)" >&2
+# Started from inside `cargo test`, this script inherits the variables cargo sets for a test
+# (CARGO_MANIFEST_DIR, CARGO_PKG_*, ...); a build script that watches one (ring's watches
+# CARGO_MANIFEST_DIR) would make the build below rebuild it and everything above it.
+for var in $(compgen -e); do
+  case "$var" in
+    CARGO_MANIFEST_* | CARGO_PKG_* | CARGO_CRATE_NAME | CARGO_BIN_* | CARGO_PRIMARY_PACKAGE | \
+      CARGO_TARGET_TMPDIR | CARGO_RUSTC_CURRENT_DIR | OUT_DIR) unset "$var" ;;
+  esac
+done
+# MAC_EGO3D_BUILD_AS_TESTS=1: build as `cargo test --workspace` does (every binary, the whole
+# workspace's features), which is nothing to do right after it: test harnesses set it. `cargo
+# build -p ...` alone resolves the features of shared dependencies for those packages only, which
+# differ from the whole workspace's, and would rebuild most of the dependency tree (minutes).
+if [[ "${MAC_EGO3D_BUILD_AS_TESTS:-}" == 1 ]]; then
+  test_build_args=(--workspace --no-run --quiet)
+  [[ "$profile" == release ]] && test_build_args+=(--release)
+  cargo test "${test_build_args[@]}"
 else
-  echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; the first build takes several minutes, progress below)" >&2
+  if [[ -x "$bin/mac-agent" && -x "$bin/mac-consensus" && -x "$bin/mac-ego3d" ]]; then
+    echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; up to date unless the sources changed)" >&2
+  else
+    echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; the first build takes several minutes, progress below)" >&2
+  fi
+  cargo build "${build_args[@]}"
+  # --- transport (cross-host bridge) ---
+  # Built on its own: in one invocation with the others, cargo would unify the features of their
+  # shared dependencies with zenoh's and rebuild them all.
+  if [[ "$transport" == zenoh ]]; then
+    bridge_args=(-p mac-bridge)
+    [[ "$profile" == release ]] && bridge_args+=(--release)
+    cargo build "${bridge_args[@]}"
+  fi
+  # --- end transport ---
 fi
-cargo build "${build_args[@]}"
-# --- transport (cross-host bridge) ---
-# Built on its own: in one invocation with the others, cargo would unify the features of their
-# shared dependencies with zenoh's and rebuild them all.
-if [[ "$transport" == zenoh ]]; then
-  bridge_args=(-p mac-bridge)
-  [[ "$profile" == release ]] && bridge_args+=(--release)
-  cargo build "${bridge_args[@]}"
-fi
-# --- end transport ---
 
 # Per-run config: the given one, with T_comm and noise overridden when asked, resolved and
 # validated by mac-ego3d (every key listed, so the run folder says exactly what ran).

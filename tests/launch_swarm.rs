@@ -69,6 +69,8 @@ fn ctrl_c_to_the_whole_process_group_leaves_every_agents_outputs_and_the_world_o
         .arg("--out")
         .arg(out.path())
         .env("MAC_EGO3D_PROFILE", profile)
+        // Built as cargo test just built them: nothing to rebuild with other features.
+        .env("MAC_EGO3D_BUILD_AS_TESTS", "1")
         .env("CARGO_TARGET_DIR", target_dir())
         .env("XDG_RUNTIME_DIR", runtime.path())
         // As a terminal's foreground job: its own process group, SIGINT at its default action.
@@ -190,6 +192,8 @@ fn a_killed_consensus_is_restarted_and_the_run_ends_complete() {
         .arg("--out")
         .arg(out.path())
         .env("MAC_EGO3D_PROFILE", profile)
+        // Built as cargo test just built them: nothing to rebuild with other features.
+        .env("MAC_EGO3D_BUILD_AS_TESTS", "1")
         .env("CARGO_TARGET_DIR", target_dir())
         .env("XDG_RUNTIME_DIR", runtime.path())
         .process_group(0)
@@ -303,6 +307,8 @@ fn a_wrong_set_override_is_refused_before_anything_starts() {
         .arg("--out")
         .arg(out.path())
         .env("MAC_EGO3D_PROFILE", profile)
+        // Built as cargo test just built them: nothing to rebuild with other features.
+        .env("MAC_EGO3D_BUILD_AS_TESTS", "1")
         .env("CARGO_TARGET_DIR", target_dir())
         .output()
         .unwrap();
