@@ -344,6 +344,7 @@ fn run_recorder(
             failures += 1;
         }
     };
+    log(recorder.log_world_axes());
     for message in &items {
         match message {
             Message::Item(item) => log(recorder.log(item)),

@@ -106,6 +106,13 @@ impl Recorder {
         &self.stream
     }
 
+    /// The world frame is the first camera frame of agent 0 (x right, y down, z forward, as every
+    /// camera here): said once, so that the viewer shows the floor below and not above.
+    pub fn log_world_axes(&self) -> rerun::RecordingStreamResult<()> {
+        self.stream
+            .log_static(paths::WORLD, &rerun::ViewCoordinates::RDF())
+    }
+
     pub fn log(&mut self, item: Item) -> rerun::RecordingStreamResult<()> {
         match item {
             Item::Frame(frame) => self.frame(*frame),

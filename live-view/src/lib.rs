@@ -21,6 +21,7 @@
 //!
 //! | entity | logged by | holds |
 //! |---|---|---|
+//! | `world` | every process | ViewCoordinates (static): x right, y down, z forward (agent 0's first camera frame is the world frame) |
 //! | `world/agent_K` | agent K | Transform3D: `world_from_agent`, after each correction |
 //! | `world/agent_K/camera` | agent K | Transform3D (camera pose), Pinhole and the colour Image, per frame (timeline `frame`) |
 //! | `world/agent_K/trajectory` | agent K | LineStrips3D: the tracked path so far |

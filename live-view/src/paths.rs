@@ -1,6 +1,9 @@
 //! The entity paths of the live view, defined once (the crate documentation lists what each
 //! holds).
 
+/// The world frame: every agent and the consensus log under it.
+pub const WORLD: &str = "world";
+
 /// Agent `K`'s frame: its transform is `world_from_agent`.
 pub fn agent(agent_id: u32) -> String {
     format!("world/agent_{agent_id}")

@@ -127,6 +127,12 @@ fn a_recording_reads_back_with_every_documented_entity() {
         Some(4.0),
         "{shown}"
     );
+    // The world frame's axes (camera convention: y down), said once.
+    assert_eq!(
+        summary.rows(paths::WORLD, "ViewCoordinates:xyz"),
+        1,
+        "{shown}"
+    );
     // The map shown is bounded.
     assert!(
         summary.max_instances(&paths::agent_map(3), "Points3D:positions")
