@@ -36,7 +36,7 @@ use zenoh::{Session, Wait};
 use crate::delivery::{Acknowledgement, UNACKNOWLEDGED_LIMIT_BYTES, Unacknowledged};
 use crate::keys::{DELIVERED, GOODBYE_SEEN, SwarmKeys, topic_named};
 use crate::network::{CONGESTION_CONTROL, PRIORITY};
-use crate::report::{NetworkTraffic, topic_label};
+use crate::report::{SharedTraffic, topic_label};
 
 /// How often the loops look at the stop flag while nothing arrives.
 const STOP_CHECK: Duration = Duration::from_millis(100);
@@ -52,6 +52,8 @@ pub struct BridgeContext {
     pub keys: SwarmKeys,
     pub transport: TransportConfig,
     pub stop: Arc<AtomicBool>,
+    /// What crossed the network, per agent (the report).
+    pub traffic: SharedTraffic,
 }
 
 impl BridgeContext {
@@ -76,10 +78,7 @@ enum AgentHostInbound {
 }
 
 /// Runs the bridge of a host whose agents are `local_agents` until `stop`.
-pub async fn run_agent_host(
-    context: BridgeContext,
-    local_agents: Vec<u32>,
-) -> Result<NetworkTraffic> {
+pub async fn run_agent_host(context: BridgeContext, local_agents: Vec<u32>) -> Result<()> {
     let (inbound_tx, inbound_rx) = crossbeam_channel::bounded(INBOUND_QUEUE);
     let (acks_tx, acks_rx) = crossbeam_channel::unbounded();
     let ingress = spawn("ingress", &context.stop, {
@@ -162,18 +161,17 @@ pub async fn run_agent_host(
     drop(inbound_tx);
     context.until_stopped().await;
     drop(subscribers);
-    let mut traffic = join(egress)?;
-    traffic.merge(join(ingress)?);
-    Ok(traffic)
+    join(egress)?;
+    join(ingress)
 }
 
 fn agent_host_ingress(
     context: &BridgeContext,
     local_agents: &[u32],
     inbound: &Receiver<AgentHostInbound>,
-) -> Result<NetworkTraffic> {
+) -> Result<()> {
     let mut ingress = AgentHostIngress::open(&context.transport, local_agents)?;
-    let mut traffic = NetworkTraffic::default();
+    let traffic = &context.traffic;
     while !context.stopping() {
         let item = match inbound.recv_timeout(STOP_CHECK) {
             Ok(item) => item,
@@ -199,7 +197,7 @@ fn agent_host_ingress(
             AgentHostInbound::ConsumersAttached => ingress.announce_attached(),
         }
     }
-    Ok(traffic)
+    Ok(())
 }
 
 /// What the egress thread of an agent host hears from the zenoh side.
@@ -215,9 +213,9 @@ fn agent_host_egress(
     context: &BridgeContext,
     local_agents: &[u32],
     links: &EgressLinks,
-) -> Result<NetworkTraffic> {
+) -> Result<()> {
     let mut publishers = Publishers::new(context);
-    let mut traffic = NetworkTraffic::default();
+    let traffic = &context.traffic;
     let mut unacknowledged = Unacknowledged::default();
     let mut attached: Option<AgentHostEgress> = None;
     while !context.stopping() {
@@ -280,11 +278,11 @@ fn agent_host_egress(
         publishers.put(&key, message.bytes.clone())?;
         unacknowledged.push(message);
     }
-    Ok(traffic)
+    Ok(())
 }
 
 /// Runs the bridge of the host that runs the consumers until `stop`.
-pub async fn run_consumer_host(context: BridgeContext) -> Result<NetworkTraffic> {
+pub async fn run_consumer_host(context: BridgeContext) -> Result<()> {
     // Unbounded, so that zenoh's receive path never waits on a slow local consumer: a receive
     // path that waits stalls the link, and zenoh closes a link whose blocked sends wait longer
     // than `wait_before_close`. The agent hosts' unacknowledged window
@@ -343,19 +341,18 @@ pub async fn run_consumer_host(context: BridgeContext) -> Result<NetworkTraffic>
     tracing::info!("consumers attached: announced to agent hosts");
     context.until_stopped().await;
     drop(subscribers);
-    let mut traffic = join(ingress)?;
-    traffic.merge(join(egress)?);
-    Ok(traffic)
+    join(ingress)?;
+    join(egress)
 }
 
 fn consumer_host_ingress(
     context: &BridgeContext,
     inbound: &Receiver<RelayedMessage>,
     attached: &Sender<()>,
-) -> Result<NetworkTraffic> {
+) -> Result<()> {
     let mut ingress = ConsumerHostIngress::open(&context.transport)?;
     let mut acknowledgements = Publishers::new(context);
-    let mut traffic = NetworkTraffic::default();
+    let traffic = &context.traffic;
     let mut announced = false;
     while !context.stopping() {
         if !announced && ingress.consumers_attached() {
@@ -382,13 +379,13 @@ fn consumer_host_ingress(
                 "could not hand a relayed message to the consumers"),
         }
     }
-    Ok(traffic)
+    Ok(())
 }
 
-fn consumer_host_egress(context: &BridgeContext) -> Result<NetworkTraffic> {
+fn consumer_host_egress(context: &BridgeContext) -> Result<()> {
     let mut egress = ConsumerHostEgress::open(&context.transport)?;
     let mut publishers = Publishers::new(context);
-    let mut traffic = NetworkTraffic::default();
+    let traffic = &context.traffic;
     while !context.stopping() {
         match egress.recv_timeout(STOP_CHECK)? {
             None => {}
@@ -407,7 +404,7 @@ fn consumer_host_egress(context: &BridgeContext) -> Result<NetworkTraffic> {
             }
         }
     }
-    Ok(traffic)
+    Ok(())
 }
 
 /// One declared zenoh publisher per key, made at its first message.
@@ -466,8 +463,8 @@ async fn declare_tokens(
 fn spawn(
     name: &str,
     stop: &Arc<AtomicBool>,
-    work: impl FnOnce() -> Result<NetworkTraffic> + Send + 'static,
-) -> Result<JoinHandle<Result<NetworkTraffic>>> {
+    work: impl FnOnce() -> Result<()> + Send + 'static,
+) -> Result<JoinHandle<Result<()>>> {
     let stop = Arc::clone(stop);
     let thread = format!("bridge-{name}");
     std::thread::Builder::new()
@@ -483,7 +480,7 @@ fn spawn(
         .with_context(|| format!("starting the {name} thread"))
 }
 
-fn join(handle: JoinHandle<Result<NetworkTraffic>>) -> Result<NetworkTraffic> {
+fn join(handle: JoinHandle<Result<()>>) -> Result<()> {
     handle
         .join()
         .map_err(|_| anyhow!("a bridge thread panicked"))?

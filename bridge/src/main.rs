@@ -16,8 +16,8 @@ mod report;
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
-use std::time::Instant;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
@@ -28,6 +28,10 @@ use crate::certs::{HostFiles, HostSpec};
 use crate::hosts::{BridgeContext, run_agent_host, run_consumer_host};
 use crate::keys::SwarmKeys;
 use crate::network::{Endpoints, LinkSecurity};
+use crate::report::{ReportWriter, SharedTraffic};
+
+/// How often a running bridge rewrites its traffic report.
+const REPORT_EVERY: Duration = Duration::from_secs(2);
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum Role {
@@ -198,15 +202,42 @@ async fn run(cli: BridgeArgs, role: Role, stop: Arc<AtomicBool>) -> Result<()> {
         session: session.clone(),
         keys: SwarmKeys::new(&cli.namespace),
         transport: transport_config(&cli)?,
-        stop,
+        stop: Arc::clone(&stop),
+        traffic: SharedTraffic::default(),
+    };
+    let role_name = match role {
+        Role::Agents => "agents",
+        Role::Consumers => "consumers",
     };
     let start = Instant::now();
-    let (role, traffic) = match role {
-        Role::Agents => ("agents", run_agent_host(context, cli.local_agents).await?),
-        Role::Consumers => ("consumers", run_consumer_host(context).await?),
-    };
-    if let Some(path) = &cli.report {
-        report::write(path, role, start.elapsed().as_secs_f64(), &traffic)?;
+    let report = cli
+        .report
+        .as_deref()
+        .map(|path| ReportWriter::new(path, &cli.namespace, role_name));
+    // Written every few seconds as well as at the end: a bridge killed mid-run leaves its counts.
+    let periodic = report.clone().map(|writer| {
+        let traffic = context.traffic.clone();
+        let stop = Arc::clone(&stop);
+        tokio::spawn(async move {
+            while !stop.load(Ordering::Relaxed) {
+                tokio::time::sleep(REPORT_EVERY).await;
+                if let Err(error) = writer.write(start.elapsed().as_secs_f64(), &traffic.snapshot())
+                {
+                    tracing::warn!(error = %format!("{error:#}"), "bridge report not written");
+                }
+            }
+        })
+    });
+    let traffic = context.traffic.clone();
+    match role {
+        Role::Agents => run_agent_host(context, cli.local_agents).await?,
+        Role::Consumers => run_consumer_host(context).await?,
+    }
+    if let Some(periodic) = periodic {
+        periodic.abort();
+    }
+    if let Some(writer) = &report {
+        writer.write(start.elapsed().as_secs_f64(), &traffic.snapshot())?;
     }
     session
         .close()
