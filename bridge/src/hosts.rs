@@ -215,7 +215,6 @@ fn agent_host_egress(
     links: &EgressLinks,
 ) -> Result<()> {
     let mut publishers = Publishers::new(context);
-    let traffic = &context.traffic;
     let mut unacknowledged = Unacknowledged::default();
     let mut attached: Option<AgentHostEgress> = None;
     while !context.stopping() {
@@ -236,13 +235,7 @@ fn agent_host_egress(
                 );
             }
             for message in unacknowledged.iter() {
-                let key = context.keys.topic(message.agent_id, message.topic);
-                traffic.count_out(
-                    message.agent_id,
-                    topic_label(message.topic),
-                    message.bytes.len(),
-                );
-                publishers.put(&key, message.bytes.clone())?;
+                publishers.relay(message.agent_id, message.topic, message.bytes.clone())?;
             }
             attached = Some(AgentHostEgress::open(&context.transport, local_agents)?);
             let _ = links.inbound.send(AgentHostInbound::ConsumersAttached);
@@ -269,13 +262,7 @@ fn agent_host_egress(
         let Some(message) = egress.recv_timeout(STOP_CHECK)? else {
             continue;
         };
-        let key = context.keys.topic(message.agent_id, message.topic);
-        traffic.count_out(
-            message.agent_id,
-            topic_label(message.topic),
-            message.bytes.len(),
-        );
-        publishers.put(&key, message.bytes.clone())?;
+        publishers.relay(message.agent_id, message.topic, message.bytes.clone())?;
         unacknowledged.push(message);
     }
     Ok(())
@@ -390,13 +377,7 @@ fn consumer_host_egress(context: &BridgeContext) -> Result<()> {
         match egress.recv_timeout(STOP_CHECK)? {
             None => {}
             Some(ConsumerHostOutgoing::Message(message)) => {
-                let key = context.keys.topic(message.agent_id, message.topic);
-                traffic.count_out(
-                    message.agent_id,
-                    topic_label(message.topic),
-                    message.bytes.len(),
-                );
-                publishers.put(&key, message.bytes)?;
+                publishers.relay(message.agent_id, message.topic, message.bytes)?;
             }
             Some(ConsumerHostOutgoing::GoodbyeSeen { agent_id }) => {
                 traffic.count_out(agent_id, GOODBYE_SEEN, 0);
@@ -419,6 +400,16 @@ impl<'c> Publishers<'c> {
             context,
             by_key: HashMap::new(),
         }
+    }
+
+    /// Puts one relayed message on the network under its agent's topic key, counted in the
+    /// traffic report.
+    fn relay(&mut self, agent_id: u32, topic: Topic, bytes: Vec<u8>) -> Result<()> {
+        let key = self.context.keys.topic(agent_id, topic);
+        self.context
+            .traffic
+            .count_out(agent_id, topic_label(topic), bytes.len());
+        self.put(&key, bytes)
     }
 
     fn put(&mut self, key: &str, bytes: Vec<u8>) -> Result<()> {

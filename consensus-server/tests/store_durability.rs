@@ -1,7 +1,14 @@
+//! The consensus store under crashes and a full disk.
+//!
 //! A consensus killed (SIGKILL) at any point of a store write never leaves a store that fails to
 //! open: a child process appends keyframes to the store as fast as it can and is killed at
 //! seeded random times; after each kill the store opens, every input it holds reads back whole,
 //! and every input whose commit had returned before the kill is there.
+//!
+//! A disk that fills under the store: the append that fails names the store and the input, and
+//! once there is room again the store opens with every input committed before the failure, each
+//! reading back whole (a commit is all or nothing). The disk is a small tmpfs, which needs root
+//! (as CI runs); where mounting is not permitted that test says so and does nothing.
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -9,7 +16,7 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use geometry::camera::Intrinsics;
-use mac_consensus::store::{Opened, RunIdentity, Store, StoredInput, StoredKeyframe};
+use mac_consensus::store::{Opened, RunIdentity, STORE_FILE, Store, StoredInput, StoredKeyframe};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -127,5 +134,110 @@ fn store_survives_sigkill_at_random_points() {
         assert!(inputs.len() > stored, "kill {kill}: nothing written");
         stored = inputs.len();
         drop(store);
+    }
+}
+
+struct Tmpfs {
+    dir: tempfile::TempDir,
+}
+
+impl Tmpfs {
+    /// `None`, with the reason printed, where mounting is not permitted.
+    fn mount(options: &str) -> Option<Self> {
+        let dir = tempfile::tempdir().unwrap();
+        let out = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", options, "tmpfs"])
+            .arg(dir.path())
+            .output();
+        match out {
+            Ok(out) if out.status.success() => Some(Self { dir }),
+            Ok(out) => {
+                println!(
+                    "skipped: cannot mount a tmpfs ({})",
+                    String::from_utf8_lossy(&out.stderr).trim()
+                );
+                None
+            }
+            Err(error) => {
+                println!("skipped: cannot run mount ({error})");
+                None
+            }
+        }
+    }
+
+    /// More room, as a user who frees space: a tmpfs keeps its files when remounted.
+    fn grow(&self, size: &str) {
+        let status = Command::new("mount")
+            .args(["-o", &format!("remount,size={size}")])
+            .arg(self.path())
+            .status()
+            .unwrap();
+        assert!(status.success(), "remounting the tmpfs larger failed");
+    }
+
+    fn path(&self) -> &Path {
+        self.dir.path()
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(self.dir.path()).status();
+    }
+}
+
+#[test]
+fn a_full_disk_fails_the_store_write_naming_it_and_keeps_every_committed_input() {
+    let Some(disk) = Tmpfs::mount("size=4m") else {
+        return;
+    };
+    let mut committed = 0u64;
+    let error = {
+        let (mut store, opened, inputs) = Store::open(disk.path(), &identity(), false).unwrap();
+        assert_eq!(opened, Opened::New);
+        assert!(inputs.is_empty());
+        loop {
+            match store.append(&keyframe(committed)) {
+                Ok(()) => committed += 1,
+                Err(error) => break error,
+            }
+            assert!(committed < 64, "a 4 MB disk took 64 keyframes of 0.5 MB");
+        }
+    };
+    let message = format!("{error:#}");
+    let store_path = disk.path().join(STORE_FILE);
+    assert!(
+        message.contains(&store_path.display().to_string())
+            && message.contains(&format!("input {committed}")),
+        "the error names neither the store nor the input: {message}"
+    );
+    assert!(
+        committed >= 2,
+        "only {committed} keyframes fitted: {message}"
+    );
+    println!("{committed} keyframes committed, then: {message}");
+
+    disk.grow("64m");
+    let (_store, opened, inputs) = Store::open(disk.path(), &identity(), false)
+        .unwrap_or_else(|e| panic!("the store does not open after the full disk: {e:#}"));
+    assert_eq!(opened, Opened::Resumed);
+    // The failed commit is all or nothing: absent (or, had it reached the disk before the error
+    // surfaced, whole).
+    assert!(
+        inputs.len() as u64 == committed || inputs.len() as u64 == committed + 1,
+        "{} inputs in the store, {committed} committed",
+        inputs.len()
+    );
+    for (i, input) in inputs.iter().enumerate() {
+        let (StoredInput::Keyframe(stored), StoredInput::Keyframe(written)) =
+            (input, keyframe(i as u64))
+        else {
+            panic!("input {i} is not a keyframe");
+        };
+        assert_eq!(stored.keyframe_id, i as u64, "inputs out of order");
+        assert!(
+            stored.rgb == written.rgb && stored.depth_m == written.depth_m,
+            "input {i} does not read back as written"
+        );
     }
 }
