@@ -7,7 +7,7 @@
 #                           [--frames N] [--descriptor-weights FILE] [--out DIR]
 #                           [--set KEY=VALUE]...
 #                           [--no-restart-consensus]
-#                           [--transport iceoryx2|zenoh] [--insecure-plain-tcp]
+#                           [--transport iceoryx2|zenoh] [--insecure-plain-tcp] [--bandwidth KB_PER_S]
 #                           [--viewer [ADDR]] [--record DIR]
 #
 # With no arguments: the embedded synthetic scene, 3 agents (synthetic:agents=3,agent=K).
@@ -36,6 +36,9 @@
 # --insecure-plain-tcp joins them over plain TCP instead (no authentication; warned about).
 # metrics.json then counts each agent's bytes on the network. The default, iceoryx2, runs
 # everything on this host's shared memory.
+# --bandwidth KB_PER_S (with --transport zenoh) caps what each agent sends to other hosts
+# (`--set network.agent_kb_per_s=KB_PER_S`): its host's bridge compresses keyframe images and
+# Gaussian patches and defers them, and never drops one (docs/method.md, Across hosts).
 # On a terminal, one line shows the progress: frames, keyframes, link state, closures.
 # --viewer [ADDR] streams every process to a rerun viewer (ADDR: HOST:PORT, default
 # 127.0.0.1:9876): when `rerun` is on PATH and nothing listens there yet, one is started; else the
@@ -72,6 +75,7 @@ profile="${MAC_EGO3D_PROFILE:-release}"
 # --- transport (cross-host bridge) ---
 transport=iceoryx2
 insecure_plain_tcp=0
+bandwidth=""
 # --- end transport ---
 viewer=""
 record=""
@@ -93,6 +97,7 @@ while (($#)); do
     --no-restart-consensus) restart_consensus=0; shift ;;
     --transport) transport="$2"; shift 2 ;;
     --insecure-plain-tcp) insecure_plain_tcp=1; shift ;;
+    --bandwidth) bandwidth="$2"; sets+=("network.agent_kb_per_s=$2"); shift 2 ;;
     --viewer)
       # The address is optional: the next argument is it unless it is another option.
       if (($# > 1)) && [[ "$2" != --* ]]; then viewer="$2"; shift 2; else viewer=127.0.0.1:9876; shift; fi ;;
@@ -115,6 +120,8 @@ case "$transport" in
 esac
 ((!insecure_plain_tcp)) || [[ "$transport" == zenoh ]] ||
   { echo "[swarm] --insecure-plain-tcp is for --transport zenoh" >&2; exit 2; }
+[[ -z "$bandwidth" || "$transport" == zenoh ]] ||
+  { echo "[swarm] --bandwidth caps traffic between hosts: give --transport zenoh too (on one host the swarm shares memory)" >&2; exit 2; }
 # --- end transport ---
 
 # Mesa's Vulkan loader path (libwayland, probing for a display) prints "error: XDG_RUNTIME_DIR
@@ -309,7 +316,7 @@ agent_host_of() {
   bridge_security "agent$1"
   agent_host=(scripts/simulated_host.sh "$bin/mac-bridge" --role agents --namespace "$namespace"
     --agents "$agents" --local-agent "$1" --connect "$zenoh_scheme/127.0.0.1:$zenoh_port"
-    "${security[@]}" --report "$out/bridge_agent_$1.json" --)
+    "${security[@]}" --report "$out/bridge_agent_$1.json" --config "$run_config" --)
 }
 # --- end transport ---
 # Starts the consensus (in the background; its pid in $!): the first start is a new run
@@ -489,6 +496,9 @@ if transport == "zenoh":
             "bytes_from_network": received,
             "elapsed_s": elapsed,
             "kb_per_s_to_network": sent / 1000 / elapsed if elapsed > 0 else None,
+            # What the bandwidth budget did: bytes as published and as sent, messages per
+            # encoding, Gaussians left out, deferral.
+            "budget": report.get("budget", {}).get(str(k)),
         }
     metrics["network_bytes_per_agent"] = network
 json.dump(metrics, open(path, "w"), indent=2)

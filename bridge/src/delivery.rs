@@ -23,6 +23,8 @@ use anyhow::{Result, bail};
 use protocol::services::Topic;
 use protocol::transport::relay::RelayedMessage;
 
+use crate::encoding::WireMessage;
+
 /// Bytes of unacknowledged messages above which an agent host's bridge takes no more from its
 /// agents: room for a few keyframes (a 640x480 image is 1.8 MB, a patch tens of MB at most; a
 /// larger message still goes, alone).
@@ -81,12 +83,12 @@ impl Acknowledgement {
 /// The agent host's messages not yet acknowledged, in the order they were taken from the agents.
 #[derive(Debug, Default)]
 pub struct Unacknowledged {
-    messages: VecDeque<RelayedMessage>,
+    messages: VecDeque<WireMessage>,
     bytes: usize,
 }
 
 impl Unacknowledged {
-    pub fn push(&mut self, message: RelayedMessage) {
+    pub fn push(&mut self, message: WireMessage) {
         self.bytes += message.bytes.len();
         self.messages.push_back(message);
     }
@@ -106,7 +108,7 @@ impl Unacknowledged {
         });
     }
 
-    pub fn iter(&self) -> impl Iterator<Item = &RelayedMessage> {
+    pub fn iter(&self) -> impl Iterator<Item = &WireMessage> {
         self.messages.iter()
     }
 
@@ -124,7 +126,7 @@ mod tests {
     use super::*;
     use protocol::messages::Stamp;
 
-    fn message(agent_id: u32, topic: Topic, epoch: u64, sequence: u64) -> RelayedMessage {
+    fn message(agent_id: u32, topic: Topic, epoch: u64, sequence: u64) -> WireMessage {
         let stamp = Stamp {
             agent_id,
             reserved: 0,
@@ -133,7 +135,13 @@ mod tests {
         };
         let mut bytes = bytemuck::bytes_of(&stamp).to_vec();
         bytes.extend_from_slice(&[0; 8]);
-        RelayedMessage::from_network(agent_id, topic, bytes).unwrap()
+        WireMessage {
+            agent_id,
+            topic,
+            stamp,
+            encoding: crate::encoding::Encoding::Raw,
+            bytes,
+        }
     }
 
     #[test]

@@ -19,9 +19,10 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow};
+use config::NetworkConfig;
 use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
 use protocol::services::Topic;
 use protocol::transport::relay::{
@@ -33,7 +34,9 @@ use zenoh::pubsub::Publisher;
 use zenoh::sample::{Locality, Sample, SampleKind};
 use zenoh::{Session, Wait};
 
+use crate::budget::Budget;
 use crate::delivery::{Acknowledgement, UNACKNOWLEDGED_LIMIT_BYTES, Unacknowledged};
+use crate::encoding::{Encoding, WireMessage, decode};
 use crate::keys::{DELIVERED, GOODBYE_SEEN, SwarmKeys, topic_named};
 use crate::network::{CONGESTION_CONTROL, PRIORITY};
 use crate::report::{SharedTraffic, topic_label};
@@ -45,6 +48,10 @@ const STOP_CHECK: Duration = Duration::from_millis(100);
 /// host and not yet handed to iceoryx2. Bounded: they are small and few.
 const INBOUND_QUEUE: usize = 64;
 
+/// Bytes (as published) waiting for an agent host's bandwidth budget above which the bridge
+/// takes no more from its agents: they then queue what they publish as during an outage.
+const WAITING_LIMIT_BYTES: usize = 256 << 20;
+
 /// Everything a host's bridge shares between its tasks and threads.
 #[derive(Clone)]
 pub struct BridgeContext {
@@ -54,6 +61,8 @@ pub struct BridgeContext {
     pub stop: Arc<AtomicBool>,
     /// What crossed the network, per agent (the report).
     pub traffic: SharedTraffic,
+    /// The agents' bandwidth budget (agent hosts).
+    pub network: NetworkConfig,
 }
 
 impl BridgeContext {
@@ -208,7 +217,8 @@ struct EgressLinks {
     reachable: Arc<AtomicBool>,
 }
 
-/// Relays the local agents' messages while a consumer host is reachable; see `delivery`.
+/// Relays the local agents' messages while a consumer host is reachable (see `delivery`),
+/// within their bandwidth budget (see `budget`).
 fn agent_host_egress(
     context: &BridgeContext,
     local_agents: &[u32],
@@ -216,6 +226,7 @@ fn agent_host_egress(
 ) -> Result<()> {
     let mut publishers = Publishers::new(context);
     let mut unacknowledged = Unacknowledged::default();
+    let mut budget = Budget::new(&context.network);
     let mut attached: Option<AgentHostEgress> = None;
     while !context.stopping() {
         for (agent_id, ack) in links.acknowledgements.try_iter() {
@@ -235,7 +246,7 @@ fn agent_host_egress(
                 );
             }
             for message in unacknowledged.iter() {
-                publishers.relay(message.agent_id, message.topic, message.bytes.clone())?;
+                publishers.relay(message)?;
             }
             attached = Some(AgentHostEgress::open(&context.transport, local_agents)?);
             let _ = links.inbound.send(AgentHostInbound::ConsumersAttached);
@@ -243,27 +254,48 @@ fn agent_host_egress(
             continue;
         };
         if !reachable {
-            // What the agents already handed over is kept for the consumer host's return; the
-            // agents queue the rest as during a scheduled outage.
+            // What the agents already handed over waits in the budget's queues for the consumer
+            // host's return; the agents queue the rest as during a scheduled outage.
             while let Some(message) = egress.try_recv()? {
-                unacknowledged.push(message);
+                budget.admit(message, Instant::now());
             }
             attached = None;
             tracing::warn!(
                 unacknowledged = unacknowledged.len(),
+                waiting = budget.waiting_bytes(),
                 "consumer host unreachable: detached from the local agents until it is back"
             );
             continue;
         }
-        if unacknowledged.bytes() >= UNACKNOWLEDGED_LIMIT_BYTES {
+        let mut sent = false;
+        while unacknowledged.bytes() < UNACKNOWLEDGED_LIMIT_BYTES {
+            let Some(message) = budget.next(Instant::now()) else {
+                break;
+            };
+            publishers.relay(&message)?;
+            unacknowledged.push(message);
+            sent = true;
+        }
+        if sent {
+            context.traffic.set_budget(budget.stats());
+        }
+        if unacknowledged.bytes() >= UNACKNOWLEDGED_LIMIT_BYTES
+            || budget.waiting_bytes() >= WAITING_LIMIT_BYTES
+        {
             std::thread::sleep(Duration::from_millis(5));
             continue;
         }
-        let Some(message) = egress.recv_timeout(STOP_CHECK)? else {
-            continue;
+        let wait = budget
+            .next_due_in(Instant::now())
+            .map_or(STOP_CHECK, |due| due.min(STOP_CHECK));
+        let received = if wait.is_zero() {
+            egress.try_recv()?
+        } else {
+            egress.recv_timeout(wait)?
         };
-        publishers.relay(message.agent_id, message.topic, message.bytes.clone())?;
-        unacknowledged.push(message);
+        if let Some(message) = received {
+            budget.admit(message, Instant::now());
+        }
     }
     Ok(())
 }
@@ -274,7 +306,7 @@ pub async fn run_consumer_host(context: BridgeContext) -> Result<()> {
     // path that waits stalls the link, and zenoh closes a link whose blocked sends wait longer
     // than `wait_before_close`. The agent hosts' unacknowledged window
     // (`delivery::UNACKNOWLEDGED_LIMIT_BYTES` each) bounds what can pile up here.
-    let (inbound_tx, inbound_rx) = crossbeam_channel::unbounded::<RelayedMessage>();
+    let (inbound_tx, inbound_rx) = crossbeam_channel::unbounded::<Received>();
     let (attached_tx, attached_rx) = crossbeam_channel::bounded::<()>(1);
     let ingress = spawn("ingress", &context.stop, {
         let context = context.clone();
@@ -302,13 +334,18 @@ pub async fn run_consumer_host(context: BridgeContext) -> Result<()> {
                     tracing::warn!(key = %sample.key_expr(), "dropped a message on a key without an agent id");
                     return;
                 };
+                let encoding = match sample.attachment().map(|a| a.to_bytes()) {
+                    None => Encoding::Raw,
+                    Some(tag) => match tag.first().copied().map(Encoding::from_tag) {
+                        Some(Ok(encoding)) => encoding,
+                        _ => {
+                            tracing::warn!(agent_id, topic = %topic, "dropped a message with an unknown encoding");
+                            return;
+                        }
+                    },
+                };
                 let bytes = sample.payload().to_bytes().into_owned();
-                match RelayedMessage::from_network(agent_id, topic, bytes) {
-                    Ok(message) => {
-                        let _ = tx.send(message);
-                    }
-                    Err(e) => tracing::warn!(error = %e, "dropped a malformed relayed message"),
-                }
+                let _ = tx.send(Received { agent_id, topic, encoding, bytes });
             })
             .await
             .map_err(|e| anyhow!("zenoh subscriber {key}: {e}"))?;
@@ -332,9 +369,29 @@ pub async fn run_consumer_host(context: BridgeContext) -> Result<()> {
     join(egress)
 }
 
+/// An agent's message as it came off the network, decoded on the ingress thread (decoding an
+/// image takes milliseconds, which zenoh's receive path should not wait for).
+struct Received {
+    agent_id: u32,
+    topic: Topic,
+    encoding: Encoding,
+    bytes: Vec<u8>,
+}
+
+impl Received {
+    fn decode(self) -> Result<RelayedMessage> {
+        let raw = decode(self.topic, self.encoding, &self.bytes)?;
+        Ok(RelayedMessage::from_network(
+            self.agent_id,
+            self.topic,
+            raw,
+        )?)
+    }
+}
+
 fn consumer_host_ingress(
     context: &BridgeContext,
-    inbound: &Receiver<RelayedMessage>,
+    inbound: &Receiver<Received>,
     attached: &Sender<()>,
 ) -> Result<()> {
     let mut ingress = ConsumerHostIngress::open(&context.transport)?;
@@ -345,16 +402,25 @@ fn consumer_host_ingress(
         if !announced && ingress.consumers_attached() {
             announced = attached.send(()).is_ok();
         }
-        let message = match inbound.recv_timeout(Duration::from_millis(20)) {
-            Ok(message) => message,
+        let received = match inbound.recv_timeout(Duration::from_millis(20)) {
+            Ok(received) => received,
             Err(RecvTimeoutError::Timeout) => continue,
             Err(RecvTimeoutError::Disconnected) => break,
         };
         traffic.count_in(
-            message.agent_id,
-            topic_label(message.topic),
-            message.bytes.len(),
+            received.agent_id,
+            topic_label(received.topic),
+            received.bytes.len(),
         );
+        let (agent_id, topic, encoding) = (received.agent_id, received.topic, received.encoding);
+        let message = match received.decode() {
+            Ok(message) => message,
+            Err(e) => {
+                tracing::warn!(agent_id, topic = %topic, encoding = encoding.name(),
+                    error = %format!("{e:#}"), "dropped a message that does not decode");
+                continue;
+            }
+        };
         match ingress.forward(&message) {
             Ok(_) => {
                 let key = context.keys.delivered(message.agent_id);
@@ -377,7 +443,7 @@ fn consumer_host_egress(context: &BridgeContext) -> Result<()> {
         match egress.recv_timeout(STOP_CHECK)? {
             None => {}
             Some(ConsumerHostOutgoing::Message(message)) => {
-                publishers.relay(message.agent_id, message.topic, message.bytes)?;
+                publishers.relay(&WireMessage::raw(message))?;
             }
             Some(ConsumerHostOutgoing::GoodbyeSeen { agent_id }) => {
                 traffic.count_out(agent_id, GOODBYE_SEEN, 0);
@@ -403,16 +469,23 @@ impl<'c> Publishers<'c> {
     }
 
     /// Puts one relayed message on the network under its agent's topic key, counted in the
-    /// traffic report.
-    fn relay(&mut self, agent_id: u32, topic: Topic, bytes: Vec<u8>) -> Result<()> {
-        let key = self.context.keys.topic(agent_id, topic);
-        self.context
-            .traffic
-            .count_out(agent_id, topic_label(topic), bytes.len());
-        self.put(&key, bytes)
+    /// traffic report; an encoding other than raw is named in the attachment.
+    fn relay(&mut self, message: &WireMessage) -> Result<()> {
+        let key = self.context.keys.topic(message.agent_id, message.topic);
+        self.context.traffic.count_out(
+            message.agent_id,
+            topic_label(message.topic),
+            message.bytes.len(),
+        );
+        let attachment = (message.encoding != Encoding::Raw).then(|| vec![message.encoding.tag()]);
+        self.send(&key, message.bytes.clone(), attachment)
     }
 
     fn put(&mut self, key: &str, bytes: Vec<u8>) -> Result<()> {
+        self.send(key, bytes, None)
+    }
+
+    fn send(&mut self, key: &str, bytes: Vec<u8>, attachment: Option<Vec<u8>>) -> Result<()> {
         if !self.by_key.contains_key(key) {
             let publisher = self
                 .context
@@ -427,6 +500,7 @@ impl<'c> Publishers<'c> {
         }
         self.by_key[key]
             .put(bytes)
+            .attachment(attachment)
             .wait()
             .map_err(|e| anyhow!("zenoh put on {key}: {e}"))
     }

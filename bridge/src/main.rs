@@ -7,8 +7,10 @@
 //! loops are avoided, `network` which zenoh settings carry the messages and why, `keys` the
 //! key expressions and `certs` the swarm's certificates (`mac-bridge certs`).
 
+mod budget;
 mod certs;
 mod delivery;
+mod encoding;
 mod hosts;
 mod keys;
 mod network;
@@ -113,6 +115,10 @@ struct BridgeArgs {
     /// Writes the per-agent network traffic here (JSON) when the bridge stops.
     #[arg(long)]
     report: Option<PathBuf>,
+    /// The swarm's configuration file (the run's config.toml): an agent host's bridge keeps its
+    /// agents within `[network] agent_kb_per_s`. Without it, no cap.
+    #[arg(long)]
+    config: Option<PathBuf>,
 }
 
 fn main() -> Result<()> {
@@ -188,6 +194,17 @@ fn transport_config(cli: &BridgeArgs) -> Result<TransportConfig> {
     Ok(config)
 }
 
+fn network_config(cli: &BridgeArgs) -> Result<config::NetworkConfig> {
+    let Some(path) = &cli.config else {
+        return Ok(config::NetworkConfig::default());
+    };
+    let network = config::Config::load(path)?.network;
+    if let Some(kb_per_s) = network.agent_bytes_per_s().map(|b| b / 1000.0) {
+        tracing::info!(kb_per_s, "bandwidth budget per agent");
+    }
+    Ok(network)
+}
+
 async fn run(cli: BridgeArgs, role: Role, stop: Arc<AtomicBool>) -> Result<()> {
     let endpoints = Endpoints {
         listen: cli.listen.clone(),
@@ -204,6 +221,7 @@ async fn run(cli: BridgeArgs, role: Role, stop: Arc<AtomicBool>) -> Result<()> {
         transport: transport_config(&cli)?,
         stop: Arc::clone(&stop),
         traffic: SharedTraffic::default(),
+        network: network_config(&cli)?,
     };
     let role_name = match role {
         Role::Agents => "agents",

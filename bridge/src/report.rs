@@ -12,6 +12,8 @@ use anyhow::{Context, Result};
 use protocol::services::Topic;
 use serde::{Deserialize, Serialize};
 
+use crate::budget::BudgetStats;
+
 /// Counters of one agent, seen from one bridge.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct AgentNetworkTraffic {
@@ -26,6 +28,8 @@ pub struct AgentNetworkTraffic {
 pub struct NetworkTraffic {
     pub agents: BTreeMap<u32, AgentNetworkTraffic>,
     pub by_topic: BTreeMap<(u32, &'static str), u64>,
+    /// The bandwidth budget's work per agent (agent hosts).
+    pub budget: BTreeMap<u32, BudgetStats>,
 }
 
 impl NetworkTraffic {
@@ -69,6 +73,9 @@ struct Report {
     agents: BTreeMap<String, AgentNetworkTraffic>,
     /// Agent id -> topic -> bytes, both directions.
     bytes_by_topic: BTreeMap<String, BTreeMap<String, u64>>,
+    /// Agent id -> what the bandwidth budget did (agent hosts).
+    #[serde(default)]
+    budget: BTreeMap<String, BudgetStats>,
 }
 
 impl Report {
@@ -92,6 +99,11 @@ impl Report {
                 .map(|(id, t)| (id.to_string(), *t))
                 .collect(),
             bytes_by_topic,
+            budget: traffic
+                .budget
+                .iter()
+                .map(|(id, stats)| (id.to_string(), stats.clone()))
+                .collect(),
         }
     }
 
@@ -101,6 +113,9 @@ impl Report {
         self.elapsed_s += earlier.elapsed_s;
         for (agent, traffic) in &earlier.agents {
             self.agents.entry(agent.clone()).or_default().add(traffic);
+        }
+        for (agent, stats) in &earlier.budget {
+            self.budget.entry(agent.clone()).or_default().add(stats);
         }
         for (agent, topics) in &earlier.bytes_by_topic {
             let mine = self.bytes_by_topic.entry(agent.clone()).or_default();
@@ -127,6 +142,11 @@ impl SharedTraffic {
 
     pub fn count_in(&self, agent_id: u32, topic: &'static str, bytes: usize) {
         self.counters().count_in(agent_id, topic, bytes);
+    }
+
+    /// The budget's statistics as they stand (replacing the previous ones).
+    pub fn set_budget(&self, budget: BTreeMap<u32, BudgetStats>) {
+        self.counters().budget = budget;
     }
 
     pub fn snapshot(&self) -> NetworkTraffic {

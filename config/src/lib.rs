@@ -5,7 +5,7 @@
 //!
 //! Each section's type, its defaults and its `validate()` live next to the code that reads it:
 //! `[tracking]` and `[keyframes]` in the `registration` crate (the tracker decides keyframes),
-//! `[noise]` in `datasets`, `[mapping]` ([`mapping`]) and `[consensus]` ([`consensus`]) here.
+//! `[noise]` in `datasets`, `[mapping]` ([`mapping`]), `[consensus]` ([`consensus`]) and `[network]` ([`network`]) here.
 //!
 //! Why this crate, and why those two sections here: every binary (`mac-agent`,
 //! `mac-consensus`, `mac-ego3d`) loads the whole file, so that all processes of a swarm check the
@@ -24,6 +24,7 @@
 
 pub mod consensus;
 pub mod mapping;
+pub mod network;
 pub mod process;
 
 use std::path::{Path, PathBuf};
@@ -38,6 +39,7 @@ pub use consensus::{
     MapRegistrationConfig, PoseGraphConfig, RefinementConfig, ResendConfig,
 };
 pub use mapping::{MappingConfig, Pace};
+pub use network::NetworkConfig;
 
 /// The whole configuration file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
@@ -47,6 +49,8 @@ pub struct Config {
     pub keyframes: KeyframeConfig,
     pub mapping: MappingConfig,
     pub consensus: ConsensusConfig,
+    /// What agents may send between hosts (the agent host's bridge reads it).
+    pub network: NetworkConfig,
     /// Sensor noise for robustness runs; absent = clean data.
     pub noise: Option<NoiseConfig>,
 }
@@ -143,6 +147,7 @@ impl Config {
         self.keyframes.validate()?;
         self.mapping.validate()?;
         self.consensus.validate()?;
+        self.network.validate()?;
         if let Some(noise) = &self.noise {
             noise.validate()?;
         }
