@@ -2,8 +2,8 @@
 //! docs/method.md, Across hosts: bandwidth budget).
 //!
 //! Each agent has a token bucket of `agent_kb_per_s`, `burst_s` deep. Descriptors (a few
-//! hundred bytes, what place recognition needs first) go at once and are charged to the
-//! bucket. Every other message waits in the agent's queue, in the order the agent published
+//! hundred bytes, what place recognition needs first) and lifecycle messages other than the
+//! goodbye go at once and are charged to the bucket. Every other message waits in the agent's queue, in the order the agent published
 //! it, and goes when the bucket is not in debt; a message larger than the bucket puts it in
 //! debt, which the following messages wait out, so the rate averaged over a few seconds is the
 //! cap. Nothing is dropped: a message waits as long as it must.
@@ -18,6 +18,7 @@ use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
 use config::NetworkConfig;
+use protocol::messages::{KeyframeImageHeader, Lifecycle, LifecycleKind, PatchHeader};
 use protocol::services::Topic;
 use protocol::transport::relay::RelayedMessage;
 use serde::{Deserialize, Serialize};
@@ -43,6 +44,9 @@ pub struct BudgetStats {
     pub deferral_max_s: f64,
     pub deferral_sum_s: f64,
     pub messages: u64,
+    /// Re-sends of keyframe parts that were still waiting (not sent twice).
+    #[serde(default)]
+    pub resends_dropped: u64,
 }
 
 impl BudgetStats {
@@ -61,6 +65,7 @@ impl BudgetStats {
         self.deferral_max_s = self.deferral_max_s.max(other.deferral_max_s);
         self.deferral_sum_s += other.deferral_sum_s;
         self.messages += other.messages;
+        self.resends_dropped += other.resends_dropped;
     }
 }
 
@@ -90,6 +95,38 @@ pub struct Budget {
     cap: Option<f64>,
     config: NetworkConfig,
     agents: BTreeMap<u32, AgentBudget>,
+}
+
+/// Messages that go at once: descriptors (place recognition needs them first) and lifecycle
+/// messages other than the goodbye (hello, alive: small, and they tell the consensus the agent
+/// is there). A goodbye waits behind the agent's deferred messages, so it never overtakes its
+/// final map.
+fn is_urgent(message: &RelayedMessage) -> bool {
+    match message.topic {
+        Topic::Descriptor => true,
+        Topic::Lifecycle => message
+            .bytes
+            .get(..size_of::<Lifecycle>())
+            .map(bytemuck::pod_read_unaligned::<Lifecycle>)
+            .is_some_and(|l| l.kind() != Ok(LifecycleKind::Goodbye)),
+        _ => false,
+    }
+}
+
+/// The keyframe part a message is (topic, incarnation, keyframe id), for patches and images.
+fn keyframe_part(message: &RelayedMessage) -> Option<(Topic, u64, u64)> {
+    let keyframe_id = match message.topic {
+        Topic::Patch => message
+            .bytes
+            .get(..size_of::<PatchHeader>())
+            .map(|b| bytemuck::pod_read_unaligned::<PatchHeader>(b).keyframe_id),
+        Topic::KeyframeImage => message
+            .bytes
+            .get(..size_of::<KeyframeImageHeader>())
+            .map(|b| bytemuck::pod_read_unaligned::<KeyframeImageHeader>(b).keyframe_id),
+        _ => None,
+    }?;
+    Some((message.topic, message.stamp.epoch, keyframe_id))
 }
 
 /// A first guess of an encoding's size ratio, until messages have been encoded with it.
@@ -162,14 +199,25 @@ impl Budget {
         }
     }
 
-    /// Takes a message an agent published; it goes when [`Budget::next`] says so.
+    /// Takes a message an agent published; it goes when [`Budget::next`] says so. A re-send of
+    /// a keyframe part that still waits here (the consensus asked again for a part the budget
+    /// deferred) is dropped, and counted: the waiting one carries the same content.
     pub fn admit(&mut self, message: RelayedMessage, now: Instant) {
         let agent = self
             .agents
             .entry(message.agent_id)
             .or_insert_with(|| AgentBudget::new(&self.config, self.cap, now));
+        if let Some(part) = keyframe_part(&message)
+            && agent
+                .ordered
+                .iter()
+                .any(|w| keyframe_part(&w.message) == Some(part))
+        {
+            agent.stats.resends_dropped += 1;
+            return;
+        }
         agent.waiting_bytes += message.bytes.len();
-        let urgent = message.topic == Topic::Descriptor;
+        let urgent = is_urgent(&message);
         let waiting = Waiting {
             message,
             since: now,
@@ -179,6 +227,13 @@ impl Budget {
         } else {
             agent.ordered.push_back(waiting);
         }
+    }
+
+    /// Whether nothing waits.
+    pub fn is_empty(&self) -> bool {
+        self.agents
+            .values()
+            .all(|a| a.urgent.is_empty() && a.ordered.is_empty())
     }
 
     /// Bytes (as published) waiting for the budget, all agents.
@@ -294,7 +349,18 @@ mod tests {
             sequence,
             ..Stamp::default()
         };
-        let mut payload = bytemuck::bytes_of(&stamp).to_vec();
+        // Lifecycle stand-ins for bulk messages without encodings are goodbyes (they wait in
+        // order); other topics carry their stamp and zeros.
+        let mut payload = if topic == Topic::Lifecycle {
+            let goodbye = Lifecycle {
+                stamp,
+                kind: LifecycleKind::Goodbye as u32,
+                ..bytemuck::Zeroable::zeroed()
+            };
+            bytemuck::bytes_of(&goodbye).to_vec()
+        } else {
+            bytemuck::bytes_of(&stamp).to_vec()
+        };
         payload.resize(bytes.max(payload.len()), 0);
         RelayedMessage {
             agent_id,
@@ -416,5 +482,30 @@ mod tests {
         assert_eq!(agent(&budget), Encoding::Reduced);
         budget.agents.get_mut(&0).unwrap().ordered.truncate(1);
         assert_eq!(agent(&budget), Encoding::Lossless);
+    }
+
+    #[test]
+    fn a_resent_keyframe_part_that_still_waits_is_not_queued_twice() {
+        let mut budget = Budget::new(&capped(1.0));
+        let now = Instant::now();
+        let patch = |sequence: u64, keyframe_id: u64| {
+            let header = PatchHeader {
+                stamp: Stamp {
+                    agent_id: 0,
+                    sequence,
+                    ..Stamp::default()
+                },
+                keyframe_id,
+                ..PatchHeader::default()
+            };
+            RelayedMessage::from_network(0, Topic::Patch, bytemuck::bytes_of(&header).to_vec())
+                .unwrap()
+        };
+        budget.admit(message(0, Topic::Lifecycle, 0, 5000), now);
+        budget.admit(patch(0, 7), now);
+        budget.admit(patch(1, 8), now);
+        budget.admit(patch(2, 7), now);
+        assert_eq!(budget.agents[&0].ordered.len(), 3);
+        assert_eq!(budget.agents[&0].stats.resends_dropped, 1);
     }
 }

@@ -169,8 +169,9 @@ pub async fn run_agent_host(context: BridgeContext, local_agents: Vec<u32>) -> R
     })?;
     drop(inbound_tx);
     context.until_stopped().await;
-    drop(subscribers);
+    // The egress drains before it ends, and needs the acknowledgements meanwhile.
     join(egress)?;
+    drop(subscribers);
     join(ingress)
 }
 
@@ -297,6 +298,70 @@ fn agent_host_egress(
             budget.admit(message, Instant::now());
         }
     }
+    if let Some(egress) = attached.as_mut() {
+        while let Some(message) = egress.try_recv()? {
+            budget.admit(message, Instant::now());
+        }
+    }
+    drain(
+        context,
+        links,
+        &mut publishers,
+        &mut unacknowledged,
+        &mut budget,
+    )
+}
+
+/// On stop: sends what still waits for the budget and waits for the consumer host to
+/// acknowledge everything, for at most `[network] drain_timeout_s` and only while the consumer
+/// host is reachable (an agent that is done hands its last keyframes and final map to the
+/// bridge, which may need minutes to send them within a tight budget).
+fn drain(
+    context: &BridgeContext,
+    links: &EgressLinks,
+    publishers: &mut Publishers,
+    unacknowledged: &mut Unacknowledged,
+    budget: &mut Budget,
+) -> Result<()> {
+    if budget.is_empty() && unacknowledged.len() == 0 {
+        return Ok(());
+    }
+    let deadline = Instant::now() + Duration::from_secs_f64(context.network.drain_timeout_s);
+    tracing::info!(
+        waiting_bytes = budget.waiting_bytes(),
+        unacknowledged = unacknowledged.len(),
+        "stopping: sending what waits first"
+    );
+    while Instant::now() < deadline && links.reachable.load(Ordering::Relaxed) {
+        for (agent_id, ack) in links.acknowledgements.try_iter() {
+            unacknowledged.acknowledge(agent_id, ack);
+        }
+        if budget.is_empty() && unacknowledged.len() == 0 {
+            context.traffic.set_budget(budget.stats());
+            tracing::info!("everything sent and acknowledged");
+            return Ok(());
+        }
+        while unacknowledged.bytes() < UNACKNOWLEDGED_LIMIT_BYTES {
+            let Some(message) = budget.next(Instant::now()) else {
+                break;
+            };
+            publishers.relay(&message)?;
+            unacknowledged.push(message);
+        }
+        context.traffic.set_budget(budget.stats());
+        let wait = budget
+            .next_due_in(Instant::now())
+            .map_or(Duration::from_millis(20), |due| {
+                due.min(Duration::from_millis(20))
+            });
+        std::thread::sleep(wait);
+    }
+    tracing::warn!(
+        waiting_bytes = budget.waiting_bytes(),
+        unacknowledged = unacknowledged.len(),
+        "stopped before everything was sent and acknowledged (consumer host unreachable or \
+         [network] drain_timeout_s passed): the consensus asks the agents for what it misses"
+    );
     Ok(())
 }
 

@@ -21,6 +21,13 @@ pub struct NetworkConfig {
     pub target_delay_s: f64,
     /// JPEG quality (1-100) of keyframe colour under the lossy encodings.
     pub jpeg_quality: u8,
+    /// Under a cap, the consensus waits this many seconds more before it asks an agent again
+    /// for the missing part of a keyframe (`[consensus.resend] after_s`): parts deferred by the
+    /// budget are late, not lost.
+    pub resend_allowance_s: f64,
+    /// A bridge asked to stop (its host shutting down, its agent done) first sends what still
+    /// waits for the budget and for the consumer host's acknowledgement, for at most this long.
+    pub drain_timeout_s: f64,
 }
 
 impl Default for NetworkConfig {
@@ -30,6 +37,8 @@ impl Default for NetworkConfig {
             burst_s: 1.0,
             target_delay_s: 3.0,
             jpeg_quality: 90,
+            resend_allowance_s: 60.0,
+            drain_timeout_s: 600.0,
         }
     }
 }
@@ -40,10 +49,20 @@ impl NetworkConfig {
         (self.agent_kb_per_s > 0.0).then_some(self.agent_kb_per_s * 1000.0)
     }
 
+    /// Seconds the consensus waits for a keyframe's missing part before asking again.
+    pub fn resend_after_s(&self, after_s: f64) -> f64 {
+        match self.agent_bytes_per_s() {
+            Some(_) => after_s + self.resend_allowance_s,
+            None => after_s,
+        }
+    }
+
     pub fn validate(&self) -> Result<(), FieldError> {
         non_negative("network.agent_kb_per_s", self.agent_kb_per_s)?;
         positive("network.burst_s", self.burst_s)?;
         positive("network.target_delay_s", self.target_delay_s)?;
+        non_negative("network.resend_allowance_s", self.resend_allowance_s)?;
+        non_negative("network.drain_timeout_s", self.drain_timeout_s)?;
         if !(1..=100).contains(&self.jpeg_quality) {
             return Err((
                 "network.jpeg_quality",
@@ -68,6 +87,8 @@ mod tests {
             ..NetworkConfig::default()
         };
         assert_eq!(capped.agent_bytes_per_s(), Some(50_000.0));
+        assert_eq!(config.resend_after_s(2.0), 2.0);
+        assert_eq!(capped.resend_after_s(2.0), 62.0);
         let negative = NetworkConfig {
             agent_kb_per_s: -1.0,
             ..NetworkConfig::default()

@@ -43,6 +43,14 @@ pub(super) struct Listener {
     store: Store,
 }
 
+/// The re-request policy: under a bandwidth budget a keyframe's parts are deferred, not lost,
+/// so the consensus waits longer before asking again (`[network] resend_allowance_s`).
+fn resend_policy(config: &config::Config) -> config::ResendConfig {
+    let mut policy = config.consensus.resend.clone();
+    policy.after_s = config.network.resend_after_s(policy.after_s);
+    policy
+}
+
 impl Listener {
     pub fn new(
         link: ConsumerLink,
@@ -57,7 +65,7 @@ impl Listener {
             agents: BTreeMap::new(),
             first_seen: BTreeMap::new(),
             finished: BTreeSet::new(),
-            inbox: KeyframeInbox::new(options.config.consensus.resend.clone()),
+            inbox: KeyframeInbox::new(resend_policy(&options.config)),
             world_from_agent: BTreeMap::new(),
             latencies: Vec::new(),
         }
