@@ -219,6 +219,16 @@ mod tests {
         let mut traffic = NetworkTraffic::default();
         traffic.count_out(0, "descriptors", bytes);
         traffic.count_in(1, "corrections", bytes / 2);
+        let mut budget = BudgetStats {
+            cap_kb_per_s: 50.0,
+            raw_bytes: 4 * bytes as u64,
+            wire_bytes: bytes as u64,
+            deferral_max_s: bytes as f64 / 100.0,
+            messages: 1,
+            ..BudgetStats::default()
+        };
+        budget.messages_by_encoding.insert("compact".into(), 1);
+        traffic.budget.insert(0, budget);
         traffic
     }
 
@@ -245,6 +255,11 @@ mod tests {
         assert_eq!(report.agents["0"].messages_to_network, 2);
         assert_eq!(report.agents["1"].bytes_from_network, 70);
         assert_eq!(report.bytes_by_topic["0"]["descriptors"], 140);
+        // The budget's work adds up too; the longest deferral is the longest of either.
+        let budget = &report.budget["0"];
+        assert_eq!((budget.raw_bytes, budget.wire_bytes), (560, 140));
+        assert_eq!(budget.messages_by_encoding["compact"], 2);
+        assert_eq!(budget.deferral_max_s, 1.0);
         assert!(!path.with_extension("json.partial").exists());
 
         // Another role or another run starts over.
