@@ -93,6 +93,17 @@ impl Unacknowledged {
         self.messages.push_back(message);
     }
 
+    /// As [`Unacknowledged::push`], forgetting the oldest messages beyond `limit` bytes (for
+    /// corrections and control messages of agents that may never acknowledge again: each
+    /// correction carries the whole solution, so the newest ones are what matters).
+    pub fn push_bounded(&mut self, message: WireMessage, limit: usize) {
+        self.push(message);
+        while self.bytes > limit && self.messages.len() > 1 {
+            let oldest = self.messages.pop_front().expect("more than one");
+            self.bytes -= oldest.bytes.len();
+        }
+    }
+
     /// Forgets agent `agent_id`'s messages that `ack` covers: the same topic with an older
     /// epoch, or the same epoch up to its sequence (each topic of an agent is delivered in
     /// order, so an acknowledgement covers everything before it).

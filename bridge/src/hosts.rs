@@ -17,7 +17,7 @@
 
 use std::collections::HashMap;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -47,6 +47,10 @@ const STOP_CHECK: Duration = Duration::from_millis(100);
 /// Corrections, control messages and goodbye acknowledgements received from zenoh on an agent
 /// host and not yet handed to iceoryx2. Bounded: they are small and few.
 const INBOUND_QUEUE: usize = 64;
+
+/// Bytes of corrections and control messages the consumer host's bridge keeps for agent hosts
+/// that have not acknowledged them (the oldest are forgotten beyond it).
+const CONSUMER_UNACKNOWLEDGED_LIMIT_BYTES: usize = 16 << 20;
 
 /// Bytes (as published) waiting for an agent host's bandwidth budget above which the bridge
 /// takes no more from its agents: they then queue what they publish as during an outage.
@@ -144,15 +148,20 @@ pub async fn run_agent_host(context: BridgeContext, local_agents: Vec<u32>) -> R
     )
     .await?;
     let reachable = Arc::new(AtomicBool::new(false));
+    let appearances = Arc::new(AtomicU64::new(0));
     let _consumer_host_watch = context
         .session
         .liveliness()
         .declare_subscriber(context.keys.consumers_bridge())
         .history(true)
         .callback({
-            let reachable = Arc::clone(&reachable);
+            let (reachable, appearances) = (Arc::clone(&reachable), Arc::clone(&appearances));
             move |sample: Sample| {
-                reachable.store(sample.kind() == SampleKind::Put, Ordering::Relaxed);
+                let put = sample.kind() == SampleKind::Put;
+                if put {
+                    appearances.fetch_add(1, Ordering::Relaxed);
+                }
+                reachable.store(put, Ordering::Relaxed);
             }
         })
         .await
@@ -164,6 +173,7 @@ pub async fn run_agent_host(context: BridgeContext, local_agents: Vec<u32>) -> R
             inbound: inbound_tx.clone(),
             acknowledgements: acks_rx,
             reachable,
+            appearances,
         };
         move || agent_host_egress(&context, &local_agents, &links)
     })?;
@@ -181,6 +191,7 @@ fn agent_host_ingress(
     inbound: &Receiver<AgentHostInbound>,
 ) -> Result<()> {
     let mut ingress = AgentHostIngress::open(&context.transport, local_agents)?;
+    let mut receipts = Publishers::new(context);
     let traffic = &context.traffic;
     while !context.stopping() {
         let item = match inbound.recv_timeout(STOP_CHECK) {
@@ -195,9 +206,15 @@ fn agent_host_ingress(
                     topic_label(message.topic),
                     message.bytes.len(),
                 );
-                if let Err(e) = ingress.forward(&message) {
-                    tracing::warn!(agent_id = message.agent_id, topic = %message.topic, error = %e,
-                        "could not hand a relayed message to its agent");
+                match ingress.forward(&message) {
+                    Ok(_) => {
+                        let key = context.keys.received(message.agent_id);
+                        receipts.put(&key, Acknowledgement::of(&message).to_bytes())?;
+                    }
+                    Err(e) => {
+                        tracing::warn!(agent_id = message.agent_id, topic = %message.topic, error = %e,
+                            "could not hand a relayed message to its agent");
+                    }
                 }
             }
             AgentHostInbound::GoodbyeSeen(agent_id) => {
@@ -216,6 +233,10 @@ struct EgressLinks {
     acknowledgements: Receiver<(u32, Acknowledgement)>,
     /// Whether a consumer host's bridge is reachable now (its liveliness token).
     reachable: Arc<AtomicBool>,
+    /// How often its token has appeared: a link that zenoh closed and opened again within
+    /// milliseconds (faster than the egress looks at `reachable`) still counts one more, and
+    /// what was in flight on the closed link is sent again.
+    appearances: Arc<AtomicU64>,
 }
 
 /// Relays the local agents' messages while a consumer host is reachable (see `delivery`),
@@ -229,11 +250,26 @@ fn agent_host_egress(
     let mut unacknowledged = Unacknowledged::default();
     let mut budget = Budget::new(&context.network);
     let mut attached: Option<AgentHostEgress> = None;
+    let mut appearances_seen = 0;
     while !context.stopping() {
         for (agent_id, ack) in links.acknowledgements.try_iter() {
             unacknowledged.acknowledge(agent_id, ack);
         }
         let reachable = links.reachable.load(Ordering::Relaxed);
+        let appearances = links.appearances.load(Ordering::Relaxed);
+        if reachable && attached.is_some() && appearances != appearances_seen {
+            // The link was closed and opened again between two looks: what was in flight on
+            // it may be gone.
+            tracing::warn!(
+                messages = unacknowledged.len(),
+                bytes = unacknowledged.bytes(),
+                "link to the consumer host re-established: sending again what it had not acknowledged"
+            );
+            for message in unacknowledged.iter() {
+                publishers.relay(message)?;
+            }
+        }
+        appearances_seen = appearances;
         let Some(egress) = attached.as_mut() else {
             if !reachable {
                 std::thread::sleep(STOP_CHECK);
@@ -377,9 +413,51 @@ pub async fn run_consumer_host(context: BridgeContext) -> Result<()> {
         let context = context.clone();
         move || consumer_host_ingress(&context, &inbound_rx, &attached_tx)
     })?;
+    let (receipts_tx, receipts_rx) = crossbeam_channel::unbounded();
+    let agent_hosts = AgentHosts::default();
+    let _receipts = context
+        .session
+        .declare_subscriber(context.keys.received_of_every_agent())
+        .allowed_origin(Locality::Remote)
+        .callback({
+            let keys = context.keys.clone();
+            move |sample: Sample| {
+                let Some((agent_id, _)) = keys.parse(sample.key_expr().as_str()) else {
+                    return;
+                };
+                match Acknowledgement::from_bytes(&sample.payload().to_bytes()) {
+                    Ok(ack) => {
+                        let _ = receipts_tx.send((agent_id, ack));
+                    }
+                    Err(e) => tracing::warn!(error = %e, "dropped a malformed receipt"),
+                }
+            }
+        })
+        .await
+        .map_err(|e| anyhow!("zenoh receipt subscriber: {e}"))?;
+    let _agent_hosts_watch = context
+        .session
+        .liveliness()
+        .declare_subscriber(context.keys.every_agent_bridge())
+        .history(true)
+        .callback({
+            let (hosts, keys) = (agent_hosts.clone(), context.keys.clone());
+            move |sample: Sample| {
+                let Some(agent_id) = keys.parse_agent_bridge(sample.key_expr().as_str()) else {
+                    return;
+                };
+                hosts.update(agent_id, sample.kind() == SampleKind::Put);
+            }
+        })
+        .await
+        .map_err(|e| anyhow!("zenoh liveliness subscriber: {e}"))?;
     let egress = spawn("egress", &context.stop, {
         let context = context.clone();
-        move || consumer_host_egress(&context)
+        let links = ConsumerEgressLinks {
+            receipts: receipts_rx,
+            agent_hosts,
+        };
+        move || consumer_host_egress(&context, &links)
     })?;
     let mut subscribers = Vec::new();
     for topic in [
@@ -500,15 +578,97 @@ fn consumer_host_ingress(
     Ok(())
 }
 
-fn consumer_host_egress(context: &BridgeContext) -> Result<()> {
+/// Which agent hosts' bridges are reachable (their liveliness tokens), per agent id, and how
+/// often each token has appeared.
+#[derive(Clone, Default)]
+struct AgentHosts(Arc<std::sync::Mutex<HashMap<u32, (bool, u64)>>>);
+
+impl AgentHosts {
+    fn update(&self, agent_id: u32, present: bool) {
+        let mut hosts = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let entry = hosts.entry(agent_id).or_insert((false, 0));
+        entry.0 = present;
+        if present {
+            entry.1 += 1;
+        }
+    }
+
+    /// (reachable now, appearances so far) of agent `agent_id`'s host.
+    fn of(&self, agent_id: u32) -> (bool, u64) {
+        let hosts = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        hosts.get(&agent_id).copied().unwrap_or((false, 0))
+    }
+
+    fn agents(&self) -> Vec<u32> {
+        let hosts = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        hosts.keys().copied().collect()
+    }
+}
+
+/// What the consumer host's egress hears from the zenoh side.
+struct ConsumerEgressLinks {
+    /// Agent hosts' receipts for corrections and control messages.
+    receipts: Receiver<(u32, Acknowledgement)>,
+    agent_hosts: AgentHosts,
+}
+
+/// Relays the consumers' corrections and control messages to the agent hosts, keeping each
+/// until the agent host acknowledges it. While an agent's host is unreachable its messages are
+/// only kept; when its host (re)appears, what it has not acknowledged goes again first, in
+/// order, then the new ones (agents drop repeats by stamp); see `delivery`.
+fn consumer_host_egress(context: &BridgeContext, links: &ConsumerEgressLinks) -> Result<()> {
     let mut egress = ConsumerHostEgress::open(&context.transport)?;
     let mut publishers = Publishers::new(context);
+    let mut unacknowledged = Unacknowledged::default();
+    // Per agent: the appearances of its host already served.
+    let mut served: HashMap<u32, u64> = HashMap::new();
     let traffic = &context.traffic;
     while !context.stopping() {
-        match egress.recv_timeout(STOP_CHECK)? {
+        for (agent_id, ack) in links.receipts.try_iter() {
+            unacknowledged.acknowledge(agent_id, ack);
+        }
+        for agent_id in links.agent_hosts.agents() {
+            let (present, appearances) = links.agent_hosts.of(agent_id);
+            let seen = served.entry(agent_id).or_insert(0);
+            if !present || *seen == appearances {
+                continue;
+            }
+            *seen = appearances;
+            let again: Vec<&WireMessage> = unacknowledged
+                .iter()
+                .filter(|m| m.agent_id == agent_id)
+                .collect();
+            if !again.is_empty() {
+                tracing::info!(
+                    agent_id,
+                    messages = again.len(),
+                    "agent host (re)appeared: sending again what it had not acknowledged"
+                );
+            }
+            for message in again {
+                publishers.relay(message)?;
+            }
+        }
+        match egress.recv_timeout(Duration::from_millis(20))? {
             None => {}
             Some(ConsumerHostOutgoing::Message(message)) => {
-                publishers.relay(&WireMessage::raw(message))?;
+                let message = WireMessage::raw(message);
+                let (present, appearances) = links.agent_hosts.of(message.agent_id);
+                // Sent now only to a host that is there and has been served its backlog; the
+                // loop above sends it with the backlog otherwise.
+                if present && served.get(&message.agent_id) == Some(&appearances) {
+                    publishers.relay(&message)?;
+                }
+                unacknowledged.push_bounded(message, CONSUMER_UNACKNOWLEDGED_LIMIT_BYTES);
             }
             Some(ConsumerHostOutgoing::GoodbyeSeen { agent_id }) => {
                 traffic.count_out(agent_id, GOODBYE_SEEN, 0);

@@ -60,6 +60,28 @@ impl SwarmKeys {
         format!("{}/{DELIVERED}", self.agent_prefix(&agent_id.to_string()))
     }
 
+    /// Where an agent host's bridge acknowledges a correction or control message its agent got.
+    pub fn received(&self, agent_id: u32) -> String {
+        format!("{}/{RECEIVED}", self.agent_prefix(&agent_id.to_string()))
+    }
+
+    pub fn received_of_every_agent(&self) -> String {
+        format!("{}/{RECEIVED}", self.agent_prefix("*"))
+    }
+
+    /// The liveliness tokens of every agent host's bridge.
+    pub fn every_agent_bridge(&self) -> String {
+        format!("{}/bridge/agent/*", self.names.namespace())
+    }
+
+    /// The agent id of an agent host bridge's token key.
+    pub fn parse_agent_bridge(&self, key: &str) -> Option<u32> {
+        key.strip_prefix(self.names.namespace())?
+            .strip_prefix("/bridge/agent/")?
+            .parse()
+            .ok()
+    }
+
     pub fn consumers_bridge(&self) -> String {
         format!("{}/bridge/consumers", self.names.namespace())
     }
@@ -82,6 +104,8 @@ impl SwarmKeys {
 pub const GOODBYE_SEEN: &str = "goodbye_seen";
 /// Last key segment of a delivery acknowledgement.
 pub const DELIVERED: &str = "delivered";
+/// The reverse of [`DELIVERED`]: agent host -> consumer host, for corrections and control.
+pub const RECEIVED: &str = "received";
 
 /// The topic whose name is `name`.
 pub fn topic_named(name: &str) -> Option<Topic> {
@@ -98,6 +122,8 @@ mod tests {
         let names = ServiceNames::new("mac7");
         assert_eq!(keys.topic(3, Topic::Patch), names.patch(3));
         assert_eq!(keys.topic(2, Topic::Lifecycle), "mac7/agent/2/lifecycle");
+        assert_eq!(keys.parse_agent_bridge(&keys.agent_bridge(12)), Some(12));
+        assert_eq!(keys.parse_agent_bridge("mac7/bridge/consumers"), None);
         assert_eq!(
             keys.parse("mac7/agent/12/correction"),
             Some((12, "correction"))

@@ -231,8 +231,15 @@ fn only_peers_with_a_swarm_certificate_reach_the_consumer() {
         ]
     );
 
-    // The way back: the genuine peer gets the consumer's correction, the intruders nothing.
+    // The way back: the genuine peer gets the consumer's correction, the intruders nothing. It
+    // announces itself as agent 0's host, as an agent host's bridge does: the consumer host's
+    // bridge sends an agent's corrections only to a host that is there.
     let genuine_corrections = corrections(&genuine, &namespace);
+    let _agent_host_token = genuine
+        .liveliness()
+        .declare_token(format!("{namespace}/bridge/agent/0"))
+        .wait()
+        .unwrap();
     let poses = [KeyframePose {
         keyframe_id: 1,
         camera_to_world: Pose::IDENTITY,
