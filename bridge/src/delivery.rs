@@ -1,5 +1,6 @@
 //! End-to-end delivery of the agents' messages between the bridges, across link drops and
-//! restarts of the consumer host's bridge.
+//! restarts of the consumer host's bridge; and, the other way, of the consumers' corrections
+//! and control messages across restarts of an agent host's bridge.
 //!
 //! Zenoh's reliability holds within one session: a message queued on a link that breaks, or
 //! received by a bridge that dies before handing it on, is gone. So the consumer host's bridge
@@ -16,6 +17,13 @@
 //! back (and through the iceoryx2 queues the agents) while the consumer host has not taken what
 //! it was sent, so the consumer host's receive queue stays bounded without ever stalling the
 //! link.
+//!
+//! The other way round the roles swap: an agent host's bridge acknowledges each correction or
+//! control message once its agent has it (a receipt on `{ns}/agent/{id}/received`), and the
+//! consumer host's bridge keeps each until then ([`Unacknowledged::push_bounded`]: the oldest
+//! corrections of an agent that never answers again are forgotten). It sends an agent's messages
+//! only while that agent's host is there (its liveliness token); when the host appears again, its
+//! backlog goes first, in order, so nothing newer overtakes it.
 
 use std::collections::VecDeque;
 
