@@ -304,18 +304,7 @@ fn agent_host_egress(
             );
             continue;
         }
-        let mut sent = false;
-        while unacknowledged.bytes() < UNACKNOWLEDGED_LIMIT_BYTES {
-            let Some(message) = budget.next(Instant::now()) else {
-                break;
-            };
-            publishers.relay(&message)?;
-            unacknowledged.push(message);
-            sent = true;
-        }
-        if sent {
-            context.traffic.set_budget(budget.stats());
-        }
+        send_due(context, &mut publishers, &mut unacknowledged, &mut budget)?;
         if unacknowledged.bytes() >= UNACKNOWLEDGED_LIMIT_BYTES
             || budget.waiting_bytes() >= WAITING_LIMIT_BYTES
         {
@@ -348,6 +337,29 @@ fn agent_host_egress(
     )
 }
 
+/// Sends what the budget lets go now, while the unacknowledged window has room, and keeps it
+/// until acknowledged; the report's budget statistics follow.
+fn send_due(
+    context: &BridgeContext,
+    publishers: &mut Publishers,
+    unacknowledged: &mut Unacknowledged,
+    budget: &mut Budget,
+) -> Result<()> {
+    let mut sent = false;
+    while unacknowledged.bytes() < UNACKNOWLEDGED_LIMIT_BYTES {
+        let Some(message) = budget.next(Instant::now()) else {
+            break;
+        };
+        publishers.relay(&message)?;
+        unacknowledged.push(message);
+        sent = true;
+    }
+    if sent {
+        context.traffic.set_budget(budget.stats());
+    }
+    Ok(())
+}
+
 /// On stop: sends what still waits for the budget and waits for the consumer host to
 /// acknowledge everything, for at most `[network] drain_timeout_s` and only while the consumer
 /// host is reachable (an agent that is done hands its last keyframes and final map to the
@@ -377,14 +389,7 @@ fn drain(
             tracing::info!("everything sent and acknowledged");
             return Ok(());
         }
-        while unacknowledged.bytes() < UNACKNOWLEDGED_LIMIT_BYTES {
-            let Some(message) = budget.next(Instant::now()) else {
-                break;
-            };
-            publishers.relay(&message)?;
-            unacknowledged.push(message);
-        }
-        context.traffic.set_budget(budget.stats());
+        send_due(context, publishers, unacknowledged, budget)?;
         let wait = budget
             .next_due_in(Instant::now())
             .map_or(Duration::from_millis(20), |due| {

@@ -9,13 +9,12 @@
 //!
 //! The agent is this test binary itself, started again inside host A with `AGENT_ROLE` set.
 
-use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 mod common;
 
-use common::{BRIDGE, Reaped, credentials, free_port, is_root, make_certs};
+use common::{Reaped, TwoHosts, is_root};
 use protocol::bench::{SAMPLE_INTRINSICS, synthetic_descriptor};
 use protocol::messages::{
     CoordinateFrame, GaussianRecord, Intrinsics, LifecycleKind, Pose, RgbdPixel,
@@ -122,46 +121,32 @@ fn a_capped_agent_keeps_to_its_budget_and_loses_nothing() {
         eprintln!("skipped: simulated hosts need root (unshare --mount)");
         return;
     }
-    let repository = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
-    let namespace = format!("budgettest{}", std::process::id());
-    let endpoint = format!("tls/127.0.0.1:{}", free_port());
-    let swarm = ["--namespace", &namespace, "--agents", "1"];
-    let work = tempfile::tempdir().unwrap();
-    let certificates = work.path().join("certs");
-    make_certs(&certificates, &["b=127.0.0.1", "a"]);
-    let run_config = work.path().join("config.toml");
+    let hosts = TwoHosts::new("budgettest");
+    let run_config = hosts.work.path().join("config.toml");
     std::fs::write(
         &run_config,
         format!("[network]\nagent_kb_per_s = {CAP_KB_PER_S}\n"),
     )
     .unwrap();
-    let report = work.path().join("bridge_agent_0.json");
+    let report = hosts.work.path().join("bridge_agent_0.json");
 
-    let config = TransportConfig::for_swarm(namespace.clone(), Some(1));
+    let config = TransportConfig::for_swarm(hosts.namespace.clone(), Some(1));
     let mut consumer = ConsumerLink::open(&config).unwrap();
-    let _consumer_bridge = Reaped(
-        Command::new(BRIDGE)
-            .args(["--role", "consumers", "--listen", &endpoint])
-            .args(swarm)
-            .args(credentials(&certificates, "b"))
-            .spawn()
-            .unwrap(),
-    );
+    let _consumer_bridge = hosts.consumer_bridge();
+    let bridge_args = [
+        "--config".as_ref(),
+        run_config.as_os_str(),
+        "--report".as_ref(),
+        report.as_os_str(),
+    ];
     let mut agent = Reaped(
-        Command::new(repository.join("scripts/simulated_host.sh"))
-            .arg(BRIDGE)
-            .args(["--role", "agents", "--local-agent", "0"])
-            .args(["--connect", &endpoint])
-            .args(swarm)
-            .args(credentials(&certificates, "a"))
-            .arg("--config")
-            .arg(&run_config)
-            .arg("--report")
-            .arg(&report)
-            .arg("--")
-            .arg(std::env::current_exe().unwrap())
-            .args(["--exact", "bulk_publishing_agent_on_host_a", "--ignored"])
-            .env(AGENT_ROLE, &namespace)
+        hosts
+            .agent_host(
+                &bridge_args,
+                "bulk_publishing_agent_on_host_a",
+                &[],
+                AGENT_ROLE,
+            )
             .stdout(Stdio::null())
             .spawn()
             .unwrap(),

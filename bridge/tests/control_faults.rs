@@ -9,13 +9,12 @@
 //! The agent is this test binary itself, started again inside host A with `AGENT_ROLE` set; it
 //! fails (and the test with it) unless it got every message in order.
 
-use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
 
-use common::{BRIDGE, Reaped, credentials, free_port, is_root, make_certs};
+use common::{BRIDGE, Reaped, TwoHosts, is_root};
 use protocol::bench::SAMPLE_INTRINSICS;
 use protocol::messages::{ControlMessage, LifecycleKind};
 use protocol::transport::{AgentLink, ConsumerLink, Incoming, TransportConfig};
@@ -71,35 +70,13 @@ fn every_control_message_crosses_an_agent_bridge_kill_and_restart() {
         eprintln!("skipped: simulated hosts need root (unshare --mount)");
         return;
     }
-    let repository = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
-    let namespace = format!("controltest{}", std::process::id());
-    let endpoint = format!("tls/127.0.0.1:{}", free_port());
-    let swarm = ["--namespace", &namespace, "--agents", "1"];
-    let work = tempfile::tempdir().unwrap();
-    let certificates = work.path().join("certs");
-    make_certs(&certificates, &["b=127.0.0.1", "a"]);
-
-    let config = TransportConfig::for_swarm(namespace.clone(), Some(1));
+    let hosts = TwoHosts::new("controltest");
+    let config = TransportConfig::for_swarm(hosts.namespace.clone(), Some(1));
     let mut consumer = ConsumerLink::open(&config).unwrap();
-    let _consumer_bridge = Reaped(
-        Command::new(BRIDGE)
-            .args(["--role", "consumers", "--listen", &endpoint])
-            .args(swarm)
-            .args(credentials(&certificates, "b"))
-            .spawn()
-            .unwrap(),
-    );
+    let _consumer_bridge = hosts.consumer_bridge();
     let mut agent = Reaped(
-        Command::new(repository.join("scripts/simulated_host.sh"))
-            .arg(BRIDGE)
-            .args(["--role", "agents", "--local-agent", "0"])
-            .args(["--connect", &endpoint])
-            .args(swarm)
-            .args(credentials(&certificates, "a"))
-            .arg("--")
-            .arg(std::env::current_exe().unwrap())
-            .args(["--exact", "control_receiving_agent_on_host_a", "--ignored"])
-            .env(AGENT_ROLE, &namespace)
+        hosts
+            .agent_host(&[], "control_receiving_agent_on_host_a", &[], AGENT_ROLE)
             .stdout(Stdio::null())
             .spawn()
             .unwrap(),
@@ -118,7 +95,10 @@ fn every_control_message_crosses_an_agent_bridge_kill_and_restart() {
     }
     // The bridge process itself (its command line starts with the binary), not the host script
     // that supervises it.
-    let agent_bridge = format!("^{BRIDGE} --role agents --local-agent 0 --connect {endpoint}");
+    let agent_bridge = format!(
+        "^{BRIDGE} --role agents --local-agent 0 --connect {}",
+        hosts.endpoint
+    );
     for keyframe_id in 0..MESSAGES {
         if keyframe_id == KILL_AFTER {
             let killed = Command::new("pkill")

@@ -8,13 +8,12 @@
 //! The agent is this test binary itself, started again inside host A with `AGENT_ROLE` set (it
 //! then runs [`publishing_agent_on_host_a`] only).
 
-use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 mod common;
 
-use common::{BRIDGE, Reaped, credentials, free_port, is_root, make_certs};
+use common::{Reaped, TwoHosts, is_root};
 use protocol::bench::{SAMPLE_INTRINSICS, synthetic_descriptor};
 use protocol::messages::LifecycleKind;
 use protocol::transport::{AgentLink, ConsumerLink, Incoming, TransportConfig};
@@ -57,41 +56,18 @@ fn every_message_crosses_a_consumer_bridge_kill_and_restart() {
         eprintln!("skipped: simulated hosts need root (unshare --mount)");
         return;
     }
-    let repository = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
-    let namespace = format!("faulttest{}", std::process::id());
-    let endpoint = format!("tls/127.0.0.1:{}", free_port());
-    let swarm = ["--namespace", &namespace, "--agents", "1"];
-    let work = tempfile::tempdir().unwrap();
-    let certificates = work.path().join("certs");
-    make_certs(&certificates, &["b=127.0.0.1", "a"]);
+    let hosts = TwoHosts::new("faulttest");
 
     // Host B: this process and the consumer-role bridge.
-    let config = TransportConfig::for_swarm(namespace.clone(), Some(1));
+    let config = TransportConfig::for_swarm(hosts.namespace.clone(), Some(1));
     let mut consumer = ConsumerLink::open(&config).unwrap();
-    let start_consumer_bridge = || {
-        Reaped(
-            Command::new(BRIDGE)
-                .args(["--role", "consumers", "--listen", &endpoint])
-                .args(swarm)
-                .args(credentials(&certificates, "b"))
-                .spawn()
-                .unwrap(),
-        )
-    };
+    let start_consumer_bridge = || hosts.consumer_bridge();
     let mut consumer_bridge = Some(start_consumer_bridge());
 
     // Host A: the agent (this binary again) and the agent-role bridge.
     let mut agent = Reaped(
-        Command::new(repository.join("scripts/simulated_host.sh"))
-            .arg(BRIDGE)
-            .args(["--role", "agents", "--local-agent", "0"])
-            .args(["--connect", &endpoint])
-            .args(swarm)
-            .args(credentials(&certificates, "a"))
-            .arg("--")
-            .arg(std::env::current_exe().unwrap())
-            .args(["--exact", "publishing_agent_on_host_a", "--ignored"])
-            .env(AGENT_ROLE, &namespace)
+        hosts
+            .agent_host(&[], "publishing_agent_on_host_a", &[], AGENT_ROLE)
             .stdout(Stdio::null())
             .spawn()
             .unwrap(),

@@ -9,13 +9,12 @@
 //! then runs [`agent_on_host_a`] only).
 
 use std::io::{BufRead, BufReader};
-use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 mod common;
 
-use common::{BRIDGE, Reaped, credentials, free_port, is_root, make_certs};
+use common::{Reaped, TwoHosts, is_root};
 use protocol::bench::{SAMPLE_INTRINSICS, synthetic_descriptor, synthetic_record};
 use protocol::messages::{CoordinateFrame, KeyframePose, LifecycleKind, Pose};
 use protocol::transport::{AgentLink, ConsumerLink, Delivery, Incoming, TransportConfig};
@@ -77,46 +76,17 @@ fn large_patch_and_stamps_cross_between_simulated_hosts() {
         eprintln!("skipped: simulated hosts need root (unshare --mount)");
         return;
     }
-    let repository = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
-    let bridge = BRIDGE;
-    let namespace = format!("bridgetest{}", std::process::id());
-    let endpoint = format!("tls/127.0.0.1:{}", free_port());
-    let swarm = ["--namespace", &namespace, "--agents", "1"];
-    let work = tempfile::tempdir().unwrap();
-    let certificates = work.path().join("certs");
-    make_certs(&certificates, &["b=127.0.0.1", "a"]);
-    let credentials = |host: &str| credentials(&certificates, host);
+    let hosts = TwoHosts::new("bridgetest");
 
     // Host B: this process and the consumer-role bridge.
-    let config = TransportConfig::for_swarm(namespace.clone(), Some(1));
+    let config = TransportConfig::for_swarm(hosts.namespace.clone(), Some(1));
     let mut consumer = ConsumerLink::open(&config).unwrap();
-    let _consumer_bridge = Reaped(
-        Command::new(bridge)
-            .args(["--role", "consumers", "--listen", &endpoint])
-            .args(swarm)
-            .args(credentials("b"))
-            .spawn()
-            .unwrap(),
-    );
+    let _consumer_bridge = hosts.consumer_bridge();
 
     // Host A: the agent (this binary again) and the agent-role bridge.
     let mut agent = Reaped(
-        Command::new(repository.join("scripts/simulated_host.sh"))
-            .arg(bridge)
-            .args([
-                "--role",
-                "agents",
-                "--local-agent",
-                "0",
-                "--connect",
-                &endpoint,
-            ])
-            .args(swarm)
-            .args(credentials("a"))
-            .arg("--")
-            .arg(std::env::current_exe().unwrap())
-            .args(["--exact", "agent_on_host_a", "--ignored", "--nocapture"])
-            .env(AGENT_ROLE, &namespace)
+        hosts
+            .agent_host(&[], "agent_on_host_a", &["--nocapture"], AGENT_ROLE)
             .stdout(Stdio::piped())
             .spawn()
             .unwrap(),

@@ -66,3 +66,74 @@ impl Drop for Reaped {
         let _ = self.0.wait();
     }
 }
+
+/// Two simulated hosts joined over mutual TLS on 127.0.0.1, with certificates made for the
+/// test: host B is the test process (a consumer) with a consumer-role bridge that listens; host
+/// A runs an agent (this test binary again, running one ignored test) inside
+/// scripts/simulated_host.sh with an agent-role bridge that connects.
+pub struct TwoHosts {
+    pub namespace: String,
+    pub endpoint: String,
+    /// Scratch folder of the test (the certificates are in it).
+    pub work: tempfile::TempDir,
+}
+
+impl TwoHosts {
+    /// `prefix` names the test's swarm namespace (the process id is appended).
+    pub fn new(prefix: &str) -> Self {
+        let work = tempfile::tempdir().unwrap();
+        make_certs(&work.path().join("certs"), &["b=127.0.0.1", "a"]);
+        Self {
+            namespace: format!("{prefix}{}", std::process::id()),
+            endpoint: format!("tls/127.0.0.1:{}", free_port()),
+            work,
+        }
+    }
+
+    fn swarm(&self) -> [&str; 4] {
+        ["--namespace", &self.namespace, "--agents", "1"]
+    }
+
+    fn credentials(&self, host: &str) -> [String; 4] {
+        credentials(&self.work.path().join("certs"), host)
+    }
+
+    /// Host B's consumer-role bridge (call again to start it again).
+    pub fn consumer_bridge(&self) -> Reaped {
+        Reaped(
+            Command::new(BRIDGE)
+                .args(["--role", "consumers", "--listen", &self.endpoint])
+                .args(self.swarm())
+                .args(self.credentials("b"))
+                .spawn()
+                .unwrap(),
+        )
+    }
+
+    /// Host A, ready to spawn: its bridge gets `bridge_args` besides the swarm's, the agent is
+    /// this binary running `agent_test` (`--exact NAME --ignored`, then `agent_args`) with the
+    /// environment variable `agent_role` set to the namespace.
+    pub fn agent_host(
+        &self,
+        bridge_args: &[&std::ffi::OsStr],
+        agent_test: &str,
+        agent_args: &[&str],
+        agent_role: &str,
+    ) -> Command {
+        let repository = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+        let mut command = Command::new(repository.join("scripts/simulated_host.sh"));
+        command
+            .arg(BRIDGE)
+            .args(["--role", "agents", "--local-agent", "0"])
+            .args(["--connect", &self.endpoint])
+            .args(self.swarm())
+            .args(self.credentials("a"))
+            .args(bridge_args)
+            .arg("--")
+            .arg(std::env::current_exe().unwrap())
+            .args(["--exact", agent_test, "--ignored"])
+            .args(agent_args)
+            .env(agent_role, &self.namespace);
+        command
+    }
+}
