@@ -122,6 +122,8 @@ struct BridgeArgs {
 }
 
 fn main() -> Result<()> {
+    // Before anything else: it sets an environment variable and no thread may be running yet.
+    let users_zenoh_runtime = network::configure_zenoh_runtime();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -129,6 +131,14 @@ fn main() -> Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    if let Some(theirs) = users_zenoh_runtime {
+        tracing::warn!(
+            ZENOH_RUNTIME = %theirs,
+            ours = network::ZENOH_RUNTIME_SETTING,
+            "ZENOH_RUNTIME set by the user is kept: unless it hands `rx` over to a \
+             single-threaded `tx`, TLS links may reset under heavy two-way traffic"
+        );
+    }
     let cli = Cli::parse();
     if let Some(Command::Certs(args)) = &cli.command {
         return certs::make(&args.out, &args.hosts, args.days);

@@ -12,6 +12,9 @@
 //!
 //! Name verification stays on: zenoh's connecting side trusts the public web roots next to the
 //! swarm CA, so without it any publicly certified server would pass.
+//!
+//! Zenoh's runtimes ([`ZENOH_RUNTIME_SETTING`]): a link's receive task runs on the thread of its
+//! send task, so that one TLS connection is never read and written at the same instant.
 
 use std::path::Path;
 
@@ -45,6 +48,34 @@ pub struct Endpoints {
 ///   barely shrinks, so compression would cost CPU on every byte for little gain.
 pub const CONGESTION_CONTROL: CongestionControl = CongestionControl::Block;
 pub const PRIORITY: Priority = Priority::Data;
+
+/// Zenoh's runtime layout for a bridge (RON, read by zenoh from the `ZENOH_RUNTIME` environment
+/// variable when its first runtime starts): the receive runtime is handed over to the
+/// single-threaded send runtime.
+///
+/// Why: zenoh-link-tls (1.10.1) reads and writes one rustls connection from its receive and send
+/// tasks through shared interior mutability, with no lock between the two. While a read decodes
+/// records, rustls briefly marks the connection's state as failed ("handshake not complete"); a
+/// write on another thread at that instant fails, and zenoh closes the link and opens a new
+/// one, losing what was in flight. Under sustained two-way traffic (the IPC benchmark: 100k
+/// patches one way, acknowledgements the other) this happened every few hundred milliseconds
+/// after ~30 s. On one thread the two tasks interleave at their await points, where the
+/// connection's state is whole. Plain TCP links are unaffected either way; the cost is one
+/// thread for a host's network traffic (docs/benchmarks.md has the figures).
+pub const ZENOH_RUNTIME_SETTING: &str = "(rx: (handover: tx), tx: (worker_threads: 1))";
+
+/// Applies [`ZENOH_RUNTIME_SETTING`] unless the user set `ZENOH_RUNTIME`; returns the user's
+/// value when it was kept (for a warning once logging is up). Must be called before any thread
+/// starts (first thing in `main`): it changes the process environment.
+pub fn configure_zenoh_runtime() -> Option<String> {
+    if let Some(theirs) = std::env::var_os("ZENOH_RUNTIME") {
+        return Some(theirs.to_string_lossy().into_owned());
+    }
+    // SAFETY: called at the start of `main`, before this process starts any thread, so no other
+    // thread reads or writes the environment concurrently.
+    unsafe { std::env::set_var("ZENOH_RUNTIME", ZENOH_RUNTIME_SETTING) };
+    None
+}
 
 /// How a bridge's links are protected.
 #[derive(Debug, Clone)]

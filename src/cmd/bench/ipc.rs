@@ -6,10 +6,11 @@
 //! `--transport iceoryx2` (default): both processes on this host's shared memory.
 //! `--transport zenoh` (root): the peer runs on a simulated host of its own
 //! (scripts/simulated_host.sh: private /dev/shm and iceoryx2 root) with a consumer-role
-//! mac-bridge; the driver's host gets an agent-role mac-bridge; the two bridges talk zenoh over
-//! plain TCP on 127.0.0.1 (`--insecure-plain-tcp`: over TLS, with the driver's host listening,
-//! the peer's acknowledgements stall; see docs/benchmarks.md). Latencies then include both
-//! bridges and the network stack, and the acknowledgements come back the same way.
+//! mac-bridge; the driver's host gets an agent-role mac-bridge that listens on 127.0.0.1. The two
+//! bridges talk zenoh over TLS with mutual authentication, as a swarm does by default (`--link
+//! tls`, certificates made for the run with `mac-bridge certs`), or over plain TCP (`--link
+//! tcp`, the bridges' `--insecure-plain-tcp`). Latencies then include both bridges, TLS and the
+//! network stack, and the acknowledgements come back the same way.
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
@@ -44,6 +45,9 @@ pub struct IpcArgs {
     /// What carries the messages between the two processes.
     #[arg(long, value_enum, default_value_t = Transport::Iceoryx2)]
     transport: Transport,
+    /// With `--transport zenoh`: how the two hosts' bridges are linked.
+    #[arg(long, value_enum, default_value_t = Link::Tls)]
+    link: Link,
     #[arg(long)]
     json: bool,
 }
@@ -54,6 +58,14 @@ enum Transport {
     Iceoryx2,
     /// Two simulated hosts joined by mac-bridge over zenoh (TCP on 127.0.0.1); needs root.
     Zenoh,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Link {
+    /// TLS with mutual authentication (a swarm's default).
+    Tls,
+    /// Plain TCP without authentication.
+    Tcp,
 }
 
 #[derive(Args)]
@@ -82,11 +94,12 @@ pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
     };
     let report = match args.transport {
         Transport::Iceoryx2 => run_ipc_bench(&config, &peer).context("IPC benchmark")?,
-        Transport::Zenoh => across_simulated_hosts(&config, peer)?,
+        Transport::Zenoh => across_simulated_hosts(&config, peer, args.link)?,
     };
-    let transport = match args.transport {
-        Transport::Iceoryx2 => "iceoryx2",
-        Transport::Zenoh => "zenoh",
+    let transport = match (args.transport, args.link) {
+        (Transport::Iceoryx2, _) => "iceoryx2",
+        (Transport::Zenoh, Link::Tls) => "zenoh over TLS",
+        (Transport::Zenoh, Link::Tcp) => "zenoh over plain TCP",
     };
     if args.json {
         let mut json = serde_json::to_value(&report)?;
@@ -168,6 +181,7 @@ pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
 fn across_simulated_hosts(
     config: &IpcBenchConfig,
     peer: PeerCommand,
+    link: Link,
 ) -> anyhow::Result<protocol::bench::IpcBenchReport> {
     let bridge = peer.program.with_file_name("mac-bridge");
     anyhow::ensure!(
@@ -185,8 +199,38 @@ fn across_simulated_hosts(
     let port = std::net::TcpListener::bind("127.0.0.1:0")?
         .local_addr()?
         .port();
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let bridge_args = |role: &str| -> Vec<String> {
+    let certificates = std::env::temp_dir().join(format!("{}-certs", config.namespace));
+    let (endpoint, driver_security, peer_security) = match link {
+        Link::Tcp => {
+            let plain = vec!["--insecure-plain-tcp".to_string()];
+            (format!("tcp/127.0.0.1:{port}"), plain.clone(), plain)
+        }
+        Link::Tls => {
+            let _ = std::fs::remove_dir_all(&certificates);
+            let made = Command::new(&bridge)
+                .args(["certs", "--out"])
+                .arg(&certificates)
+                .args(["--host", "driver=127.0.0.1", "--host", "peer"])
+                .env("RUST_LOG", "warn")
+                .status()
+                .with_context(|| format!("starting {} certs", bridge.display()))?;
+            anyhow::ensure!(made.success(), "mac-bridge certs failed ({made})");
+            let security = |host: &str| {
+                vec![
+                    "--certificates".to_string(),
+                    certificates.display().to_string(),
+                    "--host".to_string(),
+                    host.to_string(),
+                ]
+            };
+            (
+                format!("tls/127.0.0.1:{port}"),
+                security("driver"),
+                security("peer"),
+            )
+        }
+    };
+    let bridge_args = |role: &str, security: &[String]| -> Vec<String> {
         [
             "--role",
             role,
@@ -194,17 +238,17 @@ fn across_simulated_hosts(
             &config.namespace,
             "--agents",
             "1",
-            "--insecure-plain-tcp",
             "--transport-config",
         ]
         .iter()
         .map(|s| s.to_string())
         .chain([transport_file.display().to_string()])
+        .chain(security.iter().cloned())
         .collect()
     };
     // The driver's host: this process and an agent-role bridge that listens.
     let driver_bridge = Command::new(&bridge)
-        .args(bridge_args("agents"))
+        .args(bridge_args("agents", &driver_security))
         .args(["--local-agent", "0", "--listen", &endpoint])
         .env("RUST_LOG", "warn")
         .spawn()
@@ -216,7 +260,7 @@ fn across_simulated_hosts(
         host_script.display().to_string(),
     ];
     host_args.push(bridge.display().to_string());
-    host_args.extend(bridge_args("consumers"));
+    host_args.extend(bridge_args("consumers", &peer_security));
     host_args.extend(["--connect".to_string(), endpoint, "--".to_string()]);
     host_args.push(peer.program.display().to_string());
     host_args.extend(peer.args);
@@ -227,6 +271,7 @@ fn across_simulated_hosts(
     let report = run_ipc_bench(config, &peer).context("IPC benchmark across simulated hosts");
     drop(driver_bridge);
     let _ = std::fs::remove_file(&transport_file);
+    let _ = std::fs::remove_dir_all(&certificates);
     report
 }
 
