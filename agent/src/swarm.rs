@@ -97,6 +97,9 @@ pub struct SwarmSummary {
     /// Times a consensus restarted on its store said it was back
     /// (`ControlMessage::ConsensusResumed`).
     pub consensus_resumed: usize,
+    /// Times the consensus said messages of this agent were lost on the way
+    /// (`ControlMessage::MessagesLost`).
+    pub messages_lost_reports: usize,
     /// Keyframes a resumed consensus lacked that this agent no longer held to publish again
     /// (`[consensus.resend] agent_keeps` in memory, `agent_spool_bytes` on disk): lost to the
     /// consensus.
@@ -745,6 +748,17 @@ impl SwarmLink {
                 ControlMessage::ConsensusResumed { keyframes_held } => {
                     self.publish_again_what_the_consensus_lacks(&keyframes_held);
                 }
+                ControlMessage::MessagesLost {
+                    keyframes_held,
+                    keyframes_in_part,
+                    newest_seen,
+                } => {
+                    self.publish_again_what_was_lost(
+                        &keyframes_held,
+                        &keyframes_in_part,
+                        newest_seen,
+                    );
+                }
                 ControlMessage::Shutdown { reason } => {
                     tracing::warn!(
                         %reason,
@@ -764,13 +778,51 @@ impl SwarmLink {
         self.summary.consensus_resumed += 1;
         let held: BTreeSet<u64> = keyframes_held.iter().copied().collect();
         self.confirm(held.iter().copied());
+        let resent = self.publish_again_unless(|id| held.contains(&id));
+        tracing::info!(
+            held_there = held.len(),
+            publishing_again = resent,
+            "the consensus is back"
+        );
+    }
+
+    /// Messages of this agent were lost on the way to the consensus, which holds
+    /// `keyframes_held` complete and `keyframes_in_part` in part (it asks for their parts
+    /// itself): every keyframe up to `newest_seen` in neither is published again. Newer ones
+    /// may still be on the way (e.g. waiting in a bridge's bandwidth budget).
+    fn publish_again_what_was_lost(
+        &mut self,
+        keyframes_held: &[u64],
+        keyframes_in_part: &[u64],
+        newest_seen: u64,
+    ) {
+        self.summary.messages_lost_reports += 1;
+        let held: BTreeSet<u64> = keyframes_held.iter().copied().collect();
+        let in_part: BTreeSet<u64> = keyframes_in_part.iter().copied().collect();
+        self.confirm(held.iter().copied());
+        let resent = self.publish_again_unless(|id| {
+            held.contains(&id) || in_part.contains(&id) || id > newest_seen
+        });
+        tracing::warn!(
+            held_there = held.len(),
+            in_part_there = in_part.len(),
+            newest_seen,
+            publishing_again = resent,
+            "messages to the consensus were lost on the way"
+        );
+    }
+
+    /// Publishes again, oldest first, every delivered keyframe still held here (in memory or
+    /// in the spool) for which `arrived(id)` is false; reports those no longer held. Returns
+    /// how many went out again.
+    fn publish_again_unless(&mut self, arrived: impl Fn(u64) -> bool) -> usize {
         let (mut lacking, kept): (VecDeque<WireKeyframe>, VecDeque<WireKeyframe>) =
             std::mem::take(&mut self.published)
                 .into_iter()
-                .partition(|wire| !held.contains(&wire.descriptor.keyframe_id));
+                .partition(|wire| !arrived(wire.descriptor.keyframe_id));
         self.published = kept;
         // Older ones from the spool, oldest first, ahead of the in-memory ones.
-        for wire in self.spooled_lacking(&held).into_iter().rev() {
+        for wire in self.spooled_lacking(&arrived).into_iter().rev() {
             lacking.push_front(wire);
         }
         let resent: BTreeSet<u64> = lacking
@@ -781,19 +833,13 @@ impl SwarmLink {
             .summary
             .keyframes_published_ids
             .iter()
-            .filter(|id| !held.contains(id) && !resent.contains(id))
+            .filter(|&&id| !arrived(id) && !resent.contains(&id))
             .copied()
             .collect();
-        tracing::info!(
-            held_there = held.len(),
-            publishing_again = resent.len(),
-            unrecoverable = unrecoverable.len(),
-            "the consensus is back"
-        );
         if !unrecoverable.is_empty() {
             tracing::warn!(
                 keyframes = ?unrecoverable,
-                "keyframes the consensus lost that this agent no longer holds \
+                "keyframes the consensus lacks that this agent no longer holds \
                  ([consensus.resend] agent_keeps, agent_spool_bytes)"
             );
             self.summary.keyframes_unrecoverable.extend(unrecoverable);
@@ -803,14 +849,16 @@ impl SwarmLink {
             // Control messages are only read with the link up.
             self.send_or_enqueue(wire, true);
         }
+        resent.len()
     }
 
-    /// The spooled keyframes not in `held`, oldest first (they stay spooled until confirmed).
-    fn spooled_lacking(&mut self, held: &BTreeSet<u64>) -> Vec<WireKeyframe> {
+    /// The spooled keyframes for which `arrived(id)` is false, oldest first (they stay
+    /// spooled until confirmed).
+    fn spooled_lacking(&mut self, arrived: &impl Fn(u64) -> bool) -> Vec<WireKeyframe> {
         let lacking: Vec<u64> = self
             .spool
             .as_ref()
-            .map(|spool| spool.ids().filter(|id| !held.contains(id)).collect())
+            .map(|spool| spool.ids().filter(|&id| !arrived(id)).collect())
             .unwrap_or_default();
         lacking
             .into_iter()
@@ -1154,6 +1202,41 @@ mod tests {
         assert_eq!(summary.keyframes_resent, 1);
         assert_eq!(summary.resend_unavailable, 1);
         assert_eq!(summary.send_failures, 0);
+    }
+
+    #[test]
+    fn after_lost_messages_what_arrived_nowhere_up_to_the_newest_seen_is_published_again() {
+        let dir = tempfile::tempdir().unwrap();
+        let spool = dir.path().join(crate::spool::KEYFRAME_SPOOL_DIR);
+        let mut config = Config::default();
+        // Two in memory, the older ones on the spool: both places are looked in.
+        config.consensus.resend.agent_keeps = 2;
+        let (mut consumer, mut swarm, intrinsics) =
+            announced_agent_with("lost-messages", &config, Some(&spool));
+        for keyframe_id in 1..=6 {
+            swarm.on_keyframe(small_keyframe(keyframe_id, intrinsics));
+            swarm.after_frame();
+            received_keyframes(&mut consumer);
+        }
+        // The consensus holds 1 and 4 whole and 3 in part, and has seen nothing newer than 5:
+        // 2 (spooled) and 5 (in memory) arrived nowhere; 6 may still be on the way.
+        consumer
+            .send_control(
+                0,
+                &ControlMessage::MessagesLost {
+                    keyframes_held: vec![1, 4],
+                    keyframes_in_part: vec![3],
+                    newest_seen: 5,
+                },
+            )
+            .unwrap();
+        swarm.after_frame();
+        let again = received_keyframes(&mut consumer);
+        assert_eq!(again.ids(), (vec![2, 5], vec![2, 5], vec![2, 5]));
+        let summary = swarm.summary();
+        assert_eq!(summary.messages_lost_reports, 1);
+        assert_eq!(summary.keyframes_resent, 2);
+        assert!(summary.keyframes_unrecoverable.is_empty());
     }
 
     /// Keyframe `keyframe_id` of a 32x24 camera with two Gaussians.

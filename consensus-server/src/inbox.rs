@@ -2,7 +2,10 @@
 //! (descriptor, RGB-D image, Gaussian patch; different topics, any order), hands a keyframe to
 //! the engine once its descriptor and image are both there, ignores parts that arrive twice, and
 //! says which keyframes have waited too long for a missing part, so that the process can ask the
-//! agent to publish them again (`[consensus.resend]`, `ControlMessage::ResendKeyframe`).
+//! agent to publish them again (`[consensus.resend]`, `ControlMessage::ResendKeyframe`). A
+//! keyframe none of whose parts arrived is unknown here; when an agent's messages were lost (its
+//! sequence numbers jumped), the inbox says what it holds of that agent, so that the agent
+//! publishes again what is missing (`ControlMessage::MessagesLost`).
 //!
 //! Free of transport and clocks: callers pass `now`, so the rule is testable without waiting.
 
@@ -107,6 +110,19 @@ pub struct ResendRequest {
     pub reason: String,
 }
 
+/// What the inbox holds of an agent whose messages were lost, for `ControlMessage::MessagesLost`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LossReport {
+    pub agent_id: u32,
+    /// Keyframes of which every part arrived.
+    pub keyframes_held: Vec<u64>,
+    /// Keyframes of which some part arrived (the missing ones are asked for by
+    /// [`KeyframeInbox::due_requests`]).
+    pub keyframes_in_part: Vec<u64>,
+    /// The newest keyframe id seen of the agent.
+    pub newest_seen: u64,
+}
+
 /// See the module documentation.
 pub struct KeyframeInbox {
     policy: ResendConfig,
@@ -118,6 +134,8 @@ pub struct KeyframeInbox {
     conflicts: BTreeMap<u32, usize>,
     given_up: BTreeSet<KeyframeRef>,
     incarnations: BTreeMap<u32, AgentIncarnations>,
+    /// Agents with lost messages not reported yet: when the first such loss was seen.
+    losses: BTreeMap<u32, Instant>,
 }
 
 impl KeyframeInbox {
@@ -130,6 +148,7 @@ impl KeyframeInbox {
             conflicts: BTreeMap::new(),
             given_up: BTreeSet::new(),
             incarnations: BTreeMap::new(),
+            losses: BTreeMap::new(),
         }
     }
 
@@ -349,6 +368,55 @@ impl KeyframeInbox {
             });
         }
         due
+    }
+
+    /// Messages of `agent_id` carrying keyframe parts were lost (a sequence gap): a keyframe may
+    /// be missing whole, which no part can say. Reported by [`Self::due_loss_reports`].
+    pub fn messages_lost(&mut self, agent_id: u32, now: Instant) {
+        self.losses.entry(agent_id).or_insert(now);
+    }
+
+    /// Reports for agents not in `finished` whose loss was seen `after_s` ago or more: the
+    /// messages sent after the loss have arrived by then, so the report names what is really
+    /// missing. Each loss is reported once (a later loss makes a new report); none when
+    /// `max_requests` is 0 (never ask) or nothing of the agent was seen.
+    pub fn due_loss_reports(&mut self, now: Instant, finished: &BTreeSet<u32>) -> Vec<LossReport> {
+        let wait = Duration::from_secs_f64(self.policy.after_s);
+        let due: Vec<u32> = self
+            .losses
+            .iter()
+            .filter(|&(_, &seen)| now.saturating_duration_since(seen) >= wait)
+            .map(|(&agent_id, _)| agent_id)
+            .collect();
+        let mut reports = Vec::new();
+        for agent_id in due {
+            self.losses.remove(&agent_id);
+            if finished.contains(&agent_id) || self.policy.max_requests == 0 {
+                continue;
+            }
+            let keyframes_held = self.complete_keyframes(agent_id);
+            let keyframes_in_part: Vec<u64> = self
+                .pending
+                .keys()
+                .filter(|id| id.agent_id == agent_id)
+                .map(|id| id.keyframe_id)
+                .collect();
+            let newest = keyframes_held
+                .iter()
+                .chain(&keyframes_in_part)
+                .copied()
+                .max();
+            let Some(newest_seen) = newest else {
+                continue;
+            };
+            reports.push(LossReport {
+                agent_id,
+                keyframes_held,
+                keyframes_in_part,
+                newest_seen,
+            });
+        }
+        reports
     }
 
     /// Ids of `agent_id`'s keyframes of which every part arrived, in order.
@@ -603,6 +671,49 @@ mod tests {
         );
         assert!(inbox.patch(id(4), FIRST_RUN, at(11.0)));
         assert_eq!(inbox.incomplete(3), 0);
+    }
+
+    #[test]
+    fn a_loss_is_reported_once_after_the_wait_with_what_is_held_whole_and_in_part() {
+        let mut inbox = KeyframeInbox::new(policy());
+        let start = Instant::now();
+        let at = |s: f64| start + Duration::from_secs_f64(s);
+        // Keyframes 0, 1 complete; 5 in part (its descriptor only); 2-4 never seen.
+        first_run_keyframes(&mut inbox, 2, start);
+        assert!(inbox.descriptor(id(5), FIRST_RUN, vec![1.0], start).is_none());
+        assert!(inbox.due_loss_reports(at(100.0), &BTreeSet::new()).is_empty());
+
+        inbox.messages_lost(3, at(1.0));
+        // A second gap before the report does not move it.
+        inbox.messages_lost(3, at(2.5));
+        assert!(inbox.due_loss_reports(at(2.9), &BTreeSet::new()).is_empty());
+        let reports = inbox.due_loss_reports(at(3.0), &BTreeSet::new());
+        assert_eq!(
+            reports,
+            [LossReport {
+                agent_id: 3,
+                keyframes_held: vec![0, 1],
+                keyframes_in_part: vec![5],
+                newest_seen: 5,
+            }]
+        );
+        // Reported once; a later loss makes a new report.
+        assert!(inbox.due_loss_reports(at(10.0), &BTreeSet::new()).is_empty());
+        inbox.messages_lost(3, at(11.0));
+        assert_eq!(inbox.due_loss_reports(at(13.0), &BTreeSet::new()).len(), 1);
+
+        // Not for a finished agent, nor when requests are off, nor for an agent never seen.
+        inbox.messages_lost(3, at(20.0));
+        assert!(inbox.due_loss_reports(at(30.0), &BTreeSet::from([3])).is_empty());
+        let mut never_ask = KeyframeInbox::new(ResendConfig {
+            max_requests: 0,
+            ..policy()
+        });
+        first_run_keyframes(&mut never_ask, 2, start);
+        never_ask.messages_lost(3, start);
+        assert!(never_ask.due_loss_reports(at(30.0), &BTreeSet::new()).is_empty());
+        inbox.messages_lost(9, at(40.0));
+        assert!(inbox.due_loss_reports(at(50.0), &BTreeSet::new()).is_empty());
     }
 
     #[test]

@@ -21,8 +21,8 @@ pub const MAGIC: [u8; 4] = *b"MACC";
 
 /// Version of the control-frame format and of the serde types it carries. A reader refuses
 /// any other version. 2: `ControlMessage::ResendKeyframe`, frames on the `control` topic.
-/// 3: `ControlMessage::ConsensusResumed`.
-pub const FORMAT_VERSION: u16 = 3;
+/// 3: `ControlMessage::ConsensusResumed`. 4: `ControlMessage::MessagesLost`.
+pub const FORMAT_VERSION: u16 = 4;
 
 /// Bytes of the fixed header before the payload.
 pub const HEADER_LEN: usize = 12;

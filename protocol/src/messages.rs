@@ -465,6 +465,17 @@ pub enum ControlMessage {
     /// complete. The agent publishes again every keyframe it still holds that is not among
     /// them (they were lost with the previous consensus process, or never reached it).
     ConsensusResumed { keyframes_held: Vec<u64> },
+    /// Messages of the agent were lost on the way (its sequence numbers jumped: e.g. the bridge
+    /// of its host died holding them). The consensus holds `keyframes_held` complete and
+    /// `keyframes_in_part` in part (it asks for their missing parts itself with
+    /// [`ControlMessage::ResendKeyframe`]); the agent publishes again every keyframe up to
+    /// `newest_seen` (the newest id the consensus has seen of it; later ones may still be on
+    /// the way) that is in neither and that it still holds.
+    MessagesLost {
+        keyframes_held: Vec<u64>,
+        keyframes_in_part: Vec<u64>,
+        newest_seen: u64,
+    },
 }
 
 #[cfg(test)]

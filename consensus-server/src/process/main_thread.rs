@@ -15,6 +15,7 @@ use protocol::messages::{
     ControlMessage, FINAL_MAP_KEYFRAME_ID, GaussianRecord, KeyframeImageHeader, KeyframePose,
     LifecycleKind, Pose, RgbdPixel,
 };
+use protocol::services::Topic;
 use protocol::transport::{ConsumerLink, Incoming};
 
 use super::ConsensusOptions;
@@ -258,6 +259,11 @@ impl Listener {
                 ) {
                     record.gaps += 1;
                     tracing::warn!(agent_id, topic = %message.topic(), "messages lost");
+                    // A lost heartbeat carries nothing to recover; a lost keyframe part may
+                    // have taken a whole keyframe with it.
+                    if message.topic() != Topic::Lifecycle {
+                        self.inbox.messages_lost(agent_id, Instant::now());
+                    }
                 }
                 let mut route = Route {
                     agent_id,
@@ -563,7 +569,9 @@ impl Route<'_> {
     }
 }
 
-/// Asks agents to publish again the keyframes that waited too long for a missing part.
+/// Asks agents to publish again the keyframes that waited too long for a missing part, and
+/// tells agents whose messages were lost what arrived of theirs (the agent publishes the rest
+/// again).
 fn request_resends(
     link: &mut ConsumerLink,
     inbox: &mut KeyframeInbox,
@@ -586,6 +594,26 @@ fn request_resends(
         if let Err(error) = link.send_control(agent_id, &message) {
             // Asked again after the next wait, up to the configured number of requests.
             tracing::debug!(agent_id, %error, "resend request not delivered");
+        }
+    }
+    for report in inbox.due_loss_reports(Instant::now(), finished) {
+        let agent_id = report.agent_id;
+        tracing::warn!(
+            agent_id,
+            held = report.keyframes_held.len(),
+            in_part = report.keyframes_in_part.len(),
+            newest_seen = report.newest_seen,
+            "messages of the agent were lost: telling it what arrived"
+        );
+        agents.entry(agent_id).or_default().loss_reports += 1;
+        let message = ControlMessage::MessagesLost {
+            keyframes_held: report.keyframes_held,
+            keyframes_in_part: report.keyframes_in_part,
+            newest_seen: report.newest_seen,
+        };
+        if let Err(error) = link.send_control(agent_id, &message) {
+            // Keyframes still missing a part are asked for as usual; a later loss reports again.
+            tracing::warn!(agent_id, %error, "loss report not delivered");
         }
     }
 }

@@ -29,6 +29,9 @@ pub struct AgentRecord {
     pub gaps: usize,
     /// `ResendKeyframe` requests sent for keyframes that arrived incomplete.
     pub resend_requests: usize,
+    /// `MessagesLost` reports sent after a sequence gap on a keyframe topic (the agent then
+    /// publishes again the keyframes of which nothing arrived).
+    pub loss_reports: usize,
     /// Keyframes still missing a part at the end (descriptor, image or patch).
     pub keyframes_incomplete: usize,
     /// Keyframe parts that arrived more than once (ignored).

@@ -143,6 +143,15 @@ fn describe_control(message: &ControlMessage) -> String {
         ControlMessage::ConsensusResumed { keyframes_held } => {
             format!("consensus_resumed held={}", keyframes_held.len())
         }
+        ControlMessage::MessagesLost {
+            keyframes_held,
+            keyframes_in_part,
+            newest_seen,
+        } => format!(
+            "messages_lost held={} in_part={} newest_seen={newest_seen}",
+            keyframes_held.len(),
+            keyframes_in_part.len()
+        ),
     }
 }
 
