@@ -43,6 +43,9 @@ use crate::link_schedule::{
 use crate::local_corrections::ReceivedCorrection;
 use crate::spool::{KeyframeSpool, SpooledKeyframe};
 
+/// Goodbyes an agent says at the end of its run while they are lost (see
+/// `SwarmLink::say_goodbye`).
+const GOODBYE_ATTEMPTS: usize = 3;
 /// Heartbeat period: the consensus learns that a quiet agent is still alive.
 const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
 /// How often an agent without a consensus looks for one. Every send waits up to the transport's
@@ -97,6 +100,9 @@ pub struct SwarmSummary {
     /// Times a consensus restarted on its store said it was back
     /// (`ControlMessage::ConsensusResumed`).
     pub consensus_resumed: usize,
+    /// Goodbyes said again after one was not acknowledged (with the keyframes the consensus had
+    /// not confirmed and the final map before each).
+    pub goodbye_retries: usize,
     /// Times the consensus said messages of this agent were lost on the way
     /// (`ControlMessage::MessagesLost`).
     pub messages_lost_reports: usize,
@@ -977,6 +983,20 @@ impl SwarmLink {
                 "queued keyframes not delivered: the hello never got through"
             );
         }
+        self.send_final_map(final_map);
+        let _ = self.receive_corrections(true);
+        self.say_goodbye(final_map);
+        let summary = self.finish_summary();
+        // The goodbye waited until the consensus had everything.
+        if let Some(spool) = self.spool.take()
+            && let Err(error) = spool.close()
+        {
+            tracing::warn!("{error:#}");
+        }
+        summary
+    }
+
+    fn send_final_map(&mut self, final_map: &GaussianCloud) {
         // Built in place in shared memory: the final map is the largest patch (up to hundreds
         // of thousands of Gaussians), and no intermediate record buffer is needed.
         if let Err(error) = self.link.send_patch_with(
@@ -988,18 +1008,42 @@ impl SwarmLink {
             self.summary.send_failures += 1;
             tracing::warn!(%error, "final map not delivered");
         }
-        let _ = self.receive_corrections(true);
-        let summary = self.finish_summary();
-        if let Err(error) = self.link.close() {
-            tracing::warn!(%error, "goodbye not acknowledged");
+    }
+
+    /// Says goodbye, at most [`GOODBYE_ATTEMPTS`] times while it is lost: the consumer that
+    /// took it died before acknowledging it (a bridge between this host and the consensus,
+    /// perhaps holding what came before, under a bandwidth budget many keyframes' images and
+    /// patches). Once the consensus is reachable again, every keyframe it has not confirmed is
+    /// published again (repeats are dropped there), then the final map, then another goodbye.
+    /// A goodbye merely not acknowledged in time (a slow drain) is not said again.
+    fn say_goodbye(&mut self, final_map: &GaussianCloud) {
+        for attempt in 1..=GOODBYE_ATTEMPTS {
+            let error = match self.link.say_goodbye() {
+                Ok(_) => return,
+                Err(error @ TransportError::GoodbyeLost { .. }) => error,
+                Err(error) => {
+                    tracing::warn!(%error, "goodbye not acknowledged");
+                    return;
+                }
+            };
+            tracing::warn!(attempt, %error, "goodbye lost");
+            if attempt == GOODBYE_ATTEMPTS {
+                return;
+            }
+            if let Err(error) = self.link.await_all_consumers() {
+                tracing::warn!(%error, "the consensus is unreachable: no goodbye again");
+                return;
+            }
+            self.summary.goodbye_retries += 1;
+            let confirmed = self.confirmed.clone();
+            let resent = self.publish_again_unless(|id| confirmed.contains(&id));
+            tracing::warn!(
+                publishing_again = resent,
+                "the consensus is reachable again: publishing again what it has not confirmed, \
+                 the final map and the goodbye"
+            );
+            self.send_final_map(final_map);
         }
-        // The goodbye waited until the consensus had everything.
-        if let Some(spool) = self.spool.take()
-            && let Err(error) = spool.close()
-        {
-            tracing::warn!("{error:#}");
-        }
-        summary
     }
 
     /// The summary with the link's traffic figures.

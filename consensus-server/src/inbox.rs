@@ -136,12 +136,13 @@ pub struct KeyframeInbox {
     incarnations: BTreeMap<u32, AgentIncarnations>,
     /// Agents with lost messages not reported yet: when the first such loss was seen.
     losses: BTreeMap<u32, Instant>,
+    /// How long a loss waits before its report (see [`Self::with_loss_report_after`]).
+    loss_report_after: Duration,
 }
 
 impl KeyframeInbox {
     pub fn new(policy: ResendConfig) -> Self {
         Self {
-            policy,
             pending: BTreeMap::new(),
             complete: BTreeMap::new(),
             duplicates: BTreeMap::new(),
@@ -149,7 +150,18 @@ impl KeyframeInbox {
             given_up: BTreeSet::new(),
             incarnations: BTreeMap::new(),
             losses: BTreeMap::new(),
+            loss_report_after: Duration::from_secs_f64(policy.after_s),
+            policy,
         }
+    }
+
+    /// Loss reports wait `after_s` instead of the policy's (which may include a bandwidth
+    /// budget's allowance for deferred parts): a report names only keyframes up to the newest
+    /// the consensus has seen, and an agent's descriptors are never deferred, so it needs no
+    /// allowance, and an agent may finish its run within one.
+    pub fn with_loss_report_after(mut self, after_s: f64) -> Self {
+        self.loss_report_after = Duration::from_secs_f64(after_s);
+        self
     }
 
     /// Notes a message of incarnation `epoch` of `agent_id`; true when that incarnation is
@@ -376,12 +388,13 @@ impl KeyframeInbox {
         self.losses.entry(agent_id).or_insert(now);
     }
 
-    /// Reports for agents not in `finished` whose loss was seen `after_s` ago or more: the
+    /// Reports for agents not in `finished` whose loss was seen `after_s` ago or more
+    /// ([`Self::with_loss_report_after`]): the
     /// messages sent after the loss have arrived by then, so the report names what is really
     /// missing. Each loss is reported once (a later loss makes a new report); none when
     /// `max_requests` is 0 (never ask) or nothing of the agent was seen.
     pub fn due_loss_reports(&mut self, now: Instant, finished: &BTreeSet<u32>) -> Vec<LossReport> {
-        let wait = Duration::from_secs_f64(self.policy.after_s);
+        let wait = self.loss_report_after;
         let due: Vec<u32> = self
             .losses
             .iter()
@@ -675,7 +688,12 @@ mod tests {
 
     #[test]
     fn a_loss_is_reported_once_after_the_wait_with_what_is_held_whole_and_in_part() {
-        let mut inbox = KeyframeInbox::new(policy());
+        // A bandwidth budget's allowance delays requests for parts, not loss reports.
+        let deferring = ResendConfig {
+            after_s: 62.0,
+            ..policy()
+        };
+        let mut inbox = KeyframeInbox::new(deferring).with_loss_report_after(2.0);
         let start = Instant::now();
         let at = |s: f64| start + Duration::from_secs_f64(s);
         // Keyframes 0, 1 complete; 5 in part (its descriptor only); 2-4 never seen.

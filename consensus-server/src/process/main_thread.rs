@@ -66,7 +66,8 @@ impl Listener {
             agents: BTreeMap::new(),
             first_seen: BTreeMap::new(),
             finished: BTreeSet::new(),
-            inbox: KeyframeInbox::new(resend_policy(&options.config)),
+            inbox: KeyframeInbox::new(resend_policy(&options.config))
+                .with_loss_report_after(options.config.consensus.resend.after_s),
             world_from_agent: BTreeMap::new(),
             latencies: Vec::new(),
         }

@@ -70,6 +70,11 @@ pub struct AgentLink {
     node: Node<Ipc>,
 }
 
+/// How often a goodbye's wait checks that its consumers are still attached: a restarted bridge
+/// reattaches after about a second (scripts/simulated_host.sh), so its predecessor's death is
+/// seen in between.
+const GOODBYE_PRESENCE_CHECK_EVERY: Duration = Duration::from_millis(200);
+
 impl AgentLink {
     /// Opens the agent's services and ports. Cleans up dead processes' leftovers first, and
     /// refuses an id that a live agent already uses. Send [`AgentLink::announce`] next.
@@ -244,13 +249,30 @@ impl AgentLink {
         self.goodbye(self.config.delivery_timeout)
     }
 
-    /// Sends `Goodbye` and waits up to `ack_timeout` for every recipient's acknowledgement.
+    /// [`Self::close`] that keeps the link: when the goodbye was lost
+    /// ([`TransportError::GoodbyeLost`]: a bridge on the way died holding it and what came
+    /// before), the agent can deliver again what may have been lost and say goodbye once more.
+    pub fn say_goodbye(&mut self) -> Result<SendReport, TransportError> {
+        self.said_goodbye = true;
+        self.goodbye(self.config.delivery_timeout)
+    }
+
+    /// Sends `Goodbye` and waits up to `ack_timeout` for every recipient's acknowledgement;
+    /// [`TransportError::GoodbyeLost`] as soon as the consumers are no longer all attached (one
+    /// that took the goodbye died before acknowledging it).
     fn goodbye(&mut self, ack_timeout: Duration) -> Result<SendReport, TransportError> {
         let report = self.send_lifecycle(Lifecycle::goodbye())?;
         let start = Instant::now();
         let mut acknowledged = 0u64;
+        let mut presence_checked = start;
         while acknowledged < report.recipients as u64 {
             let waited = start.elapsed();
+            if presence_checked.elapsed() >= GOODBYE_PRESENCE_CHECK_EVERY {
+                presence_checked = Instant::now();
+                if !self.consumers_present() {
+                    return Err(TransportError::GoodbyeLost { waited });
+                }
+            }
             if waited >= ack_timeout {
                 return Err(TransportError::GoodbyeUnacknowledged {
                     acknowledged,

@@ -96,6 +96,10 @@ pub enum TransportError {
         expected: usize,
         waited: Duration,
     },
+    #[error(
+        "goodbye lost: a consumer that took it left (its process died) before acknowledging it, after {waited:?}"
+    )]
+    GoodbyeLost { waited: Duration },
     #[error("waiting for wake-up events failed: {reason}")]
     Wait { reason: String },
     #[error("shutdown requested")]
