@@ -263,5 +263,10 @@ fn agent_host_bridge_killed_mid_run_and_while_draining_loses_no_keyframe() {
     assert_eq!(received["keyframes"], published, "{received}");
     assert_eq!(received["keyframes_incomplete"], 0, "{received}");
     assert_eq!(received["goodbyes"], 1, "{received}");
-    assert!(agent["swarm"]["keyframes_unrecoverable"].as_array().unwrap().is_empty());
+    assert!(
+        agent["swarm"]["keyframes_unrecoverable"]
+            .as_array()
+            .unwrap()
+            .is_empty()
+    );
 }

@@ -698,8 +698,16 @@ mod tests {
         let at = |s: f64| start + Duration::from_secs_f64(s);
         // Keyframes 0, 1 complete; 5 in part (its descriptor only); 2-4 never seen.
         first_run_keyframes(&mut inbox, 2, start);
-        assert!(inbox.descriptor(id(5), FIRST_RUN, vec![1.0], start).is_none());
-        assert!(inbox.due_loss_reports(at(100.0), &BTreeSet::new()).is_empty());
+        assert!(
+            inbox
+                .descriptor(id(5), FIRST_RUN, vec![1.0], start)
+                .is_none()
+        );
+        assert!(
+            inbox
+                .due_loss_reports(at(100.0), &BTreeSet::new())
+                .is_empty()
+        );
 
         inbox.messages_lost(3, at(1.0));
         // A second gap before the report does not move it.
@@ -716,22 +724,38 @@ mod tests {
             }]
         );
         // Reported once; a later loss makes a new report.
-        assert!(inbox.due_loss_reports(at(10.0), &BTreeSet::new()).is_empty());
+        assert!(
+            inbox
+                .due_loss_reports(at(10.0), &BTreeSet::new())
+                .is_empty()
+        );
         inbox.messages_lost(3, at(11.0));
         assert_eq!(inbox.due_loss_reports(at(13.0), &BTreeSet::new()).len(), 1);
 
         // Not for a finished agent, nor when requests are off, nor for an agent never seen.
         inbox.messages_lost(3, at(20.0));
-        assert!(inbox.due_loss_reports(at(30.0), &BTreeSet::from([3])).is_empty());
+        assert!(
+            inbox
+                .due_loss_reports(at(30.0), &BTreeSet::from([3]))
+                .is_empty()
+        );
         let mut never_ask = KeyframeInbox::new(ResendConfig {
             max_requests: 0,
             ..policy()
         });
         first_run_keyframes(&mut never_ask, 2, start);
         never_ask.messages_lost(3, start);
-        assert!(never_ask.due_loss_reports(at(30.0), &BTreeSet::new()).is_empty());
+        assert!(
+            never_ask
+                .due_loss_reports(at(30.0), &BTreeSet::new())
+                .is_empty()
+        );
         inbox.messages_lost(9, at(40.0));
-        assert!(inbox.due_loss_reports(at(50.0), &BTreeSet::new()).is_empty());
+        assert!(
+            inbox
+                .due_loss_reports(at(50.0), &BTreeSet::new())
+                .is_empty()
+        );
     }
 
     #[test]
