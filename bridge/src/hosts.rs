@@ -265,9 +265,7 @@ fn agent_host_egress(
                 bytes = unacknowledged.bytes(),
                 "link to the consumer host re-established: sending again what it had not acknowledged"
             );
-            for message in unacknowledged.iter() {
-                publishers.relay(message)?;
-            }
+            send_again(&mut publishers, unacknowledged.iter())?;
         }
         appearances_seen = appearances;
         let Some(egress) = attached.as_mut() else {
@@ -282,9 +280,7 @@ fn agent_host_egress(
                     "consumer host back: sending again what it had not acknowledged"
                 );
             }
-            for message in unacknowledged.iter() {
-                publishers.relay(message)?;
-            }
+            send_again(&mut publishers, unacknowledged.iter())?;
             attached = Some(AgentHostEgress::open(&context.transport, local_agents)?);
             let _ = links.inbound.send(AgentHostInbound::ConsumersAttached);
             tracing::info!("consumer host reachable: attached to the local agents");
@@ -589,11 +585,14 @@ fn consumer_host_ingress(
 struct AgentHosts(Arc<std::sync::Mutex<HashMap<u32, (bool, u64)>>>);
 
 impl AgentHosts {
-    fn update(&self, agent_id: u32, present: bool) {
-        let mut hosts = self
-            .0
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<u32, (bool, u64)>> {
+        self.0
             .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn update(&self, agent_id: u32, present: bool) {
+        let mut hosts = self.lock();
         let entry = hosts.entry(agent_id).or_insert((false, 0));
         entry.0 = present;
         if present {
@@ -603,20 +602,27 @@ impl AgentHosts {
 
     /// (reachable now, appearances so far) of agent `agent_id`'s host.
     fn of(&self, agent_id: u32) -> (bool, u64) {
-        let hosts = self
-            .0
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        hosts.get(&agent_id).copied().unwrap_or((false, 0))
+        self.lock().get(&agent_id).copied().unwrap_or((false, 0))
     }
 
-    fn agents(&self) -> Vec<u32> {
-        let hosts = self
-            .0
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        hosts.keys().copied().collect()
+    /// Every agent whose host was seen, with [`Self::of`] for each, in one look.
+    fn all(&self) -> Vec<(u32, (bool, u64))> {
+        self.lock()
+            .iter()
+            .map(|(&id, &state)| (id, state))
+            .collect()
     }
+}
+
+/// Relays `messages` again (what a host had not acknowledged when its link came back).
+fn send_again<'a>(
+    publishers: &mut Publishers,
+    messages: impl IntoIterator<Item = &'a WireMessage>,
+) -> Result<()> {
+    for message in messages {
+        publishers.relay(message)?;
+    }
+    Ok(())
 }
 
 /// What the consumer host's egress hears from the zenoh side.
@@ -641,8 +647,7 @@ fn consumer_host_egress(context: &BridgeContext, links: &ConsumerEgressLinks) ->
         for (agent_id, ack) in links.receipts.try_iter() {
             unacknowledged.acknowledge(agent_id, ack);
         }
-        for agent_id in links.agent_hosts.agents() {
-            let (present, appearances) = links.agent_hosts.of(agent_id);
+        for (agent_id, (present, appearances)) in links.agent_hosts.all() {
             let seen = served.entry(agent_id).or_insert(0);
             if !present || *seen == appearances {
                 continue;
@@ -659,9 +664,7 @@ fn consumer_host_egress(context: &BridgeContext, links: &ConsumerEgressLinks) ->
                     "agent host (re)appeared: sending again what it had not acknowledged"
                 );
             }
-            for message in again {
-                publishers.relay(message)?;
-            }
+            send_again(&mut publishers, again)?;
         }
         match egress.recv_timeout(Duration::from_millis(20))? {
             None => {}

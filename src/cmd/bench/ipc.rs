@@ -192,21 +192,26 @@ fn across_simulated_hosts(
     let host_script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/simulated_host.sh");
     // Both bridges must open the services exactly as the two benchmark processes do.
     let transport = bench_transport_config(&config.namespace, config.poll_before_wait);
-    let transport_file: PathBuf =
-        std::env::temp_dir().join(format!("{}-transport.json", config.namespace));
+    // The run's transport settings and certificates (with private keys): removed however the
+    // benchmark ends.
+    let scratch = RemoveOnDrop(std::env::temp_dir().join(format!("{}-hosts", config.namespace)));
+    // A leftover of a killed run with the same process id would refuse new certificates.
+    let _ = std::fs::remove_dir_all(&scratch.0);
+    std::fs::create_dir_all(&scratch.0)
+        .with_context(|| format!("creating {}", scratch.0.display()))?;
+    let transport_file: PathBuf = scratch.0.join("transport.json");
     std::fs::write(&transport_file, serde_json::to_string(&transport)?)
         .with_context(|| format!("writing {}", transport_file.display()))?;
     let port = std::net::TcpListener::bind("127.0.0.1:0")?
         .local_addr()?
         .port();
-    let certificates = std::env::temp_dir().join(format!("{}-certs", config.namespace));
+    let certificates = scratch.0.join("certs");
     let (endpoint, driver_security, peer_security) = match link {
         Link::Tcp => {
             let plain = vec!["--insecure-plain-tcp".to_string()];
             (format!("tcp/127.0.0.1:{port}"), plain.clone(), plain)
         }
         Link::Tls => {
-            let _ = std::fs::remove_dir_all(&certificates);
             let made = Command::new(&bridge)
                 .args(["certs", "--out"])
                 .arg(&certificates)
@@ -270,9 +275,16 @@ fn across_simulated_hosts(
     };
     let report = run_ipc_bench(config, &peer).context("IPC benchmark across simulated hosts");
     drop(driver_bridge);
-    let _ = std::fs::remove_file(&transport_file);
-    let _ = std::fs::remove_dir_all(&certificates);
     report
+}
+
+/// A folder removed with everything in it when the benchmark ends either way.
+struct RemoveOnDrop(PathBuf);
+
+impl Drop for RemoveOnDrop {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }
 
 /// A bridge process, stopped (SIGTERM, then waited for) when the benchmark ends either way.
