@@ -31,7 +31,12 @@ pub struct TrackingConfig {
     pub max_iterations: usize,
     /// Converged when the rotation update is below this (radians)...
     pub rotation_epsilon_rad: f64,
-    /// ...and the translation update below this (metres).
+    /// ...and the translation update below this (metres). 1 mm, small_gicp's default, where the
+    /// published method uses 0.5 mm: each correspondence search after the first moves the pose
+    /// by about a quarter of the previous one, so the half-millimetre threshold costs one more
+    /// search on most frames (a third of the registration time) for a correction of a tenth of a
+    /// millimetre, and redkitchen's ATE is no worse with 1 mm (docs/method.md, One agent:
+    /// Tracking; docs/benchmarks.md).
     pub translation_epsilon_m: f64,
     /// Predict the next pose with a constant-velocity model instead of the previous pose.
     pub constant_velocity: bool,
@@ -51,7 +56,7 @@ impl Default for TrackingConfig {
             max_correspondence_m: 0.02,
             max_iterations: 64,
             rotation_epsilon_rad: 2e-3,
-            translation_epsilon_m: 5e-4,
+            translation_epsilon_m: 1e-3,
             constant_velocity: true,
             min_inlier_fraction: 0.2,
         }

@@ -53,11 +53,18 @@ struct VoxelKey {
 
 struct Voxel {
     key: VoxelKey,
-    /// Positions and slots side by side: the query loop reads only these two small arrays.
-    positions: Vec<Point3<f32>>,
-    slots: Vec<u32>,
+    /// Each point's position with its slot, in one array: the query loop reads only this, one
+    /// allocation per voxel instead of one per field.
+    points: Vec<VoxelPoint>,
     /// Equal to the map's `view_epoch` when the voxel intersects the selected view.
     in_view_epoch: u32,
+}
+
+/// A map point as its voxel lists it: 16 bytes, four to a cache line.
+#[derive(Debug, Clone, Copy)]
+struct VoxelPoint {
+    position: [f32; 3],
+    slot: u32,
 }
 
 /// The region of space a camera at a predicted pose can observe: inside the image's viewing
@@ -247,8 +254,7 @@ impl VoxelMap {
                 self.voxel_index_of.insert(key, self.voxels.len() as u32);
                 self.voxels.push(Voxel {
                     key,
-                    positions: Vec::new(),
-                    slots: Vec::new(),
+                    points: Vec::new(),
                     // A new voxel is outside the current selection until the next select_view.
                     in_view_epoch: 0,
                 });
@@ -256,8 +262,10 @@ impl VoxelMap {
             }
         };
         let voxel = &mut self.voxels[voxel_index];
-        voxel.positions.push(point.position);
-        voxel.slots.push(slot);
+        voxel.points.push(VoxelPoint {
+            position: point.position.coords.into(),
+            slot,
+        });
         Ok(replaced)
     }
 
@@ -272,13 +280,12 @@ impl VoxelMap {
         let voxel_index = self.voxel_index_of[&key] as usize;
         let voxel = &mut self.voxels[voxel_index];
         let at = voxel
-            .slots
+            .points
             .iter()
-            .position(|&s| s == slot)
+            .position(|p| p.slot == slot)
             .expect("a point is listed in the voxel of its position");
-        voxel.slots.swap_remove(at);
-        voxel.positions.swap_remove(at);
-        if voxel.slots.is_empty() {
+        voxel.points.swap_remove(at);
+        if voxel.points.is_empty() {
             self.voxel_index_of.remove(&key);
             self.voxels.swap_remove(voxel_index);
             if let Some(moved) = self.voxels.get(voxel_index) {
@@ -367,8 +374,8 @@ impl VoxelMap {
         self.voxels
             .iter()
             .filter(|v| self.view_epoch == 0 || v.in_view_epoch == self.view_epoch)
-            .flat_map(|v| v.slots.iter())
-            .filter_map(|&slot| self.points[slot as usize].as_ref().map(|p| p.id))
+            .flat_map(|v| v.points.iter())
+            .filter_map(|p| self.points[p.slot as usize].as_ref().map(|p| p.id))
     }
 
     /// Nearest point to `query` within `sqrt(max_distance_sq)`, over the whole map (ignoring any
@@ -398,11 +405,13 @@ impl VoxelMap {
             if use_view && voxel.in_view_epoch != self.view_epoch {
                 return;
             }
-            for (p, &slot) in voxel.positions.iter().zip(&voxel.slots) {
-                let d = (p - query).norm_squared();
+            for point in &voxel.points {
+                let [x, y, z] = point.position;
+                let (dx, dy, dz) = (x - query.x, y - query.y, z - query.z);
+                let d = dx * dx + dy * dy + dz * dz;
                 if d <= *best_sq {
                     *best_sq = d;
-                    best = Some((slot, d));
+                    best = Some((point.slot, d));
                 }
             }
         };
