@@ -515,7 +515,7 @@ fn linearize<T: RegistrationTarget + ?Sized>(
 ) -> NormalEquations {
     let parts = RigidParts::of(pose);
     let search_sq = max_distance_sq.max(overlap_sq);
-    source
+    let mut world = source
         .positions
         .par_chunks(POINTS_PER_TASK)
         .zip(source.covariances.par_chunks(POINTS_PER_TASK))
@@ -548,22 +548,48 @@ fn linearize<T: RegistrationTarget + ?Sized>(
                     continue;
                 };
                 *found = Some((target_position.coords.cast::<f64>(), w));
-                // J = [R [a]x, -R] (3x6), so J^T W J and J^T W d follow blockwise.
-                let r_skew_a = parts.rotation * a.cross_matrix();
-                let mut jacobian = nalgebra::Matrix3x6::<f64>::zeros();
-                jacobian.fixed_view_mut::<3, 3>(0, 0).copy_from(&r_skew_a);
-                jacobian
-                    .fixed_view_mut::<3, 3>(0, 3)
-                    .copy_from(&(-parts.rotation));
-                let jt_w = jacobian.transpose() * w;
-                sum.hessian += jt_w * jacobian;
-                sum.gradient += jt_w * d;
-                sum.error += d.dot(&(w * d));
+                // J = [R [a]x, -R] = [[r]x, -I] B with r = R a and B = diag(R, R), so
+                // J^T W J = B^T K^T W K B with the sparse K = [[r]x, -I]: K's blocks are summed
+                // here (the lower-left one is the transpose of the upper-right, filled once) and B
+                // is applied once to the sums, a third of the arithmetic of the dense product.
+                let r = transformed - parts.translation;
+                let skew = r.cross_matrix();
+                let skew_t_w = skew.transpose() * w;
+                let w_d = w * d;
+                let mut block = sum.hessian.fixed_view_mut::<3, 3>(0, 0);
+                block += skew_t_w * skew;
+                let mut block = sum.hessian.fixed_view_mut::<3, 3>(0, 3);
+                block -= skew_t_w;
+                let mut block = sum.hessian.fixed_view_mut::<3, 3>(3, 3);
+                block += w;
+                let mut rows = sum.gradient.fixed_rows_mut::<3>(0);
+                rows += skew.transpose() * w_d;
+                let mut rows = sum.gradient.fixed_rows_mut::<3>(3);
+                rows -= w_d;
+                sum.error += d.dot(&w_d);
                 sum.inliers += 1;
             }
             sum
         })
-        .reduce(NormalEquations::zero, NormalEquations::add)
+        .reduce(NormalEquations::zero, NormalEquations::add);
+    // Lower-left block from the upper-right, then from K's frame to the perturbation's.
+    let upper_right = world.hessian.fixed_view::<3, 3>(0, 3).transpose();
+    world
+        .hessian
+        .fixed_view_mut::<3, 3>(3, 0)
+        .copy_from(&upper_right);
+    let mut to_body = Matrix6::zeros();
+    to_body
+        .fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&parts.rotation);
+    to_body
+        .fixed_view_mut::<3, 3>(3, 3)
+        .copy_from(&parts.rotation);
+    NormalEquations {
+        hessian: to_body.transpose() * world.hessian * to_body,
+        gradient: to_body.transpose() * world.gradient,
+        ..world
+    }
 }
 
 /// G-ICP error at `pose` with the correspondences and weights of the last linearisation (judging
