@@ -475,10 +475,10 @@ mod tests {
             for position in 0..dataset.len() {
                 let frame = dataset.load(position).unwrap();
                 let expected = reference
-                    .track(&frame.depth, &frame.intrinsics)
+                    .track(frame.timestamp, &frame.depth, &frame.intrinsics)
                     .world_from_camera;
                 let first_point = odometry.next_point_id();
-                let tracked = odometry.track(&frame.depth, &frame.intrinsics);
+                let tracked = odometry.track(frame.timestamp, &frame.depth, &frame.intrinsics);
                 if odometry.next_point_id() > first_point {
                     corrections.record_tracker_points(first_point, frame.timestamp);
                 }

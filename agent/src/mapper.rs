@@ -132,8 +132,6 @@ pub struct Mapper {
 impl Mapper {
     /// Starts the mapping thread on its own device context.
     pub fn spawn(tracking: &TrackingConfig, mapping: &MappingConfig) -> Result<Self, MapperError> {
-        let context = GpuContext::new()?;
-        tracing::info!(adapter = %context.describe(), "mapping device");
         let (commands, receiver) = crossbeam_channel::unbounded();
         let (budget_sender, budget_spent) = match mapping.pace {
             Pace::Paced => {
@@ -143,11 +141,47 @@ impl Mapper {
             Pace::Sensor | Pace::Unthrottled => (None, None),
         };
         let progress = Arc::new(MapperProgress::default());
-        let state = MapperState::new(context, tracking, mapping, progress.clone());
+        let niceness = match mapping.pace {
+            Pace::Sensor => mapping.sensor_mapper_niceness,
+            Pace::Paced | Pace::Unthrottled => 0,
+        };
+        // The device context is made on the mapping thread, after its priority is lowered: the
+        // renderer's worker threads (lavapipe starts them with the device) inherit it. Tracking's
+        // worker pool must not: it starts here first, if nothing started it yet.
+        if niceness != 0 {
+            let _ = rayon::current_num_threads();
+        }
+        let (started_sender, started) = crossbeam_channel::bounded(1);
+        let (tracking, mapping, thread_progress) =
+            (tracking.clone(), mapping.clone(), progress.clone());
         let thread = std::thread::Builder::new()
             .name("mapper".into())
-            .spawn(move || state.run(receiver, budget_sender))
+            .spawn(move || {
+                config::process::lower_thread_priority(niceness);
+                let context = match GpuContext::new() {
+                    Ok(context) => context,
+                    Err(error) => {
+                        let _ = started_sender.send(Err(error));
+                        return Err(MapperError::Panicked);
+                    }
+                };
+                tracing::info!(adapter = %context.describe(), niceness, "mapping device");
+                let state = MapperState::new(context, &tracking, &mapping, thread_progress);
+                let _ = started_sender.send(Ok(()));
+                state.run(receiver, budget_sender)
+            })
             .expect("spawning the mapping thread");
+        match started.recv() {
+            Ok(Ok(())) => {}
+            Ok(Err(error)) => {
+                let _ = thread.join();
+                return Err(MapperError::Gpu(error));
+            }
+            Err(_) => {
+                let _ = thread.join();
+                return Err(MapperError::Panicked);
+            }
+        }
         Ok(Self {
             commands,
             budget_spent,

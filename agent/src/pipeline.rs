@@ -140,7 +140,9 @@ impl<'a> AgentPipeline<'a> {
     pub fn track(&mut self, item: &SourceFrame) -> Tracked {
         let frame = &item.frame;
         let tracker_first_point = self.odometry.next_point_id();
-        let local = self.odometry.track(&frame.depth, &frame.intrinsics);
+        let local = self
+            .odometry
+            .track(frame.timestamp, &frame.depth, &frame.intrinsics);
         if self.odometry.next_point_id() > tracker_first_point {
             self.corrections
                 .record_tracker_points(tracker_first_point, frame.timestamp);

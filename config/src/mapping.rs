@@ -1,6 +1,6 @@
 //! The `[mapping]` section: map optimisation and pruning, read by the agent's mapper.
 
-use geometry::checks::{FieldError, at_least_one, fraction, non_negative, positive};
+use geometry::checks::{FieldError, at_least_one, fraction, nice_value, non_negative, positive};
 use serde::{Deserialize, Serialize};
 
 /// How an agent's frame loop is timed against the camera clock and its mapper (docs/method.md,
@@ -34,6 +34,11 @@ pub struct MappingConfig {
     /// Extra wall time per mapping iteration, to see what a slower machine would get (sensor
     /// pace drops more frames; paced runs take longer and give the same map). 0: none.
     pub simulated_iteration_delay_ms: f64,
+    /// Sensor pace: nice value (0-19) of the mapping thread and of the renderer's worker threads
+    /// it starts, so that tracking, which must keep up with the camera, gets the cores first and
+    /// the map is optimised with what is left. 0: the same priority as tracking. Other paces
+    /// ignore it (there tracking either waits for the mapper or runs a batch).
+    pub sensor_mapper_niceness: i32,
     pub weight_l1: f64,
     pub weight_ssim: f64,
     /// Weight of L1(depth / truncation).
@@ -68,6 +73,7 @@ impl Default for MappingConfig {
             pace: Pace::Sensor,
             iterations_per_keyframe: 100,
             simulated_iteration_delay_ms: 0.0,
+            sensor_mapper_niceness: 10,
             weight_l1: 0.8,
             weight_ssim: 0.2,
             weight_depth: 2.0,
@@ -106,6 +112,10 @@ impl MappingConfig {
         non_negative(
             "mapping.simulated_iteration_delay_ms",
             self.simulated_iteration_delay_ms,
+        )?;
+        nice_value(
+            "mapping.sensor_mapper_niceness",
+            self.sensor_mapper_niceness,
         )?;
         if self.pace == Pace::Paced {
             at_least_one(

@@ -1,5 +1,6 @@
 //! Start-up shared by the workspace's binaries (`mac-agent`, `mac-consensus`, `mac-ego3d`):
-//! logging and the stop flag raised by termination signals, set up the same way everywhere.
+//! logging, the stop flag raised by termination signals, and the scheduling priority of work
+//! that must yield to real-time tracking, set up the same way everywhere.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -43,9 +44,118 @@ pub fn prepare_output_dir(dir: &Path) -> anyhow::Result<()> {
         .with_context(|| format!("output directory {} is not writable", dir.display()))
 }
 
+/// Lowers the calling thread's scheduling priority to `niceness` (0: unchanged). On Linux the
+/// nice value belongs to the thread, and threads it starts afterwards inherit it. A failure only
+/// costs tracking its head start, so it is logged, not returned.
+pub fn lower_thread_priority(niceness: i32) {
+    if niceness == 0 {
+        return;
+    }
+    // SAFETY: setpriority reads only its integer arguments; `who = 0` is the calling thread.
+    let result = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, niceness) };
+    if result != 0 {
+        tracing::warn!(
+            niceness,
+            error = %std::io::Error::last_os_error(),
+            "could not lower this thread's priority: it shares the cores with tracking as an equal"
+        );
+    }
+}
+
+/// Lowers the priority of every thread of this process to `niceness` (0: unchanged); threads
+/// started later inherit it from the thread that starts them.
+pub fn lower_process_priority(niceness: i32) {
+    if niceness == 0 {
+        return;
+    }
+    let threads = match std::fs::read_dir("/proc/self/task") {
+        Ok(threads) => threads,
+        Err(error) => {
+            tracing::warn!(niceness, %error, "could not list this process's threads to lower their priority");
+            return;
+        }
+    };
+    for thread in threads.flatten() {
+        let Some(tid) = thread
+            .file_name()
+            .to_str()
+            .and_then(|t| t.parse::<libc::id_t>().ok())
+        else {
+            continue;
+        };
+        // SAFETY: setpriority reads only its integer arguments; a thread id names one thread.
+        if unsafe { libc::setpriority(libc::PRIO_PROCESS, tid, niceness) } != 0 {
+            tracing::warn!(
+                niceness,
+                tid,
+                error = %std::io::Error::last_os_error(),
+                "could not lower a thread's priority"
+            );
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The calling thread's nice value.
+    fn own_niceness() -> i32 {
+        // SAFETY: getpriority reads only its integer arguments; `who = 0` is the calling thread.
+        unsafe { libc::getpriority(libc::PRIO_PROCESS, 0) }
+    }
+
+    /// Lowering the whole process would slow the other tests: the check runs in a child
+    /// process of this test binary, which runs only this test.
+    #[test]
+    fn a_lowered_process_priority_holds_for_threads_started_before_and_after() {
+        const CHILD: &str = "MAC_EGO3D_PRIORITY_CHECK_CHILD";
+        if std::env::var_os(CHILD).is_none() {
+            let child = std::process::Command::new(std::env::current_exe().unwrap())
+                .args([
+                    "--exact",
+                    "process::tests::a_lowered_process_priority_holds_for_threads_started_before_and_after",
+                ])
+                .env(CHILD, "1")
+                .output()
+                .unwrap();
+            assert!(
+                child.status.success(),
+                "the child check failed: {}\n{}",
+                String::from_utf8_lossy(&child.stdout),
+                String::from_utf8_lossy(&child.stderr)
+            );
+            return;
+        }
+        let (go, wait) = std::sync::mpsc::channel::<()>();
+        let before = std::thread::spawn(move || {
+            wait.recv().unwrap();
+            own_niceness()
+        });
+        lower_process_priority(6);
+        go.send(()).unwrap();
+        assert_eq!(before.join().unwrap(), 6, "a thread started before");
+        assert_eq!(own_niceness(), 6, "the calling thread");
+        assert_eq!(
+            std::thread::spawn(own_niceness).join().unwrap(),
+            6,
+            "a thread started after"
+        );
+    }
+
+    #[test]
+    fn a_lowered_priority_holds_for_the_thread_and_the_threads_it_starts_only() {
+        let (own, child) = std::thread::spawn(|| {
+            lower_thread_priority(7);
+            let child = std::thread::spawn(own_niceness).join().unwrap();
+            (own_niceness(), child)
+        })
+        .join()
+        .unwrap();
+        assert_eq!((own, child), (7, 7));
+        // A sibling started afterwards (tracking's threads) keeps the default.
+        assert_eq!(std::thread::spawn(own_niceness).join().unwrap(), 0);
+    }
 
     #[test]
     fn an_output_folder_that_is_a_file_is_refused_naming_it() {

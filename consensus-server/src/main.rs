@@ -77,6 +77,10 @@ fn main() -> anyhow::Result<()> {
         Some(path) => Config::load(path)?,
         None => Config::default(),
     };
+    if config.mapping.pace == config::Pace::Sensor {
+        // Real time on a shared host: the agents' tracking comes first.
+        config::process::lower_process_priority(config.consensus.sensor_niceness);
+    }
     let options = ConsensusOptions {
         config,
         transport: TransportConfig::for_swarm(args.namespace.clone(), args.agents),

@@ -63,7 +63,7 @@ fn track(agent_id: u32, dir: &str, range: &str) -> TrackedAgent {
     };
     for (position, frame) in Prefetcher::new(dataset, DECODE_WORKERS, QUEUE_PER_WORKER) {
         let frame = frame.unwrap();
-        let result = odometry.track(&frame.depth, &frame.intrinsics);
+        let result = odometry.track(frame.timestamp, &frame.depth, &frame.intrinsics);
         tracked.frames.push((
             frame.timestamp,
             result.world_from_camera,

@@ -29,6 +29,15 @@ pub fn fraction(field: &'static str, v: f64) -> Result<(), FieldError> {
     }
 }
 
+/// A Unix nice value that lowers priority: 0 (unchanged) to 19 (lowest).
+pub fn nice_value(field: &'static str, v: i32) -> Result<(), FieldError> {
+    if (0..=19).contains(&v) {
+        Ok(())
+    } else {
+        Err((field, format!("must be a nice value from 0 to 19, got {v}")))
+    }
+}
+
 pub fn at_least_one(field: &'static str, v: usize) -> Result<(), FieldError> {
     if v >= 1 {
         Ok(())

@@ -12,7 +12,7 @@ mod refinement;
 
 use std::path::PathBuf;
 
-use geometry::checks::{FieldError, at_least_one, fraction, non_negative, positive};
+use geometry::checks::{FieldError, at_least_one, fraction, nice_value, non_negative, positive};
 use serde::{Deserialize, Serialize};
 
 pub use alignment::AlignmentConfig;
@@ -37,6 +37,10 @@ pub struct ConsensusConfig {
     /// Place-recognition proposals aligned per new keyframe at most (the best-scoring ones):
     /// alignment costs about a second on a CPU, and the best few carry the overlap.
     pub max_candidates_per_keyframe: usize,
+    /// Sensor pace (`mapping.pace`): nice value (0-19) of the consensus process. On one host
+    /// with its agents (a simulated swarm) it then takes the cores their tracking leaves, as the
+    /// agents' mappers do; on a host of its own it changes nothing. 0: the same priority.
+    pub sensor_niceness: i32,
     /// Joint refinement weights.
     pub weight_l1: f64,
     pub weight_ssim: f64,
@@ -70,6 +74,7 @@ impl Default for ConsensusConfig {
             tau_other_agent: 0.85,
             same_agent_min_frame_gap: 300,
             max_candidates_per_keyframe: 3,
+            sensor_niceness: 10,
             weight_l1: 0.8,
             weight_ssim: 0.2,
             weight_depth: 0.1,
@@ -91,6 +96,7 @@ impl ConsensusConfig {
     /// (`consensus.*`) and why.
     pub fn validate(&self) -> Result<(), FieldError> {
         at_least_one("consensus.t_comm", self.t_comm)?;
+        nice_value("consensus.sensor_niceness", self.sensor_niceness)?;
         at_least_one(
             "consensus.max_candidates_per_keyframe",
             self.max_candidates_per_keyframe,

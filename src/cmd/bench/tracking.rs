@@ -160,7 +160,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
             Err(e) => return Err(e.into()),
         };
         let start = Instant::now();
-        let tracked = odometry.track(&frame.depth, &frame.intrinsics);
+        let tracked = odometry.track(frame.timestamp, &frame.depth, &frame.intrinsics);
         let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
         // The first frame only seeds the target; timing it would mix set-up into tracking.
         if tracked.outcome != TrackingOutcome::Initialised {
