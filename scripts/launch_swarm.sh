@@ -332,6 +332,12 @@ start_consensus() {
 start_consensus
 pids+=($!)
 names+=(consensus)
+# The agents share this host's cores: each tracks with its share of them (a worker pool larger
+# than its share waits at every parallel step for a worker that another process holds). A
+# RAYON_NUM_THREADS set by the caller wins.
+cores="$(nproc)"
+agent_threads="${RAYON_NUM_THREADS:-$((cores / agents > 0 ? cores / agents : 1))}"
+echo "[swarm] $agents agents on $cores cores: $agent_threads tracking threads each"
 for ((k = 0; k < agents; k++)); do
   if ((${#specs[@]})); then
     spec="${specs[$k]}"
@@ -349,7 +355,7 @@ for ((k = 0; k < agents; k++)); do
     range=".."
   fi
   agent_host_of "$k"
-  "${detach[@]}" "${agent_host[@]}" "$bin/mac-agent" --config "$run_config" --dataset "$dataset" --frames "$range" --agent-id "$k" \
+  "${detach[@]}" "${agent_host[@]}" env RAYON_NUM_THREADS="$agent_threads" "$bin/mac-agent" --config "$run_config" --dataset "$dataset" --frames "$range" --agent-id "$k" \
     --namespace "$namespace" --out "$out/agent_$k" "${weight_args[@]}" "${schedule_args[@]}" "${live_args[@]}" \
     >"$out/agent_$k.log" 2>&1 &
   pids+=($!)

@@ -13,10 +13,12 @@
 //!   mapper, apply corrections);
 //! - [`pace`]: the camera clock of the sensor pace (frames at their timestamps, late ones dropped);
 //! - [`run`]: one run: the frame loop over those stages, then its outputs;
-//! - [`swarm`]: the link to the consensus, [`local_corrections`]: its corrections applied to the local
+//! - [`swarm`]: the link to the consensus, [`describer`]: keyframe descriptors computed beside
+//!   the frame loop, [`local_corrections`]: the consensus's corrections applied to the local
 //!   maps, and [`link_schedule`]: simulated intermittent links;
 //! - [`progress`]: progress.json for the swarm launcher's progress line.
 
+pub mod describer;
 pub mod evaluation;
 pub mod link_schedule;
 pub mod local_corrections;

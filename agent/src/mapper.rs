@@ -142,7 +142,7 @@ impl Mapper {
         };
         let progress = Arc::new(MapperProgress::default());
         let niceness = match mapping.pace {
-            Pace::Sensor => mapping.sensor_mapper_niceness,
+            Pace::Sensor => mapping.sensor_background_niceness,
             Pace::Paced | Pace::Unthrottled => 0,
         };
         // The device context is made on the mapping thread, after its priority is lowered: the

@@ -12,7 +12,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use alexnet::lpips::Lpips;
 use anyhow::Context;
@@ -149,6 +149,9 @@ pub struct AgentMetrics {
     pub live_view: Option<LiveViewStats>,
 }
 
+/// A frame whose loop takes longer than this is logged (debug) with the time of each stage.
+const SLOW_FRAME: Duration = Duration::from_millis(100);
+
 /// Runs one agent without a consensus process and writes its outputs to `options.out`.
 pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Result<AgentMetrics> {
     run_agent(options, stop, None)
@@ -210,14 +213,27 @@ pub fn run_agent(
             let frame = &item.frame;
             agent.announce(frame);
             let tracked = agent.track(&item);
+            let tracked_at = clock.elapsed();
             if let Some(decision) = agent.decide_keyframe(frame, &tracked) {
                 let keyframe_id = agent.next_keyframe_id();
                 let seeds = agent.seed(keyframe_id, frame, &tracked, &decision);
                 agent.publish(keyframe_id, frame, &tracked, &seeds);
                 agent.hand_to_mapper(keyframe_id, frame, &tracked, decision, seeds);
             }
+            let keyframe_done_at = clock.elapsed();
             agent.apply_corrections(frame);
+            let link_done_at = clock.elapsed();
             agent.record(&item, &tracked, clock);
+            if link_done_at > SLOW_FRAME {
+                // Which stage held the frame loop up (a live camera drops frames meanwhile).
+                tracing::debug!(
+                    frame = frame.index,
+                    tracking = ?tracked_at,
+                    keyframe = ?(keyframe_done_at - tracked_at),
+                    link_and_corrections = ?(link_done_at - keyframe_done_at),
+                    "slow frame"
+                );
+            }
 
             progress.inc(1);
             progress_file.update(|| agent.progress(Stage::Tracking, frames_total));

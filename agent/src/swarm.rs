@@ -4,7 +4,8 @@
 //! and says goodbye.
 //!
 //! Nothing here blocks tracking for long: publishing copies one image and one patch into shared
-//! memory; the descriptor (AlexNet at 320 px) is the costliest step, once per T_comm frames.
+//! memory; the descriptor (AlexNet at 320 px), the costliest step, is computed beside the frame
+//! loop ([`crate::describer`]) and the keyframe goes out after the first frame that finds it done.
 //! A failed send is logged and counted, never fatal: the agent's own outputs do not depend on the
 //! consensus.
 //!
@@ -20,7 +21,7 @@ use std::time::{Duration, Instant};
 
 use alexnet::descriptor::GlobalDescriptorExtractor;
 use anyhow::Context;
-use config::Config;
+use config::{Config, Pace};
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
 use geometry::se3::{isometry_from_tum, isometry_to_tum};
@@ -37,6 +38,7 @@ use protocol::transport::{
 use render_core::types::GaussianCloud;
 use serde::Serialize;
 
+use crate::describer::{Described, Describer};
 use crate::link_schedule::{
     BoundedQueue, CorrectionArrival, CorrectionGate, LinkPlan, LinkSummary,
 };
@@ -224,7 +226,7 @@ impl WireKeyframe {
 
 pub struct SwarmLink {
     link: AgentLink,
-    extractor: GlobalDescriptorExtractor,
+    describer: Describer,
     t_comm: usize,
     config_hash: u64,
     announced: bool,
@@ -271,6 +273,10 @@ impl SwarmLink {
             .with_context(|| format!("joining the swarm as agent {agent_id}"))?;
         let extractor =
             GlobalDescriptorExtractor::from_weights(config.consensus.descriptor_weights.as_deref());
+        let describer_niceness = match config.mapping.pace {
+            Pace::Sensor => config.mapping.sensor_background_niceness,
+            Pace::Paced | Pace::Unthrottled => 0,
+        };
         let summary = SwarmSummary {
             descriptor: extractor.kind().to_string(),
             link: LinkSummary::new(&plan),
@@ -282,7 +288,7 @@ impl SwarmLink {
         }
         Ok(Self {
             link,
-            extractor,
+            describer: Describer::spawn(extractor, describer_niceness),
             t_comm: config.consensus.t_comm,
             config_hash: config.hash(),
             announced: false,
@@ -462,8 +468,9 @@ impl SwarmLink {
             self.flush_queue(false);
         }
         if self.frames_since_publication >= self.t_comm && self.latest.is_some() {
-            self.publish_latest(up);
+            self.publish_latest();
         }
+        self.deliver_described(up, false);
         if up {
             self.answer_control_messages();
         }
@@ -494,23 +501,45 @@ impl SwarmLink {
         self.world_from_agent
     }
 
-    /// Prepares the latest keyframe's messages and sends them, or queues them when the link is
-    /// down (or older keyframes still wait, so that order is kept).
-    fn publish_latest(&mut self, link_up: bool) {
+    /// Hands the latest keyframe to the describing thread; [`Self::deliver_described`] sends it
+    /// once described.
+    fn publish_latest(&mut self) {
         let Some(keyframe) = self.latest.take() else {
             return;
         };
         self.frames_since_publication = 0;
-        let _span = tracing::info_span!("publish keyframe", id = keyframe.keyframe_id).entered();
-        let wire = match self.prepare(keyframe) {
-            Ok(wire) => wire,
-            Err(error) => {
-                self.summary.send_failures += 1;
-                tracing::warn!(error = %format!("{error:#}"), "keyframe not published");
-                return;
-            }
+        self.describer.submit(keyframe);
+    }
+
+    /// Prepares the messages of the keyframes described so far (all of them, waiting for the
+    /// describing thread, when `wait`) and sends them, or queues them when the link is down (or
+    /// older keyframes still wait, so that order is kept).
+    fn deliver_described(&mut self, link_up: bool, wait: bool) {
+        let described = if wait {
+            self.describer.wait_all()
+        } else {
+            self.describer.ready()
         };
-        self.send_or_enqueue(wire, link_up);
+        for Described {
+            keyframe,
+            descriptor,
+        } in described
+        {
+            let _span =
+                tracing::info_span!("publish keyframe", id = keyframe.keyframe_id).entered();
+            let wire = match descriptor
+                .context("computing the global descriptor")
+                .and_then(|descriptor| prepare(keyframe, &descriptor))
+            {
+                Ok(wire) => wire,
+                Err(error) => {
+                    self.summary.send_failures += 1;
+                    tracing::warn!(error = %format!("{error:#}"), "keyframe not published");
+                    continue;
+                }
+            };
+            self.send_or_enqueue(wire, link_up);
+        }
     }
 
     /// Sends a keyframe now when nothing it must not overtake waits (the hello, queued
@@ -586,55 +615,6 @@ impl SwarmLink {
                 self.summary.link.delivered_late(waited_s, with_link_down);
             }
         }
-    }
-
-    /// The messages of one keyframe: descriptor (the costly step), RGB-D image and patch.
-    fn prepare(&mut self, keyframe: PublishableKeyframe) -> anyhow::Result<WireKeyframe> {
-        let descriptor = self
-            .extractor
-            .describe(&keyframe.rgb)
-            .context("computing the global descriptor")?;
-        let mut message = KeyframeDescriptor::new(
-            keyframe.keyframe_id,
-            keyframe.frame_index,
-            keyframe.timestamp_s,
-        );
-        message.camera_to_agent_world = Pose::from(&keyframe.agent_from_camera);
-        message.intrinsics = WireIntrinsics::from(&keyframe.intrinsics);
-        anyhow::ensure!(
-            descriptor.len() == message.descriptor.len(),
-            "descriptor has {} values, the wire carries {}",
-            descriptor.len(),
-            message.descriptor.len()
-        );
-        message.descriptor.copy_from_slice(&descriptor);
-        let (width, height) = keyframe.rgb.dimensions();
-        anyhow::ensure!(
-            (keyframe.depth.width, keyframe.depth.height) == (width, height)
-                && keyframe.depth.data.len() == width as usize * height as usize,
-            "keyframe {}: depth image is {}x{} ({} values), colour image {width}x{height}",
-            keyframe.keyframe_id,
-            keyframe.depth.width,
-            keyframe.depth.height,
-            keyframe.depth.data.len()
-        );
-        let image_meta = KeyframeImageMeta {
-            keyframe_id: keyframe.keyframe_id,
-            frame_index: keyframe.frame_index,
-            timestamp_s: keyframe.timestamp_s,
-            camera_to_agent_world: message.camera_to_agent_world,
-            intrinsics: message.intrinsics,
-            width,
-            height,
-        };
-        Ok(WireKeyframe {
-            descriptor: message,
-            image_meta,
-            rgb: keyframe.rgb,
-            depth: keyframe.depth,
-            gaussians: keyframe.gaussians,
-            due: Instant::now(),
-        })
     }
 
     fn send(&mut self, wire: &WireKeyframe) -> anyhow::Result<()> {
@@ -961,8 +941,10 @@ impl SwarmLink {
             match self.link.await_all_consumers() {
                 Ok(()) => self.mark_attached(),
                 Err(error) => {
-                    self.summary.undelivered_at_end =
-                        self.queue.len() + usize::from(self.latest.is_some()) + 1;
+                    self.summary.undelivered_at_end = self.queue.len()
+                        + self.describer.pending()
+                        + usize::from(self.latest.is_some())
+                        + 1;
                     tracing::warn!(
                         %error,
                         queued_keyframes = self.queue.len(),
@@ -975,7 +957,8 @@ impl SwarmLink {
             }
         }
         // The last keyframe goes behind anything still queued.
-        self.publish_latest(true);
+        self.publish_latest();
+        self.deliver_described(true, true);
         self.flush_queue(true);
         if !self.queue.is_empty() {
             tracing::warn!(
@@ -1076,6 +1059,51 @@ pub fn run_anchor(dataset: &str, first_frame_index: usize, first_timestamp_s: f6
     hasher.finish()
 }
 
+/// The messages of one keyframe: its descriptor, RGB-D image and patch.
+fn prepare(keyframe: PublishableKeyframe, descriptor: &[f32]) -> anyhow::Result<WireKeyframe> {
+    let mut message = KeyframeDescriptor::new(
+        keyframe.keyframe_id,
+        keyframe.frame_index,
+        keyframe.timestamp_s,
+    );
+    message.camera_to_agent_world = Pose::from(&keyframe.agent_from_camera);
+    message.intrinsics = WireIntrinsics::from(&keyframe.intrinsics);
+    anyhow::ensure!(
+        descriptor.len() == message.descriptor.len(),
+        "descriptor has {} values, the wire carries {}",
+        descriptor.len(),
+        message.descriptor.len()
+    );
+    message.descriptor.copy_from_slice(descriptor);
+    let (width, height) = keyframe.rgb.dimensions();
+    anyhow::ensure!(
+        (keyframe.depth.width, keyframe.depth.height) == (width, height)
+            && keyframe.depth.data.len() == width as usize * height as usize,
+        "keyframe {}: depth image is {}x{} ({} values), colour image {width}x{height}",
+        keyframe.keyframe_id,
+        keyframe.depth.width,
+        keyframe.depth.height,
+        keyframe.depth.data.len()
+    );
+    let image_meta = KeyframeImageMeta {
+        keyframe_id: keyframe.keyframe_id,
+        frame_index: keyframe.frame_index,
+        timestamp_s: keyframe.timestamp_s,
+        camera_to_agent_world: message.camera_to_agent_world,
+        intrinsics: message.intrinsics,
+        width,
+        height,
+    };
+    Ok(WireKeyframe {
+        descriptor: message,
+        image_meta,
+        rgb: keyframe.rgb,
+        depth: keyframe.depth,
+        gaussians: keyframe.gaussians,
+        due: Instant::now(),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1086,6 +1114,14 @@ mod tests {
         descriptors: Vec<u64>,
         images: Vec<(u64, Vec<RgbdPixel>)>,
         patches: Vec<(u64, Vec<GaussianRecord>)>,
+    }
+
+    /// One frame's link work, with the keyframe it published described and sent.
+    fn after_frame(swarm: &mut SwarmLink) -> Option<ReceivedCorrection> {
+        let correction = swarm.after_frame();
+        let link_up = swarm.link_up;
+        swarm.deliver_described(link_up, true);
+        correction
     }
 
     impl Received {
@@ -1164,7 +1200,7 @@ mod tests {
             },
             gaussians: GaussianCloud::default(),
         });
-        swarm.after_frame();
+        after_frame(&mut swarm);
         assert_eq!(
             received_keyframes(&mut consumer).ids(),
             (vec![], vec![], vec![])
@@ -1222,7 +1258,7 @@ mod tests {
             assert_eq!(received.patches[0].1, expected_records);
         };
         swarm.on_keyframe(keyframe(7));
-        assert!(swarm.after_frame().is_none());
+        assert!(after_frame(&mut swarm).is_none());
         let received = received_keyframes(&mut consumer);
         assert_eq!(received.ids(), (vec![7], vec![7], vec![7]));
         content_is_the_keyframes(&received);
@@ -1233,7 +1269,7 @@ mod tests {
         };
         consumer.send_control(0, &ask(7)).unwrap();
         consumer.send_control(0, &ask(99)).unwrap();
-        swarm.after_frame();
+        after_frame(&mut swarm);
         let received = received_keyframes(&mut consumer);
         assert_eq!(
             received.ids(),
@@ -1259,7 +1295,7 @@ mod tests {
             announced_agent_with("lost-messages", &config, Some(&spool));
         for keyframe_id in 1..=6 {
             swarm.on_keyframe(small_keyframe(keyframe_id, intrinsics));
-            swarm.after_frame();
+            after_frame(&mut swarm);
             received_keyframes(&mut consumer);
         }
         // The consensus holds 1 and 4 whole and 3 in part, and has seen nothing newer than 5:
@@ -1274,7 +1310,7 @@ mod tests {
                 },
             )
             .unwrap();
-        swarm.after_frame();
+        after_frame(&mut swarm);
         let again = received_keyframes(&mut consumer);
         assert_eq!(again.ids(), (vec![2, 5], vec![2, 5], vec![2, 5]));
         let summary = swarm.summary();
@@ -1320,7 +1356,7 @@ mod tests {
         let mut first = Received::default();
         for keyframe_id in 1..=3 {
             swarm.on_keyframe(small_keyframe(keyframe_id, intrinsics));
-            swarm.after_frame();
+            after_frame(&mut swarm);
             // Taken as they come: the patch queue holds few samples.
             let received = received_keyframes(&mut consumer);
             first.descriptors.extend(received.descriptors);
@@ -1350,7 +1386,7 @@ mod tests {
                 },
             )
             .unwrap();
-        swarm.after_frame();
+        after_frame(&mut swarm);
         let again = received_keyframes(&mut consumer);
         assert_eq!(again.ids(), (vec![2, 3], vec![2, 3], vec![2, 3]));
         assert_eq!(again.images[0].1, first.images[1].1, "keyframe 2's pixels");
@@ -1369,7 +1405,7 @@ mod tests {
         consumer
             .send_correction(0, Pose::IDENTITY, &[pose(1), pose(2), pose(3)])
             .unwrap();
-        swarm.after_frame();
+        after_frame(&mut swarm);
         assert!(spooled(&spool).is_empty());
         let summary = swarm.summary();
         assert_eq!(summary.keyframes_resent, 2);

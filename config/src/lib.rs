@@ -195,8 +195,11 @@ mod tests {
         assert!(unknown.contains("t_com"), "{unknown}");
         let invalid = set(&[("consensus.refinement.max_seconds", "-1")]).unwrap_err();
         assert!(invalid.contains("max_seconds"), "{invalid}");
-        let not_nice = set(&[("mapping.sensor_mapper_niceness", "20")]).unwrap_err();
-        assert!(not_nice.contains("sensor_mapper_niceness"), "{not_nice}");
+        let not_nice = set(&[("mapping.sensor_background_niceness", "20")]).unwrap_err();
+        assert!(
+            not_nice.contains("sensor_background_niceness"),
+            "{not_nice}"
+        );
         assert!(set(&[("consensus..t_comm", "3")]).is_err());
         assert!(set(&[("consensus.t_comm.x", "3")]).is_err());
     }

@@ -34,11 +34,12 @@ pub struct MappingConfig {
     /// Extra wall time per mapping iteration, to see what a slower machine would get (sensor
     /// pace drops more frames; paced runs take longer and give the same map). 0: none.
     pub simulated_iteration_delay_ms: f64,
-    /// Sensor pace: nice value (0-19) of the mapping thread and of the renderer's worker threads
-    /// it starts, so that tracking, which must keep up with the camera, gets the cores first and
-    /// the map is optimised with what is left. 0: the same priority as tracking. Other paces
-    /// ignore it (there tracking either waits for the mapper or runs a batch).
-    pub sensor_mapper_niceness: i32,
+    /// Sensor pace: nice value (0-19) of the agent's work that tracking must not wait for: the
+    /// mapping thread (and the renderer's worker threads it starts) and the keyframe descriptor.
+    /// Tracking, which must keep up with the camera, gets the cores first; the rest runs on what
+    /// is left. 0: the same priority as tracking. Other paces ignore it (there tracking either
+    /// waits for the mapper or runs a batch).
+    pub sensor_background_niceness: i32,
     pub weight_l1: f64,
     pub weight_ssim: f64,
     /// Weight of L1(depth / truncation).
@@ -73,7 +74,7 @@ impl Default for MappingConfig {
             pace: Pace::Sensor,
             iterations_per_keyframe: 100,
             simulated_iteration_delay_ms: 0.0,
-            sensor_mapper_niceness: 10,
+            sensor_background_niceness: 10,
             weight_l1: 0.8,
             weight_ssim: 0.2,
             weight_depth: 2.0,
@@ -114,8 +115,8 @@ impl MappingConfig {
             self.simulated_iteration_delay_ms,
         )?;
         nice_value(
-            "mapping.sensor_mapper_niceness",
-            self.sensor_mapper_niceness,
+            "mapping.sensor_background_niceness",
+            self.sensor_background_niceness,
         )?;
         if self.pace == Pace::Paced {
             at_least_one(
