@@ -18,6 +18,7 @@ use alexnet::lpips::Lpips;
 use anyhow::Context;
 use config::{Config, Pace};
 use datasets::{self, Dataset, FrameRange};
+use geometry::se3::isometry_from_tum;
 use geometry::trajectory::Trajectory;
 use indicatif::{ProgressBar, ProgressStyle};
 use live_view::{LiveView, LiveViewStats};
@@ -262,7 +263,6 @@ pub fn run_agent(
         options.refine_iterations
     };
     let outcome = mapper.finish(refine_iterations)?;
-    let live_view = finish_live_view(options, &outcome.realtime_map);
 
     // Outputs that need no rendering first: an interrupted evaluation still leaves these.
     let trajectory = write_trajectories(&run.poses, &options.out)?;
@@ -270,6 +270,18 @@ pub fn run_agent(
     // The consensus reads trajectory.tum once this agent has said goodbye, so that goes first;
     // the evaluation below takes a while and needs nothing from the swarm.
     let swarm_summary = swarm.map(|link| link.finish(&outcome.realtime_map));
+    // The latest placement the consensus sent, one that arrived while the link finished
+    // included: the recording ends with this agent's map in the world frame.
+    if let Some(world_from_agent) = swarm_summary
+        .as_ref()
+        .and_then(|summary| summary.world_from_agent.as_ref())
+        .and_then(|tum| isometry_from_tum(tum).ok())
+    {
+        options
+            .live_view
+            .agent_placement(options.agent_id, &world_from_agent);
+    }
+    let live_view = finish_live_view(options, &outcome.realtime_map);
     let ate_stats = trajectory_ate(&run.poses, &trajectory);
 
     let (realtime, realtime_frames, refined) =
