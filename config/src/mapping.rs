@@ -74,7 +74,7 @@ impl Default for MappingConfig {
             pace: Pace::Sensor,
             iterations_per_keyframe: 100,
             simulated_iteration_delay_ms: 0.0,
-            sensor_background_niceness: 10,
+            sensor_background_niceness: 19,
             weight_l1: 0.8,
             weight_ssim: 0.2,
             weight_depth: 2.0,

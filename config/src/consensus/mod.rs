@@ -74,7 +74,7 @@ impl Default for ConsensusConfig {
             tau_other_agent: 0.85,
             same_agent_min_frame_gap: 300,
             max_candidates_per_keyframe: 3,
-            sensor_niceness: 10,
+            sensor_niceness: 19,
             weight_l1: 0.8,
             weight_ssim: 0.2,
             weight_depth: 0.1,
