@@ -320,6 +320,10 @@ impl GridIndex {
     ) -> bool {
         let centre = positions[index];
         let (column, row) = self.grid.cell_of_pixel(pixels[index]);
+        // The answer is certified when k candidates lie within the bound: then the k nearest in
+        // the window are the k nearest overall. So only candidates within it are kept.
+        let bound = certificate_per_metre * centre.z;
+        let bound_sq = bound * bound;
         found.clear();
         for r in row.saturating_sub(radius)..(row + radius + 1).min(self.rows) {
             let cells = &self.point_at[r * self.columns..(r + 1) * self.columns];
@@ -327,18 +331,21 @@ impl GridIndex {
                 &cells[column.saturating_sub(radius)..(column + radius + 1).min(self.columns)]
             {
                 if other != Self::EMPTY {
-                    found.push(((positions[other as usize] - centre).norm_squared(), other));
+                    let distance_sq = (positions[other as usize] - centre).norm_squared();
+                    if distance_sq <= bound_sq {
+                        found.push((distance_sq, other));
+                    }
                 }
             }
         }
         if found.len() < k {
             return false;
         }
-        found.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
-        found.truncate(k);
-        let kth_distance_sq = found[k - 1].0;
-        let bound = certificate_per_metre * centre.z;
-        kth_distance_sq <= bound * bound
+        if found.len() > k {
+            found.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
+            found.truncate(k);
+        }
+        true
     }
 }
 
