@@ -23,6 +23,23 @@ fn target_dir() -> PathBuf {
         .to_path_buf()
 }
 
+/// `bash` with SIGINT at its default action, as a terminal gives its foreground job. A shell
+/// started in the background (a CI runner's job, `cmd &` in a script) passes SIGINT on ignored,
+/// and a signal ignored at a shell's start cannot be trapped: the script's Ctrl-C handling would
+/// never run.
+fn bash() -> Command {
+    let mut command = Command::new("bash");
+    // SAFETY: the closure runs between fork and exec and only calls signal(2), which is
+    // async-signal-safe.
+    unsafe {
+        command.pre_exec(|| {
+            libc::signal(libc::SIGINT, libc::SIG_DFL);
+            Ok(())
+        });
+    }
+    command
+}
+
 fn frames_done(progress: &Path) -> Option<u64> {
     let text = std::fs::read_to_string(progress).ok()?;
     let json: serde_json::Value = serde_json::from_str(&text).ok()?;
@@ -56,19 +73,7 @@ fn ctrl_c_to_the_whole_process_group_leaves_every_agents_outputs_and_the_world_o
     // The profile folder these binaries were built in (`debug` under `cargo test`).
     let binaries = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
     let profile = binaries.file_name().unwrap().to_str().unwrap();
-    let mut launch = Command::new("bash");
-    // A shell started in the background (a CI runner's job, `cmd &` in a script) passes SIGINT
-    // on ignored, and a signal ignored at a shell's start cannot be trapped: reset it, as a
-    // terminal gives its foreground job.
-    // SAFETY: the closure runs between fork and exec and only calls signal(2), which is
-    // async-signal-safe.
-    unsafe {
-        launch.pre_exec(|| {
-            libc::signal(libc::SIGINT, libc::SIG_DFL);
-            Ok(())
-        });
-    }
-    let mut child = launch
+    let mut child = bash()
         .arg(repository.join("scripts/launch_swarm.sh"))
         .args([
             "--agents",
@@ -197,19 +202,7 @@ fn a_killed_consensus_is_restarted_and_the_run_ends_complete() {
     let runtime = tempfile::tempdir().unwrap();
     let binaries = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
     let profile = binaries.file_name().unwrap().to_str().unwrap();
-    let mut launch = Command::new("bash");
-    // A shell started in the background (a CI runner's job, `cmd &` in a script) passes SIGINT
-    // on ignored, and a signal ignored at a shell's start cannot be trapped: reset it, as a
-    // terminal gives its foreground job.
-    // SAFETY: the closure runs between fork and exec and only calls signal(2), which is
-    // async-signal-safe.
-    unsafe {
-        launch.pre_exec(|| {
-            libc::signal(libc::SIGINT, libc::SIG_DFL);
-            Ok(())
-        });
-    }
-    let mut child = launch
+    let mut child = bash()
         .arg(repository.join("scripts/launch_swarm.sh"))
         .args(["--agents", &AGENTS.to_string()])
         .args(["--frames", &FRAMES.to_string()])
