@@ -1,6 +1,6 @@
 //! The keyframe's global descriptor (docs/method.md, The consensus: selection), computed beside
-//! the frame loop instead of in it. AlexNet at 320 px costs about 90 ms on an idle 2-core machine
-//! and several times that under a swarm's load: inside the loop it held tracking up for several
+//! the frame loop instead of in it. AlexNet at 320 px costs tens of milliseconds on a CPU, more
+//! under a swarm's load (docs/benchmarks.md): inside the loop it held tracking up for several
 //! frames every T_comm, which a live camera turns into dropped frames. One worker thread
 //! describes keyframes in the order they come, on a one-thread pool of its own (the network's
 //! matrix products would otherwise run on tracking's pool), at the priority it is given.
@@ -72,15 +72,16 @@ impl Describer {
         }
     }
 
-    /// Hands a keyframe in; never blocks.
-    pub fn submit(&mut self, keyframe: PublishableKeyframe) {
-        if let Some(jobs) = &self.jobs {
-            // The thread lives as long as `jobs`; a send error means it panicked, and the
-            // keyframe is lost with it (counted by the caller as still pending).
-            if jobs.send(keyframe).is_ok() {
-                self.pending += 1;
-            }
-        }
+    /// Hands a keyframe in; never blocks. When the thread has died (it panicked: it lives as
+    /// long as the job channel) the keyframe is lost, and its id is the error.
+    pub fn submit(&mut self, keyframe: PublishableKeyframe) -> Result<(), u64> {
+        let keyframe_id = keyframe.keyframe_id;
+        let Some(jobs) = &self.jobs else {
+            return Err(keyframe_id);
+        };
+        jobs.send(keyframe).map_err(|_| keyframe_id)?;
+        self.pending += 1;
+        Ok(())
     }
 
     /// The keyframes described so far, in order; never blocks.
@@ -90,7 +91,8 @@ impl Describer {
         described
     }
 
-    /// Every keyframe handed in, described, in order: waits for the thread.
+    /// Every keyframe handed in, described, in order: waits for the thread. Fewer than
+    /// [`Self::pending`] only when the thread died holding the rest.
     pub fn wait_all(&mut self) -> Vec<Described> {
         let mut described = Vec::with_capacity(self.pending);
         while self.pending > described.len() {
@@ -153,7 +155,7 @@ mod tests {
         let inline = GlobalDescriptorExtractor::Thumbnail;
         let mut describer = Describer::spawn(GlobalDescriptorExtractor::Thumbnail, 3);
         for keyframe_id in 0..5 {
-            describer.submit(keyframe(keyframe_id));
+            assert!(describer.submit(keyframe(keyframe_id)).is_ok());
         }
         assert_eq!(describer.pending(), 5);
         let mut described = describer.ready();

@@ -141,10 +141,7 @@ impl Mapper {
             Pace::Sensor | Pace::Unthrottled => (None, None),
         };
         let progress = Arc::new(MapperProgress::default());
-        let niceness = match mapping.pace {
-            Pace::Sensor => mapping.sensor_background_niceness,
-            Pace::Paced | Pace::Unthrottled => 0,
-        };
+        let niceness = mapping.background_niceness();
         // The device context is made on the mapping thread, after its priority is lowered: the
         // renderer's worker threads (lavapipe starts them with the device) inherit it. Tracking's
         // worker pool must not: it starts here first, if nothing started it yet.

@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 
 use alexnet::descriptor::GlobalDescriptorExtractor;
 use anyhow::Context;
-use config::{Config, Pace};
+use config::Config;
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
 use geometry::se3::{isometry_from_tum, isometry_to_tum};
@@ -273,10 +273,6 @@ impl SwarmLink {
             .with_context(|| format!("joining the swarm as agent {agent_id}"))?;
         let extractor =
             GlobalDescriptorExtractor::from_weights(config.consensus.descriptor_weights.as_deref());
-        let describer_niceness = match config.mapping.pace {
-            Pace::Sensor => config.mapping.sensor_background_niceness,
-            Pace::Paced | Pace::Unthrottled => 0,
-        };
         let summary = SwarmSummary {
             descriptor: extractor.kind().to_string(),
             link: LinkSummary::new(&plan),
@@ -288,7 +284,7 @@ impl SwarmLink {
         }
         Ok(Self {
             link,
-            describer: Describer::spawn(extractor, describer_niceness),
+            describer: Describer::spawn(extractor, config.mapping.background_niceness()),
             t_comm: config.consensus.t_comm,
             config_hash: config.hash(),
             announced: false,
@@ -508,7 +504,13 @@ impl SwarmLink {
             return;
         };
         self.frames_since_publication = 0;
-        self.describer.submit(keyframe);
+        if let Err(keyframe) = self.describer.submit(keyframe) {
+            self.summary.send_failures += 1;
+            tracing::warn!(
+                keyframe,
+                "keyframe not published: the describing thread has died"
+            );
+        }
     }
 
     /// Prepares the messages of the keyframes described so far (all of them, waiting for the
@@ -516,7 +518,17 @@ impl SwarmLink {
     /// older keyframes still wait, so that order is kept).
     fn deliver_described(&mut self, link_up: bool, wait: bool) {
         let described = if wait {
-            self.describer.wait_all()
+            let pending = self.describer.pending();
+            let described = self.describer.wait_all();
+            if described.len() < pending {
+                let lost = pending - described.len();
+                self.summary.send_failures += lost;
+                tracing::warn!(
+                    lost,
+                    "keyframes not published: the describing thread died with them"
+                );
+            }
+            described
         } else {
             self.describer.ready()
         };

@@ -95,6 +95,15 @@ impl Default for MappingConfig {
 }
 
 impl MappingConfig {
+    /// The nice value of the agent's background work (mapper, descriptor) under this pace:
+    /// `sensor_background_niceness` at the sensor pace, 0 otherwise.
+    pub fn background_niceness(&self) -> i32 {
+        match self.pace {
+            Pace::Sensor => self.sensor_background_niceness,
+            Pace::Paced | Pace::Unthrottled => 0,
+        }
+    }
+
     /// Checks ranges; returns the offending field (`mapping.*`) and why.
     pub fn validate(&self) -> Result<(), FieldError> {
         for (field, v) in [

@@ -45,20 +45,11 @@ pub fn prepare_output_dir(dir: &Path) -> anyhow::Result<()> {
 }
 
 /// Lowers the calling thread's scheduling priority to `niceness` (0: unchanged). On Linux the
-/// nice value belongs to the thread, and threads it starts afterwards inherit it. A failure only
-/// costs tracking its head start, so it is logged, not returned.
+/// nice value belongs to the thread, and threads it starts afterwards inherit it.
 pub fn lower_thread_priority(niceness: i32) {
-    if niceness == 0 {
-        return;
-    }
-    // SAFETY: setpriority reads only its integer arguments; `who = 0` is the calling thread.
-    let result = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, niceness) };
-    if result != 0 {
-        tracing::warn!(
-            niceness,
-            error = %std::io::Error::last_os_error(),
-            "could not lower this thread's priority: it shares the cores with tracking as an equal"
-        );
+    if niceness != 0 {
+        // `who = 0`: the calling thread.
+        set_thread_niceness(0, niceness);
     }
 }
 
@@ -83,15 +74,21 @@ pub fn lower_process_priority(niceness: i32) {
         else {
             continue;
         };
-        // SAFETY: setpriority reads only its integer arguments; a thread id names one thread.
-        if unsafe { libc::setpriority(libc::PRIO_PROCESS, tid, niceness) } != 0 {
-            tracing::warn!(
-                niceness,
-                tid,
-                error = %std::io::Error::last_os_error(),
-                "could not lower a thread's priority"
-            );
-        }
+        set_thread_niceness(tid, niceness);
+    }
+}
+
+/// Sets thread `tid`'s nice value (0: the calling thread). A failure only costs tracking its
+/// head start, so it is logged, not returned.
+fn set_thread_niceness(tid: libc::id_t, niceness: i32) {
+    // SAFETY: setpriority reads only its integer arguments; a thread id names one thread.
+    if unsafe { libc::setpriority(libc::PRIO_PROCESS, tid, niceness) } != 0 {
+        tracing::warn!(
+            niceness,
+            tid,
+            error = %std::io::Error::last_os_error(),
+            "could not lower a thread's priority: it shares the cores with tracking as an equal"
+        );
     }
 }
 

@@ -633,10 +633,10 @@ mod tests {
         (result.stats.rmse, odometry.stats().clone())
     }
 
-    /// Redkitchen 0..300 taken with gaps of up to 8 frame times: the constant-velocity motion
-    /// measured over a 1-frame step and not scaled to a 5-frame gap put the frame 4 steps short,
-    /// and tracking lost the map (ATE 20.7 and 14.5 cm for the two patterns, against 2.2 and
-    /// 2.4 cm scaled).
+    /// Redkitchen 0..300 taken with gaps of up to 8 frame times: a constant-velocity motion
+    /// measured over a 1-frame step and not scaled to a 5-frame gap puts the frame 4 steps short,
+    /// and tracking loses the map (the figures with and without scaling: docs/benchmarks.md,
+    /// 2026-12-04).
     #[test]
     fn real_data_tracks_redkitchen_with_irregular_frame_gaps() {
         let dir = datasets::shared_data::require("datasets/7scenes-redkitchen");
