@@ -22,6 +22,20 @@ pub enum Pace {
     Unthrottled,
 }
 
+/// Which earlier keyframe the mapper optimises when no new keyframe waits for its first
+/// iteration (docs/method.md, One agent: Map optimisation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum KeyframeChoice {
+    /// Any keyframe, uniformly at random (the method's rule). Keyframes made early get more
+    /// iterations than late ones: they were candidates for longer.
+    #[default]
+    Random,
+    /// The keyframe optimised least so far (a random one among equals), so every keyframe gets
+    /// the same share of the iterations and a new one catches up first.
+    FewestVisits,
+}
+
 /// Map optimisation and pruning.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -63,6 +77,20 @@ pub struct MappingConfig {
     pub image_downscale: u32,
     /// Seed of the mapper's choice of earlier keyframes (runs are repeatable).
     pub random_seed: u64,
+    /// How the mapper chooses the earlier keyframe of an iteration: see [`KeyframeChoice`].
+    pub keyframe_choice: KeyframeChoice,
+    /// Optimise each keyframe's pose with the map, photometrically, as the consensus's joint
+    /// refinement does (docs/method.md, One agent: Map optimisation). The first keyframe stays
+    /// (it fixes the map's frame). The tracked trajectory is not changed: only the map sees the
+    /// refined poses.
+    pub refine_keyframe_poses: bool,
+    /// Adam step sizes of a keyframe pose (metres and radians per step).
+    pub lr_pose_translation_m: f64,
+    pub lr_pose_rotation_rad: f64,
+    /// A keyframe pose stays within this distance of its tracked pose (metres, radians): a step
+    /// that would take it farther is not taken.
+    pub max_pose_change_m: f64,
+    pub max_pose_change_rad: f64,
     /// Read the pair count back every n iterations (one blocking read) to grow the binning
     /// buffers when the map outgrows them.
     pub check_pairs_every: usize,
@@ -89,6 +117,12 @@ impl Default for MappingConfig {
             prune_max_elongation: 10.0,
             image_downscale: 1,
             random_seed: 0,
+            keyframe_choice: KeyframeChoice::Random,
+            refine_keyframe_poses: false,
+            lr_pose_translation_m: 2e-4,
+            lr_pose_rotation_rad: 2e-4,
+            max_pose_change_m: 0.05,
+            max_pose_change_rad: 2f64.to_radians(),
             check_pairs_every: 50,
         }
     }
@@ -115,6 +149,8 @@ impl MappingConfig {
             ("mapping.lr_opacity", self.lr_opacity),
             ("mapping.lr_log_scales", self.lr_log_scales),
             ("mapping.lr_rotations", self.lr_rotations),
+            ("mapping.lr_pose_translation_m", self.lr_pose_translation_m),
+            ("mapping.lr_pose_rotation_rad", self.lr_pose_rotation_rad),
         ] {
             non_negative(field, v)?;
         }
@@ -136,6 +172,8 @@ impl MappingConfig {
         fraction("mapping.prune_min_opacity", self.prune_min_opacity)?;
         positive("mapping.prune_max_scale_m", self.prune_max_scale_m)?;
         positive("mapping.prune_max_elongation", self.prune_max_elongation)?;
+        positive("mapping.max_pose_change_m", self.max_pose_change_m)?;
+        positive("mapping.max_pose_change_rad", self.max_pose_change_rad)?;
         at_least_one("mapping.image_downscale", self.image_downscale as usize)?;
         at_least_one("mapping.check_pairs_every", self.check_pairs_every)?;
         Ok(())

@@ -16,6 +16,7 @@
 //!   stable compaction, rigid transform) and [`map::DeviceMap`], which keeps the Adam state in
 //!   step with them.
 //! - [`backward`]: per-Gaussian and camera-pose gradients on the device.
+//! - [`pose`]: Adam over a camera pose on the host, stepped with the read-back pose gradient.
 //! - `wgsl.rs`: the WGSL/Rust contract: every constant and uniform struct shared with the
 //!   kernels, defined once in Rust and prepended to every kernel as a generated WGSL prelude.
 //! - [`training`]: L1 / SSIM / depth-L1 loss with gradients and Adam on the device, plus the CPU
@@ -34,6 +35,7 @@ pub mod gpu;
 pub mod map;
 mod passes;
 pub mod ply;
+pub mod pose;
 mod profile;
 pub mod reference;
 mod sort;

@@ -6,14 +6,11 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3, Vector6};
 use super::{PoseEdge, RefinementReport};
 use crate::pose_graph::residual::residual;
 use config::{ConsensusConfig, RefinementConfig};
+use render_core::pose::{PoseAdam, pose_rates};
 
 /// Step of the central differences of the pose-consistency term (radians / metres): far below
 /// any pose change that matters, far above f64 round-off of poses a few metres from the origin.
 const CONSISTENCY_DIFFERENCE_STEP: f64 = 1e-6;
-/// Adam moment decay rates and the division guard, as render-core's map optimiser uses.
-const POSE_ADAM_BETA1: f64 = 0.9;
-const POSE_ADAM_BETA2: f64 = 0.999;
-const POSE_ADAM_EPSILON: f64 = 1e-12;
 
 /// Every view's pose as refinement moves it, with its optimiser state.
 pub(super) struct PoseRefinement<'e> {
@@ -35,14 +32,7 @@ impl<'e> PoseRefinement<'e> {
         Self {
             adam: vec![PoseAdam::default(); initial.len()],
             poses: initial,
-            rates: Vector6::new(
-                config.lr_pose_translation_m,
-                config.lr_pose_translation_m,
-                config.lr_pose_translation_m,
-                config.lr_pose_rotation_rad,
-                config.lr_pose_rotation_rad,
-                config.lr_pose_rotation_rad,
-            ),
+            rates: pose_rates(config.lr_pose_translation_m, config.lr_pose_rotation_rad),
             edges,
             consistency_weight: consensus.weight_pose_consistency,
         }
@@ -81,29 +71,6 @@ impl<'e> PoseRefinement<'e> {
             }
         }
         self.poses
-    }
-}
-
-/// Adam over one pose's 6-vector `[translation, rotation]` (left perturbation of
-/// `camera_from_world`, render-core's pose-gradient convention).
-#[derive(Default, Clone, Copy)]
-struct PoseAdam {
-    first_moment: Vector6<f64>,
-    second_moment: Vector6<f64>,
-    steps: i32,
-}
-
-impl PoseAdam {
-    /// The perturbation to apply for `gradient`, with per-component step sizes `rates`.
-    fn step(&mut self, gradient: &Vector6<f64>, rates: &Vector6<f64>) -> Vector6<f64> {
-        self.steps += 1;
-        self.first_moment =
-            POSE_ADAM_BETA1 * self.first_moment + (1.0 - POSE_ADAM_BETA1) * gradient;
-        self.second_moment = POSE_ADAM_BETA2 * self.second_moment
-            + (1.0 - POSE_ADAM_BETA2) * gradient.component_mul(gradient);
-        let m_hat = self.first_moment / (1.0 - POSE_ADAM_BETA1.powi(self.steps));
-        let v_hat = self.second_moment / (1.0 - POSE_ADAM_BETA2.powi(self.steps));
-        Vector6::from_fn(|k, _| -rates[k] * m_hat[k] / (v_hat[k].sqrt() + POSE_ADAM_EPSILON))
     }
 }
 
@@ -217,17 +184,5 @@ mod tests {
         let before = world_from_camera.inverse() * point;
         let after = moved.inverse() * point;
         assert!(((after - before) - Vector3::new(0.01, 0.0, 0.0)).norm() < 1e-12);
-    }
-
-    #[test]
-    fn pose_adam_moves_against_the_gradient_by_the_step_size() {
-        let mut adam = PoseAdam::default();
-        let rates = Vector6::from_element(1e-3);
-        let step = adam.step(&Vector6::new(2.0, -3.0, 0.0, 1.0, 0.0, 0.0), &rates);
-        // The first Adam step has magnitude lr in every non-zero component.
-        assert!((step[0] + 1e-3).abs() < 1e-9);
-        assert!((step[1] - 1e-3).abs() < 1e-9);
-        assert_eq!(step[2], 0.0);
-        assert!((step[3] + 1e-3).abs() < 1e-9);
     }
 }
