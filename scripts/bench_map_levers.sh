@@ -17,8 +17,8 @@
 #   initial_opacity_0.5 new Gaussians start at opacity 0.5 instead of 0.1
 #   footprint_1.0       new Gaussians' sigma 1 x the sample spacing instead of 2
 #   depth_weight_0.5    depth term weight 0.5 instead of 2 (colour may pull geometry more)
-#   fewest_visits       the mapper revisits the earlier keyframe optimised least so far, not a random one
 #   keyframe_poses      the mapper refines keyframe poses photometrically with the map
+#   seeds_and_resolution  all_tracking_seeds and half_resolution together
 # --repeats N runs every row N times, interleaved (row 1, row 2, ..., row 1, ...): the mapper's
 # gradient sums use float atomics, so on a multi-threaded device two runs of one row differ a
 # little, and the spread of a row's runs is the noise a lever has to beat. The table then shows
@@ -46,8 +46,8 @@ all_tracking_seeds|keyframes.tracking_keyframe_seeds=all
 initial_opacity_0.5|keyframes.initial_opacity=0.5
 footprint_1.0|keyframes.footprint_sigma_per_spacing=1.0
 depth_weight_0.5|mapping.weight_depth=0.5
-fewest_visits|mapping.keyframe_choice=fewest_visits
-keyframe_poses|mapping.refine_keyframe_poses=true'
+keyframe_poses|mapping.refine_keyframe_poses=true
+seeds_and_resolution|keyframes.tracking_keyframe_seeds=all mapping.image_downscale=2'
 
 shared="${MAC_EGO3D_SHARED:-../shared}"
 frames=0..300

@@ -23,7 +23,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
-use config::{KeyframeChoice, MappingConfig, Pace};
+use config::{MappingConfig, Pace};
 use crossbeam_channel::{Receiver, Sender, TryRecvError};
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
@@ -232,8 +232,6 @@ struct StoredKeyframe {
     /// dL/d(image) of its iterations (the loss kernel rewrites every pixel, so one buffer per
     /// keyframe serves every visit).
     image_gradients: DeviceImageGradients,
-    /// Iterations spent on it so far.
-    visits: usize,
     /// The pose tracking gave it (moved by consensus corrections as `camera` is): what
     /// `camera` may move away from by at most `max_pose_change_*` when poses are refined.
     tracked_camera_from_world: RigidTransform,
@@ -450,7 +448,6 @@ impl MapperState {
             image_gradients: DeviceImageGradients::zeros(&self.context, &camera)?,
             tracked_camera_from_world: camera.camera_from_world,
             camera,
-            visits: 0,
             pose_adam: PoseAdam::default(),
         };
         self.unvisited.push(self.keyframes.len());
@@ -493,7 +490,7 @@ impl MapperState {
         }
         let index = match self.unvisited.pop() {
             Some(index) => index,
-            None => choose_keyframe(self.config.keyframe_choice, &self.keyframes, &mut self.rng),
+            None => self.rng.random_range(0..self.keyframes.len()),
         };
         let keyframe = &self.keyframes[index];
         let context = &self.context;
@@ -535,7 +532,6 @@ impl MapperState {
                 &mut self.stats,
             );
         }
-        self.keyframes[index].visits += 1;
         self.stats.iterations += 1;
         if self
             .stats
@@ -614,35 +610,6 @@ fn pose_change(reference: &RigidTransform, camera_from_world: &RigidTransform) -
     ((x * x + y * y + z * z).sqrt(), 2.0 * w.min(1.0).acos())
 }
 
-/// The earlier keyframe an iteration optimises (`keyframes` is not empty).
-fn choose_keyframe(
-    choice: KeyframeChoice,
-    keyframes: &[StoredKeyframe],
-    rng: &mut ChaCha8Rng,
-) -> usize {
-    least_visited_or_random(choice, keyframes.iter().map(|k| k.visits), rng)
-}
-
-/// [`choose_keyframe`] on the keyframes' visit counts, in keyframe order.
-fn least_visited_or_random(
-    choice: KeyframeChoice,
-    visits: impl ExactSizeIterator<Item = usize> + Clone,
-    rng: &mut ChaCha8Rng,
-) -> usize {
-    match choice {
-        KeyframeChoice::Random => rng.random_range(0..visits.len()),
-        KeyframeChoice::FewestVisits => {
-            let fewest = visits.clone().min().unwrap_or(0);
-            let candidates: Vec<usize> = visits
-                .enumerate()
-                .filter(|&(_, count)| count == fewest)
-                .map(|(index, _)| index)
-                .collect();
-            candidates[rng.random_range(0..candidates.len())]
-        }
-    }
-}
-
 /// Tells the tracker (paced) that a keyframe's budget is spent.
 fn notify(budget_spent: &Option<Sender<()>>) {
     if let Some(sender) = budget_spent {
@@ -702,33 +669,6 @@ mod tests {
         assert!((target.rgb[1][2] - 1.0).abs() < 1e-6);
         // Block 0 has valid depths 1 and 3; block 1 has none.
         assert_eq!(target.depth.unwrap(), vec![2.0, 0.0]);
-    }
-
-    #[test]
-    fn fewest_visits_takes_a_least_optimised_keyframe_and_random_takes_any() {
-        let mut rng = ChaCha8Rng::seed_from_u64(7);
-        let visits = [5usize, 2, 9, 2, 4];
-        let mut chosen = [0usize; 5];
-        for _ in 0..200 {
-            let index = least_visited_or_random(
-                KeyframeChoice::FewestVisits,
-                visits.iter().copied(),
-                &mut rng,
-            );
-            chosen[index] += 1;
-        }
-        // Only the two least visited, and both of them (ties are broken at random).
-        assert_eq!(chosen[0] + chosen[2] + chosen[4], 0);
-        assert!(chosen[1] > 50 && chosen[3] > 50, "{chosen:?}");
-        let mut chosen = [0usize; 5];
-        for _ in 0..500 {
-            chosen[least_visited_or_random(
-                KeyframeChoice::Random,
-                visits.iter().copied(),
-                &mut rng,
-            )] += 1;
-        }
-        assert!(chosen.iter().all(|&count| count > 50), "{chosen:?}");
     }
 
     /// A textured wall of Gaussians 2 m in front of the origin, facing the camera.

@@ -38,7 +38,7 @@ pub use consensus::{
     AlignmentConfig, ConsensusConfig, FalseClosureConfig, LocalCorrectionConfig,
     MapRegistrationConfig, PoseGraphConfig, RefinementConfig, ResendConfig,
 };
-pub use mapping::{KeyframeChoice, MappingConfig, Pace};
+pub use mapping::{MappingConfig, Pace};
 pub use network::NetworkConfig;
 
 /// The whole configuration file.

@@ -22,20 +22,6 @@ pub enum Pace {
     Unthrottled,
 }
 
-/// Which earlier keyframe the mapper optimises when no new keyframe waits for its first
-/// iteration (docs/method.md, One agent: Map optimisation).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum KeyframeChoice {
-    /// Any keyframe, uniformly at random (the method's rule). Keyframes made early get more
-    /// iterations than late ones: they were candidates for longer.
-    #[default]
-    Random,
-    /// The keyframe optimised least so far (a random one among equals), so every keyframe gets
-    /// the same share of the iterations and a new one catches up first.
-    FewestVisits,
-}
-
 /// Map optimisation and pruning.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -77,8 +63,6 @@ pub struct MappingConfig {
     pub image_downscale: u32,
     /// Seed of the mapper's choice of earlier keyframes (runs are repeatable).
     pub random_seed: u64,
-    /// How the mapper chooses the earlier keyframe of an iteration: see [`KeyframeChoice`].
-    pub keyframe_choice: KeyframeChoice,
     /// Optimise each keyframe's pose with the map, photometrically, as the consensus's joint
     /// refinement does (docs/method.md, One agent: Map optimisation). The first keyframe stays
     /// (it fixes the map's frame). The tracked trajectory is not changed: only the map sees the
@@ -117,7 +101,6 @@ impl Default for MappingConfig {
             prune_max_elongation: 10.0,
             image_downscale: 1,
             random_seed: 0,
-            keyframe_choice: KeyframeChoice::Random,
             refine_keyframe_poses: false,
             lr_pose_translation_m: 2e-4,
             lr_pose_rotation_rad: 2e-4,
