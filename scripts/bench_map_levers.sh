@@ -5,6 +5,7 @@
 #
 #   scripts/bench_map_levers.sh [--frames 0..300] [--rows baseline,half_resolution,...]
 #       [--repeats 1] [--dataset DIR] [--config FILE] [--out DIR] [--json FILE] [--list]
+#       [--bin-dir DIR]
 #
 # Rows (--list prints them with their overrides; default: every row but full_resolution, whose
 # 640x480 iterations cost seconds each on a CPU device):
@@ -27,14 +28,15 @@
 # L1 of the real-time map on every 10th frame at full resolution against the dataset's images.
 # Prints one table (row, overrides, PSNR, SSIM, LPIPS, depth L1, Gaussians, mapper iterations,
 # wall time, ATE) and writes it as JSON to --json (default OUT/summary.json). Every run's outputs
-# stay in --out (default: a new folder under $TMPDIR). Dataset: $MAC_EGO3D_SHARED (default
-# ../shared)/datasets/7scenes-redkitchen. Wall times depend on the machine and its load; the
-# quality figures do not (paced).
+# stay in --out (default: a new folder under $TMPDIR). Binaries: built first (release), or the
+# mac-agent and mac-ego3d in --bin-dir as they are (test harnesses pass where cargo test put
+# them). Dataset: $MAC_EGO3D_SHARED (default ../shared)/datasets/7scenes-redkitchen. Wall times
+# depend on the machine and its load; the quality figures do not (paced), up to the spread above.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 fail() { echo "[map-levers] $1" >&2; exit "${2:-1}"; }
-usage() { sed -n '2,33p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,34p' "$0" | sed 's/^# \{0,1\}//'; }
 
 # name|overrides (space-separated KEY=VALUE, as `mac-ego3d config --set`)
 readonly ROWS='baseline|
@@ -57,6 +59,7 @@ dataset=""
 config=configs/7scenes.toml
 out=""
 json=""
+bin_dir=""
 while [[ $# -gt 0 ]]; do
   case "$1" in
     --frames) frames="$2"; shift 2 ;;
@@ -66,6 +69,7 @@ while [[ $# -gt 0 ]]; do
     --config) config="$2"; shift 2 ;;
     --out) out="$2"; shift 2 ;;
     --json) json="$2"; shift 2 ;;
+    --bin-dir) bin_dir="$2"; shift 2 ;;
     --list) echo "$ROWS" | tr '|' '\t'; exit 0 ;;
     -h|--help) usage; exit 0 ;;
     *) usage >&2; fail "unknown argument: $1" 2 ;;
@@ -91,8 +95,14 @@ overrides_of() {
 IFS=, read -r -a names <<<"$rows"
 for name in "${names[@]}"; do overrides_of "$name" >/dev/null; done
 
-echo "[map-levers] building (release)" >&2
-cargo build --release --quiet -p mac-ego3d --bin mac-ego3d -p mac-agent --bin mac-agent
+if [[ -z "$bin_dir" ]]; then
+  echo "[map-levers] building (release)" >&2
+  cargo build --release --quiet -p mac-ego3d --bin mac-ego3d -p mac-agent --bin mac-agent
+  bin_dir=target/release
+fi
+for binary in mac-ego3d mac-agent; do
+  [[ -x "$bin_dir/$binary" ]] || fail "$bin_dir/$binary is missing" 2
+done
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-$(mktemp -d)}"
 
 for repeat in $(seq 1 "$repeats"); do
@@ -101,9 +111,9 @@ for name in "${names[@]}"; do
   mkdir -p "$run"
   sets=()
   for pair in $(overrides_of "$name"); do sets+=(--set "$pair"); done
-  target/release/mac-ego3d config --config "$config" "${sets[@]}" --out "$run/config.toml"
+  "$bin_dir/mac-ego3d" config --config "$config" "${sets[@]}" --out "$run/config.toml"
   echo "[map-levers] $name: $(overrides_of "$name") -> $run" >&2
-  target/release/mac-agent --config "$run/config.toml" --dataset "$dataset" --frames "$frames" \
+  "$bin_dir/mac-agent" --config "$run/config.toml" --dataset "$dataset" --frames "$frames" \
     --standalone --pace paced --out "$run" >"$run/agent.log" 2>&1 \
     || fail "$name: the agent failed (log: $run/agent.log)"
 done
