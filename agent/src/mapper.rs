@@ -26,6 +26,7 @@ use std::time::Instant;
 use config::{MappingConfig, Pace};
 use crossbeam_channel::{Receiver, Sender, TryRecvError};
 use geometry::camera::Intrinsics;
+use geometry::correction::{CorrectionField, correction};
 use geometry::depth::DepthImage;
 use image::RgbImage;
 use nalgebra::{Isometry3, Vector6};
@@ -53,6 +54,9 @@ pub enum KeyframeKind {
 pub struct MappingKeyframe {
     pub keyframe_id: usize,
     pub frame_index: usize,
+    /// The frame's timestamp (seconds): where the keyframe anchors its pose refinement's
+    /// correction ([`MappingStats::keyframe_pose_corrections`]).
+    pub timestamp_s: f64,
     pub kind: KeyframeKind,
     pub world_from_camera: Isometry3<f64>,
     /// Full-resolution intrinsics of `rgb` and `depth`.
@@ -80,6 +84,11 @@ pub struct MappingStats {
     pub max_pose_change_m: f64,
     pub max_pose_change_deg: f64,
     pub pose_steps_refused: usize,
+    /// `refine_keyframe_poses`: how the refinement moved the cameras, as a correction field
+    /// anchored at the keyframes' timestamps (each keyframe's refined pose times its tracked
+    /// pose's inverse, blended between keyframes). A frame's camera in this map is
+    /// `field.at(t) * (its tracked pose, after consensus corrections)`. Empty otherwise.
+    pub keyframe_pose_corrections: CorrectionField,
 }
 
 impl MappingStats {
@@ -232,6 +241,7 @@ struct StoredKeyframe {
     /// dL/d(image) of its iterations (the loss kernel rewrites every pixel, so one buffer per
     /// keyframe serves every visit).
     image_gradients: DeviceImageGradients,
+    timestamp_s: f64,
     /// The pose tracking gave it (moved by consensus corrections as `camera` is): what
     /// `camera` may move away from by at most `max_pose_change_*` when poses are refined.
     tracked_camera_from_world: RigidTransform,
@@ -355,6 +365,7 @@ impl MapperState {
             }
         };
         self.stats.seconds = started.elapsed().as_secs_f64();
+        self.stats.keyframe_pose_corrections = self.keyframe_pose_corrections();
         let realtime = std::mem::take(&mut self.stats);
         let realtime_map = self.download()?;
         tracing::info!(
@@ -376,6 +387,7 @@ impl MapperState {
             }
             self.stats.seconds = started.elapsed().as_secs_f64();
             self.stats.keyframes = self.keyframes.len();
+            self.stats.keyframe_pose_corrections = self.keyframe_pose_corrections();
             Some((self.download()?, std::mem::take(&mut self.stats)))
         } else {
             None
@@ -385,6 +397,18 @@ impl MapperState {
             realtime,
             refined,
         })
+    }
+
+    /// [`MappingStats::keyframe_pose_corrections`] of the keyframes as they stand.
+    fn keyframe_pose_corrections(&self) -> CorrectionField {
+        if !self.config.refine_keyframe_poses {
+            return CorrectionField::default();
+        }
+        CorrectionField::from_anchors(self.keyframes.iter().map(|keyframe| {
+            let refined = Isometry3::from(&keyframe.camera.camera_from_world).inverse();
+            let tracked = Isometry3::from(&keyframe.tracked_camera_from_world).inverse();
+            (keyframe.timestamp_s, correction(&refined, &tracked))
+        }))
     }
 
     /// `simulated_iteration_delay_ms` of extra wall time per iteration.
@@ -446,6 +470,7 @@ impl MapperState {
             keyframe_id: keyframe.keyframe_id,
             target: DeviceTarget::upload(&self.context, &target)?,
             image_gradients: DeviceImageGradients::zeros(&self.context, &camera)?,
+            timestamp_s: keyframe.timestamp_s,
             tracked_camera_from_world: camera.camera_from_world,
             camera,
             pose_adam: PoseAdam::default(),
@@ -725,6 +750,7 @@ mod tests {
         MappingKeyframe {
             keyframe_id,
             frame_index: keyframe_id,
+            timestamp_s: keyframe_id as f64,
             kind: KeyframeKind::Mapping,
             world_from_camera,
             intrinsics,
@@ -780,6 +806,15 @@ mod tests {
         for _ in 0..iterations {
             state.iterate().unwrap();
         }
+        // The correction field takes each keyframe's recorded pose onto its refined one (the
+        // identity at the first keyframe, and everywhere without refinement).
+        let field = state.keyframe_pose_corrections();
+        assert_eq!(field.is_empty(), !refine_keyframe_poses);
+        let refined = Isometry3::from(&state.keyframes[1].camera.camera_from_world).inverse();
+        let moved = field.at(1.0) * recorded;
+        assert!((moved.translation.vector - refined.translation.vector).norm() < 1e-6);
+        assert!(moved.rotation.angle_to(&refined.rotation) < 1e-5);
+        assert!(field.at(0.0).translation.vector.norm() < 1e-9);
         let true_camera_from_world = RigidTransform::from(&true_pose.inverse());
         pose_change(
             &true_camera_from_world,

@@ -273,6 +273,7 @@ impl<'a> AgentPipeline<'a> {
         self.mapper.add_keyframe(MappingKeyframe {
             keyframe_id,
             frame_index: frame.index,
+            timestamp_s: frame.timestamp,
             kind: decision.kind,
             world_from_camera: tracked.local.world_from_camera,
             intrinsics: frame.intrinsics,

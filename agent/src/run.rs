@@ -18,6 +18,7 @@ use alexnet::lpips::Lpips;
 use anyhow::Context;
 use config::{Config, Pace};
 use datasets::{self, Dataset, FrameRange};
+use geometry::correction::CorrectionField;
 use geometry::se3::isometry_from_tum;
 use geometry::trajectory::Trajectory;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -329,31 +330,35 @@ fn evaluate_maps(
     lpips: Option<&Lpips>,
 ) -> anyhow::Result<(MapMetrics, usize, Option<MapMetrics>)> {
     // The map is in the local-map frame: each frame is rendered where the corrections applied
-    // to the map put it (the tracked pose when none were).
-    let evaluated: Vec<TrackedPose> = run
-        .poses
-        .iter()
-        .enumerate()
-        .filter(|(i, _)| i % options.eval_every.max(1) == 0)
-        .map(|(_, p)| TrackedPose {
-            world_from_camera: run.corrections.applied().at(p.timestamp) * p.world_from_camera,
-            ..*p
-        })
-        .collect();
-    let evaluate = |map: &GaussianCloud, renders: &str| {
+    // to the map put it (the tracked pose when none were), then where the mapper's keyframe pose
+    // refinement moved it (`refine_keyframe_poses`; nothing otherwise).
+    let evaluated = |pose_refinement: &CorrectionField| -> Vec<TrackedPose> {
+        run.poses
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| i % options.eval_every.max(1) == 0)
+            .map(|(_, p)| TrackedPose {
+                world_from_camera: pose_refinement.at(p.timestamp)
+                    * run.corrections.applied().at(p.timestamp)
+                    * p.world_from_camera,
+                ..*p
+            })
+            .collect()
+    };
+    let evaluate = |map: &GaussianCloud, stats: &MappingStats, renders: &str| {
         evaluate_map(
             map,
             dataset,
-            &evaluated,
+            &evaluated(&stats.keyframe_pose_corrections),
             lpips,
             Some(&options.out.join(renders)),
             options.comparison_renders,
         )
     };
-    let realtime_quality = evaluate(&outcome.realtime_map, "renders")?;
+    let realtime_quality = evaluate(&outcome.realtime_map, &outcome.realtime, "renders")?;
     let refined = match &outcome.refined {
         Some((map, stats)) => Some(map_metrics(
-            &evaluate(map, "renders_refined")?,
+            &evaluate(map, stats, "renders_refined")?,
             map.len(),
             stats,
         )),
@@ -521,6 +526,8 @@ fn trajectory_ate(poses: &[TrackedPose], estimate: &Trajectory) -> Option<AteSta
     }
 }
 
+/// `map` rendered at each of `evaluated` and scored against its frame; with `comparison_dir`,
+/// `comparison_renders` side-by-side images and every frame's figures (quality.json) go there.
 fn evaluate_map(
     map: &GaussianCloud,
     dataset: &Arc<dyn Dataset>,
@@ -536,7 +543,7 @@ fn evaluate_map(
     } else {
         evaluated.len().div_ceil(comparison_renders).max(1)
     };
-    if let Some(dir) = comparison_dir.filter(|_| comparison_renders > 0) {
+    if let Some(dir) = comparison_dir {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     let progress = progress_bar(evaluated.len());
@@ -562,6 +569,13 @@ fn evaluate_map(
         )?);
     }
     progress.finish_and_clear();
+    // Every evaluated frame's figures, next to the comparison images: which frames a mean hides.
+    if let Some(dir) = comparison_dir {
+        let path = dir.join("quality.json");
+        let json = serde_json::to_string_pretty(&qualities)?;
+        geometry::files::write_whole(&path, |file| file.write_all(json.as_bytes()))
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
     Ok(QualitySummary::of(&qualities))
 }
 

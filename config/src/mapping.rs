@@ -65,8 +65,8 @@ pub struct MappingConfig {
     pub random_seed: u64,
     /// Optimise each keyframe's pose with the map, photometrically, as the consensus's joint
     /// refinement does (docs/method.md, One agent: Map optimisation). The first keyframe stays
-    /// (it fixes the map's frame). The tracked trajectory is not changed: only the map sees the
-    /// refined poses.
+    /// (it fixes the map's frame). The tracked trajectory is not changed; the agent's evaluation
+    /// renders each frame where the refinement of its neighbouring keyframes moved it.
     pub refine_keyframe_poses: bool,
     /// Adam step sizes of a keyframe pose (metres and radians per step).
     pub lr_pose_translation_m: f64,

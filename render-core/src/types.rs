@@ -305,6 +305,19 @@ impl From<&nalgebra::Isometry3<f64>> for RigidTransform {
     }
 }
 
+/// And back, for poses render-core moved (a refined keyframe pose): the rotation re-orthonormalised
+/// through its quaternion.
+impl From<&RigidTransform> for nalgebra::Isometry3<f64> {
+    fn from(transform: &RigidTransform) -> Self {
+        let [w, x, y, z] = transform.rotation_quaternion().map(f64::from);
+        let [tx, ty, tz] = transform.translation.map(f64::from);
+        nalgebra::Isometry3::from_parts(
+            nalgebra::Translation3::new(tx, ty, tz),
+            nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z)),
+        )
+    }
+}
+
 /// Hamilton product `a * b` of quaternions `[w, x, y, z]` (rotation `b` first, then `a`).
 pub fn quaternion_multiply(a: [f32; 4], b: [f32; 4]) -> [f32; 4] {
     let quaternion = |[w, x, y, z]: [f32; 4]| Quat::from_xyzw(x, y, z, w);
@@ -553,6 +566,10 @@ mod tests {
         for k in 0..3 {
             assert!((f64::from(got[k]) - expected[k]).abs() < 1e-6);
         }
+        // And back: the same pose, to f32 precision.
+        let back = Isometry3::from(&rigid);
+        assert!(((back * p) - expected).norm() < 1e-6);
+        assert!(back.rotation.angle_to(&pose.rotation) < 1e-6);
         // The same rotation as built from the quaternion.
         let q = pose.rotation.quaternion();
         let t = pose.translation.vector;
