@@ -20,6 +20,7 @@
 #   depth_weight_0.5    depth term weight 0.5 instead of 2 (colour may pull geometry more)
 #   keyframe_poses      the mapper refines keyframe poses photometrically with the map
 #   seeds_and_resolution  all_tracking_seeds and half_resolution together
+#   paced_best          seeds_and_resolution and keyframe_poses together
 # --repeats N runs every row N times, interleaved (row 1, row 2, ..., row 1, ...): the mapper's
 # gradient sums use float atomics, so on a multi-threaded device two runs of one row differ a
 # little, and the spread of a row's runs is the noise a lever has to beat. The table then shows
@@ -36,7 +37,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 fail() { echo "[map-levers] $1" >&2; exit "${2:-1}"; }
-usage() { sed -n '2,34p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,35p' "$0" | sed 's/^# \{0,1\}//'; }
 
 # name|overrides (space-separated KEY=VALUE, as `mac-ego3d config --set`)
 readonly ROWS='baseline|
@@ -49,7 +50,8 @@ initial_opacity_0.5|keyframes.initial_opacity=0.5
 footprint_1.0|keyframes.footprint_sigma_per_spacing=1.0
 depth_weight_0.5|mapping.weight_depth=0.5
 keyframe_poses|mapping.refine_keyframe_poses=true
-seeds_and_resolution|keyframes.tracking_keyframe_seeds=all mapping.image_downscale=2'
+seeds_and_resolution|keyframes.tracking_keyframe_seeds=all mapping.image_downscale=2
+paced_best|keyframes.tracking_keyframe_seeds=all mapping.image_downscale=2 mapping.refine_keyframe_poses=true'
 
 shared="${MAC_EGO3D_SHARED:-../shared}"
 frames=0..300
