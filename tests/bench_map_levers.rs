@@ -3,25 +3,14 @@
 //! row's run gets its overrides and that the table and the JSON report every row; the full table
 //! is a documented command (docs/benchmarks.md).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
-fn shared(relative: &str) -> PathBuf {
-    let dir = std::env::var_os("MAC_EGO3D_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"));
-    let path = dir.join(relative);
-    assert!(
-        path.exists(),
-        "real data missing: {} (set MAC_EGO3D_SHARED)",
-        path.display()
-    );
-    path
-}
+mod common;
 
 #[test]
 fn real_data_map_levers_runs_each_row_with_its_overrides_and_reports_them() {
-    let dataset = shared("datasets/7scenes-redkitchen");
+    let dataset = common::shared_data("datasets/7scenes-redkitchen");
     let out = tempfile::tempdir().unwrap();
     let bin_dir = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/bench_map_levers.sh");

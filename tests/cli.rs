@@ -3,6 +3,8 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
+mod common;
+
 fn mac_ego3d(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_mac-ego3d"))
         .args(args)
@@ -160,16 +162,7 @@ fn bad_input_gives_a_clear_error_not_a_panic() {
 }
 
 fn shared(relative: &str) -> String {
-    let dir = std::env::var_os("MAC_EGO3D_SHARED")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"));
-    let path = dir.join(relative);
-    assert!(
-        path.exists(),
-        "real data missing: {} (set MAC_EGO3D_SHARED)",
-        path.display()
-    );
-    path.to_string_lossy().into_owned()
+    common::shared_data(relative).to_string_lossy().into_owned()
 }
 
 #[test]

@@ -30,6 +30,21 @@ pub fn workspace_binary(name: &str) -> PathBuf {
     path
 }
 
+/// A file or folder of the shared real data (`$MAC_EGO3D_SHARED`, default ../shared); a clear
+/// failure when it is missing (scripts/test.sh skips `real_data_` tests without the data).
+pub fn shared_data(relative: &str) -> PathBuf {
+    let dir = std::env::var_os("MAC_EGO3D_SHARED")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"));
+    let path = dir.join(relative);
+    assert!(
+        path.exists(),
+        "real data missing: {} (set MAC_EGO3D_SHARED)",
+        path.display()
+    );
+    path
+}
+
 /// A configuration file of the repository (`configs/...`).
 pub fn repository_config(relative: &str) -> Config {
     Config::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join(relative)).unwrap()
