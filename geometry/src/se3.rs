@@ -61,6 +61,14 @@ pub fn to_matrix(pose: &Isometry3<f64>) -> Matrix4<f64> {
     pose.to_homogeneous()
 }
 
+/// How far the camera of `world_from_camera` is from that of `reference` (both camera-to-world):
+/// the distance between the camera centres (metres) and the angle between the orientations
+/// (radians).
+pub fn pose_change(reference: &Isometry3<f64>, world_from_camera: &Isometry3<f64>) -> (f64, f64) {
+    let change = reference.inverse() * world_from_camera;
+    (change.translation.vector.norm(), change.rotation.angle())
+}
+
 /// Rotation angle of a pose in radians.
 pub fn rotation_angle(pose: &Isometry3<f64>) -> f64 {
     pose.rotation.angle()
@@ -187,6 +195,16 @@ pub fn pose_from_row_major(values: &[f64]) -> Result<Isometry3<f64>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pose_change_is_the_distance_between_cameras_and_their_turn() {
+        let reference = Isometry3::new(Vector3::new(1.0, 2.0, 0.5), Vector3::new(0.0, 0.3, 0.0));
+        let moved = Isometry3::new(Vector3::new(1.03, 2.04, 0.5), Vector3::new(0.0, 0.32, 0.0));
+        let (metres, radians) = pose_change(&reference, &moved);
+        assert!((metres - 0.05).abs() < 1e-12, "{metres}");
+        assert!((radians - 0.02).abs() < 1e-12, "{radians}");
+        assert_eq!(pose_change(&moved, &moved), (0.0, 0.0));
+    }
 
     #[test]
     fn umeyama_recovers_known_similarity() {

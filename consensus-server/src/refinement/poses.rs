@@ -6,6 +6,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3, Vector6};
 use super::{PoseEdge, RefinementReport};
 use crate::pose_graph::residual::residual;
 use config::{ConsensusConfig, RefinementConfig};
+use geometry::se3::pose_change;
 use render_core::pose::{PoseAdam, pose_rates};
 
 /// Step of the central differences of the pose-consistency term (radians / metres): far below
@@ -58,9 +59,7 @@ impl<'e> PoseRefinement<'e> {
         report: &mut RefinementReport,
     ) -> Vec<Isometry3<f64>> {
         for (pose, start) in self.poses.iter_mut().zip(initial) {
-            let change = start.inverse() * *pose;
-            let moved_m = change.translation.vector.norm();
-            let turned_rad = change.rotation.angle();
+            let (moved_m, turned_rad) = pose_change(start, pose);
             if moved_m > config.max_pose_change_m || turned_rad > config.max_pose_change_rad {
                 *pose = *start;
                 report.poses_reverted += 1;
