@@ -8,7 +8,7 @@
 #                           [--set KEY=VALUE]...
 #                           [--no-restart-consensus]
 #                           [--transport iceoryx2|zenoh] [--insecure-plain-tcp] [--bandwidth KB_PER_S]
-#                           [--viewer [ADDR]] [--record DIR]
+#                           [--viewer [ADDR]] [--record DIR] [--bin-dir DIR]
 #
 # With no arguments: the embedded synthetic scene, 3 agents (synthetic:agents=3,agent=K).
 # --agent repeats, one dataset (and frame range) per agent; agent K is the K-th --agent.
@@ -53,6 +53,9 @@
 #
 # Binaries: CARGO_TARGET_DIR (default target)/MAC_EGO3D_PROFILE (default release), built first
 # (MAC_EGO3D_BUILD_AS_TESTS=1: as `cargo test --workspace` builds them; for test harnesses).
+# --bin-dir DIR runs the binaries in DIR as they are, with no build and no set-up step: for a
+# machine without cargo that the binaries were copied to (its Vulkan driver and the weights are
+# then the caller's to provide).
 #
 # Output (DIR, default out/swarm): agent_K/ (each agent's own outputs, its frame), agent_K.tum
 # (world frame), map.ply (merged world map), consensus.json, metrics.json, report.html, *.log.
@@ -79,6 +82,7 @@ bandwidth=""
 # --- end transport ---
 viewer=""
 record=""
+bin_dir=""
 
 # The header above, up to its first line that is not a comment.
 usage() { sed -n '2,/^[^#]/p' "$0" | sed -n 's/^# \{0,1\}//p'; }
@@ -102,6 +106,7 @@ while (($#)); do
       # The address is optional: the next argument is it unless it is another option.
       if (($# > 1)) && [[ "$2" != --* ]]; then viewer="$2"; shift 2; else viewer=127.0.0.1:9876; shift; fi ;;
     --record) record="$2"; shift 2 ;;
+    --bin-dir) bin_dir="$2"; shift 2 ;;
     -h | --help) usage; exit 0 ;;
     *) echo "[swarm] unknown argument: $1" >&2; usage >&2; exit 2 ;;
   esac
@@ -134,44 +139,53 @@ if [[ "${XDG_RUNTIME_DIR:-}" != /* ]]; then
   trap 'rm -rf "$XDG_RUNTIME_DIR"' EXIT
 fi
 
-bash scripts/setup.sh
-# Binaries where cargo puts them (CARGO_TARGET_DIR, when set, moves the whole target folder).
-bin="${CARGO_TARGET_DIR:-target}/$profile"
-build_args=(-p mac-agent -p mac-consensus -p mac-ego3d --bins)
-[[ "$profile" == release ]] && build_args+=(--release)
-# Started from inside `cargo test`, this script inherits the variables cargo sets for a test
-# (CARGO_MANIFEST_DIR, CARGO_PKG_*, ...); a build script that watches one (ring's watches
-# CARGO_MANIFEST_DIR) would make the build below rebuild it and everything above it.
-for var in $(compgen -e); do
-  case "$var" in
-    CARGO_MANIFEST_* | CARGO_PKG_* | CARGO_CRATE_NAME | CARGO_BIN_* | CARGO_PRIMARY_PACKAGE | \
-      CARGO_TARGET_TMPDIR | CARGO_RUSTC_CURRENT_DIR | OUT_DIR) unset "$var" ;;
-  esac
-done
-# MAC_EGO3D_BUILD_AS_TESTS=1: build as `cargo test --workspace` does (every binary, the whole
-# workspace's features), which is nothing to do right after it: test harnesses set it. `cargo
-# build -p ...` alone resolves the features of shared dependencies for those packages only, which
-# differ from the whole workspace's, and would rebuild most of the dependency tree (minutes).
-if [[ "${MAC_EGO3D_BUILD_AS_TESTS:-}" == 1 ]]; then
-  test_build_args=(--workspace --no-run --quiet)
-  [[ "$profile" == release ]] && test_build_args+=(--release)
-  cargo test "${test_build_args[@]}"
+if [[ -n "$bin_dir" ]]; then
+  for binary in mac-agent mac-consensus mac-ego3d; do
+    [[ -x "$bin_dir/$binary" ]] || { echo "[swarm] --bin-dir: $bin_dir/$binary is missing" >&2; exit 2; }
+  done
+  [[ "$transport" != zenoh || -x "$bin_dir/mac-bridge" ]] ||
+    { echo "[swarm] --bin-dir: $bin_dir/mac-bridge is missing (--transport zenoh needs it)" >&2; exit 2; }
+  bin="$bin_dir"
 else
-  if [[ -x "$bin/mac-agent" && -x "$bin/mac-consensus" && -x "$bin/mac-ego3d" ]]; then
-    echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; up to date unless the sources changed)" >&2
+  bash scripts/setup.sh
+  # Binaries where cargo puts them (CARGO_TARGET_DIR, when set, moves the whole target folder).
+  bin="${CARGO_TARGET_DIR:-target}/$profile"
+  build_args=(-p mac-agent -p mac-consensus -p mac-ego3d --bins)
+  [[ "$profile" == release ]] && build_args+=(--release)
+  # Started from inside `cargo test`, this script inherits the variables cargo sets for a test
+  # (CARGO_MANIFEST_DIR, CARGO_PKG_*, ...); a build script that watches one (ring's watches
+  # CARGO_MANIFEST_DIR) would make the build below rebuild it and everything above it.
+  for var in $(compgen -e); do
+    case "$var" in
+      CARGO_MANIFEST_* | CARGO_PKG_* | CARGO_CRATE_NAME | CARGO_BIN_* | CARGO_PRIMARY_PACKAGE | \
+        CARGO_TARGET_TMPDIR | CARGO_RUSTC_CURRENT_DIR | OUT_DIR) unset "$var" ;;
+    esac
+  done
+  # MAC_EGO3D_BUILD_AS_TESTS=1: build as `cargo test --workspace` does (every binary, the whole
+  # workspace's features), which is nothing to do right after it: test harnesses set it. `cargo
+  # build -p ...` alone resolves the features of shared dependencies for those packages only, which
+  # differ from the whole workspace's, and would rebuild most of the dependency tree (minutes).
+  if [[ "${MAC_EGO3D_BUILD_AS_TESTS:-}" == 1 ]]; then
+    test_build_args=(--workspace --no-run --quiet)
+    [[ "$profile" == release ]] && test_build_args+=(--release)
+    cargo test "${test_build_args[@]}"
   else
-    echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; the first build takes several minutes, progress below)" >&2
+    if [[ -x "$bin/mac-agent" && -x "$bin/mac-consensus" && -x "$bin/mac-ego3d" ]]; then
+      echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; up to date unless the sources changed)" >&2
+    else
+      echo "[swarm] building mac-agent, mac-consensus, mac-ego3d ($profile; the first build takes several minutes, progress below)" >&2
+    fi
+    cargo build "${build_args[@]}"
+    # --- transport (cross-host bridge) ---
+    # Built on its own: in one invocation with the others, cargo would unify the features of their
+    # shared dependencies with zenoh's and rebuild them all.
+    if [[ "$transport" == zenoh ]]; then
+      bridge_args=(-p mac-bridge)
+      [[ "$profile" == release ]] && bridge_args+=(--release)
+      cargo build "${bridge_args[@]}"
+    fi
+    # --- end transport ---
   fi
-  cargo build "${build_args[@]}"
-  # --- transport (cross-host bridge) ---
-  # Built on its own: in one invocation with the others, cargo would unify the features of their
-  # shared dependencies with zenoh's and rebuild them all.
-  if [[ "$transport" == zenoh ]]; then
-    bridge_args=(-p mac-bridge)
-    [[ "$profile" == release ]] && bridge_args+=(--release)
-    cargo build "${bridge_args[@]}"
-  fi
-  # --- end transport ---
 fi
 
 # Per-run config: the given one, with T_comm and noise overridden when asked, resolved and
