@@ -36,7 +36,7 @@ use serde::{Deserialize, Serialize};
 
 pub use consensus::{
     AlignmentConfig, ConsensusConfig, FalseClosureConfig, LocalCorrectionConfig,
-    MapRegistrationConfig, PoseGraphConfig, RefinementConfig, ResendConfig,
+    MapRegistrationConfig, MergeConfig, PoseGraphConfig, RefinementConfig, ResendConfig,
 };
 pub use mapping::{MappingConfig, Pace};
 pub use network::NetworkConfig;

@@ -7,6 +7,7 @@
 mod alignment;
 mod false_closures;
 mod map_registration;
+mod merge;
 mod pose_graph;
 mod refinement;
 
@@ -18,6 +19,7 @@ use serde::{Deserialize, Serialize};
 pub use alignment::AlignmentConfig;
 pub use false_closures::FalseClosureConfig;
 pub use map_registration::MapRegistrationConfig;
+pub use merge::MergeConfig;
 pub use pose_graph::PoseGraphConfig;
 pub use refinement::RefinementConfig;
 
@@ -53,6 +55,8 @@ pub struct ConsensusConfig {
     pub alignment: AlignmentConfig,
     /// Robust pose graph: `[consensus.pose_graph]`.
     pub pose_graph: PoseGraphConfig,
+    /// How the agents' maps become one world map: `[consensus.merge]`.
+    pub merge: MergeConfig,
     /// Joint photometric refinement of the merged map: `[consensus.refinement]`.
     pub refinement: RefinementConfig,
     /// How agents apply corrections to their local maps: `[consensus.local_corrections]`.
@@ -82,6 +86,7 @@ impl Default for ConsensusConfig {
             descriptor_weights: None,
             alignment: AlignmentConfig::default(),
             pose_graph: PoseGraphConfig::default(),
+            merge: MergeConfig::default(),
             refinement: RefinementConfig::default(),
             local_corrections: LocalCorrectionConfig::default(),
             resend: ResendConfig::default(),
@@ -115,6 +120,7 @@ impl ConsensusConfig {
             non_negative(field, v)?;
         }
         self.alignment.validate()?;
+        self.merge.validate()?;
         self.refinement.validate()?;
         self.local_corrections.validate()?;
         self.resend.validate()?;

@@ -25,6 +25,7 @@
 mod decisions;
 mod false_closures;
 mod jobs;
+mod merge;
 mod records;
 mod world;
 

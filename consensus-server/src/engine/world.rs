@@ -5,9 +5,10 @@ use std::collections::BTreeMap;
 
 use geometry::correction::{CorrectionField, correction};
 use geometry::se3::isometry_from_tum;
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Point3};
 use render_core::types::{GaussianCloud, RigidTransform};
 
+use super::merge::{WorldAgentMap, merge};
 use super::{Engine, KeyframeInfo};
 use crate::place_recognition::KeyframeRef;
 use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
@@ -15,10 +16,11 @@ use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
 impl Engine {
     /// The merged map in the world frame: each linked agent's final map moved by its
     /// `world_from_agent`, or, for an agent that sent none, its keyframes' Gaussians moved by each
-    /// keyframe's correction. Agents not linked to the world are left out (their frame is
-    /// unknown); the count of those Gaussians is returned too.
+    /// keyframe's correction; where agents' maps overlap, only the nearest observer's Gaussians
+    /// ([`merge`], `[consensus.merge]`). Agents not linked to the world are left out (their frame
+    /// is unknown); the count of those Gaussians is returned too.
     pub fn merged_map(&self) -> (GaussianCloud, usize) {
-        let mut merged = GaussianCloud::default();
+        let mut per_agent: BTreeMap<u32, GaussianCloud> = BTreeMap::new();
         let mut unplaced = 0;
         for (agent_id, cloud) in &self.final_maps {
             match self
@@ -26,9 +28,10 @@ impl Engine {
                 .as_ref()
                 .and_then(|s| s.world_from_agent.get(agent_id).copied().flatten())
             {
-                Some(world_from_agent) => {
-                    merged.extend_from(&transformed(cloud, &world_from_agent))
-                }
+                Some(world_from_agent) => per_agent
+                    .entry(*agent_id)
+                    .or_default()
+                    .extend_from(&transformed(cloud, &world_from_agent)),
                 None => unplaced += cloud.len(),
             }
         }
@@ -37,11 +40,44 @@ impl Engine {
                 continue;
             }
             match self.solution.as_ref().and_then(|s| s.corrections.get(id)) {
-                Some(correction) => merged.extend_from(&transformed(cloud, correction)),
+                Some(correction) => per_agent
+                    .entry(id.agent_id)
+                    .or_default()
+                    .extend_from(&transformed(cloud, correction)),
                 None => unplaced += cloud.len(),
             }
         }
+        let maps: Vec<WorldAgentMap> = per_agent
+            .into_iter()
+            .map(|(agent_id, cloud)| WorldAgentMap {
+                agent_id,
+                cloud,
+                observers: self.placed_cameras(agent_id),
+            })
+            .collect();
+        let (merged, stats) = merge(&maps, &self.config.merge);
+        if stats.overlapping > 0 {
+            tracing::info!(
+                overlapping = stats.overlapping,
+                left_to_nearer_observer = stats.left_to_nearer_observer,
+                merged = merged.len(),
+                "merged map: overlapping Gaussians kept from the agent that saw them nearest"
+            );
+        }
         (merged, unplaced)
+    }
+
+    /// World positions of `agent_id`'s keyframe cameras the pose graph placed.
+    fn placed_cameras(&self, agent_id: u32) -> Vec<Point3<f64>> {
+        let Some(solution) = self.solution.as_ref() else {
+            return Vec::new();
+        };
+        solution
+            .world_from_camera
+            .iter()
+            .filter(|(id, _)| id.agent_id == agent_id)
+            .map(|(_, world_from_camera)| Point3::from(world_from_camera.translation.vector))
+            .collect()
     }
 
     /// The joint refinement of `map` (the merged world map, [`Engine::merged_map`]) over every

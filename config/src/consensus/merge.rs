@@ -1,0 +1,36 @@
+//! The `[consensus.merge]` table: how the agents' maps become one world map (docs/method.md,
+//! The consensus: the merged map).
+
+use geometry::checks::{FieldError, positive};
+use serde::{Deserialize, Serialize};
+
+/// Building the merged world map from the agents' maps (docs/method.md, The consensus: the
+/// merged map). Each agent's map is optimised for its own views; where two agents mapped the
+/// same surface, both copies together blur and occlude each other from every view.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MergeConfig {
+    /// Where agents' maps overlap, keep each Gaussian only from the agent whose keyframes saw
+    /// its place from nearest (its samples are the finest there); elsewhere keep every agent's.
+    /// Off: the merged map is all maps together.
+    pub nearest_observer: bool,
+    /// A Gaussian is in the overlap when another agent has a Gaussian within this distance
+    /// (metres): about the agents' residual misalignment after the pose graph (a few cm).
+    pub overlap_radius_m: f64,
+}
+
+impl Default for MergeConfig {
+    fn default() -> Self {
+        Self {
+            nearest_observer: true,
+            overlap_radius_m: 0.05,
+        }
+    }
+}
+
+impl MergeConfig {
+    /// Checks ranges; returns the offending field (`consensus.merge.*`) and why.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        positive("consensus.merge.overlap_radius_m", self.overlap_radius_m)
+    }
+}
