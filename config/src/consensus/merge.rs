@@ -10,9 +10,11 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MergeConfig {
-    /// Where agents' maps overlap, keep each Gaussian only from the agent whose keyframes saw
-    /// its place from nearest (its samples are the finest there); elsewhere keep every agent's.
-    /// Off: the merged map is all maps together.
+    /// In merged maps that no joint refinement follows (mid-run snapshots, the live view, runs
+    /// with refinement off or interrupted): where agents' maps overlap, keep each Gaussian only
+    /// from the agent whose keyframes saw its place from nearest (its samples are the finest
+    /// there); elsewhere keep every agent's. The refinement starts from every agent's whole map:
+    /// from there it ended higher (docs/benchmarks.md). Off: always all maps together.
     pub nearest_observer: bool,
     /// A Gaussian is in the overlap when another agent has a Gaussian within this distance
     /// (metres): about the agents' residual misalignment after the pose graph (a few cm).

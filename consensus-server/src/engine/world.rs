@@ -3,6 +3,7 @@
 
 use std::collections::BTreeMap;
 
+use config::MergeConfig;
 use geometry::correction::{CorrectionField, correction};
 use geometry::se3::isometry_from_tum;
 use nalgebra::{Isometry3, Point3};
@@ -16,10 +17,12 @@ use crate::refinement::{PoseEdge, RefinementProblem, RefinementView};
 impl Engine {
     /// The merged map in the world frame: each linked agent's final map moved by its
     /// `world_from_agent`, or, for an agent that sent none, its keyframes' Gaussians moved by each
-    /// keyframe's correction; where agents' maps overlap, only the nearest observer's Gaussians
-    /// ([`merge`], `[consensus.merge]`). Agents not linked to the world are left out (their frame
-    /// is unknown); the count of those Gaussians is returned too.
-    pub fn merged_map(&self) -> (GaussianCloud, usize) {
+    /// keyframe's correction. When no joint refinement follows (`refinement_follows` false:
+    /// snapshots, the live view, refinement off or interrupted), where agents' maps overlap only
+    /// the nearest observer's Gaussians stay ([`merge`], `[consensus.merge]`); the refinement
+    /// starts from every agent's whole map. Agents not linked to the world are left out (their
+    /// frame is unknown); the count of those Gaussians is returned too.
+    pub fn merged_map(&self, refinement_follows: bool) -> (GaussianCloud, usize) {
         let mut per_agent: BTreeMap<u32, GaussianCloud> = BTreeMap::new();
         let mut unplaced = 0;
         for (agent_id, cloud) in &self.final_maps {
@@ -55,7 +58,11 @@ impl Engine {
                 observers: self.placed_cameras(agent_id),
             })
             .collect();
-        let (merged, stats) = merge(&maps, &self.config.merge);
+        let config = MergeConfig {
+            nearest_observer: self.config.merge.nearest_observer && !refinement_follows,
+            ..self.config.merge.clone()
+        };
+        let (merged, stats) = merge(&maps, &config);
         if stats.overlapping > 0 {
             tracing::info!(
                 overlapping = stats.overlapping,

@@ -110,7 +110,10 @@ pub fn run_with_snapshots(
 
     let (mut engine, updates, latencies) = worker.finish()?;
     let (agents, latencies) = listener.finish(updates, latencies);
-    let (map, unplaced) = engine.merged_map();
+    // The joint refinement runs (see `refine_world_map`) unless it is off or the run was
+    // interrupted.
+    let refinement_follows = options.config.consensus.refinement.iterations > 0 && !interrupted;
+    let (map, unplaced) = engine.merged_map(refinement_follows);
     write_progress(&options.out, &engine, ProgressStage::Refining);
     let (map, refinement) = refine_world_map(options, &mut engine, map, interrupted)?;
     let report = write_outputs(

@@ -239,7 +239,7 @@ impl Worker {
                 }
             }
             WorkerInput::Snapshot(request) => {
-                let (map, unplaced) = self.engine.merged_map();
+                let (map, unplaced) = self.engine.merged_map(false);
                 let written = write_outputs(
                     &self.options,
                     &self.engine,
