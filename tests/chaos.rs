@@ -27,7 +27,7 @@ fn config() -> Config {
     config.consensus.t_comm = 20;
     config.tracking.pixel_stride = 2;
     config.keyframes.footprint_sigma_per_spacing = 1.0;
-    config.consensus.refinement.iterations = 30;
+    config.consensus.refinement.max_iterations = 30;
     config.consensus.refinement.max_seconds = 20.0;
     config.consensus.descriptor_weights =
         Some(datasets::shared_data::require("weights/lpips/alexnet.npz"));

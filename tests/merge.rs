@@ -24,7 +24,7 @@ const MAX_REAL_JOINT_ATE_M: f64 = 0.05;
 fn synthetic_config() -> Config {
     let mut config = common::repository_config("configs/synthetic.toml");
     config.consensus.descriptor_weights = None;
-    config.consensus.refinement.iterations = 0;
+    config.consensus.refinement.max_iterations = 0;
     config
 }
 
@@ -34,7 +34,7 @@ fn redkitchen_config() -> Config {
     config.mapping.pace = config::Pace::Unthrottled;
     config.consensus.descriptor_weights =
         Some(datasets::shared_data::require("weights/lpips/alexnet.npz"));
-    config.consensus.refinement.iterations = 0;
+    config.consensus.refinement.max_iterations = 0;
     config
 }
 
@@ -102,7 +102,7 @@ fn wide_baseline_agents_whose_views_barely_overlap_join_one_world() {
     )
     .unwrap();
     config.consensus.descriptor_weights = None;
-    config.consensus.refinement.iterations = 0;
+    config.consensus.refinement.max_iterations = 0;
     let swarm = SwarmRun::new(
         "wide",
         &config,

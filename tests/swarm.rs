@@ -30,7 +30,7 @@ const PIXEL_STRIDE: usize = 2;
 /// New Gaussians as wide as the sample spacing (the default 2 spacings fills the gaps of sparse
 /// 640x480 sampling; at one sample per mapping pixel it only blurs).
 const FOOTPRINT_SIGMA_PER_SPACING: f64 = 1.0;
-/// Joint refinement kept short for CI (the default runs 300 iterations or 2 minutes).
+/// Joint refinement kept short for CI (the default runs 40 iterations per view, at most 4000, or 2 minutes).
 const REFINEMENT_ITERATIONS: usize = 60;
 const REFINEMENT_MAX_SECONDS: f64 = 90.0;
 /// What a merged synthetic swarm must reach: the scene is exact, so errors are the method's.
@@ -56,7 +56,7 @@ fn config() -> Config {
     config.consensus.t_comm = T_COMM;
     config.tracking.pixel_stride = PIXEL_STRIDE;
     config.keyframes.footprint_sigma_per_spacing = FOOTPRINT_SIGMA_PER_SPACING;
-    config.consensus.refinement.iterations = REFINEMENT_ITERATIONS;
+    config.consensus.refinement.max_iterations = REFINEMENT_ITERATIONS;
     config.consensus.refinement.max_seconds = REFINEMENT_MAX_SECONDS;
     // The pretrained descriptor (shared data): the classical thumbnail rarely proposes the
     // overlapping pair of this scene.

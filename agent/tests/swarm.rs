@@ -44,7 +44,7 @@ fn config() -> Config {
     config.consensus.descriptor_weights =
         Some(datasets::shared_data::require("weights/lpips/alexnet.npz"));
     // The map is not what this test is about (tests/swarm.rs checks the refined merged map).
-    config.consensus.refinement.iterations = 0;
+    config.consensus.refinement.max_iterations = 0;
     config
 }
 
@@ -300,7 +300,7 @@ fn a_stopping_consensus_stops_its_agents_and_keeps_their_final_maps() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/synthetic.toml");
     let mut config = Config::load(&path).unwrap();
     config.consensus.t_comm = 5;
-    config.consensus.refinement.iterations = 0;
+    config.consensus.refinement.max_iterations = 0;
     let config_path = write_config(dir.path(), &config);
     let namespace = format!("stopswarm{}", std::process::id());
     let stop = Arc::new(AtomicBool::new(false));

@@ -93,7 +93,9 @@ fn view(k: usize, frame: &Frame, world_from_camera: Isometry3<f64>) -> Refinemen
 
 fn config(iterations: usize, refine_poses: bool) -> ConsensusConfig {
     let mut config = ConsensusConfig::default();
-    config.refinement.iterations = iterations;
+    // Exactly `iterations` in all, however many views.
+    config.refinement.max_iterations = iterations;
+    config.refinement.iterations_per_view = iterations;
     config.refinement.image_downscale = 1;
     config.refinement.refine_poses = refine_poses;
     config

@@ -24,7 +24,7 @@ fn an_incomplete_keyframe_is_asked_for_again_and_completed() {
     let dir = tempfile::tempdir().unwrap();
     let mut config = Config::default();
     config.consensus.resend.after_s = 0.3;
-    config.consensus.refinement.iterations = 0;
+    config.consensus.refinement.max_iterations = 0;
     let transport = TransportConfig::with_namespace(format!("resend{}", std::process::id()));
     let options = ConsensusOptions {
         config,

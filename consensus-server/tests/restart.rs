@@ -48,7 +48,7 @@ fn publish(agent: &mut AgentLink, keyframe_id: u64, frame_index: u64) {
 fn a_restart_on_other_frames_is_ignored_whole() {
     let dir = tempfile::tempdir().unwrap();
     let mut config = Config::default();
-    config.consensus.refinement.iterations = 0;
+    config.consensus.refinement.max_iterations = 0;
     let transport = TransportConfig::with_namespace(format!("restart{}", std::process::id()));
     let options = ConsensusOptions {
         config,

@@ -13,9 +13,14 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RefinementConfig {
-    /// Adam iterations, one keyframe view each (0 turns refinement off). Every keyframe is
-    /// visited in turn, in a shuffled order per pass.
-    pub iterations: usize,
+    /// Adam iterations per keyframe view (0 turns refinement off): one iteration fits one view,
+    /// and every view is visited in turn, in a shuffled order per pass, so this is how often
+    /// each view is fitted. The views, not a total, set the budget: too few visits leave the
+    /// merged map blurred, too many fit the few views the consensus holds images of at the
+    /// expense of every other frame (docs/method.md, The consensus: joint refinement).
+    pub iterations_per_view: usize,
+    /// At most this many iterations in all (0 turns refinement off), whatever the views.
+    pub max_iterations: usize,
     /// Stop earlier when refinement has run this long (seconds): on a CPU Vulkan device an
     /// iteration over a few hundred thousand Gaussians costs about a second.
     pub max_seconds: f64,
@@ -53,7 +58,8 @@ pub struct RefinementConfig {
 impl Default for RefinementConfig {
     fn default() -> Self {
         Self {
-            iterations: 300,
+            iterations_per_view: 40,
+            max_iterations: 4000,
             max_seconds: 120.0,
             image_downscale: 2,
             lr_means: 5e-6,
@@ -73,6 +79,18 @@ impl Default for RefinementConfig {
 }
 
 impl RefinementConfig {
+    /// The iterations of a refinement over `views` keyframe views (0: off).
+    pub fn iterations_for(&self, views: usize) -> usize {
+        views
+            .saturating_mul(self.iterations_per_view)
+            .min(self.max_iterations)
+    }
+
+    /// Whether a refinement runs at all.
+    pub fn enabled(&self) -> bool {
+        self.iterations_per_view > 0 && self.max_iterations > 0
+    }
+
     /// Checks ranges; returns the offending field (`consensus.refinement.*`) and why.
     pub fn validate(&self) -> Result<(), FieldError> {
         positive("consensus.refinement.max_seconds", self.max_seconds)?;
@@ -110,5 +128,41 @@ impl RefinementConfig {
             non_negative(field, v)?;
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_budget_is_per_view_up_to_the_cap_and_zero_turns_it_off() {
+        let config = RefinementConfig {
+            iterations_per_view: 40,
+            max_iterations: 1000,
+            ..RefinementConfig::default()
+        };
+        assert_eq!(config.iterations_for(12), 480);
+        assert_eq!(config.iterations_for(30), 1000, "capped");
+        assert_eq!(config.iterations_for(0), 0);
+        assert!(config.enabled());
+        let huge = RefinementConfig {
+            iterations_per_view: usize::MAX,
+            ..config.clone()
+        };
+        assert_eq!(huge.iterations_for(3), 1000, "no overflow");
+        for off in [
+            RefinementConfig {
+                iterations_per_view: 0,
+                ..config.clone()
+            },
+            RefinementConfig {
+                max_iterations: 0,
+                ..config.clone()
+            },
+        ] {
+            assert!(!off.enabled());
+            assert_eq!(off.iterations_for(12), 0);
+        }
     }
 }

@@ -112,7 +112,7 @@ pub fn run_with_snapshots(
     let (agents, latencies) = listener.finish(updates, latencies);
     // The joint refinement runs (see `refine_world_map`) unless it is off or the run was
     // interrupted.
-    let refinement_follows = options.config.consensus.refinement.iterations > 0 && !interrupted;
+    let refinement_follows = options.config.consensus.refinement.enabled() && !interrupted;
     let (map, unplaced) = engine.merged_map(refinement_follows);
     write_progress(&options.out, &engine, ProgressStage::Refining);
     let (map, refinement) = refine_world_map(options, &mut engine, map, interrupted)?;

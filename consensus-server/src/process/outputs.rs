@@ -158,7 +158,7 @@ pub(super) fn refine_world_map(
     interrupted: bool,
 ) -> anyhow::Result<(GaussianCloud, Option<RefinementReport>)> {
     let consensus = &options.config.consensus;
-    if consensus.refinement.iterations == 0 || interrupted || map.is_empty() {
+    if !consensus.refinement.enabled() || interrupted || map.is_empty() {
         return Ok((map, None));
     }
     let Some(problem) = engine.refinement_problem(map.clone()) else {

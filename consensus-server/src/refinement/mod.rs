@@ -185,7 +185,8 @@ pub fn refine(
         pose_consistency_before: consistency_cost(&initial, &problem.edges),
         ..Default::default()
     };
-    if problem.map.is_empty() || prepared.is_empty() || config.iterations == 0 {
+    let iterations = config.iterations_for(prepared.len());
+    if problem.map.is_empty() || iterations == 0 {
         report.pose_consistency_after = report.pose_consistency_before;
         return Ok(RefinementOutcome {
             map: problem.map,
@@ -204,6 +205,7 @@ pub fn refine(
     optimise(
         &mut trainer,
         &mut poses,
+        iterations,
         problem.anchor,
         started,
         config,
@@ -236,11 +238,12 @@ pub fn refine(
 }
 
 /// The optimisation loop: one view per iteration, every view once per pass in a shuffled order,
-/// until `iterations` are done or `max_seconds` have passed. Every iteration steps the map; once
+/// until `iterations` (`iterations_per_view` per view, at most `max_iterations`) are done or `max_seconds` have passed. Every iteration steps the map; once
 /// the warm-up is over, every view's pose but the `anchor`'s steps too.
 fn optimise(
     trainer: &mut MapTrainer<'_>,
     poses: &mut PoseRefinement<'_>,
+    iterations: usize,
     anchor: Option<usize>,
     started: Instant,
     config: &RefinementConfig,
@@ -248,8 +251,8 @@ fn optimise(
 ) -> Result<(), GpuError> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.random_seed);
     let mut order: Vec<usize> = Vec::new();
-    let pose_warmup = (config.pose_warmup_fraction * config.iterations as f64).ceil() as usize;
-    while report.iterations < config.iterations {
+    let pose_warmup = (config.pose_warmup_fraction * iterations as f64).ceil() as usize;
+    while report.iterations < iterations {
         if started.elapsed().as_secs_f64() > config.max_seconds {
             report.stopped_by_time = true;
             tracing::warn!(
