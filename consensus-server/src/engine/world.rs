@@ -220,3 +220,77 @@ pub(super) fn agent_range(agent_id: u32) -> std::ops::RangeInclusive<KeyframeRef
         keyframe_id: u64::MAX,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pose_graph::PoseGraphSolution;
+    use config::ConsensusConfig;
+    use nalgebra::Translation3;
+
+    /// `count` Gaussians on the plane z = `depth`, 1 cm apart along x from `x0`.
+    fn wall(x0: f32, count: usize, depth: f32) -> GaussianCloud {
+        let mut cloud = GaussianCloud::default();
+        for i in 0..count {
+            cloud.means.push([x0 + 0.01 * i as f32, 0.0, depth]);
+            cloud.log_scales.push([-5.0; 3]);
+            cloud.quaternions.push([1.0, 0.0, 0.0, 0.0]);
+            cloud.opacity_logits.push(0.0);
+            cloud.colours.push([0.5; 3]);
+        }
+        cloud
+    }
+
+    /// Two agents placed at identity whose final maps overlap on x in [0.5, 1), each with one
+    /// keyframe camera over its own half.
+    fn engine(nearest_observer: bool) -> Engine {
+        let mut config = ConsensusConfig::default();
+        config.merge.nearest_observer = nearest_observer;
+        let mut engine = Engine::new(config);
+        engine.final_maps.insert(0, wall(0.0, 100, 2.0));
+        engine.final_maps.insert(1, wall(0.5, 100, 2.01));
+        let camera = |agent_id, x| {
+            (
+                KeyframeRef {
+                    agent_id,
+                    keyframe_id: 0,
+                },
+                Isometry3::from_parts(Translation3::new(x, 0.0, 0.0), Default::default()),
+            )
+        };
+        engine.solution = Some(PoseGraphSolution {
+            world_from_agent: [
+                (0, Some(Isometry3::identity())),
+                (1, Some(Isometry3::identity())),
+            ]
+            .into(),
+            world_from_camera: [camera(0, 0.2), camera(1, 1.3)].into(),
+            corrections: BTreeMap::new(),
+            loops: Vec::new(),
+            gnc_steps: 0,
+        });
+        engine
+    }
+
+    #[test]
+    fn overlaps_are_pruned_only_when_no_refinement_follows() {
+        let union = 200;
+        let (unrefined, unplaced) = engine(true).merged_map(false);
+        assert_eq!(unplaced, 0);
+        assert!(
+            unrefined.len() < union,
+            "the nearest observer's copy alone in the overlap: {} of {union}",
+            unrefined.len()
+        );
+        assert_eq!(
+            engine(true).merged_map(true).0.len(),
+            union,
+            "refinement starts from the union"
+        );
+        assert_eq!(
+            engine(false).merged_map(false).0.len(),
+            union,
+            "pruning off"
+        );
+    }
+}
