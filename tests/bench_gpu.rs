@@ -5,33 +5,23 @@
 //! and that the table and the JSON report them; the GPU figures are a documented command
 //! (docs/benchmarks.md).
 
-use std::path::Path;
-use std::process::Command;
-
 mod common;
 
 #[test]
 fn real_data_bench_gpu_runs_the_kernels_and_a_full_resolution_swarm_from_given_binaries() {
-    let dataset = common::shared_data("datasets/7scenes-redkitchen");
     let out = tempfile::tempdir().unwrap();
-    let bin_dir = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/bench_gpu.sh");
-    let run = Command::new("bash")
-        .arg(&script)
-        .args(["--runs", "render,swarm_sensor", "--end", "40"])
-        .args(["--gaussians", "2000"])
-        .arg("--dataset")
-        .arg(&dataset)
-        .arg("--bin-dir")
-        .arg(bin_dir)
-        .arg("--out")
-        .arg(out.path())
-        .env("XDG_RUNTIME_DIR", out.path())
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&run.stdout);
-    let stderr = String::from_utf8_lossy(&run.stderr);
-    assert!(run.status.success(), "{stdout}\n{stderr}");
+    let stdout = common::run_bench_script(
+        "bench_gpu.sh",
+        &[
+            "--runs",
+            "render,swarm_sensor",
+            "--end",
+            "40",
+            "--gaussians",
+            "2000",
+        ],
+        out.path(),
+    );
     assert!(stdout.contains("swarm_sensor"), "{stdout}");
 
     let config = config::Config::load(&out.path().join("swarm_sensor/config.toml")).unwrap();

@@ -3,34 +3,15 @@
 //! row's run gets its overrides and that the table and the JSON report every row; the full table
 //! is a documented command (docs/benchmarks.md).
 
-use std::path::Path;
-use std::process::Command;
-
 mod common;
 
 #[test]
 fn real_data_map_levers_runs_each_row_with_its_overrides_and_reports_them() {
-    let dataset = common::shared_data("datasets/7scenes-redkitchen");
     let out = tempfile::tempdir().unwrap();
-    let bin_dir = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/bench_map_levers.sh");
-    let run = Command::new("bash")
-        .arg(&script)
-        .args(["--frames", "0..20", "--rows", "baseline,footprint_1.0"])
-        .arg("--dataset")
-        .arg(&dataset)
-        .arg("--bin-dir")
-        .arg(bin_dir)
-        .arg("--out")
-        .arg(out.path())
-        .env("XDG_RUNTIME_DIR", out.path())
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&run.stdout);
-    assert!(
-        run.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&run.stderr)
+    let stdout = common::run_bench_script(
+        "bench_map_levers.sh",
+        &["--frames", "0..20", "--rows", "baseline,footprint_1.0"],
+        out.path(),
     );
     for row in ["| baseline |", "| footprint_1.0 |"] {
         assert!(

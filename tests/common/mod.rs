@@ -45,6 +45,37 @@ pub fn shared_data(relative: &str) -> PathBuf {
     path
 }
 
+/// Runs `scripts/<script>` with `args` on redkitchen from the shared data, with the binaries
+/// `cargo test --workspace` built (`--bin-dir`) and its outputs in `out` (`--out`); asserts it
+/// succeeded and returns its standard output.
+pub fn run_bench_script(script: &str, args: &[&str], out: &Path) -> String {
+    let dataset = shared_data("datasets/7scenes-redkitchen");
+    let bin_dir = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
+    let run = Command::new("bash")
+        .arg(
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("scripts")
+                .join(script),
+        )
+        .args(args)
+        .arg("--dataset")
+        .arg(&dataset)
+        .arg("--bin-dir")
+        .arg(bin_dir)
+        .arg("--out")
+        .arg(out)
+        .env("XDG_RUNTIME_DIR", out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&run.stdout).into_owned();
+    assert!(
+        run.status.success(),
+        "{script} failed:\n{stdout}\n{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    stdout
+}
+
 /// A configuration file of the repository (`configs/...`).
 pub fn repository_config(relative: &str) -> Config {
     Config::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join(relative)).unwrap()

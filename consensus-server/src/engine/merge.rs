@@ -109,11 +109,11 @@ pub fn merge(maps: &[WorldAgentMap], config: &MergeConfig) -> (GaussianCloud, Me
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
     /// `count` Gaussians on the plane z = `depth`, spaced 1 cm along x from `x0`.
-    fn wall(x0: f32, count: usize, depth: f32) -> GaussianCloud {
+    pub(in crate::engine) fn wall(x0: f32, count: usize, depth: f32) -> GaussianCloud {
         let mut cloud = GaussianCloud::default();
         for i in 0..count {
             cloud.means.push([x0 + 0.01 * i as f32, 0.0, depth]);

@@ -224,22 +224,10 @@ pub(super) fn agent_range(agent_id: u32) -> std::ops::RangeInclusive<KeyframeRef
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::merge::tests::wall;
     use crate::pose_graph::PoseGraphSolution;
     use config::ConsensusConfig;
     use nalgebra::Translation3;
-
-    /// `count` Gaussians on the plane z = `depth`, 1 cm apart along x from `x0`.
-    fn wall(x0: f32, count: usize, depth: f32) -> GaussianCloud {
-        let mut cloud = GaussianCloud::default();
-        for i in 0..count {
-            cloud.means.push([x0 + 0.01 * i as f32, 0.0, depth]);
-            cloud.log_scales.push([-5.0; 3]);
-            cloud.quaternions.push([1.0, 0.0, 0.0, 0.0]);
-            cloud.opacity_logits.push(0.0);
-            cloud.colours.push([0.5; 3]);
-        }
-        cloud
-    }
 
     /// Two agents placed at identity whose final maps overlap on x in [0.5, 1), each with one
     /// keyframe camera over its own half.

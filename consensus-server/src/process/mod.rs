@@ -110,12 +110,12 @@ pub fn run_with_snapshots(
 
     let (mut engine, updates, latencies) = worker.finish()?;
     let (agents, latencies) = listener.finish(updates, latencies);
-    // The joint refinement runs (see `refine_world_map`) unless it is off or the run was
-    // interrupted.
+    // Decided once: the joint refinement runs unless it is off or the run was interrupted, and
+    // the merged map it starts from depends on whether it does.
     let refinement_follows = options.config.consensus.refinement.enabled() && !interrupted;
     let (map, unplaced) = engine.merged_map(refinement_follows);
     write_progress(&options.out, &engine, ProgressStage::Refining);
-    let (map, refinement) = refine_world_map(options, &mut engine, map, interrupted)?;
+    let (map, refinement) = refine_world_map(options, &mut engine, map, refinement_follows)?;
     let report = write_outputs(
         options,
         &engine,

@@ -147,18 +147,18 @@ pub(super) struct WorldMap {
     pub refinement: Option<RefinementReport>,
 }
 
-/// The joint photometric refinement of the merged map (skipped when turned off, when the run was
-/// interrupted, or before any solution); the refined keyframe poses go into the engine, so the
+/// The joint photometric refinement of the merged map when `refinement_follows` (not when it is
+/// turned off or the run was interrupted; also skipped before any solution); the refined keyframe poses go into the engine, so the
 /// world trajectories follow them. The unrefined map is kept as map_realtime.ply. A refinement
 /// that fails is logged and the unrefined map is used: nothing computed is lost.
 pub(super) fn refine_world_map(
     options: &ConsensusOptions,
     engine: &mut Engine,
     map: GaussianCloud,
-    interrupted: bool,
+    refinement_follows: bool,
 ) -> anyhow::Result<(GaussianCloud, Option<RefinementReport>)> {
     let consensus = &options.config.consensus;
-    if !consensus.refinement.enabled() || interrupted || map.is_empty() {
+    if !refinement_follows || map.is_empty() {
         return Ok((map, None));
     }
     let Some(problem) = engine.refinement_problem(map.clone()) else {

@@ -238,7 +238,8 @@ pub fn refine(
 }
 
 /// The optimisation loop: one view per iteration, every view once per pass in a shuffled order,
-/// until `iterations` (`iterations_per_view` per view, at most `max_iterations`) are done or `max_seconds` have passed. Every iteration steps the map; once
+/// until `iterations` (`iterations_per_view` per view, at most `max_iterations`) are done or
+/// `max_seconds` have passed. Every iteration steps the map; once
 /// the warm-up is over, every view's pose but the `anchor`'s steps too.
 fn optimise(
     trainer: &mut MapTrainer<'_>,
