@@ -25,6 +25,7 @@ pub mod kdtree;
 pub mod odometry;
 pub mod points;
 pub mod voxel_map;
+mod voxel_points;
 
 pub use covariance::{Covariance, estimate_covariances};
 pub use gicp::{

@@ -25,6 +25,7 @@ use geometry::camera::Intrinsics;
 use crate::covariance::Covariance;
 use crate::gicp::RegistrationTarget;
 use crate::points::PointCloud;
+use crate::voxel_points::VoxelPoints;
 
 /// Caller-chosen identity of a map point (e.g. a Gaussian's index in the agent's map).
 pub type MapPointId = u64;
@@ -53,18 +54,10 @@ struct VoxelKey {
 
 struct Voxel {
     key: VoxelKey,
-    /// Each point's position with its slot, in one array: the query loop reads only this, one
-    /// allocation per voxel instead of one per field.
-    points: Vec<VoxelPoint>,
+    /// Each point's position with its slot, laid out for the query scan (see [`VoxelPoints`]).
+    points: VoxelPoints,
     /// Equal to the map's `view_epoch` when the voxel intersects the selected view.
     in_view_epoch: u32,
-}
-
-/// A map point as its voxel lists it: 16 bytes, four to a cache line.
-#[derive(Debug, Clone, Copy)]
-struct VoxelPoint {
-    position: [f32; 3],
-    slot: u32,
 }
 
 /// The region of space a camera at a predicted pose can observe: inside the image's viewing
@@ -254,7 +247,7 @@ impl VoxelMap {
                 self.voxel_index_of.insert(key, self.voxels.len() as u32);
                 self.voxels.push(Voxel {
                     key,
-                    points: Vec::new(),
+                    points: VoxelPoints::default(),
                     // A new voxel is outside the current selection until the next select_view.
                     in_view_epoch: 0,
                 });
@@ -262,10 +255,7 @@ impl VoxelMap {
             }
         };
         let voxel = &mut self.voxels[voxel_index];
-        voxel.points.push(VoxelPoint {
-            position: point.position.coords.into(),
-            slot,
-        });
+        voxel.points.push(point.position.coords.into(), slot);
         Ok(replaced)
     }
 
@@ -279,12 +269,8 @@ impl VoxelMap {
         let key = self.key_of(&point.position);
         let voxel_index = self.voxel_index_of[&key] as usize;
         let voxel = &mut self.voxels[voxel_index];
-        let at = voxel
-            .points
-            .iter()
-            .position(|p| p.slot == slot)
-            .expect("a point is listed in the voxel of its position");
-        voxel.points.swap_remove(at);
+        let listed = voxel.points.remove_slot(slot);
+        assert!(listed, "a point is listed in the voxel of its position");
         if voxel.points.is_empty() {
             self.voxel_index_of.remove(&key);
             self.voxels.swap_remove(voxel_index);
@@ -374,8 +360,8 @@ impl VoxelMap {
         self.voxels
             .iter()
             .filter(|v| self.view_epoch == 0 || v.in_view_epoch == self.view_epoch)
-            .flat_map(|v| v.points.iter())
-            .filter_map(|p| self.points[p.slot as usize].as_ref().map(|p| p.id))
+            .flat_map(|v| v.points.slots())
+            .filter_map(|slot| self.points[slot as usize].as_ref().map(|p| p.id))
     }
 
     /// Nearest point to `query` within `sqrt(max_distance_sq)`, over the whole map (ignoring any
@@ -405,14 +391,8 @@ impl VoxelMap {
             if use_view && voxel.in_view_epoch != self.view_epoch {
                 return;
             }
-            for point in &voxel.points {
-                let [x, y, z] = point.position;
-                let (dx, dy, dz) = (x - query.x, y - query.y, z - query.z);
-                let d = dx * dx + dy * dy + dz * dz;
-                if d <= *best_sq {
-                    *best_sq = d;
-                    best = Some((point.slot, d));
-                }
+            if let Some(found) = voxel.points.nearest(query.coords.into(), best_sq) {
+                best = Some(found);
             }
         };
         scan(&home, &mut best_sq);
