@@ -168,7 +168,8 @@ fn corrupt(closures: &[LoopClosure]) -> (Vec<usize>, Vec<LoopClosure>) {
 fn solve(scenario: &Scenario, closures: &[LoopClosure]) -> PoseGraphSolution {
     let mut graph = PoseGraph::new();
     for (id, pose) in &scenario.tracked {
-        graph.add_keyframe(*id, *pose);
+        // Keyframe ids are the frames' positions in the agent's sequence.
+        graph.add_keyframe(*id, *pose, id.keyframe_id);
     }
     for closure in closures {
         graph.add_loop(*closure).unwrap();

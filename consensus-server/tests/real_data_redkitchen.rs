@@ -304,8 +304,8 @@ fn align_candidates(
         .map(|(_, k)| (k.id, PreparedKeyframe::new((*k).clone(), &config.alignment)))
         .collect();
     let mut graph = PoseGraph::new();
-    for (id, keyframe) in &prepared {
-        graph.add_keyframe(*id, keyframe.keyframe.agent_from_camera);
+    for (position, keyframe) in &selection.arrivals {
+        graph.add_keyframe(keyframe.id, keyframe.agent_from_camera, *position as u64);
     }
     let mut rejections: BTreeMap<String, usize> = BTreeMap::new();
     // Ground truth of every keyframe, to score the accepted closures (evaluation only).
@@ -388,7 +388,8 @@ fn with_random_closures(graph: &PoseGraph, closures: &[LoopClosure]) -> (Vec<usi
     let mut rng = ChaCha8Rng::seed_from_u64(5);
     let mut corrupted = PoseGraph::new();
     for (id, pose) in graph.keyframes() {
-        corrupted.add_keyframe(*id, *pose);
+        let frame_index = graph.frame_index(id).expect("every keyframe has its frame");
+        corrupted.add_keyframe(*id, *pose, frame_index);
     }
     let mut wrong = Vec::new();
     for (index, closure) in closures.iter().enumerate() {

@@ -128,8 +128,8 @@ fn agent_to_world_transform_is_found_across_a_large_displacement() {
     eprintln!("relative pose error: {:.2} mm, {:.3} deg", dt * 1e3, dr);
 
     let mut graph = PoseGraph::new();
-    graph.add_keyframe(target_id, target_pose);
-    graph.add_keyframe(source_id, source_pose);
+    graph.add_keyframe(target_id, target_pose, i as u64);
+    graph.add_keyframe(source_id, source_pose, j as u64);
     graph
         .add_loop(LoopClosure {
             source: source_id,

@@ -125,6 +125,7 @@ impl ConsensusConfig {
         self.local_corrections.validate()?;
         self.resend.validate()?;
         self.false_closures.validate()?;
+        self.pose_graph.validate()?;
         self.map_registration.validate()
     }
 }

@@ -1,7 +1,7 @@
 //! The `[consensus.pose_graph]` table: the robust pose graph over every agent's keyframes
-//! (docs/method.md, The consensus: pose graph). No value of it has been range-checked so far, so
-//! it has no `validate()`.
+//! (docs/method.md, The consensus: pose graph).
 
+use geometry::checks::{FieldError, at_least_one};
 use serde::{Deserialize, Serialize};
 
 /// Robust pose graph over all agents' keyframes.
@@ -9,11 +9,16 @@ use serde::{Deserialize, Serialize};
 #[serde(default, deny_unknown_fields)]
 pub struct PoseGraphConfig {
     /// Standard deviation of an odometry edge (consecutive keyframes of one agent, from
-    /// tracking): rotation (radians) and translation (metres). Measured on redkitchen with
-    /// keyframes 20 frames apart: frame-to-model tracking errs by a median 24 mm and 0.9 degrees
-    /// per step (90th percentile 50-90 mm, 2 degrees).
+    /// tracking) between keyframes `odometry_sigma_span_frames` frames apart: rotation (radians)
+    /// and translation (metres). Tracking drift accumulates frame by frame like a random walk,
+    /// so an edge spanning `n` frames gets these times `sqrt(n / odometry_sigma_span_frames)`:
+    /// a shorter `consensus.t_comm` (keyframes published closer together) then trusts each edge
+    /// more, and the chain over a stretch of frames as much as before. The values are the best
+    /// of a sweep on paced redkitchen swarms at `t_comm = 60` (docs/benchmarks.md).
     pub odometry_rotation_sigma_rad: f64,
     pub odometry_translation_sigma_m: f64,
+    /// Frames between two keyframes that the odometry sigmas above are for (at least 1).
+    pub odometry_sigma_span_frames: usize,
     /// Standard deviation of a verified loop closure: alignments on redkitchen differ from the
     /// (KinectFusion) ground truth by a median 17 mm and 0.6 degrees, part of it the ground
     /// truth's own error.
@@ -44,6 +49,7 @@ impl Default for PoseGraphConfig {
         Self {
             odometry_rotation_sigma_rad: 0.02,
             odometry_translation_sigma_m: 0.03,
+            odometry_sigma_span_frames: 60,
             loop_rotation_sigma_rad: 0.01,
             loop_translation_sigma_m: 0.02,
             outlier_threshold_chi2: 16.81,
@@ -54,5 +60,58 @@ impl Default for PoseGraphConfig {
             vote_translation_m: 0.3,
             vote_rotation_rad: 10f64.to_radians(),
         }
+    }
+}
+
+impl PoseGraphConfig {
+    /// Checks ranges; returns the offending field (`consensus.pose_graph.*`) and why.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        at_least_one(
+            "consensus.pose_graph.odometry_sigma_span_frames",
+            self.odometry_sigma_span_frames,
+        )
+    }
+
+    /// Standard deviations (rotation radians, translation metres) of an odometry edge between
+    /// keyframes `span_frames` frames apart (see [`Self::odometry_translation_sigma_m`]). A span
+    /// of 0 (two keyframes from one frame) counts as 1.
+    pub fn odometry_sigmas(&self, span_frames: u64) -> (f64, f64) {
+        let scale =
+            (span_frames.max(1) as f64 / self.odometry_sigma_span_frames.max(1) as f64).sqrt();
+        (
+            self.odometry_rotation_sigma_rad * scale,
+            self.odometry_translation_sigma_m * scale,
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn odometry_sigmas_grow_with_the_square_root_of_the_span() {
+        let config = PoseGraphConfig::default();
+        let (rotation, translation) = config.odometry_sigmas(60);
+        assert_eq!(
+            (rotation, translation),
+            (
+                config.odometry_rotation_sigma_rad,
+                config.odometry_translation_sigma_m
+            )
+        );
+        let (rotation, translation) = config.odometry_sigmas(15);
+        assert!((rotation - config.odometry_rotation_sigma_rad / 2.0).abs() < 1e-12);
+        assert!((translation - config.odometry_translation_sigma_m / 2.0).abs() < 1e-12);
+        assert_eq!(config.odometry_sigmas(0), config.odometry_sigmas(1));
+        let zero_span = PoseGraphConfig {
+            odometry_sigma_span_frames: 0,
+            ..PoseGraphConfig::default()
+        };
+        assert_eq!(
+            zero_span.validate().unwrap_err().0,
+            "consensus.pose_graph.odometry_sigma_span_frames"
+        );
+        assert!(config.validate().is_ok());
     }
 }

@@ -140,7 +140,7 @@ impl Engine {
                 agent_from_camera: isometry_to_tum(&pose),
             },
         );
-        self.graph.add_keyframe(id, pose);
+        self.graph.add_keyframe(id, pose, arrival.frame_index);
         *self.keyframes_per_agent.entry(id.agent_id).or_default() += 1;
         self.gaussians.insert(id, arrival.gaussians);
         self.prepared.insert(

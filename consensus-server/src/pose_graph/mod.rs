@@ -79,6 +79,9 @@ pub enum PoseGraphError {
 pub struct PoseGraph {
     /// `agent_from_camera` per keyframe, ordered by agent then keyframe id (odometry order).
     keyframes: BTreeMap<KeyframeRef, Isometry3<f64>>,
+    /// Index of each keyframe's frame in its agent's input sequence: consecutive keyframes'
+    /// difference is the span of their odometry edge.
+    frame_indices: BTreeMap<KeyframeRef, u64>,
     loops: Vec<LoopClosure>,
 }
 
@@ -126,9 +129,16 @@ impl PoseGraph {
         Self::default()
     }
 
-    /// Adds a keyframe, or updates its tracked pose if it is already there.
-    pub fn add_keyframe(&mut self, id: KeyframeRef, agent_from_camera: Isometry3<f64>) {
+    /// Adds a keyframe taken at frame `frame_index` of its agent's input, or updates it if it
+    /// is already there.
+    pub fn add_keyframe(
+        &mut self,
+        id: KeyframeRef,
+        agent_from_camera: Isometry3<f64>,
+        frame_index: u64,
+    ) {
         self.keyframes.insert(id, agent_from_camera);
+        self.frame_indices.insert(id, frame_index);
     }
 
     /// Adds a loop closure between two keyframes already in the graph; returns its index.
@@ -148,6 +158,11 @@ impl PoseGraph {
     /// Every keyframe with its tracked `agent_from_camera`, by agent then keyframe id.
     pub fn keyframes(&self) -> impl Iterator<Item = (&KeyframeRef, &Isometry3<f64>)> {
         self.keyframes.iter()
+    }
+
+    /// The frame index a keyframe was added with.
+    pub fn frame_index(&self, id: &KeyframeRef) -> Option<u64> {
+        self.frame_indices.get(id).copied()
     }
 
     /// Every loop closure, in the order added.
@@ -309,17 +324,23 @@ impl PoseGraph {
             .collect()
     }
 
-    /// One edge between each pair of consecutive keyframes of an agent (ids sorted).
+    /// One edge between each pair of consecutive keyframes of an agent (ids sorted), its
+    /// uncertainty growing with the frames between them ([`PoseGraphConfig::odometry_sigmas`]).
     fn odometry_edges(&self, ids: &[KeyframeRef], config: &PoseGraphConfig) -> Vec<Edge> {
         ids.windows(2)
             .enumerate()
             .filter(|(_, pair)| pair[0].agent_id == pair[1].agent_id)
-            .map(|(n, pair)| Edge {
-                from: n,
-                to: n + 1,
-                measured: self.keyframes[&pair[0]].inverse() * self.keyframes[&pair[1]],
-                rotation_information: config.odometry_rotation_sigma_rad.powi(-2),
-                translation_information: config.odometry_translation_sigma_m.powi(-2),
+            .map(|(n, pair)| {
+                let span_frames =
+                    self.frame_indices[&pair[0]].abs_diff(self.frame_indices[&pair[1]]);
+                let (rotation_sigma, translation_sigma) = config.odometry_sigmas(span_frames);
+                Edge {
+                    from: n,
+                    to: n + 1,
+                    measured: self.keyframes[&pair[0]].inverse() * self.keyframes[&pair[1]],
+                    rotation_information: rotation_sigma.powi(-2),
+                    translation_information: translation_sigma.powi(-2),
+                }
             })
             .collect()
     }
@@ -476,7 +497,7 @@ mod tests {
     #[test]
     fn malformed_graphs_are_refused() {
         let mut graph = PoseGraph::new();
-        graph.add_keyframe(kf(1, 0), Isometry3::identity());
+        graph.add_keyframe(kf(1, 0), Isometry3::identity(), 0);
         assert_eq!(
             graph.solve(&PoseGraphConfig::default()).unwrap_err(),
             PoseGraphError::NoWorldAgent
@@ -498,12 +519,57 @@ mod tests {
     }
 
     #[test]
+    fn odometry_edges_trust_short_spans_more() {
+        let config = PoseGraphConfig::default();
+        let mut graph = PoseGraph::new();
+        // Agent 0's keyframes at frames 0, 15 and 75 (in arrival order), agent 1's at 0 and 60.
+        for (agent, keyframe, frame) in [(0, 0, 0), (0, 1, 15), (0, 2, 75), (1, 0, 0), (1, 1, 60)] {
+            graph.add_keyframe(kf(agent, keyframe), Isometry3::identity(), frame);
+        }
+        let ids: Vec<KeyframeRef> = graph.keyframes.keys().copied().collect();
+        let edges = graph.odometry_edges(&ids, &config);
+        let translation = |sigma: f64| sigma.powi(-2);
+        let information: Vec<(usize, usize, f64)> = edges
+            .iter()
+            .map(|e| (e.from, e.to, e.translation_information))
+            .collect();
+        // No edge between agents; 15 frames: half the sigma of 60 frames, four times the
+        // information.
+        assert_eq!(information.len(), 3);
+        assert_eq!((information[0].0, information[0].1), (0, 1));
+        assert!(
+            (information[0].2 - translation(config.odometry_translation_sigma_m / 2.0)).abs()
+                < 1e-6
+        );
+        assert!((information[1].2 - translation(config.odometry_translation_sigma_m)).abs() < 1e-6);
+        assert_eq!((information[2].0, information[2].1), (3, 4));
+        assert!((information[2].2 - translation(config.odometry_translation_sigma_m)).abs() < 1e-6);
+        assert!(
+            (edges[0].rotation_information - (config.odometry_rotation_sigma_rad / 2.0).powi(-2))
+                .abs()
+                < 1e-6
+        );
+    }
+
+    #[test]
     fn agents_without_closures_stay_unplaced() {
         let mut graph = PoseGraph::new();
         for k in 0..3 {
-            graph.add_keyframe(kf(0, k), Isometry3::translation(0.1 * k as f64, 0.0, 0.0));
-            graph.add_keyframe(kf(1, k), Isometry3::translation(0.1 * k as f64, 0.0, 0.0));
-            graph.add_keyframe(kf(2, k), Isometry3::translation(0.1 * k as f64, 0.0, 0.0));
+            graph.add_keyframe(
+                kf(0, k),
+                Isometry3::translation(0.1 * k as f64, 0.0, 0.0),
+                60 * k,
+            );
+            graph.add_keyframe(
+                kf(1, k),
+                Isometry3::translation(0.1 * k as f64, 0.0, 0.0),
+                60 * k,
+            );
+            graph.add_keyframe(
+                kf(2, k),
+                Isometry3::translation(0.1 * k as f64, 0.0, 0.0),
+                60 * k,
+            );
         }
         // Agent 1's keyframe 0 sees agent 0's keyframe 2 from 1 m further along x.
         let one_metre = Isometry3::translation(1.0, 0.0, 0.0);
