@@ -246,6 +246,9 @@ impl LocalCorrections {
         let elapsed_ms = clock.elapsed().as_secs_f64() * 1e3;
         self.stats.tracking_thread_ms += elapsed_ms;
         tracing::info!(
+            // The frame's time (dataset clock) locates the application on the trajectory.
+            frame_time_s = now_s,
+            current_pose_move_m = current_move.translation.vector.norm(),
             keyframes = keyframe_moves.len(),
             tracking_points = moved_points,
             largest_move_m = largest_translation,
