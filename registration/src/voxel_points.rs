@@ -49,44 +49,41 @@ impl VoxelPoints {
     }
 
     pub(crate) fn push(&mut self, position: [f32; 3], slot: u32) {
-        let (block, lane) = (self.len / LANES, self.len % LANES);
-        if lane == 0 {
+        if self.len.is_multiple_of(LANES) {
             self.blocks.push(EMPTY_BLOCK);
         }
-        let block = &mut self.blocks[block];
-        [block.x[lane], block.y[lane], block.z[lane]] = position;
-        block.slot[lane] = slot;
         self.len += 1;
+        self.set(self.len - 1, position, slot);
     }
 
-    /// The slot at position `index` (insertion order as described on the type).
-    fn slot_at(&self, index: usize) -> u32 {
-        self.blocks[index / LANES].slot[index % LANES]
+    /// The position and slot at `index` (insertion order as described on the type).
+    fn get(&self, index: usize) -> ([f32; 3], u32) {
+        let (block, lane) = (&self.blocks[index / LANES], index % LANES);
+        (
+            [block.x[lane], block.y[lane], block.z[lane]],
+            block.slot[lane],
+        )
+    }
+
+    fn set(&mut self, index: usize, position: [f32; 3], slot: u32) {
+        let (block, lane) = (&mut self.blocks[index / LANES], index % LANES);
+        [block.x[lane], block.y[lane], block.z[lane]] = position;
+        block.slot[lane] = slot;
     }
 
     /// Removes the point of `slot`, moving the last point into its place. Returns false when the
     /// voxel does not hold that slot.
     pub(crate) fn remove_slot(&mut self, slot: u32) -> bool {
-        let Some(at) = (0..self.len).find(|&i| self.slot_at(i) == slot) else {
+        let Some(at) = (0..self.len).find(|&i| self.get(i).1 == slot) else {
             return false;
         };
         let last = self.len - 1;
-        let (last_block, last_lane) = (last / LANES, last % LANES);
-        let moved = self.blocks[last_block];
-        let target = &mut self.blocks[at / LANES];
-        let lane = at % LANES;
-        target.x[lane] = moved.x[last_lane];
-        target.y[lane] = moved.y[last_lane];
-        target.z[lane] = moved.z[last_lane];
-        target.slot[lane] = moved.slot[last_lane];
-        if last_lane == 0 {
+        let (position, moved_slot) = self.get(last);
+        self.set(at, position, moved_slot);
+        if last.is_multiple_of(LANES) {
             self.blocks.pop();
         } else {
-            let emptied = &mut self.blocks[last_block];
-            emptied.x[last_lane] = f32::NAN;
-            emptied.y[last_lane] = f32::NAN;
-            emptied.z[last_lane] = f32::NAN;
-            emptied.slot[last_lane] = u32::MAX;
+            self.set(last, [f32::NAN; 3], u32::MAX);
         }
         self.len = last;
         true
@@ -94,7 +91,7 @@ impl VoxelPoints {
 
     /// The map slots of the points, in order.
     pub(crate) fn slots(&self) -> impl Iterator<Item = u32> + '_ {
-        (0..self.len).map(|i| self.slot_at(i))
+        (0..self.len).map(|i| self.get(i).1)
     }
 
     /// The point nearest to `query` whose squared distance is at most `*best_sq`: its slot and

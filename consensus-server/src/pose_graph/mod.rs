@@ -77,12 +77,18 @@ pub enum PoseGraphError {
 /// Keyframes and loop closures of all agents.
 #[derive(Debug, Clone, Default)]
 pub struct PoseGraph {
-    /// `agent_from_camera` per keyframe, ordered by agent then keyframe id (odometry order).
-    keyframes: BTreeMap<KeyframeRef, Isometry3<f64>>,
-    /// Index of each keyframe's frame in its agent's input sequence: consecutive keyframes'
-    /// difference is the span of their odometry edge.
-    frame_indices: BTreeMap<KeyframeRef, u64>,
+    /// Every keyframe, ordered by agent then keyframe id (odometry order).
+    keyframes: BTreeMap<KeyframeRef, GraphKeyframe>,
     loops: Vec<LoopClosure>,
+}
+
+/// A node of the graph as tracking gave it.
+#[derive(Debug, Clone, Copy)]
+struct GraphKeyframe {
+    agent_from_camera: Isometry3<f64>,
+    /// Index of the keyframe's frame in its agent's input sequence: consecutive keyframes'
+    /// difference is the span of their odometry edge.
+    frame_index: u64,
 }
 
 /// The decision on one loop closure.
@@ -137,8 +143,13 @@ impl PoseGraph {
         agent_from_camera: Isometry3<f64>,
         frame_index: u64,
     ) {
-        self.keyframes.insert(id, agent_from_camera);
-        self.frame_indices.insert(id, frame_index);
+        self.keyframes.insert(
+            id,
+            GraphKeyframe {
+                agent_from_camera,
+                frame_index,
+            },
+        );
     }
 
     /// Adds a loop closure between two keyframes already in the graph; returns its index.
@@ -157,12 +168,14 @@ impl PoseGraph {
 
     /// Every keyframe with its tracked `agent_from_camera`, by agent then keyframe id.
     pub fn keyframes(&self) -> impl Iterator<Item = (&KeyframeRef, &Isometry3<f64>)> {
-        self.keyframes.iter()
+        self.keyframes
+            .iter()
+            .map(|(id, keyframe)| (id, &keyframe.agent_from_camera))
     }
 
     /// The frame index a keyframe was added with.
     pub fn frame_index(&self, id: &KeyframeRef) -> Option<u64> {
-        self.frame_indices.get(id).copied()
+        self.keyframes.get(id).map(|keyframe| keyframe.frame_index)
     }
 
     /// Every loop closure, in the order added.
@@ -201,7 +214,7 @@ impl PoseGraph {
             ids.iter().enumerate().map(|(n, k)| (*k, n)).collect();
         let mut poses: Vec<Isometry3<f64>> = ids
             .iter()
-            .map(|k| initial_frames[&k.agent_id] * self.keyframes[k])
+            .map(|k| initial_frames[&k.agent_id] * self.keyframes[k].agent_from_camera)
             .collect();
         let odometry = self.odometry_edges(&ids, config);
         let loop_edges = self.loop_edges(&node_of, config);
@@ -304,9 +317,9 @@ impl PoseGraph {
             .iter()
             .filter(|c| c.source.agent_id != c.target.agent_id)
             .map(|c| {
-                let target_agent_from_source_agent = self.keyframes[&c.target]
+                let target_agent_from_source_agent = self.keyframes[&c.target].agent_from_camera
                     * c.target_camera_from_source_camera
-                    * self.keyframes[&c.source].inverse();
+                    * self.keyframes[&c.source].agent_from_camera.inverse();
                 if c.target.agent_id < c.source.agent_id {
                     ImpliedTransform {
                         lower_agent: c.target.agent_id,
@@ -331,13 +344,13 @@ impl PoseGraph {
             .enumerate()
             .filter(|(_, pair)| pair[0].agent_id == pair[1].agent_id)
             .map(|(n, pair)| {
-                let span_frames =
-                    self.frame_indices[&pair[0]].abs_diff(self.frame_indices[&pair[1]]);
+                let (from, to) = (&self.keyframes[&pair[0]], &self.keyframes[&pair[1]]);
+                let span_frames = from.frame_index.abs_diff(to.frame_index);
                 let (rotation_sigma, translation_sigma) = config.odometry_sigmas(span_frames);
                 Edge {
                     from: n,
                     to: n + 1,
-                    measured: self.keyframes[&pair[0]].inverse() * self.keyframes[&pair[1]],
+                    measured: from.agent_from_camera.inverse() * to.agent_from_camera,
                     rotation_information: rotation_sigma.powi(-2),
                     translation_information: translation_sigma.powi(-2),
                 }
@@ -358,7 +371,8 @@ impl PoseGraph {
         let mut corrections = BTreeMap::new();
         for (id, pose) in ids.iter().zip(poses) {
             if linked.contains(&id.agent_id) {
-                let correction = correction::correction(pose, &self.keyframes[id]);
+                let correction =
+                    correction::correction(pose, &self.keyframes[id].agent_from_camera);
                 world_from_camera.insert(*id, *pose);
                 corrections.insert(*id, correction);
                 per_agent.entry(id.agent_id).or_default().push(correction);
