@@ -61,6 +61,11 @@ pub trait RegistrationTarget: Sync {
     /// Index and squared distance of the nearest target point no farther than
     /// `sqrt(max_distance_sq)` from `query`, if any.
     fn nearest_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> Option<(u32, f32)>;
+    /// Whether any target point is within `sqrt(max_distance_sq)` of `query`. Targets that can
+    /// answer this faster than a nearest search override it.
+    fn any_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> bool {
+        self.nearest_within(query, max_distance_sq).is_some()
+    }
     /// Position of the target point with that index.
     fn position(&self, index: u32) -> Point3<f32>;
     /// G-ICP covariance of the target point with that index.
@@ -355,9 +360,7 @@ pub fn count_correspondences<T: RegistrationTarget + ?Sized>(
                 .step_by(sample_step.max(1))
                 .filter(|a| {
                     let transformed = parts.transform(&a.coords.cast::<f64>()).cast::<f32>();
-                    target
-                        .nearest_within(&Point3::from(transformed), max_distance_sq)
-                        .is_some()
+                    target.any_within(&Point3::from(transformed), max_distance_sq)
                 })
                 .count()
         })

@@ -367,7 +367,7 @@ impl VoxelMap {
     /// Nearest point to `query` within `sqrt(max_distance_sq)`, over the whole map (ignoring any
     /// view selection): slot and squared distance.
     pub fn nearest_in_map(&self, query: &Point3<f32>, max_distance_sq: f32) -> Option<(u32, f32)> {
-        self.nearest(query, max_distance_sq, false)
+        self.nearest(query, max_distance_sq, false, false)
     }
 
     fn nearest(
@@ -375,6 +375,7 @@ impl VoxelMap {
         query: &Point3<f32>,
         max_distance_sq: f32,
         only_selected_view: bool,
+        stop_at_first_voxel_hit: bool,
     ) -> Option<(u32, f32)> {
         if max_distance_sq.is_nan() || max_distance_sq < 0.0 || self.voxels.is_empty() {
             return None;
@@ -383,19 +384,20 @@ impl VoxelMap {
         let home = self.key_of(query);
         let mut best: Option<(u32, f32)> = None;
         let mut best_sq = max_distance_sq;
-        let mut scan = |key: &VoxelKey, best_sq: &mut f32| {
-            let Some(&index) = self.voxel_index_of.get(key) else {
-                return;
-            };
-            let voxel = &self.voxels[index as usize];
+        // The voxel's point nearer than `best_sq`, if any (lowering `best_sq` to it).
+        let scan = |key: &VoxelKey, best_sq: &mut f32| {
+            let voxel = &self.voxels[*self.voxel_index_of.get(key)? as usize];
             if use_view && voxel.in_view_epoch != self.view_epoch {
-                return;
+                return None;
             }
-            if let Some(found) = voxel.points.nearest(query.coords.into(), best_sq) {
-                best = Some(found);
-            }
+            voxel.points.nearest(query.coords.into(), best_sq)
         };
-        scan(&home, &mut best_sq);
+        if let Some(found) = scan(&home, &mut best_sq) {
+            if stop_at_first_voxel_hit {
+                return Some(found);
+            }
+            best = Some(found);
+        }
         // Other voxels that the search ball reaches, each looked up only if its box is closer
         // than the best match so far.
         let reach = max_distance_sq.sqrt();
@@ -424,7 +426,12 @@ impl VoxelMap {
                     if gxy + gap_sq(z, home.z, query.z) > best_sq {
                         continue;
                     }
-                    scan(&VoxelKey { x, y, z }, &mut best_sq);
+                    if let Some(found) = scan(&VoxelKey { x, y, z }, &mut best_sq) {
+                        if stop_at_first_voxel_hit {
+                            return Some(found);
+                        }
+                        best = Some(found);
+                    }
                 }
             }
         }
@@ -441,7 +448,13 @@ fn floor_to_i32(v: f32) -> i32 {
 
 impl RegistrationTarget for VoxelMap {
     fn nearest_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> Option<(u32, f32)> {
-        self.nearest(query, max_distance_sq, true)
+        self.nearest(query, max_distance_sq, true, false)
+    }
+
+    fn any_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> bool {
+        // The home voxel holds a match for most queries; stopping there skips the neighbour
+        // lookups that only the nearest match needs.
+        self.nearest(query, max_distance_sq, true, true).is_some()
     }
 
     fn position(&self, index: u32) -> Point3<f32> {
@@ -540,6 +553,7 @@ mod tests {
             let truth = brute.nearest_within(&q, radius_sq);
             assert_eq!(a.map(|x| x.1), b.map(|x| x.1));
             assert_eq!(a.map(|x| x.1), truth.map(|x| x.1));
+            assert_eq!(incremental.any_within(&q, radius_sq), truth.is_some());
             if let (Some((slot, _)), Some((index, _))) = (a, truth) {
                 assert_eq!(incremental.position(slot), survivors[index as usize].1);
             }
