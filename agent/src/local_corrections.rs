@@ -5,18 +5,22 @@
 //! agent published. In the agent's own frame that is a [`CorrectionField`]: at each published
 //! keyframe's time, `agent_from_world * world_from_camera_corrected * agent_from_camera_tracked^-1`,
 //! blended in between (the consensus's rule for per-frame trajectories). Everything the agent
-//! built at time `t` (tracking-map points, seeded Gaussians, keyframe poses) moves by
+//! built at time `t` for its map (seeded Gaussians, keyframe poses, coverage index) moves by
 //! `target(t) * applied(t)^-1`, where `applied` is the field already applied: each part of the
 //! map follows the keyframe that made it, so drift the pose graph removed leaves the local map
-//! too, and the agent keeps tracking against a map that agrees with the swarm's.
+//! too.
 //!
 //! Two frames, one rule: the *tracked* frame is where the odometry would have been without
-//! corrections; the *local-map* frame is `applied` applied to it. Tracking runs in the
-//! local-map frame (that is where its map is). Everything the agent publishes or writes as its
-//! trajectory is converted back to the tracked frame (`applied(t)^-1`), because the consensus
-//! builds its odometry edges and per-frame trajectories from tracked poses: a correction never
-//! shows up as a jump in them. The current frame is after every anchor, so its conversion is the
-//! newest anchor's correction, which is continuous across an application.
+//! corrections; the *local-map* frame is `applied` applied to it. Everything the agent publishes
+//! or writes as its trajectory is in the tracked frame, because the consensus builds its
+//! odometry edges and per-frame trajectories from tracked poses: a correction must never show
+//! up as motion in them. By default the tracking map stays in the tracked frame
+//! (`move_tracking_map = false`): the odometry's poses are tracked poses, and each is carried
+//! into the local-map frame (`applied(t)`) for seeding and mapping. With `move_tracking_map`,
+//! tracking-map points move too, tracking runs in the local-map frame and its poses are
+//! converted back (`applied(t)^-1`); the current frame is after every anchor, so its conversion
+//! is the newest anchor's correction, continuous across an application. That mode leaks part
+//! of a non-rigid correction into the tracked poses (config/src/consensus/mod.rs says how).
 
 use std::time::Instant;
 
@@ -125,6 +129,32 @@ impl LocalCorrections {
         normalised(self.tracked_from_local(t) * local_from_camera)
     }
 
+    /// Whether the tracking map moves with the corrections (`move_tracking_map`): then the
+    /// odometry's poses are in the local-map frame, else in the tracked frame.
+    pub fn moves_tracking_map(&self) -> bool {
+        self.config.move_tracking_map
+    }
+
+    /// The pose the odometry gave for the frame at time `t`, as `(local-map frame, tracked
+    /// frame)`.
+    pub fn from_odometry(
+        &self,
+        t: f64,
+        odometry_from_camera: &Isometry3<f64>,
+    ) -> (Isometry3<f64>, Isometry3<f64>) {
+        if self.moves_tracking_map() {
+            (
+                *odometry_from_camera,
+                self.to_tracked(t, odometry_from_camera),
+            )
+        } else {
+            (
+                normalised(self.applied.at(t) * odometry_from_camera),
+                *odometry_from_camera,
+            )
+        }
+    }
+
     /// The transform from the local-map frame at time `t` to the tracked frame.
     pub fn tracked_from_local(&self, t: f64) -> Isometry3<f64> {
         self.applied.at(t).inverse()
@@ -147,8 +177,12 @@ impl LocalCorrections {
         });
     }
 
-    /// Records that the tracking map's points from `first_id` on were made at `timestamp_s`.
+    /// Records that the tracking map's points from `first_id` on were made at `timestamp_s`
+    /// (nothing to record when the tracking map does not move).
     pub fn record_tracker_points(&mut self, first_id: MapPointId, timestamp_s: f64) {
+        if !self.moves_tracking_map() {
+            return;
+        }
         let applied = self.applied.at(timestamp_s);
         push_run(&mut self.tracker_runs, first_id, timestamp_s, applied);
     }
@@ -217,11 +251,15 @@ impl LocalCorrections {
             return false;
         }
         let _span = tracing::info_span!("apply correction").entered();
-        let tracker_moves = settle_runs(&mut self.tracker_runs, &target, &self.config);
-        let moved_points = maps.odometry.apply_correction(
-            |id| lookup_run(&self.tracker_runs, &tracker_moves, id),
-            &current_move,
-        );
+        let moved_points = if self.moves_tracking_map() {
+            let tracker_moves = settle_runs(&mut self.tracker_runs, &target, &self.config);
+            maps.odometry.apply_correction(
+                |id| lookup_run(&self.tracker_runs, &tracker_moves, id),
+                &current_move,
+            )
+        } else {
+            0
+        };
         let coverage_moves = settle_runs(&mut self.coverage_runs, &target, &self.config);
         maps.coverage
             .transform_points(|id| lookup_run(&self.coverage_runs, &coverage_moves, id));
@@ -451,6 +489,17 @@ mod tests {
 
         #[test]
         fn tracking_continues_in_the_corrected_map_and_published_poses_do_not_jump() {
+            corrected_run(true);
+        }
+
+        // With the tracking map left where the odometry put it, the odometry is plain
+        // odometry (its poses are the reference's) and only the local-map poses move.
+        #[test]
+        fn a_tracking_map_left_alone_tracks_as_without_corrections() {
+            corrected_run(false);
+        }
+
+        fn corrected_run(move_tracking_map: bool) {
             let config = Config::default();
             let dataset = datasets::open(
                 &format!("synthetic:agents=2,agent=0,frames={FRAMES},width=320,height=240"),
@@ -468,7 +517,10 @@ mod tests {
             let mut odometry = new_odometry();
             let mut coverage = CoverageIndex::new(0.02);
             let mapper = Mapper::spawn(&config.tracking, &config.mapping).unwrap();
-            let mut corrections = LocalCorrections::new(&LocalCorrectionConfig::default());
+            let mut corrections = LocalCorrections::new(&LocalCorrectionConfig {
+                move_tracking_map,
+                ..LocalCorrectionConfig::default()
+            });
             let fix = Isometry3::from_parts(
                 Translation3::new(0.04, -0.02, 0.03),
                 UnitQuaternion::from_euler_angles(0.01, -0.02, 0.015),
@@ -485,15 +537,21 @@ mod tests {
                 if odometry.next_point_id() > first_point {
                     corrections.record_tracker_points(first_point, frame.timestamp);
                 }
-                let tracked_pose =
-                    corrections.to_tracked(frame.timestamp, &tracked.world_from_camera);
+                let (local_pose, tracked_pose) =
+                    corrections.from_odometry(frame.timestamp, &tracked.world_from_camera);
+                if !move_tracking_map {
+                    let (m, rad) = distance(&tracked.world_from_camera, &expected);
+                    assert!(
+                        m < TOLERANCE_M && rad < TOLERANCE_RAD,
+                        "frame {position}: odometry {m} m / {rad} rad from the reference"
+                    );
+                }
                 if tracked.keyframe {
                     corrections.record_keyframe(keyframes.len(), frame.timestamp, tracked_pose);
                     keyframes.push(tracked_pose);
                 }
                 if position > CORRECT_AFTER {
-                    let (local_m, local_rad) =
-                        distance(&tracked.world_from_camera, &(fix * expected));
+                    let (local_m, local_rad) = distance(&local_pose, &(fix * expected));
                     assert!(
                         local_m < TOLERANCE_M && local_rad < TOLERANCE_RAD,
                         "frame {position}: local-map pose {local_m} m / {local_rad} rad from fix * reference"

@@ -49,7 +49,8 @@ impl KeyframeCounts {
 
 /// The tracker's answer for one frame.
 pub struct Tracked {
-    /// In the local-map frame, where tracking and mapping run.
+    /// The odometry's answer with its pose in the local-map frame, where mapping runs (and
+    /// tracking, when the tracking map moves with corrections: `move_tracking_map`).
     pub local: TrackedFrame,
     /// The same pose in the tracked frame (crate::local_corrections explains the two frames).
     pub world_from_camera: Isometry3<f64>,
@@ -140,16 +141,17 @@ impl<'a> AgentPipeline<'a> {
     pub fn track(&mut self, item: &SourceFrame) -> Tracked {
         let frame = &item.frame;
         let tracker_first_point = self.odometry.next_point_id();
-        let local = self
+        let mut local = self
             .odometry
             .track(frame.timestamp, &frame.depth, &frame.intrinsics);
         if self.odometry.next_point_id() > tracker_first_point {
             self.corrections
                 .record_tracker_points(tracker_first_point, frame.timestamp);
         }
-        let world_from_camera = self
+        let (local_from_camera, world_from_camera) = self
             .corrections
-            .to_tracked(frame.timestamp, &local.world_from_camera);
+            .from_odometry(frame.timestamp, &local.world_from_camera);
+        local.world_from_camera = local_from_camera;
         let usable = item.has_depth
             && matches!(
                 local.outcome,
@@ -284,8 +286,8 @@ impl<'a> AgentPipeline<'a> {
         self.mapper.wait_for_budget();
     }
 
-    /// Applies a correction the consensus sent (swarm only) to the tracker's model, the coverage
-    /// index and the mapper's map.
+    /// Applies a correction the consensus sent (swarm only) to the mapper's map and the coverage
+    /// index (and the tracker's model with `move_tracking_map`).
     pub fn apply_corrections(&mut self, frame: &Frame) {
         let Some(correction) = self.swarm.as_mut().and_then(SwarmLink::after_frame) else {
             return;

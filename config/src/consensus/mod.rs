@@ -136,16 +136,27 @@ impl ConsensusConfig {
 /// `[consensus.local_corrections]` table.
 ///
 /// A correction carries the corrected pose of every keyframe the agent published. The agent
-/// moves each part of its tracking map, its mapping map and its keyframe poses with the
-/// correction blended at the time that part was made (the consensus's own rule for per-frame
-/// trajectories), so a drift the pose graph removed is also removed from the map the agent
-/// tracks against. What it publishes stays in its tracked (uncorrected) frame, which the
-/// consensus's odometry edges are built from.
+/// moves each part of its mapping map, its keyframe poses and its coverage index (and, with
+/// `move_tracking_map`, its tracking map) with the correction blended at the time that part was
+/// made (the consensus's own rule for per-frame trajectories), so a drift the pose graph
+/// removed is also removed from the map the agent builds. What it publishes stays in its
+/// tracked (uncorrected) frame, which the consensus's odometry edges are built from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LocalCorrectionConfig {
     /// Apply corrections to the local maps at all (false: they are only recorded).
     pub apply: bool,
+    /// Whether the tracking map moves with the corrections too (the mapping map, keyframe poses
+    /// and coverage index always do when `apply` is on). Off (the default), the tracker is plain
+    /// odometry: its poses are the tracked frame by construction, and each is carried into the
+    /// corrected frame for seeding and mapping. On, tracking runs in the corrected frame and its
+    /// poses are converted back for publishing; but a non-rigid correction leaves parts of the
+    /// tracking map that carry different corrections side by side, a frame that sees several
+    /// of them lands between them, and part of the correction leaks into the tracked poses as
+    /// motion the odometry never made. On redkitchen (two agents, 0..600 and 400..1000, T_comm
+    /// 30 frames) that doubled the agents' own ATE and raised the joint ATE by about a
+    /// centimetre (docs/benchmarks.md, 2026-12-04 "evening").
+    pub move_tracking_map: bool,
     /// A correction is applied only when it would move some keyframe by at least this much
     /// (metres) or `min_rotation_rad`. Smaller changes are mostly pose-graph noise: every solve
     /// moves every keyframe by a millimetre or two. On redkitchen (two agents, 0..600 and
@@ -170,6 +181,7 @@ impl Default for LocalCorrectionConfig {
     fn default() -> Self {
         Self {
             apply: true,
+            move_tracking_map: false,
             min_translation_m: 0.01,
             min_rotation_rad: 0.5_f64.to_radians(),
             part_min_translation_m: 0.002,
