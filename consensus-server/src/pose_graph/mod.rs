@@ -534,7 +534,11 @@ mod tests {
 
     #[test]
     fn odometry_edges_trust_short_spans_more() {
-        let config = PoseGraphConfig::default();
+        // The sigmas are for 60-frame edges here.
+        let config = PoseGraphConfig {
+            odometry_sigma_span_frames: 60,
+            ..PoseGraphConfig::default()
+        };
         let mut graph = PoseGraph::new();
         // Agent 0's keyframes at frames 0, 15 and 75 (in arrival order), agent 1's at 0 and 60.
         for (agent, keyframe, frame) in [(0, 0, 0), (0, 1, 15), (0, 2, 75), (1, 0, 0), (1, 1, 60)] {
