@@ -131,7 +131,7 @@ impl LocalCorrections {
 
     /// Whether the tracking map moves with the corrections (`move_tracking_map`): then the
     /// odometry's poses are in the local-map frame, else in the tracked frame.
-    pub fn moves_tracking_map(&self) -> bool {
+    fn moves_tracking_map(&self) -> bool {
         self.config.move_tracking_map
     }
 

@@ -17,8 +17,8 @@ pub struct PoseGraphConfig {
     /// of a sweep on paced redkitchen swarms at `t_comm = 60`; the span they are for (10 frames:
     /// an edge of 30 frames gets 1.7 times them, one of 60 frames 2.4 times) was chosen by
     /// re-solving finished swarms at `t_comm` 30 and 60 offline, where it lowered the joint ATE
-    /// by 0.1-0.3 cm against 60 frames with the refined map's PSNR unchanged
-    /// (docs/benchmarks.md).
+    /// by 0.1-0.3 cm against 60 frames (the run also refined again kept its map's PSNR;
+    /// docs/benchmarks.md).
     pub odometry_rotation_sigma_rad: f64,
     pub odometry_translation_sigma_m: f64,
     /// Frames between two keyframes that the odometry sigmas above are for (at least 1).
