@@ -154,8 +154,9 @@ pub struct LocalCorrectionConfig {
     /// tracking map that carry different corrections side by side, a frame that sees several
     /// of them lands between them, and part of the correction leaks into the tracked poses as
     /// motion the odometry never made. On redkitchen (two agents, 0..600 and 400..1000, T_comm
-    /// 30 frames) that doubled the agents' own ATE and raised the joint ATE by about a
-    /// centimetre (docs/benchmarks.md, "the tracking map stays out of the corrections").
+    /// 30 frames) that doubled the agents' own ATE and raised the joint ATE by 0.6 cm with the
+    /// same pose-graph settings (docs/benchmarks.md, "the tracking map stays out of the
+    /// corrections").
     pub move_tracking_map: bool,
     /// A correction is applied only when it would move some keyframe by at least this much
     /// (metres) or `min_rotation_rad`. Smaller changes are mostly pose-graph noise: every solve
