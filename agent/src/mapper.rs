@@ -105,6 +105,11 @@ impl MappingStats {
 pub struct MappingOutcome {
     /// The map when the stream ended (real-time mapping only).
     pub realtime_map: GaussianCloud,
+    /// `refine_keyframe_poses` only: `realtime_map` moved from where the pose refinement put
+    /// the keyframe cameras back to their tracked poses
+    /// (`MapperState::map_at_tracked_poses`); what the consensus is sent, since it places
+    /// the map with the tracked keyframes it knows.
+    pub realtime_map_at_tracked_poses: Option<GaussianCloud>,
     pub realtime: MappingStats,
     /// After the optional refinement pass.
     pub refined: Option<(GaussianCloud, MappingStats)>,
@@ -368,6 +373,7 @@ impl MapperState {
         self.stats.keyframe_pose_corrections = self.keyframe_pose_corrections();
         let realtime = std::mem::take(&mut self.stats);
         let realtime_map = self.download()?;
+        let realtime_map_at_tracked_poses = self.map_at_tracked_poses(&realtime_map);
         tracing::info!(
             iterations = realtime.iterations,
             per_second = format!("{:.2}", realtime.iterations_per_second()),
@@ -394,6 +400,7 @@ impl MapperState {
         };
         Ok(MappingOutcome {
             realtime_map,
+            realtime_map_at_tracked_poses,
             realtime,
             refined,
         })
@@ -409,6 +416,29 @@ impl MapperState {
             let tracked = Isometry3::from(&keyframe.tracked_camera_from_world).inverse();
             (keyframe.timestamp_s, correction(&refined, &tracked))
         }))
+    }
+
+    /// `refine_keyframe_poses` only: `map` (downloaded from this state's map, so in its order)
+    /// with each Gaussian moved by its seeding keyframe's tracked pose times its refined pose's
+    /// inverse, so that the map seen from the tracked pose looks as it did from the refined
+    /// one. Moved by the keyframe that seeded it, as a consensus correction moves it: the
+    /// refinement's moves change little between neighbouring keyframes.
+    fn map_at_tracked_poses(&self, map: &GaussianCloud) -> Option<GaussianCloud> {
+        if !self.config.refine_keyframe_poses {
+            return None;
+        }
+        let ids = self.keyframes.iter().map(|keyframe| keyframe.keyframe_id);
+        let mut moves = vec![RigidTransform::IDENTITY; ids.max().map_or(0, |id| id + 1)];
+        for keyframe in &self.keyframes {
+            // tracked world_from_camera * refined camera_from_world.
+            moves[keyframe.keyframe_id] = keyframe
+                .tracked_camera_from_world
+                .inverse()
+                .compose(&keyframe.camera.camera_from_world);
+        }
+        let mut moved = map.clone();
+        moved.transform_groups(&self.keyframe_of, &moves);
+        Some(moved)
     }
 
     /// `simulated_iteration_delay_ms` of extra wall time per iteration.
@@ -832,6 +862,83 @@ mod tests {
         // Off by 10 mm; without refinement the pose stays where tracking put it.
         assert!((before - 0.01).abs() < 1e-4, "{before}");
         assert!(after < 0.5 * before, "refined pose error {after} m");
+    }
+
+    /// With keyframe 1's camera refined away from its tracked pose, the map sent to the
+    /// consensus has keyframe 1's Gaussians where the tracked camera sees them as the refined
+    /// camera saw the map; keyframe 0's (the fixed first keyframe) stay put.
+    #[test]
+    fn map_at_tracked_poses_moves_each_keyframe_s_gaussians_by_its_refinement() {
+        let wall = textured_wall();
+        let second_wall = {
+            let mut moved = wall.clone();
+            moved.transform_rigid(&RigidTransform::from(&Isometry3::translation(
+                0.0, 0.0, 0.5,
+            )));
+            moved
+        };
+        let state_with_refined_second_keyframe = |refine_keyframe_poses: bool| {
+            let mapping = MappingConfig {
+                image_downscale: 1,
+                refine_keyframe_poses,
+                ..MappingConfig::default()
+            };
+            let context = GpuContext::new().expect("a wgpu adapter (lavapipe on CI)");
+            let mut state = MapperState::new(
+                context,
+                &TrackingConfig::default(),
+                &mapping,
+                Arc::new(MapperProgress::default()),
+            );
+            let identity = Isometry3::identity();
+            let tracked = Isometry3::translation(0.05, 0.0, 0.0);
+            for (id, (pose, seeds)) in [(identity, &wall), (tracked, &second_wall)]
+                .into_iter()
+                .enumerate()
+            {
+                let keyframe = keyframe_seen_from(id, &wall, &pose, pose, seeds.clone());
+                state.insert_keyframe(keyframe).unwrap();
+            }
+            let refined = Isometry3::new(
+                nalgebra::Vector3::new(0.06, 0.01, -0.02),
+                nalgebra::Vector3::new(0.0, 0.02, 0.01),
+            );
+            state.keyframes[1].camera.camera_from_world = RigidTransform::from(&refined.inverse());
+            state
+        };
+        let state = state_with_refined_second_keyframe(true);
+        let map = state.download().unwrap();
+        let moved = state.map_at_tracked_poses(&map).expect("refinement on");
+        assert_eq!(moved.len(), wall.len() + second_wall.len());
+        for i in 0..map.len() {
+            let keyframe = &state.keyframes[state.keyframe_of[i] as usize];
+            let seen_refined = keyframe
+                .camera
+                .camera_from_world
+                .transform_point(map.means[i]);
+            let seen_tracked = keyframe
+                .tracked_camera_from_world
+                .transform_point(moved.means[i]);
+            for axis in 0..3 {
+                assert!(
+                    (seen_refined[axis] - seen_tracked[axis]).abs() < 1e-5,
+                    "Gaussian {i}"
+                );
+            }
+            if i < wall.len() {
+                assert_eq!(
+                    moved.means[i], map.means[i],
+                    "first keyframe's Gaussian {i}"
+                );
+            } else {
+                assert_ne!(
+                    moved.means[i], map.means[i],
+                    "refined keyframe's Gaussian {i}"
+                );
+            }
+        }
+        let unrefined = state_with_refined_second_keyframe(false);
+        assert!(unrefined.map_at_tracked_poses(&map).is_none());
     }
 
     #[test]
