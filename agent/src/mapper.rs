@@ -421,8 +421,9 @@ impl MapperState {
     /// `refine_keyframe_poses` only: `map` (downloaded from this state's map, so in its order)
     /// with each Gaussian moved by its seeding keyframe's tracked pose times its refined pose's
     /// inverse, so that the map seen from the tracked pose looks as it did from the refined
-    /// one. Moved by the keyframe that seeded it, as a consensus correction moves it: the
-    /// refinement's moves change little between neighbouring keyframes.
+    /// one. Each Gaussian moves with the keyframe that seeded it, as a consensus correction
+    /// moves it; where keyframes refined differently see the same Gaussian, that is an
+    /// approximation, which the consensus's joint refinement (poses and map) fits further.
     fn map_at_tracked_poses(&self, map: &GaussianCloud) -> Option<GaussianCloud> {
         if !self.config.refine_keyframe_poses {
             return None;
