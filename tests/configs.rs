@@ -53,6 +53,7 @@ fn every_config_loads_and_is_documented() {
     for expected in [
         "synthetic.toml",
         "7scenes.toml",
+        "7scenes-paced.toml",
         "replica.toml",
         "multiagent-replica.toml",
         "tum.toml",
@@ -100,4 +101,21 @@ fn scenarios_share_the_sensor_and_scale_the_candidates() {
         candidates.windows(2).all(|w| w[0] <= w[1]),
         "more agents never get fewer proposals per keyframe: {candidates:?}"
     );
+}
+
+/// configs/7scenes-paced.toml is configs/7scenes.toml with only its paced keys changed: every key
+/// it leaves out must default to 7scenes.toml's value.
+#[test]
+fn the_paced_7scenes_config_differs_from_7scenes_only_in_its_paced_keys() {
+    let real_time = load("7scenes.toml");
+    let mut paced = load("7scenes-paced.toml");
+    assert_eq!(paced.mapping.pace, config::Pace::Paced);
+    assert!(paced.mapping.refine_keyframe_poses);
+    assert!(paced.consensus.t_comm < real_time.consensus.t_comm);
+    paced.keyframes.tracking_keyframe_seeds = real_time.keyframes.tracking_keyframe_seeds;
+    paced.mapping.pace = real_time.mapping.pace;
+    paced.mapping.image_downscale = real_time.mapping.image_downscale;
+    paced.mapping.refine_keyframe_poses = real_time.mapping.refine_keyframe_poses;
+    paced.consensus.t_comm = real_time.consensus.t_comm;
+    assert_eq!(paced, real_time);
 }
