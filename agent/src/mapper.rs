@@ -793,6 +793,17 @@ mod tests {
         }
     }
 
+    /// A mapping state on the test device (lavapipe on CI), with nothing in it yet.
+    fn mapper_state(mapping: &MappingConfig) -> MapperState {
+        let context = GpuContext::new().expect("a wgpu adapter (lavapipe on CI)");
+        MapperState::new(
+            context,
+            &TrackingConfig::default(),
+            mapping,
+            Arc::new(MapperProgress::default()),
+        )
+    }
+
     /// The second keyframe's pose error (metres) after `iterations` mapper iterations on two
     /// keyframes of the wall, the second recorded 10 mm off where its images were taken; the map
     /// itself is held fixed (zero learning rates) so only the pose can move.
@@ -810,13 +821,7 @@ mod tests {
             lr_pose_translation_m: 5e-4,
             ..MappingConfig::default()
         };
-        let context = GpuContext::new().expect("a wgpu adapter (lavapipe on CI)");
-        let mut state = MapperState::new(
-            context,
-            &TrackingConfig::default(),
-            &mapping,
-            Arc::new(MapperProgress::default()),
-        );
+        let mut state = mapper_state(&mapping);
         let identity = Isometry3::identity();
         state
             .insert_keyframe(keyframe_seen_from(
@@ -884,13 +889,7 @@ mod tests {
                 refine_keyframe_poses,
                 ..MappingConfig::default()
             };
-            let context = GpuContext::new().expect("a wgpu adapter (lavapipe on CI)");
-            let mut state = MapperState::new(
-                context,
-                &TrackingConfig::default(),
-                &mapping,
-                Arc::new(MapperProgress::default()),
-            );
+            let mut state = mapper_state(&mapping);
             let identity = Isometry3::identity();
             let tracked = Isometry3::translation(0.05, 0.0, 0.0);
             for (id, (pose, seeds)) in [(identity, &wall), (tracked, &second_wall)]
