@@ -2,10 +2,12 @@
 //! loss, given dL/d(image) on the device.
 //!
 //! rasterize_backward (rasterize_backward_pixels.wgsl + rasterize_backward_subgroup.wgsl, or
-//! rasterize_backward.wgsl without subgroups) accumulates screen-space gradients per Gaussian
-//! with atomics (native f32 atomics or a compare-exchange fallback, see
-//! [`crate::gpu::GradientAtomics`]): one add per component and subgroup (per invocation
-//! without subgroups) after summing over its pixels. project_backward chains them to the
+//! rasterize_backward.wgsl without subgroups) accumulates screen-space gradients with atomics
+//! (native f32 atomics or a compare-exchange fallback, see [`crate::gpu::GradientAtomics`]):
+//! one add per component and subgroup (per invocation without subgroups) after summing over
+//! its pixels. With [`crate::gpu::GradientOrder::Fixed`] (the default) it adds into one sum per
+//! tile/Gaussian pair, and pair_gradients adds each Gaussian's pairs in depth order, so a run
+//! repeats bit for bit; otherwise straight into per-Gaussian sums. project_backward chains them to the
 //! parameters, 16 Gaussians per invocation, and writes one pose contribution per 16
 //! Gaussians, which reduce sums deterministically. Nothing is read back unless the caller
 //! downloads.
@@ -19,7 +21,7 @@ use crate::profile::StageProfiler;
 use crate::types::{Camera, GaussianGradients, ImageGradients, PoseGradient};
 use crate::wgsl::{
     PROJECT_BACKWARD_CHUNK, PROJECT_BACKWARD_WORKGROUP_SIZE, REDUCE_CHUNK, REDUCE_WORKGROUP_SIZE,
-    ReduceParams, SCREEN_GRADIENT_STRIDE,
+    ReduceParams, SCREEN_GRADIENT_STRIDE, SLOT_GRADIENT_STRIDE, WORKGROUP_SIZE,
 };
 
 /// dL/d(image) on the device: per pixel (r, g, b, depth) and alpha.
@@ -172,15 +174,47 @@ impl GpuRenderer {
             "screen_gradients",
             u64::from(n) * u64::from(SCREEN_GRADIENT_STRIDE) * U32_BYTES,
         )?;
+        // GradientOrder::Fixed: one sum per tile-list slot first, gathered per Gaussian in
+        // depth order below. The guard is held until the pass is submitted.
+        let mut kept_slots = self.slot_gradients.lock().unwrap_or_else(|poisoned| {
+            // A pass panicked between using the sums and zeroing them: start from fresh zeros.
+            let mut slots = poisoned.into_inner();
+            *slots = None;
+            slots
+        });
+        let slot_gradients = if frame.pair_gradient_sums {
+            let bytes =
+                u64::from(frame.pair_capacity) * u64::from(SLOT_GRADIENT_STRIDE) * U32_BYTES;
+            if kept_slots
+                .as_ref()
+                .is_none_or(|buffer| buffer.size() < bytes)
+            {
+                // Fresh wgpu buffers are zero-filled.
+                *kept_slots = Some(context.storage_buffer("slot_gradients", bytes)?);
+            }
+            kept_slots.clone()
+        } else {
+            None
+        };
         let mut encoder = context.device.create_command_encoder(&Default::default());
         self.encode_rasterize_backward(
             context,
             &mut encoder,
             frame,
             image_gradients,
-            &screen_gradients,
+            slot_gradients.as_ref().unwrap_or(&screen_gradients),
         );
         profiler.mark(context, &mut encoder, "rasterize backward")?;
+        if let Some(slot_gradients) = &slot_gradients {
+            self.encode_pair_gradients(
+                context,
+                &mut encoder,
+                frame,
+                slot_gradients,
+                &screen_gradients,
+            );
+            profiler.mark(context, &mut encoder, "pair gradients")?;
+        }
         let pose = self.encode_project_backward(
             context,
             &mut encoder,
@@ -201,15 +235,15 @@ impl GpuRenderer {
         Ok(gradients)
     }
 
-    /// rasterize_backward: dL/d(screen-space splat) per Gaussian into `screen_gradients`, one
-    /// workgroup per tile.
+    /// rasterize_backward: dL/d(screen-space splat) into `gradient_sums`, per tile-list slot
+    /// when `frame.pair_gradient_sums`, per Gaussian otherwise; one workgroup per tile.
     fn encode_rasterize_backward(
         &self,
         context: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         frame: &DeviceFrame,
         image_gradients: &DeviceImageGradients,
-        screen_gradients: &wgpu::Buffer,
+        gradient_sums: &wgpu::Buffer,
     ) {
         let pipeline = &self.pipelines.rasterize_backward;
         let group = bind_group(
@@ -226,7 +260,7 @@ impl GpuRenderer {
                 (7, &frame.last_entry),
                 (8, &image_gradients.v_rgbd),
                 (9, &image_gradients.v_alpha),
-                (10, screen_gradients),
+                (10, gradient_sums),
             ],
         );
         let (tiles_x, tiles_y) = frame.camera.tile_counts();
@@ -234,6 +268,34 @@ impl GpuRenderer {
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, &group, &[]);
         pass.dispatch_workgroups(tiles_x, tiles_y, 1);
+    }
+
+    /// pair_gradients: each Gaussian's screen-space gradient, its pairs' slot sums added in
+    /// depth order.
+    fn encode_pair_gradients(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        frame: &DeviceFrame,
+        slot_gradients: &wgpu::Buffer,
+        screen_gradients: &wgpu::Buffer,
+    ) {
+        let pipeline = &self.pipelines.pair_gradients;
+        let group = bind_group(
+            context,
+            pipeline,
+            &[
+                (0, &frame.bin_params),
+                (1, &frame.depth_order),
+                (2, &frame.tile_counts),
+                (3, &frame.sorted_tile_counts),
+                (4, &frame.pair_slots),
+                (5, slot_gradients),
+                (6, screen_gradients),
+            ],
+        );
+        let workgroups = frame.gaussian_count.div_ceil(WORKGROUP_SIZE);
+        dispatch_linear(encoder, pipeline, &group, workgroups);
     }
 
     /// project_backward: parameter gradients into `gradients`; returns the per-chunk pose

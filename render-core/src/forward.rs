@@ -6,13 +6,15 @@
 use bytemuck::Zeroable;
 
 use crate::context::{GpuContext, GpuError};
-use crate::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, StageTimes};
+use crate::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, GradientOrder, StageTimes};
 use crate::passes::{
     U32_BYTES, VEC4_BYTES, bind_group, count_buffer, dispatch_linear, inclusive_scan, prefix_scan,
 };
 use crate::profile::StageProfiler;
 use crate::types::{Camera, RasterConfig, constants};
-use crate::wgsl::{BIN_WORKGROUP_SIZE, BinParams, RenderParams, WORKGROUP_SIZE};
+use crate::wgsl::{
+    BIN_WORKGROUP_SIZE, BinParams, RenderParams, SLOT_GRADIENT_STRIDE, WORKGROUP_SIZE,
+};
 
 /// Pair-binning table entries per Gaussian the block size aims at (one (tile, block) counter
 /// per entry; the binning walks each block serially, so larger blocks mean a smaller table but
@@ -51,6 +53,7 @@ struct FrameBuffers {
     depth_values: [wgpu::Buffer; 2],
     sorted_tile_counts: wgpu::Buffer,
     intersection_gaussians: wgpu::Buffer,
+    pair_slots: wgpu::Buffer,
     bin_table: wgpu::Buffer,
     pair_status: wgpu::Buffer,
     tile_ranges: wgpu::Buffer,
@@ -67,6 +70,7 @@ impl FrameBuffers {
         config: &RasterConfig,
         gaussian_count: u32,
         pair_capacity: u32,
+        pair_gradient_sums: bool,
     ) -> Result<Self, GpuError> {
         let count = u64::from(gaussian_count);
         let (tiles_x, tiles_y) = camera.tile_counts();
@@ -82,7 +86,10 @@ impl FrameBuffers {
             block_count,
             ..Zeroable::zeroed()
         };
-        let params = RenderParams::new(camera, gaussian_count, config);
+        let params = RenderParams {
+            pair_gradient_sums: u32::from(pair_gradient_sums),
+            ..RenderParams::new(camera, gaussian_count, config)
+        };
         let per_gaussian = |label| context.storage_buffer(label, count * U32_BYTES);
         let per_gaussian_vec4 = |label| context.storage_buffer(label, count * VEC4_BYTES);
         let bin_table_entries = u64::from(tile_count) * u64::from(block_count);
@@ -110,6 +117,8 @@ impl FrameBuffers {
                 "intersection_gaussians",
                 u64::from(pair_capacity) * U32_BYTES,
             )?,
+            pair_slots: context
+                .storage_buffer("pair_slots", u64::from(pair_capacity) * U32_BYTES)?,
             bin_table: context.storage_buffer("bin table", bin_table_entries * U32_BYTES)?,
             // [pairs kept, pairs needed]; zero-filled, which is right for an empty scene.
             pair_status: context.storage_buffer("pair_status", VEC4_BYTES)?,
@@ -140,12 +149,24 @@ impl GpuRenderer {
         validate_frame(camera, config)?;
         let n = gaussians.count;
         let pair_capacity = self.pair_capacity_for(context, n);
-        let buffers = FrameBuffers::allocate(context, camera, config, n, pair_capacity)?;
+        let pair_gradient_sums = self.gradient_order == GradientOrder::Fixed
+            && u64::from(pair_capacity) * u64::from(SLOT_GRADIENT_STRIDE) * U32_BYTES
+                <= context.max_storage_binding_bytes();
+        let buffers = FrameBuffers::allocate(
+            context,
+            camera,
+            config,
+            n,
+            pair_capacity,
+            pair_gradient_sums,
+        )?;
         let mut encoder = context.device.create_command_encoder(&Default::default());
+        // Which `depth_values` buffer ends up holding the depth order (none without Gaussians).
+        let mut sorted = 0;
         if n > 0 {
             self.encode_project(context, &mut encoder, gaussians, &buffers);
             profiler.mark(context, &mut encoder, "project")?;
-            let sorted = self.encode_depth_sort(context, &mut encoder, &buffers, n)?;
+            sorted = self.encode_depth_sort(context, &mut encoder, &buffers, n)?;
             profiler.mark(context, &mut encoder, "depth sort")?;
             self.encode_tile_counts(context, &mut encoder, &buffers, sorted)?;
             profiler.mark(context, &mut encoder, "tile count scan")?;
@@ -154,6 +175,7 @@ impl GpuRenderer {
         self.encode_rasterize(context, &mut encoder, &buffers, camera);
         profiler.mark(context, &mut encoder, "rasterize")?;
         context.queue.submit([encoder.finish()]);
+        let [depth_values, depth_scratch] = buffers.depth_values;
         Ok(DeviceFrame {
             camera: *camera,
             gaussian_layout: gaussians.layout,
@@ -166,6 +188,16 @@ impl GpuRenderer {
             splat_colour: buffers.splat_colour,
             tile_ranges: buffers.tile_ranges,
             intersection_gaussians: buffers.intersection_gaussians,
+            pair_gradient_sums,
+            bin_params: buffers.bin_params,
+            depth_order: if sorted == 0 {
+                depth_values
+            } else {
+                depth_scratch
+            },
+            tile_counts: buffers.tile_counts,
+            sorted_tile_counts: buffers.sorted_tile_counts,
+            pair_slots: buffers.pair_slots,
             rgbd: buffers.rgbd,
             alpha: buffers.alpha,
             transmittance: buffers.transmittance,
@@ -284,6 +316,7 @@ impl GpuRenderer {
             (4, &b.tile_rects),
             (5, &b.bin_table),
             (6, &b.intersection_gaussians),
+            (7, &b.pair_slots),
         ];
         let block_workgroups = b.bin.block_count.div_ceil(BIN_WORKGROUP_SIZE);
         encoder.clear_buffer(&b.bin_table, 0, None);

@@ -36,8 +36,11 @@
 //! lavapipe). The widest per-Gaussian buffer holds 16 bytes per Gaussian and the binning
 //! buffers 4 bytes per pair, so one frame handles up to `max_binding / 16` Gaussians (8.4 M
 //! on lavapipe) and `max_binding / 4` pairs (33.5 M); beyond that [`GpuError::TooLarge`] is
-//! returned (no chunked bindings yet).
+//! returned (no chunked bindings yet). The backward pass's per-pair sums
+//! ([`GradientOrder::Fixed`]) take 48 bytes per pair of capacity; a frame whose sums would not
+//! fit one binding uses [`GradientOrder::Arrival`].
 
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use bytemuck::Zeroable;
@@ -152,6 +155,18 @@ pub struct DeviceFrame {
     pub tile_ranges: wgpu::Buffer,
     /// Gaussian indices, grouped by tile, front to back within a tile.
     pub intersection_gaussians: wgpu::Buffer,
+    /// True when the backward pass sums gradients per pair first ([`GradientOrder::Fixed`] and
+    /// the pair sums fit one binding); the binning buffers below serve that sum.
+    pub(crate) pair_gradient_sums: bool,
+    pub(crate) bin_params: wgpu::Buffer,
+    /// Gaussian indices front to back (the depth sort's output).
+    pub(crate) depth_order: wgpu::Buffer,
+    /// Per Gaussian: tiles its splat reaches.
+    pub(crate) tile_counts: wgpu::Buffer,
+    /// `tile_counts` in depth order, inclusive-scanned: the end of each Gaussian's pairs.
+    pub(crate) sorted_tile_counts: wgpu::Buffer,
+    /// Per pair, in depth order: its slot in the tile lists.
+    pub(crate) pair_slots: wgpu::Buffer,
     /// Per pixel: r, g, b, depth.
     pub rgbd: wgpu::Buffer,
     pub alpha: wgpu::Buffer,
@@ -173,6 +188,7 @@ pub(crate) struct Pipelines {
     pub(crate) tile_ranges: wgpu::ComputePipeline,
     pub(crate) rasterize: wgpu::ComputePipeline,
     pub(crate) rasterize_backward: wgpu::ComputePipeline,
+    pub(crate) pair_gradients: wgpu::ComputePipeline,
     pub(crate) project_backward: wgpu::ComputePipeline,
     pub(crate) reduce: wgpu::ComputePipeline,
 }
@@ -192,6 +208,7 @@ pub enum Subgroups {
 pub struct RendererOptions {
     pub atomics: GradientAtomics,
     pub subgroups: Subgroups,
+    pub gradient_order: GradientOrder,
 }
 
 impl Default for RendererOptions {
@@ -199,8 +216,26 @@ impl Default for RendererOptions {
         Self {
             atomics: GradientAtomics::Auto,
             subgroups: Subgroups::Auto,
+            gradient_order: GradientOrder::Fixed,
         }
     }
+}
+
+/// In what order the backward pass adds up a Gaussian's gradient over the tiles it covers.
+/// Float addition is not associative, so the order decides the last bits, and an optimisation
+/// that runs thousands of steps carries those bits into visibly different maps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GradientOrder {
+    /// Each tile/Gaussian pair gets its own sum, which only its tile's workgroup touches; then
+    /// pair_gradients.wgsl adds each Gaussian's pairs in depth order. The same input then gives
+    /// the same bits on every run, whatever the threads' timing: on CPU adapters (a workgroup
+    /// runs on one thread) and, with the subgroup kernels, on GPUs whose subgroups hold at
+    /// least 8 lanes (at most two subgroups add to a pair, and two adds onto zero commute). Costs 40 bytes of device memory per pair of the frame's capacity; a
+    /// frame whose pair sums would not fit one storage binding falls back to
+    /// [`GradientOrder::Arrival`].
+    Fixed,
+    /// Atomic adds straight into each Gaussian's sum, tiles in the order threads arrive.
+    Arrival,
 }
 
 /// How the backward pass accumulates per-Gaussian gradients across pixels.
@@ -221,6 +256,11 @@ pub struct GpuRenderer {
     pub uses_float_atomics: bool,
     /// True when the rasterizers use subgroup operations.
     pub uses_subgroups: bool,
+    pub gradient_order: GradientOrder,
+    /// [`GradientOrder::Fixed`]'s per-pair sums, kept between backward passes (all zeros
+    /// between them, see pair_gradients.wgsl) and grown with the pair capacity; the lock is
+    /// held from encoding a backward pass to its submission, so passes use it one at a time.
+    pub(crate) slot_gradients: Mutex<Option<wgpu::Buffer>>,
 }
 
 impl GpuRenderer {
@@ -283,6 +323,7 @@ impl GpuRenderer {
                 ],
                 "main",
             ),
+            pair_gradients: pipeline("pair_gradients", &[source::PAIR_GRADIENTS], "main"),
             project_backward: pipeline("project_backward", &[source::PROJECT_BACKWARD], "main"),
             reduce: pipeline("reduce", &[source::REDUCE], "main"),
         };
@@ -291,6 +332,8 @@ impl GpuRenderer {
             pair_capacity_hint: AtomicU64::new(0),
             uses_float_atomics,
             uses_subgroups,
+            gradient_order: options.gradient_order,
+            slot_gradients: Mutex::new(None),
         }
     }
 

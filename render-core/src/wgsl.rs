@@ -112,7 +112,12 @@ wgsl_struct! {
         tiles_x: u32,
         tiles_y: u32,
         gaussian_count: u32,
-        padding0: u32,
+        /// 1: the backward pass sums each splat's gradient per tile/Gaussian pair (its list
+        /// slot), and pair_gradients.wgsl then sums each Gaussian's pairs in depth order, so
+        /// the result does not depend on thread timing; 0: straight into the per-Gaussian
+        /// sums with atomics, in whatever order the threads arrive (see
+        /// `gpu::GradientOrder`).
+        pair_gradient_sums: u32,
         padding1: u32,
         padding2: u32,
         /// Splats below this alpha at a pixel are skipped there.
@@ -317,6 +322,13 @@ pub(crate) const REDUCE_WORKGROUP_SIZE: u32 = 64;
 /// f32 values per Gaussian of the screen-space gradients (mean2d 2, conic 3, opacity 1,
 /// colour 3, depth 1).
 pub(crate) const SCREEN_GRADIENT_STRIDE: u32 = 10;
+/// f32 values per tile-list slot of the per-pair gradient sums (`GradientOrder::Fixed`): the
+/// screen-space gradients padded to three vec4, which pair_gradients.wgsl reads and clears
+/// with three vector accesses instead of ten scalar ones.
+pub(crate) const SLOT_GRADIENT_STRIDE: u32 = 12;
+const _: () = assert!(
+    SLOT_GRADIENT_STRIDE.is_multiple_of(4) && SLOT_GRADIENT_STRIDE >= SCREEN_GRADIENT_STRIDE
+);
 /// `group_mode` of transform.wgsl: one transform for every Gaussian, or one per group.
 pub(crate) const TRANSFORM_ALL: u32 = 0;
 pub(crate) const TRANSFORM_BY_GROUP: u32 = 1;
@@ -363,6 +375,7 @@ fn constants() -> Vec<(&'static str, Value)> {
         ("REDUCE_CHUNK", U32(REDUCE_CHUNK)),
         ("REDUCE_WORKGROUP_SIZE", U32(REDUCE_WORKGROUP_SIZE)),
         ("SCREEN_GRADIENT_STRIDE", U32(SCREEN_GRADIENT_STRIDE)),
+        ("SLOT_GRADIENT_STRIDE", U32(SLOT_GRADIENT_STRIDE)),
         ("TRANSFORM_ALL", U32(TRANSFORM_ALL)),
         ("TRANSFORM_BY_GROUP", U32(TRANSFORM_BY_GROUP)),
         ("LOSS_RUN", U32(LOSS_RUN)),
@@ -428,6 +441,8 @@ pub(crate) mod source {
     /// compare-exchange loop.
     pub(crate) const ATOMICS_FLOAT: &str = include_str!("kernels/atomics_float.wgsl");
     pub(crate) const ATOMICS_CAS: &str = include_str!("kernels/atomics_cas.wgsl");
+    /// Each Gaussian's gradient from its pairs' sums, in depth order (`GradientOrder::Fixed`).
+    pub(crate) const PAIR_GRADIENTS: &str = include_str!("kernels/pair_gradients.wgsl");
     pub(crate) const PROJECT_BACKWARD: &str = include_str!("kernels/project_backward.wgsl");
     pub(crate) const REDUCE: &str = include_str!("kernels/reduce.wgsl");
     pub(crate) const LOSS: &str = include_str!("kernels/loss.wgsl");

@@ -3,11 +3,13 @@
 
 mod common;
 
-use common::{default_camera, gpu, random_scene};
+use common::{camera, default_camera, gpu, random_scene};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::backward::DeviceImageGradients;
-use render_core::gpu::{DeviceGaussians, GpuRenderer, GradientAtomics, RendererOptions, Subgroups};
+use render_core::gpu::{
+    DeviceGaussians, GpuRenderer, GradientAtomics, GradientOrder, RendererOptions, Subgroups,
+};
 use render_core::reference;
 use render_core::{Camera, GaussianCloud, GaussianGradients, ImageGradients, RasterConfig};
 
@@ -145,6 +147,7 @@ fn backward_without_subgroups_matches_reference() {
             RendererOptions {
                 atomics,
                 subgroups: Subgroups::Never,
+                ..RendererOptions::default()
             },
         );
         assert!(!renderer.uses_subgroups);
@@ -153,6 +156,175 @@ fn backward_without_subgroups_matches_reference() {
         let cloud = random_scene(&camera, 40, 26, (-3.0, -1.8), (-1.0, 2.0));
         check_backward(&renderer, &cloud, &camera, 7);
     }
+}
+
+#[test]
+fn backward_in_arrival_order_matches_reference() {
+    // GradientOrder::Arrival: atomics straight into the per-Gaussian sums, both kernel sets.
+    let gpu = gpu();
+    let camera = default_camera();
+    for subgroups in [Subgroups::Auto, Subgroups::Never] {
+        let renderer = GpuRenderer::with_options(
+            &gpu.context,
+            RendererOptions {
+                subgroups,
+                gradient_order: GradientOrder::Arrival,
+                ..RendererOptions::default()
+            },
+        );
+        let cloud = random_scene(&camera, 400, 28, (-2.6, -1.8), (1.0, 6.0));
+        check_backward(&renderer, &cloud, &camera, 9);
+    }
+}
+
+/// Every gradient of a backward pass, as bits.
+fn gradient_bits(gradients: &GaussianGradients) -> Vec<u32> {
+    flatten(&gradients.v_means)
+        .into_iter()
+        .chain(flatten(&gradients.v_log_scales))
+        .chain(flatten(&gradients.v_quaternions))
+        .chain(gradients.v_opacity_logits.iter().copied())
+        .chain(flatten(&gradients.v_colours))
+        .chain(gradients.v_pose.as_array())
+        .map(f32::to_bits)
+        .collect()
+}
+
+#[test]
+fn fixed_order_backward_repeats_bit_for_bit() {
+    // Large translucent splats over many tiles: every Gaussian's gradient sums pairs from tiles
+    // that different device threads process, in whatever order they finish. The fixed order
+    // must give the same bits every time, with both kernel sets.
+    let gpu = gpu();
+    let context = &gpu.context;
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 800, 29, (-1.6, -0.8), (-3.0, -1.0));
+    let image_gradients = random_image_gradients(&camera, 10);
+    let gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
+    let device_image_gradients =
+        DeviceImageGradients::upload(context, &camera, &image_gradients).unwrap();
+    for subgroups in [Subgroups::Auto, Subgroups::Never] {
+        let renderer = GpuRenderer::with_options(
+            context,
+            RendererOptions {
+                subgroups,
+                ..RendererOptions::default()
+            },
+        );
+        assert_eq!(renderer.gradient_order, GradientOrder::Fixed);
+        let run = || {
+            let frame = renderer
+                .render_frame(context, &gaussians, &camera, &RasterConfig::default())
+                .unwrap();
+            let gradients = renderer
+                .backward(context, &gaussians, &frame, &device_image_gradients)
+                .unwrap()
+                .download(context)
+                .unwrap();
+            gradient_bits(&gradients)
+        };
+        let first = run();
+        assert!(first.iter().any(|&bits| f32::from_bits(bits) != 0.0));
+        for repeat in 1..6 {
+            assert!(
+                run() == first,
+                "{subgroups:?}: repeat {repeat} differs from the first backward pass"
+            );
+        }
+    }
+}
+
+#[test]
+fn fixed_order_sums_start_from_zero_after_a_frame_that_overflowed_its_pairs() {
+    // The per-pair sums are kept between backward passes and must be all zeros between them.
+    // A frame that overflowed its pair capacity keeps only its first pairs in depth order; its
+    // backward pass must still leave nothing behind for the next one.
+    let gpu = gpu();
+    let context = &gpu.context;
+    let (width, height) = (8 * 16, 6 * 16);
+    let camera = camera(
+        width,
+        height,
+        (width as f32 - 1.0) / 2.0,
+        (height as f32 - 1.0) / 2.0,
+    );
+    // Large translucent splats over many of the 48 tiles: more pairs than a fresh renderer
+    // reserves (as in gpu_forward.rs's overflow test).
+    let cloud = random_scene(&camera, 300, 11, (-1.2, -0.8), (-2.0, 0.0));
+    let image_gradients = random_image_gradients(&camera, 12);
+    let gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
+    let device_image_gradients =
+        DeviceImageGradients::upload(context, &camera, &image_gradients).unwrap();
+    let config = RasterConfig::default();
+    // Many small splats first: 8 pairs reserved for each of them make the kept sums large
+    // enough for every frame below, so no frame gets a fresh (zero-filled) buffer.
+    let small = random_scene(&camera, 4000, 13, (-4.0, -3.5), (-1.0, 1.0));
+    let small_gaussians = DeviceGaussians::upload(context, &small).unwrap();
+    let backward_bits = |renderer: &GpuRenderer, run_backward_on_the_overflow: bool| {
+        let frame = renderer
+            .render_frame(context, &small_gaussians, &camera, &config)
+            .unwrap();
+        assert!(frame.pair_capacity >= 4000 * 8);
+        renderer
+            .backward(context, &small_gaussians, &frame, &device_image_gradients)
+            .unwrap();
+        let overflowed = renderer
+            .render_frame(context, &gaussians, &camera, &config)
+            .unwrap();
+        assert!(
+            renderer
+                .check_pairs(context, &overflowed)
+                .unwrap()
+                .overflowed()
+        );
+        if run_backward_on_the_overflow {
+            let truncated = renderer
+                .backward(context, &gaussians, &overflowed, &device_image_gradients)
+                .unwrap()
+                .download(context)
+                .unwrap();
+            assert!(
+                gradient_bits(&truncated)
+                    .iter()
+                    .all(|&bits| f32::from_bits(bits).is_finite())
+            );
+        }
+        let fitting = renderer
+            .render_frame(context, &gaussians, &camera, &config)
+            .unwrap();
+        assert!(
+            !renderer
+                .check_pairs(context, &fitting)
+                .unwrap()
+                .overflowed()
+        );
+        assert!(
+            fitting.pair_capacity <= 4000 * 8,
+            "the kept sums would be regrown"
+        );
+        renderer
+            .backward(context, &gaussians, &fitting, &device_image_gradients)
+            .unwrap()
+            .download(context)
+            .unwrap()
+    };
+    let after_overflow = backward_bits(&GpuRenderer::new(context), true);
+    let fresh = backward_bits(&GpuRenderer::new(context), false);
+    assert!(
+        gradient_bits(&after_overflow) == gradient_bits(&fresh),
+        "the overflowed frame's backward pass left per-pair sums behind"
+    );
+    let expected = reference::render_backward(&cloud, &camera, &config, &image_gradients);
+    compare(
+        "v_means",
+        &flatten(&after_overflow.v_means),
+        &flatten(&expected.v_means),
+    );
+    compare(
+        "v_colours",
+        &flatten(&after_overflow.v_colours),
+        &flatten(&expected.v_colours),
+    );
 }
 
 #[test]

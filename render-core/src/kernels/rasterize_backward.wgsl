@@ -3,7 +3,7 @@
 // walks its tile's list back to front in batches of BATCH_SIZE splats loaded into workgroup
 // memory (LOADS_PER_THREAD per invocation), starting at the largest last_entry of the tile's
 // pixels (later entries affect no pixel). Each invocation sums a splat's gradients over its
-// 16 pixels and adds them to screen_gradients with one atomic add per component.
+// 16 pixels and adds them to binding 10 with one atomic add per component.
 // Invariants: barriers in uniform control flow (bounds from workgroupUniformLoad).
 
 const BATCH_SIZE: u32 = 64u;
@@ -68,7 +68,7 @@ fn main(
             let hit2 = accumulate(&group2, pixel_y, splat, ratio_growth, entry, &partials);
             let hit3 = accumulate(&group3, pixel_y, splat, ratio_growth, entry, &partials);
             if hit0 || hit1 || hit2 || hit3 {
-                add_splat_gradient(batch_gaussian[j], total(partials));
+                add_splat_gradient(start + entry, batch_gaussian[j], total(partials));
             }
         }
         workgroupBarrier();

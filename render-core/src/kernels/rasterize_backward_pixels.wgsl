@@ -1,18 +1,18 @@
 // rasterize_backward, shared part: bindings 6-9 and per-pixel gradient arithmetic of the
 // backward rasterizer, between rasterize_tiles.wgsl and rasterize_backward.wgsl or
 // rasterize_backward_subgroup.wgsl, which differ in how the splats reach the invocations and
-// how the per-splat sums reach screen_gradients.
+// how the per-splat sums reach binding 10.
 // Thread mapping (both variants, as in the forward pass, see rasterize_tiles.wgsl): invocation
 // r owns tile row r as 4 PixelGradients groups of 4 pixels. The tile's
 // splat list is walked BACK to front; each pixel only considers entries before its recorded
 // last_entry, recomputes each splat's alpha exactly as the forward pass did, recovers the
 // transmittance in front of it as T_before = T_after / (1 - alpha), and adds dL/d(mean2d,
 // conic, opacity, colour, depth) of the splat over its pixels into a SplatPartials; the
-// variants sum those over the tile and add them atomically into screen_gradients (10 floats
-// per Gaussian).
+// variants sum those over the tile and add them atomically into binding 10 (10 floats per
+// Gaussian, or per list slot: see add_splat_gradient).
 // Invariants: the splat order and skip rules are identical to the forward pass; a splat whose
 // alpha hit the cap gets no opacity/footprint gradient.
-// `add_gradient` and binding 10 (screen_gradients) come from atomics_float.wgsl or
+// `add_gradient` and binding 10 (gradient_sums) come from atomics_float.wgsl or
 // atomics_cas.wgsl (compare-exchange fallback when float atomics are unavailable), which the
 // launcher puts in front of this file.
 @group(0) @binding(6) var<storage, read> pixel_transmittance: array<f32>;
@@ -113,8 +113,12 @@ fn is_zero(g: SplatGradient) -> bool {
     return all(g.a == vec4<f32>(0.0)) && all(g.b == vec4<f32>(0.0)) && all(g.c == vec2<f32>(0.0));
 }
 
-fn add_splat_gradient(gaussian: u32, g: SplatGradient) {
-    let base = gaussian * SCREEN_GRADIENT_STRIDE;
+// Adds a splat's gradient over some pixels of list slot `slot` (Gaussian `gaussian`) into
+// binding 10: the slot's sums when params.pair_gradient_sums (pair_gradients.wgsl then sums
+// each Gaussian's slots in a fixed order), the Gaussian's sums otherwise.
+fn add_splat_gradient(slot: u32, gaussian: u32, g: SplatGradient) {
+    let base = select(gaussian * SCREEN_GRADIENT_STRIDE, slot * SLOT_GRADIENT_STRIDE,
+                      params.pair_gradient_sums != 0u);
     add_gradient(base + V_MEAN2D, g.a.x);
     add_gradient(base + V_MEAN2D + 1u, g.a.y);
     add_gradient(base + V_CONIC, g.a.z);

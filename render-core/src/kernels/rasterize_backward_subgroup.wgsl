@@ -5,7 +5,7 @@
 // loads entry end - 1 - l (a different splat per lane) and the subgroup processes them in
 // list order, each broadcast from its lane with subgroupShuffle. A splat's gradient sums over
 // the subgroup's pixels (subgroupAdd, skipped when no pixel of the subgroup sees it) are kept
-// by the lane that loaded the splat, which adds them to screen_gradients after the step: one
+// by the lane that loaded the splat, which adds them to binding 10 after the step: one
 // atomic add per component per subgroup instead of one per invocation.
 // Skipping as in rasterize_subgroup.wgsl: the band is processed as two halves of 8 columns,
 // each looping only over the loaded splats whose visible ellipse reaches it
@@ -101,7 +101,7 @@ fn main(
         accumulate_half(&group2, &group3, subgroupBallot(reaches_right), mine, end - 1u, pixel_y,
                         lane, &my_gradient);
         if lane < count && !is_zero(my_gradient) {
-            add_splat_gradient(my_gaussian, my_gradient);
+            add_splat_gradient(start + end - 1u - lane, my_gaussian, my_gradient);
         }
         end -= count;
     }

@@ -13,7 +13,7 @@ use harness::{
 };
 use render_core::constants::TILE_SIZE;
 use render_core::context::GpuContext;
-use render_core::gpu::{GpuRenderer, RendererOptions, StageTimes, Subgroups};
+use render_core::gpu::{GpuRenderer, GradientOrder, RendererOptions, StageTimes, Subgroups};
 use render_core::training::TrainingKernels;
 use render_core::{Camera, GaussianCloud, RasterConfig};
 use serde::Serialize;
@@ -55,6 +55,11 @@ pub struct BenchRenderArgs {
     /// Use the rasterizer kernels without subgroup operations even when the adapter has them.
     #[arg(long)]
     no_subgroups: bool,
+    /// Sum the backward pass's gradients straight into each Gaussian with atomics, in the
+    /// order the threads arrive, instead of per tile/Gaussian pair and then in a fixed order
+    /// (render_core::gpu::GradientOrder; compares what the fixed order costs).
+    #[arg(long)]
+    arrival_order: bool,
     #[arg(long)]
     json: bool,
     /// Also count each case's rasterizer workload on the host: (pixel, splat) evaluations for
@@ -321,6 +326,11 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
                 Subgroups::Never
             } else {
                 Subgroups::Auto
+            },
+            gradient_order: if args.arrival_order {
+                GradientOrder::Arrival
+            } else {
+                GradientOrder::Fixed
             },
             ..RendererOptions::default()
         },
