@@ -112,10 +112,16 @@ fn the_paced_7scenes_config_differs_from_7scenes_only_in_its_paced_keys() {
     assert_eq!(paced.mapping.pace, config::Pace::Paced);
     assert!(paced.mapping.refine_keyframe_poses);
     assert!(paced.consensus.t_comm < real_time.consensus.t_comm);
+    assert!(
+        paced.consensus.refinement.iterations_per_view
+            > real_time.consensus.refinement.iterations_per_view
+    );
     paced.keyframes.tracking_keyframe_seeds = real_time.keyframes.tracking_keyframe_seeds;
     paced.mapping.pace = real_time.mapping.pace;
     paced.mapping.image_downscale = real_time.mapping.image_downscale;
     paced.mapping.refine_keyframe_poses = real_time.mapping.refine_keyframe_poses;
     paced.consensus.t_comm = real_time.consensus.t_comm;
+    paced.consensus.refinement.iterations_per_view =
+        real_time.consensus.refinement.iterations_per_view;
     assert_eq!(paced, real_time);
 }
