@@ -18,6 +18,7 @@
 //! host does not queue unbounded work), the pair-count check every `check_pairs_every`
 //! iterations, and the pruning mask.
 
+use std::borrow::Cow;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::thread::JoinHandle;
@@ -105,14 +106,43 @@ impl MappingStats {
 pub struct MappingOutcome {
     /// The map when the stream ended (real-time mapping only).
     pub realtime_map: GaussianCloud,
-    /// `refine_keyframe_poses` only: `realtime_map` moved from where the pose refinement put
-    /// the keyframe cameras back to their tracked poses
-    /// (`MapperState::map_at_tracked_poses`); what the consensus is sent, since it places
-    /// the map with the tracked keyframes it knows.
-    pub realtime_map_at_tracked_poses: Option<GaussianCloud>,
+    /// `refine_keyframe_poses` only: how `realtime_map` moves from where the pose refinement
+    /// put the keyframe cameras back to their tracked poses (see
+    /// [`MappingOutcome::realtime_map_at_tracked_poses`]).
+    pub tracked_pose_moves: Option<TrackedPoseMoves>,
     pub realtime: MappingStats,
     /// After the optional refinement pass.
     pub refined: Option<(GaussianCloud, MappingStats)>,
+}
+
+impl MappingOutcome {
+    /// `realtime_map` as the consensus is sent it: moved back to the tracked keyframe poses
+    /// when the mapper refined them, since the consensus places the map with the tracked
+    /// keyframes it knows; otherwise `realtime_map` itself. Built on demand: only a swarm agent
+    /// needs the moved copy.
+    pub fn realtime_map_at_tracked_poses(&self) -> Cow<'_, GaussianCloud> {
+        match &self.tracked_pose_moves {
+            Some(moves) => Cow::Owned(moves.apply(&self.realtime_map)),
+            None => Cow::Borrowed(&self.realtime_map),
+        }
+    }
+}
+
+/// Moves a map from refined keyframe cameras back to tracked ones: each Gaussian by its
+/// seeding keyframe's tracked `world_from_camera` times its refined `camera_from_world`.
+pub struct TrackedPoseMoves {
+    /// Per Gaussian of the map it was made for: its seeding keyframe's id.
+    keyframe_of: Vec<u32>,
+    /// Per keyframe id.
+    moves: Vec<RigidTransform>,
+}
+
+impl TrackedPoseMoves {
+    pub fn apply(&self, map: &GaussianCloud) -> GaussianCloud {
+        let mut moved = map.clone();
+        moved.transform_groups(&self.keyframe_of, &self.moves);
+        moved
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -373,7 +403,7 @@ impl MapperState {
         self.stats.keyframe_pose_corrections = self.keyframe_pose_corrections();
         let realtime = std::mem::take(&mut self.stats);
         let realtime_map = self.download()?;
-        let realtime_map_at_tracked_poses = self.map_at_tracked_poses(&realtime_map);
+        let tracked_pose_moves = self.tracked_pose_moves();
         tracing::info!(
             iterations = realtime.iterations,
             per_second = format!("{:.2}", realtime.iterations_per_second()),
@@ -400,7 +430,7 @@ impl MapperState {
         };
         Ok(MappingOutcome {
             realtime_map,
-            realtime_map_at_tracked_poses,
+            tracked_pose_moves,
             realtime,
             refined,
         })
@@ -424,7 +454,7 @@ impl MapperState {
     /// one. Each Gaussian moves with the keyframe that seeded it, as a consensus correction
     /// moves it; where keyframes refined differently see the same Gaussian, that is an
     /// approximation, which the consensus's joint refinement (poses and map) fits further.
-    fn map_at_tracked_poses(&self, map: &GaussianCloud) -> Option<GaussianCloud> {
+    fn tracked_pose_moves(&self) -> Option<TrackedPoseMoves> {
         if !self.config.refine_keyframe_poses {
             return None;
         }
@@ -437,9 +467,10 @@ impl MapperState {
                 .inverse()
                 .compose(&keyframe.camera.camera_from_world);
         }
-        let mut moved = map.clone();
-        moved.transform_groups(&self.keyframe_of, &moves);
-        Some(moved)
+        Some(TrackedPoseMoves {
+            keyframe_of: self.keyframe_of.clone(),
+            moves,
+        })
     }
 
     /// `simulated_iteration_delay_ms` of extra wall time per iteration.
@@ -874,7 +905,7 @@ mod tests {
     /// consensus has keyframe 1's Gaussians where the tracked camera sees them as the refined
     /// camera saw the map; keyframe 0's (the fixed first keyframe) stay put.
     #[test]
-    fn map_at_tracked_poses_moves_each_keyframe_s_gaussians_by_its_refinement() {
+    fn tracked_pose_moves_move_each_keyframe_s_gaussians_by_its_refinement() {
         let wall = textured_wall();
         let second_wall = {
             let mut moved = wall.clone();
@@ -908,7 +939,10 @@ mod tests {
         };
         let state = state_with_refined_second_keyframe(true);
         let map = state.download().unwrap();
-        let moved = state.map_at_tracked_poses(&map).expect("refinement on");
+        let moved = state
+            .tracked_pose_moves()
+            .expect("refinement on")
+            .apply(&map);
         assert_eq!(moved.len(), wall.len() + second_wall.len());
         for i in 0..map.len() {
             let keyframe = &state.keyframes[state.keyframe_of[i] as usize];
@@ -938,7 +972,7 @@ mod tests {
             }
         }
         let unrefined = state_with_refined_second_keyframe(false);
-        assert!(unrefined.map_at_tracked_poses(&map).is_none());
+        assert!(unrefined.tracked_pose_moves().is_none());
     }
 
     #[test]

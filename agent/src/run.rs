@@ -270,14 +270,7 @@ pub fn run_agent(
     write_maps(&outcome, &options.out)?;
     // The consensus reads trajectory.tum once this agent has said goodbye, so that goes first;
     // the evaluation below takes a while and needs nothing from the swarm.
-    let swarm_summary = swarm.map(|link| {
-        link.finish(
-            outcome
-                .realtime_map_at_tracked_poses
-                .as_ref()
-                .unwrap_or(&outcome.realtime_map),
-        )
-    });
+    let swarm_summary = swarm.map(|link| link.finish(&outcome.realtime_map_at_tracked_poses()));
     // The latest placement the consensus sent, one that arrived while the link finished
     // included: the recording ends with this agent's map in the world frame.
     if let Some(world_from_agent) = swarm_summary
