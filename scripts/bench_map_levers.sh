@@ -21,9 +21,9 @@
 #   keyframe_poses      the mapper refines keyframe poses photometrically with the map
 #   seeds_and_resolution  all_tracking_seeds and half_resolution together
 #   paced_best          seeds_and_resolution and keyframe_poses together
-# --repeats N runs every row N times, interleaved (row 1, row 2, ..., row 1, ...): the mapper's
-# gradient sums use float atomics, so on a multi-threaded device two runs of one row differ a
-# little, and the spread of a row's runs is the noise a lever has to beat. The table then shows
+# --repeats N runs every row N times, interleaved (row 1, row 2, ..., row 1, ...). On one machine
+# the runs of a row repeat bit for bit (the renderer sums gradients in a fixed order), so a
+# spread means something else changed between runs (the driver, the build). The table then shows
 # each row's median and its PSNR range.
 # Each run's quality is what the agent itself reports (metrics.json): PSNR, SSIM, LPIPS and depth
 # L1 of the real-time map on every 10th frame at full resolution against the dataset's images.
@@ -32,7 +32,7 @@
 # stay in --out (default: a new folder under $TMPDIR). Binaries: built first (release), or the
 # mac-agent and mac-ego3d in --bin-dir as they are (test harnesses pass where cargo test put
 # them). Dataset: $MAC_EGO3D_SHARED (default ../shared)/datasets/7scenes-redkitchen. Wall times
-# depend on the machine and its load; the quality figures do not (paced), up to the spread above.
+# depend on the machine and its load; the quality figures do not (paced).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
