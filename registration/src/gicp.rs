@@ -518,7 +518,7 @@ fn linearize<T: RegistrationTarget + ?Sized>(
 ) -> NormalEquations {
     let parts = RigidParts::of(pose);
     let search_sq = max_distance_sq.max(overlap_sq);
-    let mut world = source
+    let chunks = source
         .positions
         .par_chunks(POINTS_PER_TASK)
         .zip(source.covariances.par_chunks(POINTS_PER_TASK))
@@ -573,8 +573,8 @@ fn linearize<T: RegistrationTarget + ?Sized>(
                 sum.inliers += 1;
             }
             sum
-        })
-        .reduce(NormalEquations::zero, NormalEquations::add);
+        });
+    let mut world = in_chunk_order(chunks, NormalEquations::zero(), NormalEquations::add);
     // Lower-left block from the upper-right, then from K's frame to the perturbation's.
     let upper_right = world.hessian.fixed_view::<3, 3>(0, 3).transpose();
     world
@@ -599,7 +599,7 @@ fn linearize<T: RegistrationTarget + ?Sized>(
 /// a damped step needs no new search).
 fn evaluate(source: &PointCloud, pose: &Isometry3<f64>, correspondences: &[Correspondence]) -> f64 {
     let parts = RigidParts::of(pose);
-    source
+    let errors = source
         .positions
         .par_chunks(POINTS_PER_TASK)
         .zip(correspondences.par_chunks(POINTS_PER_TASK))
@@ -612,8 +612,21 @@ fn evaluate(source: &PointCloud, pose: &Isometry3<f64>, correspondences: &[Corre
                 }
             }
             error
-        })
-        .sum()
+        });
+    in_chunk_order(errors, 0.0, |x, y| x + y)
+}
+
+/// Combines per-chunk results in chunk order. Rayon's `reduce` and `sum` combine them in a tree
+/// whose shape depends on which thread stole which work, and float addition is not
+/// associative: the same frame would get a pose that differs in the last bits from run to run
+/// and with the thread count, and odometry carries such differences on. The chunks themselves
+/// are fixed (`POINTS_PER_TASK` points each, summed in order), so this makes the sums repeat.
+fn in_chunk_order<T: Send>(
+    chunks: impl IndexedParallelIterator<Item = T>,
+    zero: T,
+    add: impl Fn(T, T) -> T,
+) -> T {
+    chunks.collect::<Vec<T>>().into_iter().fold(zero, add)
 }
 
 struct FinalStatistics {
@@ -634,7 +647,7 @@ fn final_statistics<T: RegistrationTarget + ?Sized>(
     let inlier_sq = (params.max_correspondence_m * params.max_correspondence_m) as f32;
     let overlap_sq = (params.overlap_distance_m * params.overlap_distance_m) as f32;
     let search_sq = inlier_sq.max(overlap_sq);
-    let (inliers, overlapping, error) = source
+    let chunks = source
         .positions
         .par_chunks(POINTS_PER_TASK)
         .zip(source.covariances.par_chunks(POINTS_PER_TASK))
@@ -664,8 +677,10 @@ fn final_statistics<T: RegistrationTarget + ?Sized>(
                 }
             }
             (inliers, overlapping, error)
-        })
-        .reduce(|| (0, 0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1, x.2 + y.2));
+        });
+    let (inliers, overlapping, error) = in_chunk_order(chunks, (0, 0, 0.0), |x, y| {
+        (x.0 + y.0, x.1 + y.1, x.2 + y.2)
+    });
     FinalStatistics {
         inliers,
         overlapping,
@@ -759,6 +774,46 @@ mod tests {
             result.inlier_fraction()
         );
         assert!(result.overlap_fraction > 0.9 && result.error.is_finite());
+    }
+
+    #[test]
+    fn the_result_does_not_depend_on_the_thread_count() {
+        // 4800 points: five chunks of POINTS_PER_TASK, which rayon may combine in any tree.
+        let truth = Isometry3::from_parts(
+            Translation3::new(0.012, -0.008, 0.01),
+            UnitQuaternion::from_euler_angles(0.01, -0.02, 0.015),
+        );
+        let (source, target) = source_and_target(&truth);
+        assert!(source.len() > 4 * POINTS_PER_TASK);
+        let with_threads = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    register(
+                        source.cloud(),
+                        &target,
+                        &Isometry3::identity(),
+                        &params(0.05),
+                    )
+                })
+        };
+        let bits = |result: &RegistrationResult| {
+            result
+                .target_from_source
+                .to_homogeneous()
+                .iter()
+                .map(|v| v.to_bits())
+                .chain([result.error.to_bits()])
+                .collect::<Vec<_>>()
+        };
+        let one = bits(&with_threads(1));
+        for threads in [2, 3, 4] {
+            for _ in 0..3 {
+                assert_eq!(bits(&with_threads(threads)), one, "{threads} threads");
+            }
+        }
     }
 
     #[test]
