@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{camera, default_camera, gpu, random_scene};
+use common::{default_camera, gpu, pair_overflow_scene, random_scene};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::backward::DeviceImageGradients;
@@ -241,16 +241,7 @@ fn fixed_order_sums_start_from_zero_after_a_frame_that_overflowed_its_pairs() {
     // backward pass must still leave nothing behind for the next one.
     let gpu = gpu();
     let context = &gpu.context;
-    let (width, height) = (8 * 16, 6 * 16);
-    let camera = camera(
-        width,
-        height,
-        (width as f32 - 1.0) / 2.0,
-        (height as f32 - 1.0) / 2.0,
-    );
-    // Large translucent splats over many of the 48 tiles: more pairs than a fresh renderer
-    // reserves (as in gpu_forward.rs's overflow test).
-    let cloud = random_scene(&camera, 300, 11, (-1.2, -0.8), (-2.0, 0.0));
+    let (camera, cloud) = pair_overflow_scene();
     let image_gradients = random_image_gradients(&camera, 12);
     let gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
     let device_image_gradients =

@@ -2,7 +2,7 @@
 
 mod common;
 
-use common::{HEIGHT, WIDTH, camera, default_camera, gpu, random_scene};
+use common::{HEIGHT, WIDTH, camera, default_camera, gpu, pair_overflow_scene, random_scene};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::gpu::{DeviceGaussians, GpuRenderer, RendererOptions, Subgroups};
@@ -486,17 +486,7 @@ fn gaussians_round_trip_through_the_device() {
 fn pair_overflow_is_reported_and_the_next_frame_fits() {
     let gpu = gpu();
     let context = &gpu.context;
-    const SIDE_TILES: (u32, u32) = (8, 6);
-    let (width, height) = (SIDE_TILES.0 * 16, SIDE_TILES.1 * 16);
-    let camera = camera(
-        width,
-        height,
-        (width as f32 - 1.0) / 2.0,
-        (height as f32 - 1.0) / 2.0,
-    );
-    // Large, fairly transparent splats: each covers many of the 48 tiles (more than the 8
-    // pairs per Gaussian a fresh renderer reserves) and the far ones stay visible.
-    let cloud = random_scene(&camera, 300, 11, (-1.2, -0.8), (-2.0, 0.0));
+    let (camera, cloud) = pair_overflow_scene();
     let gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
     // A fresh renderer: the shared one may already have grown its pair capacity.
     let renderer = GpuRenderer::new(context);

@@ -43,6 +43,21 @@ pub fn default_camera() -> Camera {
     )
 }
 
+/// A 128x96 camera (8 x 6 tiles) and large, fairly transparent splats in front of it: each
+/// covers many of the 48 tiles (more than the 8 pairs per Gaussian a fresh renderer reserves)
+/// and the far ones stay visible, so a fresh renderer's first frame overflows its pairs.
+pub fn pair_overflow_scene() -> (Camera, GaussianCloud) {
+    let (width, height) = (8 * 16, 6 * 16);
+    let camera = camera(
+        width,
+        height,
+        (width as f32 - 1.0) / 2.0,
+        (height as f32 - 1.0) / 2.0,
+    );
+    let cloud = random_scene(&camera, 300, 11, (-1.2, -0.8), (-2.0, 0.0));
+    (camera, cloud)
+}
+
 /// Random Gaussians in front of `camera`; `log_scale_range` controls footprint sizes and
 /// `logit_range` the opacities.
 pub fn random_scene(
