@@ -23,11 +23,37 @@ pub fn isometry_from_rt(
             rotation.determinant()
         ));
     }
-    let rot = Rotation3::from_matrix_eps(rotation, 1e-12, 100, Rotation3::identity());
+    let rot = nearest_rotation(rotation)
+        .ok_or_else(|| "rotation part has no singular value decomposition".to_string())?;
     Ok(Isometry3::from_parts(
         Translation3::from(*translation),
         UnitQuaternion::from_rotation_matrix(&rot),
     ))
+}
+
+/// Iterations the singular value decomposition of [`nearest_rotation`] may take (3x3 matrices
+/// converge in a handful).
+const NEAREST_ROTATION_MAX_ITERATIONS: usize = 100;
+
+/// The rotation nearest to `m` in the Frobenius norm: `U diag(1, 1, det(U V^T)) V^T` from the
+/// singular value decomposition `m = U S V^T` (the orthogonal Procrustes solution; for a sum of
+/// rotation matrices, their chordal L2 mean). `None` when `m` is not finite or the
+/// decomposition does not converge.
+///
+/// Why not nalgebra's `Rotation3::from_matrix`: it iterates from the identity until a step
+/// falls below machine epsilon, with no iteration limit, and some perfectly ordinary inputs
+/// never get there (a uniform multiple of a rotation, which a sum of nearly equal rotations
+/// is; nalgebra issues 1177, 1529 and 1583): a consensus hung in it. From the identity it can
+/// also stop at the identity for a rotation by 180 degrees (issue 1078).
+pub fn nearest_rotation(m: &Matrix3<f64>) -> Option<Rotation3<f64>> {
+    if !m.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let svd = m.try_svd(true, true, f64::EPSILON, NEAREST_ROTATION_MAX_ITERATIONS)?;
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    let mut flip = Matrix3::identity();
+    flip[(2, 2)] = (u * v_t).determinant().signum();
+    Some(Rotation3::from_matrix_unchecked(u * flip * v_t))
 }
 
 /// Pose from TUM's `tx ty tz qx qy qz qw` (Hamilton quaternion, normalised here).
@@ -204,6 +230,52 @@ mod tests {
         assert!((metres - 0.05).abs() < 1e-12, "{metres}");
         assert!((radians - 0.02).abs() < 1e-12, "{radians}");
         assert_eq!(pose_change(&moved, &moved), (0.0, 0.0));
+    }
+
+    #[test]
+    fn nearest_rotation_recovers_scaled_and_half_turn_rotations() {
+        let rotations = [
+            UnitQuaternion::identity(),
+            UnitQuaternion::from_euler_angles(0.3, -0.7, 1.9),
+            // Half turns, where an iteration from the identity can stop at the identity.
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+            UnitQuaternion::from_axis_angle(
+                &nalgebra::Unit::new_normalize(Vector3::new(1.0, 2.0, -0.5)),
+                std::f64::consts::PI,
+            ),
+        ];
+        for rotation in rotations {
+            let r = rotation.to_rotation_matrix().into_inner();
+            // Uniform multiples, as a sum of equal rotations is; nalgebra's from_matrix never
+            // returns for some (e.g. 0.11823407 I in f32).
+            for scale in [1.0, 0.118_234_07, 0.077_000_05, 0.125, 2.0, 7.0, 64.0, 1e-6] {
+                let nearest = nearest_rotation(&(r * scale)).expect("finite input");
+                assert!(
+                    (nearest.into_inner() - r).abs().max() < 1e-12,
+                    "{rotation:?} x {scale}"
+                );
+            }
+        }
+        // A noisy sum: still a proper rotation, close to the mean.
+        let noisy = rotations[1].to_rotation_matrix().into_inner() * 3.0
+            + Matrix3::new(0.01, -0.02, 0.0, 0.0, 0.015, 0.01, -0.01, 0.0, 0.02);
+        let nearest = nearest_rotation(&noisy).unwrap().into_inner();
+        assert!(
+            (nearest.transpose() * nearest - Matrix3::identity())
+                .abs()
+                .max()
+                < 1e-12
+        );
+        assert!((nearest.determinant() - 1.0).abs() < 1e-12);
+        let nearest_quaternion =
+            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(nearest));
+        assert!(nearest_quaternion.angle_to(&rotations[1]) < 0.02);
+        // A reflection gets the nearest proper rotation, not a reflection.
+        let reflected = nearest_rotation(&Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, -1.0)))
+            .unwrap()
+            .into_inner();
+        assert!((reflected.determinant() - 1.0).abs() < 1e-12);
+        assert_eq!(nearest_rotation(&Matrix3::from_element(f64::NAN)), None);
     }
 
     #[test]

@@ -490,7 +490,12 @@ fn mean_pose(samples: &[Isometry3<f64>]) -> Isometry3<f64> {
         .iter()
         .map(|p| p.rotation.to_rotation_matrix().into_inner())
         .sum();
-    let rotation = Rotation3::from_matrix(&rotation_sum);
+    // Only non-finite samples leave no mean rotation; keep the first sample's then.
+    let rotation = geometry::se3::nearest_rotation(&rotation_sum).unwrap_or_else(|| {
+        samples
+            .first()
+            .map_or_else(Rotation3::identity, |p| p.rotation.to_rotation_matrix())
+    });
     Isometry3::from_parts(
         Translation3::from(translation),
         UnitQuaternion::from_rotation_matrix(&rotation),
@@ -505,6 +510,31 @@ mod tests {
         KeyframeRef {
             agent_id,
             keyframe_id,
+        }
+    }
+
+    #[test]
+    fn mean_pose_is_the_chordal_mean_of_the_samples() {
+        let centre = Isometry3::from_parts(
+            Translation3::new(0.5, -1.0, 2.0),
+            UnitQuaternion::from_euler_angles(0.4, -2.9, 1.3),
+        );
+        let turn = |angle: f64| {
+            Isometry3::from_parts(
+                Translation3::new(angle, 0.0, 0.0),
+                UnitQuaternion::from_axis_angle(&Vector3::y_axis(), angle),
+            )
+        };
+        // Symmetric spreads around the centre, and many equal samples (a multiple of one
+        // rotation matrix, where nalgebra's iterative from_matrix can fail to return).
+        for samples in [
+            vec![centre * turn(0.1), centre * turn(-0.1)],
+            vec![centre * turn(0.3), centre, centre * turn(-0.3)],
+            vec![centre; 37],
+        ] {
+            let mean = mean_pose(&samples);
+            assert!(mean.rotation.angle_to(&centre.rotation) < 1e-9);
+            assert!((mean.translation.vector - centre.translation.vector).norm() < 1e-9);
         }
     }
 
