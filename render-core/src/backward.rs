@@ -15,13 +15,15 @@
 use bytemuck::Zeroable;
 
 use crate::context::{GpuContext, GpuError};
-use crate::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, StageTimes};
+use crate::gpu::{
+    DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, StageTimes, slot_gradient_bytes,
+};
 use crate::passes::{U32_BYTES, VEC4_BYTES, bind_group, dispatch_linear};
 use crate::profile::StageProfiler;
 use crate::types::{Camera, GaussianGradients, ImageGradients, PoseGradient};
 use crate::wgsl::{
     PROJECT_BACKWARD_CHUNK, PROJECT_BACKWARD_WORKGROUP_SIZE, REDUCE_CHUNK, REDUCE_WORKGROUP_SIZE,
-    ReduceParams, SCREEN_GRADIENT_STRIDE, SLOT_GRADIENT_STRIDE, WORKGROUP_SIZE,
+    ReduceParams, SCREEN_GRADIENT_STRIDE, WORKGROUP_SIZE,
 };
 
 /// dL/d(image) on the device: per pixel (r, g, b, depth) and alpha.
@@ -183,8 +185,7 @@ impl GpuRenderer {
             slots
         });
         let slot_gradients = if frame.pair_gradient_sums {
-            let bytes =
-                u64::from(frame.pair_capacity) * u64::from(SLOT_GRADIENT_STRIDE) * U32_BYTES;
+            let bytes = slot_gradient_bytes(frame.pair_capacity);
             if kept_slots
                 .as_ref()
                 .is_none_or(|buffer| buffer.size() < bytes)

@@ -6,15 +6,15 @@
 use bytemuck::Zeroable;
 
 use crate::context::{GpuContext, GpuError};
-use crate::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, GradientOrder, StageTimes};
+use crate::gpu::{
+    DeviceFrame, DeviceGaussians, GpuRenderer, GradientOrder, StageTimes, slot_gradient_bytes,
+};
 use crate::passes::{
     U32_BYTES, VEC4_BYTES, bind_group, count_buffer, dispatch_linear, inclusive_scan, prefix_scan,
 };
 use crate::profile::StageProfiler;
 use crate::types::{Camera, RasterConfig, constants};
-use crate::wgsl::{
-    BIN_WORKGROUP_SIZE, BinParams, RenderParams, SLOT_GRADIENT_STRIDE, WORKGROUP_SIZE,
-};
+use crate::wgsl::{BIN_WORKGROUP_SIZE, BinParams, RenderParams, WORKGROUP_SIZE};
 
 /// Pair-binning table entries per Gaussian the block size aims at (one (tile, block) counter
 /// per entry; the binning walks each block serially, so larger blocks mean a smaller table but
@@ -150,8 +150,7 @@ impl GpuRenderer {
         let n = gaussians.count;
         let pair_capacity = self.pair_capacity_for(context, n);
         let pair_gradient_sums = self.gradient_order == GradientOrder::Fixed
-            && u64::from(pair_capacity) * u64::from(SLOT_GRADIENT_STRIDE) * U32_BYTES
-                <= context.max_storage_binding_bytes();
+            && slot_gradient_bytes(pair_capacity) <= context.max_storage_binding_bytes();
         let buffers = FrameBuffers::allocate(
             context,
             camera,

@@ -119,6 +119,12 @@ const MIN_PAIR_CAPACITY: u64 = 1024;
 /// Head-room added when a frame overflowed its pair capacity.
 const PAIR_CAPACITY_GROWTH_PERCENT: u64 = 50;
 
+/// Bytes of [`GradientOrder::Fixed`]'s per-pair gradient sums for a frame of `pair_capacity`
+/// pairs: what decides whether the frame can use them (one binding) and what they allocate.
+pub(crate) fn slot_gradient_bytes(pair_capacity: u32) -> u64 {
+    u64::from(pair_capacity) * u64::from(crate::wgsl::SLOT_GRADIENT_STRIDE) * U32_BYTES
+}
+
 /// Tile/Gaussian pairs a frame needed and could hold.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct PairUsage {
