@@ -90,6 +90,10 @@ pub struct MappingStats {
     /// pose's inverse, blended between keyframes). A frame's camera in this map is
     /// `field.at(t) * (its tracked pose, after consensus corrections)`. Empty otherwise.
     pub keyframe_pose_corrections: CorrectionField,
+    /// Iterations whose frame was too large for the fixed gradient order (render-core's
+    /// `GradientOrder`) and summed in arrival order: with any, the run does not repeat bit for
+    /// bit.
+    pub arrival_order_iterations: usize,
 }
 
 impl MappingStats {
@@ -411,6 +415,7 @@ impl MapperState {
             max_pose_change_cm = format!("{:.2}", 100.0 * realtime.max_pose_change_m),
             max_pose_change_deg = format!("{:.3}", realtime.max_pose_change_deg),
             pose_steps_refused = realtime.pose_steps_refused,
+            arrival_order_iterations = realtime.arrival_order_iterations,
             "real-time mapping done"
         );
         let refined = if refine_iterations > 0 && !self.map_is_empty() {
@@ -597,6 +602,18 @@ impl MapperState {
             }
         }
         self.since_pair_check += 1;
+        if frame.gradient_order_fell_back() {
+            if self.stats.arrival_order_iterations == 0 {
+                tracing::warn!(
+                    gaussians = frame.gaussian_count,
+                    pair_capacity = frame.pair_capacity,
+                    fixed_order_mib = frame.fixed_order_bytes() as f64 / (1024.0 * 1024.0),
+                    "the frame's per-pair gradient sums do not fit one storage binding: gradients \
+                     are summed in arrival order, so this run will not repeat bit for bit"
+                );
+            }
+            self.stats.arrival_order_iterations += 1;
+        }
         let loss = self.kernels.image_loss(
             context,
             &self.renderer,

@@ -149,8 +149,9 @@ impl GpuRenderer {
         validate_frame(camera, config)?;
         let n = gaussians.count;
         let pair_capacity = self.pair_capacity_for(context, n);
-        let pair_gradient_sums = self.gradient_order == GradientOrder::Fixed
-            && slot_gradient_bytes(pair_capacity) <= context.max_storage_binding_bytes();
+        let pair_sums_fit =
+            slot_gradient_bytes(pair_capacity) <= context.max_storage_binding_bytes();
+        let pair_gradient_sums = self.gradient_order == GradientOrder::Fixed && pair_sums_fit;
         let buffers = FrameBuffers::allocate(
             context,
             camera,
@@ -188,6 +189,7 @@ impl GpuRenderer {
             tile_ranges: buffers.tile_ranges,
             intersection_gaussians: buffers.intersection_gaussians,
             pair_gradient_sums,
+            gradient_order_fell_back: self.gradient_order == GradientOrder::Fixed && !pair_sums_fit,
             bin_params: buffers.bin_params,
             depth_order: if sorted == 0 {
                 depth_values

@@ -132,6 +132,30 @@ pub struct PairUsage {
     pub capacity: u32,
 }
 
+impl DeviceFrame {
+    /// The order this frame's backward pass sums gradients in.
+    pub fn gradient_order(&self) -> GradientOrder {
+        if self.pair_gradient_sums {
+            GradientOrder::Fixed
+        } else {
+            GradientOrder::Arrival
+        }
+    }
+
+    /// True when the renderer was set to [`GradientOrder::Fixed`] and this frame still sums in
+    /// arrival order, because its pair sums ([`Self::fixed_order_bytes`]) would not fit one
+    /// storage binding: its gradients, and so a run, no longer repeat bit for bit. Callers log
+    /// it; render-core does not.
+    pub fn gradient_order_fell_back(&self) -> bool {
+        self.gradient_order_fell_back
+    }
+
+    /// Device memory the fixed order's per-pair sums take (or would take) for this frame.
+    pub fn fixed_order_bytes(&self) -> u64 {
+        slot_gradient_bytes(self.pair_capacity)
+    }
+}
+
 impl PairUsage {
     /// The frame dropped pairs (those of its farthest Gaussians, see the module docs).
     pub fn overflowed(&self) -> bool {
@@ -164,6 +188,8 @@ pub struct DeviceFrame {
     /// True when the backward pass sums gradients per pair first ([`GradientOrder::Fixed`] and
     /// the pair sums fit one binding); the binning buffers below serve that sum.
     pub(crate) pair_gradient_sums: bool,
+    /// The renderer asked for [`GradientOrder::Fixed`] but the pair sums did not fit.
+    pub(crate) gradient_order_fell_back: bool,
     pub(crate) bin_params: wgpu::Buffer,
     /// Gaussian indices front to back (the depth sort's output).
     pub(crate) depth_order: wgpu::Buffer,
@@ -236,9 +262,11 @@ pub enum GradientOrder {
     /// pair_gradients.wgsl adds each Gaussian's pairs in depth order. The same input then gives
     /// the same bits on every run, whatever the threads' timing: on CPU adapters (a workgroup
     /// runs on one thread) and, with the subgroup kernels, on GPUs whose subgroups hold at
-    /// least 8 lanes (at most two subgroups add to a pair, and two adds onto zero commute). Costs 40 bytes of device memory per pair of the frame's capacity; a
-    /// frame whose pair sums would not fit one storage binding falls back to
-    /// [`GradientOrder::Arrival`].
+    /// least 8 lanes (at most two subgroups add to a pair, and two adds onto zero commute). Costs
+    /// 48 bytes of device memory per pair of the frame's capacity
+    /// ([`DeviceFrame::fixed_order_bytes`]); a frame whose pair sums would not fit one storage
+    /// binding falls back to [`GradientOrder::Arrival`] and says so
+    /// ([`DeviceFrame::gradient_order_fell_back`]).
     Fixed,
     /// Atomic adds straight into each Gaussian's sum, tiles in the order threads arrive.
     Arrival,
@@ -377,6 +405,13 @@ impl GpuRenderer {
             .max(MIN_PAIR_CAPACITY);
         let binding_limit = context.max_storage_binding_bytes() / U32_BYTES;
         wanted.min(binding_limit).min(u64::from(u32::MAX)) as u32
+    }
+
+    /// Later frames allocate room for at least `pairs` tile/Gaussian pairs (within the device's
+    /// binding size), as after a frame that needed them: for a caller that knows how large its
+    /// frames get, to spare the first frames' overflow and the check that finds it.
+    pub fn reserve_pairs(&self, pairs: u64) {
+        self.pair_capacity_hint.fetch_max(pairs, Ordering::Relaxed);
     }
 
     /// Reads back how many tile/Gaussian pairs `frame` needed (blocking: call it outside an

@@ -177,6 +177,44 @@ fn backward_in_arrival_order_matches_reference() {
     }
 }
 
+#[test]
+fn a_frame_too_large_for_the_fixed_order_falls_back_to_arrival_order_and_says_so() {
+    let gpu = gpu();
+    let camera = default_camera();
+    let cloud = random_scene(&camera, 400, 28, (-2.6, -1.8), (1.0, 6.0));
+    let gaussians = DeviceGaussians::upload(&gpu.context, &cloud).unwrap();
+    let renderer = GpuRenderer::new(&gpu.context);
+    let render = |renderer: &GpuRenderer| {
+        renderer
+            .render_frame(&gpu.context, &gaussians, &camera, &RasterConfig::default())
+            .unwrap()
+    };
+    let fitting = render(&renderer);
+    assert_eq!(fitting.gradient_order(), GradientOrder::Fixed);
+    assert!(!fitting.gradient_order_fell_back());
+    // Room for just more pairs than one binding holds the fixed order's sums of.
+    let binding = gpu.context.max_storage_binding_bytes();
+    let bytes_per_pair = fitting.fixed_order_bytes() / u64::from(fitting.pair_capacity);
+    renderer.reserve_pairs(binding / bytes_per_pair + 1);
+    let too_large = render(&renderer);
+    assert!(too_large.fixed_order_bytes() > binding);
+    assert_eq!(too_large.gradient_order(), GradientOrder::Arrival);
+    assert!(too_large.gradient_order_fell_back());
+    // Its backward pass still gives the reference's gradients.
+    check_backward(&renderer, &cloud, &camera, 9);
+    // A renderer set to the arrival order did not fall back from anything.
+    let arrival = GpuRenderer::with_options(
+        &gpu.context,
+        RendererOptions {
+            gradient_order: GradientOrder::Arrival,
+            ..RendererOptions::default()
+        },
+    );
+    let frame = render(&arrival);
+    assert_eq!(frame.gradient_order(), GradientOrder::Arrival);
+    assert!(!frame.gradient_order_fell_back());
+}
+
 /// Every gradient of a backward pass, as bits.
 fn gradient_bits(gradients: &GaussianGradients) -> Vec<u32> {
     flatten(&gradients.v_means)

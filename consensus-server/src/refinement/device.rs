@@ -39,6 +39,8 @@ pub(super) struct MapTrainer<'v> {
     pairs_checked: Vec<bool>,
     weights: LossWeights,
     raster: RasterConfig,
+    /// Whether a frame too large for the fixed gradient order was reported.
+    arrival_order_reported: bool,
 }
 
 impl<'v> MapTrainer<'v> {
@@ -83,6 +85,7 @@ impl<'v> MapTrainer<'v> {
             targets,
             image_gradients,
             pairs_checked: vec![false; views.len()],
+            arrival_order_reported: false,
             weights: LossWeights {
                 l1: consensus.weight_l1 as f32,
                 ssim: consensus.weight_ssim as f32,
@@ -115,6 +118,17 @@ impl<'v> MapTrainer<'v> {
                 frame =
                     renderer.render_frame(context, self.map.gaussians(), &camera, &self.raster)?;
             }
+        }
+        if frame.gradient_order_fell_back() && !self.arrival_order_reported {
+            self.arrival_order_reported = true;
+            tracing::warn!(
+                view,
+                gaussians = frame.gaussian_count,
+                pair_capacity = frame.pair_capacity,
+                fixed_order_mib = frame.fixed_order_bytes() as f64 / (1024.0 * 1024.0),
+                "the view's per-pair gradient sums do not fit one storage binding: gradients are \
+                 summed in arrival order, so this refinement will not repeat bit for bit"
+            );
         }
         self.kernels.image_loss(
             context,
