@@ -15,9 +15,9 @@
 // Invariants: screen_gradients is zero-filled by the launcher; a culled Gaussian (no pair)
 // keeps zeros; every kept pair's slot was written by emit_pairs. slot_gradients is all zeros
 // between backward passes (the launcher keeps it from one pass to the next rather than
-// allocating and clearing SLOT_GRADIENT_STRIDE floats per pair of capacity every time): the backward rasterizer
-// only adds into slots of kept pairs, and this pass reads each kept pair's slot once and
-// zeroes it.
+// allocating and clearing SLOT_GRADIENT_STRIDE floats per pair of capacity every time): the
+// backward rasterizer only adds into slots of kept pairs, and this pass reads each kept pair's
+// slot once and zeroes it.
 
 @group(0) @binding(0) var<uniform> bin_params: BinParams;
 @group(0) @binding(1) var<storage, read> sorted_gaussians: array<u32>;
