@@ -201,8 +201,34 @@ pub fn register<T: RegistrationTarget + ?Sized>(
     initial: &Isometry3<f64>,
     params: &GicpParams,
 ) -> RegistrationResult {
+    register_unless_outscored(source, target, initial, params, None)
+        .expect("no rival guess: never given up")
+}
+
+/// A rival initial guess's score, as [`count_correspondences`] gave it: `matches` of every
+/// `sample_step`-th source point within the correspondence distance.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RivalGuess {
+    pub sample_step: usize,
+    pub matches: usize,
+}
+
+/// [`register`] from `initial`, unless a rival initial guess scores better: the first
+/// correspondence search also counts what [`count_correspondences`] would count at `initial`
+/// (the same points, the same distance test), and when that is below `rival.matches` the
+/// optimisation is given up (`None`) before its first step. Choosing between two guesses then
+/// costs one sampled search (the rival's) instead of two, because the chosen guess's count comes
+/// from a search G-ICP makes anyway; the choice is the same as comparing two
+/// [`count_correspondences`] (ties go to `initial`).
+pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
+    source: &PointCloud,
+    target: &T,
+    initial: &Isometry3<f64>,
+    params: &GicpParams,
+    rival: Option<RivalGuess>,
+) -> Option<RegistrationResult> {
     if let Some(failure) = check_inputs(source, target) {
-        return RegistrationResult::failed(initial, source.len(), failure);
+        return Some(RegistrationResult::failed(initial, source.len(), failure));
     }
     let max_distance_sq = (params.max_correspondence_m * params.max_correspondence_m) as f32;
     let overlap_sq = (params.overlap_distance_m * params.overlap_distance_m) as f32;
@@ -216,13 +242,20 @@ pub fn register<T: RegistrationTarget + ?Sized>(
     let mut iterations = 0;
     while iterations < params.max_iterations && !converged {
         iterations += 1;
+        let sample_step = rival.map_or(0, |r| r.sample_step.max(1));
         let system = linearize(
             source,
             target,
             &pose,
             (max_distance_sq, overlap_sq),
+            sample_step,
             &mut correspondences,
         );
+        if let Some(rival) = rival.filter(|_| iterations == 1)
+            && system.sampled_within < rival.matches
+        {
+            return None;
+        }
         linearized = Some(FinalStatistics {
             inliers: system.inliers,
             overlapping: system.overlapping,
@@ -233,16 +266,16 @@ pub fn register<T: RegistrationTarget + ?Sized>(
                 found: system.inliers,
                 required: MIN_POINTS_FOR_A_POSE,
             };
-            return RegistrationResult {
+            return Some(RegistrationResult {
                 iterations,
                 ..RegistrationResult::failed(initial, source.len(), failure)
-            };
+            });
         }
         if !system.error.is_finite() {
-            return RegistrationResult {
+            return Some(RegistrationResult {
                 iterations,
                 ..RegistrationResult::failed(initial, source.len(), RegistrationFailure::Diverged)
-            };
+            });
         }
         let mut accepted = false;
         for _ in 0..LM_MAX_INNER_ITERATIONS {
@@ -252,14 +285,14 @@ pub fn register<T: RegistrationTarget + ?Sized>(
                 continue;
             };
             if !delta.iter().all(|v| v.is_finite()) {
-                return RegistrationResult {
+                return Some(RegistrationResult {
                     iterations,
                     ..RegistrationResult::failed(
                         initial,
                         source.len(),
                         RegistrationFailure::Diverged,
                     )
-                };
+                });
             }
             let rotation_change = delta.fixed_rows::<3>(0).into_owned();
             let translation_change = delta.fixed_rows::<3>(3).into_owned();
@@ -280,9 +313,9 @@ pub fn register<T: RegistrationTarget + ?Sized>(
         }
     }
     let linearized = linearized.filter(|_| converged);
-    finish(
+    Some(finish(
         source, target, initial, pose, iterations, converged, params, linearized,
-    )
+    ))
 }
 
 /// Coarse-to-fine G-ICP: one [`register`] per correspondence distance in `distances_m` (largest
@@ -340,7 +373,8 @@ pub fn register_coarse_to_fine<T: RegistrationTarget + ?Sized>(
 }
 
 /// Source points with a target point within `max_distance_m` when placed by
-/// `target_from_source`, counted over every `sample_step`-th point: a cheap score (one search of a
+/// `target_from_source`, counted over every `sample_step`-th point (those whose index is a
+/// multiple of it): a cheap score (one search of a
 /// sample, no optimisation) for choosing between initial guesses.
 pub fn count_correspondences<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
@@ -351,13 +385,18 @@ pub fn count_correspondences<T: RegistrationTarget + ?Sized>(
 ) -> usize {
     let parts = RigidParts::of(target_from_source);
     let max_distance_sq = (max_distance_m * max_distance_m) as f32;
+    let step = sample_step.max(1);
     source
         .positions
         .par_chunks(POINTS_PER_TASK)
-        .map(|positions| {
+        .enumerate()
+        .map(|(chunk, positions)| {
+            // The points whose index in the whole cloud is a multiple of the step.
+            let first_index = chunk * POINTS_PER_TASK;
             positions
                 .iter()
-                .step_by(sample_step.max(1))
+                .skip((step - first_index % step) % step)
+                .step_by(step)
                 .filter(|a| {
                     let transformed = parts.transform(&a.coords.cast::<f64>()).cast::<f32>();
                     target.any_within(&Point3::from(transformed), max_distance_sq)
@@ -444,6 +483,9 @@ struct NormalEquations {
     inliers: usize,
     /// Source points with a target point within the overlap distance.
     overlapping: usize,
+    /// Of every `sample_step`-th source point (index a multiple of it), those with a target
+    /// point within the correspondence distance; 0 when no sample was asked for.
+    sampled_within: usize,
 }
 
 impl NormalEquations {
@@ -454,6 +496,7 @@ impl NormalEquations {
             error: 0.0,
             inliers: 0,
             overlapping: 0,
+            sampled_within: 0,
         }
     }
 
@@ -463,6 +506,7 @@ impl NormalEquations {
         self.error += other.error;
         self.inliers += other.inliers;
         self.overlapping += other.overlapping;
+        self.sampled_within += other.sampled_within;
         self
     }
 }
@@ -508,12 +552,14 @@ fn residual_and_weight(
 
 /// Searches correspondences at `pose` (stored with their weights into `correspondences`) and
 /// builds the normal equations of the right-perturbed residuals. `(correspondence, overlap)`
-/// squared distances: one search with the larger also counts the overlapping points.
+/// squared distances: one search with the larger also counts the overlapping points, and with a
+/// `sample_step` above 0 the sampled points within the correspondence distance.
 fn linearize<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,
     pose: &Isometry3<f64>,
     (max_distance_sq, overlap_sq): (f32, f32),
+    sample_step: usize,
     correspondences: &mut [Correspondence],
 ) -> NormalEquations {
     let parts = RigidParts::of(pose);
@@ -523,9 +569,16 @@ fn linearize<T: RegistrationTarget + ?Sized>(
         .par_chunks(POINTS_PER_TASK)
         .zip(source.covariances.par_chunks(POINTS_PER_TASK))
         .zip(correspondences.par_chunks_mut(POINTS_PER_TASK))
-        .map(|((positions, covariances), matches)| {
+        .enumerate()
+        .map(|(chunk, ((positions, covariances), matches))| {
             let mut sum = NormalEquations::zero();
-            for ((a, c_a), found) in positions.iter().zip(covariances).zip(matches.iter_mut()) {
+            let first_index = chunk * POINTS_PER_TASK;
+            for (i, ((a, c_a), found)) in positions
+                .iter()
+                .zip(covariances)
+                .zip(matches.iter_mut())
+                .enumerate()
+            {
                 let a = a.coords.cast::<f64>();
                 let transformed = parts.transform(&a);
                 *found = None;
@@ -539,6 +592,9 @@ fn linearize<T: RegistrationTarget + ?Sized>(
                 }
                 if distance_sq > max_distance_sq {
                     continue;
+                }
+                if sample_step > 0 && (first_index + i).is_multiple_of(sample_step) {
+                    sum.sampled_within += 1;
                 }
                 let target_position = target.position(j);
                 let Some((d, w)) = residual_and_weight(
@@ -750,6 +806,64 @@ mod tests {
             translation_mm < 1.0 && rotation_deg < 0.05,
             "off by {translation_mm:.3} mm, {rotation_deg:.4} deg"
         );
+    }
+
+    /// The first search's sampled count is exactly `count_correspondences`'s at the initial
+    /// guess (so choosing between guesses does not change), for a kd-tree and a voxel-map
+    /// target and for sample steps that do and do not divide the points per task: a rival with
+    /// that many matches loses (ties go to the initial guess) and the result is `register`'s;
+    /// a rival with one more wins.
+    #[test]
+    fn a_rival_guess_is_judged_by_the_first_search_as_by_count_correspondences() {
+        let truth = Isometry3::from_parts(
+            Translation3::new(0.012, -0.008, 0.01),
+            UnitQuaternion::from_euler_angles(0.01, -0.02, 0.015),
+        );
+        let (source, tree) = source_and_target(&truth);
+        let voxels = crate::voxel_map::VoxelMap::from_cloud(tree.cloud(), 0.06);
+        let params = params(0.02);
+        let initial = Isometry3::identity();
+        let targets: [&dyn RegistrationTarget; 2] = [&tree, &voxels];
+        for (t, target) in targets.into_iter().enumerate() {
+            for sample_step in [1, 3, 4] {
+                let matches =
+                    count_correspondences(source.cloud(), target, &initial, 0.02, sample_step);
+                assert!(
+                    matches > 0 && matches < source.len().div_ceil(sample_step),
+                    "target {t}, step {sample_step}: {matches} matches, want some but not all"
+                );
+                let tied = RivalGuess {
+                    sample_step,
+                    matches,
+                };
+                let kept = register_unless_outscored(
+                    source.cloud(),
+                    target,
+                    &initial,
+                    &params,
+                    Some(tied),
+                )
+                .expect("a tie goes to the initial guess");
+                let plain = register(source.cloud(), target, &initial, &params);
+                assert_eq!(kept.target_from_source, plain.target_from_source);
+                assert_eq!(kept.iterations, plain.iterations);
+                let better = RivalGuess {
+                    matches: matches + 1,
+                    ..tied
+                };
+                assert!(
+                    register_unless_outscored(
+                        source.cloud(),
+                        target,
+                        &initial,
+                        &params,
+                        Some(better)
+                    )
+                    .is_none(),
+                    "target {t}, step {sample_step}: a rival with more matches wins"
+                );
+            }
+        }
     }
 
     #[test]

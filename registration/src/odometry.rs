@@ -7,7 +7,7 @@
 //! 2. prediction: the previous pose advanced by the last frame-to-frame motion, scaled to the time
 //!    since the previous frame (constant velocity, `tracking.constant_velocity`; a live agent that
 //!    skips frames sees gaps of varying length), unless the previous pose itself finds more
-//!    correspondences (see [`Odometry::track`]'s helper `choose_motion` for why);
+//!    correspondences (see [`Odometry::track`]'s helper `register_from_prediction` for why);
 //! 3. G-ICP against the target: the previous frame (frame-to-frame) or the map of keyframe points
 //!    restricted to the predicted view (frame-to-model);
 //! 4. failure handling: a failed registration is logged, counted and replaced by the prediction;
@@ -34,7 +34,7 @@ use geometry::depth::DepthImage;
 use crate::covariance::Covariance;
 use crate::gicp::{
     GicpParams, MIN_POINTS_FOR_A_POSE, RegistrationFailure, RegistrationResult, RegistrationTarget,
-    count_correspondences, register,
+    RivalGuess, count_correspondences, register, register_unless_outscored,
 };
 use crate::kdtree::PointTree;
 use crate::points::{PointCloud, points_from_depth};
@@ -277,9 +277,12 @@ impl Odometry {
                     .previous_frame
                     .as_ref()
                     .expect("set together with world_from_previous");
-                let motion =
-                    self.choose_motion(frame.cloud(), previous, &velocity, &Isometry3::identity());
-                let mut result = register(frame.cloud(), previous, &motion, &self.params);
+                let mut result = self.register_from_prediction(
+                    frame.cloud(),
+                    previous,
+                    &velocity,
+                    &Isometry3::identity(),
+                );
                 result.target_from_source = world_from_previous * result.target_from_source;
                 result
             }
@@ -291,13 +294,11 @@ impl Odometry {
                     intrinsics,
                     self.tracking.truncation_m,
                 ));
-                let motion =
-                    self.choose_motion(frame.cloud(), &self.map, &velocity, &world_from_previous);
-                register(
+                self.register_from_prediction(
                     frame.cloud(),
                     &self.map,
-                    &(world_from_previous * motion),
-                    &self.params,
+                    &velocity,
+                    &world_from_previous,
                 )
             }
         };
@@ -411,39 +412,47 @@ impl Odometry {
         )
     }
 
-    /// The motion since the previous frame that seeds G-ICP: the constant-velocity motion, unless
-    /// placing the frame at the previous pose (zero motion) finds more correspondences.
+    /// G-ICP of `source` against `target`, started at `world_from_previous` advanced by the
+    /// constant-velocity motion, unless placing the frame at the previous pose (zero motion)
+    /// finds more correspondences.
     ///
     /// Why check: where the scene constrains one direction weakly (e.g. the camera moving along
     /// a counter top), G-ICP stops early and its motion estimate keeps part of the prediction's
     /// error; fed forward as the next prediction the error compounds (on redkitchen frames
-    /// 38-44 the forward motion doubled every frame until tracking was lost). One search per
-    /// hypothesis, no optimisation, catches a prediction that is worse than standing still.
-    fn choose_motion<T: RegistrationTarget + ?Sized>(
+    /// 38-44 the forward motion doubled every frame until tracking was lost). One sampled search
+    /// per hypothesis, no optimisation, catches a prediction that is worse than standing still.
+    /// The prediction's search is G-ICP's first (`register_unless_outscored`), so only the
+    /// still pose's costs extra; when the still pose wins, G-ICP starts again from it.
+    fn register_from_prediction<T: RegistrationTarget + ?Sized>(
         &self,
         source: &PointCloud,
         target: &T,
         velocity: &Isometry3<f64>,
         world_from_previous: &Isometry3<f64>,
-    ) -> Isometry3<f64> {
+    ) -> RegistrationResult {
         let still = Isometry3::identity();
+        let from_still = || register(source, target, &(world_from_previous * still), &self.params);
         if !self.tracking.constant_velocity || *velocity == still {
-            return still;
+            return from_still();
         }
-        let score = |motion: &Isometry3<f64>| {
-            count_correspondences(
+        let rival = RivalGuess {
+            sample_step: INITIAL_GUESS_SAMPLE_STEP,
+            matches: count_correspondences(
                 source,
                 target,
-                &(world_from_previous * motion),
+                &(world_from_previous * still),
                 self.tracking.max_correspondence_m,
                 INITIAL_GUESS_SAMPLE_STEP,
-            )
+            ),
         };
-        if score(velocity) >= score(&still) {
-            *velocity
-        } else {
-            still
-        }
+        register_unless_outscored(
+            source,
+            target,
+            &(world_from_previous * velocity),
+            &self.params,
+            Some(rival),
+        )
+        .unwrap_or_else(from_still)
     }
 
     /// The constant-velocity motion over `span_s` seconds since the previous frame: the last
