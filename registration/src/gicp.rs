@@ -211,15 +211,17 @@ pub fn register<T: RegistrationTarget + ?Sized>(
 pub struct RivalGuess {
     pub sample_step: usize,
     pub matches: usize,
+    /// Whether the rival wins when both guesses count the same.
+    pub wins_ties: bool,
 }
 
 /// [`register`] from `initial`, unless a rival initial guess scores better: the first
 /// correspondence search also counts what [`count_correspondences`] would count at `initial`
-/// (the same points, the same distance test), and when that is below `rival.matches` the
-/// optimisation is given up (`None`) before its first step. Choosing between two guesses then
-/// costs one sampled search (the rival's) instead of two, because the chosen guess's count comes
-/// from a search G-ICP makes anyway; the choice is the same as comparing two
-/// [`count_correspondences`] (ties go to `initial`).
+/// (the same points, the same distance test), and when that is below `rival.matches` (or equal
+/// to it, with `rival.wins_ties`) the optimisation is given up (`None`) before its first step.
+/// Choosing between two guesses then costs one sampled search (the rival's) instead of two,
+/// because the chosen guess's count comes from a search G-ICP makes anyway; the choice is the
+/// same as comparing two [`count_correspondences`].
 pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,
@@ -252,7 +254,8 @@ pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
             &mut correspondences,
         );
         if let Some(rival) = rival.filter(|_| iterations == 1)
-            && system.sampled_within < rival.matches
+            && (system.sampled_within < rival.matches
+                || (rival.wins_ties && system.sampled_within == rival.matches))
         {
             return None;
         }
@@ -811,8 +814,8 @@ mod tests {
     /// The first search's sampled count is exactly `count_correspondences`'s at the initial
     /// guess (so choosing between guesses does not change), for a kd-tree and a voxel-map
     /// target and for sample steps that do and do not divide the points per task: a rival with
-    /// that many matches loses (ties go to the initial guess) and the result is `register`'s;
-    /// a rival with one more wins.
+    /// that many matches loses a tie it does not win and the result is `register`'s; a rival
+    /// with one more, or a tie it wins, wins.
     #[test]
     fn a_rival_guess_is_judged_by_the_first_search_as_by_count_correspondences() {
         let truth = Isometry3::from_parts(
@@ -835,6 +838,7 @@ mod tests {
                 let tied = RivalGuess {
                     sample_step,
                     matches,
+                    wins_ties: false,
                 };
                 let kept = register_unless_outscored(
                     source.cloud(),
@@ -851,17 +855,23 @@ mod tests {
                     matches: matches + 1,
                     ..tied
                 };
-                assert!(
-                    register_unless_outscored(
-                        source.cloud(),
-                        target,
-                        &initial,
-                        &params,
-                        Some(better)
-                    )
-                    .is_none(),
-                    "target {t}, step {sample_step}: a rival with more matches wins"
-                );
+                let tie_to_rival = RivalGuess {
+                    wins_ties: true,
+                    ..tied
+                };
+                for (rival, why) in [(better, "more matches"), (tie_to_rival, "a tie it wins")] {
+                    assert!(
+                        register_unless_outscored(
+                            source.cloud(),
+                            target,
+                            &initial,
+                            &params,
+                            Some(rival)
+                        )
+                        .is_none(),
+                        "target {t}, step {sample_step}: a rival with {why} wins"
+                    );
+                }
             }
         }
     }

@@ -121,6 +121,8 @@ struct TrackingReport {
     failures: usize,
     not_converged: usize,
     reinitialisations: usize,
+    /// Frames whose G-ICP started from the previous pose (the prediction found fewer matches).
+    still_starts: usize,
     keyframes: usize,
     map_points: usize,
 }
@@ -220,6 +222,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         failures: stats.failures,
         not_converged: stats.not_converged,
         reinitialisations: stats.reinitialisations,
+        still_starts: stats.still_starts,
         keyframes: stats.keyframes,
         map_points: odometry.map().len(),
     };
@@ -231,7 +234,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         "G-ICP tracking ({}, {} threads): {}",
         report.mode, report.threads, report.dataset
     );
-    let rows: [(&str, String); 16] = [
+    let rows: [(&str, String); 17] = [
         ("frames", report.frames.to_string()),
         ("points per frame", fmt_num(report.points_per_frame, 0)),
         ("tracking ms, median", fmt_num(report.tracking_ms_median, 2)),
@@ -258,6 +261,10 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         ("failures", report.failures.to_string()),
         ("not converged", report.not_converged.to_string()),
         ("re-initialisations", report.reinitialisations.to_string()),
+        (
+            "started from the previous pose",
+            report.still_starts.to_string(),
+        ),
         ("keyframes", report.keyframes.to_string()),
         ("map points", report.map_points.to_string()),
     ];
