@@ -15,9 +15,7 @@
 use bytemuck::Zeroable;
 
 use crate::context::{GpuContext, GpuError};
-use crate::gpu::{
-    DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, StageTimes, slot_gradient_bytes,
-};
+use crate::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId, StageTimes, pair_sum_bytes};
 use crate::passes::{U32_BYTES, VEC4_BYTES, bind_group, dispatch_linear};
 use crate::profile::StageProfiler;
 use crate::types::{Camera, GaussianGradients, ImageGradients, PoseGradient};
@@ -176,24 +174,24 @@ impl GpuRenderer {
             "screen_gradients",
             u64::from(n) * u64::from(SCREEN_GRADIENT_STRIDE) * U32_BYTES,
         )?;
-        // GradientOrder::Fixed: one sum per tile-list slot first, gathered per Gaussian in
+        // GradientOrder::Fixed: one sum per tile/Gaussian pair first, gathered per Gaussian in
         // depth order below. The guard is held until the pass is submitted.
-        let mut kept_slots = self.slot_gradients.lock().unwrap_or_else(|poisoned| {
+        let mut kept_sums = self.pair_sums.lock().unwrap_or_else(|poisoned| {
             // A pass panicked between using the sums and zeroing them: start from fresh zeros.
-            let mut slots = poisoned.into_inner();
-            *slots = None;
-            slots
+            let mut sums = poisoned.into_inner();
+            *sums = None;
+            sums
         });
-        let slot_gradients = if frame.pair_gradient_sums {
-            let bytes = slot_gradient_bytes(frame.pair_capacity);
-            if kept_slots
+        let pair_sums = if frame.pair_gradient_sums {
+            let bytes = pair_sum_bytes(frame.pair_capacity);
+            if kept_sums
                 .as_ref()
                 .is_none_or(|buffer| buffer.size() < bytes)
             {
                 // Fresh wgpu buffers are zero-filled.
-                *kept_slots = Some(context.storage_buffer("slot_gradients", bytes)?);
+                *kept_sums = Some(context.storage_buffer("pair_sums", bytes)?);
             }
-            kept_slots.clone()
+            kept_sums.clone()
         } else {
             None
         };
@@ -203,17 +201,11 @@ impl GpuRenderer {
             &mut encoder,
             frame,
             image_gradients,
-            slot_gradients.as_ref().unwrap_or(&screen_gradients),
+            pair_sums.as_ref().unwrap_or(&screen_gradients),
         );
         profiler.mark(context, &mut encoder, "rasterize backward")?;
-        if let Some(slot_gradients) = &slot_gradients {
-            self.encode_pair_gradients(
-                context,
-                &mut encoder,
-                frame,
-                slot_gradients,
-                &screen_gradients,
-            );
+        if let Some(pair_sums) = &pair_sums {
+            self.encode_pair_gradients(context, &mut encoder, frame, pair_sums, &screen_gradients);
             profiler.mark(context, &mut encoder, "pair gradients")?;
         }
         let pose = self.encode_project_backward(
@@ -236,7 +228,7 @@ impl GpuRenderer {
         Ok(gradients)
     }
 
-    /// rasterize_backward: dL/d(screen-space splat) into `gradient_sums`, per tile-list slot
+    /// rasterize_backward: dL/d(screen-space splat) into `gradient_sums`, per tile/Gaussian pair
     /// when `frame.pair_gradient_sums`, per Gaussian otherwise; one workgroup per tile.
     fn encode_rasterize_backward(
         &self,
@@ -262,6 +254,7 @@ impl GpuRenderer {
                 (8, &image_gradients.v_rgbd),
                 (9, &image_gradients.v_alpha),
                 (10, gradient_sums),
+                (11, &frame.slot_pairs),
             ],
         );
         let (tiles_x, tiles_y) = frame.camera.tile_counts();
@@ -271,14 +264,14 @@ impl GpuRenderer {
         pass.dispatch_workgroups(tiles_x, tiles_y, 1);
     }
 
-    /// pair_gradients: each Gaussian's screen-space gradient, its pairs' slot sums added in
+    /// pair_gradients: each Gaussian's screen-space gradient, its pairs' sums added in
     /// depth order.
     fn encode_pair_gradients(
         &self,
         context: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         frame: &DeviceFrame,
-        slot_gradients: &wgpu::Buffer,
+        pair_sums: &wgpu::Buffer,
         screen_gradients: &wgpu::Buffer,
     ) {
         let pipeline = &self.pipelines.pair_gradients;
@@ -290,8 +283,7 @@ impl GpuRenderer {
                 (1, &frame.depth_order),
                 (2, &frame.tile_counts),
                 (3, &frame.sorted_tile_counts),
-                (4, &frame.pair_slots),
-                (5, slot_gradients),
+                (5, pair_sums),
                 (6, screen_gradients),
             ],
         );

@@ -7,7 +7,7 @@ use bytemuck::Zeroable;
 
 use crate::context::{GpuContext, GpuError};
 use crate::gpu::{
-    DeviceFrame, DeviceGaussians, GpuRenderer, GradientOrder, StageTimes, slot_gradient_bytes,
+    DeviceFrame, DeviceGaussians, GpuRenderer, GradientOrder, StageTimes, pair_sum_bytes,
 };
 use crate::passes::{
     U32_BYTES, VEC4_BYTES, bind_group, count_buffer, dispatch_linear, inclusive_scan, prefix_scan,
@@ -53,7 +53,7 @@ struct FrameBuffers {
     depth_values: [wgpu::Buffer; 2],
     sorted_tile_counts: wgpu::Buffer,
     intersection_gaussians: wgpu::Buffer,
-    pair_slots: wgpu::Buffer,
+    slot_pairs: wgpu::Buffer,
     bin_table: wgpu::Buffer,
     pair_status: wgpu::Buffer,
     tile_ranges: wgpu::Buffer,
@@ -117,8 +117,8 @@ impl FrameBuffers {
                 "intersection_gaussians",
                 u64::from(pair_capacity) * U32_BYTES,
             )?,
-            pair_slots: context
-                .storage_buffer("pair_slots", u64::from(pair_capacity) * U32_BYTES)?,
+            slot_pairs: context
+                .storage_buffer("slot_pairs", u64::from(pair_capacity) * U32_BYTES)?,
             bin_table: context.storage_buffer("bin table", bin_table_entries * U32_BYTES)?,
             // [pairs kept, pairs needed]; zero-filled, which is right for an empty scene.
             pair_status: context.storage_buffer("pair_status", VEC4_BYTES)?,
@@ -149,8 +149,7 @@ impl GpuRenderer {
         validate_frame(camera, config)?;
         let n = gaussians.count;
         let pair_capacity = self.pair_capacity_for(context, n);
-        let pair_sums_fit =
-            slot_gradient_bytes(pair_capacity) <= context.max_storage_binding_bytes();
+        let pair_sums_fit = pair_sum_bytes(pair_capacity) <= context.max_storage_binding_bytes();
         let pair_gradient_sums = self.gradient_order == GradientOrder::Fixed && pair_sums_fit;
         let buffers = FrameBuffers::allocate(
             context,
@@ -198,7 +197,7 @@ impl GpuRenderer {
             },
             tile_counts: buffers.tile_counts,
             sorted_tile_counts: buffers.sorted_tile_counts,
-            pair_slots: buffers.pair_slots,
+            slot_pairs: buffers.slot_pairs,
             rgbd: buffers.rgbd,
             alpha: buffers.alpha,
             transmittance: buffers.transmittance,
@@ -317,7 +316,7 @@ impl GpuRenderer {
             (4, &b.tile_rects),
             (5, &b.bin_table),
             (6, &b.intersection_gaussians),
-            (7, &b.pair_slots),
+            (7, &b.slot_pairs),
         ];
         let block_workgroups = b.bin.block_count.div_ceil(BIN_WORKGROUP_SIZE);
         encoder.clear_buffer(&b.bin_table, 0, None);

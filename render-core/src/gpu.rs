@@ -121,8 +121,8 @@ const PAIR_CAPACITY_GROWTH_PERCENT: u64 = 50;
 
 /// Bytes of [`GradientOrder::Fixed`]'s per-pair gradient sums for a frame of `pair_capacity`
 /// pairs: what decides whether the frame can use them (one binding) and what they allocate.
-pub(crate) fn slot_gradient_bytes(pair_capacity: u32) -> u64 {
-    u64::from(pair_capacity) * u64::from(crate::wgsl::SLOT_GRADIENT_STRIDE) * U32_BYTES
+pub(crate) fn pair_sum_bytes(pair_capacity: u32) -> u64 {
+    u64::from(pair_capacity) * u64::from(crate::wgsl::PAIR_SUM_STRIDE) * U32_BYTES
 }
 
 /// Tile/Gaussian pairs a frame needed and could hold.
@@ -152,7 +152,7 @@ impl DeviceFrame {
 
     /// Device memory the fixed order's per-pair sums take (or would take) for this frame.
     pub fn fixed_order_bytes(&self) -> u64 {
-        slot_gradient_bytes(self.pair_capacity)
+        pair_sum_bytes(self.pair_capacity)
     }
 }
 
@@ -197,8 +197,8 @@ pub struct DeviceFrame {
     pub(crate) tile_counts: wgpu::Buffer,
     /// `tile_counts` in depth order, inclusive-scanned: the end of each Gaussian's pairs.
     pub(crate) sorted_tile_counts: wgpu::Buffer,
-    /// Per pair, in depth order: its slot in the tile lists.
-    pub(crate) pair_slots: wgpu::Buffer,
+    /// Per tile-list slot: its pair's depth-order index (where the per-pair gradient sums live).
+    pub(crate) slot_pairs: wgpu::Buffer,
     /// Per pixel: r, g, b, depth.
     pub rgbd: wgpu::Buffer,
     pub alpha: wgpu::Buffer,
@@ -294,7 +294,7 @@ pub struct GpuRenderer {
     /// [`GradientOrder::Fixed`]'s per-pair sums, kept between backward passes (all zeros
     /// between them, see pair_gradients.wgsl) and grown with the pair capacity; the lock is
     /// held from encoding a backward pass to its submission, so passes use it one at a time.
-    pub(crate) slot_gradients: Mutex<Option<wgpu::Buffer>>,
+    pub(crate) pair_sums: Mutex<Option<wgpu::Buffer>>,
 }
 
 impl GpuRenderer {
@@ -367,7 +367,7 @@ impl GpuRenderer {
             uses_float_atomics,
             uses_subgroups,
             gradient_order: options.gradient_order,
-            slot_gradients: Mutex::new(None),
+            pair_sums: Mutex::new(None),
         }
     }
 

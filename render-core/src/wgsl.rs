@@ -322,13 +322,12 @@ pub(crate) const REDUCE_WORKGROUP_SIZE: u32 = 64;
 /// f32 values per Gaussian of the screen-space gradients (mean2d 2, conic 3, opacity 1,
 /// colour 3, depth 1).
 pub(crate) const SCREEN_GRADIENT_STRIDE: u32 = 10;
-/// f32 values per tile-list slot of the per-pair gradient sums (`GradientOrder::Fixed`): the
-/// screen-space gradients padded to three vec4, which pair_gradients.wgsl reads and clears
-/// with three vector accesses instead of ten scalar ones.
-pub(crate) const SLOT_GRADIENT_STRIDE: u32 = 12;
-const _: () = assert!(
-    SLOT_GRADIENT_STRIDE.is_multiple_of(4) && SLOT_GRADIENT_STRIDE >= SCREEN_GRADIENT_STRIDE
-);
+/// f32 values per tile/Gaussian pair of the per-pair gradient sums (`GradientOrder::Fixed`,
+/// stored in the pairs' depth order): the screen-space gradients padded to three vec4, which
+/// pair_gradients.wgsl reads and clears with three vector accesses instead of ten scalar ones.
+pub(crate) const PAIR_SUM_STRIDE: u32 = 12;
+const _: () =
+    assert!(PAIR_SUM_STRIDE.is_multiple_of(4) && PAIR_SUM_STRIDE >= SCREEN_GRADIENT_STRIDE);
 /// `group_mode` of transform.wgsl: one transform for every Gaussian, or one per group.
 pub(crate) const TRANSFORM_ALL: u32 = 0;
 pub(crate) const TRANSFORM_BY_GROUP: u32 = 1;
@@ -375,7 +374,7 @@ fn constants() -> Vec<(&'static str, Value)> {
         ("REDUCE_CHUNK", U32(REDUCE_CHUNK)),
         ("REDUCE_WORKGROUP_SIZE", U32(REDUCE_WORKGROUP_SIZE)),
         ("SCREEN_GRADIENT_STRIDE", U32(SCREEN_GRADIENT_STRIDE)),
-        ("SLOT_GRADIENT_STRIDE", U32(SLOT_GRADIENT_STRIDE)),
+        ("PAIR_SUM_STRIDE", U32(PAIR_SUM_STRIDE)),
         ("TRANSFORM_ALL", U32(TRANSFORM_ALL)),
         ("TRANSFORM_BY_GROUP", U32(TRANSFORM_BY_GROUP)),
         ("LOSS_RUN", U32(LOSS_RUN)),

@@ -1,5 +1,5 @@
 // Gradient accumulation without float atomics: a compare-exchange loop on the f32 bits, into
-// binding 10 (per Gaussian or per tile-list slot, see rasterize_backward_pixels.wgsl).
+// binding 10 (per Gaussian or per tile/Gaussian pair, see rasterize_backward_pixels.wgsl).
 @group(0) @binding(10) var<storage, read_write> gradient_sums: array<atomic<u32>>;
 
 fn add_gradient(index: u32, value: f32) {

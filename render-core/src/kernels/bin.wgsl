@@ -19,9 +19,10 @@
 //   the block's pairs in that tile, and tiles' lists are contiguous in tile order.
 // - `emit_pairs` (same walk): writes each kept pair's Gaussian at the next slot of its
 //   (tile, block) entry, so each tile's list is in depth order (blocks in order, Gaussians in
-//   order within a block), and the slot at the pair's depth-order index in pair_slots (a
-//   Gaussian's pairs are contiguous in depth order: pair_gradients.wgsl finds a Gaussian's
-//   list slots there). Afterwards (tile, last block) holds the end of the tile's list.
+//   order within a block), and the pair's depth-order index at its slot in slot_pairs (a
+//   Gaussian's pairs are contiguous in depth order: the backward rasterizer adds each slot's
+//   gradient into the sum at that index, where pair_gradients.wgsl reads a Gaussian's sums as
+//   one run). Afterwards (tile, last block) holds the end of the tile's list.
 // - `tile_ranges_from_table` (one invocation per tile, WORKGROUP_SIZE per workgroup):
 //   [start, end) of each tile's list: end from (tile, last block), start from the previous tile's end (0 first).
 // On CPU adapters (lavapipe) one serial walk per block costs a few memory accesses per pair,
@@ -36,8 +37,8 @@
 @group(0) @binding(4) var<storage, read> tile_rects: array<vec4<u32>>;
 @group(0) @binding(5) var<storage, read_write> table: array<u32>;
 @group(0) @binding(6) var<storage, read_write> intersection_gaussians: array<u32>;
-// Depth-order pair index -> the pair's slot in the tile lists.
-@group(0) @binding(7) var<storage, read_write> pair_slots: array<u32>;
+// Tile-list slot -> the pair's depth-order index.
+@group(0) @binding(7) var<storage, read_write> slot_pairs: array<u32>;
 @group(0) @binding(8) var<storage, read_write> tile_ranges: array<vec2<u32>>;
 // [pairs kept, pairs needed]
 @group(0) @binding(9) var<storage, read_write> pair_status: array<u32>;
@@ -113,7 +114,7 @@ fn walk_block(block: u32, emit: bool) {
             table[entry] = slot + 1u;
             if emit {
                 intersection_gaussians[slot] = gaussian;
-                pair_slots[first_pair + binned] = slot;
+                slot_pairs[slot] = first_pair + binned;
             }
             binned += 1u;
         }

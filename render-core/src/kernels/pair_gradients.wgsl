@@ -2,8 +2,9 @@
 // gradients, added in the pair's depth order (the order bin.wgsl emitted them), so the result
 // does not depend on which thread finished first.
 // Why: with RenderParams.pair_gradient_sums the backward rasterizer adds a splat's gradient
-// into the slot of its pair (its entry in the tile's list) instead of into the Gaussian's sum.
-// Only the tile's own workgroup touches that slot, and with subgroups of at least 8 lanes at
+// into its pair's sum (found from the pair's entry in the tile's list through slot_pairs)
+// instead of into the Gaussian's sum. Only the tile's own workgroup touches that sum, and with
+// subgroups of at least 8 lanes at
 // most two subgroups (the tile's two bands of 8 rows) add to it; float addition is
 // commutative, so two adds onto zero give the same bits in either order. What remains is the
 // sum across tiles, done here in a fixed order. Float atomics straight into the Gaussian's
@@ -12,21 +13,23 @@
 // Thread mapping: one invocation per depth-ordered Gaussian k (WORKGROUP_SIZE per workgroup);
 // its pairs are [first, end) with end = sorted_tile_counts[k] (inclusive scan of the tile
 // counts), first = end - tile_counts[gaussian], cut at the pair capacity as bin.wgsl cut them.
+// The sums are stored in that depth order, so an invocation reads one contiguous run and
+// neighbouring invocations neighbouring runs (stored in list order, each pair's sum was a
+// scattered read: this pass took about 1.6x as long on lavapipe).
 // Invariants: screen_gradients is zero-filled by the launcher; a culled Gaussian (no pair)
-// keeps zeros; every kept pair's slot was written by emit_pairs. slot_gradients is all zeros
-// between backward passes (the launcher keeps it from one pass to the next rather than
-// allocating and clearing SLOT_GRADIENT_STRIDE floats per pair of capacity every time): the
-// backward rasterizer only adds into slots of kept pairs, and this pass reads each kept pair's
-// slot once and zeroes it.
+// keeps zeros; every kept pair's slot_pairs entry was written by emit_pairs. pair_sums is all
+// zeros between backward passes (the launcher keeps it from one pass to the next rather than
+// allocating and clearing PAIR_SUM_STRIDE floats per pair of capacity every time): the
+// backward rasterizer only adds into sums of kept pairs, and this pass reads each kept pair's
+// sum once and zeroes it.
 
 @group(0) @binding(0) var<uniform> bin_params: BinParams;
 @group(0) @binding(1) var<storage, read> sorted_gaussians: array<u32>;
 @group(0) @binding(2) var<storage, read> tile_counts: array<u32>;
 @group(0) @binding(3) var<storage, read> sorted_tile_counts: array<u32>;
-@group(0) @binding(4) var<storage, read> pair_slots: array<u32>;
-// SLOT_GRADIENT_STRIDE floats (three vec4, the last two padding) per tile-list slot, written
+// PAIR_SUM_STRIDE floats (three vec4, the last two padding) per pair in depth order, written
 // by the backward rasterizer in the screen_gradients order.
-@group(0) @binding(5) var<storage, read_write> slot_gradients: array<vec4<f32>>;
+@group(0) @binding(5) var<storage, read_write> pair_sums: array<vec4<f32>>;
 // SCREEN_GRADIENT_STRIDE floats per Gaussian, read by project_backward.wgsl.
 @group(0) @binding(6) var<storage, read_write> screen_gradients: array<f32>;
 
@@ -54,13 +57,13 @@ fn main(
     var sum_c = vec4<f32>(0.0);
     let zero = vec4<f32>(0.0);
     for (var pair = first; pair < end; pair++) {
-        let base = pair_slots[pair] * (SLOT_GRADIENT_STRIDE / 4u);
-        sum_a += slot_gradients[base];
-        sum_b += slot_gradients[base + 1u];
-        sum_c += slot_gradients[base + 2u];
-        slot_gradients[base] = zero;
-        slot_gradients[base + 1u] = zero;
-        slot_gradients[base + 2u] = zero;
+        let base = pair * (PAIR_SUM_STRIDE / 4u);
+        sum_a += pair_sums[base];
+        sum_b += pair_sums[base + 1u];
+        sum_c += pair_sums[base + 2u];
+        pair_sums[base] = zero;
+        pair_sums[base + 1u] = zero;
+        pair_sums[base + 2u] = zero;
     }
     let out = gaussian * SCREEN_GRADIENT_STRIDE;
     for (var c = 0u; c < 4u; c++) {

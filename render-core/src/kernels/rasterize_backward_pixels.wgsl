@@ -9,7 +9,7 @@
 // transmittance in front of it as T_before = T_after / (1 - alpha), and adds dL/d(mean2d,
 // conic, opacity, colour, depth) of the splat over its pixels into a SplatPartials; the
 // variants sum those over the tile and add them atomically into binding 10 (10 floats per
-// Gaussian, or per list slot: see add_splat_gradient).
+// Gaussian, or per tile/Gaussian pair: see add_splat_gradient).
 // Invariants: the splat order and skip rules are identical to the forward pass; a splat whose
 // alpha hit the cap gets no opacity/footprint gradient.
 // `add_gradient` and binding 10 (gradient_sums) come from atomics_float.wgsl or
@@ -20,6 +20,8 @@
 // dL/d(r, g, b, depth) and dL/d(alpha) per pixel
 @group(0) @binding(8) var<storage, read> v_rgbd: array<vec4<f32>>;
 @group(0) @binding(9) var<storage, read> v_alpha: array<f32>;
+// Tile-list slot -> the pair's depth-order index (bin.wgsl), where the per-pair sums live.
+@group(0) @binding(11) var<storage, read> slot_pairs: array<u32>;
 
 // Backward state of 4 pixels of one row (vec4 components). Pixels outside the image have
 // last_entry 0 and so consider no splat. `behind` is sum_c v_c * (channel c composited behind
@@ -114,11 +116,14 @@ fn is_zero(g: SplatGradient) -> bool {
 }
 
 // Adds a splat's gradient over some pixels of list slot `slot` (Gaussian `gaussian`) into
-// binding 10: the slot's sums when params.pair_gradient_sums (pair_gradients.wgsl then sums
-// each Gaussian's slots in a fixed order), the Gaussian's sums otherwise.
+// binding 10: its pair's sums (at the pair's depth-order index, slot_pairs) when
+// params.pair_gradient_sums (pair_gradients.wgsl then adds each Gaussian's pairs in a fixed
+// order), the Gaussian's sums otherwise.
 fn add_splat_gradient(slot: u32, gaussian: u32, g: SplatGradient) {
-    let base = select(gaussian * SCREEN_GRADIENT_STRIDE, slot * SLOT_GRADIENT_STRIDE,
-                      params.pair_gradient_sums != 0u);
+    var base = gaussian * SCREEN_GRADIENT_STRIDE;
+    if params.pair_gradient_sums != 0u {
+        base = slot_pairs[slot] * PAIR_SUM_STRIDE;
+    }
     add_gradient(base + V_MEAN2D, g.a.x);
     add_gradient(base + V_MEAN2D + 1u, g.a.y);
     add_gradient(base + V_CONIC, g.a.z);
