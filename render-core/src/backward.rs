@@ -281,7 +281,6 @@ impl GpuRenderer {
             &[
                 (0, &frame.bin_params),
                 (1, &frame.depth_order),
-                (2, &frame.tile_counts),
                 (3, &frame.sorted_tile_counts),
                 (5, pair_sums),
                 (6, screen_gradients),

@@ -195,7 +195,6 @@ impl GpuRenderer {
             } else {
                 depth_scratch
             },
-            tile_counts: buffers.tile_counts,
             sorted_tile_counts: buffers.sorted_tile_counts,
             slot_pairs: buffers.slot_pairs,
             rgbd: buffers.rgbd,

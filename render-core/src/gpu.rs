@@ -193,9 +193,8 @@ pub struct DeviceFrame {
     pub(crate) bin_params: wgpu::Buffer,
     /// Gaussian indices front to back (the depth sort's output).
     pub(crate) depth_order: wgpu::Buffer,
-    /// Per Gaussian: tiles its splat reaches.
-    pub(crate) tile_counts: wgpu::Buffer,
-    /// `tile_counts` in depth order, inclusive-scanned: the end of each Gaussian's pairs.
+    /// Per Gaussian in depth order, inclusive-scanned: the end of its pairs (the tiles its splat
+    /// reaches, summed over it and the Gaussians in front).
     pub(crate) sorted_tile_counts: wgpu::Buffer,
     /// Per tile-list slot: its pair's depth-order index (where the per-pair gradient sums live).
     pub(crate) slot_pairs: wgpu::Buffer,

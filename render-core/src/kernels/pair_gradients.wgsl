@@ -12,7 +12,9 @@
 // bits, and an optimisation drifts apart from there.
 // Thread mapping: one invocation per depth-ordered Gaussian k (WORKGROUP_SIZE per workgroup);
 // its pairs are [first, end) with end = sorted_tile_counts[k] (inclusive scan of the tile
-// counts), first = end - tile_counts[gaussian], cut at the pair capacity as bin.wgsl cut them.
+// counts) and first the previous Gaussian's end (0 for k = 0), cut at the pair capacity as
+// bin.wgsl cut them. Both come from neighbouring scan entries: the only scattered access left
+// per Gaussian is its screen_gradients entry.
 // The sums are stored in that depth order, so an invocation reads one contiguous run and
 // neighbouring invocations neighbouring runs (stored in list order, each pair's sum was a
 // scattered read: this pass took about 1.6x as long on lavapipe).
@@ -25,7 +27,6 @@
 
 @group(0) @binding(0) var<uniform> bin_params: BinParams;
 @group(0) @binding(1) var<storage, read> sorted_gaussians: array<u32>;
-@group(0) @binding(2) var<storage, read> tile_counts: array<u32>;
 @group(0) @binding(3) var<storage, read> sorted_tile_counts: array<u32>;
 // PAIR_SUM_STRIDE floats (three vec4, the last two padding) per pair in depth order, written
 // by the backward rasterizer in the screen_gradients order.
@@ -43,13 +44,16 @@ fn main(
     if k >= bin_params.gaussian_count {
         return;
     }
-    let gaussian = sorted_gaussians[k];
-    let count = tile_counts[gaussian];
+    var first = 0u;
+    if k > 0u {
+        first = sorted_tile_counts[k - 1u];
+    }
     let end = min(sorted_tile_counts[k], bin_params.pair_capacity);
-    let first = sorted_tile_counts[k] - count;
-    if count == 0u || first >= end {
+    if first >= end {
+        // No pair (culled), or none kept.
         return;
     }
+    let gaussian = sorted_gaussians[k];
     // The SCREEN_GRADIENT_STRIDE (10) components in three vectors: no local array, which
     // CPU adapters would keep in memory.
     var sum_a = vec4<f32>(0.0);
