@@ -139,6 +139,8 @@ def track(args):
             max_correspondence_distance=args.max_correspondence,
             num_threads=args.threads,
             max_iterations=args.max_iterations,
+            rotation_epsilon=args.rotation_epsilon,
+            translation_epsilon=args.translation_epsilon,
         )
         registered = time.perf_counter()
         world_from_camera = np.array(result.T_target_source)
@@ -161,6 +163,8 @@ def track(args):
         "max_correspondence_m": args.max_correspondence,
         "covariance_neighbours": args.neighbours,
         "max_iterations": args.max_iterations,
+        "rotation_epsilon_rad": args.rotation_epsilon,
+        "translation_epsilon_m": args.translation_epsilon,
         "threads": args.threads,
         "frames": len(poses),
         "points_per_frame": points / len(poses),
@@ -287,6 +291,18 @@ def main(argv=None):
         help="small_gicp's max_correspondence_distance, m (its default)",
     )
     t.add_argument("--max-iterations", type=int, default=20, help="small_gicp's default")
+    t.add_argument(
+        "--rotation-epsilon",
+        type=float,
+        default=0.1 * math.pi / 180.0,
+        help="convergence: rotation update, rad (small_gicp's default, 0.1 degrees)",
+    )
+    t.add_argument(
+        "--translation-epsilon",
+        type=float,
+        default=1e-3,
+        help="convergence: translation update, m (small_gicp's default)",
+    )
     t.add_argument("--out", required=True, help="trajectory to write (TUM)")
     r = commands.add_parser("report", help="table and JSON of the runs in a folder")
     r.add_argument("--runs", required=True, help="folder of CONFIG-rN.json and CONFIG-rN.ate.json")
