@@ -221,7 +221,8 @@ pub struct RivalGuess {
 /// to it, with `rival.wins_ties`) the optimisation is given up (`None`) before its first step.
 /// Choosing between two guesses then costs one sampled search (the rival's) instead of two,
 /// because the chosen guess's count comes from a search G-ICP makes anyway; the choice is the
-/// same as comparing two [`count_correspondences`].
+/// same as comparing two [`count_correspondences`]. Inputs G-ICP cannot use (too few points, no
+/// covariances) fail at once, from `initial`, whatever the rival scored.
 pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,
@@ -244,6 +245,8 @@ pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
     let mut iterations = 0;
     while iterations < params.max_iterations && !converged {
         iterations += 1;
+        // The rival is judged on the first search only.
+        let rival = rival.filter(|_| iterations == 1);
         let sample_step = rival.map_or(0, |r| r.sample_step.max(1));
         let system = linearize(
             source,
@@ -253,7 +256,7 @@ pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
             sample_step,
             &mut correspondences,
         );
-        if let Some(rival) = rival.filter(|_| iterations == 1)
+        if let Some(rival) = rival
             && (system.sampled_within < rival.matches
                 || (rival.wins_ties && system.sampled_within == rival.matches))
         {

@@ -448,9 +448,8 @@ impl Odometry {
     ///
     /// G-ICP starts from the guess that won the previous frame, and its first search also
     /// counts that guess's correspondences (`register_unless_outscored`): only the other guess
-    /// gets a sampled search of its own, and G-ICP starts over from it only when it wins (a
-    /// quarter of redkitchen's frames pick the still pose, mostly in runs). Returns the result
-    /// and the guess it started from.
+    /// gets a sampled search of its own, and G-ICP starts over from it only when it wins.
+    /// Returns the result and the guess it started from.
     fn register_from_prediction<T: RegistrationTarget + ?Sized>(
         &self,
         source: &PointCloud,
