@@ -4,20 +4,19 @@
 // Why: with RenderParams.pair_gradient_sums the backward rasterizer adds a splat's gradient
 // into its pair's sum (found from the pair's entry in the tile's list through slot_pairs)
 // instead of into the Gaussian's sum. Only the tile's own workgroup touches that sum, and with
-// subgroups of at least 8 lanes at
-// most two subgroups (the tile's two bands of 8 rows) add to it; float addition is
-// commutative, so two adds onto zero give the same bits in either order. What remains is the
-// sum across tiles, done here in a fixed order. Float atomics straight into the Gaussian's
-// sum (pair_gradient_sums = 0) add tiles in the order threads arrive: runs differ in the last
-// bits, and an optimisation drifts apart from there.
+// subgroups of at least 8 lanes at most two subgroups (the tile's two bands of 8 rows) add to
+// it; float addition is commutative, so two adds onto zero give the same bits in either order.
+// What remains is the sum across tiles, done here in a fixed order. Float atomics straight
+// into the Gaussian's sum (pair_gradient_sums = 0) add tiles in the order threads arrive: runs
+// differ in the last bits, and an optimisation drifts apart from there.
 // Thread mapping: one invocation per depth-ordered Gaussian k (WORKGROUP_SIZE per workgroup);
 // its pairs are [first, end) with end = sorted_tile_counts[k] (inclusive scan of the tile
 // counts) and first the previous Gaussian's end (0 for k = 0), cut at the pair capacity as
 // bin.wgsl cut them. Both come from neighbouring scan entries: the only scattered access left
 // per Gaussian is its screen_gradients entry.
 // The sums are stored in that depth order, so an invocation reads one contiguous run and
-// neighbouring invocations neighbouring runs (stored in list order, each pair's sum was a
-// scattered read: this pass took about 1.6x as long on lavapipe).
+// neighbouring invocations neighbouring runs (stored in list order, each pair's sum would be
+// a scattered read).
 // Invariants: screen_gradients is zero-filled by the launcher; a culled Gaussian (no pair)
 // keeps zeros; every kept pair's slot_pairs entry was written by emit_pairs. pair_sums is all
 // zeros between backward passes (the launcher keeps it from one pass to the next rather than
