@@ -380,8 +380,8 @@ pub fn register_coarse_to_fine<T: RegistrationTarget + ?Sized>(
 
 /// Source points with a target point within `max_distance_m` when placed by
 /// `target_from_source`, counted over every `sample_step`-th point (those whose index is a
-/// multiple of it): a cheap score (one search of a
-/// sample, no optimisation) for choosing between initial guesses.
+/// multiple of it): a cheap score (one search of a sample, no optimisation) for choosing
+/// between initial guesses.
 pub fn count_correspondences<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,

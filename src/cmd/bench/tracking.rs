@@ -121,7 +121,7 @@ struct TrackingReport {
     failures: usize,
     not_converged: usize,
     reinitialisations: usize,
-    /// Frames whose G-ICP started from the previous pose (the prediction found fewer matches).
+    /// Frames whose G-ICP started from the previous pose (`OdometryStats::still_starts`).
     still_starts: usize,
     keyframes: usize,
     map_points: usize,
