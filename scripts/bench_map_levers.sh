@@ -8,9 +8,14 @@
 #       [--bin-dir DIR]
 #
 # Rows (--list prints them with their overrides; default: every row but full_resolution, whose
-# 640x480 iterations cost seconds each on a CPU device):
+# 640x480 iterations cost seconds each on a CPU device, and the budget_N curve):
 #   baseline            --config as it is
 #   budget_x2           twice the mapping iterations per keyframe: do iterations still limit?
+#   budget_4, budget_8, budget_16, budget_32
+#                       4 .. 32 iterations per keyframe instead of 100: quality against the
+#                       iterations a slower mapper affords (the sensor pace gets what its
+#                       machine's mapper does in the stream's duration; the curve says how fast
+#                       a mapper must be to reach a quality in real time, docs/benchmarks.md)
 #   half_resolution     keyframes optimised at 320x240 instead of 160x120
 #   full_resolution     ... at 640x480
 #   published_seed_scale  new Gaussians sized by the published depth rule, not the pixel footprint
@@ -42,6 +47,10 @@ usage() { sed -n '2,35p' "$0" | sed 's/^# \{0,1\}//'; }
 # name|overrides (space-separated KEY=VALUE, as `mac-ego3d config --set`)
 readonly ROWS='baseline|
 budget_x2|mapping.iterations_per_keyframe=200
+budget_4|mapping.iterations_per_keyframe=4
+budget_8|mapping.iterations_per_keyframe=8
+budget_16|mapping.iterations_per_keyframe=16
+budget_32|mapping.iterations_per_keyframe=32
 half_resolution|mapping.image_downscale=2
 full_resolution|mapping.image_downscale=1
 published_seed_scale|keyframes.seed_scale=published
@@ -82,7 +91,8 @@ dataset="${dataset:-$shared/datasets/7scenes-redkitchen}"
 [[ -f "$config" ]] || fail "config not found: $config" 2
 [[ "$repeats" =~ ^[1-9][0-9]*$ ]] || fail "--repeats takes a positive count, not '$repeats'" 2
 if [[ -z "$rows" ]]; then
-  rows="$(echo "$ROWS" | cut -d'|' -f1 | grep -vx full_resolution | paste -sd, -)"
+  rows="$(echo "$ROWS" | cut -d'|' -f1 | grep -vx full_resolution | grep -v '^budget_[0-9]' \
+    | paste -sd, -)"
 fi
 out="${out:-$(mktemp -d "${TMPDIR:-/tmp}/map-levers.XXXXXX")}"
 json="${json:-$out/summary.json}"
