@@ -397,19 +397,27 @@ pub fn count_correspondences<T: RegistrationTarget + ?Sized>(
         .par_chunks(POINTS_PER_TASK)
         .enumerate()
         .map(|(chunk, positions)| {
-            // The points whose index in the whole cloud is a multiple of the step.
             let first_index = chunk * POINTS_PER_TASK;
             positions
                 .iter()
-                .skip((step - first_index % step) % step)
-                .step_by(step)
-                .filter(|a| {
-                    let transformed = parts.transform(&a.coords.cast::<f64>()).cast::<f32>();
-                    target.any_within(&Point3::from(transformed), max_distance_sq)
+                .enumerate()
+                .filter(|&(i, a)| {
+                    in_sample(first_index + i, step) && {
+                        let transformed = parts.transform(&a.coords.cast::<f64>()).cast::<f32>();
+                        target.any_within(&Point3::from(transformed), max_distance_sq)
+                    }
                 })
                 .count()
         })
         .sum()
+}
+
+/// Whether source point `index` (its index in the whole cloud) belongs to the every-`step`-th
+/// sample that [`count_correspondences`] and the first search of
+/// [`register_unless_outscored`] count: both must pick the same points for their counts to
+/// compare.
+fn in_sample(index: usize, step: usize) -> bool {
+    index.is_multiple_of(step)
 }
 
 fn check_inputs<T: RegistrationTarget + ?Sized>(
@@ -599,7 +607,7 @@ fn linearize<T: RegistrationTarget + ?Sized>(
                 if distance_sq > max_distance_sq {
                     continue;
                 }
-                if sample_step > 0 && (first_index + i).is_multiple_of(sample_step) {
+                if sample_step > 0 && in_sample(first_index + i, sample_step) {
                     sum.sampled_within += 1;
                 }
                 let target_position = target.position(j);

@@ -460,7 +460,7 @@ impl Odometry {
         let still = Isometry3::identity();
         let start = |guess: InitialGuess| match guess {
             InitialGuess::Prediction => world_from_previous * velocity,
-            InitialGuess::Still => world_from_previous * still,
+            InitialGuess::Still => *world_from_previous,
         };
         if !self.tracking.constant_velocity || *velocity == still {
             let guess = InitialGuess::Still;
