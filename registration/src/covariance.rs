@@ -20,7 +20,7 @@ use nalgebra::{Matrix3, Point3, Quaternion, SymmetricEigen, UnitQuaternion, Vect
 use rayon::prelude::*;
 
 use crate::kdtree::PointTree;
-use crate::points::PixelGrid;
+use crate::points::{PixelGrid, PointCloud};
 
 /// Points per rayon task when estimating covariances: large enough that scheduling costs nothing
 /// next to the k-NN queries, small enough to balance two to sixteen threads on ~10k points.
@@ -217,44 +217,89 @@ fn smallest_eigenvalue_by_newton(a: &Matrix3<f64>) -> Option<f64> {
 /// the kd-tree's (up to ties); otherwise (grazing surfaces, sparse depth) the kd-tree answers.
 /// The semantics are exactly k-NN; the grid only makes the common case cheap.
 pub fn estimate_covariances(tree: &PointTree, neighbours: usize, epsilon: f64) -> Vec<Covariance> {
-    let cloud = tree.cloud();
+    let from_grid = covariances_from_grid(tree.cloud(), neighbours, epsilon);
+    complete_from_tree(tree, from_grid, neighbours, epsilon)
+}
+
+/// The image-grid half of [`estimate_covariances`]: the covariance of every point whose k
+/// nearest neighbours the grid certifies, `None` for the others (and for every point of a cloud
+/// without a grid). It needs no kd-tree, so [`PointTree::with_covariances`] runs it while the
+/// tree is being built.
+pub(crate) fn covariances_from_grid(
+    cloud: &PointCloud,
+    neighbours: usize,
+    epsilon: f64,
+) -> Vec<Option<Covariance>> {
     let positions = &cloud.positions;
-    let Some(k) = NonZeroUsize::new(neighbours.min(positions.len())) else {
-        return Vec::new();
-    };
-    let grid = cloud
+    let mut covariances = vec![None; positions.len()];
+    let k = neighbours.min(positions.len());
+    let Some(grid) = cloud
         .grid
-        .filter(|_| cloud.pixels.len() == positions.len())
-        .map(|grid| GridIndex::new(grid, &cloud.pixels));
-    let mut covariances = vec![Covariance::IDENTITY; positions.len()];
+        .filter(|_| k > 0 && cloud.pixels.len() == positions.len())
+        .map(|grid| GridIndex::new(grid, &cloud.pixels))
+    else {
+        return covariances;
+    };
     covariances
         .par_chunks_mut(COVARIANCE_CHUNK)
         .enumerate()
         .for_each(|(chunk, out)| {
-            let mut candidates: Vec<(f32, u32)> = Vec::new();
+            let mut candidates: Vec<Candidate> = Vec::new();
             for (offset, covariance) in out.iter_mut().enumerate() {
                 let index = chunk * COVARIANCE_CHUNK + offset;
-                let centre = positions[index];
-                let certified = grid.as_ref().is_some_and(|grid| {
-                    grid.nearest(index, positions, &cloud.pixels, k.get(), &mut candidates)
-                });
-                if !certified {
-                    candidates.clear();
-                    candidates.extend(
-                        tree.kd_tree()
-                            .query(&[centre.x, centre.y, centre.z])
-                            .nearest_n::<SquaredEuclidean<f32>>(k)
-                            .execute()
-                            .iter()
-                            .map(|n| (n.distance, n.item)),
-                    );
+                if grid.nearest(index, positions, &cloud.pixels, k, &mut candidates) {
+                    *covariance = Some(of_neighbourhood(
+                        positions,
+                        &positions[index],
+                        candidates.iter().map(|c| c.index()),
+                        epsilon,
+                    ));
                 }
-                let neighbourhood = candidates.iter().map(|&(_, i)| &positions[i as usize]);
-                *covariance = Covariance::regularised(&scatter(&centre, neighbourhood), epsilon)
-                    .unwrap_or(Covariance::IDENTITY);
             }
         });
     covariances
+}
+
+/// The kd-tree half of [`estimate_covariances`]: `partial` (from [`covariances_from_grid`]) with
+/// each missing covariance estimated from the tree's k nearest neighbours.
+pub(crate) fn complete_from_tree(
+    tree: &PointTree,
+    partial: Vec<Option<Covariance>>,
+    neighbours: usize,
+    epsilon: f64,
+) -> Vec<Covariance> {
+    let positions = tree.positions();
+    let Some(k) = NonZeroUsize::new(neighbours.min(positions.len())) else {
+        return Vec::new();
+    };
+    partial
+        .into_par_iter()
+        .with_min_len(COVARIANCE_CHUNK)
+        .enumerate()
+        .map(|(index, covariance)| {
+            covariance.unwrap_or_else(|| {
+                let centre = positions[index];
+                let found = tree
+                    .kd_tree()
+                    .query(&[centre.x, centre.y, centre.z])
+                    .nearest_n::<SquaredEuclidean<f32>>(k)
+                    .execute();
+                of_neighbourhood(positions, &centre, found.iter().map(|n| n.item), epsilon)
+            })
+        })
+        .collect()
+}
+
+/// The regularised covariance of `centre`'s neighbourhood (indices into `positions`).
+fn of_neighbourhood(
+    positions: &[Point3<f32>],
+    centre: &Point3<f32>,
+    neighbours: impl Iterator<Item = u32>,
+    epsilon: f64,
+) -> Covariance {
+    let neighbourhood = neighbours.map(|i| &positions[i as usize]);
+    Covariance::regularised(&scatter(centre, neighbourhood), epsilon)
+        .unwrap_or(Covariance::IDENTITY)
 }
 
 /// Half-widths of the image-grid windows searched before the kd-tree, in grid cells, smallest
@@ -335,7 +380,7 @@ impl GridIndex {
         positions: &[Point3<f32>],
         pixels: &[u32],
         k: usize,
-        found: &mut Vec<(f32, u32)>,
+        found: &mut Vec<Candidate>,
     ) -> bool {
         GRID_WINDOW_RADII_CELLS
             .iter()
@@ -356,7 +401,7 @@ impl GridIndex {
         k: usize,
         radius: usize,
         certificate_per_metre: f32,
-        found: &mut Vec<(f32, u32)>,
+        found: &mut Vec<Candidate>,
     ) -> bool {
         let centre = positions[index];
         let (column, row) = self.grid.cell_of_pixel(pixels[index]);
@@ -373,7 +418,7 @@ impl GridIndex {
                 if other != Self::EMPTY {
                     let distance_sq = (positions[other as usize] - centre).norm_squared();
                     if distance_sq <= bound_sq {
-                        found.push((distance_sq, other));
+                        found.push(Candidate::new(distance_sq, other));
                     }
                 }
             }
@@ -382,10 +427,33 @@ impl GridIndex {
             return false;
         }
         if found.len() > k {
-            found.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
+            found.select_nth_unstable(k - 1);
             found.truncate(k);
         }
         true
+    }
+}
+
+/// A grid neighbour candidate, packed for selection: the bits of its squared distance above its
+/// point index. The bits of non-negative floats order as the floats do, so the integers order by
+/// distance, ties by index (the image order in which a window is scanned): selecting the k
+/// nearest compares plain integers instead of calling a float comparison.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+struct Candidate(u64);
+
+impl Candidate {
+    /// `distance_sq` must be a non-negative float (a squared distance of finite points).
+    fn new(distance_sq: f32, index: u32) -> Self {
+        Self((u64::from(distance_sq.to_bits()) << 32) | u64::from(index))
+    }
+
+    #[cfg(test)]
+    fn distance_sq(self) -> f32 {
+        f32::from_bits((self.0 >> 32) as u32)
+    }
+
+    fn index(self) -> u32 {
+        self.0 as u32
     }
 }
 
@@ -535,6 +603,22 @@ mod tests {
         assert!((v.norm() - 1.0).abs() < 1e-9);
     }
 
+    /// Packed candidates order by squared distance, then by index, as a comparison of the floats
+    /// would, and give back what was packed.
+    #[test]
+    fn candidates_order_by_distance_then_index() {
+        let distances = [0.0f32, 1e-30, 2.5e-5, 2.5e-5, 4e-4, 1.0, 3.0e7];
+        for (i, &a) in distances.iter().enumerate() {
+            for (j, &b) in distances.iter().enumerate() {
+                let (x, y) = (Candidate::new(a, i as u32), Candidate::new(b, j as u32));
+                assert_eq!(x.cmp(&y), a.total_cmp(&b).then(i.cmp(&j)), "{a} {b}");
+                assert_eq!((x.distance_sq(), x.index()), (a, i as u32));
+            }
+        }
+        let last = Candidate::new(0.5, u32::MAX);
+        assert_eq!((last.distance_sq(), last.index()), (0.5, u32::MAX));
+    }
+
     #[test]
     fn image_grid_neighbours_match_the_kd_tree() {
         use crate::points::points_from_depth;
@@ -563,7 +647,7 @@ mod tests {
             }
             certified += 1;
             // Same neighbour distances as the kd-tree (the sets may differ only among ties).
-            let mut from_grid: Vec<f32> = found.iter().map(|f| f.0).collect();
+            let mut from_grid: Vec<f32> = found.iter().map(|f| f.distance_sq()).collect();
             from_grid.sort_by(f32::total_cmp);
             let from_tree: Vec<f32> = tree
                 .kd_tree()

@@ -55,12 +55,27 @@ const POINTS_PER_TASK: usize = 1024;
 /// weight `W = (C_B + R C_A R^T)^-1` at that linearisation's rotation. `None` without one.
 type Correspondence = Option<(Vector3<f64>, Matrix3<f64>)>;
 
+/// A search hint that points nowhere (see [`RegistrationTarget::nearest_within_hinted`]).
+pub const NO_HINT: u32 = u32::MAX;
+
 /// What G-ICP aligns against: a searchable set of points with covariances. Implemented by the
 /// static [`super::kdtree::PointTree`] and the incremental [`super::voxel_map::VoxelMap`].
 pub trait RegistrationTarget: Sync {
     /// Index and squared distance of the nearest target point no farther than
     /// `sqrt(max_distance_sq)` from `query`, if any.
     fn nearest_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> Option<(u32, f32)>;
+    /// [`Self::nearest_within`] for a query that repeats, moved a little, the one that last used
+    /// `hint` (the same source point at the next G-ICP iteration). A target may keep in `hint`
+    /// where it found that query's answer and look there first; the answer is the same as
+    /// [`Self::nearest_within`]'s. Start each source point with [`NO_HINT`].
+    fn nearest_within_hinted(
+        &self,
+        query: &Point3<f32>,
+        max_distance_sq: f32,
+        _hint: &mut u32,
+    ) -> Option<(u32, f32)> {
+        self.nearest_within(query, max_distance_sq)
+    }
     /// Whether any target point is within `sqrt(max_distance_sq)` of `query`. Targets that can
     /// answer this faster than a nearest search override it.
     fn any_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> bool {
@@ -236,6 +251,7 @@ pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
     let max_distance_sq = (params.max_correspondence_m * params.max_correspondence_m) as f32;
     let overlap_sq = (params.overlap_distance_m * params.overlap_distance_m) as f32;
     let mut correspondences: Vec<Correspondence> = vec![None; source.len()];
+    let mut hints = vec![NO_HINT; source.len()];
     // Statistics of the latest linearisation: the result's when the next step is the converged
     // one (see `finish`).
     let mut linearized = None;
@@ -254,7 +270,7 @@ pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
             &pose,
             (max_distance_sq, overlap_sq),
             sample_step,
-            &mut correspondences,
+            (&mut correspondences, &mut hints),
         );
         if let Some(rival) = rival
             && (system.sampled_within < rival.matches
@@ -574,7 +590,7 @@ fn linearize<T: RegistrationTarget + ?Sized>(
     pose: &Isometry3<f64>,
     (max_distance_sq, overlap_sq): (f32, f32),
     sample_step: usize,
-    correspondences: &mut [Correspondence],
+    (correspondences, hints): (&mut [Correspondence], &mut [u32]),
 ) -> NormalEquations {
     let parts = RigidParts::of(pose);
     let search_sq = max_distance_sq.max(overlap_sq);
@@ -583,22 +599,26 @@ fn linearize<T: RegistrationTarget + ?Sized>(
         .par_chunks(POINTS_PER_TASK)
         .zip(source.covariances.par_chunks(POINTS_PER_TASK))
         .zip(correspondences.par_chunks_mut(POINTS_PER_TASK))
+        .zip(hints.par_chunks_mut(POINTS_PER_TASK))
         .enumerate()
-        .map(|(chunk, ((positions, covariances), matches))| {
+        .map(|(chunk, (((positions, covariances), matches), hints))| {
             let mut sum = NormalEquations::zero();
             let first_index = chunk * POINTS_PER_TASK;
-            for (i, ((a, c_a), found)) in positions
+            for (i, (((a, c_a), found), hint)) in positions
                 .iter()
                 .zip(covariances)
                 .zip(matches.iter_mut())
+                .zip(hints.iter_mut())
                 .enumerate()
             {
                 let a = a.coords.cast::<f64>();
                 let transformed = parts.transform(&a);
                 *found = None;
-                let Some((j, distance_sq)) =
-                    target.nearest_within(&Point3::from(transformed.cast::<f32>()), search_sq)
-                else {
+                let Some((j, distance_sq)) = target.nearest_within_hinted(
+                    &Point3::from(transformed.cast::<f32>()),
+                    search_sq,
+                    hint,
+                ) else {
                     continue;
                 };
                 if distance_sq <= overlap_sq {

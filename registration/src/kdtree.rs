@@ -5,7 +5,7 @@
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use nalgebra::Point3;
 
-use crate::covariance::{Covariance, estimate_covariances};
+use crate::covariance::{Covariance, complete_from_tree, covariances_from_grid};
 use crate::gicp::RegistrationTarget;
 use crate::points::PointCloud;
 
@@ -45,6 +45,31 @@ impl PointTree {
     /// Indexes a cloud, keeping its covariances and pixels. Refuses non-finite points, which would
     /// corrupt the tree's splits, and a covariance list of the wrong length.
     pub fn from_cloud(cloud: PointCloud) -> Result<Self, PointTreeError> {
+        Self::check(&cloud)?;
+        let tree = Self::build(&cloud.positions)?;
+        Ok(Self { cloud, tree })
+    }
+
+    /// Builds the tree and estimates every point's G-ICP covariance from its k nearest neighbours.
+    /// The image grid answers most points without the tree
+    /// ([`crate::covariance::estimate_covariances`]), so the
+    /// tree's build (serial) runs beside that pass instead of before it.
+    pub fn with_covariances(
+        cloud: PointCloud,
+        neighbours: usize,
+        epsilon: f64,
+    ) -> Result<Self, PointTreeError> {
+        Self::check(&cloud)?;
+        let (tree, from_grid) = rayon::join(
+            || Self::build(&cloud.positions),
+            || covariances_from_grid(&cloud, neighbours, epsilon),
+        );
+        let mut tree = Self { cloud, tree: tree? };
+        tree.cloud.covariances = complete_from_tree(&tree, from_grid, neighbours, epsilon);
+        Ok(tree)
+    }
+
+    fn check(cloud: &PointCloud) -> Result<(), PointTreeError> {
         if let Some(index) = cloud
             .positions
             .iter()
@@ -61,28 +86,19 @@ impl PointTree {
                 covariances: cloud.covariances.len(),
             });
         }
-        let tree = if cloud.is_empty() {
-            None
-        } else {
-            let coordinates: Vec<[f32; 3]> =
-                cloud.positions.iter().map(|p| [p.x, p.y, p.z]).collect();
-            Some(
-                ImmutableKdTree::new_from_slice(&coordinates)
-                    .map_err(|_| PointTreeError::TooManyPoints { count: cloud.len() })?,
-            )
-        };
-        Ok(Self { cloud, tree })
+        Ok(())
     }
 
-    /// Builds the tree and estimates every point's G-ICP covariance from its k nearest neighbours.
-    pub fn with_covariances(
-        cloud: PointCloud,
-        neighbours: usize,
-        epsilon: f64,
-    ) -> Result<Self, PointTreeError> {
-        let mut tree = Self::from_cloud(cloud)?;
-        tree.cloud.covariances = estimate_covariances(&tree, neighbours, epsilon);
-        Ok(tree)
+    fn build(positions: &[Point3<f32>]) -> Result<Option<ImmutableKdTree<f32, 3>>, PointTreeError> {
+        if positions.is_empty() {
+            return Ok(None);
+        }
+        let coordinates: Vec<[f32; 3]> = positions.iter().map(|p| [p.x, p.y, p.z]).collect();
+        ImmutableKdTree::new_from_slice(&coordinates)
+            .map(Some)
+            .map_err(|_| PointTreeError::TooManyPoints {
+                count: positions.len(),
+            })
     }
 
     pub fn cloud(&self) -> &PointCloud {

@@ -23,7 +23,7 @@ use rustc_hash::FxHashMap;
 use geometry::camera::Intrinsics;
 
 use crate::covariance::Covariance;
-use crate::gicp::RegistrationTarget;
+use crate::gicp::{NO_HINT, RegistrationTarget};
 use crate::points::PointCloud;
 use crate::voxel_points::VoxelPoints;
 
@@ -367,15 +367,19 @@ impl VoxelMap {
     /// Nearest point to `query` within `sqrt(max_distance_sq)`, over the whole map (ignoring any
     /// view selection): slot and squared distance.
     pub fn nearest_in_map(&self, query: &Point3<f32>, max_distance_sq: f32) -> Option<(u32, f32)> {
-        self.nearest(query, max_distance_sq, false, false)
+        let mut no_hint = NO_HINT;
+        self.nearest(query, max_distance_sq, false, false, &mut no_hint)
     }
 
+    /// The nearest point as described on [`Self::nearest_in_map`]; `home_hint` is a voxel index
+    /// to try for the query's own voxel before the hash lookup, updated to the voxel found.
     fn nearest(
         &self,
         query: &Point3<f32>,
         max_distance_sq: f32,
         only_selected_view: bool,
         stop_at_first_voxel_hit: bool,
+        home_hint: &mut u32,
     ) -> Option<(u32, f32)> {
         if max_distance_sq.is_nan() || max_distance_sq < 0.0 || self.voxels.is_empty() {
             return None;
@@ -385,24 +389,33 @@ impl VoxelMap {
         let mut best: Option<(u32, f32)> = None;
         let mut best_sq = max_distance_sq;
         // The voxel's point nearer than `best_sq`, if any (lowering `best_sq` to it).
-        let scan = |key: &VoxelKey, best_sq: &mut f32| {
-            let voxel = &self.voxels[*self.voxel_index_of.get(key)? as usize];
+        let scan_voxel = |voxel: &Voxel, best_sq: &mut f32| {
             if use_view && voxel.in_view_epoch != self.view_epoch {
                 return None;
             }
             voxel.points.nearest(query.coords.into(), best_sq)
         };
-        if let Some(found) = scan(&home, &mut best_sq) {
+        let scan = |key: &VoxelKey, best_sq: &mut f32| {
+            scan_voxel(
+                &self.voxels[*self.voxel_index_of.get(key)? as usize],
+                best_sq,
+            )
+        };
+        // A point queried again after a small move is usually still in the same voxel: checking
+        // the hinted voxel's key costs one load where the hash lookup costs several.
+        let home_index = match self.voxels.get(*home_hint as usize) {
+            Some(voxel) if voxel.key == home => Some(*home_hint),
+            _ => self.voxel_index_of.get(&home).copied(),
+        };
+        *home_hint = home_index.unwrap_or(NO_HINT);
+        let home_match =
+            home_index.and_then(|index| scan_voxel(&self.voxels[index as usize], &mut best_sq));
+        if let Some(found) = home_match {
             if stop_at_first_voxel_hit {
                 return Some(found);
             }
             best = Some(found);
         }
-        // Other voxels that the search ball reaches, each looked up only if its box is closer
-        // than the best match so far.
-        let reach = max_distance_sq.sqrt();
-        let low = self.key_of(&(query - Vector3::repeat(reach)));
-        let high = self.key_of(&(query + Vector3::repeat(reach)));
         let size = self.voxel_size;
         // Squared distance from the query to the slab of voxels at coordinate `k` on one axis.
         let gap_sq = |k: i32, home_k: i32, q: f32| -> f32 {
@@ -415,6 +428,11 @@ impl VoxelMap {
             };
             gap * gap
         };
+        // Other voxels that the search ball reaches, each looked up only if its box is closer
+        // than the best match so far.
+        let reach = max_distance_sq.sqrt();
+        let low = self.key_of(&(query - Vector3::repeat(reach)));
+        let high = self.key_of(&(query + Vector3::repeat(reach)));
         for x in low.x..=high.x {
             let gx = gap_sq(x, home.x, query.x);
             for y in low.y..=high.y {
@@ -448,13 +466,25 @@ fn floor_to_i32(v: f32) -> i32 {
 
 impl RegistrationTarget for VoxelMap {
     fn nearest_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> Option<(u32, f32)> {
-        self.nearest(query, max_distance_sq, true, false)
+        let mut no_hint = NO_HINT;
+        self.nearest(query, max_distance_sq, true, false, &mut no_hint)
+    }
+
+    fn nearest_within_hinted(
+        &self,
+        query: &Point3<f32>,
+        max_distance_sq: f32,
+        hint: &mut u32,
+    ) -> Option<(u32, f32)> {
+        self.nearest(query, max_distance_sq, true, false, hint)
     }
 
     fn any_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> bool {
         // The home voxel holds a match for most queries; stopping there skips the neighbour
         // lookups that only the nearest match needs.
-        self.nearest(query, max_distance_sq, true, true).is_some()
+        let mut no_hint = NO_HINT;
+        self.nearest(query, max_distance_sq, true, true, &mut no_hint)
+            .is_some()
     }
 
     fn position(&self, index: u32) -> Point3<f32> {
@@ -566,6 +596,47 @@ mod tests {
                 .insert(point(1, Point3::new(f32::NAN, 0.0, 0.0)))
                 .is_err()
         );
+    }
+
+    /// A hinted query answers as an unhinted one: when the hint holds the query's voxel (the same
+    /// point moved a little), when it holds another voxel (moved across a border), and when it
+    /// points nowhere or past the map's voxels.
+    #[test]
+    fn hinted_queries_answer_as_unhinted_ones() {
+        let map = {
+            let mut map = VoxelMap::new(0.04);
+            for (i, p) in scattered(3000, 7).iter().enumerate() {
+                map.insert(point(i as u64, *p)).unwrap();
+            }
+            map
+        };
+        let radius_sq = 0.013f32 * 0.013;
+        let queries = scattered(400, 4242);
+        let mut hints = vec![NO_HINT; queries.len()];
+        hints[1] = map.voxel_count() as u32 + 5;
+        let (mut kept, mut changed) = (0, 0);
+        for step in 0..6 {
+            // Steps of 4 mm: most queries stay in their voxel, some cross into the next.
+            let shift = Vector3::new(0.004f32, -0.003, 0.002) * step as f32;
+            for (query, hint) in queries.iter().zip(hints.iter_mut()) {
+                let moved = query + shift;
+                let before = *hint;
+                let hinted = map.nearest_within_hinted(&moved, radius_sq, hint);
+                assert_eq!(hinted, map.nearest_within(&moved, radius_sq), "{moved:?}");
+                match map.voxels.get(*hint as usize) {
+                    Some(voxel) => assert_eq!(voxel.key, map.key_of(&moved)),
+                    None => assert_eq!(*hint, NO_HINT, "an empty voxel leaves no hint"),
+                }
+                if step > 0 && before != NO_HINT {
+                    if *hint == before {
+                        kept += 1;
+                    } else {
+                        changed += 1;
+                    }
+                }
+            }
+        }
+        assert!(kept > 0 && changed > 0, "kept {kept}, changed {changed}");
     }
 
     #[test]
