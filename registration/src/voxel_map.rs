@@ -430,9 +430,40 @@ impl VoxelMap {
         };
         // Other voxels that the search ball reaches, each looked up only if its box is closer
         // than the best match so far.
-        let reach = max_distance_sq.sqrt();
-        let low = self.key_of(&(query - Vector3::repeat(reach)));
-        let high = self.key_of(&(query + Vector3::repeat(reach)));
+        let (low, high) = if max_distance_sq <= size * size {
+            // The ball reaches no farther than the next voxel on each axis: it reaches that voxel
+            // only where the home voxel's face is nearer than the best match so far. After
+            // alignment the best match is millimetres away and most queries keep to their home
+            // voxel, visiting no neighbour.
+            let range = |home_k: i32, q: f32| {
+                let below = gap_sq(home_k - 1, home_k, q) <= best_sq;
+                let above = gap_sq(home_k + 1, home_k, q) <= best_sq;
+                (home_k - i32::from(below), home_k + i32::from(above))
+            };
+            let (x, y, z) = (
+                range(home.x, query.x),
+                range(home.y, query.y),
+                range(home.z, query.z),
+            );
+            (
+                VoxelKey {
+                    x: x.0,
+                    y: y.0,
+                    z: z.0,
+                },
+                VoxelKey {
+                    x: x.1,
+                    y: y.1,
+                    z: z.1,
+                },
+            )
+        } else {
+            let reach = max_distance_sq.sqrt();
+            (
+                self.key_of(&(query - Vector3::repeat(reach))),
+                self.key_of(&(query + Vector3::repeat(reach))),
+            )
+        };
         for x in low.x..=high.x {
             let gx = gap_sq(x, home.x, query.x);
             for y in low.y..=high.y {
@@ -596,6 +627,28 @@ mod tests {
                 .insert(point(1, Point3::new(f32::NAN, 0.0, 0.0)))
                 .is_err()
         );
+    }
+
+    /// Nearest matches equal a brute-force search for voxels smaller than the search radius (the
+    /// ball spans several voxels per axis), about as large, and larger (it reaches at most the
+    /// next voxel on each axis).
+    #[test]
+    fn queries_match_brute_force_whatever_the_voxel_size() {
+        let positions = scattered(2000, 3);
+        let brute = PointTree::new(positions.clone()).unwrap();
+        for voxel_size in [0.004, 0.013, 0.03, 0.04, 0.1] {
+            let mut map = VoxelMap::new(voxel_size);
+            for (i, p) in positions.iter().enumerate() {
+                map.insert(point(i as u64, *p)).unwrap();
+            }
+            for radius in [0.005f32, 0.03] {
+                for q in scattered(300, 777) {
+                    let found = map.nearest_within(&q, radius * radius);
+                    let truth = brute.nearest_within(&q, radius * radius);
+                    assert_eq!(found.map(|f| f.1), truth.map(|t| t.1), "voxel {voxel_size}");
+                }
+            }
+        }
     }
 
     /// A hinted query answers as an unhinted one: when the hint holds the query's voxel (the same
