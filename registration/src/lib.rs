@@ -5,9 +5,10 @@
 //!
 //! 1. [`points`]: back-project every `pixel_stride`-th depth pixel (camera frame), dropping
 //!    invalid and truncated depth.
-//! 2. [`covariance`]: one G-ICP covariance per point from its k nearest neighbours (kd-tree,
-//!    [`kdtree::PointTree`]), regularised to a plane-like ellipse; map Gaussians get theirs from
-//!    scale and rotation ([`covariance::Covariance::from_gaussian`]).
+//! 2. [`covariance`]: one G-ICP covariance per point from its k nearest neighbours (the depth
+//!    image's pixel grid where it certifies them, else the kd-tree of [`kdtree::PointTree`]),
+//!    regularised to a plane-like ellipse; map Gaussians get theirs from scale and rotation
+//!    ([`covariance::Covariance::from_gaussian`]).
 //! 3. [`gicp`]: Generalized-ICP with Levenberg-Marquardt on SE(3) against any
 //!    [`gicp::RegistrationTarget`]; coarse-to-fine correspondence distances for the consensus.
 //! 4. [`voxel_map`]: the incremental target map (insert / replace / remove by id, view-frustum

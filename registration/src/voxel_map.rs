@@ -13,9 +13,11 @@
 //! [`VoxelMap::for_correspondence_distance`]), the ball around a query overlaps at most 2 x 2 x 2
 //! voxels. The query's own voxel is searched first; a neighbouring voxel is looked up only if its
 //! box is closer than the best match so far, which after alignment (matches a few millimetres
-//! away) usually leaves one hash lookup per query. Hash lookups and the neighbour loop cost more
-//! than scanning a few more points in the home voxel, so larger voxels are faster up to 3 x the
-//! correspondence distance (timings: docs/benchmarks.md).
+//! away) usually leaves one hash lookup per query, and none when G-ICP repeats a source point's
+//! query with the voxel it was answered in as a hint
+//! ([`crate::gicp::RegistrationTarget::nearest_within_hinted`]). Hash lookups and the neighbour
+//! loop cost more than scanning a few more points in the home voxel, so larger voxels are faster
+//! up to 3 x the correspondence distance (timings: docs/benchmarks.md).
 
 use nalgebra::{Isometry3, Point3, Vector3};
 use rustc_hash::FxHashMap;
