@@ -244,14 +244,14 @@ pub(crate) fn covariances_from_grid(
         .par_chunks_mut(COVARIANCE_CHUNK)
         .enumerate()
         .for_each(|(chunk, out)| {
-            let mut candidates: Vec<Candidate> = Vec::new();
+            let mut candidates: Vec<(f32, u32)> = Vec::new();
             for (offset, covariance) in out.iter_mut().enumerate() {
                 let index = chunk * COVARIANCE_CHUNK + offset;
                 if grid.nearest(index, positions, &cloud.pixels, k, &mut candidates) {
                     *covariance = Some(of_neighbourhood(
                         positions,
                         &positions[index],
-                        candidates.iter().map(|c| c.index()),
+                        candidates.iter().map(|&(_, index)| index),
                         epsilon,
                     ));
                 }
@@ -380,7 +380,7 @@ impl GridIndex {
         positions: &[Point3<f32>],
         pixels: &[u32],
         k: usize,
-        found: &mut Vec<Candidate>,
+        found: &mut Vec<(f32, u32)>,
     ) -> bool {
         GRID_WINDOW_RADII_CELLS
             .iter()
@@ -401,7 +401,7 @@ impl GridIndex {
         k: usize,
         radius: usize,
         certificate_per_metre: f32,
-        found: &mut Vec<Candidate>,
+        found: &mut Vec<(f32, u32)>,
     ) -> bool {
         let centre = positions[index];
         let (column, row) = self.grid.cell_of_pixel(pixels[index]);
@@ -418,7 +418,7 @@ impl GridIndex {
                 if other != Self::EMPTY {
                     let distance_sq = (positions[other as usize] - centre).norm_squared();
                     if distance_sq <= bound_sq {
-                        found.push(Candidate::new(distance_sq, other));
+                        found.push((distance_sq, other));
                     }
                 }
             }
@@ -427,33 +427,13 @@ impl GridIndex {
             return false;
         }
         if found.len() > k {
-            found.select_nth_unstable(k - 1);
+            // Squared distances are non-negative, and the bits of non-negative floats order as
+            // the floats do: comparing the bits as integers makes the same comparisons (so the
+            // same selection, in the same order) as a float comparison, and costs less.
+            found.select_nth_unstable_by_key(k - 1, |&(distance_sq, _)| distance_sq.to_bits());
             found.truncate(k);
         }
         true
-    }
-}
-
-/// A grid neighbour candidate, packed for selection: the bits of its squared distance above its
-/// point index. The bits of non-negative floats order as the floats do, so the integers order by
-/// distance, ties by index (the image order in which a window is scanned): selecting the k
-/// nearest compares plain integers instead of calling a float comparison.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-struct Candidate(u64);
-
-impl Candidate {
-    /// `distance_sq` must be a non-negative float (a squared distance of finite points).
-    fn new(distance_sq: f32, index: u32) -> Self {
-        Self((u64::from(distance_sq.to_bits()) << 32) | u64::from(index))
-    }
-
-    #[cfg(test)]
-    fn distance_sq(self) -> f32 {
-        f32::from_bits((self.0 >> 32) as u32)
-    }
-
-    fn index(self) -> u32 {
-        self.0 as u32
     }
 }
 
@@ -603,20 +583,27 @@ mod tests {
         assert!((v.norm() - 1.0).abs() < 1e-9);
     }
 
-    /// Packed candidates order by squared distance, then by index, as a comparison of the floats
-    /// would, and give back what was packed.
+    /// The grid's selection compares squared distances by their bits: for non-negative floats
+    /// (zero, subnormal, normal, huge) that order is the floats' order.
     #[test]
-    fn candidates_order_by_distance_then_index() {
-        let distances = [0.0f32, 1e-30, 2.5e-5, 2.5e-5, 4e-4, 1.0, 3.0e7];
-        for (i, &a) in distances.iter().enumerate() {
-            for (j, &b) in distances.iter().enumerate() {
-                let (x, y) = (Candidate::new(a, i as u32), Candidate::new(b, j as u32));
-                assert_eq!(x.cmp(&y), a.total_cmp(&b).then(i.cmp(&j)), "{a} {b}");
-                assert_eq!((x.distance_sq(), x.index()), (a, i as u32));
+    fn non_negative_float_bits_order_as_the_floats() {
+        let values = [
+            0.0f32,
+            1e-45,
+            1e-38,
+            1e-30,
+            2.5e-5,
+            2.5e-5,
+            4e-4,
+            1.0,
+            3.0e7,
+            f32::MAX,
+        ];
+        for a in values {
+            for b in values {
+                assert_eq!(a.to_bits().cmp(&b.to_bits()), a.total_cmp(&b), "{a} {b}");
             }
         }
-        let last = Candidate::new(0.5, u32::MAX);
-        assert_eq!((last.distance_sq(), last.index()), (0.5, u32::MAX));
     }
 
     #[test]
@@ -647,7 +634,7 @@ mod tests {
             }
             certified += 1;
             // Same neighbour distances as the kd-tree (the sets may differ only among ties).
-            let mut from_grid: Vec<f32> = found.iter().map(|f| f.distance_sq()).collect();
+            let mut from_grid: Vec<f32> = found.iter().map(|f| f.0).collect();
             from_grid.sort_by(f32::total_cmp);
             let from_tree: Vec<f32> = tree
                 .kd_tree()

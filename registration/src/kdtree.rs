@@ -52,8 +52,8 @@ impl PointTree {
 
     /// Builds the tree and estimates every point's G-ICP covariance from its k nearest neighbours.
     /// The image grid answers most points without the tree
-    /// ([`crate::covariance::estimate_covariances`]), so the
-    /// tree's build (serial) runs beside that pass instead of before it.
+    /// ([`crate::covariance::estimate_covariances`]), so the tree's build (serial) runs beside
+    /// that pass instead of before it.
     pub fn with_covariances(
         cloud: PointCloud,
         neighbours: usize,
