@@ -426,14 +426,19 @@ impl GridIndex {
         if found.len() < k {
             return false;
         }
-        if found.len() > k {
-            // Squared distances are non-negative, and the bits of non-negative floats order as
-            // the floats do: comparing the bits as integers makes the same comparisons (so the
-            // same selection, in the same order) as a float comparison, and costs less.
-            found.select_nth_unstable_by_key(k - 1, |&(distance_sq, _)| distance_sq.to_bits());
-            found.truncate(k);
-        }
+        keep_nearest(found, k);
         true
+    }
+}
+
+/// Keeps the `k` nearest of `(squared distance, index)` candidates. Squared distances are
+/// non-negative, and the bits of non-negative floats order as the floats do: comparing the bits
+/// as integers makes the same comparisons as a float comparison (so the same selection, in the
+/// same order: the covariance sums its neighbours in that order) and costs less.
+fn keep_nearest(found: &mut Vec<(f32, u32)>, k: usize) {
+    if found.len() > k {
+        found.select_nth_unstable_by_key(k - 1, |&(distance_sq, _)| distance_sq.to_bits());
+        found.truncate(k);
     }
 }
 
@@ -583,25 +588,36 @@ mod tests {
         assert!((v.norm() - 1.0).abs() < 1e-9);
     }
 
-    /// The grid's selection compares squared distances by their bits: for non-negative floats
-    /// (zero, subnormal, normal, huge) that order is the floats' order.
+    /// The selection keeps what a float comparison keeps, in the same order, ties included
+    /// (distances repeat, and zero and subnormal distances occur): the covariance sums the
+    /// neighbours in that order, so any other order would change its last bits.
     #[test]
-    fn non_negative_float_bits_order_as_the_floats() {
-        let values = [
-            0.0f32,
-            1e-45,
-            1e-38,
-            1e-30,
-            2.5e-5,
-            2.5e-5,
-            4e-4,
-            1.0,
-            3.0e7,
-            f32::MAX,
-        ];
-        for a in values {
-            for b in values {
-                assert_eq!(a.to_bits().cmp(&b.to_bits()), a.total_cmp(&b), "{a} {b}");
+    fn keep_nearest_selects_as_a_float_comparison_would() {
+        let levels = [0.0f32, 1e-45, 1e-38, 2.5e-5, 4e-4, 1.0, 3.0e7];
+        for (n, k) in [
+            (5, 10),
+            (10, 10),
+            (16, 10),
+            (25, 10),
+            (49, 10),
+            (49, 1),
+            (30, 29),
+        ] {
+            for seed in 0..20u32 {
+                let candidates: Vec<(f32, u32)> = (0..n as u32)
+                    .map(|i| {
+                        let pick = i.wrapping_mul(2_654_435_761).wrapping_add(seed * 97) >> 7;
+                        (levels[pick as usize % levels.len()], i)
+                    })
+                    .collect();
+                let mut by_float = candidates.clone();
+                if by_float.len() > k {
+                    by_float.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
+                    by_float.truncate(k);
+                }
+                let mut kept = candidates;
+                keep_nearest(&mut kept, k);
+                assert_eq!(kept, by_float, "n {n} k {k} seed {seed}");
             }
         }
     }

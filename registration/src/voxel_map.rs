@@ -369,19 +369,19 @@ impl VoxelMap {
     /// Nearest point to `query` within `sqrt(max_distance_sq)`, over the whole map (ignoring any
     /// view selection): slot and squared distance.
     pub fn nearest_in_map(&self, query: &Point3<f32>, max_distance_sq: f32) -> Option<(u32, f32)> {
-        let mut no_hint = NO_HINT;
-        self.nearest(query, max_distance_sq, false, false, &mut no_hint)
+        self.nearest(query, max_distance_sq, false, false, None)
     }
 
-    /// The nearest point as described on [`Self::nearest_in_map`]; `home_hint` is a voxel index
-    /// to try for the query's own voxel before the hash lookup, updated to the voxel found.
+    /// The nearest point as described on [`Self::nearest_in_map`]; `home_hint`, if given, is a
+    /// voxel index to try for the query's own voxel before the hash lookup, updated to the voxel
+    /// found ([`NO_HINT`] when the query's voxel is empty).
     fn nearest(
         &self,
         query: &Point3<f32>,
         max_distance_sq: f32,
         only_selected_view: bool,
         stop_at_first_voxel_hit: bool,
-        home_hint: &mut u32,
+        home_hint: Option<&mut u32>,
     ) -> Option<(u32, f32)> {
         if max_distance_sq.is_nan() || max_distance_sq < 0.0 || self.voxels.is_empty() {
             return None;
@@ -405,11 +405,15 @@ impl VoxelMap {
         };
         // A point queried again after a small move is usually still in the same voxel: checking
         // the hinted voxel's key costs one load where the hash lookup costs several.
-        let home_index = match self.voxels.get(*home_hint as usize) {
-            Some(voxel) if voxel.key == home => Some(*home_hint),
-            _ => self.voxel_index_of.get(&home).copied(),
-        };
-        *home_hint = home_index.unwrap_or(NO_HINT);
+        let hinted = home_hint.as_deref().copied().filter(|&index| {
+            self.voxels
+                .get(index as usize)
+                .is_some_and(|v| v.key == home)
+        });
+        let home_index = hinted.or_else(|| self.voxel_index_of.get(&home).copied());
+        if let Some(hint) = home_hint {
+            *hint = home_index.unwrap_or(NO_HINT);
+        }
         let home_match =
             home_index.and_then(|index| scan_voxel(&self.voxels[index as usize], &mut best_sq));
         if let Some(found) = home_match {
@@ -499,8 +503,7 @@ fn floor_to_i32(v: f32) -> i32 {
 
 impl RegistrationTarget for VoxelMap {
     fn nearest_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> Option<(u32, f32)> {
-        let mut no_hint = NO_HINT;
-        self.nearest(query, max_distance_sq, true, false, &mut no_hint)
+        self.nearest(query, max_distance_sq, true, false, None)
     }
 
     fn nearest_within_hinted(
@@ -509,14 +512,13 @@ impl RegistrationTarget for VoxelMap {
         max_distance_sq: f32,
         hint: &mut u32,
     ) -> Option<(u32, f32)> {
-        self.nearest(query, max_distance_sq, true, false, hint)
+        self.nearest(query, max_distance_sq, true, false, Some(hint))
     }
 
     fn any_within(&self, query: &Point3<f32>, max_distance_sq: f32) -> bool {
         // The home voxel holds a match for most queries; stopping there skips the neighbour
         // lookups that only the nearest match needs.
-        let mut no_hint = NO_HINT;
-        self.nearest(query, max_distance_sq, true, true, &mut no_hint)
+        self.nearest(query, max_distance_sq, true, true, None)
             .is_some()
     }
 
