@@ -81,16 +81,18 @@ fn ellipse_misses_box(mean: vec2<f32>, opacity: f32, conic: vec3<f32>, min_alpha
 const NO_LANE: u32 = 0xffffffffu;
 
 // Removes the lowest set bit of a subgroup ballot (lanes 0..127 over 4 words) and returns its
-// lane, or NO_LANE once the ballot is empty.
+// lane, or NO_LANE once the ballot is empty. Selects rather than a loop over the words: on
+// SIMD CPU adapters (lavapipe) a loop costs at least one trip more than it makes, and this
+// runs once per splat in the rasterizers' inner loops.
 fn pop_lowest_lane(ballot: ptr<function, vec4<u32>>) -> u32 {
-    for (var word = 0u; word < 4u; word++) {
-        let bits = (*ballot)[word];
-        if bits != 0u {
-            (*ballot)[word] = bits & (bits - 1u);
-            return 32u * word + firstTrailingBit(bits);
-        }
-    }
-    return NO_LANE;
+    let words = *ballot;
+    let word = select(select(select(3u, 2u, words.z != 0u), 1u, words.y != 0u), 0u,
+                      words.x != 0u);
+    let bits = select(select(select(words.w, words.z, word == 2u), words.y, word == 1u), words.x,
+                      word == 0u);
+    *ballot = select(words, vec4<u32>(bits & (bits - 1u)),
+                     vec4<u32>(word) == vec4<u32>(0u, 1u, 2u, 3u));
+    return select(32u * word + firstTrailingBit(bits), NO_LANE, bits == 0u);
 }
 
 // Largest per-pixel step of a splat's power that row_gaussian_values lets its ratio take

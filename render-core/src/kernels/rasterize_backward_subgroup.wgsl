@@ -4,7 +4,7 @@
 // (later entries affect none of them), without workgroup memory or barriers: per step lane l
 // loads entry end - 1 - l (a different splat per lane) and the subgroup processes them in
 // list order, each broadcast from its lane with subgroupShuffle. A splat's gradient sums over
-// the subgroup's pixels (subgroupAdd, skipped when no pixel of the subgroup sees it) are kept
+// the subgroup's pixels (subgroup_sum, skipped when no pixel of the subgroup sees it) are kept
 // by the lane that loaded the splat, which adds them to binding 10 after the step: one
 // atomic add per component per subgroup instead of one per invocation.
 // Skipping as in rasterize_subgroup.wgsl: the band is processed as two halves of 8 columns,
@@ -22,6 +22,32 @@ fn add_gradients(a: SplatGradient, b: SplatGradient) -> SplatGradient {
     return SplatGradient(a.a + b.a, a.b + b.b, a.c + b.c);
 }
 
+// The sum of `own` over the subgroup's `lanes` active lanes, in every lane: a tree of
+// subgroupShuffleDown steps into lane 0 (after the step of offset o, lane l holds the sum of
+// lanes l .. l + 2o - 1 that exist, so any number of lanes works), then lane 0's sum
+// broadcast. Not subgroupAdd: lavapipe turns each subgroupAdd into a loop over the lanes with
+// a branch per lane, one loop per component, which cost more (docs/benchmarks.md). The order
+// of the additions is fixed, so the sum is repeatable.
+fn subgroup_sum(own: SplatGradient, lane: u32, lanes: u32) -> SplatGradient {
+    var sum = own;
+    var offset = 1u;
+    if lanes > 1u {
+        // Tested at the end of the body: see `Loops` in rasterize_subgroup.wgsl.
+        loop {
+            let inside = lane + offset < lanes;
+            sum.a += select(vec4<f32>(0.0), subgroupShuffleDown(sum.a, offset), inside);
+            sum.b += select(vec4<f32>(0.0), subgroupShuffleDown(sum.b, offset), inside);
+            sum.c += select(vec2<f32>(0.0), subgroupShuffleDown(sum.c, offset), inside);
+            offset *= 2u;
+            if offset >= lanes {
+                break;
+            }
+        }
+    }
+    return SplatGradient(subgroupBroadcast(sum.a, 0u), subgroupBroadcast(sum.b, 0u),
+                         subgroupBroadcast(sum.c, 0u));
+}
+
 // Un-composites the loaded splats of `ballot` (lanes, walked lowest first = list order back
 // to front; `mine` is each lane's splat, `last_entry` the list entry of lane 0's) from two
 // pixel groups of each invocation's row (one half of the band), and adds each splat's
@@ -29,13 +55,14 @@ fn add_gradients(a: SplatGradient, b: SplatGradient) -> SplatGradient {
 // loaded it.
 fn accumulate_half(half0: ptr<function, PixelGradients>, half1: ptr<function, PixelGradients>,
                    ballot: vec4<u32>, mine: Splat, last_entry: u32, pixel_y: f32, lane: u32,
-                   my_gradient: ptr<function, SplatGradient>) {
+                   lanes: u32, my_gradient: ptr<function, SplatGradient>) {
     var pending = ballot;
+    var k = pop_lowest_lane(&pending);
+    if k == NO_LANE {
+        return;
+    }
+    // Tested at the end of the body: see `Loops` in rasterize_subgroup.wgsl.
     loop {
-        let k = pop_lowest_lane(&pending);
-        if k == NO_LANE {
-            break;
-        }
         let splat = Splat(subgroupShuffle(mine.position, k), subgroupShuffle(mine.conic, k),
                           subgroupShuffle(mine.colour, k));
         let entry = last_entry - k;
@@ -44,11 +71,14 @@ fn accumulate_half(half0: ptr<function, PixelGradients>, half1: ptr<function, Pi
         let hit0 = accumulate(half0, pixel_y, splat, ratio_growth, entry, &partials);
         let hit1 = accumulate(half1, pixel_y, splat, ratio_growth, entry, &partials);
         if subgroupAny(hit0 || hit1) {
-            let own = total(partials);
-            let summed = SplatGradient(subgroupAdd(own.a), subgroupAdd(own.b), subgroupAdd(own.c));
+            let summed = subgroup_sum(total(partials), lane, lanes);
             if lane == k {
                 *my_gradient = add_gradients(*my_gradient, summed);
             }
+        }
+        k = pop_lowest_lane(&pending);
+        if k == NO_LANE {
+            break;
         }
     }
 }
@@ -78,7 +108,11 @@ fn main(
     let lanes = subgroupAdd(1u);
     var end = subgroupMax(max(max(max_last_entry(group0), max_last_entry(group1)),
                               max(max_last_entry(group2), max_last_entry(group3))));
-    while end > 0u {
+    if end == 0u {
+        return;
+    }
+    // Tested at the end of the body: see `Loops` in rasterize_subgroup.wgsl.
+    loop {
         let count = min(lanes, end);
         var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
         var my_gaussian = 0u;
@@ -97,12 +131,15 @@ fn main(
         // Each half un-composites only the loaded splats that reach it, in lane (= list) order;
         // the halves share no pixel.
         accumulate_half(&group0, &group1, subgroupBallot(reaches_left), mine, end - 1u, pixel_y,
-                        lane, &my_gradient);
+                        lane, lanes, &my_gradient);
         accumulate_half(&group2, &group3, subgroupBallot(reaches_right), mine, end - 1u, pixel_y,
-                        lane, &my_gradient);
+                        lane, lanes, &my_gradient);
         if lane < count && !is_zero(my_gradient) {
             add_splat_gradient(start + end - 1u - lane, my_gaussian, my_gradient);
         }
         end -= count;
+        if end == 0u {
+            break;
+        }
     }
 }

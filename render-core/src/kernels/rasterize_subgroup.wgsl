@@ -20,6 +20,10 @@
 // docs/benchmarks.md). Without a second splat, a copy of the first with zero opacity stands
 // in: it touches no pixel. (The same in the backward pass was slower: its two splats'
 // gradient sums do not fit the registers.)
+// Loops: every loop tests at the end of its body and is entered under an `if` or after a
+// `return` for the empty case. On SIMD CPU adapters a loop tested at the top runs its body
+// once more than its trips (render-core/README.md), and with a handful of splats per half and
+// batch that extra pass was a large share of the rasterizer's time (docs/benchmarks.md).
 // Invariants: the loop bounds and the shuffle source lane are subgroup-uniform; lanes are
 // assumed to be numbered 0 .. active - 1 (active = number of invocations in the subgroup,
 // which may be fewer than subgroup_size for a small workgroup); the subgroup size is never
@@ -31,11 +35,12 @@
 fn composite_half(half0: ptr<function, PixelGroup>, half1: ptr<function, PixelGroup>,
                   ballot: vec4<u32>, mine: Splat, first_entry: u32, pixel_y: f32) {
     var pending = ballot;
+    var k = pop_lowest_lane(&pending);
+    if k == NO_LANE {
+        return;
+    }
+    // Tested at the end of the body: see `Loops` above.
     loop {
-        let k = pop_lowest_lane(&pending);
-        if k == NO_LANE {
-            break;
-        }
         // The next splat reaching the half, or the stand-in (zero opacity) when none is left.
         let next = pop_lowest_lane(&pending);
         let has_next = next != NO_LANE;
@@ -53,6 +58,10 @@ fn composite_half(half0: ptr<function, PixelGroup>, half1: ptr<function, PixelGr
         composite(half1, pixel_y, splat, ratio_growth, entry);
         composite(half0, pixel_y, splat2, ratio_growth2, entry2);
         composite(half1, pixel_y, splat2, ratio_growth2, entry2);
+        k = pop_lowest_lane(&pending);
+        if k == NO_LANE {
+            break;
+        }
     }
 }
 
@@ -82,26 +91,34 @@ fn main(
     var group1 = new_group(tile_origin.x + 4u, row);
     var group2 = new_group(tile_origin.x + 8u, row);
     var group3 = new_group(tile_origin.x + 12u, row);
-    for (var start = range.x; start < range.y; start += lanes) {
-        if subgroupAll(all(group0.done & group1.done & group2.done & group3.done)) {
-            break;
+    var start = range.x;
+    // Tested at the end of the body, entered under an `if`: see `Loops` above.
+    if start < range.y && !subgroupAll(all(group0.done & group1.done & group2.done & group3.done)) {
+        loop {
+            var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+            var reaches_left = false;
+            var reaches_right = false;
+            if start + lane < range.y {
+                mine = load_splat(intersection_gaussians[start + lane]);
+                let min_alpha = params.min_splat_alpha;
+                reaches_left = !ellipse_misses_box(mine.position.xy, mine.position.z, mine.conic,
+                                                   min_alpha, left_low, left_high);
+                reaches_right = !ellipse_misses_box(mine.position.xy, mine.position.z, mine.conic,
+                                                    min_alpha, right_low, right_high);
+            }
+            // Each half composites only the loaded splats that reach it, in lane (= list) order.
+            // The halves share no pixel, so their order relative to each other does not matter.
+            let first_entry = start - range.x + 1u;
+            composite_half(&group0, &group1, subgroupBallot(reaches_left), mine, first_entry,
+                           pixel_y);
+            composite_half(&group2, &group3, subgroupBallot(reaches_right), mine, first_entry,
+                           pixel_y);
+            start += lanes;
+            if start >= range.y
+                || subgroupAll(all(group0.done & group1.done & group2.done & group3.done)) {
+                break;
+            }
         }
-        var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
-        var reaches_left = false;
-        var reaches_right = false;
-        if start + lane < range.y {
-            mine = load_splat(intersection_gaussians[start + lane]);
-            let min_alpha = params.min_splat_alpha;
-            reaches_left = !ellipse_misses_box(mine.position.xy, mine.position.z, mine.conic,
-                                               min_alpha, left_low, left_high);
-            reaches_right = !ellipse_misses_box(mine.position.xy, mine.position.z, mine.conic,
-                                                min_alpha, right_low, right_high);
-        }
-        // Each half composites only the loaded splats that reach it, in lane (= list) order.
-        // The halves share no pixel, so their order relative to each other does not matter.
-        let first_entry = start - range.x + 1u;
-        composite_half(&group0, &group1, subgroupBallot(reaches_left), mine, first_entry, pixel_y);
-        composite_half(&group2, &group3, subgroupBallot(reaches_right), mine, first_entry, pixel_y);
     }
     write_group(group0, row);
     write_group(group1, row);
