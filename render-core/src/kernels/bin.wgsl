@@ -95,20 +95,23 @@ fn walk_block(block: u32, emit: bool) {
         let area = columns * (rect.z >> 16u);
         let masked = area <= MAX_MASKED_TILES;
         var binned = 0u;
-        // The tile's column and row advance with i (no integer division: SIMD CPU adapters
-        // divide lane by lane, at dozens of cycles each).
-        var column = 0u;
-        var tile_row_start = rect.y * bin_params.tiles_x + rect.x;
-        for (var i = 0u; i < area && binned < kept; i++) {
-            let tile = tile_row_start + column;
-            column += 1u;
-            if column == columns {
-                column = 0u;
-                tile_row_start += bin_params.tiles_x;
-            }
-            if masked && ((rect.w >> i) & 1u) == 0u {
-                continue;
-            }
+        // One trip per binned tile: a masked rectangle's i walks the set bits of its mask,
+        // a larger one every tile. (Walking every tile of a masked rectangle too cost a trip
+        // per tile it does not reach, and the lanes wait for the one with the most trips.)
+        var pending = select(ALL_TILES, rect.w, masked);
+        var i = select(0u, firstTrailingBit(pending), masked);
+        let first_tile = rect.y * bin_params.tiles_x + rect.x;
+        let inverse_columns = 1.0 / f32(columns);
+        while i < area && binned < kept {
+            // Row and column of tile i of the rectangle. The row comes from a float product
+            // (SIMD CPU adapters divide integers lane by lane, at dozens of cycles each),
+            // corrected by one if rounding put it off.
+            var row = u32((f32(i) + 0.5) * inverse_columns);
+            row = select(row, row - 1u, row * columns > i);
+            row = select(row, row + 1u, (row + 1u) * columns <= i);
+            let tile = first_tile + row * bin_params.tiles_x + (i - row * columns);
+            pending &= pending - 1u;
+            i = select(i + 1u, select(firstTrailingBit(pending), area, pending == 0u), masked);
             let entry = tile * block_count + block;
             let slot = table[entry];
             table[entry] = slot + 1u;

@@ -10,6 +10,8 @@ const MAX_ABS_OPACITY_LOGIT: f32 = 80.0;
 // Tile rectangles of at most this many tiles get a per-tile ellipse test in project (one mask
 // bit per tile), which the binning then follows.
 const MAX_MASKED_TILES: u32 = 32u;
+// The tile mask of a rectangle that is not masked: every tile.
+const ALL_TILES: u32 = 0xffffffffu;
 
 // Offsets of dL/d(mean2d, conic, opacity, colour, depth) within a Gaussian's
 // SCREEN_GRADIENT_STRIDE floats of screen_gradients (rasterize_backward writes them,

@@ -31,8 +31,6 @@
 @group(0) @binding(11) var<storage, read_write> depth_keys: array<u32>;
 @group(0) @binding(12) var<storage, read_write> sort_values: array<u32>;
 
-const ALL_TILES: u32 = 0xffffffffu;
-
 fn cull(index: u32) {
     splat_position[index] = vec4<f32>(0.0);
     splat_conic[index] = vec4<f32>(0.0);
