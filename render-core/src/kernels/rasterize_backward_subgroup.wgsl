@@ -12,8 +12,9 @@
 // (ellipse_misses_box; a subgroupBallot); exact, a skipped splat touched none of the half's
 // pixels in the forward pass either. A splat reaching both halves is summed over each half
 // separately (two subgroup sums) and its lane adds both before the atomic add.
-// Invariants: loop bounds and shuffle source lanes are subgroup-uniform; lanes are assumed to
-// be numbered 0 .. active - 1; the subgroup size is never assumed.
+// Loops test at the end of the body, as in rasterize_subgroup.wgsl (`Loops`).
+// Invariants: loop bounds and the splat shuffles' source lanes are subgroup-uniform; lanes are
+// assumed to be numbered 0 .. active - 1; the subgroup size is never assumed.
 
 // Columns of one half of the band: two pixel groups.
 const HALF_TILE: u32 = TILE_SIZE / 2u;
@@ -32,7 +33,6 @@ fn subgroup_sum(own: SplatGradient, lane: u32, lanes: u32) -> SplatGradient {
     var sum = own;
     var offset = 1u;
     if lanes > 1u {
-        // Tested at the end of the body: see `Loops` in rasterize_subgroup.wgsl.
         loop {
             let inside = lane + offset < lanes;
             sum.a += select(vec4<f32>(0.0), subgroupShuffleDown(sum.a, offset), inside);
@@ -61,7 +61,6 @@ fn accumulate_half(half0: ptr<function, PixelGradients>, half1: ptr<function, Pi
     if k == NO_LANE {
         return;
     }
-    // Tested at the end of the body: see `Loops` in rasterize_subgroup.wgsl.
     loop {
         let splat = Splat(subgroupShuffle(mine.position, k), subgroupShuffle(mine.conic, k),
                           subgroupShuffle(mine.colour, k));
@@ -111,7 +110,6 @@ fn main(
     if end == 0u {
         return;
     }
-    // Tested at the end of the body: see `Loops` in rasterize_subgroup.wgsl.
     loop {
         let count = min(lanes, end);
         var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
