@@ -398,3 +398,69 @@ fn validate_backward(
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::passes::compute_pipeline;
+    use crate::wgsl::source;
+
+    /// A workgroup of 13 invocations: on adapters with subgroups of 8 (lavapipe) the second
+    /// subgroup has 5 lanes, a count that is not a power of two.
+    const SUBGROUP_SUM_TEST: &str = "
+@group(0) @binding(20) var<storage, read_write> subgroup_sum_results: array<vec4<f32>>;
+
+@compute @workgroup_size(13)
+fn subgroup_sum_test(@builtin(local_invocation_index) index: u32,
+                     @builtin(subgroup_invocation_id) lane: u32) {
+    let lanes = subgroupAdd(1u);
+    let value = f32(index + 1u);
+    let own = SplatGradient(vec4<f32>(value), vec4<f32>(2.0 * value), vec2<f32>(1.0));
+    let sum = subgroup_sum(own, lane, lanes);
+    subgroup_sum_results[index] = vec4<f32>(sum.a.x, sum.b.w, sum.c.y, f32(subgroupMin(index)));
+}
+";
+
+    #[test]
+    fn subgroup_sums_are_exact_for_any_lane_count() {
+        let context = GpuContext::new().expect("a wgpu adapter (lavapipe in CI)");
+        if !context.has_subgroups {
+            eprintln!("skipped: the adapter has no subgroups");
+            return;
+        }
+        let pipeline = compute_pipeline(
+            &context.device,
+            "subgroup_sum_test",
+            &[
+                source::ATOMICS_CAS,
+                source::RASTERIZE_TILES,
+                source::RASTERIZE_BACKWARD_PIXELS,
+                source::RASTERIZE_BACKWARD_SUBGROUP,
+                SUBGROUP_SUM_TEST,
+            ],
+            "subgroup_sum_test",
+        );
+        const INVOCATIONS: usize = 13;
+        let results = context
+            .storage_buffer("subgroup sums", (INVOCATIONS * 16) as u64)
+            .unwrap();
+        let group = bind_group(&context, &pipeline, &[(20, &results)]);
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        dispatch_linear(&mut encoder, &pipeline, &group, 1);
+        context.queue.submit([encoder.finish()]);
+        let sums: Vec<[f32; 4]> = context.read_vec(&results, INVOCATIONS).unwrap();
+        let mut lane_counts = Vec::new();
+        for (index, sum) in sums.iter().enumerate() {
+            // The subgroup's invocations: those reporting the same first index (the lanes are
+            // numbered in invocation order, as the rasterizers assume).
+            let first = sum[3];
+            let members: Vec<usize> = (0..INVOCATIONS).filter(|&j| sums[j][3] == first).collect();
+            let values: f32 = members.iter().map(|&j| (j + 1) as f32).sum();
+            assert_eq!(sum[0], values, "invocation {index}: sums {sums:?}");
+            assert_eq!(sum[1], 2.0 * values, "invocation {index}");
+            assert_eq!(sum[2], members.len() as f32, "invocation {index}");
+            lane_counts.push(members.len());
+        }
+        eprintln!("lanes per invocation's subgroup: {lane_counts:?}");
+    }
+}
