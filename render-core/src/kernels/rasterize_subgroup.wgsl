@@ -93,7 +93,8 @@ fn main(
     var group3 = new_group(tile_origin.x + 12u, row);
     var start = range.x;
     // Tested at the end of the body, entered under an `if`: see `Loops` above.
-    if start < range.y && !subgroupAll(all(group0.done & group1.done & group2.done & group3.done)) {
+    if start < range.y
+        && !subgroupAll(all(group0.done & group1.done & group2.done & group3.done)) {
         loop {
             var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
             var reaches_left = false;
