@@ -99,7 +99,7 @@ fn walk_block(block: u32, emit: bool) {
         // a larger one every tile. (Walking every tile of a masked rectangle too cost a trip
         // per tile it does not reach, and the lanes wait for the one with the most trips.)
         var pending = select(ALL_TILES, rect.w, masked);
-        var i = select(0u, firstTrailingBit(pending), masked);
+        var i = firstTrailingBit(pending);
         let first_tile = rect.y * bin_params.tiles_x + rect.x;
         let inverse_columns = 1.0 / f32(columns);
         while i < area && binned < kept {

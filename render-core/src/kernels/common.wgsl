@@ -83,9 +83,9 @@ fn ellipse_misses_box(mean: vec2<f32>, opacity: f32, conic: vec3<f32>, min_alpha
 const NO_LANE: u32 = 0xffffffffu;
 
 // Removes the lowest set bit of a subgroup ballot (lanes 0..127 over 4 words) and returns its
-// lane, or NO_LANE once the ballot is empty. Selects rather than a loop over the words: on
-// SIMD CPU adapters (lavapipe) a loop costs at least one trip more than it makes, and this
-// runs once per splat in the rasterizers' inner loops.
+// lane, or NO_LANE once the ballot is empty. Selects rather than a loop over the words: it
+// runs once per splat in the rasterizers' inner loops, and on lavapipe a loop costs a pass
+// more than its trips (render-core/README.md).
 fn pop_lowest_lane(ballot: ptr<function, vec4<u32>>) -> u32 {
     let words = *ballot;
     let word = select(select(select(3u, 2u, words.z != 0u), 1u, words.y != 0u), 0u,
