@@ -446,6 +446,7 @@ pub struct TrainingKernels {
     ssim_columns: wgpu::ComputePipeline,
     loss_rows: wgpu::ComputePipeline,
     adam: wgpu::ComputePipeline,
+    adam_tail: wgpu::ComputePipeline,
 }
 
 impl TrainingKernels {
@@ -456,6 +457,7 @@ impl TrainingKernels {
             ssim_columns: compute_pipeline(device, "ssim_columns", &[source::LOSS], "ssim_columns"),
             loss_rows: compute_pipeline(device, "loss_rows", &[source::LOSS], "loss_rows"),
             adam: compute_pipeline(device, "adam", &[source::ADAM], "main"),
+            adam_tail: compute_pipeline(device, "adam tail", &[source::ADAM], "tail"),
         }
     }
 
@@ -612,23 +614,41 @@ impl TrainingKernels {
             };
             let params_buffer = context.uniform_buffer("adam params", bytemuck::bytes_of(&params));
             let (m, v) = &adam.moments[group];
-            let bind = bind_group(
-                context,
-                &self.adam,
-                &[
-                    (0, &params_buffer),
-                    (1, parameters),
-                    (2, group_gradients),
-                    (3, m),
-                    (4, v),
-                ],
-            );
-            dispatch_linear(
-                &mut encoder,
-                &self.adam,
-                &bind,
-                elements.div_ceil(WORKGROUP_SIZE),
-            );
+            // adam.wgsl: vectors of 4 elements, then the last elements % 4 one by one.
+            let vectors = elements / 4;
+            if vectors > 0 {
+                let bind = bind_group(
+                    context,
+                    &self.adam,
+                    &[
+                        (0, &params_buffer),
+                        (1, parameters),
+                        (2, group_gradients),
+                        (3, m),
+                        (4, v),
+                    ],
+                );
+                dispatch_linear(
+                    &mut encoder,
+                    &self.adam,
+                    &bind,
+                    vectors.div_ceil(WORKGROUP_SIZE),
+                );
+            }
+            if !elements.is_multiple_of(4) {
+                let bind = bind_group(
+                    context,
+                    &self.adam_tail,
+                    &[
+                        (0, &params_buffer),
+                        (5, parameters),
+                        (6, group_gradients),
+                        (7, m),
+                        (8, v),
+                    ],
+                );
+                dispatch_linear(&mut encoder, &self.adam_tail, &bind, 1);
+            }
         }
         context.queue.submit([encoder.finish()]);
         Ok(())

@@ -119,8 +119,19 @@ fn target_from(output: &RenderOutput) -> TargetImage {
 
 #[test]
 fn device_loss_matches_reference() {
+    check_device_loss(&default_camera());
+}
+
+/// Runs that end inside the image, after an odd number of pixels: 75 = 64 + 11 columns and
+/// 71 = 64 + 7 rows (the loss kernels advance two pixels per loop trip).
+#[test]
+fn device_loss_matches_reference_on_partial_odd_runs() {
+    check_device_loss(&common::camera(75, 71, 37.0, 35.0));
+}
+
+fn check_device_loss(camera: &Camera) {
     let gpu = gpu();
-    let camera = default_camera();
+    let camera = *camera;
     let cloud = random_scene(&camera, 60, 31, (-3.0, -1.5), (0.0, 3.0));
     let other = random_scene(&camera, 60, 32, (-3.0, -1.5), (0.0, 3.0));
     let mut target = target_from(&reference::render(
@@ -406,4 +417,146 @@ fn fitting_a_perturbed_map_to_known_views_reduces_the_loss_and_reaches_30_db() {
     assert_ne!(fitted.colours, start.colours);
     assert!(fitted.means.iter().flatten().all(|v| v.is_finite()));
     assert_eq!(adam.step_count(), ITERATIONS as u32);
+}
+
+/// A cloud's parameters (or moments, or gradients) per Adam group, flattened in buffer order.
+fn parameter_groups(cloud: &GaussianCloud) -> [Vec<f32>; 5] {
+    [
+        cloud.means.iter().flatten().copied().collect(),
+        cloud.log_scales.iter().flatten().copied().collect(),
+        cloud.quaternions.iter().flatten().copied().collect(),
+        cloud.opacity_logits.clone(),
+        cloud.colours.iter().flatten().copied().collect(),
+    ]
+}
+
+#[test]
+fn device_adam_steps_match_the_host_formula_for_any_group_length() {
+    let gpu = gpu();
+    let context = &gpu.context;
+    let camera = default_camera();
+    // 7 Gaussians: groups of 21, 21, 28, 7 and 21 elements, so the kernel's vectors of 4 and
+    // its tail of the last elements % 4 both run.
+    let cloud = random_scene(&camera, 7, 41, (-2.0, -1.0), (0.0, 2.0));
+    let other = random_scene(&camera, 7, 42, (-2.0, -1.0), (0.0, 2.0));
+    let target = target_from(&reference::render(
+        &other,
+        &camera,
+        RenderMode::RgbD,
+        &RasterConfig::default(),
+    ));
+    let config = AdamConfig {
+        means: 1e-2,
+        log_scales: 0.01,
+        quaternions: 0.003,
+        opacity_logits: 0.05,
+        colours: 0.02,
+        ..AdamConfig::default()
+    };
+    let rates = [
+        config.means,
+        config.log_scales,
+        config.quaternions,
+        config.opacity_logits,
+        config.colours,
+    ];
+    let kernels = TrainingKernels::new(context);
+    let gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
+    let mut adam = DeviceAdam::new(context, &gaussians, config).unwrap();
+    let device_target = DeviceTarget::upload(context, &target).unwrap();
+    let image_gradients = DeviceImageGradients::zeros(context, &camera).unwrap();
+
+    let mut parameters = parameter_groups(&cloud);
+    let mut first = parameters.clone().map(|g| vec![0.0f32; g.len()]);
+    let mut second = first.clone();
+    let mut any_gradient = false;
+    for step in 1..=3 {
+        let frame = gpu
+            .renderer
+            .render_frame(context, &gaussians, &camera, &RasterConfig::default())
+            .unwrap();
+        kernels
+            .image_loss(
+                context,
+                &gpu.renderer,
+                &frame,
+                &device_target,
+                &weights_with_depth(),
+                &image_gradients,
+            )
+            .unwrap();
+        let gradients = gpu
+            .renderer
+            .backward(context, &gaussians, &frame, &image_gradients)
+            .unwrap();
+        if step == 2 {
+            // A non-finite gradient element counts as zero: one in a vector, one in the tail.
+            for element in [5u64, 20] {
+                context.queue.write_buffer(
+                    &gradients.v_means,
+                    element * 4,
+                    bytemuck::bytes_of(&f32::NAN),
+                );
+            }
+        }
+        let host = gradients.download(context).unwrap();
+        let host_gradients = [
+            host.v_means.iter().flatten().copied().collect::<Vec<f32>>(),
+            host.v_log_scales.iter().flatten().copied().collect(),
+            host.v_quaternions.iter().flatten().copied().collect(),
+            host.v_opacity_logits.clone(),
+            host.v_colours.iter().flatten().copied().collect(),
+        ];
+        if step == 2 {
+            assert!(host_gradients[0][5].is_nan() && host_gradients[0][20].is_nan());
+        }
+        kernels
+            .adam_step(context, &mut adam, &gaussians, &gradients)
+            .unwrap();
+        let bias_correction1 = 1.0 / (1.0 - config.beta1.powi(step));
+        let bias_correction2 = 1.0 / (1.0 - config.beta2.powi(step));
+        for group in 0..5 {
+            for i in 0..parameters[group].len() {
+                let raw = host_gradients[group][i];
+                let gradient = if raw.is_finite() { raw } else { 0.0 };
+                any_gradient |= gradient != 0.0;
+                let m = config.beta1 * first[group][i] + (1.0 - config.beta1) * gradient;
+                let v =
+                    config.beta2 * second[group][i] + (1.0 - config.beta2) * gradient * gradient;
+                first[group][i] = m;
+                second[group][i] = v;
+                parameters[group][i] -= rates[group] * (m * bias_correction1)
+                    / ((v * bias_correction2).sqrt() + config.epsilon);
+            }
+        }
+    }
+    assert!(any_gradient, "the scene should give some non-zero gradient");
+    let moments = adam.download_moments(context).unwrap();
+    let device = [
+        parameter_groups(&gaussians.download(context).unwrap()),
+        parameter_groups(&moments.first),
+        parameter_groups(&moments.second),
+    ];
+    for (name, host, device) in [
+        ("parameter", &parameters, &device[0]),
+        ("first moment", &first, &device[1]),
+        ("second moment", &second, &device[2]),
+    ] {
+        for group in 0..5 {
+            assert_eq!(host[group].len(), device[group].len());
+            for (i, (h, d)) in host[group].iter().zip(&device[group]).enumerate() {
+                assert!(
+                    (h - d).abs() <= 1e-6 * h.abs().max(1e-6),
+                    "{name} group {group} element {i}: host {h}, device {d}"
+                );
+            }
+        }
+    }
+}
+
+fn weights_with_depth() -> LossWeights {
+    LossWeights {
+        depth_truncation: 4.0,
+        ..LossWeights::default()
+    }
 }

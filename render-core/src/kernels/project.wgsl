@@ -4,7 +4,7 @@
 // 3-sigma square of the reference (radius = 3 sqrt(largest eigenvalue)) intersected with the
 // ellipse outside which opacity * exp(-0.5 d^T conic d) < min splat alpha (those pixels skip
 // the splat anyway). Rectangles of up to 32 tiles also get a mask of the tiles the ellipse
-// actually reaches (exact box/ellipse test with a small margin), and only those are binned:
+// actually reaches (exact per tile row, with a small margin: ellipse_tile_mask), and only those are binned:
 // like the tighter box, this changes no pixel, it only saves tile/splat pairs (a thin tilted
 // ellipse misses most tiles of its bounding box). Invariants: every Gaussian index < count
 // writes all outputs; tile_counts is the number of binned tiles (mask bits, or the whole
@@ -52,6 +52,65 @@ fn quaternion_to_rotation(q: vec4<f32>) -> mat3x3<f32> {
         vec3<f32>(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
         vec3<f32>(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
     );
+}
+
+// Pixel margin of ellipse_tile_mask's column ranges: absorbs the f32 rounding of its square
+// roots (visible_radius_squared's margins already absorb the rasterizer's own rounding).
+const TILE_MASK_MARGIN: f32 = 0.01;
+
+// Row-major mask of the tiles of a `columns` x `rows` rectangle (at most 32 tiles) that the
+// ellipse d^T cov^-1 d <= radius_squared reaches, for the 2D covariance (xx, xy, yy) of
+// determinant `det` (the one the conic was divided by); `mean` is the ellipse's centre
+// relative to the rectangle's first pixel centre. One trip per tile row: the ellipse's points
+// in the row's strip of pixel centres span an interval of x (both are convex), and the row's
+// tiles whose pixel columns meet that interval are the ones it reaches. At height dy the
+// ellipse spans x = (xy / yy) dy +- sqrt(det / yy (r^2 - dy^2 / yy)), a concave right end
+// that peaks at the ellipse's rightmost point, dy = r xy / sqrt(xx) (the left end mirrors
+// it), so over the strip each end is extreme at that point clamped to the strip.
+// (A box test per tile cost one trip per tile; tile rows are fewer.)
+fn ellipse_tile_mask(mean: vec2<f32>, covariance: vec3<f32>, det: f32, radius_squared: f32,
+                     columns: u32, rows: u32) -> u32 {
+    let xx = covariance.x;
+    let xy = covariance.y;
+    let yy = covariance.z;
+    let half_height = sqrt(radius_squared * yy);
+    let rightmost_dy = sqrt(radius_squared / xx) * xy;
+    let slope = xy / yy;
+    let spread = det / yy;
+    let tile = f32(TILE_SIZE);
+    let last_column = f32(columns) - 1.0;
+    var mask = 0u;
+    var row = 0u;
+    loop {
+        // dy over the row's pixel centres, cut to the ellipse's own extent.
+        let strip_low = max(f32(row) * tile - mean.y, -half_height);
+        let strip_high = min(f32(row) * tile + (tile - 1.0) - mean.y, half_height);
+        let dy_right = clamp(rightmost_dy, strip_low, strip_high);
+        let dy_left = clamp(-rightmost_dy, strip_low, strip_high);
+        let right = mean.x + slope * dy_right
+            + sqrt(max(spread * (radius_squared - dy_right * dy_right / yy), 0.0));
+        let left = mean.x + slope * dy_left
+            - sqrt(max(spread * (radius_squared - dy_left * dy_left / yy), 0.0));
+        // Tile columns whose pixel centres (t * 16 .. t * 16 + 15) meet [left, right].
+        var first = max(ceil((left - TILE_MASK_MARGIN - (tile - 1.0)) / tile), 0.0);
+        var last = min(floor((right + TILE_MASK_MARGIN) / tile), last_column);
+        var reached = strip_low <= strip_high && first <= last;
+        // Huge covariances (a splat far larger than the image, its rectangle cut to it) can
+        // overflow: such a row keeps all its tiles.
+        if !(is_finite(left) && is_finite(right) && is_finite(strip_low) && is_finite(strip_high)) {
+            first = 0.0;
+            last = last_column;
+            reached = true;
+        }
+        let count = u32(last - first) + 1u;
+        let bits = (ALL_TILES >> (32u - count)) << (row * columns + u32(first));
+        mask |= select(0u, bits, reached);
+        row += 1u;
+        if row >= rows {
+            break;
+        }
+    }
+    return mask;
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -167,24 +226,10 @@ fn main(
     var tile_mask = ALL_TILES;
     var tile_count = columns * rows;
     if min_alpha > 0.0 && tile_count <= MAX_MASKED_TILES {
-        let radius_squared = visible_radius_squared(opacity, min_alpha);
-        tile_mask = 0u;
-        tile_count = 0u;
-        // The tile's column and row advance with i (no integer division: SIMD CPU adapters
-        // divide lane by lane, at dozens of cycles each).
-        var cell = vec2<u32>(0u);
-        for (var i = 0u; i < columns * rows; i++) {
-            let tile_origin = vec2<f32>(first_tile + cell) * tile;
-            let low = tile_origin - mean2d;
-            let nearest = box_min_quadratic(low, low + (tile - 1.0), conic);
-            // NaN compares false: such a tile is kept.
-            if !(nearest > radius_squared) {
-                tile_mask |= 1u << i;
-                tile_count += 1u;
-            }
-            let row_ends = cell.x + 1u == columns;
-            cell = select(vec2<u32>(cell.x + 1u, cell.y), vec2<u32>(0u, cell.y + 1u), row_ends);
-        }
+        tile_mask = ellipse_tile_mask(mean2d - vec2<f32>(first_tile) * tile,
+                                      vec3<f32>(cov_xx, cov_xy, cov_yy), det,
+                                      visible_radius_squared(opacity, min_alpha), columns, rows);
+        tile_count = countOneBits(tile_mask);
         if tile_count == 0u {
             cull(index);
             return;
