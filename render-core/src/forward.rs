@@ -22,14 +22,27 @@ use crate::wgsl::{BIN_WORKGROUP_SIZE, BinParams, RenderParams, WORKGROUP_SIZE};
 const BIN_TABLE_ENTRIES_PER_GAUSSIAN: u32 = 1;
 const MIN_BIN_BLOCK_SIZE: u32 = 32;
 
+/// Loop trips one shader invocation may make, all its loops together: lavapipe (gallivm) ends
+/// every loop of an invocation once they have made 65535 trips in all, silently (a guard
+/// against endless loops, shared by all loops of a shader), so a kernel that walks more work
+/// serially loses the rest of it.
+pub(crate) const MAX_LOOP_TRIPS_PER_INVOCATION: u32 = 65_535;
+
 /// Block size and block count of the pair binning (bin.wgsl) for `gaussian_count`
 /// Gaussians and `tile_count` tiles: the (tile, block) table aims at
 /// BIN_TABLE_ENTRIES_PER_GAUSSIAN entries per Gaussian and always fits one binding.
+/// A block's walk makes one trip per Gaussian and one per tile the Gaussian bins (up to every
+/// tile), and the lanes of a SIMD CPU adapter wait for each other at every Gaussian, so the
+/// block is also kept small enough that even Gaussians covering every tile stay within
+/// MAX_LOOP_TRIPS_PER_INVOCATION (unless the table would outgrow its binding: images of over
+/// ~1.3 million tiles with millions of Gaussians).
 fn bin_blocks(context: &GpuContext, gaussian_count: u32, tile_count: u32) -> (u32, u32) {
     let max_entries = context.max_storage_binding_bytes() / U32_BYTES;
+    let within_loop_limit = (MAX_LOOP_TRIPS_PER_INVOCATION / (tile_count + 1)).max(1);
     let mut block_size = tile_count
         .div_ceil(BIN_TABLE_ENTRIES_PER_GAUSSIAN)
-        .max(MIN_BIN_BLOCK_SIZE);
+        .max(MIN_BIN_BLOCK_SIZE)
+        .min(within_loop_limit);
     while u64::from(tile_count) * u64::from(gaussian_count.div_ceil(block_size).max(1))
         > max_entries
     {

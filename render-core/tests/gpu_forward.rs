@@ -535,3 +535,54 @@ fn pair_overflow_is_reported_and_the_next_frame_fits() {
         .unwrap();
     assert_eq!(output.alpha, full.alpha);
 }
+
+/// Every pair lands in a tile list when blocks of Gaussians each bin many tiles. lavapipe ends
+/// all loops of an invocation after 65535 trips in total, and the binning walks a block of
+/// Gaussians per invocation: with 1200 tiles (640x480) and blocks sized by the table alone,
+/// the walk through splats of ~50-150 tiles each ran out of trips and dropped the last
+/// Gaussians of every block from the lists (render_core::forward, bin_blocks).
+#[test]
+fn binning_keeps_every_pair_when_each_splat_covers_many_tiles() {
+    let gpu = gpu();
+    let context = &gpu.context;
+    let camera = camera(640, 480, 319.5, 239.5);
+    let cloud = random_scene(&camera, 1500, 21, (-0.9, -0.3), (1.0, 4.0));
+    let renderer = GpuRenderer::new(context);
+    renderer.reserve_pairs(400_000);
+    let gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
+    let frame = renderer
+        .render_frame(context, &gaussians, &camera, &RasterConfig::default())
+        .unwrap();
+    let usage = renderer.check_pairs(context, &frame).unwrap();
+    assert!(usage.pairs <= usage.capacity, "{usage:?}");
+    let ranges = read_u32(context, &frame.tile_ranges);
+    let listed: u32 = ranges.chunks(2).map(|range| range[1] - range[0]).sum();
+    eprintln!("{} pairs needed, {listed} in the tile lists", usage.pairs);
+    assert!(
+        usage.pairs > 100_000,
+        "the scene should bin many tiles per splat: {usage:?}"
+    );
+    assert_eq!(listed, usage.pairs);
+}
+
+fn read_u32(context: &render_core::context::GpuContext, buffer: &wgpu::Buffer) -> Vec<u32> {
+    let size = buffer.size();
+    let staging = context.device.create_buffer(&wgpu::BufferDescriptor {
+        label: None,
+        size,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = context.device.create_command_encoder(&Default::default());
+    encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
+    context.queue.submit([encoder.finish()]);
+    staging
+        .slice(..)
+        .map_async(wgpu::MapMode::Read, |result| result.unwrap());
+    context
+        .device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .unwrap();
+    let data = staging.slice(..).get_mapped_range().unwrap().to_vec();
+    bytemuck::pod_collect_to_vec(&data)
+}
