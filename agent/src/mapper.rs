@@ -596,7 +596,8 @@ impl MapperState {
                 tracing::debug!(
                     pairs = usage.pairs,
                     capacity = usage.capacity,
-                    "pair buffers grown; skipping this iteration"
+                    walks_cut_short = usage.walks_cut_short,
+                    "pair buffers grown or binning blocks made loop-safe; skipping this iteration"
                 );
                 return Ok(false);
             }

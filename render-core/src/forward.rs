@@ -15,12 +15,23 @@ use crate::passes::{
 use crate::profile::StageProfiler;
 use crate::types::{Camera, RasterConfig, constants};
 use crate::wgsl::{BIN_WORKGROUP_SIZE, BinParams, RenderParams, WORKGROUP_SIZE};
+use std::sync::atomic::Ordering;
 
 /// Pair-binning table entries per Gaussian the block size aims at (one (tile, block) counter
 /// per entry; the binning walks each block serially, so larger blocks mean a smaller table but
 /// fewer invocations).
 const BIN_TABLE_ENTRIES_PER_GAUSSIAN: u32 = 1;
 const MIN_BIN_BLOCK_SIZE: u32 = 32;
+
+/// The largest block of Gaussians whose binning walk stays within
+/// MAX_LOOP_TRIPS_PER_INVOCATION even when every Gaussian bins every one of `tile_count`
+/// tiles: a walk makes one trip per Gaussian and one per tile it bins, and the lanes of a SIMD
+/// CPU adapter wait for each other at every Gaussian. Frames use larger blocks (a smaller
+/// table, a faster binning) until a walk is found cut short (`GpuRenderer::check_pairs`);
+/// from then on the renderer's frames use this size.
+pub(crate) fn loop_safe_bin_block(tile_count: u32) -> u32 {
+    (MAX_LOOP_TRIPS_PER_INVOCATION / (tile_count + 1)).max(1)
+}
 
 /// Loop trips one shader invocation may make, all its loops together: lavapipe (gallivm) ends
 /// every loop of an invocation once they have made 65535 trips in all, silently (a guard
@@ -30,19 +41,19 @@ pub(crate) const MAX_LOOP_TRIPS_PER_INVOCATION: u32 = 65_535;
 
 /// Block size and block count of the pair binning (bin.wgsl) for `gaussian_count`
 /// Gaussians and `tile_count` tiles: the (tile, block) table aims at
-/// BIN_TABLE_ENTRIES_PER_GAUSSIAN entries per Gaussian and always fits one binding.
-/// A block's walk makes one trip per Gaussian and one per tile the Gaussian bins (up to every
-/// tile), and the lanes of a SIMD CPU adapter wait for each other at every Gaussian, so the
-/// block is also kept small enough that even Gaussians covering every tile stay within
-/// MAX_LOOP_TRIPS_PER_INVOCATION (unless the table would outgrow its binding: images of over
-/// ~1.3 million tiles with millions of Gaussians).
-fn bin_blocks(context: &GpuContext, gaussian_count: u32, tile_count: u32) -> (u32, u32) {
+/// BIN_TABLE_ENTRIES_PER_GAUSSIAN entries per Gaussian, holds blocks of at most
+/// `largest_block` Gaussians (see [`loop_safe_bin_block`]) and always fits one binding.
+fn bin_blocks(
+    context: &GpuContext,
+    gaussian_count: u32,
+    tile_count: u32,
+    largest_block: u32,
+) -> (u32, u32) {
     let max_entries = context.max_storage_binding_bytes() / U32_BYTES;
-    let within_loop_limit = (MAX_LOOP_TRIPS_PER_INVOCATION / (tile_count + 1)).max(1);
     let mut block_size = tile_count
         .div_ceil(BIN_TABLE_ENTRIES_PER_GAUSSIAN)
         .max(MIN_BIN_BLOCK_SIZE)
-        .min(within_loop_limit);
+        .min(largest_block.max(1));
     while u64::from(tile_count) * u64::from(gaussian_count.div_ceil(block_size).max(1))
         > max_entries
     {
@@ -84,12 +95,19 @@ impl FrameBuffers {
         gaussian_count: u32,
         pair_capacity: u32,
         pair_gradient_sums: bool,
+        loop_safe_blocks: bool,
     ) -> Result<Self, GpuError> {
         let count = u64::from(gaussian_count);
         let (tiles_x, tiles_y) = camera.tile_counts();
         let tile_count = tiles_x * tiles_y;
         let pixels = camera.pixel_count() as u64;
-        let (block_size, block_count) = bin_blocks(context, gaussian_count, tile_count);
+        let largest_block = if loop_safe_blocks {
+            loop_safe_bin_block(tile_count)
+        } else {
+            u32::MAX
+        };
+        let (block_size, block_count) =
+            bin_blocks(context, gaussian_count, tile_count, largest_block);
         let bin = BinParams {
             gaussian_count,
             pair_capacity,
@@ -171,6 +189,7 @@ impl GpuRenderer {
             n,
             pair_capacity,
             pair_gradient_sums,
+            self.loop_safe_bin_blocks.load(Ordering::Relaxed),
         )?;
         let mut encoder = context.device.create_command_encoder(&Default::default());
         // Which `depth_values` buffer ends up holding the depth order (none without Gaussians).
@@ -329,6 +348,7 @@ impl GpuRenderer {
             (5, &b.bin_table),
             (6, &b.intersection_gaussians),
             (7, &b.slot_pairs),
+            (9, &b.pair_status),
         ];
         let block_workgroups = b.bin.block_count.div_ceil(BIN_WORKGROUP_SIZE);
         encoder.clear_buffer(&b.bin_table, 0, None);

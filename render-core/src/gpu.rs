@@ -41,7 +41,7 @@
 //! fit one binding uses [`GradientOrder::Arrival`].
 
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 use bytemuck::Zeroable;
 
@@ -130,6 +130,9 @@ pub(crate) fn pair_sum_bytes(pair_capacity: u32) -> u64 {
 pub struct PairUsage {
     pub pairs: u32,
     pub capacity: u32,
+    /// The adapter's loop limit cut a binning walk short (lavapipe ends all loops of an
+    /// invocation after 65535 trips in all): some pairs are missing from the tile lists.
+    pub walks_cut_short: bool,
 }
 
 impl DeviceFrame {
@@ -157,9 +160,11 @@ impl DeviceFrame {
 }
 
 impl PairUsage {
-    /// The frame dropped pairs (those of its farthest Gaussians, see the module docs).
+    /// The frame dropped pairs: those of its farthest Gaussians past its capacity (see the
+    /// module docs), or those of binning walks cut short. Either way later frames of the
+    /// renderer get what they need (check_pairs).
     pub fn overflowed(&self) -> bool {
-        self.pairs > self.capacity
+        self.pairs > self.capacity || self.walks_cut_short
     }
 }
 
@@ -173,7 +178,7 @@ pub struct DeviceFrame {
     pub gaussian_count: u32,
     /// Tile/Gaussian pairs the frame's buffers hold at most (see [`GpuRenderer::check_pairs`]).
     pub pair_capacity: u32,
-    /// `[pairs kept, pairs needed, 0, 0]`, written on the device.
+    /// `[pairs kept, pairs needed, walk cut short (0 or 1), 0]`, written on the device.
     pub(crate) pair_status: wgpu::Buffer,
     /// Per Gaussian: mean2d.xy, opacity, camera z.
     pub splat_position: wgpu::Buffer,
@@ -285,6 +290,10 @@ pub struct GpuRenderer {
     pub(crate) pipelines: Pipelines,
     /// Pair capacity later frames allocate at least (grown by [`GpuRenderer::check_pairs`]).
     pair_capacity_hint: AtomicU64,
+    /// Set by [`GpuRenderer::check_pairs`] once a frame's binning walk was cut short by the
+    /// adapter's loop limit: later frames bin in blocks that stay within it
+    /// (`forward::loop_safe_bin_block`).
+    pub(crate) loop_safe_bin_blocks: AtomicBool,
     /// True when the backward pass uses native float atomics.
     pub uses_float_atomics: bool,
     /// True when the rasterizers use subgroup operations.
@@ -363,6 +372,7 @@ impl GpuRenderer {
         Self {
             pipelines,
             pair_capacity_hint: AtomicU64::new(0),
+            loop_safe_bin_blocks: AtomicBool::new(false),
             uses_float_atomics,
             uses_subgroups,
             gradient_order: options.gradient_order,
@@ -381,13 +391,20 @@ impl GpuRenderer {
         let mut frame = self.render_frame(context, gaussians, camera, &RasterConfig::default())?;
         let usage = self.check_pairs(context, &frame)?;
         if usage.overflowed() {
-            // check_pairs grew the capacity to fit: the second render holds every pair.
+            // check_pairs grew the capacity to fit, or made the binning blocks small enough
+            // for the adapter's loop limit: the second render holds every pair.
             frame = self.render_frame(context, gaussians, camera, &RasterConfig::default())?;
             let retry = self.check_pairs(context, &frame)?;
             if retry.overflowed() {
                 return Err(GpuError::TooLarge(format!(
-                    "{} tile/Gaussian pairs, the adapter binds at most {}",
-                    retry.pairs, retry.capacity
+                    "{} tile/Gaussian pairs, the adapter binds at most {}{}",
+                    retry.pairs,
+                    retry.capacity,
+                    if retry.walks_cut_short {
+                        " (and the pair binning outgrew the adapter's loop limit)"
+                    } else {
+                        ""
+                    }
                 )));
             }
         }
@@ -416,18 +433,23 @@ impl GpuRenderer {
     /// Reads back how many tile/Gaussian pairs `frame` needed (blocking: call it outside an
     /// optimisation loop, e.g. every few hundred iterations, or after a one-off render). When
     /// the frame overflowed its capacity, later frames get room for the count plus
-    /// PAIR_CAPACITY_GROWTH_PERCENT.
+    /// PAIR_CAPACITY_GROWTH_PERCENT; when a binning walk was cut short, later frames bin in
+    /// blocks small enough for the adapter's loop limit.
     pub fn check_pairs(
         &self,
         context: &GpuContext,
         frame: &DeviceFrame,
     ) -> Result<PairUsage, GpuError> {
-        let status: Vec<u32> = context.read_vec(&frame.pair_status, 2)?;
+        let status: Vec<u32> = context.read_vec(&frame.pair_status, 3)?;
         let usage = PairUsage {
             pairs: status[1],
             capacity: frame.pair_capacity,
+            walks_cut_short: status[2] != 0,
         };
-        if usage.overflowed() {
+        if usage.walks_cut_short {
+            self.loop_safe_bin_blocks.store(true, Ordering::Relaxed);
+        }
+        if usage.pairs > usage.capacity {
             let grown = u64::from(usage.pairs) * (100 + PAIR_CAPACITY_GROWTH_PERCENT) / 100;
             self.pair_capacity_hint.fetch_max(grown, Ordering::Relaxed);
         }

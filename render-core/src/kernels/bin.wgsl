@@ -14,7 +14,8 @@
 //   of up to 32 tiles a row-major mask of the tiles the splat reaches, see project.wgsl).
 //   A pair is kept iff its depth-order index is below the capacity, so an overflowing frame
 //   keeps exactly its first `capacity` pairs in depth order (it loses the pairs of its
-//   farthest Gaussians).
+//   farthest Gaussians). It sets pair_status[2] when it binned fewer pairs than the scan
+//   counts for its block: the adapter's loop limit cut its walk short (see walk_block).
 // - the launcher exclusive-scans the table: (tile, block) then holds the first list slot of
 //   the block's pairs in that tile, and tiles' lists are contiguous in tile order.
 // - `emit_pairs` (same walk): writes each kept pair's Gaussian at the next slot of its
@@ -40,7 +41,7 @@
 // Tile-list slot -> the pair's depth-order index.
 @group(0) @binding(7) var<storage, read_write> slot_pairs: array<u32>;
 @group(0) @binding(8) var<storage, read_write> tile_ranges: array<vec2<u32>>;
-// [pairs kept, pairs needed]
+// [pairs kept, pairs needed, 1 if a block's walk was cut short (count_pairs), 0]
 @group(0) @binding(9) var<storage, read_write> pair_status: array<u32>;
 
 @compute @workgroup_size(1)
@@ -75,6 +76,8 @@ fn walk_block(block: u32, emit: bool) {
     let block_count = bin_params.block_count;
     let first = block * bin_params.block_size;
     let last = min(first + bin_params.block_size, bin_params.gaussian_count);
+    // Pairs binned so far, checked against the scan at the end.
+    var walked = 0u;
     for (var k = first; k < last; k++) {
         let gaussian = sorted_gaussians[k];
         let count = tile_counts[gaussian];
@@ -120,6 +123,20 @@ fn walk_block(block: u32, emit: bool) {
                 slot_pairs[slot] = first_pair + binned;
             }
             binned += 1u;
+        }
+        walked += binned;
+    }
+    if !emit {
+        // lavapipe ends every loop of an invocation once they have made 65535 trips in all
+        // (render-core/README.md): a walk cut short bins fewer pairs than the scan counts for
+        // the block. Flag it; check_pairs then makes later frames' blocks small enough.
+        var before = 0u;
+        if first > 0u {
+            before = sorted_tile_counts[first - 1u];
+        }
+        let capacity = bin_params.pair_capacity;
+        if last > first && walked != min(sorted_tile_counts[last - 1u], capacity) - min(before, capacity) {
+            pair_status[2] = 1u;
         }
     }
 }
