@@ -37,7 +37,7 @@ pub(crate) fn loop_safe_bin_block(tile_count: u32) -> u32 {
 /// every loop of an invocation once they have made 65535 trips in all, silently (a guard
 /// against endless loops, shared by all loops of a shader), so a kernel that walks more work
 /// serially loses the rest of it.
-pub(crate) const MAX_LOOP_TRIPS_PER_INVOCATION: u32 = 65_535;
+const MAX_LOOP_TRIPS_PER_INVOCATION: u32 = 65_535;
 
 /// Block size and block count of the pair binning (bin.wgsl) for `gaussian_count`
 /// Gaussians and `tile_count` tiles: the (tile, block) table aims at
@@ -151,7 +151,8 @@ impl FrameBuffers {
             slot_pairs: context
                 .storage_buffer("slot_pairs", u64::from(pair_capacity) * U32_BYTES)?,
             bin_table: context.storage_buffer("bin table", bin_table_entries * U32_BYTES)?,
-            // [pairs kept, pairs needed]; zero-filled, which is right for an empty scene.
+            // [pairs kept, pairs needed, walk cut short, 0]; zero-filled, which is right for an
+            // empty scene.
             pair_status: context.storage_buffer("pair_status", VEC4_BYTES)?,
             // Fresh wgpu buffers are zero-filled, so tiles read as [0, 0) when there is
             // nothing to bin.

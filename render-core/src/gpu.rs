@@ -27,7 +27,10 @@
 //! device. Invariant: a frame whose pairs exceed its capacity keeps exactly the first
 //! `capacity` pairs in depth order, i.e. it drops the pairs of its farthest Gaussians and
 //! stays a valid (slightly incomplete) render; [`GpuRenderer::check_pairs`] reports it and
-//! makes later frames large enough. [`GpuRenderer::render`] checks and re-renders, so
+//! makes later frames large enough. The same holds for a binning walk that lavapipe's loop
+//! limit cut short (its pairs are missing; `PairUsage::walks_cut_short`, see
+//! render-core/README.md): later frames bin in smaller blocks. [`GpuRenderer::render`]
+//! checks and re-renders, so
 //! one-off renders are always complete; optimisation loops call `check_pairs` outside their
 //! inner loop. Kernels live in `src/kernels/*.wgsl`; each opens with a comment on its thread
 //! mapping and invariants.

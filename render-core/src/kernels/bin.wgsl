@@ -135,7 +135,8 @@ fn walk_block(block: u32, emit: bool) {
             before = sorted_tile_counts[first - 1u];
         }
         let capacity = bin_params.pair_capacity;
-        if last > first && walked != min(sorted_tile_counts[last - 1u], capacity) - min(before, capacity) {
+        let expected = min(sorted_tile_counts[last - 1u], capacity) - min(before, capacity);
+        if last > first && walked != expected {
             pair_status[2] = 1u;
         }
     }
