@@ -2,7 +2,9 @@
 
 mod common;
 
-use common::{HEIGHT, WIDTH, camera, default_camera, gpu, pair_overflow_scene, random_scene};
+use common::{
+    HEIGHT, WIDTH, camera, default_camera, gpu, pair_overflow_scene, random_scene, read_buffer,
+};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::gpu::{DeviceGaussians, GpuRenderer, RendererOptions, Subgroups};
@@ -552,7 +554,11 @@ fn binning_keeps_every_pair_when_each_splat_covers_many_tiles() {
     renderer.reserve_pairs(400_000);
     let gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
     let listed_pairs = |frame: &render_core::gpu::DeviceFrame| -> u32 {
-        let ranges = read_u32(context, &frame.tile_ranges);
+        let ranges: Vec<u32> = read_buffer(
+            context,
+            &frame.tile_ranges,
+            frame.tile_ranges.size() as usize / 4,
+        );
         ranges.chunks(2).map(|range| range[1] - range[0]).sum()
     };
     let first = renderer
@@ -578,26 +584,4 @@ fn binning_keeps_every_pair_when_each_splat_covers_many_tiles() {
     eprintln!("second frame: {second_usage:?}");
     assert!(!second_usage.overflowed(), "{second_usage:?}");
     assert_eq!(listed_pairs(&second), second_usage.pairs);
-}
-
-fn read_u32(context: &render_core::context::GpuContext, buffer: &wgpu::Buffer) -> Vec<u32> {
-    let size = buffer.size();
-    let staging = context.device.create_buffer(&wgpu::BufferDescriptor {
-        label: None,
-        size,
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    let mut encoder = context.device.create_command_encoder(&Default::default());
-    encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
-    context.queue.submit([encoder.finish()]);
-    staging
-        .slice(..)
-        .map_async(wgpu::MapMode::Read, |result| result.unwrap());
-    context
-        .device
-        .poll(wgpu::PollType::wait_indefinitely())
-        .unwrap();
-    let data = staging.slice(..).get_mapped_range().unwrap().to_vec();
-    bytemuck::pod_collect_to_vec(&data)
 }

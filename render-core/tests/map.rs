@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{default_camera, gpu, random_scene};
+use common::{default_camera, gpu, parameter_groups, random_scene};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::backward::DeviceImageGradients;
@@ -282,18 +282,6 @@ impl Trainer {
     }
 }
 
-/// Each parameter group of a cloud as one flat f32 vector (means, log-scales, quaternions,
-/// opacity logits, colours).
-fn groups(cloud: &GaussianCloud) -> [Vec<f32>; 5] {
-    [
-        cloud.means.iter().flatten().copied().collect(),
-        cloud.log_scales.iter().flatten().copied().collect(),
-        cloud.quaternions.iter().flatten().copied().collect(),
-        cloud.opacity_logits.clone(),
-        cloud.colours.iter().flatten().copied().collect(),
-    ]
-}
-
 fn moments_select(moments: &AdamMoments, keep: &[bool]) -> AdamMoments {
     AdamMoments {
         first: moments.first.select(keep),
@@ -341,9 +329,9 @@ fn adam_moments_follow_prune_and_append() {
     let new: Vec<bool> = old.iter().map(|&is_old| !is_old).collect();
     assert_eq!(moments_select(&appended_moments, &old), pruned_moments);
     let zero_moments = moments_select(&appended_moments, &new);
-    for group in groups(&zero_moments.first)
+    for group in parameter_groups(&zero_moments.first)
         .iter()
-        .chain(&groups(&zero_moments.second))
+        .chain(&parameter_groups(&zero_moments.second))
     {
         assert!(group.iter().all(|&m| m == 0.0));
     }
@@ -389,11 +377,14 @@ fn adam_moments_follow_prune_and_append() {
         config.colours,
     ];
     let (old_first, old_second) = (
-        groups(&appended_moments.first),
-        groups(&appended_moments.second),
+        parameter_groups(&appended_moments.first),
+        parameter_groups(&appended_moments.second),
     );
-    let (new_first, new_second) = (groups(&after_moments.first), groups(&after_moments.second));
-    let (old_parameters, new_parameters) = (groups(&before), groups(&after));
+    let (new_first, new_second) = (
+        parameter_groups(&after_moments.first),
+        parameter_groups(&after_moments.second),
+    );
+    let (old_parameters, new_parameters) = (parameter_groups(&before), parameter_groups(&after));
     let mut compared = 0;
     for group in 0..5 {
         for (i, &g) in gradient_groups[group].iter().enumerate() {
@@ -479,8 +470,8 @@ fn max_abs_difference(a: &[f32], b: &[f32]) -> f32 {
 /// (device and host compute it in a different order); the other parameters do not move.
 fn assert_placed_like(actual: &GaussianCloud, expected: &GaussianCloud) {
     const TOLERANCE: f32 = 1e-5;
-    let [means, _, quaternions, _, _] = groups(actual);
-    let [expected_means, _, expected_quaternions, _, _] = groups(expected);
+    let [means, _, quaternions, _, _] = parameter_groups(actual);
+    let [expected_means, _, expected_quaternions, _, _] = parameter_groups(expected);
     assert!(max_abs_difference(&means, &expected_means) <= TOLERANCE);
     assert!(max_abs_difference(&quaternions, &expected_quaternions) <= TOLERANCE);
     assert_eq!(actual.log_scales, expected.log_scales);

@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{default_camera, gpu, random_scene};
+use common::{default_camera, gpu, parameter_groups, random_scene, read_buffer};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::backward::DeviceImageGradients;
@@ -123,7 +123,7 @@ fn device_loss_matches_reference() {
 }
 
 /// Runs that end inside the image, after an odd number of pixels: 75 = 64 + 11 columns and
-/// 71 = 64 + 7 rows (the loss kernels advance two pixels per loop trip).
+/// 71 = 64 + 7 rows (the loss kernels work in runs of LOSS_RUN = 64 pixels).
 #[test]
 fn device_loss_matches_reference_on_partial_odd_runs() {
     check_device_loss(&common::camera(75, 71, 37.0, 35.0));
@@ -146,10 +146,7 @@ fn check_device_loss(camera: &Camera) {
             *d = 0.0;
         }
     }
-    let weights = LossWeights {
-        depth_truncation: 4.0,
-        ..LossWeights::default()
-    };
+    let weights = weights_with_depth();
     let gaussians = DeviceGaussians::upload(&gpu.context, &cloud).unwrap();
     let frame = gpu
         .renderer
@@ -185,7 +182,7 @@ fn check_device_loss(camera: &Camera) {
     assert!((f64::from(total) - expected_loss).abs() <= 1e-5 * expected_loss.max(1.0));
 
     let pixels = camera.pixel_count();
-    let v_rgbd: Vec<f32> = read_f32(&gpu.context, &image_gradients.v_rgbd, 4 * pixels);
+    let v_rgbd: Vec<f32> = read_buffer(&gpu.context, &image_gradients.v_rgbd, 4 * pixels);
     let scale = expected
         .v_rgb
         .iter()
@@ -205,32 +202,6 @@ fn check_device_loss(camera: &Camera) {
             "v_depth[{p}]: device {a} vs reference {e}"
         );
     }
-}
-
-fn read_f32(
-    context: &render_core::context::GpuContext,
-    buffer: &wgpu::Buffer,
-    count: usize,
-) -> Vec<f32> {
-    let size = (count * 4) as u64;
-    let staging = context.device.create_buffer(&wgpu::BufferDescriptor {
-        label: None,
-        size,
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    let mut encoder = context.device.create_command_encoder(&Default::default());
-    encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
-    context.queue.submit([encoder.finish()]);
-    staging
-        .slice(..)
-        .map_async(wgpu::MapMode::Read, |result| result.unwrap());
-    context
-        .device
-        .poll(wgpu::PollType::wait_indefinitely())
-        .unwrap();
-    let data = staging.slice(..).get_mapped_range().unwrap().to_vec();
-    bytemuck::pod_collect_to_vec(&data)
 }
 
 fn psnr(a: &[[f32; 3]], b: &[[f32; 3]]) -> f64 {
@@ -290,10 +261,7 @@ fn fitting_a_perturbed_map_to_known_views_reduces_the_loss_and_reaches_30_db() {
         start.push(mean, log_scale, truth.quaternions[i], 0.0, colour);
     }
 
-    let weights = LossWeights {
-        depth_truncation: 4.0,
-        ..LossWeights::default()
-    };
+    let weights = weights_with_depth();
     let config = AdamConfig {
         means: 1e-3,
         log_scales: 0.01,
@@ -417,17 +385,6 @@ fn fitting_a_perturbed_map_to_known_views_reduces_the_loss_and_reaches_30_db() {
     assert_ne!(fitted.colours, start.colours);
     assert!(fitted.means.iter().flatten().all(|v| v.is_finite()));
     assert_eq!(adam.step_count(), ITERATIONS as u32);
-}
-
-/// A cloud's parameters (or moments, or gradients) per Adam group, flattened in buffer order.
-fn parameter_groups(cloud: &GaussianCloud) -> [Vec<f32>; 5] {
-    [
-        cloud.means.iter().flatten().copied().collect(),
-        cloud.log_scales.iter().flatten().copied().collect(),
-        cloud.quaternions.iter().flatten().copied().collect(),
-        cloud.opacity_logits.clone(),
-        cloud.colours.iter().flatten().copied().collect(),
-    ]
 }
 
 #[test]
@@ -554,6 +511,7 @@ fn device_adam_steps_match_the_host_formula_for_any_group_length() {
     }
 }
 
+/// The default loss weights with the depth term on (truncation 4 m).
 fn weights_with_depth() -> LossWeights {
     LossWeights {
         depth_truncation: 4.0,

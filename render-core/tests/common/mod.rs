@@ -105,3 +105,42 @@ pub fn random_scene(
     }
     cloud
 }
+
+/// Each parameter group of a cloud (or of Adam moments, or gradients laid out like one) as one
+/// flat f32 vector in buffer order: means, log-scales, quaternions, opacity logits, colours.
+pub fn parameter_groups(cloud: &GaussianCloud) -> [Vec<f32>; 5] {
+    [
+        cloud.means.iter().flatten().copied().collect(),
+        cloud.log_scales.iter().flatten().copied().collect(),
+        cloud.quaternions.iter().flatten().copied().collect(),
+        cloud.opacity_logits.clone(),
+        cloud.colours.iter().flatten().copied().collect(),
+    ]
+}
+
+/// The first `count` values of a device buffer, copied back to the host (blocking).
+pub fn read_buffer<T: bytemuck::Pod>(
+    context: &GpuContext,
+    buffer: &wgpu::Buffer,
+    count: usize,
+) -> Vec<T> {
+    let size = (count * std::mem::size_of::<T>()) as u64;
+    let staging = context.device.create_buffer(&wgpu::BufferDescriptor {
+        label: None,
+        size,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = context.device.create_command_encoder(&Default::default());
+    encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
+    context.queue.submit([encoder.finish()]);
+    staging
+        .slice(..)
+        .map_async(wgpu::MapMode::Read, |result| result.unwrap());
+    context
+        .device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .unwrap();
+    let data = staging.slice(..).get_mapped_range().unwrap().to_vec();
+    bytemuck::pod_collect_to_vec(&data)
+}
