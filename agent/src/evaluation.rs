@@ -4,6 +4,7 @@
 //! pixels (a hole in the render counts its full error).
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use alexnet::lpips::Lpips;
 use datasets::Frame;
@@ -70,6 +71,8 @@ pub struct MapRenderer {
     context: GpuContext,
     renderer: GpuRenderer,
     gaussians: Option<DeviceGaussians>,
+    /// Set once a render was reported as cut short by the adapter's loop limit (warned once).
+    warned_cut_short: AtomicBool,
 }
 
 impl MapRenderer {
@@ -85,6 +88,7 @@ impl MapRenderer {
             context,
             renderer,
             gaussians,
+            warned_cut_short: AtomicBool::new(false),
         })
     }
 
@@ -98,8 +102,19 @@ impl MapRenderer {
         let camera = Camera::new(RigidTransform::from(world_from_camera), intrinsics);
         let output = match &self.gaussians {
             Some(gaussians) => {
-                self.renderer
-                    .render(&self.context, gaussians, &camera, RenderMode::RgbD)?
+                let output =
+                    self.renderer
+                        .render(&self.context, gaussians, &camera, RenderMode::RgbD)?;
+                if self.renderer.checks_cut_short() > 0
+                    && !self.warned_cut_short.swap(true, Ordering::Relaxed)
+                {
+                    tracing::warn!(
+                        gaussians = gaussians.len(),
+                        "a tile's splat list is too long for the adapter's loop limit: this \
+                         render lacks the rest of it (see render-core/README.md)"
+                    );
+                }
+                output
             }
             None => RenderOutput {
                 width: camera.width,

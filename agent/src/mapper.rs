@@ -94,6 +94,9 @@ pub struct MappingStats {
     /// `GradientOrder`) and summed in arrival order: with any, the run does not repeat bit for
     /// bit.
     pub arrival_order_iterations: usize,
+    /// Pair checks (every `check_pairs_every` iterations) that found a rasterizer's walk cut
+    /// short by the adapter's loop limit: tiles whose splat lists outgrew it.
+    pub loop_limited_checks: usize,
 }
 
 impl MappingStats {
@@ -416,6 +419,7 @@ impl MapperState {
             max_pose_change_deg = format!("{:.3}", realtime.max_pose_change_deg),
             pose_steps_refused = realtime.pose_steps_refused,
             arrival_order_iterations = realtime.arrival_order_iterations,
+            loop_limited_checks = realtime.loop_limited_checks,
             "real-time mapping done"
         );
         let refined = if refine_iterations > 0 && !self.map_is_empty() {
@@ -589,20 +593,6 @@ impl MapperState {
         let frame =
             self.renderer
                 .render_frame(context, map.gaussians(), &keyframe.camera, &self.raster)?;
-        if self.since_pair_check >= self.config.check_pairs_every {
-            self.since_pair_check = 0;
-            let usage = self.renderer.check_pairs(context, &frame)?;
-            if usage.overflowed() {
-                tracing::debug!(
-                    pairs = usage.pairs,
-                    capacity = usage.capacity,
-                    walks_cut_short = usage.walks_cut_short,
-                    "pair buffers grown or binning blocks made loop-safe; skipping this iteration"
-                );
-                return Ok(false);
-            }
-        }
-        self.since_pair_check += 1;
         if frame.gradient_order_fell_back() {
             if self.stats.arrival_order_iterations == 0 {
                 tracing::warn!(
@@ -626,6 +616,34 @@ impl MapperState {
         let gradients =
             self.renderer
                 .backward(context, map.gaussians(), &frame, &keyframe.image_gradients)?;
+        // Checked after the backward pass, so the check sees its walks too (one read-back).
+        if self.since_pair_check >= self.config.check_pairs_every {
+            self.since_pair_check = 0;
+            let usage = self.renderer.check_pairs(context, &frame)?;
+            if usage.rasterizers_cut_short() {
+                if self.stats.loop_limited_checks == 0 {
+                    tracing::warn!(
+                        keyframe = keyframe.keyframe_id,
+                        gaussians = frame.gaussian_count,
+                        forward = usage.rasterize_cut_short,
+                        backward = usage.rasterize_backward_cut_short,
+                        "a tile's splat list is too long for the adapter's loop limit: the \
+                         rasterizer skipped the rest of it (see render-core/README.md)"
+                    );
+                }
+                self.stats.loop_limited_checks += 1;
+            }
+            if usage.overflowed() {
+                tracing::debug!(
+                    pairs = usage.pairs,
+                    capacity = usage.capacity,
+                    binning_cut_short = usage.binning_cut_short,
+                    "pair buffers grown or binning blocks made loop-safe; skipping this step"
+                );
+                return Ok(false);
+            }
+        }
+        self.since_pair_check += 1;
         map.adam_step(context, &self.kernels, &gradients)?;
         // The first keyframe's pose fixes the map's frame.
         let pose_read_back = self.config.refine_keyframe_poses && index > 0;

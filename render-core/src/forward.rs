@@ -14,7 +14,9 @@ use crate::passes::{
 };
 use crate::profile::StageProfiler;
 use crate::types::{Camera, RasterConfig, constants};
-use crate::wgsl::{BIN_WORKGROUP_SIZE, BinParams, RenderParams, WORKGROUP_SIZE};
+use crate::wgsl::{
+    BIN_WORKGROUP_SIZE, BinParams, FRAME_STATUS_WORDS, RenderParams, WORKGROUP_SIZE,
+};
 use std::sync::atomic::Ordering;
 
 /// Pair-binning table entries per Gaussian the block size aims at (one (tile, block) counter
@@ -79,7 +81,7 @@ struct FrameBuffers {
     intersection_gaussians: wgpu::Buffer,
     slot_pairs: wgpu::Buffer,
     bin_table: wgpu::Buffer,
-    pair_status: wgpu::Buffer,
+    frame_status: wgpu::Buffer,
     tile_ranges: wgpu::Buffer,
     rgbd: wgpu::Buffer,
     alpha: wgpu::Buffer,
@@ -151,9 +153,10 @@ impl FrameBuffers {
             slot_pairs: context
                 .storage_buffer("slot_pairs", u64::from(pair_capacity) * U32_BYTES)?,
             bin_table: context.storage_buffer("bin table", bin_table_entries * U32_BYTES)?,
-            // [pairs kept, pairs needed, walk cut short, 0]; zero-filled, which is right for an
-            // empty scene.
-            pair_status: context.storage_buffer("pair_status", VEC4_BYTES)?,
+            // FRAME_STATUS_WORDS words (see wgsl.rs); zero-filled, which is right for an empty
+            // scene.
+            frame_status: context
+                .storage_buffer("frame_status", u64::from(FRAME_STATUS_WORDS) * U32_BYTES)?,
             // Fresh wgpu buffers are zero-filled, so tiles read as [0, 0) when there is
             // nothing to bin.
             tile_ranges: context
@@ -214,7 +217,7 @@ impl GpuRenderer {
             params_buffer: buffers.params,
             gaussian_count: n,
             pair_capacity,
-            pair_status: buffers.pair_status,
+            frame_status: buffers.frame_status,
             splat_position: buffers.splat_position,
             splat_conic: buffers.splat_conic,
             splat_colour: buffers.splat_colour,
@@ -336,7 +339,7 @@ impl GpuRenderer {
             &[
                 (0, &b.bin_params),
                 (3, &b.sorted_tile_counts),
-                (9, &b.pair_status),
+                (9, &b.frame_status),
             ],
         );
         dispatch_linear(encoder, &p.pair_status, &status_group, 1);
@@ -349,7 +352,7 @@ impl GpuRenderer {
             (5, &b.bin_table),
             (6, &b.intersection_gaussians),
             (7, &b.slot_pairs),
-            (9, &b.pair_status),
+            (9, &b.frame_status),
         ];
         let block_workgroups = b.bin.block_count.div_ceil(BIN_WORKGROUP_SIZE);
         encoder.clear_buffer(&b.bin_table, 0, None);
@@ -396,6 +399,7 @@ impl GpuRenderer {
                 (7, &b.alpha),
                 (8, &b.transmittance),
                 (9, &b.last_entry),
+                (10, &b.frame_status),
             ],
         );
         let (tiles_x, tiles_y) = camera.tile_counts();

@@ -28,12 +28,13 @@
 //! `capacity` pairs in depth order, i.e. it drops the pairs of its farthest Gaussians and
 //! stays a valid (slightly incomplete) render; [`GpuRenderer::check_pairs`] reports it and
 //! makes later frames large enough. The same holds for a binning walk that lavapipe's loop
-//! limit cut short (its pairs are missing; `PairUsage::walks_cut_short`, see
+//! limit cut short (its pairs are missing; `PairUsage::binning_cut_short`, see
 //! render-core/README.md): later frames bin in smaller blocks. [`GpuRenderer::render`]
-//! checks and re-renders, so
-//! one-off renders are always complete; optimisation loops call `check_pairs` outside their
-//! inner loop. Kernels live in `src/kernels/*.wgsl`; each opens with a comment on its thread
-//! mapping and invariants.
+//! checks and re-renders, so one-off renders hold every pair; optimisation loops call
+//! `check_pairs` outside their inner loop. A rasterizer's walk over a tile's list that the
+//! loop limit cut short is reported too (`PairUsage::rasterizers_cut_short`), but not
+//! re-rendered: it would end the same way. Kernels live in `src/kernels/*.wgsl`; each opens
+//! with a comment on its thread mapping and invariants.
 //!
 //! Limits: every storage binding must fit `max_storage_buffer_binding_size` (128 MiB on
 //! lavapipe). The widest per-Gaussian buffer holds 16 bytes per Gaussian and the binning
@@ -51,7 +52,10 @@ use bytemuck::Zeroable;
 use crate::context::{GpuContext, GpuError};
 use crate::passes::{ScanPipelines, U32_BYTES, compute_pipeline};
 use crate::types::{Camera, RasterConfig, RenderMode, RenderOutput, constants};
-use crate::wgsl::{RenderParams, source};
+use crate::wgsl::{
+    FRAME_STATUS_WORDS, RenderParams, STATUS_BINNING_CUT_SHORT, STATUS_PAIRS_NEEDED,
+    STATUS_RASTERIZE_BACKWARD_CUT_SHORT, STATUS_RASTERIZE_CUT_SHORT, source,
+};
 
 pub use crate::gaussians::DeviceGaussians;
 pub(crate) use crate::gaussians::LayoutId;
@@ -128,14 +132,21 @@ pub(crate) fn pair_sum_bytes(pair_capacity: u32) -> u64 {
     u64::from(pair_capacity) * u64::from(crate::wgsl::PAIR_SUM_STRIDE) * U32_BYTES
 }
 
-/// Tile/Gaussian pairs a frame needed and could hold.
+/// Tile/Gaussian pairs a frame needed and could hold, and which of its serial walks the
+/// adapter's loop limit cut short (lavapipe ends all loops of an invocation after 65535 trips
+/// in all; see render-core/README.md).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct PairUsage {
     pub pairs: u32,
     pub capacity: u32,
-    /// The adapter's loop limit cut a binning walk short (lavapipe ends all loops of an
-    /// invocation after 65535 trips in all): some pairs are missing from the tile lists.
-    pub walks_cut_short: bool,
+    /// A binning walk was cut short: some pairs are missing from the tile lists.
+    pub binning_cut_short: bool,
+    /// A forward rasterizer's walk over a tile's list was cut short: some pixels of that tile
+    /// lack the splats after the cut.
+    pub rasterize_cut_short: bool,
+    /// A backward rasterizer's walk was cut short: the splats before the cut got no gradient
+    /// from some pixels. Only set once the frame's backward pass has run.
+    pub rasterize_backward_cut_short: bool,
 }
 
 impl DeviceFrame {
@@ -167,7 +178,15 @@ impl PairUsage {
     /// module docs), or those of binning walks cut short. Either way later frames of the
     /// renderer get what they need (check_pairs).
     pub fn overflowed(&self) -> bool {
-        self.pairs > self.capacity || self.walks_cut_short
+        self.pairs > self.capacity || self.binning_cut_short
+    }
+
+    /// A rasterizer's walk was cut short. Unlike an overflow, rendering again changes nothing:
+    /// the tile's list is too long for the adapter (it would take splats far beyond today's
+    /// maps, see render-core/README.md). The frame stays usable, minus those splats; callers
+    /// report it.
+    pub fn rasterizers_cut_short(&self) -> bool {
+        self.rasterize_cut_short || self.rasterize_backward_cut_short
     }
 }
 
@@ -181,8 +200,9 @@ pub struct DeviceFrame {
     pub gaussian_count: u32,
     /// Tile/Gaussian pairs the frame's buffers hold at most (see [`GpuRenderer::check_pairs`]).
     pub pair_capacity: u32,
-    /// `[pairs kept, pairs needed, walk cut short (0 or 1), 0]`, written on the device.
-    pub(crate) pair_status: wgpu::Buffer,
+    /// FRAME_STATUS_WORDS words indexed by the STATUS_* constants (wgsl.rs), written on the
+    /// device: pair counts and the loop-limit flags.
+    pub(crate) frame_status: wgpu::Buffer,
     /// Per Gaussian: mean2d.xy, opacity, camera z.
     pub splat_position: wgpu::Buffer,
     /// Per Gaussian: conic a, b, c, radius.
@@ -297,6 +317,9 @@ pub struct GpuRenderer {
     /// adapter's loop limit: later frames bin in blocks that stay within it
     /// (`forward::loop_safe_bin_block`).
     pub(crate) loop_safe_bin_blocks: AtomicBool,
+    /// Checks ([`GpuRenderer::check_pairs`], also inside [`GpuRenderer::render`]) that found a
+    /// rasterizer's walk cut short (see [`PairUsage::rasterizers_cut_short`]).
+    checks_cut_short: AtomicU64,
     /// True when the backward pass uses native float atomics.
     pub uses_float_atomics: bool,
     /// True when the rasterizers use subgroup operations.
@@ -376,6 +399,7 @@ impl GpuRenderer {
             pipelines,
             pair_capacity_hint: AtomicU64::new(0),
             loop_safe_bin_blocks: AtomicBool::new(false),
+            checks_cut_short: AtomicU64::new(0),
             uses_float_atomics,
             uses_subgroups,
             gradient_order: options.gradient_order,
@@ -383,7 +407,17 @@ impl GpuRenderer {
         }
     }
 
-    /// Renders and reads the images back to the host.
+    /// How many of this renderer's frame checks found a rasterizer's walk cut short by the
+    /// adapter's loop limit ([`PairUsage::rasterizers_cut_short`]); [`GpuRenderer::render`]
+    /// checks every frame it renders. Callers that render without looking at each check
+    /// (evaluations) report a non-zero count.
+    pub fn checks_cut_short(&self) -> u64 {
+        self.checks_cut_short.load(Ordering::Relaxed)
+    }
+
+    /// Renders and reads the images back to the host. A frame whose rasterizer walks the
+    /// adapter's loop limit cut short is returned as rendered and counted
+    /// ([`GpuRenderer::checks_cut_short`]): rendering it again would end the same way.
     pub fn render(
         &self,
         context: &GpuContext,
@@ -403,7 +437,7 @@ impl GpuRenderer {
                     "{} tile/Gaussian pairs, the adapter binds at most {}{}",
                     retry.pairs,
                     retry.capacity,
-                    if retry.walks_cut_short {
+                    if retry.binning_cut_short {
                         " (and the pair binning outgrew the adapter's loop limit)"
                     } else {
                         ""
@@ -437,19 +471,27 @@ impl GpuRenderer {
     /// optimisation loop, e.g. every few hundred iterations, or after a one-off render). When
     /// the frame overflowed its capacity, later frames get room for the count plus
     /// PAIR_CAPACITY_GROWTH_PERCENT; when a binning walk was cut short, later frames bin in
-    /// blocks small enough for the adapter's loop limit.
+    /// blocks small enough for the adapter's loop limit. It also reports the rasterizers'
+    /// walks: the backward's once the frame's backward pass has been submitted.
     pub fn check_pairs(
         &self,
         context: &GpuContext,
         frame: &DeviceFrame,
     ) -> Result<PairUsage, GpuError> {
-        let status: Vec<u32> = context.read_vec(&frame.pair_status, 3)?;
+        let status: Vec<u32> =
+            context.read_vec(&frame.frame_status, FRAME_STATUS_WORDS as usize)?;
+        let flag = |word: u32| status[word as usize] != 0;
         let usage = PairUsage {
-            pairs: status[1],
+            pairs: status[STATUS_PAIRS_NEEDED as usize],
             capacity: frame.pair_capacity,
-            walks_cut_short: status[2] != 0,
+            binning_cut_short: flag(STATUS_BINNING_CUT_SHORT),
+            rasterize_cut_short: flag(STATUS_RASTERIZE_CUT_SHORT),
+            rasterize_backward_cut_short: flag(STATUS_RASTERIZE_BACKWARD_CUT_SHORT),
         };
-        if usage.walks_cut_short {
+        if usage.rasterizers_cut_short() {
+            self.checks_cut_short.fetch_add(1, Ordering::Relaxed);
+        }
+        if usage.binning_cut_short {
             self.loop_safe_bin_blocks.store(true, Ordering::Relaxed);
         }
         if usage.pairs > usage.capacity {

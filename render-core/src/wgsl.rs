@@ -339,6 +339,25 @@ pub(crate) const ROW_SUMS_PER_PIXEL: u32 = 15;
 /// f32 coefficients per pixel of the SSIM gradient.
 pub(crate) const SSIM_COEFFICIENTS_PER_PIXEL: u32 = 9;
 
+/// Words of a frame's status buffer (`frame_status`, one per frame, zero-filled): the pair
+/// counts of the binning and a flag per serial walk that can outgrow the adapter's loop limit
+/// (see render-core/README.md). Read back by `GpuRenderer::check_pairs`.
+pub(crate) const FRAME_STATUS_WORDS: u32 = 8;
+/// Pairs the binning kept (at most the frame's pair capacity).
+pub(crate) const STATUS_PAIRS_KEPT: u32 = 0;
+/// Pairs the frame needed.
+pub(crate) const STATUS_PAIRS_NEEDED: u32 = 1;
+/// 1 when a binning walk was cut short (bin.wgsl `count_pairs`).
+pub(crate) const STATUS_BINNING_CUT_SHORT: u32 = 2;
+/// 1 when a forward rasterizer's walk over a tile's list was cut short.
+pub(crate) const STATUS_RASTERIZE_CUT_SHORT: u32 = 3;
+/// 1 when a backward rasterizer's walk over a tile's list was cut short.
+pub(crate) const STATUS_RASTERIZE_BACKWARD_CUT_SHORT: u32 = 4;
+const _: () = assert!(
+    STATUS_RASTERIZE_BACKWARD_CUT_SHORT < FRAME_STATUS_WORDS
+        && FRAME_STATUS_WORDS.is_multiple_of(4)
+);
+
 /// A constant as the prelude writes it.
 enum Value {
     U32(u32),
@@ -383,6 +402,17 @@ fn constants() -> Vec<(&'static str, Value)> {
         (
             "SSIM_COEFFICIENTS_PER_PIXEL",
             U32(SSIM_COEFFICIENTS_PER_PIXEL),
+        ),
+        ("STATUS_PAIRS_KEPT", U32(STATUS_PAIRS_KEPT)),
+        ("STATUS_PAIRS_NEEDED", U32(STATUS_PAIRS_NEEDED)),
+        ("STATUS_BINNING_CUT_SHORT", U32(STATUS_BINNING_CUT_SHORT)),
+        (
+            "STATUS_RASTERIZE_CUT_SHORT",
+            U32(STATUS_RASTERIZE_CUT_SHORT),
+        ),
+        (
+            "STATUS_RASTERIZE_BACKWARD_CUT_SHORT",
+            U32(STATUS_RASTERIZE_BACKWARD_CUT_SHORT),
         ),
         ("SSIM_WINDOW_RADIUS", I32(SSIM_WINDOW_RADIUS)),
         ("SSIM_WINDOW_SIGMA", F32(SSIM_WINDOW_SIGMA as f32)),

@@ -3,7 +3,10 @@
 
 mod common;
 
-use common::{default_camera, gpu, pair_overflow_scene, random_scene};
+use common::{
+    default_camera, gpu, has_lavapipe_loop_limit, loop_limit_scene, pair_overflow_scene,
+    random_scene, render_checked,
+};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::backward::DeviceImageGradients;
@@ -440,4 +443,67 @@ fn culled_gaussians_get_zero_gradients_and_all_gradients_stay_finite() {
             .flatten()
             .any(|&v| v != 0.0)
     );
+}
+
+/// The backward rasterizer's walk cut short by lavapipe's loop limit is flagged
+/// (PairUsage::rasterize_backward_cut_short) once the backward pass has run. The flag must
+/// agree with the gradients: the walk (back to front) cut short never reaches the red splat
+/// at the front, which then gets no gradient.
+#[test]
+fn a_backward_walk_cut_short_by_the_loop_limit_is_reported() {
+    let gpu = gpu();
+    let context = &gpu.context;
+    let without_subgroups = GpuRenderer::with_options(
+        context,
+        RendererOptions {
+            subgroups: Subgroups::Never,
+            ..RendererOptions::default()
+        },
+    );
+    for renderer in [&GpuRenderer::new(context), &without_subgroups] {
+        // With subgroups the top band's backward walk takes about 4 of lavapipe's loop trips
+        // per entry (measured with this scene: 15 000 faint splats stay within the limit,
+        // 16 000 do not), the forward walk about 1.1 (55 000 within, 60 000 not). So 30 000
+        // outgrow the limit in the backward walk only. Without subgroups both walks take about
+        // one trip per entry, and the backward walk never outgrows it before the forward one.
+        for (boundary_splats, outgrows_lavapipe) in
+            [(8_000, false), (30_000, renderer.uses_subgroups)]
+        {
+            let (camera, cloud) = loop_limit_scene(boundary_splats);
+            let gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
+            let (frame, usage) = render_checked(renderer, &gaussians, &camera);
+            assert!(!usage.rasterizers_cut_short(), "{usage:?}");
+            let pixels = camera.pixel_count();
+            let image_gradients = ImageGradients {
+                v_rgb: vec![[1.0; 3]; pixels],
+                ..ImageGradients::default()
+            };
+            let device_image_gradients =
+                DeviceImageGradients::upload(context, &camera, &image_gradients).unwrap();
+            let gradients = renderer
+                .backward(context, &gaussians, &frame, &device_image_gradients)
+                .unwrap()
+                .download(context)
+                .unwrap();
+            let usage = renderer.check_pairs(context, &frame).unwrap();
+            // The red splat is the cloud's first, the green one its last.
+            let red = gradients.v_colours[0];
+            let green = gradients.v_colours[cloud.len() - 1];
+            let case = format!(
+                "{boundary_splats} faint splats, subgroups {}: {usage:?}, red {red:?}, green \
+                 {green:?}",
+                renderer.uses_subgroups
+            );
+            eprintln!("{case}");
+            assert!(!usage.rasterize_cut_short, "{case}");
+            assert!(green[1] > 0.0, "{case}");
+            assert_eq!(usage.rasterize_backward_cut_short, red[0] == 0.0, "{case}");
+            if has_lavapipe_loop_limit(context) {
+                assert_eq!(
+                    usage.rasterize_backward_cut_short, outgrows_lavapipe,
+                    "{case}"
+                );
+            }
+        }
+    }
 }

@@ -3,7 +3,8 @@
 mod common;
 
 use common::{
-    HEIGHT, WIDTH, camera, default_camera, gpu, pair_overflow_scene, random_scene, read_buffer,
+    HEIGHT, WIDTH, camera, default_camera, gpu, has_lavapipe_loop_limit, loop_limit_scene,
+    pair_overflow_scene, random_scene, read_buffer, render_checked,
 };
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -575,7 +576,7 @@ fn binning_keeps_every_pair_when_each_splat_covers_many_tiles() {
     // A frame that lost pairs says so.
     assert_eq!(
         first_listed == first_usage.pairs,
-        !first_usage.walks_cut_short
+        !first_usage.binning_cut_short
     );
     let second = renderer
         .render_frame(context, &gaussians, &camera, &RasterConfig::default())
@@ -584,4 +585,53 @@ fn binning_keeps_every_pair_when_each_splat_covers_many_tiles() {
     eprintln!("second frame: {second_usage:?}");
     assert!(!second_usage.overflowed(), "{second_usage:?}");
     assert_eq!(listed_pairs(&second), second_usage.pairs);
+}
+
+/// lavapipe ends every loop of an invocation after 65535 trips in all (render-core/README.md).
+/// A tile list long enough for a rasterizer's walk to outgrow it is flagged
+/// (PairUsage::rasterize_cut_short), with both rasterizers; a shorter one is not. The flag
+/// must agree with the image: the walk cut short never reaches the green splat at the back.
+#[test]
+fn a_forward_walk_cut_short_by_the_loop_limit_is_reported() {
+    let gpu = gpu();
+    let context = &gpu.context;
+    let without_subgroups = GpuRenderer::with_options(
+        context,
+        RendererOptions {
+            subgroups: Subgroups::Never,
+            ..RendererOptions::default()
+        },
+    );
+    for renderer in [&GpuRenderer::new(context), &without_subgroups] {
+        // The top band's walk takes about 1.1 of lavapipe's loop trips per entry with
+        // subgroups (measured with this scene: 55 000 faint splats stay within the limit,
+        // 60 000 do not) and about one without (60 000 within, 65 000 not): 40 000 entries
+        // stay within it, 70 000 do not.
+        for (boundary_splats, outgrows_lavapipe) in [(40_000, false), (70_000, true)] {
+            let (camera, cloud) = loop_limit_scene(boundary_splats);
+            let gaussians = DeviceGaussians::upload(context, &cloud).unwrap();
+            let checks_before = renderer.checks_cut_short();
+            let (frame, usage) = render_checked(renderer, &gaussians, &camera);
+            let output = renderer
+                .read_output(context, &frame, RenderMode::RgbD)
+                .unwrap();
+            let pixel = 3 * camera.width as usize + 3;
+            let green = output.rgb.as_ref().unwrap()[pixel][1];
+            let case = format!(
+                "{boundary_splats} faint splats, subgroups {}: {usage:?}, green {green}",
+                renderer.uses_subgroups
+            );
+            eprintln!("{case}");
+            assert!(!usage.rasterize_backward_cut_short, "{case}");
+            assert_eq!(usage.rasterize_cut_short, green == 0.0, "{case}");
+            assert_eq!(
+                renderer.checks_cut_short() > checks_before,
+                usage.rasterize_cut_short,
+                "{case}"
+            );
+            if has_lavapipe_loop_limit(context) {
+                assert_eq!(usage.rasterize_cut_short, outgrows_lavapipe, "{case}");
+            }
+        }
+    }
 }

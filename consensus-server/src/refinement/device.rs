@@ -41,6 +41,8 @@ pub(super) struct MapTrainer<'v> {
     raster: RasterConfig,
     /// Whether a frame too large for the fixed gradient order was reported.
     arrival_order_reported: bool,
+    /// Set once a rasterizer walk cut short by the adapter's loop limit was reported.
+    loop_limit_reported: bool,
 }
 
 impl<'v> MapTrainer<'v> {
@@ -86,6 +88,7 @@ impl<'v> MapTrainer<'v> {
             image_gradients,
             pairs_checked: vec![false; views.len()],
             arrival_order_reported: false,
+            loop_limit_reported: false,
             weights: LossWeights {
                 l1: consensus.weight_l1 as f32,
                 ssim: consensus.weight_ssim as f32,
@@ -109,7 +112,8 @@ impl<'v> MapTrainer<'v> {
         let camera = self.views[view].camera(world_from_camera);
         let mut frame =
             renderer.render_frame(context, self.map.gaussians(), &camera, &self.raster)?;
-        if !self.pairs_checked[view] || iteration.is_multiple_of(CHECK_PAIRS_EVERY) {
+        let check = !self.pairs_checked[view] || iteration.is_multiple_of(CHECK_PAIRS_EVERY);
+        if check {
             self.pairs_checked[view] = true;
             for _ in 0..PAIR_OVERFLOW_RETRIES {
                 if !renderer.check_pairs(context, &frame)?.overflowed() {
@@ -144,6 +148,21 @@ impl<'v> MapTrainer<'v> {
             &frame,
             &self.image_gradients[view],
         )?;
+        // The rasterizers' loop-limit flags, the backward's included, once its pass is queued.
+        if check && !self.loop_limit_reported {
+            let usage = renderer.check_pairs(context, &frame)?;
+            if usage.rasterizers_cut_short() {
+                self.loop_limit_reported = true;
+                tracing::warn!(
+                    view,
+                    gaussians = frame.gaussian_count,
+                    forward = usage.rasterize_cut_short,
+                    backward = usage.rasterize_backward_cut_short,
+                    "a tile's splat list is too long for the adapter's loop limit: the \
+                     rasterizer skipped the rest of it (see render-core/README.md)"
+                );
+            }
+        }
         self.map.adam_step(context, &self.kernels, &gradients)?;
         Ok(gradients)
     }

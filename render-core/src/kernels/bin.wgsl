@@ -5,7 +5,7 @@
 // - `gather_counts` (one invocation per element, WORKGROUP_SIZE per workgroup):
 //   sorted_tile_counts[k] = tile_counts[sorted_gaussians[k]] (inclusive-scanned next, which
 //   gives every Gaussian the depth-order index of its first pair).
-// - `pair_status_from_scan` (ONE invocation): pair_status = [pairs kept, pairs needed]; the
+// - `pair_status_from_scan` (ONE invocation): frame_status' pair counts (kept, needed); the
 //   needed count is the last scan entry, the kept count is capped at the capacity.
 // - `count_pairs` (one invocation per block, BIN_WORKGROUP_SIZE per workgroup, walking its
 //   block serially):
@@ -14,8 +14,9 @@
 //   of up to 32 tiles a row-major mask of the tiles the splat reaches, see project.wgsl).
 //   A pair is kept iff its depth-order index is below the capacity, so an overflowing frame
 //   keeps exactly its first `capacity` pairs in depth order (it loses the pairs of its
-//   farthest Gaussians). It sets pair_status[2] when it binned fewer pairs than the scan
-//   counts for its block: the adapter's loop limit cut its walk short (see walk_block).
+//   farthest Gaussians). It sets frame_status' STATUS_BINNING_CUT_SHORT when it binned fewer
+//   pairs than the scan counts for its block: the adapter's loop limit cut its walk short
+//   (see walk_block).
 // - the launcher exclusive-scans the table: (tile, block) then holds the first list slot of
 //   the block's pairs in that tile, and tiles' lists are contiguous in tile order.
 // - `emit_pairs` (same walk): writes each kept pair's Gaussian at the next slot of its
@@ -41,8 +42,8 @@
 // Tile-list slot -> the pair's depth-order index.
 @group(0) @binding(7) var<storage, read_write> slot_pairs: array<u32>;
 @group(0) @binding(8) var<storage, read_write> tile_ranges: array<vec2<u32>>;
-// [pairs kept, pairs needed, 1 if a block's walk was cut short (count_pairs), 0]
-@group(0) @binding(9) var<storage, read_write> pair_status: array<u32>;
+// FRAME_STATUS_WORDS words, indexed by the STATUS_* constants (the rasterizers set their own).
+@group(0) @binding(9) var<storage, read_write> frame_status: array<u32>;
 
 @compute @workgroup_size(1)
 fn pair_status_from_scan() {
@@ -50,8 +51,8 @@ fn pair_status_from_scan() {
     if bin_params.gaussian_count > 0u {
         needed = sorted_tile_counts[bin_params.gaussian_count - 1u];
     }
-    pair_status[0] = min(needed, bin_params.pair_capacity);
-    pair_status[1] = needed;
+    frame_status[STATUS_PAIRS_KEPT] = min(needed, bin_params.pair_capacity);
+    frame_status[STATUS_PAIRS_NEEDED] = needed;
 }
 
 fn linear_index(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32,
@@ -137,7 +138,7 @@ fn walk_block(block: u32, emit: bool) {
         let capacity = bin_params.pair_capacity;
         let expected = min(sorted_tile_counts[last - 1u], capacity) - min(before, capacity);
         if last > first && walked != expected {
-            pair_status[2] = 1u;
+            frame_status[STATUS_BINNING_CUT_SHORT] = 1u;
         }
     }
 }

@@ -26,10 +26,12 @@ fn add_gradients(a: SplatGradient, b: SplatGradient) -> SplatGradient {
 // The sum of `own` over the subgroup's `lanes` active lanes, in every lane: a tree of
 // subgroupShuffleDown steps into lane 0 (after the step of offset o, lane l holds the sum of
 // lanes l .. l + 2o - 1 that exist, so any number of lanes works), then lane 0's sum
-// broadcast. Not subgroupAdd: lavapipe turns each subgroupAdd into a loop over the lanes with
+// broadcast; `complete` becomes false when the adapter's loop limit ended the tree early.
+// Not subgroupAdd: lavapipe turns each subgroupAdd into a loop over the lanes with
 // a branch per lane, one loop per component, which cost more (docs/benchmarks.md). The order
 // of the additions is fixed, so the sum is repeatable.
-fn subgroup_sum(own: SplatGradient, lane: u32, lanes: u32) -> SplatGradient {
+fn subgroup_sum(own: SplatGradient, lane: u32, lanes: u32, complete: ptr<function, bool>)
+    -> SplatGradient {
     var sum = own;
     var offset = 1u;
     if lanes > 1u {
@@ -44,6 +46,7 @@ fn subgroup_sum(own: SplatGradient, lane: u32, lanes: u32) -> SplatGradient {
             }
         }
     }
+    *complete = *complete && offset >= lanes;
     return SplatGradient(subgroupBroadcast(sum.a, 0u), subgroupBroadcast(sum.b, 0u),
                          subgroupBroadcast(sum.c, 0u));
 }
@@ -52,10 +55,11 @@ fn subgroup_sum(own: SplatGradient, lane: u32, lanes: u32) -> SplatGradient {
 // to front; `mine` is each lane's splat, `last_entry` the list entry of lane 0's) from two
 // pixel groups of each invocation's row (one half of the band), and adds each splat's
 // gradient summed over the subgroup's pixels of the half to `my_gradient` of the lane that
-// loaded it.
+// loaded it. `complete` becomes false when the adapter's loop limit ended a loop early.
 fn accumulate_half(half0: ptr<function, PixelGradients>, half1: ptr<function, PixelGradients>,
                    ballot: vec4<u32>, mine: Splat, last_entry: u32, pixel_y: f32, lane: u32,
-                   lanes: u32, my_gradient: ptr<function, SplatGradient>) {
+                   lanes: u32, my_gradient: ptr<function, SplatGradient>,
+                   complete: ptr<function, bool>) {
     var pending = ballot;
     var k = pop_lowest_lane(&pending);
     if k == NO_LANE {
@@ -70,7 +74,7 @@ fn accumulate_half(half0: ptr<function, PixelGradients>, half1: ptr<function, Pi
         let hit0 = accumulate(half0, pixel_y, splat, ratio_growth, entry, &partials);
         let hit1 = accumulate(half1, pixel_y, splat, ratio_growth, entry, &partials);
         if subgroupAny(hit0 || hit1) {
-            let summed = subgroup_sum(total(partials), lane, lanes);
+            let summed = subgroup_sum(total(partials), lane, lanes, complete);
             if lane == k {
                 *my_gradient = add_gradients(*my_gradient, summed);
             }
@@ -80,6 +84,8 @@ fn accumulate_half(half0: ptr<function, PixelGradients>, half1: ptr<function, Pi
             break;
         }
     }
+    // The loop's only exit is the break above, unless the loop limit ended it.
+    *complete = *complete && k == NO_LANE;
 }
 
 @compute @workgroup_size(THREADS_PER_TILE)
@@ -110,6 +116,7 @@ fn main(
     if end == 0u {
         return;
     }
+    var loops_complete = true;
     loop {
         let count = min(lanes, end);
         var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
@@ -129,9 +136,9 @@ fn main(
         // Each half un-composites only the loaded splats that reach it, in lane (= list) order;
         // the halves share no pixel.
         accumulate_half(&group0, &group1, subgroupBallot(reaches_left), mine, end - 1u, pixel_y,
-                        lane, lanes, &my_gradient);
+                        lane, lanes, &my_gradient, &loops_complete);
         accumulate_half(&group2, &group3, subgroupBallot(reaches_right), mine, end - 1u, pixel_y,
-                        lane, lanes, &my_gradient);
+                        lane, lanes, &my_gradient, &loops_complete);
         if lane < count && !is_zero(my_gradient) {
             add_splat_gradient(start + end - 1u - lane, my_gaussian, my_gradient);
         }
@@ -139,5 +146,9 @@ fn main(
         if end == 0u {
             break;
         }
+    }
+    // The walk's only exit is the front of the list, unless the loop limit ended it.
+    if !(end == 0u && loops_complete) {
+        frame_status[STATUS_RASTERIZE_BACKWARD_CUT_SHORT] = 1u;
     }
 }

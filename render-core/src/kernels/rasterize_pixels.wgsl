@@ -13,6 +13,12 @@
 @group(0) @binding(7) var<storage, read_write> out_alpha: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_transmittance: array<f32>;
 @group(0) @binding(9) var<storage, read_write> out_last_entry: array<u32>;
+// The frame's status words (wgsl.rs FRAME_STATUS_WORDS): the rasterizer sets
+// STATUS_RASTERIZE_CUT_SHORT when the adapter's loop limit ended its walk over a tile's list
+// early (lavapipe ends every loop of an invocation after 65535 trips in all, see
+// render-core/README.md). Each variant tests, after every loop, that the loop ended by its
+// own exit condition.
+@group(0) @binding(10) var<storage, read_write> frame_status: array<u32>;
 
 // Compositing state of 4 pixels of one row.
 struct PixelGroup {

@@ -6,8 +6,8 @@ use std::sync::OnceLock;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::context::GpuContext;
-use render_core::gpu::GpuRenderer;
-use render_core::{Camera, GaussianCloud, RigidTransform};
+use render_core::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, PairUsage};
+use render_core::{Camera, GaussianCloud, RasterConfig, RigidTransform};
 
 pub struct Gpu {
     pub context: GpuContext,
@@ -143,4 +143,89 @@ pub fn read_buffer<T: bytemuck::Pod>(
         .unwrap();
     let data = staging.slice(..).get_mapped_range().unwrap().to_vec();
     bytemuck::pod_collect_to_vec(&data)
+}
+
+/// A 16x16 camera (one tile) looking at `boundary_splats` faint splats between pixel centres,
+/// with a red splat in front of them and a green one behind, both on pixel (3, 3).
+///
+/// Each faint splat sits at (7.5, 3.5), on the border of the tile's two 8-column halves and
+/// between four pixel centres: its visible ellipse (where alpha could reach the 1/255 cut-off)
+/// reaches both halves of the top band of rows, so the rasterizers walk it there, but at every
+/// pixel centre its alpha stays below the cut-off, so it changes no pixel and no gradient. The
+/// tile's list is `boundary_splats + 2` entries long, and the rasterizers' walks over the top
+/// band take a few loop trips per entry: enough of them outgrow lavapipe's loop limit (65535
+/// trips per invocation, render-core/README.md). What a walk cut short loses shows: the
+/// forward walk (front to back) the green splat, the backward walk (back to front) the red
+/// splat's gradient.
+pub fn loop_limit_scene(boundary_splats: usize) -> (Camera, GaussianCloud) {
+    const SIDE: u32 = 16;
+    const FOCAL: f32 = 50.0;
+    let centre = (SIDE as f32 - 1.0) / 2.0;
+    let identity = RigidTransform::from_quaternion_translation([1.0, 0.0, 0.0, 0.0], [0.0; 3]);
+    let camera =
+        Camera::from_world_from_camera(identity, [FOCAL, FOCAL, centre, centre], SIDE, SIDE);
+    // At pixel (u, v) and camera depth z (the camera is the world frame).
+    let point = |u: f32, v: f32, z: f32| [(u - centre) * z / FOCAL, (v - centre) * z / FOCAL, z];
+    // Tiny 3D extent: the splats are the 2D low-pass filter's (variance 0.3 px^2).
+    let tiny = [-9.0; 3];
+    let logit = |opacity: f32| (opacity / (1.0 - opacity)).ln();
+    let mut cloud = GaussianCloud::default();
+    cloud.push(
+        point(3.0, 3.0, 1.0),
+        tiny,
+        [1.0, 0.0, 0.0, 0.0],
+        logit(0.5),
+        [1.0, 0.0, 0.0],
+    );
+    // alpha = opacity * exp(-d^2 / (2 * 0.3)): 1.9 / 255 gives 0.0032 at the nearest pixel
+    // centres (d^2 = 0.5), under the 1/255 cut-off, while the visible ellipse's radius
+    // (sqrt(2 ln 1.9 * 0.3) = 0.62 px) passes the halves' nearest points (0.5 px away).
+    let faint = logit(1.9 / 255.0);
+    for _ in 0..boundary_splats {
+        cloud.push(
+            point(7.5, 3.5, 2.0),
+            tiny,
+            [1.0, 0.0, 0.0, 0.0],
+            faint,
+            [1.0; 3],
+        );
+    }
+    cloud.push(
+        point(3.0, 3.0, 3.0),
+        tiny,
+        [1.0, 0.0, 0.0, 0.0],
+        logit(0.5),
+        [0.0, 1.0, 0.0],
+    );
+    (camera, cloud)
+}
+
+/// Whether the adapter is lavapipe (Mesa's llvmpipe), whose loop limit `loop_limit_scene`
+/// is sized for; other adapters need not have one.
+pub fn has_lavapipe_loop_limit(context: &GpuContext) -> bool {
+    context.describe().contains("llvmpipe")
+}
+
+/// A frame of `gaussians` and its check, rendered again once when the first overflowed its
+/// pairs (check_pairs sizes the second, as `GpuRenderer::render` does).
+pub fn render_checked(
+    renderer: &GpuRenderer,
+    gaussians: &DeviceGaussians,
+    camera: &Camera,
+) -> (DeviceFrame, PairUsage) {
+    let context = &gpu().context;
+    let render = || {
+        let frame = renderer
+            .render_frame(context, gaussians, camera, &RasterConfig::default())
+            .unwrap();
+        let usage = renderer.check_pairs(context, &frame).unwrap();
+        (frame, usage)
+    };
+    let (frame, usage) = render();
+    if usage.overflowed() {
+        let (frame, usage) = render();
+        assert!(!usage.overflowed(), "{usage:?}");
+        return (frame, usage);
+    }
+    (frame, usage)
 }

@@ -543,6 +543,15 @@ pub fn run_case_on(
         let refit = renderer.render_frame(context, &gaussians, &camera, &raster)?;
         usage = renderer.check_pairs(context, &refit)?;
     }
+    if usage.rasterizers_cut_short() {
+        tracing::warn!(
+            gaussians = gaussian_count,
+            width = camera.width,
+            height = camera.height,
+            "a tile's splat list is too long for the adapter's loop limit: the rasterizer skips \
+             the rest of it, so these timings are of less work (see render-core/README.md)"
+        );
+    }
     let intersections = usage.pairs;
     let forward_ms = time_ms(context, warmup, repeats, || {
         renderer.render_frame(context, &gaussians, &camera, &raster)?;
