@@ -36,11 +36,7 @@ fn main(
     var group1 = new_group(tile_origin.x + 4u, row);
     var group2 = new_group(tile_origin.x + 8u, row);
     var group3 = new_group(tile_origin.x + 12u, row);
-    // Whether each loop ended by its own exit condition (see frame_status).
-    var all_finished = false;
-    var batches_complete = true;
-    var batch = 0u;
-    for (; batch < batch_count; batch++) {
+    for (var batch = 0u; batch < batch_count; batch++) {
         if local_index == 0u {
             atomicStore(&finished_threads, 0u);
         }
@@ -49,7 +45,6 @@ fn main(
             atomicAdd(&finished_threads, 1u);
         }
         if workgroupUniformLoad(&finished_threads) == THREADS_PER_TILE {
-            all_finished = true;
             break;
         }
         let batch_start = range.x + batch * BATCH_SIZE;
@@ -65,8 +60,7 @@ fn main(
         }
         workgroupBarrier();
         let batch_length = min(BATCH_SIZE, range.y - batch_start);
-        var j = 0u;
-        for (; j < batch_length; j++) {
+        for (var j = 0u; j < batch_length; j++) {
             let splat = Splat(batch_position[j], batch_conic[j], batch_colour[j]);
             let entry = batch * BATCH_SIZE + j + 1u;
             let ratio_growth = row_ratio_growth(splat.conic);
@@ -75,14 +69,11 @@ fn main(
             composite(&group2, pixel_y, splat, ratio_growth, entry);
             composite(&group3, pixel_y, splat, ratio_growth, entry);
         }
-        batches_complete = batches_complete && j >= batch_length;
         workgroupBarrier();
-    }
-    if !((all_finished || batch >= batch_count) && batches_complete) {
-        frame_status[STATUS_RASTERIZE_CUT_SHORT] = 1u;
     }
     write_group(group0, row);
     write_group(group1, row);
     write_group(group2, row);
     write_group(group3, row);
+    report_walk();
 }

@@ -41,10 +41,7 @@ fn main(
     let start = workgroupUniformLoad(&tile_start);
     let batch_count = (list_length + BATCH_SIZE - 1u) / BATCH_SIZE;
 
-    // Whether each batch's loop ended by its own exit condition (see frame_status).
-    var batches_complete = true;
-    var batch = 0u;
-    for (; batch < batch_count; batch++) {
+    for (var batch = 0u; batch < batch_count; batch++) {
         // Slot j of batch b is list entry list_length - 1 - (b * BATCH_SIZE + j).
         let first_reversed = batch * BATCH_SIZE;
         for (var k = 0u; k < LOADS_PER_THREAD; k++) {
@@ -61,8 +58,7 @@ fn main(
         }
         workgroupBarrier();
         let batch_length = min(BATCH_SIZE, list_length - first_reversed);
-        var j = 0u;
-        for (; j < batch_length; j++) {
+        for (var j = 0u; j < batch_length; j++) {
             let entry = list_length - 1u - (first_reversed + j);
             let splat = Splat(batch_position[j], batch_conic[j], batch_colour[j]);
             var partials = zero_partials();
@@ -75,10 +71,7 @@ fn main(
                 add_splat_gradient(start + entry, batch_gaussian[j], total(partials));
             }
         }
-        batches_complete = batches_complete && j >= batch_length;
         workgroupBarrier();
     }
-    if !(batch >= batch_count && batches_complete) {
-        frame_status[STATUS_RASTERIZE_BACKWARD_CUT_SHORT] = 1u;
-    }
+    report_walk();
 }

@@ -26,12 +26,10 @@ fn add_gradients(a: SplatGradient, b: SplatGradient) -> SplatGradient {
 // The sum of `own` over the subgroup's `lanes` active lanes, in every lane: a tree of
 // subgroupShuffleDown steps into lane 0 (after the step of offset o, lane l holds the sum of
 // lanes l .. l + 2o - 1 that exist, so any number of lanes works), then lane 0's sum
-// broadcast; `complete` becomes false when the adapter's loop limit ended the tree early.
-// Not subgroupAdd: lavapipe turns each subgroupAdd into a loop over the lanes with
+// broadcast. Not subgroupAdd: lavapipe turns each subgroupAdd into a loop over the lanes with
 // a branch per lane, one loop per component, which cost more (docs/benchmarks.md). The order
 // of the additions is fixed, so the sum is repeatable.
-fn subgroup_sum(own: SplatGradient, lane: u32, lanes: u32, complete: ptr<function, bool>)
-    -> SplatGradient {
+fn subgroup_sum(own: SplatGradient, lane: u32, lanes: u32) -> SplatGradient {
     var sum = own;
     var offset = 1u;
     if lanes > 1u {
@@ -46,7 +44,6 @@ fn subgroup_sum(own: SplatGradient, lane: u32, lanes: u32, complete: ptr<functio
             }
         }
     }
-    *complete = *complete && offset >= lanes;
     return SplatGradient(subgroupBroadcast(sum.a, 0u), subgroupBroadcast(sum.b, 0u),
                          subgroupBroadcast(sum.c, 0u));
 }
@@ -55,11 +52,10 @@ fn subgroup_sum(own: SplatGradient, lane: u32, lanes: u32, complete: ptr<functio
 // to front; `mine` is each lane's splat, `last_entry` the list entry of lane 0's) from two
 // pixel groups of each invocation's row (one half of the band), and adds each splat's
 // gradient summed over the subgroup's pixels of the half to `my_gradient` of the lane that
-// loaded it. `complete` becomes false when the adapter's loop limit ended a loop early.
+// loaded it.
 fn accumulate_half(half0: ptr<function, PixelGradients>, half1: ptr<function, PixelGradients>,
                    ballot: vec4<u32>, mine: Splat, last_entry: u32, pixel_y: f32, lane: u32,
-                   lanes: u32, my_gradient: ptr<function, SplatGradient>,
-                   complete: ptr<function, bool>) {
+                   lanes: u32, my_gradient: ptr<function, SplatGradient>) {
     var pending = ballot;
     var k = pop_lowest_lane(&pending);
     if k == NO_LANE {
@@ -74,7 +70,7 @@ fn accumulate_half(half0: ptr<function, PixelGradients>, half1: ptr<function, Pi
         let hit0 = accumulate(half0, pixel_y, splat, ratio_growth, entry, &partials);
         let hit1 = accumulate(half1, pixel_y, splat, ratio_growth, entry, &partials);
         if subgroupAny(hit0 || hit1) {
-            let summed = subgroup_sum(total(partials), lane, lanes, complete);
+            let summed = subgroup_sum(total(partials), lane, lanes);
             if lane == k {
                 *my_gradient = add_gradients(*my_gradient, summed);
             }
@@ -84,8 +80,6 @@ fn accumulate_half(half0: ptr<function, PixelGradients>, half1: ptr<function, Pi
             break;
         }
     }
-    // The loop's only exit is the break above, unless the loop limit ended it.
-    *complete = *complete && k == NO_LANE;
 }
 
 @compute @workgroup_size(THREADS_PER_TILE)
@@ -116,7 +110,6 @@ fn main(
     if end == 0u {
         return;
     }
-    var loops_complete = true;
     loop {
         let count = min(lanes, end);
         var mine = Splat(vec4<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
@@ -136,9 +129,9 @@ fn main(
         // Each half un-composites only the loaded splats that reach it, in lane (= list) order;
         // the halves share no pixel.
         accumulate_half(&group0, &group1, subgroupBallot(reaches_left), mine, end - 1u, pixel_y,
-                        lane, lanes, &my_gradient, &loops_complete);
+                        lane, lanes, &my_gradient);
         accumulate_half(&group2, &group3, subgroupBallot(reaches_right), mine, end - 1u, pixel_y,
-                        lane, lanes, &my_gradient, &loops_complete);
+                        lane, lanes, &my_gradient);
         if lane < count && !is_zero(my_gradient) {
             add_splat_gradient(start + end - 1u - lane, my_gaussian, my_gradient);
         }
@@ -147,8 +140,5 @@ fn main(
             break;
         }
     }
-    // The walk's only exit is the front of the list, unless the loop limit ended it.
-    if !(end == 0u && loops_complete) {
-        frame_status[STATUS_RASTERIZE_BACKWARD_CUT_SHORT] = 1u;
-    }
+    report_walk();
 }

@@ -31,14 +31,13 @@
 
 // Composites the loaded splats of `ballot` (lanes, walked lowest first = list order; `mine`
 // is each lane's splat, `first_entry` the list entry of lane 0's) behind two pixel groups of
-// each invocation's row: one half of the band. Two splats per trip (see above). Returns
-// whether it composited them all (false when the adapter's loop limit ended the loop).
+// each invocation's row: one half of the band. Two splats per trip (see above).
 fn composite_half(half0: ptr<function, PixelGroup>, half1: ptr<function, PixelGroup>,
-                  ballot: vec4<u32>, mine: Splat, first_entry: u32, pixel_y: f32) -> bool {
+                  ballot: vec4<u32>, mine: Splat, first_entry: u32, pixel_y: f32) {
     var pending = ballot;
     var k = pop_lowest_lane(&pending);
     if k == NO_LANE {
-        return true;
+        return;
     }
     // Tested at the end of the body: see `Loops` above.
     loop {
@@ -64,8 +63,6 @@ fn composite_half(half0: ptr<function, PixelGroup>, half1: ptr<function, PixelGr
             break;
         }
     }
-    // The loop's only exit is the break above, unless the loop limit ended it.
-    return k == NO_LANE;
 }
 
 // Columns of one half of the band: two pixel groups.
@@ -95,7 +92,6 @@ fn main(
     var group2 = new_group(tile_origin.x + 8u, row);
     var group3 = new_group(tile_origin.x + 12u, row);
     var start = range.x;
-    var halves_complete = true;
     // Tested at the end of the body, entered under an `if`: see `Loops` above.
     if start < range.y
         && !subgroupAll(all(group0.done & group1.done & group2.done & group3.done)) {
@@ -114,11 +110,10 @@ fn main(
             // Each half composites only the loaded splats that reach it, in lane (= list) order.
             // The halves share no pixel, so their order relative to each other does not matter.
             let first_entry = start - range.x + 1u;
-            let left_complete = composite_half(&group0, &group1, subgroupBallot(reaches_left),
-                                               mine, first_entry, pixel_y);
-            let right_complete = composite_half(&group2, &group3, subgroupBallot(reaches_right),
-                                                mine, first_entry, pixel_y);
-            halves_complete = halves_complete && left_complete && right_complete;
+            composite_half(&group0, &group1, subgroupBallot(reaches_left), mine, first_entry,
+                           pixel_y);
+            composite_half(&group2, &group3, subgroupBallot(reaches_right), mine, first_entry,
+                           pixel_y);
             start += lanes;
             if start >= range.y
                 || subgroupAll(all(group0.done & group1.done & group2.done & group3.done)) {
@@ -126,15 +121,9 @@ fn main(
             }
         }
     }
-    // The walk's exits are the end of the list and every pixel done; anything else is the
-    // loop limit (see frame_status).
-    let walk_ended = start >= range.y
-        || subgroupAll(all(group0.done & group1.done & group2.done & group3.done));
-    if !(walk_ended && halves_complete) {
-        frame_status[STATUS_RASTERIZE_CUT_SHORT] = 1u;
-    }
     write_group(group0, row);
     write_group(group1, row);
     write_group(group2, row);
     write_group(group3, row);
+    report_walk();
 }

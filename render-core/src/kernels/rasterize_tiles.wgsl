@@ -27,3 +27,24 @@ struct Splat {
 fn load_splat(gaussian: u32) -> Splat {
     return Splat(splat_position[gaussian], splat_conic[gaussian].xyz, splat_colour[gaussian].xyz);
 }
+
+// Whether lavapipe's loop limit cut this invocation's loops short (render-core/README.md).
+// gallivm (lavapipe's compiler) counts the trips of all loops of an invocation against one
+// budget of 65535, and once it is spent every loop ends after its first trip, silently. So a
+// loop that needs two trips and makes one says the budget ran out somewhere before it. Called
+// after every other loop of a rasterizer: it vouches for all of them, at the cost of two trips
+// per invocation (flags in the loops themselves were carried through the inner loops at a
+// measurable cost). The trip count comes from a uniform so that the compiler cannot unroll
+// the loop away. A walk that ended exactly on the budget's last trip is reported too.
+// Adapters without such a budget always make both trips.
+fn loop_limit_reached() -> bool {
+    let trips = min(params.tiles_x, 1u) + 1u;
+    var made = 0u;
+    loop {
+        made += 1u;
+        if made >= trips {
+            break;
+        }
+    }
+    return made < trips;
+}
