@@ -5,7 +5,7 @@ mod common;
 
 use common::{
     default_camera, gpu, has_lavapipe_loop_limit, loop_limit_scene, pair_overflow_scene,
-    random_scene, render_checked,
+    random_scene, render_checked, renderer_without_subgroups,
 };
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -453,14 +453,10 @@ fn culled_gaussians_get_zero_gradients_and_all_gradients_stay_finite() {
 fn a_backward_walk_cut_short_by_the_loop_limit_is_reported() {
     let gpu = gpu();
     let context = &gpu.context;
-    let without_subgroups = GpuRenderer::with_options(
-        context,
-        RendererOptions {
-            subgroups: Subgroups::Never,
-            ..RendererOptions::default()
-        },
-    );
-    for renderer in [&GpuRenderer::new(context), &without_subgroups] {
+    for renderer in [
+        &GpuRenderer::new(context),
+        &renderer_without_subgroups(context),
+    ] {
         // With subgroups the top band's backward walk takes about 4 of lavapipe's loop trips
         // per entry (measured with this scene: 15 000 faint splats stay within the limit,
         // 16 000 do not), the forward walk about 1.1 (55 000 within, 60 000 not). So 30 000

@@ -4,11 +4,11 @@ mod common;
 
 use common::{
     HEIGHT, WIDTH, camera, default_camera, gpu, has_lavapipe_loop_limit, loop_limit_scene,
-    pair_overflow_scene, random_scene, read_buffer, render_checked,
+    pair_overflow_scene, random_scene, read_buffer, render_checked, renderer_without_subgroups,
 };
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use render_core::gpu::{DeviceGaussians, GpuRenderer, RendererOptions, Subgroups};
+use render_core::gpu::{DeviceGaussians, GpuRenderer};
 use render_core::reference;
 use render_core::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput};
 
@@ -178,13 +178,7 @@ fn workgroup_memory_rasterizer_matches_reference_and_the_subgroup_one_bit_for_bi
     // The kernels without subgroup operations (adapters without them); on an adapter without
     // subgroups both renderers run them and the comparison is trivially equal.
     let gpu = gpu();
-    let without = GpuRenderer::with_options(
-        &gpu.context,
-        RendererOptions {
-            subgroups: Subgroups::Never,
-            ..RendererOptions::default()
-        },
-    );
+    let without = renderer_without_subgroups(&gpu.context);
     assert!(!without.uses_subgroups);
     let default = default_camera();
     let odd = camera(37, 29, 9.0, 21.5);
@@ -595,14 +589,10 @@ fn binning_keeps_every_pair_when_each_splat_covers_many_tiles() {
 fn a_forward_walk_cut_short_by_the_loop_limit_is_reported() {
     let gpu = gpu();
     let context = &gpu.context;
-    let without_subgroups = GpuRenderer::with_options(
-        context,
-        RendererOptions {
-            subgroups: Subgroups::Never,
-            ..RendererOptions::default()
-        },
-    );
-    for renderer in [&GpuRenderer::new(context), &without_subgroups] {
+    for renderer in [
+        &GpuRenderer::new(context),
+        &renderer_without_subgroups(context),
+    ] {
         // The top band's walk takes about 1.1 of lavapipe's loop trips per entry with
         // subgroups (measured with this scene: 55 000 faint splats stay within the limit,
         // 60 000 do not) and about one without (60 000 within, 65 000 not): 40 000 entries

@@ -6,12 +6,25 @@ use std::sync::OnceLock;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::context::GpuContext;
-use render_core::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, PairUsage};
+use render_core::gpu::{
+    DeviceFrame, DeviceGaussians, GpuRenderer, PairUsage, RendererOptions, Subgroups,
+};
 use render_core::{Camera, GaussianCloud, RasterConfig, RigidTransform};
 
 pub struct Gpu {
     pub context: GpuContext,
     pub renderer: GpuRenderer,
+}
+
+/// A renderer with the kernels that use no subgroup operations (for adapters without them).
+pub fn renderer_without_subgroups(context: &GpuContext) -> GpuRenderer {
+    GpuRenderer::with_options(
+        context,
+        RendererOptions {
+            subgroups: Subgroups::Never,
+            ..RendererOptions::default()
+        },
+    )
 }
 
 /// One device for all tests of a binary (lavapipe device creation is slow).
@@ -170,33 +183,17 @@ pub fn loop_limit_scene(boundary_splats: usize) -> (Camera, GaussianCloud) {
     let tiny = [-9.0; 3];
     let logit = |opacity: f32| (opacity / (1.0 - opacity)).ln();
     let mut cloud = GaussianCloud::default();
-    cloud.push(
-        point(3.0, 3.0, 1.0),
-        tiny,
-        [1.0, 0.0, 0.0, 0.0],
-        logit(0.5),
-        [1.0, 0.0, 0.0],
-    );
+    let mut push = |point, logit, colour| {
+        cloud.push(point, tiny, [1.0, 0.0, 0.0, 0.0], logit, colour);
+    };
+    push(point(3.0, 3.0, 1.0), logit(0.5), [1.0, 0.0, 0.0]);
     // alpha = opacity * exp(-d^2 / (2 * 0.3)): 1.9 / 255 gives 0.0032 at the nearest pixel
     // centres (d^2 = 0.5), under the 1/255 cut-off, while the visible ellipse's radius
     // (sqrt(2 ln 1.9 * 0.3) = 0.62 px) passes the halves' nearest points (0.5 px away).
-    let faint = logit(1.9 / 255.0);
     for _ in 0..boundary_splats {
-        cloud.push(
-            point(7.5, 3.5, 2.0),
-            tiny,
-            [1.0, 0.0, 0.0, 0.0],
-            faint,
-            [1.0; 3],
-        );
+        push(point(7.5, 3.5, 2.0), logit(1.9 / 255.0), [1.0; 3]);
     }
-    cloud.push(
-        point(3.0, 3.0, 3.0),
-        tiny,
-        [1.0, 0.0, 0.0, 0.0],
-        logit(0.5),
-        [0.0, 1.0, 0.0],
-    );
+    push(point(3.0, 3.0, 3.0), logit(0.5), [0.0, 1.0, 0.0]);
     (camera, cloud)
 }
 
