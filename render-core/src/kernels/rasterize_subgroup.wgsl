@@ -20,10 +20,11 @@
 // docs/benchmarks.md). Without a second splat, a copy of the first with zero opacity stands
 // in: it touches no pixel. (The same in the backward pass was slower: its two splats'
 // gradient sums do not fit the registers.)
-// Loops: every loop tests at the end of its body and is entered under an `if` or after a
-// `return` for the empty case. On SIMD CPU adapters a loop tested at the top runs its body
-// once more than its trips (render-core/README.md), and with a handful of splats per half and
-// batch that extra pass was a large share of the rasterizer's time (docs/benchmarks.md).
+// Loops: every loop tests at the end of its body. On SIMD CPU adapters a loop tested at the
+// top runs its body once more than its trips (render-core/README.md), and with a handful of
+// splats per half and batch that extra pass was a large share of the rasterizer's time
+// (docs/benchmarks.md). The `if` or `return` in front of a loop does not spare lavapipe the
+// empty case: it runs them masked, so an empty ballot still costs the half one masked pass.
 // Invariants: the loop bounds and the shuffle source lane are subgroup-uniform; lanes are
 // assumed to be numbered 0 .. active - 1 (active = number of invocations in the subgroup,
 // which may be fewer than subgroup_size for a small workgroup); the subgroup size is never
