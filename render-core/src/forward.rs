@@ -399,7 +399,7 @@ impl GpuRenderer {
                 (7, &b.alpha),
                 (8, &b.transmittance),
                 (9, &b.last_entry),
-                (10, &b.frame_status),
+                (12, &b.frame_status),
             ],
         );
         let (tiles_x, tiles_y) = camera.tile_counts();

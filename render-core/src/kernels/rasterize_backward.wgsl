@@ -73,5 +73,5 @@ fn main(
         }
         workgroupBarrier();
     }
-    report_walk();
+    report_walk(STATUS_RASTERIZE_BACKWARD_CUT_SHORT);
 }

@@ -22,19 +22,6 @@
 @group(0) @binding(9) var<storage, read> v_alpha: array<f32>;
 // Tile-list slot -> the pair's depth-order index (bin.wgsl), where the per-pair sums live.
 @group(0) @binding(11) var<storage, read> slot_pairs: array<u32>;
-// The frame's status words (wgsl.rs FRAME_STATUS_WORDS): the backward rasterizer sets
-// STATUS_RASTERIZE_BACKWARD_CUT_SHORT when the adapter's loop limit ended its walk early
-// (report_walk, after all the rasterizer's loops).
-@group(0) @binding(12) var<storage, read_write> frame_status: array<u32>;
-
-// Flags the frame when the adapter's loop limit cut this invocation's loops short
-// (loop_limit_reached, rasterize_tiles.wgsl): the splats before the cut lack the gradients of
-// its pixels.
-fn report_walk() {
-    if loop_limit_reached() {
-        frame_status[STATUS_RASTERIZE_BACKWARD_CUT_SHORT] = 1u;
-    }
-}
 
 // Backward state of 4 pixels of one row (vec4 components). Pixels outside the image have
 // last_entry 0 and so consider no splat. `behind` is sum_c v_c * (channel c composited behind

@@ -140,5 +140,5 @@ fn main(
             break;
         }
     }
-    report_walk();
+    report_walk(STATUS_RASTERIZE_BACKWARD_CUT_SHORT);
 }

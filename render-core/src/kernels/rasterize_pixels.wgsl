@@ -13,10 +13,6 @@
 @group(0) @binding(7) var<storage, read_write> out_alpha: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_transmittance: array<f32>;
 @group(0) @binding(9) var<storage, read_write> out_last_entry: array<u32>;
-// The frame's status words (wgsl.rs FRAME_STATUS_WORDS): the rasterizer sets
-// STATUS_RASTERIZE_CUT_SHORT when the adapter's loop limit ended its walk over a tile's list
-// early (report_walk, after all the rasterizer's loops).
-@group(0) @binding(10) var<storage, read_write> frame_status: array<u32>;
 
 // Compositing state of 4 pixels of one row.
 struct PixelGroup {
@@ -70,14 +66,6 @@ fn composite(group: ptr<function, PixelGroup>, pixel_y: f32, splat: Splat, ratio
     (*group).depth += splat.position.w * weight;
     (*group).transmittance = select(transmittance, next_transmittance, contributes);
     (*group).last_entry = select((*group).last_entry, vec4<u32>(entry), contributes);
-}
-
-// Flags the frame when the adapter's loop limit cut this invocation's loops short
-// (loop_limit_reached, rasterize_tiles.wgsl): its pixels lack the splats after the cut.
-fn report_walk() {
-    if loop_limit_reached() {
-        frame_status[STATUS_RASTERIZE_CUT_SHORT] = 1u;
-    }
 }
 
 // Writes the final colour, depth, alpha, transmittance and last entry of the group's pixels

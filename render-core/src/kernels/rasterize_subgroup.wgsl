@@ -126,5 +126,5 @@ fn main(
     write_group(group1, row);
     write_group(group2, row);
     write_group(group3, row);
-    report_walk();
+    report_walk(STATUS_RASTERIZE_CUT_SHORT);
 }

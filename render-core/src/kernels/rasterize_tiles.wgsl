@@ -1,6 +1,6 @@
 // Shared by the forward and backward rasterizers (all four variants), in front of
-// rasterize_pixels.wgsl or rasterize_backward_pixels.wgsl: the frame's bindings 0-5, the thread
-// mapping's constants and the splat as the per-pixel code sees it.
+// rasterize_pixels.wgsl or rasterize_backward_pixels.wgsl: the frame's bindings 0-5 and 12, the
+// thread mapping's constants, the splat as the per-pixel code sees it and the loop-limit check.
 // Thread mapping: one workgroup per 16x16 tile, THREADS_PER_TILE = 16 invocations; invocation
 // r owns tile row r, 16 pixels held as 4 groups of 4 pixels (columns 4g .. 4g + 3 of the tile,
 // as vec4 components).
@@ -11,6 +11,9 @@
 @group(0) @binding(3) var<storage, read> splat_position: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read> splat_conic: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read> splat_colour: array<vec4<f32>>;
+// The frame's status words (wgsl.rs FRAME_STATUS_WORDS), where report_walk flags a walk cut
+// short; binding 12 in all four rasterizers (the forward ones leave 10 and 11 unused).
+@group(0) @binding(12) var<storage, read_write> frame_status: array<u32>;
 
 const THREADS_PER_TILE: u32 = TILE_SIZE;
 // Column offsets of the 4 pixels of a group relative to its first column.
@@ -47,4 +50,13 @@ fn loop_limit_reached() -> bool {
         }
     }
     return made < trips;
+}
+
+// Sets the frame's status word `status_word` (STATUS_RASTERIZE_CUT_SHORT or
+// STATUS_RASTERIZE_BACKWARD_CUT_SHORT) when the loop limit cut this invocation's walk short.
+// Called last by every rasterizer.
+fn report_walk(status_word: u32) {
+    if loop_limit_reached() {
+        frame_status[status_word] = 1u;
+    }
 }
