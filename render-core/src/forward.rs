@@ -273,7 +273,8 @@ impl GpuRenderer {
     }
 
     /// Radix sort of the depth keys; returns which `depth_values` buffer holds the
-    /// front-to-back Gaussian order.
+    /// front-to-back Gaussian order. Culled Gaussians are split off in the first pass and
+    /// stay behind the others in index order, as a whole sort would leave them.
     fn encode_depth_sort(
         &self,
         context: &GpuContext,
@@ -289,6 +290,7 @@ impl GpuRenderer {
             &count_buffer(context, n),
             n,
             constants::DEPTH_KEY_BITS,
+            true,
         )
     }
 

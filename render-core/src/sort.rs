@@ -3,11 +3,14 @@
 //! sorts depth keys with it; [`GpuRenderer::sort_pairs`] and [`DeviceSortBench`] expose it to
 //! tests and the benchmark.
 
+use bytemuck::Zeroable;
+
 use crate::context::{GpuContext, GpuError};
 use crate::gpu::GpuRenderer;
 use crate::passes::{
     U32_BYTES, VEC4_BYTES, bind_group, count_buffer, dispatch_linear, prefix_scan,
 };
+use crate::types::constants;
 use crate::wgsl::{RADIX_BITS, SERIAL_WORKGROUP_SIZE, SortParams};
 
 const RADIX: u32 = 1 << RADIX_BITS;
@@ -22,8 +25,12 @@ impl GpuRenderer {
     /// Stable LSD radix sort of (key, value) pairs on the low `key_bits` bits, ping-ponging
     /// between the two buffers of each pair. The number of pairs is read on the device from
     /// `count_buffer[0]` (so it may come from an earlier kernel) and must not exceed
-    /// `max_count`, which sizes the dispatches and the digit table. Returns which buffer
-    /// (0 or 1) holds the sorted result.
+    /// `max_count`, which sizes the dispatches and the digit table. With `split_culled`, the
+    /// first pass leaves the keys equal to CULLED_DEPTH_KEY behind the others, in input
+    /// order, and the later passes sort only the others (sort.wgsl): the same result as the
+    /// whole sort as long as no other key's low `key_bits` bits reach the culled key's (depth
+    /// keys stay at or below LARGEST_VISIBLE_DEPTH_KEY). Returns which buffer (0 or 1) holds
+    /// the sorted result.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn radix_sort(
         &self,
@@ -34,35 +41,37 @@ impl GpuRenderer {
         count_buffer: &wgpu::Buffer,
         max_count: u32,
         key_bits: u32,
+        split_culled: bool,
     ) -> Result<usize, GpuError> {
         let block_size = max_count
             .div_ceil(SORT_BLOCKS_TARGET)
             .clamp(MIN_SORT_BLOCK_SIZE, MAX_SORT_BLOCK_SIZE);
         let block_count = max_count.div_ceil(block_size).max(1);
-        let table_entries = RADIX * block_count;
+        // One more bucket (table row) for the culled keys of a split pass.
+        let table_entries = (RADIX + u32::from(split_culled)) * block_count;
         let table = context.storage_buffer("sort table", u64::from(table_entries) * U32_BYTES)?;
+        let kept_count = context.storage_buffer("sort kept count", VEC4_BYTES)?;
         let workgroups = block_count.div_ceil(SERIAL_WORKGROUP_SIZE);
+        let mut count = count_buffer;
         let mut current = 0;
         for pass in 0..key_bits.div_ceil(RADIX_BITS) {
             let shift = pass * RADIX_BITS;
             let digit_bits = RADIX_BITS.min(key_bits - shift);
             let digit_mask = (1 << digit_bits) - 1;
+            let split = split_culled && pass == 0;
             let params = SortParams {
                 shift,
                 digit_mask,
                 block_size,
                 block_count,
+                split_culled: u32::from(split),
+                ..Zeroable::zeroed()
             };
             let params = context.uniform_buffer("sort params", bytemuck::bytes_of(&params));
             let histogram_group = bind_group(
                 context,
                 &self.pipelines.sort_histogram,
-                &[
-                    (0, &params),
-                    (1, keys[current]),
-                    (3, &table),
-                    (6, count_buffer),
-                ],
+                &[(0, &params), (1, keys[current]), (3, &table), (6, count)],
             );
             dispatch_linear(
                 encoder,
@@ -75,9 +84,17 @@ impl GpuRenderer {
                 encoder,
                 self.scan_pipelines(),
                 &table,
-                table_entries,
+                (RADIX + u32::from(split)) * block_count,
                 true,
             )?;
+            if split {
+                let count_group = bind_group(
+                    context,
+                    &self.pipelines.sort_count_kept,
+                    &[(0, &params), (3, &table), (7, &kept_count)],
+                );
+                dispatch_linear(encoder, &self.pipelines.sort_count_kept, &count_group, 1);
+            }
             let scatter_group = bind_group(
                 context,
                 &self.pipelines.sort_scatter,
@@ -88,7 +105,7 @@ impl GpuRenderer {
                     (3, &table),
                     (4, keys[1 - current]),
                     (5, values[1 - current]),
-                    (6, count_buffer),
+                    (6, count),
                 ],
             );
             dispatch_linear(
@@ -97,6 +114,9 @@ impl GpuRenderer {
                 &scatter_group,
                 workgroups,
             );
+            if split {
+                count = &kept_count;
+            }
             current = 1 - current;
         }
         Ok(current)
@@ -110,6 +130,29 @@ impl GpuRenderer {
         keys: &[u32],
         values: &[u32],
         key_bits: u32,
+    ) -> Result<(Vec<u32>, Vec<u32>), GpuError> {
+        self.sort_pairs_on_device(context, keys, values, key_bits, false)
+    }
+
+    /// Sorts depth keys (render_core::depth_sort_key, or CULLED_DEPTH_KEY) and their values
+    /// the way a frame does: on DEPTH_KEY_BITS bits, the culled keys split off in the first
+    /// pass. The result is the same as [`GpuRenderer::sort_pairs`]'s on DEPTH_KEY_BITS bits.
+    pub fn sort_depth_pairs(
+        &self,
+        context: &GpuContext,
+        keys: &[u32],
+        values: &[u32],
+    ) -> Result<(Vec<u32>, Vec<u32>), GpuError> {
+        self.sort_pairs_on_device(context, keys, values, constants::DEPTH_KEY_BITS, true)
+    }
+
+    fn sort_pairs_on_device(
+        &self,
+        context: &GpuContext,
+        keys: &[u32],
+        values: &[u32],
+        key_bits: u32,
+        split_culled: bool,
     ) -> Result<(Vec<u32>, Vec<u32>), GpuError> {
         if keys.len() != values.len() {
             return Err(GpuError::InvalidInput(format!(
@@ -139,6 +182,7 @@ impl GpuRenderer {
                 &count_buffer(context, count),
                 count,
                 key_bits.min(u32::BITS),
+                split_culled,
             )?
         } else {
             0
@@ -215,6 +259,7 @@ impl DeviceSortBench {
             &count_buffer(context, self.count),
             self.count,
             key_bits.min(u32::BITS),
+            false,
         )?;
         context.queue.submit([encoder.finish()]);
         Ok(())

@@ -164,6 +164,12 @@ wgsl_struct! {
         digit_mask: u32,
         block_size: u32,
         block_count: u32,
+        /// 1 on a depth sort's first pass: culled keys go to a bucket of their own, after
+        /// every digit, and later passes sort only the others (sort.wgsl).
+        split_culled: u32,
+        padding0: u32,
+        padding1: u32,
+        padding2: u32,
     }
 }
 

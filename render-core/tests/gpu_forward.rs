@@ -10,7 +10,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::gpu::{DeviceGaussians, GpuRenderer};
 use render_core::reference;
-use render_core::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput};
+use render_core::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput, constants};
 
 /// f32 GPU arithmetic against the f64 reference: colours and alpha are in [0, 1].
 const COLOUR_TOLERANCE: f32 = 1e-5;
@@ -465,6 +465,50 @@ fn device_radix_sort_matches_a_stable_sort_for_every_size_and_key_width() {
             assert_eq!(
                 sorted_values, expected_values,
                 "{count} keys, {key_bits} bits"
+            );
+        }
+    }
+}
+
+#[test]
+fn the_depth_sort_splitting_off_culled_keys_matches_a_stable_sort() {
+    let gpu = gpu();
+    let mut rng = ChaCha8Rng::seed_from_u64(10);
+    let key_bits = constants::DEPTH_KEY_BITS;
+    let culled_as_sorted = (1u32 << key_bits) - 1;
+    // Sizes around the 1024-key block boundary; no culled key, some, most, all.
+    for count in [1usize, 1023, 1025, 4097, 70_000] {
+        for culled_share in [0.0, 0.3, 0.85, 1.0] {
+            // Few distinct visible keys, k * 0x1_0101 with all three digits k (ties test stability),
+            // and the largest visible key.
+            let keys: Vec<u32> = (0..count)
+                .map(|_| {
+                    if rng.random::<f64>() < culled_share {
+                        constants::CULLED_DEPTH_KEY
+                    } else if rng.random::<f64>() < 0.1 {
+                        constants::LARGEST_VISIBLE_DEPTH_KEY
+                    } else {
+                        rng.random_range(0..255u32) * 0x1_0101
+                    }
+                })
+                .collect();
+            let values: Vec<u32> = (0..count as u32).collect();
+            let (sorted_keys, sorted_values) = gpu
+                .renderer
+                .sort_depth_pairs(&gpu.context, &keys, &values)
+                .unwrap();
+            let mut expected: Vec<(u32, u32)> =
+                keys.iter().copied().zip(values.iter().copied()).collect();
+            expected.sort_by_key(|&(k, _)| k & culled_as_sorted);
+            let (expected_keys, expected_values): (Vec<u32>, Vec<u32>) =
+                expected.into_iter().unzip();
+            assert_eq!(
+                sorted_keys, expected_keys,
+                "{count} keys, {culled_share} culled"
+            );
+            assert_eq!(
+                sorted_values, expected_values,
+                "{count} keys, {culled_share} culled"
             );
         }
     }

@@ -7,10 +7,12 @@
 // actually reaches (exact per tile row, with a small margin: ellipse_tile_mask), and only those are binned:
 // like the tighter box, this changes no pixel, it only saves tile/splat pairs (a thin tilted
 // ellipse misses most tiles of its bounding box). Invariants: every Gaussian index < count
-// writes all outputs; tile_counts is the number of binned tiles (mask bits, or the whole
-// rectangle); a culled Gaussian (non-finite input or result, zero quaternion, behind the near
-// plane, degenerate footprint, no tile reached) gets tile_count 0 and depth key 0xffffffff so
-// it sorts last and is never binned (visible keys stay below it: see depth_sort_key).
+// writes its depth key and sort value; a kept Gaussian writes all outputs, tile_counts being
+// the number of binned tiles (mask bits, or the whole rectangle); a culled Gaussian
+// (non-finite input or result, zero quaternion, behind the near plane, degenerate footprint,
+// no tile reached) writes only the depth key 0xffffffff, so it sorts last (visible keys stay
+// below it: see depth_sort_key), and leaves its other outputs the zeros of the launcher's
+// fresh buffers: tile_count 0 (never binned) and radius 0 (project_backward skips it).
 // sort_values is initialised to the identity permutation.
 
 @group(0) @binding(0) var<uniform> params: RenderParams;
@@ -31,13 +33,15 @@
 @group(0) @binding(11) var<storage, read_write> depth_keys: array<u32>;
 @group(0) @binding(12) var<storage, read_write> sort_values: array<u32>;
 
+// A culled Gaussian's other outputs stay the zeros of the launcher's fresh (zero-filled)
+// buffers: on CPU adapters (lavapipe) each store is a loop over the SIMD lanes, and most of a
+// large map's Gaussians are culled in any one view.
 fn cull(index: u32) {
-    splat_position[index] = vec4<f32>(0.0);
-    splat_conic[index] = vec4<f32>(0.0);
-    splat_colour[index] = vec4<f32>(0.0);
-    tile_rects[index] = vec4<u32>(0u);
-    tile_counts[index] = 0u;
     depth_keys[index] = CULLED_DEPTH_KEY;
+}
+
+fn all_finite(v: vec3<f32>) -> bool {
+    return is_finite(v.x) && is_finite(v.y) && is_finite(v.z);
 }
 
 fn quaternion_to_rotation(q: vec4<f32>) -> mat3x3<f32> {
@@ -113,6 +117,37 @@ fn ellipse_tile_mask(mean: vec2<f32>, covariance: vec3<f32>, det: f32, radius_sq
     return mask;
 }
 
+// Relative and absolute (pixels) slack of outside_tiles_for_any_shape's radius bound: absorbs
+// the f32 rounding of the footprint main computes, which the bound must never fall below.
+const EARLY_CULL_RELATIVE_MARGIN: f32 = 1e-3;
+const EARLY_CULL_PIXEL_MARGIN: f32 = 2.0;
+
+// True when the splat's tile rectangle is certainly empty, whatever its rotation: a cheap
+// early exit for the many Gaussians of a large map that project near the frustum but miss the
+// image. The footprint's radius, ceil(extent_sigmas * sqrt(largest eigenvalue of
+// J W J^T + low_pass I)), is bounded with the largest eigenvalue of W (the largest scale,
+// squared) and the Frobenius norm of J (which bounds its spectral norm); the tile rectangle
+// that main builds is empty once the centre lies farther than that radius outside the tiles'
+// pixel centres, so this culls only Gaussians main would cull, with the same outputs. Not
+// needed for correctness: on CPU adapters (lavapipe) a SIMD group whose lanes all cull here
+// skips the covariance, footprint and tile-mask work (the rest of main is a branch it can
+// skip; lanes that continue still run it masked for the others).
+fn outside_tiles_for_any_shape(p: vec3<f32>, u: f32, v: f32, log_scale: vec3<f32>) -> bool {
+    let largest_scale = exp(max(log_scale.x, max(log_scale.y, log_scale.z)));
+    let fx = params.fx;
+    let fy = params.fy;
+    let jacobian_norm_squared = (fx * fx * (1.0 + u * u) + fy * fy * (1.0 + v * v)) / (p.z * p.z);
+    let largest_eigenvalue = largest_scale * largest_scale * jacobian_norm_squared
+        + params.low_pass_variance;
+    let radius = params.extent_sigmas * sqrt(largest_eigenvalue) * (1.0 + EARLY_CULL_RELATIVE_MARGIN)
+        + EARLY_CULL_PIXEL_MARGIN;
+    let centre = vec2<f32>(fx * u + params.cx, fy * v + params.cy);
+    // Tile t covers pixel centres t*16 ..= t*16 + 15, so the tiles span 0 ..= 16 tiles - 1.
+    let last_centre = vec2<f32>(f32(params.tiles_x * TILE_SIZE) - 1.0,
+                                f32(params.tiles_y * TILE_SIZE) - 1.0);
+    return any(centre + radius < vec2<f32>(0.0)) || any(centre - radius > last_centre);
+}
+
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn main(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
@@ -124,24 +159,13 @@ fn main(
         return;
     }
     sort_values[index] = index;
+    // Position and scale first: most culled Gaussians are culled by them, before the other
+    // inputs are loaded (a load costs a loop over the SIMD lanes that are still active).
     let mean = vec3<f32>(means[3u * index], means[3u * index + 1u], means[3u * index + 2u]);
     let log_scale = vec3<f32>(
         log_scales[3u * index], log_scales[3u * index + 1u], log_scales[3u * index + 2u]);
-    let quaternion = quaternions[index];
-    let opacity_logit = opacity_logits[index];
-    let colour = vec3<f32>(colours[3u * index], colours[3u * index + 1u], colours[3u * index + 2u]);
-    var inputs_finite = is_finite(opacity_logit);
-    for (var k = 0u; k < 3u; k++) {
-        inputs_finite = inputs_finite && is_finite(mean[k]) && is_finite(log_scale[k])
-            && is_finite(colour[k]) && is_finite(quaternion[k]);
-    }
-    inputs_finite = inputs_finite && is_finite(quaternion.w);
-    if !inputs_finite {
-        cull(index);
-        return;
-    }
     let max_log_scale = params.max_log_scale;
-    if dot(quaternion, quaternion) < params.min_quaternion_norm_squared || log_scale.x > max_log_scale
+    if !(all_finite(mean) && all_finite(log_scale)) || log_scale.x > max_log_scale
         || log_scale.y > max_log_scale || log_scale.z > max_log_scale {
         cull(index);
         return;
@@ -158,6 +182,18 @@ fn main(
     let u = p.x / p.z;
     let v = p.y / p.z;
     if u < params.frustum_min_x || u > params.frustum_max_x || v < params.frustum_min_y || v > params.frustum_max_y {
+        cull(index);
+        return;
+    }
+    if outside_tiles_for_any_shape(p, u, v, log_scale) {
+        cull(index);
+        return;
+    }
+    let quaternion = quaternions[index];
+    let opacity_logit = opacity_logits[index];
+    let colour = vec3<f32>(colours[3u * index], colours[3u * index + 1u], colours[3u * index + 2u]);
+    if !(all_finite(colour) && all_finite(quaternion.xyz) && is_finite(quaternion.w)
+        && is_finite(opacity_logit)) || dot(quaternion, quaternion) < params.min_quaternion_norm_squared {
         cull(index);
         return;
     }

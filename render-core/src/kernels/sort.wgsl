@@ -10,11 +10,18 @@
 //   (digit, block) holds the first output slot of its keys.
 // - `scatter`: invocation b walks its block in order and sends each key (and value) to the
 //   next slot of its (digit, b) entry. Keys of equal digit keep their input order (stable).
+// A depth sort splits its culled keys off in its first pass (sort_params.split_culled): keys
+// equal to CULLED_DEPTH_KEY go to one more bucket, RADIX, after every digit, so the pass
+// leaves them behind the others in input order, where the whole sort would leave them too
+// (the culled key sorts above every visible one, and the sort is stable). `count_kept`
+// (ONE invocation, between the scan and `scatter`) writes the number of the other keys,
+// the first slot of bucket RADIX, to kept_count[0], and the later passes sort only those:
+// in a large map most Gaussians are culled in any one view.
 // The key count is read from the device (sort_count[0], written by an earlier kernel or the
 // launcher), so the sort needs no host read-back: the launcher sizes block_count for the
 // largest possible count, and blocks past the real count only zero their column.
 // Invariants: only keys < count are read or written; every table entry is written by
-// `histogram` before the scan.
+// `histogram` before the scan; later passes never move the culled keys a split left behind.
 
 @group(0) @binding(0) var<uniform> sort_params: SortParams;
 @group(0) @binding(1) var<storage, read> keys_in: array<u32>;
@@ -24,8 +31,20 @@
 @group(0) @binding(5) var<storage, read_write> values_out: array<u32>;
 // [0]: number of keys to sort.
 @group(0) @binding(6) var<storage, read> sort_count: array<u32>;
+// [0]: number of keys that are not culled (written by `count_kept`).
+@group(0) @binding(7) var<storage, read_write> kept_count: array<u32>;
 
 const RADIX: u32 = 1u << RADIX_BITS;
+
+// Table rows (buckets) of this pass.
+fn bucket_count() -> u32 {
+    return RADIX + sort_params.split_culled;
+}
+
+fn bucket_of(key: u32) -> u32 {
+    let digit = (key >> sort_params.shift) & sort_params.digit_mask;
+    return select(digit, RADIX, sort_params.split_culled != 0u && key == CULLED_DEPTH_KEY);
+}
 
 fn block_index(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32) -> u32 {
     return linear_workgroup(workgroup_id, workgroup_count) * SERIAL_WORKGROUP_SIZE + local_index;
@@ -42,14 +61,13 @@ fn histogram(
     if block >= block_count {
         return;
     }
-    for (var digit = 0u; digit < RADIX; digit++) {
-        table[digit * block_count + block] = 0u;
+    for (var bucket = 0u; bucket < bucket_count(); bucket++) {
+        table[bucket * block_count + block] = 0u;
     }
     let first = block * sort_params.block_size;
     let last = min(first + sort_params.block_size, sort_count[0]);
     for (var i = first; i < last; i++) {
-        let digit = (keys_in[i] >> sort_params.shift) & sort_params.digit_mask;
-        let entry = digit * block_count + block;
+        let entry = bucket_of(keys_in[i]) * block_count + block;
         table[entry] += 1u;
     }
 }
@@ -69,10 +87,15 @@ fn scatter(
     let last = min(first + sort_params.block_size, sort_count[0]);
     for (var i = first; i < last; i++) {
         let key = keys_in[i];
-        let entry = ((key >> sort_params.shift) & sort_params.digit_mask) * block_count + block;
+        let entry = bucket_of(key) * block_count + block;
         let slot = table[entry];
         table[entry] = slot + 1u;
         keys_out[slot] = key;
         values_out[slot] = values_in[i];
     }
+}
+
+@compute @workgroup_size(1)
+fn count_kept() {
+    kept_count[0] = table[RADIX * sort_params.block_count];
 }
