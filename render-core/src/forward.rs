@@ -240,7 +240,7 @@ impl GpuRenderer {
         })
     }
 
-    /// project.wgsl: splats, tile rectangles and counts, depth keys, identity order.
+    /// project.wgsl: splats, tile rectangles and counts, depth keys.
     fn encode_project(
         &self,
         context: &GpuContext,
@@ -265,7 +265,6 @@ impl GpuRenderer {
                 (9, &b.tile_rects),
                 (10, &b.tile_counts),
                 (11, &b.depth_keys[0]),
-                (12, &b.depth_values[0]),
             ],
         );
         let workgroups = b.bin.gaussian_count.div_ceil(WORKGROUP_SIZE);
@@ -273,8 +272,9 @@ impl GpuRenderer {
     }
 
     /// Radix sort of the depth keys; returns which `depth_values` buffer holds the
-    /// front-to-back Gaussian order. Culled Gaussians are split off in the first pass and
-    /// stay behind the others in index order, as a whole sort would leave them.
+    /// front-to-back Gaussian order (the sort takes each key's index, its Gaussian, as its
+    /// value). Culled Gaussians are split off in the first pass and stay behind the others
+    /// in index order, as a whole sort would leave them.
     fn encode_depth_sort(
         &self,
         context: &GpuContext,

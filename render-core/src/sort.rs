@@ -25,12 +25,13 @@ impl GpuRenderer {
     /// Stable LSD radix sort of (key, value) pairs on the low `key_bits` bits, ping-ponging
     /// between the two buffers of each pair. The number of pairs is read on the device from
     /// `count_buffer[0]` (so it may come from an earlier kernel) and must not exceed
-    /// `max_count`, which sizes the dispatches and the digit table. With `split_culled`, the
-    /// first pass leaves the keys equal to CULLED_DEPTH_KEY behind the others, in input
-    /// order, and the later passes sort only the others (sort.wgsl): the same result as the
-    /// whole sort as long as no other key's low `key_bits` bits reach the culled key's (depth
-    /// keys stay at or below LARGEST_VISIBLE_DEPTH_KEY). Returns which buffer (0 or 1) holds
-    /// the sorted result.
+    /// `max_count`, which sizes the dispatches and the digit table. With `depth_keys`, the
+    /// keys are the depth keys of Gaussians 0, 1, ...: the first pass takes each key's index
+    /// as its value (`values[0]` is not read) and leaves the keys equal to CULLED_DEPTH_KEY
+    /// behind the others, in index order, and the later passes sort only the others
+    /// (sort.wgsl): the same result as the whole sort of (key, index) pairs as long as no
+    /// other key's low `key_bits` bits reach the culled key's (depth keys stay at or below
+    /// LARGEST_VISIBLE_DEPTH_KEY). Returns which buffer (0 or 1) holds the sorted result.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn radix_sort(
         &self,
@@ -41,14 +42,14 @@ impl GpuRenderer {
         count_buffer: &wgpu::Buffer,
         max_count: u32,
         key_bits: u32,
-        split_culled: bool,
+        depth_keys: bool,
     ) -> Result<usize, GpuError> {
         let block_size = max_count
             .div_ceil(SORT_BLOCKS_TARGET)
             .clamp(MIN_SORT_BLOCK_SIZE, MAX_SORT_BLOCK_SIZE);
         let block_count = max_count.div_ceil(block_size).max(1);
         // One more bucket (table row) for the culled keys of a split pass.
-        let table_entries = (RADIX + u32::from(split_culled)) * block_count;
+        let table_entries = (RADIX + u32::from(depth_keys)) * block_count;
         let table = context.storage_buffer("sort table", u64::from(table_entries) * U32_BYTES)?;
         let kept_count = context.storage_buffer("sort kept count", VEC4_BYTES)?;
         let workgroups = block_count.div_ceil(SERIAL_WORKGROUP_SIZE);
@@ -58,13 +59,14 @@ impl GpuRenderer {
             let shift = pass * RADIX_BITS;
             let digit_bits = RADIX_BITS.min(key_bits - shift);
             let digit_mask = (1 << digit_bits) - 1;
-            let split = split_culled && pass == 0;
+            let first_depth_pass = depth_keys && pass == 0;
             let params = SortParams {
                 shift,
                 digit_mask,
                 block_size,
                 block_count,
-                split_culled: u32::from(split),
+                split_culled: u32::from(first_depth_pass),
+                index_values: u32::from(first_depth_pass),
                 ..Zeroable::zeroed()
             };
             let params = context.uniform_buffer("sort params", bytemuck::bytes_of(&params));
@@ -84,10 +86,10 @@ impl GpuRenderer {
                 encoder,
                 self.scan_pipelines(),
                 &table,
-                (RADIX + u32::from(split)) * block_count,
+                (RADIX + u32::from(first_depth_pass)) * block_count,
                 true,
             )?;
-            if split {
+            if first_depth_pass {
                 let count_group = bind_group(
                     context,
                     &self.pipelines.sort_count_kept,
@@ -114,7 +116,7 @@ impl GpuRenderer {
                 &scatter_group,
                 workgroups,
             );
-            if split {
+            if first_depth_pass {
                 count = &kept_count;
             }
             current = 1 - current;
@@ -131,29 +133,6 @@ impl GpuRenderer {
         values: &[u32],
         key_bits: u32,
     ) -> Result<(Vec<u32>, Vec<u32>), GpuError> {
-        self.sort_pairs_on_device(context, keys, values, key_bits, false)
-    }
-
-    /// Sorts depth keys (render_core::depth_sort_key, or CULLED_DEPTH_KEY) and their values
-    /// the way a frame does: on DEPTH_KEY_BITS bits, the culled keys split off in the first
-    /// pass. The result is the same as [`GpuRenderer::sort_pairs`]'s on DEPTH_KEY_BITS bits.
-    pub fn sort_depth_pairs(
-        &self,
-        context: &GpuContext,
-        keys: &[u32],
-        values: &[u32],
-    ) -> Result<(Vec<u32>, Vec<u32>), GpuError> {
-        self.sort_pairs_on_device(context, keys, values, constants::DEPTH_KEY_BITS, true)
-    }
-
-    fn sort_pairs_on_device(
-        &self,
-        context: &GpuContext,
-        keys: &[u32],
-        values: &[u32],
-        key_bits: u32,
-        split_culled: bool,
-    ) -> Result<(Vec<u32>, Vec<u32>), GpuError> {
         if keys.len() != values.len() {
             return Err(GpuError::InvalidInput(format!(
                 "{} keys but {} values",
@@ -161,6 +140,29 @@ impl GpuRenderer {
                 values.len()
             )));
         }
+        self.sort_on_device(context, keys, Some(values), key_bits)
+    }
+
+    /// Sorts the depth keys of Gaussians 0, 1, ... (render_core::depth_sort_key, or
+    /// CULLED_DEPTH_KEY) the way a frame does: on DEPTH_KEY_BITS bits, the culled keys split off
+    /// in the first pass. Returns the sorted keys and the Gaussians in that order: the same as
+    /// [`GpuRenderer::sort_pairs`] of the keys and their indices on DEPTH_KEY_BITS bits.
+    pub fn sort_depth_keys(
+        &self,
+        context: &GpuContext,
+        keys: &[u32],
+    ) -> Result<(Vec<u32>, Vec<u32>), GpuError> {
+        self.sort_on_device(context, keys, None, constants::DEPTH_KEY_BITS)
+    }
+
+    /// `values`: the pairs' values, or None for depth keys (see [`GpuRenderer::radix_sort`]).
+    fn sort_on_device(
+        &self,
+        context: &GpuContext,
+        keys: &[u32],
+        values: Option<&[u32]>,
+        key_bits: u32,
+    ) -> Result<(Vec<u32>, Vec<u32>), GpuError> {
         let count = u32::try_from(keys.len())
             .map_err(|_| GpuError::TooLarge("more than u32::MAX pairs".into()))?;
         let min = VEC4_BYTES as usize;
@@ -169,7 +171,12 @@ impl GpuRenderer {
             context.storage_buffer("keys scratch", u64::from(count) * U32_BYTES)?,
         ];
         let value_buffers = [
-            context.storage_buffer_init("values", bytemuck::cast_slice(values), min),
+            match values {
+                Some(values) => {
+                    context.storage_buffer_init("values", bytemuck::cast_slice(values), min)
+                }
+                None => context.storage_buffer("values", u64::from(count) * U32_BYTES)?,
+            },
             context.storage_buffer("values scratch", u64::from(count) * U32_BYTES)?,
         ];
         let mut encoder = context.device.create_command_encoder(&Default::default());
@@ -182,7 +189,7 @@ impl GpuRenderer {
                 &count_buffer(context, count),
                 count,
                 key_bits.min(u32::BITS),
-                split_culled,
+                values.is_none(),
             )?
         } else {
             0

@@ -167,7 +167,9 @@ wgsl_struct! {
         /// 1 on a depth sort's first pass: culled keys go to a bucket of their own, after
         /// every digit, and later passes sort only the others (sort.wgsl).
         split_culled: u32,
-        padding0: u32,
+        /// 1 on a depth sort's first pass: each key's value is its index (values_in is not
+        /// read).
+        index_values: u32,
         padding1: u32,
         padding2: u32,
     }

@@ -471,7 +471,7 @@ fn device_radix_sort_matches_a_stable_sort_for_every_size_and_key_width() {
 }
 
 #[test]
-fn the_depth_sort_splitting_off_culled_keys_matches_a_stable_sort() {
+fn the_depth_sort_matches_a_stable_sort_of_keys_and_indices() {
     let gpu = gpu();
     let mut rng = ChaCha8Rng::seed_from_u64(10);
     let key_bits = constants::DEPTH_KEY_BITS;
@@ -493,10 +493,8 @@ fn the_depth_sort_splitting_off_culled_keys_matches_a_stable_sort() {
                 })
                 .collect();
             let values: Vec<u32> = (0..count as u32).collect();
-            let (sorted_keys, sorted_values) = gpu
-                .renderer
-                .sort_depth_pairs(&gpu.context, &keys, &values)
-                .unwrap();
+            let (sorted_keys, sorted_values) =
+                gpu.renderer.sort_depth_keys(&gpu.context, &keys).unwrap();
             let mut expected: Vec<(u32, u32)> =
                 keys.iter().copied().zip(values.iter().copied()).collect();
             expected.sort_by_key(|&(k, _)| k & culled_as_sorted);

@@ -7,13 +7,13 @@
 // actually reaches (exact per tile row, with a small margin: ellipse_tile_mask), and only those are binned:
 // like the tighter box, this changes no pixel, it only saves tile/splat pairs (a thin tilted
 // ellipse misses most tiles of its bounding box). Invariants: every Gaussian index < count
-// writes its depth key and sort value; a kept Gaussian writes all outputs, tile_counts being
-// the number of binned tiles (mask bits, or the whole rectangle); a culled Gaussian
-// (non-finite input or result, zero quaternion, behind the near plane, degenerate footprint,
-// no tile reached) writes only the depth key 0xffffffff, so it sorts last (visible keys stay
-// below it: see depth_sort_key), and leaves its other outputs the zeros of the launcher's
-// fresh buffers: tile_count 0 (never binned) and radius 0 (project_backward skips it).
-// sort_values is initialised to the identity permutation.
+// writes its depth key (the depth sort takes the Gaussians' indices as its values); a kept
+// Gaussian writes all outputs, tile_counts being the number of binned tiles (mask bits, or
+// the whole rectangle); a culled Gaussian (non-finite input or result, zero quaternion,
+// behind the near plane, degenerate footprint, no tile reached) writes only the depth key
+// 0xffffffff, so it sorts last (visible keys stay below it: see depth_sort_key), and leaves
+// its other outputs the zeros of the launcher's fresh buffers: tile_count 0 (never binned)
+// and radius 0 (project_backward skips it).
 
 @group(0) @binding(0) var<uniform> params: RenderParams;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -31,7 +31,6 @@
 @group(0) @binding(9) var<storage, read_write> tile_rects: array<vec4<u32>>;
 @group(0) @binding(10) var<storage, read_write> tile_counts: array<u32>;
 @group(0) @binding(11) var<storage, read_write> depth_keys: array<u32>;
-@group(0) @binding(12) var<storage, read_write> sort_values: array<u32>;
 
 // A culled Gaussian's other outputs stay the zeros of the launcher's fresh (zero-filled)
 // buffers: on CPU adapters (lavapipe) each store is a loop over the SIMD lanes, and most of a
@@ -117,37 +116,6 @@ fn ellipse_tile_mask(mean: vec2<f32>, covariance: vec3<f32>, det: f32, radius_sq
     return mask;
 }
 
-// Relative and absolute (pixels) slack of outside_tiles_for_any_shape's radius bound: absorbs
-// the f32 rounding of the footprint main computes, which the bound must never fall below.
-const EARLY_CULL_RELATIVE_MARGIN: f32 = 1e-3;
-const EARLY_CULL_PIXEL_MARGIN: f32 = 2.0;
-
-// True when the splat's tile rectangle is certainly empty, whatever its rotation: a cheap
-// early exit for the many Gaussians of a large map that project near the frustum but miss the
-// image. The footprint's radius, ceil(extent_sigmas * sqrt(largest eigenvalue of
-// J W J^T + low_pass I)), is bounded with the largest eigenvalue of W (the largest scale,
-// squared) and the Frobenius norm of J (which bounds its spectral norm); the tile rectangle
-// that main builds is empty once the centre lies farther than that radius outside the tiles'
-// pixel centres, so this culls only Gaussians main would cull, with the same outputs. Not
-// needed for correctness: on CPU adapters (lavapipe) a SIMD group whose lanes all cull here
-// skips the covariance, footprint and tile-mask work (the rest of main is a branch it can
-// skip; lanes that continue still run it masked for the others).
-fn outside_tiles_for_any_shape(p: vec3<f32>, u: f32, v: f32, log_scale: vec3<f32>) -> bool {
-    let largest_scale = exp(max(log_scale.x, max(log_scale.y, log_scale.z)));
-    let fx = params.fx;
-    let fy = params.fy;
-    let jacobian_norm_squared = (fx * fx * (1.0 + u * u) + fy * fy * (1.0 + v * v)) / (p.z * p.z);
-    let largest_eigenvalue = largest_scale * largest_scale * jacobian_norm_squared
-        + params.low_pass_variance;
-    let radius = params.extent_sigmas * sqrt(largest_eigenvalue) * (1.0 + EARLY_CULL_RELATIVE_MARGIN)
-        + EARLY_CULL_PIXEL_MARGIN;
-    let centre = vec2<f32>(fx * u + params.cx, fy * v + params.cy);
-    // Tile t covers pixel centres t*16 ..= t*16 + 15, so the tiles span 0 ..= 16 tiles - 1.
-    let last_centre = vec2<f32>(f32(params.tiles_x * TILE_SIZE) - 1.0,
-                                f32(params.tiles_y * TILE_SIZE) - 1.0);
-    return any(centre + radius < vec2<f32>(0.0)) || any(centre - radius > last_centre);
-}
-
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn main(
     @builtin(workgroup_id) workgroup_id: vec3<u32>,
@@ -158,7 +126,6 @@ fn main(
     if index >= params.gaussian_count {
         return;
     }
-    sort_values[index] = index;
     // Position and scale first: most culled Gaussians are culled by them, before the other
     // inputs are loaded (a load costs a loop over the SIMD lanes that are still active).
     let mean = vec3<f32>(means[3u * index], means[3u * index + 1u], means[3u * index + 2u]);
@@ -182,10 +149,6 @@ fn main(
     let u = p.x / p.z;
     let v = p.y / p.z;
     if u < params.frustum_min_x || u > params.frustum_max_x || v < params.frustum_min_y || v > params.frustum_max_y {
-        cull(index);
-        return;
-    }
-    if outside_tiles_for_any_shape(p, u, v, log_scale) {
         cull(index);
         return;
     }

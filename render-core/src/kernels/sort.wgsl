@@ -10,7 +10,9 @@
 //   (digit, block) holds the first output slot of its keys.
 // - `scatter`: invocation b walks its block in order and sends each key (and value) to the
 //   next slot of its (digit, b) entry. Keys of equal digit keep their input order (stable).
-// A depth sort splits its culled keys off in its first pass (sort_params.split_culled): keys
+// A depth sort's first pass takes each key's index, its Gaussian, as the value
+// (sort_params.index_values: values_in is not read, so project need not write an identity
+// permutation) and splits the culled keys off (sort_params.split_culled): keys
 // equal to CULLED_DEPTH_KEY go to one more bucket, RADIX, after every digit, so the pass
 // leaves them behind the others in input order, where the whole sort would leave them too
 // (the culled key sorts above every visible one, and the sort is stable). `count_kept`
@@ -91,7 +93,11 @@ fn scatter(
         let slot = table[entry];
         table[entry] = slot + 1u;
         keys_out[slot] = key;
-        values_out[slot] = values_in[i];
+        var value = i;
+        if sort_params.index_values == 0u {
+            value = values_in[i];
+        }
+        values_out[slot] = value;
     }
 }
 
