@@ -16,10 +16,11 @@ use crate::wgsl::{RADIX_BITS, SERIAL_WORKGROUP_SIZE, SortParams};
 const RADIX: u32 = 1 << RADIX_BITS;
 /// Keys per radix-sort invocation: between these bounds, aiming at SORT_BLOCKS_TARGET blocks
 /// (enough invocations to keep every CPU thread busy, few enough that the digit table,
-/// RADIX entries per block, stays small next to the keys).
+/// RADIX entries per block that every pass scans, stays small next to the keys: 128 blocks
+/// sorted a real map's depth keys faster than 256 or 64 on lavapipe, see docs/benchmarks.md).
 const MIN_SORT_BLOCK_SIZE: u32 = 64;
 const MAX_SORT_BLOCK_SIZE: u32 = 1024;
-const SORT_BLOCKS_TARGET: u32 = 256;
+const SORT_BLOCKS_TARGET: u32 = 128;
 
 impl GpuRenderer {
     /// Stable LSD radix sort of (key, value) pairs on the low `key_bits` bits, ping-ponging

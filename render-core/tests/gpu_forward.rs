@@ -416,7 +416,7 @@ fn culled_gaussians_change_nothing() {
 fn device_radix_sort_is_stable_and_correct() {
     let gpu = gpu();
     let mut rng = ChaCha8Rng::seed_from_u64(8);
-    // 69 sort blocks of 1024 keys (the last one partial) and many duplicate keys.
+    // Many sort blocks (the last one partial) and many duplicate keys.
     let count = 70_000;
     let keys: Vec<u32> = (0..count)
         .map(|_| rng.random_range(0..5000u32) * 0x1_0001)
