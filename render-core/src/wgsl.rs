@@ -328,11 +328,8 @@ pub(crate) const PROJECT_BACKWARD_WORKGROUP_SIZE: u32 = 64;
 pub(crate) const REDUCE_CHUNK: u32 = 64;
 pub(crate) const REDUCE_WORKGROUP_SIZE: u32 = 64;
 /// f32 values per Gaussian of the screen-space gradients (mean2d 2, conic 3, opacity 1,
-/// colour 3, depth 1), padded to three vec4 (the last two unused): pair_gradients.wgsl writes
-/// and project_backward.wgsl reads them with three vector accesses instead of ten scalar
-/// ones (on CPU adapters each access is a loop over the SIMD lanes, whatever its width).
-pub(crate) const SCREEN_GRADIENT_STRIDE: u32 = 12;
-const _: () = assert!(SCREEN_GRADIENT_STRIDE == 12);
+/// colour 3, depth 1).
+pub(crate) const SCREEN_GRADIENT_STRIDE: u32 = 10;
 /// f32 values per tile/Gaussian pair of the per-pair gradient sums (`GradientOrder::Fixed`,
 /// stored in the pairs' depth order): the screen-space gradients padded to three vec4, which
 /// pair_gradients.wgsl reads and clears with three vector accesses instead of ten scalar ones.

@@ -30,9 +30,8 @@
 // PAIR_SUM_STRIDE floats (three vec4, the last two padding) per pair in depth order, written
 // by the backward rasterizer in the screen_gradients order.
 @group(0) @binding(5) var<storage, read_write> pair_sums: array<vec4<f32>>;
-// SCREEN_GRADIENT_STRIDE floats (three vec4, the last two floats padding) per Gaussian, read
-// by project_backward.wgsl.
-@group(0) @binding(6) var<storage, read_write> screen_gradients: array<vec4<f32>>;
+// SCREEN_GRADIENT_STRIDE floats per Gaussian, read by project_backward.wgsl.
+@group(0) @binding(6) var<storage, read_write> screen_gradients: array<f32>;
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn main(
@@ -54,8 +53,8 @@ fn main(
         return;
     }
     let gaussian = sorted_gaussians[k];
-    // The screen gradients' 10 components (and 2 of padding) in three vectors: no local
-    // array, which CPU adapters would keep in memory.
+    // The SCREEN_GRADIENT_STRIDE (10) components in three vectors: no local array, which
+    // CPU adapters would keep in memory.
     var sum_a = vec4<f32>(0.0);
     var sum_b = vec4<f32>(0.0);
     var sum_c = vec4<f32>(0.0);
@@ -69,9 +68,11 @@ fn main(
         pair_sums[base + 1u] = zero;
         pair_sums[base + 2u] = zero;
     }
-    // The pairs' padding is never added to, so sum_c's last two components are zero.
-    let out = gaussian * (SCREEN_GRADIENT_STRIDE / 4u);
-    screen_gradients[out] = sum_a;
-    screen_gradients[out + 1u] = sum_b;
-    screen_gradients[out + 2u] = sum_c;
+    let out = gaussian * SCREEN_GRADIENT_STRIDE;
+    for (var c = 0u; c < 4u; c++) {
+        screen_gradients[out + c] = sum_a[c];
+        screen_gradients[out + 4u + c] = sum_b[c];
+    }
+    screen_gradients[out + 8u] = sum_c.x;
+    screen_gradients[out + 9u] = sum_c.y;
 }

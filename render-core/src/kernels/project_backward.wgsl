@@ -15,8 +15,7 @@
 @group(0) @binding(3) var<storage, read> quaternions: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read> opacity_logits: array<f32>;
 @group(0) @binding(5) var<storage, read> splat_conic: array<vec4<f32>>;
-// SCREEN_GRADIENT_STRIDE floats (three vec4) per Gaussian, at the V_* offsets.
-@group(0) @binding(6) var<storage, read> screen_gradients: array<vec4<f32>>;
+@group(0) @binding(6) var<storage, read> screen_gradients: array<f32>;
 // Packed like the parameters: 3, 3, 4, 1 and 3 floats per Gaussian.
 @group(0) @binding(7) var<storage, read_write> v_means: array<f32>;
 @group(0) @binding(8) var<storage, read_write> v_log_scales: array<f32>;
@@ -40,19 +39,6 @@ fn write_gradients(index: u32, v_mean: vec3<f32>, v_log_scale: vec3<f32>, v_quat
     }
     v_quaternions[index] = v_quaternion;
     v_opacity_logits[index] = v_logit;
-}
-
-// A Gaussian's screen gradients as loaded: three vectors (see SCREEN_GRADIENT_STRIDE).
-struct ScreenGradients {
-    a: vec4<f32>,
-    b: vec4<f32>,
-    c: vec4<f32>,
-}
-
-// Component `offset` (a V_* constant) of the screen gradients.
-fn screen_component(screen: ScreenGradients, offset: u32) -> f32 {
-    let vector = select(select(screen.c, screen.b, offset < 8u), screen.a, offset < 4u);
-    return vector[offset % 4u];
 }
 
 struct PoseGradient {
@@ -90,18 +76,14 @@ fn chain_gaussian(index: u32) -> PoseGradient {
         // buffers), so nothing is written.
         return PoseGradient(zero3, zero3);
     }
-    let g = index * (SCREEN_GRADIENT_STRIDE / 4u);
-    let screen = ScreenGradients(screen_gradients[g], screen_gradients[g + 1u],
-                                 screen_gradients[g + 2u]);
-    let v_mean2d = vec2<f32>(screen_component(screen, V_MEAN2D),
-                             screen_component(screen, V_MEAN2D + 1u));
-    let v_conic = vec3<f32>(screen_component(screen, V_CONIC), screen_component(screen, V_CONIC + 1u),
-                            screen_component(screen, V_CONIC + 2u));
-    let v_opacity = screen_component(screen, V_OPACITY);
-    let v_colour = vec3<f32>(screen_component(screen, V_COLOUR),
-                             screen_component(screen, V_COLOUR + 1u),
-                             screen_component(screen, V_COLOUR + 2u));
-    let v_depth = screen_component(screen, V_DEPTH);
+    let g = index * SCREEN_GRADIENT_STRIDE;
+    let v_mean2d = vec2<f32>(screen_gradients[g + V_MEAN2D], screen_gradients[g + V_MEAN2D + 1u]);
+    let v_conic = vec3<f32>(screen_gradients[g + V_CONIC], screen_gradients[g + V_CONIC + 1u],
+                            screen_gradients[g + V_CONIC + 2u]);
+    let v_opacity = screen_gradients[g + V_OPACITY];
+    let v_colour = vec3<f32>(screen_gradients[g + V_COLOUR], screen_gradients[g + V_COLOUR + 1u],
+                             screen_gradients[g + V_COLOUR + 2u]);
+    let v_depth = screen_gradients[g + V_DEPTH];
 
     // Forward recomputation (identical to project.wgsl).
     let mean = vec3<f32>(means[3u * index], means[3u * index + 1u], means[3u * index + 2u]);
