@@ -1,7 +1,7 @@
 //! The device radix sort (sort.wgsl, scan.wgsl): stable, least significant digit first,
 //! RADIX_BITS bits per pass, one invocation walking a block of keys serially. The renderer
-//! sorts depth keys with it; [`GpuRenderer::sort_pairs`] and [`DeviceSortBench`] expose it to
-//! tests and the benchmark.
+//! sorts depth keys with it; [`GpuRenderer::sort_pairs`], [`GpuRenderer::sort_depth_keys`] and
+//! [`DeviceSortBench`] expose it to tests and the benchmark.
 
 use bytemuck::Zeroable;
 
@@ -21,6 +21,9 @@ const RADIX: u32 = 1 << RADIX_BITS;
 const MIN_SORT_BLOCK_SIZE: u32 = 64;
 const MAX_SORT_BLOCK_SIZE: u32 = 1024;
 const SORT_BLOCKS_TARGET: u32 = 128;
+// A depth sort leaves its culled keys where its first pass wrote them, so that pass's output
+// buffer must be the one that ends up holding the result: an odd number of passes.
+const _: () = assert!(constants::DEPTH_KEY_BITS.div_ceil(RADIX_BITS) % 2 == 1);
 
 impl GpuRenderer {
     /// Stable LSD radix sort of (key, value) pairs on the low `key_bits` bits, ping-ponging
@@ -32,7 +35,8 @@ impl GpuRenderer {
     /// behind the others, in index order, and the later passes sort only the others
     /// (sort.wgsl): the same result as the whole sort of (key, index) pairs as long as no
     /// other key's low `key_bits` bits reach the culled key's (depth keys stay at or below
-    /// LARGEST_VISIBLE_DEPTH_KEY). Returns which buffer (0 or 1) holds the sorted result.
+    /// LARGEST_VISIBLE_DEPTH_KEY), with an odd number of passes (the culled keys stay in the
+    /// first pass's output buffer). Returns which buffer (0 or 1) holds the sorted result.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn radix_sort(
         &self,
@@ -45,6 +49,13 @@ impl GpuRenderer {
         key_bits: u32,
         depth_keys: bool,
     ) -> Result<usize, GpuError> {
+        let passes = key_bits.div_ceil(RADIX_BITS);
+        if depth_keys && passes.is_multiple_of(2) {
+            return Err(GpuError::InvalidInput(format!(
+                "a depth sort needs an odd number of radix passes (its culled keys stay in the \
+                 first pass's output), not {passes} for {key_bits} key bits"
+            )));
+        }
         let block_size = max_count
             .div_ceil(SORT_BLOCKS_TARGET)
             .clamp(MIN_SORT_BLOCK_SIZE, MAX_SORT_BLOCK_SIZE);
@@ -56,7 +67,7 @@ impl GpuRenderer {
         let workgroups = block_count.div_ceil(SERIAL_WORKGROUP_SIZE);
         let mut count = count_buffer;
         let mut current = 0;
-        for pass in 0..key_bits.div_ceil(RADIX_BITS) {
+        for pass in 0..passes {
             let shift = pass * RADIX_BITS;
             let digit_bits = RADIX_BITS.min(key_bits - shift);
             let digit_mask = (1 << digit_bits) - 1;
