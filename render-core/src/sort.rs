@@ -63,7 +63,11 @@ impl GpuRenderer {
         // One more bucket (table row) for the culled keys of a split pass.
         let table_entries = (RADIX + u32::from(depth_keys)) * block_count;
         let table = context.storage_buffer("sort table", u64::from(table_entries) * U32_BYTES)?;
-        let kept_count = context.storage_buffer("sort kept count", VEC4_BYTES)?;
+        let kept_count = if depth_keys {
+            Some(context.storage_buffer("sort kept count", VEC4_BYTES)?)
+        } else {
+            None
+        };
         let workgroups = block_count.div_ceil(SERIAL_WORKGROUP_SIZE);
         let mut count = count_buffer;
         let mut current = 0;
@@ -77,8 +81,7 @@ impl GpuRenderer {
                 digit_mask,
                 block_size,
                 block_count,
-                split_culled: u32::from(first_depth_pass),
-                index_values: u32::from(first_depth_pass),
+                depth_first_pass: u32::from(first_depth_pass),
                 ..Zeroable::zeroed()
             };
             let params = context.uniform_buffer("sort params", bytemuck::bytes_of(&params));
@@ -101,11 +104,11 @@ impl GpuRenderer {
                 (RADIX + u32::from(first_depth_pass)) * block_count,
                 true,
             )?;
-            if first_depth_pass {
+            if let (true, Some(kept_count)) = (first_depth_pass, &kept_count) {
                 let count_group = bind_group(
                     context,
                     &self.pipelines.sort_count_kept,
-                    &[(0, &params), (3, &table), (7, &kept_count)],
+                    &[(0, &params), (3, &table), (7, kept_count)],
                 );
                 dispatch_linear(encoder, &self.pipelines.sort_count_kept, &count_group, 1);
             }
@@ -128,8 +131,8 @@ impl GpuRenderer {
                 &scatter_group,
                 workgroups,
             );
-            if first_depth_pass {
-                count = &kept_count;
+            if let (true, Some(kept_count)) = (first_depth_pass, &kept_count) {
+                count = kept_count;
             }
             current = 1 - current;
         }

@@ -164,12 +164,11 @@ wgsl_struct! {
         digit_mask: u32,
         block_size: u32,
         block_count: u32,
-        /// 1 on a depth sort's first pass: culled keys go to a bucket of their own, after
-        /// every digit, and later passes sort only the others (sort.wgsl).
-        split_culled: u32,
         /// 1 on a depth sort's first pass: each key's value is its index (values_in is not
-        /// read).
-        index_values: u32,
+        /// read), and culled keys go to a bucket of their own, after every digit, so that later
+        /// passes sort only the others (sort.wgsl).
+        depth_first_pass: u32,
+        padding0: u32,
         padding1: u32,
         padding2: u32,
     }

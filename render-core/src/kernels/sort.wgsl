@@ -10,9 +10,9 @@
 //   (digit, block) holds the first output slot of its keys.
 // - `scatter`: invocation b walks its block in order and sends each key (and value) to the
 //   next slot of its (digit, b) entry. Keys of equal digit keep their input order (stable).
-// A depth sort's first pass takes each key's index, its Gaussian, as the value
-// (sort_params.index_values: values_in is not read, so project need not write an identity
-// permutation) and splits the culled keys off (sort_params.split_culled): keys
+// A depth sort's first pass (sort_params.depth_first_pass) takes each key's index, its
+// Gaussian, as the value (values_in is not read, so project need not write an identity
+// permutation) and splits the culled keys off: keys
 // equal to CULLED_DEPTH_KEY go to one more bucket, RADIX, after every digit, so the pass
 // leaves them behind the others in input order, where the whole sort would leave them too
 // (the culled key sorts above every visible one, and the sort is stable). `count_kept`
@@ -40,12 +40,12 @@ const RADIX: u32 = 1u << RADIX_BITS;
 
 // Table rows (buckets) of this pass.
 fn bucket_count() -> u32 {
-    return RADIX + sort_params.split_culled;
+    return RADIX + sort_params.depth_first_pass;
 }
 
 fn bucket_of(key: u32) -> u32 {
     let digit = (key >> sort_params.shift) & sort_params.digit_mask;
-    return select(digit, RADIX, sort_params.split_culled != 0u && key == CULLED_DEPTH_KEY);
+    return select(digit, RADIX, sort_params.depth_first_pass != 0u && key == CULLED_DEPTH_KEY);
 }
 
 fn block_index(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>, local_index: u32) -> u32 {
@@ -94,7 +94,7 @@ fn scatter(
         table[entry] = slot + 1u;
         keys_out[slot] = key;
         var value = i;
-        if sort_params.index_values == 0u {
+        if sort_params.depth_first_pass == 0u {
             value = values_in[i];
         }
         values_out[slot] = value;
