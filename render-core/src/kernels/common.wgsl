@@ -28,6 +28,10 @@ fn is_finite(x: f32) -> bool {
     return (bitcast<u32>(x) & FLOAT_EXPONENT_MASK) != FLOAT_EXPONENT_MASK;
 }
 
+fn all_finite3(v: vec3<f32>) -> bool {
+    return is_finite(v.x) && is_finite(v.y) && is_finite(v.z);
+}
+
 // Linear workgroup index for 1D work spread over a 2D grid (dispatch limit is 65535 per axis).
 fn linear_workgroup(workgroup_id: vec3<u32>, workgroup_count: vec3<u32>) -> u32 {
     return workgroup_id.y * workgroup_count.x + workgroup_id.x;

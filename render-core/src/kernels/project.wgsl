@@ -39,10 +39,6 @@ fn cull(index: u32) {
     depth_keys[index] = CULLED_DEPTH_KEY;
 }
 
-fn all_finite(v: vec3<f32>) -> bool {
-    return is_finite(v.x) && is_finite(v.y) && is_finite(v.z);
-}
-
 fn quaternion_to_rotation(q: vec4<f32>) -> mat3x3<f32> {
     let n = q / sqrt(dot(q, q));
     let w = n.x;
@@ -132,7 +128,7 @@ fn main(
     let log_scale = vec3<f32>(
         log_scales[3u * index], log_scales[3u * index + 1u], log_scales[3u * index + 2u]);
     let max_log_scale = params.max_log_scale;
-    if !(all_finite(mean) && all_finite(log_scale)) || log_scale.x > max_log_scale
+    if !(all_finite3(mean) && all_finite3(log_scale)) || log_scale.x > max_log_scale
         || log_scale.y > max_log_scale || log_scale.z > max_log_scale {
         cull(index);
         return;
@@ -141,7 +137,7 @@ fn main(
         params.camera_row0.xyz, params.camera_row1.xyz, params.camera_row2.xyz));
     let camera_translation = vec3<f32>(params.camera_row0.w, params.camera_row1.w, params.camera_row2.w);
     let p = camera_rotation * mean + camera_translation;
-    if !(is_finite(p.x) && is_finite(p.y) && is_finite(p.z)) || p.z < params.near_plane {
+    if !all_finite3(p) || p.z < params.near_plane {
         cull(index);
         return;
     }
@@ -155,7 +151,7 @@ fn main(
     let quaternion = quaternions[index];
     let opacity_logit = opacity_logits[index];
     let colour = vec3<f32>(colours[3u * index], colours[3u * index + 1u], colours[3u * index + 2u]);
-    if !(all_finite(colour) && all_finite(quaternion.xyz) && is_finite(quaternion.w)
+    if !(all_finite3(colour) && all_finite3(quaternion.xyz) && is_finite(quaternion.w)
         && is_finite(opacity_logit)) || dot(quaternion, quaternion) < params.min_quaternion_norm_squared {
         cull(index);
         return;

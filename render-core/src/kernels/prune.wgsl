@@ -16,10 +16,6 @@
 @group(0) @binding(5) var<storage, read> colours: array<f32>;
 @group(0) @binding(6) var<storage, read_write> keep_flags: array<u32>;
 
-fn all_finite3(v: vec3<f32>) -> bool {
-    return is_finite(v.x) && is_finite(v.y) && is_finite(v.z);
-}
-
 // Largest scale > max_elongation x (sum of the other two): a needle-shaped Gaussian.
 fn is_elongated(log_scale: vec3<f32>, max_elongation: f32) -> bool {
     let scale = exp(log_scale);
