@@ -16,8 +16,8 @@ use crate::gpu::{DeviceFrame, DeviceGaussians, GpuRenderer, LayoutId};
 use crate::passes::{U32_BYTES, VEC4_BYTES, bind_group, compute_pipeline, dispatch_linear};
 use crate::types::{Camera, GaussianCloud, ImageGradients, RenderOutput};
 use crate::wgsl::{
-    AdamParams, LOSS_RUN, LOSS_WORKGROUP_SIZE, LossParams, ROW_SUMS_PER_PIXEL,
-    SSIM_COEFFICIENTS_PER_PIXEL, WORKGROUP_SIZE, source,
+    AdamParams, LOSS_RUN, LOSS_WORKGROUP_SIZE, LossParams, ROW_SUMS_VEC4S_PER_PIXEL,
+    SSIM_COEFFICIENT_VEC4S_PER_PIXEL, WORKGROUP_SIZE, source,
 };
 use bytemuck::Zeroable;
 
@@ -487,14 +487,14 @@ impl TrainingKernels {
         let params_buffer = context.uniform_buffer("loss params", bytemuck::bytes_of(&params));
         let coefficients = context.storage_buffer(
             "ssim coefficients",
-            pixels * u64::from(SSIM_COEFFICIENTS_PER_PIXEL) * U32_BYTES,
+            pixels * u64::from(SSIM_COEFFICIENT_VEC4S_PER_PIXEL) * VEC4_BYTES,
         )?;
         let partial_count = column_runs + row_runs;
         let loss_partials =
             context.storage_buffer("loss partials", u64::from(partial_count) * VEC4_BYTES)?;
         let row_sums = context.storage_buffer(
             "ssim row sums",
-            pixels * u64::from(ROW_SUMS_PER_PIXEL) * U32_BYTES,
+            pixels * u64::from(ROW_SUMS_VEC4S_PER_PIXEL) * VEC4_BYTES,
         )?;
         let mut encoder = context.device.create_command_encoder(&Default::default());
         let ssim_rows_group = bind_group(

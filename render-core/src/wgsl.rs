@@ -341,10 +341,10 @@ pub(crate) const TRANSFORM_BY_GROUP: u32 = 1;
 /// Pixels per invocation of the loss kernels' separable passes.
 pub(crate) const LOSS_RUN: u32 = 64;
 pub(crate) const LOSS_WORKGROUP_SIZE: u32 = 64;
-/// f32 row sums per pixel of the SSIM's horizontal pass.
-pub(crate) const ROW_SUMS_PER_PIXEL: u32 = 15;
-/// f32 coefficients per pixel of the SSIM gradient.
-pub(crate) const SSIM_COEFFICIENTS_PER_PIXEL: u32 = 9;
+/// vec4s per pixel of the SSIM's horizontal pass (15 row sums, packed).
+pub(crate) const ROW_SUMS_VEC4S_PER_PIXEL: u32 = 4;
+/// vec4s per pixel of the SSIM gradient's coefficients (9, packed).
+pub(crate) const SSIM_COEFFICIENT_VEC4S_PER_PIXEL: u32 = 3;
 
 /// Words of a frame's status buffer (`frame_status`, one per frame, zero-filled): the pair
 /// counts of the binning and a flag per serial walk that can outgrow the adapter's loop limit
@@ -402,10 +402,10 @@ fn constants() -> Vec<(&'static str, Value)> {
         ("TRANSFORM_BY_GROUP", U32(TRANSFORM_BY_GROUP)),
         ("LOSS_RUN", U32(LOSS_RUN)),
         ("LOSS_WORKGROUP_SIZE", U32(LOSS_WORKGROUP_SIZE)),
-        ("ROW_SUMS_PER_PIXEL", U32(ROW_SUMS_PER_PIXEL)),
+        ("ROW_SUMS_VEC4S_PER_PIXEL", U32(ROW_SUMS_VEC4S_PER_PIXEL)),
         (
-            "SSIM_COEFFICIENTS_PER_PIXEL",
-            U32(SSIM_COEFFICIENTS_PER_PIXEL),
+            "SSIM_COEFFICIENT_VEC4S_PER_PIXEL",
+            U32(SSIM_COEFFICIENT_VEC4S_PER_PIXEL),
         ),
         ("STATUS_PAIRS_KEPT", U32(STATUS_PAIRS_KEPT)),
         ("STATUS_PAIRS_NEEDED", U32(STATUS_PAIRS_NEEDED)),

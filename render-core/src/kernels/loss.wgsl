@@ -8,14 +8,15 @@
 // registers (s0 .. s10, shifted by one pixel per step), so each input is loaded about once per
 // output instead of 11 times: on CPU adapters (lavapipe) every load is a per-lane scalar
 // gather and dominates the cost.
-// - `ssim_rows`: row sums of x, y, x^2, y^2, xy (rgb each) -> row_sums (15 floats per pixel).
+// - `ssim_rows`: row sums of x, y, x^2, y^2, xy (rgb each) -> row_sums (15 floats per pixel,
+//   in 4 vec4s).
 // - `ssim_columns`: walks rows y0 - 5 .. y0 + LOSS_RUN + 5 of its column: the windowed statistics
 //   of rendered x and target y (vertical pass over row_sums), the SSIM value and the three
 //   coefficient maps (a, b, c) the SSIM gradient needs, then at once the vertical pass of
 //   those coefficients (a second window over the coefficients just computed; the 5 rows on
 //   either side of the run are computed too, so no other invocation's output is needed) ->
-//   ssim_coefficients (9 floats per pixel: column sums of a rgb, b rgb, c rgb). The SSIM loss
-//   term of the run's own pixels goes to loss_partials[run].
+//   ssim_coefficients (9 floats per pixel in 3 vec4s: column sums of a rgb, b rgb, c rgb). The
+//   SSIM loss term of the run's own pixels goes to loss_partials[run].
 // - `loss_rows`: the horizontal pass of those coefficient sums gives (G * a), (G * b),
 //   (G * c) and dL/dx(q) = x(q) * (G * b)(q) + y(q) * (G * c)(q) + (G * a)(q) for SSIM (G
 //   symmetric, same zero padding), plus the L1 and depth terms; writes v_rgbd, zeroes v_alpha
@@ -29,14 +30,17 @@
 @group(0) @binding(0) var<uniform> loss_params: LossParams;
 @group(0) @binding(1) var<storage, read> rendered: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> target_rgbd: array<vec4<f32>>;
-// Per pixel the column sums of the 3 channels x (a, b, c) coefficients: a rgb, b rgb, c rgb.
-@group(0) @binding(3) var<storage, read_write> ssim_coefficients: array<f32>;
+// Per pixel the column sums of the 3 channels x (a, b, c) coefficients, packed in
+// SSIM_COEFFICIENT_VEC4S_PER_PIXEL vec4s: (a rgb, b r), (b gb, c rg), (c b, unused).
+@group(0) @binding(3) var<storage, read_write> ssim_coefficients: array<vec4<f32>>;
 // One vec4 of loss terms per column run, then one per row run.
 @group(0) @binding(4) var<storage, read_write> loss_partials: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read_write> v_rgbd: array<vec4<f32>>;
 @group(0) @binding(6) var<storage, read_write> v_alpha: array<f32>;
-// Horizontal-pass results: 15 floats per pixel (statistics).
-@group(0) @binding(7) var<storage, read_write> row_sums: array<f32>;
+// Horizontal-pass results: the 15 statistics of a pixel packed in ROW_SUMS_VEC4S_PER_PIXEL
+// vec4s: (mu_x rgb, mu_y r), (mu_y gb, xx rg), (xx b, yy rgb), (xy rgb, unused). Packed
+// because on lavapipe a vec4 load or store costs about what an f32 one does.
+@group(0) @binding(7) var<storage, read_write> row_sums: array<vec4<f32>>;
 
 // Normalised 1D window weights by distance from the centre (0 .. 5).
 struct Weights {
@@ -152,24 +156,20 @@ fn load_row_stats(pixel: i32) -> Stats {
     if pixel < 0 {
         return zero_stats();
     }
-    let b = u32(pixel) * ROW_SUMS_PER_PIXEL;
-    return Stats(
-        vec3<f32>(row_sums[b], row_sums[b + 1u], row_sums[b + 2u]),
-        vec3<f32>(row_sums[b + 3u], row_sums[b + 4u], row_sums[b + 5u]),
-        vec3<f32>(row_sums[b + 6u], row_sums[b + 7u], row_sums[b + 8u]),
-        vec3<f32>(row_sums[b + 9u], row_sums[b + 10u], row_sums[b + 11u]),
-        vec3<f32>(row_sums[b + 12u], row_sums[b + 13u], row_sums[b + 14u]));
+    let b = u32(pixel) * ROW_SUMS_VEC4S_PER_PIXEL;
+    let p = row_sums[b];
+    let q = row_sums[b + 1u];
+    let r = row_sums[b + 2u];
+    let t = row_sums[b + 3u];
+    return Stats(p.xyz, vec3<f32>(p.w, q.xy), vec3<f32>(q.zw, r.x), r.yzw, t.xyz);
 }
 
 fn store_row_stats(pixel: u32, s: Stats) {
-    let b = pixel * ROW_SUMS_PER_PIXEL;
-    for (var c = 0u; c < 3u; c++) {
-        row_sums[b + c] = s.mu_x[c];
-        row_sums[b + 3u + c] = s.mu_y[c];
-        row_sums[b + 6u + c] = s.xx[c];
-        row_sums[b + 9u + c] = s.yy[c];
-        row_sums[b + 12u + c] = s.xy[c];
-    }
+    let b = pixel * ROW_SUMS_VEC4S_PER_PIXEL;
+    row_sums[b] = vec4<f32>(s.mu_x, s.mu_y.x);
+    row_sums[b + 1u] = vec4<f32>(s.mu_y.yz, s.xx.xy);
+    row_sums[b + 2u] = vec4<f32>(s.xx.z, s.yy);
+    row_sums[b + 3u] = vec4<f32>(s.xy, 0.0);
 }
 
 // ---- SSIM gradient coefficients (a, b, c per channel) ----
@@ -209,11 +209,11 @@ fn load_coefficients(pixel: i32) -> Coefficients {
     if pixel < 0 {
         return zero_coefficients();
     }
-    let b = u32(pixel) * SSIM_COEFFICIENTS_PER_PIXEL;
-    return Coefficients(
-        vec3<f32>(ssim_coefficients[b], ssim_coefficients[b + 1u], ssim_coefficients[b + 2u]),
-        vec3<f32>(ssim_coefficients[b + 3u], ssim_coefficients[b + 4u], ssim_coefficients[b + 5u]),
-        vec3<f32>(ssim_coefficients[b + 6u], ssim_coefficients[b + 7u], ssim_coefficients[b + 8u]));
+    let b = u32(pixel) * SSIM_COEFFICIENT_VEC4S_PER_PIXEL;
+    let p = ssim_coefficients[b];
+    let q = ssim_coefficients[b + 1u];
+    let r = ssim_coefficients[b + 2u];
+    return Coefficients(p.xyz, vec3<f32>(p.w, q.xy), vec3<f32>(q.zw, r.x));
 }
 
 @compute @workgroup_size(LOSS_WORKGROUP_SIZE)
@@ -331,12 +331,10 @@ fn ssim_columns(
         let output = pixel_at(run, step - 5, false);
         if step >= 5 && output >= 0 {
             let sums = window_coefficients(w, c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10);
-            let base = u32(output) * SSIM_COEFFICIENTS_PER_PIXEL;
-            for (var k = 0u; k < 3u; k++) {
-                ssim_coefficients[base + k] = sums.a[k];
-                ssim_coefficients[base + 3u + k] = sums.b[k];
-                ssim_coefficients[base + 6u + k] = sums.c[k];
-            }
+            let base = u32(output) * SSIM_COEFFICIENT_VEC4S_PER_PIXEL;
+            ssim_coefficients[base] = vec4<f32>(sums.a, sums.b.x);
+            ssim_coefficients[base + 1u] = vec4<f32>(sums.b.yz, sums.c.xy);
+            ssim_coefficients[base + 2u] = vec4<f32>(sums.c.z, 0.0, 0.0, 0.0);
         }
     }
     loss_partials[run_index] =
