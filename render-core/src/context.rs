@@ -60,13 +60,7 @@ impl GpuContext {
 
     pub async fn new_async() -> Result<Self, GpuError> {
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
-        let adapter = instance
-            .request_adapter(&wgpu::RequestAdapterOptions {
-                power_preference: wgpu::PowerPreference::HighPerformance,
-                ..Default::default()
-            })
-            .await
-            .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let adapter = choose_adapter(&instance).await?;
         let adapter_features = adapter.features();
         let mut limits = adapter.limits();
         if limits.max_storage_buffers_per_shader_stage < REQUIRED_STORAGE_BUFFERS_PER_STAGE {
@@ -161,9 +155,8 @@ impl GpuContext {
     /// A one-line description: adapter name, backend and capabilities.
     pub fn describe(&self) -> String {
         format!(
-            "{} ({:?}), float atomics: {}, subgroups: {}, max storage binding: {} MiB",
-            self.adapter_info.name,
-            self.adapter_info.backend,
+            "{}, float atomics: {}, subgroups: {}, max storage binding: {} MiB",
+            adapter_label(&self.adapter_info),
             self.has_float_atomics,
             self.has_subgroups,
             self.max_storage_binding_bytes() >> 20
@@ -288,5 +281,128 @@ impl GpuContext {
     ) -> Result<Vec<T>, GpuError> {
         let bytes = self.read_bytes(buffer, 0, (count * std::mem::size_of::<T>()) as u64)?;
         Ok(bytemuck::pod_collect_to_vec(&bytes))
+    }
+}
+
+/// Environment variable that picks the adapter: a case-insensitive part of its label
+/// ([`adapter_label`], as [`GpuContext::describe`] prints it), e.g. `Mesa 22` or `NVIDIA`.
+pub const ADAPTER_ENV: &str = "MAC_EGO3D_ADAPTER";
+
+/// The adapter's name, backend and driver, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan,
+/// Mesa 25.0.7 (LLVM 15.0.6))`: the driver tells two lavapipes apart.
+pub fn adapter_label(info: &wgpu::AdapterInfo) -> String {
+    if info.driver_info.is_empty() {
+        format!("{} ({:?})", info.name, info.backend)
+    } else {
+        format!("{} ({:?}, {})", info.name, info.backend, info.driver_info)
+    }
+}
+
+/// The version of Mesa in a driver description such as `Mesa 25.0.7-2~bpo12+1 (LLVM 15.0.6)`.
+pub fn mesa_version(driver_info: &str) -> Option<[u32; 3]> {
+    let rest = &driver_info[driver_info.find("Mesa ")? + "Mesa ".len()..];
+    let digits_and_dots = rest
+        .split(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .next()
+        .filter(|text| text.starts_with(|c: char| c.is_ascii_digit()))?;
+    let mut version = [0; 3];
+    let mut parts = digits_and_dots.split('.');
+    for slot in &mut version {
+        match parts.next() {
+            Some(part) if !part.is_empty() => *slot = part.parse().ok()?,
+            _ => break,
+        }
+    }
+    Some(version)
+}
+
+/// The adapter [`ADAPTER_ENV`] names, else the best by [`adapter_preference`] (the first
+/// enumerated on a tie); `request_adapter`'s choice when enumeration finds none.
+async fn choose_adapter(instance: &wgpu::Instance) -> Result<wgpu::Adapter, GpuError> {
+    let adapters = instance.enumerate_adapters(wgpu::Backends::all()).await;
+    if let Some(wanted) = std::env::var(ADAPTER_ENV).ok().filter(|v| !v.is_empty()) {
+        let needle = wanted.to_lowercase();
+        let labels: Vec<String> = adapters
+            .iter()
+            .map(|a| adapter_label(&a.get_info()))
+            .collect();
+        return match labels
+            .iter()
+            .position(|l| l.to_lowercase().contains(&needle))
+        {
+            Some(index) => Ok(adapters
+                .into_iter()
+                .nth(index)
+                .expect("index from the list")),
+            None => Err(GpuError::NoAdapter(format!(
+                "{ADAPTER_ENV}={wanted} matches none of: {}",
+                labels.join("; ")
+            ))),
+        };
+    }
+    let mut best: Option<(wgpu::Adapter, (u8, [u32; 3]))> = None;
+    for adapter in adapters {
+        let preference = adapter_preference(&adapter.get_info());
+        if best.as_ref().is_none_or(|(_, kept)| preference > *kept) {
+            best = Some((adapter, preference));
+        }
+    }
+    match best {
+        Some((adapter, _)) => Ok(adapter),
+        None => instance
+            .request_adapter(&wgpu::RequestAdapterOptions {
+                power_preference: wgpu::PowerPreference::HighPerformance,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| GpuError::NoAdapter(e.to_string())),
+    }
+}
+
+/// Larger is better: a discrete GPU, then an integrated, a virtual one, a CPU adapter; among
+/// equals the newer Mesa. Two lavapipes side by side (the system's and the one
+/// scripts/setup.sh provisions) differ several-fold in speed: Mesa 22 and 23 run every
+/// storage-buffer access as a loop over the SIMD lanes, later versions as a vector gather.
+pub fn adapter_preference(info: &wgpu::AdapterInfo) -> (u8, [u32; 3]) {
+    let kind = match info.device_type {
+        wgpu::DeviceType::DiscreteGpu => 4,
+        wgpu::DeviceType::IntegratedGpu => 3,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Cpu => 1,
+        wgpu::DeviceType::Other => 0,
+    };
+    (kind, mesa_version(&info.driver_info).unwrap_or([0; 3]))
+}
+
+#[cfg(test)]
+mod adapter_tests {
+    use super::*;
+
+    #[test]
+    fn mesa_versions_are_read_from_driver_descriptions() {
+        assert_eq!(
+            mesa_version("Mesa 25.0.7-2~bpo12+1 (LLVM 15.0.6)"),
+            Some([25, 0, 7])
+        );
+        assert_eq!(mesa_version("Mesa 22.3.6 (LLVM 15.0.6)"), Some([22, 3, 6]));
+        assert_eq!(mesa_version("Mesa 24.1"), Some([24, 1, 0]));
+        assert_eq!(mesa_version("535.104.05"), None);
+        assert_eq!(mesa_version("Mesa x"), None);
+    }
+
+    fn info(device_type: wgpu::DeviceType, driver_info: &str) -> wgpu::AdapterInfo {
+        wgpu::AdapterInfo {
+            driver_info: driver_info.into(),
+            ..wgpu::AdapterInfo::new(device_type, wgpu::Backend::Vulkan)
+        }
+    }
+
+    #[test]
+    fn a_gpu_beats_any_lavapipe_and_the_newer_lavapipe_beats_the_older() {
+        let old = adapter_preference(&info(wgpu::DeviceType::Cpu, "Mesa 22.3.6 (LLVM 15.0.6)"));
+        let new = adapter_preference(&info(wgpu::DeviceType::Cpu, "Mesa 25.0.7 (LLVM 15.0.6)"));
+        let gpu = adapter_preference(&info(wgpu::DeviceType::DiscreteGpu, "535.104.05"));
+        assert!(new > old);
+        assert!(gpu > new);
     }
 }

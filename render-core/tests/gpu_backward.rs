@@ -457,8 +457,8 @@ fn a_backward_walk_cut_short_by_the_loop_limit_is_reported() {
         &GpuRenderer::new(context),
         &renderer_without_subgroups(context),
     ] {
-        // With subgroups the top band's backward walk takes about 4 of lavapipe's loop trips
-        // per entry (measured with this scene: 15 000 faint splats stay within the limit,
+        // With subgroups the top band's backward walk takes about 4 of Mesa 22's lavapipe loop
+        // trips per entry (measured with this scene: 15 000 faint splats stay within the limit,
         // 16 000 do not), the forward walk about 1.1 (55 000 within, 60 000 not). So 30 000
         // outgrow the limit in the backward walk only. Without subgroups both walks take about
         // one trip per entry, and the backward walk never outgrows it before the forward one.
