@@ -22,6 +22,7 @@
 # Prints one table and writes OUT/summary.json. The adapter each run used is in its log.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/vulkan_env.sh
 
 fail() { echo "[bench-gpu] $1" >&2; exit "${2:-1}"; }
 usage() { sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//'; }

@@ -8,6 +8,7 @@
 # Binaries: target/$MAC_EGO3D_PROFILE (default release), built first.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/vulkan_env.sh
 
 frames=200
 repeats=3

@@ -40,6 +40,7 @@
 # depend on the machine and its load; the quality figures do not (paced).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/vulkan_env.sh
 
 fail() { echo "[map-levers] $1" >&2; exit "${2:-1}"; }
 usage() { sed -n '2,35p' "$0" | sed 's/^# \{0,1\}//'; }

@@ -12,6 +12,7 @@
 # DIR/tcomm.png plots every column against T_comm (`mac-ego3d plot tcomm`; empty cells are gaps).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/vulkan_env.sh
 
 values=15,30,60,120,240
 out=""

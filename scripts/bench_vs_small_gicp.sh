@@ -27,6 +27,7 @@
 # Without PyPI the script says so and exits 3. Dataset: $MAC_EGO3D_SHARED (default ../shared).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/vulkan_env.sh
 repo="$(pwd)"
 
 # Pinned wheels: CPython 3.10-3.13 on manylinux x86_64 and aarch64 (`pip download` + `pip hash`).

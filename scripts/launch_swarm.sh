@@ -188,6 +188,9 @@ else
   fi
 fi
 
+# The newer lavapipe set-up provisions, for the processes started below.
+source scripts/vulkan_env.sh
+
 # Per-run config: the given one, with T_comm and noise overridden when asked, resolved and
 # validated by mac-ego3d (every key listed, so the run folder says exactly what ran).
 mkdir -p "$out"

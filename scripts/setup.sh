@@ -9,6 +9,9 @@
 #   - fonts-dejavu-core: DejaVu Sans, the font `mac-ego3d plot` draws chart text with (read as a
 #     file at run time; no font library is linked).
 #
+# On Debian 12, once per user, the lavapipe of Mesa 25 from bookworm-backports (downloaded, not
+# installed: see provision_lavapipe below).
+#
 # And, once per user, the AlexNet weights (alexnet.npz: the place-recognition descriptor and
 # LPIPS) into the cache every command reads by default (the alexnet crate's `weights` module decides the
 # same path: $MAC_EGO3D_WEIGHTS when set, else
@@ -83,6 +86,81 @@ for pair in fmt:rustfmt clippy:clippy; do
   fi
 done
 
+# A newer lavapipe where the system's is Mesa 22 or 23 (Debian 12 ships 22.3). Those versions run
+# every storage-buffer load and store of a kernel as a loop over the SIMD lanes with a branch
+# per lane and component; later ones use vector gathers, and a mapping iteration runs about 1.8x
+# faster (docs/benchmarks.md). The package of bookworm-backports is downloaded with apt into a
+# private folder (apt checks its signature against the system's Debian keyring), not installed:
+# only its libvulkan_lvp.so is kept, in the user cache, and target/vulkan/icd.json names it.
+# cargo (.cargo/config.toml) and the scripts (scripts/vulkan_env.sh) hand that file to the
+# Vulkan loader as VK_ADD_DRIVER_FILES, beside the system's drivers; render-core prefers a GPU,
+# then the lavapipe of the newest Mesa. Without network the system's lavapipe stays in use.
+# MAC_EGO3D_SYSTEM_LAVAPIPE=1 skips this step (and removes target/vulkan/icd.json).
+provision_lavapipe() {
+  local icd_link=target/vulkan/icd.json
+  if [[ "${MAC_EGO3D_SYSTEM_LAVAPIPE:-0}" == 1 ]]; then
+    rm -f "$icd_link"
+    log "MAC_EGO3D_SYSTEM_LAVAPIPE=1: the system's lavapipe"
+    return 0
+  fi
+  local id="" version_id=""
+  if [[ -r /etc/os-release ]]; then
+    id="$(. /etc/os-release && echo "${ID:-}")"
+    version_id="$(. /etc/os-release && echo "${VERSION_ID:-}")"
+  fi
+  local system_mesa
+  system_mesa="$(dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null || true)"
+  if [[ "$id" != debian || "$version_id" != 12 ]] || [[ -z "$system_mesa" ]] ||
+    dpkg --compare-versions "$system_mesa" ge 24; then
+    rm -f "$icd_link"
+    return 0
+  fi
+  local lavapipe_root="$cache_root/mac-ego3d/lavapipe" cached=""
+  cached="$(find "$lavapipe_root" -mindepth 2 -maxdepth 2 -name icd.json 2>/dev/null | sort -V | tail -n 1 || true)"
+  if [[ -z "$cached" ]]; then
+    local work
+    work="$(mktemp -d "${TMPDIR:-/tmp}/mac-ego3d-lavapipe.XXXXXX")"
+    # shellcheck disable=SC2064
+    trap "rm -rf '$work'" RETURN
+    mkdir -p "$work/lists/partial" "$work/cache/archives/partial"
+    echo "deb http://deb.debian.org/debian bookworm-backports main" >"$work/sources.list"
+    local apt_options=(-o "Dir::Etc::SourceList=$work/sources.list" -o Dir::Etc::SourceParts=/dev/null
+      -o "Dir::State::Lists=$work/lists" -o "Dir::Cache=$work/cache" -o Debug::NoLocking=1
+      -o APT::Sandbox::User="$(id -un)" -o Acquire::Retries=1 -o Acquire::http::Timeout=15)
+    log "fetching a newer lavapipe (mesa-vulkan-drivers of bookworm-backports, ~11 MB, once)"
+    if ! apt-get "${apt_options[@]}" update -qq >"$work/apt.log" 2>&1 ||
+      ! (cd "$work" && apt-get "${apt_options[@]}" download mesa-vulkan-drivers/bookworm-backports \
+        >>"$work/apt.log" 2>&1); then
+      log "kept the system's lavapipe (Mesa $system_mesa): the download failed ($(tail -n 1 "$work/apt.log"))"
+      rm -f "$icd_link"
+      return 0
+    fi
+    local deb version library
+    deb="$(ls "$work"/mesa-vulkan-drivers_*.deb)"
+    version="$(dpkg-deb -f "$deb" Version)"
+    dpkg-deb -x "$deb" "$work/root"
+    library="$work/root/usr/lib/x86_64-linux-gnu/libvulkan_lvp.so"
+    [[ "$(dpkg --print-architecture)" == amd64 ]] || library="$(find "$work/root" -name libvulkan_lvp.so | head -n 1)"
+    if [[ ! -f "$library" ]] || ldd -r "$library" 2>&1 | grep -q -E "not found|undefined symbol"; then
+      log "kept the system's lavapipe (Mesa $system_mesa): Mesa $version's lavapipe lacks libraries here"
+      rm -f "$icd_link"
+      return 0
+    fi
+    local target_dir="$lavapipe_root/$version"
+    mkdir -p "$target_dir"
+    cp "$library" "$target_dir/libvulkan_lvp.so.partial"
+    mv -f "$target_dir/libvulkan_lvp.so.partial" "$target_dir/libvulkan_lvp.so"
+    local api_version
+    api_version="$(sed -n 's/.*"api_version": *"\([0-9.]*\)".*/\1/p' "$work"/root/usr/share/vulkan/icd.d/lvp_icd*.json | head -n 1)"
+    printf '{"file_format_version": "1.0.0", "ICD": {"library_path": "%s", "api_version": "%s"}}\n' \
+      "$target_dir/libvulkan_lvp.so" "${api_version:-1.3.0}" >"$target_dir/icd.json"
+    cached="$target_dir/icd.json"
+  fi
+  mkdir -p "$(dirname "$icd_link")"
+  cp "$cached" "$icd_link"
+  log "lavapipe of Mesa $(basename "$(dirname "$cached")") beside the system's (Mesa $system_mesa): $icd_link"
+}
+
 # Whether $1 is an npz (a zip) holding every array alexnet.npz must hold (what
 # alexnet::lpips loads); without python3, only the zip signature is checked.
 valid_npz() {
@@ -127,11 +205,13 @@ fetch_weights() {
     "classical descriptor and skip LPIPS; fetch them later with: scripts/get_lpips_weights.sh $weights"
 }
 
+cache_root="${XDG_CACHE_HOME:-}"
+[[ "$cache_root" == /* ]] || cache_root="${HOME:-}/.cache"
+provision_lavapipe
+
 if [[ -n "${MAC_EGO3D_WEIGHTS+set}" && -z "$MAC_EGO3D_WEIGHTS" ]]; then
   log "MAC_EGO3D_WEIGHTS is empty: AlexNet weights off (classical descriptor, no LPIPS)"
 else
-  cache_root="${XDG_CACHE_HOME:-}"
-  [[ "$cache_root" == /* ]] || cache_root="${HOME:-}/.cache"
   weights="${MAC_EGO3D_WEIGHTS:-$cache_root/mac-ego3d/weights/lpips/alexnet.npz}"
   if valid_npz "$weights"; then
     log "AlexNet weights: $weights"
