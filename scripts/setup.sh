@@ -86,10 +86,10 @@ for pair in fmt:rustfmt clippy:clippy; do
   fi
 done
 
-# A newer lavapipe where the system's is Mesa 22 or 23 (Debian 12 ships 22.3). Those versions run
-# every storage-buffer load and store of a kernel as a loop over the SIMD lanes with a branch
-# per lane and component; later ones use vector gathers, and a mapping iteration runs about 1.8x
-# faster (docs/benchmarks.md). The package of bookworm-backports is downloaded with apt into a
+# A newer lavapipe on Debian 12, whose own is Mesa 22.3 (skipped where the system's is Mesa 24 or
+# later). Mesa 22.3 runs every storage-buffer load and store of a kernel as a loop over the SIMD
+# lanes with a branch per lane and component; Mesa 25 uses vector gathers, and a mapping
+# iteration runs about 1.8x faster (docs/benchmarks.md). The package of bookworm-backports is downloaded with apt into a
 # private folder (apt checks its signature against the system's Debian keyring), not installed:
 # only its libvulkan_lvp.so is kept, in the user cache, and target/vulkan/icd.json names it.
 # cargo (.cargo/config.toml) and the scripts (scripts/vulkan_env.sh) hand that file to the

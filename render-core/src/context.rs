@@ -361,8 +361,8 @@ async fn choose_adapter(instance: &wgpu::Instance) -> Result<wgpu::Adapter, GpuE
 
 /// Larger is better: a discrete GPU, then an integrated, a virtual one, a CPU adapter; among
 /// equals the newer Mesa. Two lavapipes side by side (the system's and the one
-/// scripts/setup.sh provisions) differ several-fold in speed: Mesa 22 and 23 run every
-/// storage-buffer access as a loop over the SIMD lanes, later versions as a vector gather.
+/// scripts/setup.sh provisions) differ several-fold in speed: Mesa 22.3 runs every
+/// storage-buffer access as a loop over the SIMD lanes, Mesa 25 as a vector gather.
 pub fn adapter_preference(info: &wgpu::AdapterInfo) -> (u8, [u32; 3]) {
     let kind = match info.device_type {
         wgpu::DeviceType::DiscreteGpu => 4,

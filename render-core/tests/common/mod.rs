@@ -197,14 +197,15 @@ pub fn loop_limit_scene(boundary_splats: usize) -> (Camera, GaussianCloud) {
     (camera, cloud)
 }
 
-/// Whether the adapter is a lavapipe of Mesa 22 or 23, whose loop limit `loop_limit_scene` is
-/// sized for (there a loop's body runs masked once more than its trips and every subgroup
-/// operation is a loop over the lanes). Other adapters need not have one: Mesa 25's lavapipe
-/// walks 70 000 entries of that scene, forward and backward, without cutting them short.
+/// Whether the adapter is a lavapipe of Mesa 22 or older (measured: 22.3), whose loop limit
+/// `loop_limit_scene` is sized for (there a loop's body runs masked once more than its trips
+/// and every subgroup operation is a loop over the lanes). Other adapters need not have one:
+/// Mesa 25's lavapipe walks 70 000 entries of that scene, forward and backward, without
+/// cutting them short.
 pub fn has_lavapipe_loop_limit(context: &GpuContext) -> bool {
     context.describe().contains("llvmpipe")
         && render_core::context::mesa_version(&context.adapter_info.driver_info)
-            .is_some_and(|version| version[0] < 24)
+            .is_some_and(|version| version[0] <= 22)
 }
 
 /// A frame of `gaussians` and its check, rendered again once when the first overflowed its
