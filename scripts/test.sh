@@ -68,14 +68,17 @@ for rel in "${required[@]}"; do
 done
 
 # Where set-up added a newer lavapipe beside the system's (scripts/setup.sh), the tests run on the
-# newer one; render-core's run again on the system's, whose loop limit and per-lane memory
-# accesses some kernels are shaped for (render-core/README.md), so both stay covered.
+# newer one; render-core's device tests run again on the system's, whose loop limit and per-lane
+# memory accesses some kernels are shaped for (render-core/README.md), so both stay covered.
+# Named by target with --workspace (the names are the workspace's only ones), so the features are
+# the whole workspace's and nothing is rebuilt (`-p render-core` would rebuild the dependencies).
 system_lavapipe_tests() {
   if [[ -f target/vulkan/icd.json && -z "${MAC_EGO3D_ADAPTER:-}" ]]; then
     local system_mesa
     system_mesa="$(dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null | cut -d. -f1,2)"
-    echo "[test] render-core again on the system's lavapipe (Mesa $system_mesa)"
-    MAC_EGO3D_ADAPTER="Mesa $system_mesa" cargo test -p render-core "$@"
+    echo "[test] render-core's device tests again on the system's lavapipe (Mesa $system_mesa)"
+    MAC_EGO3D_ADAPTER="Mesa $system_mesa" cargo test --workspace --test gpu_forward \
+      --test gpu_backward --test training --test map --test device_memory "$@"
   fi
 }
 
