@@ -89,9 +89,10 @@ done
 # A newer lavapipe on Debian 12, whose own is Mesa 22.3 (skipped where the system's is Mesa 24 or
 # later). Mesa 22.3 runs every storage-buffer load and store of a kernel as a loop over the SIMD
 # lanes with a branch per lane and component; Mesa 25 uses vector gathers, and a mapping
-# iteration runs about 1.8x faster (docs/benchmarks.md). The package of bookworm-backports is downloaded with apt into a
-# private folder (apt checks its signature against the system's Debian keyring), not installed:
-# only its libvulkan_lvp.so is kept, in the user cache, and target/vulkan/icd.json names it.
+# iteration runs about 1.8x faster (docs/benchmarks.md). The package of bookworm-backports is
+# downloaded with apt into a private folder (apt checks its signature against the system's
+# Debian keyring), not installed: only its libvulkan_lvp.so is kept, in the user cache, and
+# target/vulkan/icd.json names it.
 # cargo (.cargo/config.toml) and the scripts (scripts/vulkan_env.sh) hand that file to the
 # Vulkan loader as VK_ADD_DRIVER_FILES, beside the system's drivers; render-core prefers a GPU,
 # then the lavapipe of the newest Mesa. Without network the system's lavapipe stays in use.
@@ -120,8 +121,9 @@ provision_lavapipe() {
   if [[ -z "$cached" ]]; then
     local work
     work="$(mktemp -d "${TMPDIR:-/tmp}/mac-ego3d-lavapipe.XXXXXX")"
+    # A RETURN trap stays set for every later function: this one removes itself.
     # shellcheck disable=SC2064
-    trap "rm -rf '$work'" RETURN
+    trap "rm -rf '$work'; trap - RETURN" RETURN
     mkdir -p "$work/lists/partial" "$work/cache/archives/partial"
     echo "deb http://deb.debian.org/debian bookworm-backports main" >"$work/sources.list"
     local apt_options=(-o "Dir::Etc::SourceList=$work/sources.list" -o Dir::Etc::SourceParts=/dev/null
