@@ -361,7 +361,7 @@ async fn choose_adapter(instance: &wgpu::Instance) -> Result<wgpu::Adapter, GpuE
 
 /// Larger is better: a discrete GPU, then an integrated, a virtual one, a CPU adapter; among
 /// equals the newer Mesa. Two lavapipes side by side (the system's and the one
-/// scripts/setup.sh provisions) differ several-fold in speed: Mesa 22.3 runs every
+/// scripts/setup.sh provisions) differ up to about 2x in speed: Mesa 22.3 runs every
 /// storage-buffer access as a loop over the SIMD lanes, Mesa 25 as a vector gather.
 pub fn adapter_preference(info: &wgpu::AdapterInfo) -> (u8, [u32; 3]) {
     let kind = match info.device_type {
