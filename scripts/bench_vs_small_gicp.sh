@@ -21,35 +21,13 @@
 # ours / small_gicp ms ratio, stage medians) and writes it as JSON to --json (default
 # OUT/summary.json). Every run's files stay in --out (default: a new folder under $TMPDIR).
 #
-# small_gicp and numpy come from PyPI, as pinned wheels whose sha256 is checked against the
-# hashes below (pip --require-hashes), into a virtual environment outside the repository:
-# ${XDG_CACHE_HOME:-~/.cache}/mac-ego3d/venv-small-gicp (reused while the pins are unchanged).
-# Without PyPI the script says so and exits 3. Dataset: $MAC_EGO3D_SHARED (default ../shared).
+# small_gicp and numpy come from the peers' virtual environment (scripts/peers_venv.sh: pinned,
+# hash-checked PyPI wheels, outside the repository). Without PyPI the script says so and exits 3.
+# Dataset: $MAC_EGO3D_SHARED (default ../shared).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/vulkan_env.sh
 repo="$(pwd)"
-
-# Pinned wheels: CPython 3.10-3.13 on manylinux x86_64 and aarch64 (`pip download` + `pip hash`).
-readonly REQUIREMENTS='small_gicp==1.0.1 \
-    --hash=sha256:0a68868802b1a37dd945beb9b941678a294ab2a775e3d4887bb6d010c11ca544 \
-    --hash=sha256:85fc0df28db88538eb70122a04c521608ba694f74078024b8cdedd1ef936158c \
-    --hash=sha256:8cd292278b16401ce76e4d485bc854522bf047e21496fa684b8ff9a80510610a \
-    --hash=sha256:a0570d1d97e8b5b72c8e7302d2aefe740036ad790e4931af81ed3951b5b0956f \
-    --hash=sha256:8b870571667a9b7c003de4579234f7f00917a80bb254d6ccc498c0a4ca30e819 \
-    --hash=sha256:cb08400204c468acf5145503f5ab8c0bd495871d335975638916e64b32cf8452 \
-    --hash=sha256:d6eee0ed36852a931457918461cec144fb42499691b9bb02f2c2404915f8ab7b \
-    --hash=sha256:60f717ee4b570ef515efe748f430a4a0e6b4518f2d1af8a9353f889dadd90e9a
-numpy==2.2.6 \
-    --hash=sha256:efd28d4e9cd7d7a8d39074a4d44c63eda73401580c5c76acda2ce969e0a38e83 \
-    --hash=sha256:fc7b73d02efb0e18c000e9ad8b83480dfcd5dfd11065997ed4c6747470ae8915 \
-    --hash=sha256:b64d8d4d17135e00c8e346e0a738deb17e754230d7e0810ac5012750bbd85a5a \
-    --hash=sha256:ba10f8411898fc418a521833e014a77d3ca01c15b0c6cdcce6a0d2897e6dbbdf \
-    --hash=sha256:f2618db89be1b4e05f7a1a847a9c1c0abd63e63a1607d892dd54668dd92faf87 \
-    --hash=sha256:fd83c01228a688733f1ded5201c678f0c53ecc1006ffbc404db9f7a899ac6249 \
-    --hash=sha256:f92729c95468a2f4f15e9bb94c432a9229d0d50de67304399627a943201baa2f \
-    --hash=sha256:1bc23a79bfabc5d056d106f9befb8d50c31ced2fbc70eedb8155aec74a45798f
-'
 
 fail() { echo "[vs-small_gicp] $1" >&2; exit "${2:-1}"; }
 usage() { sed -n '2,27p' "$0" | sed 's/^# \{0,1\}//'; }
@@ -100,29 +78,8 @@ mkdir -p "$out/runs"
 out="$(cd "$out" && pwd)"
 json="${json:-$out/summary.json}"
 
-# --- small_gicp in its own virtual environment, outside the repository -------------------------
-venv="${XDG_CACHE_HOME:-$HOME/.cache}/mac-ego3d/venv-small-gicp"
-case "$(realpath -m "$venv")/" in
-  "$repo"/*) fail "the virtual environment $venv would be inside the repository; set XDG_CACHE_HOME elsewhere" 2 ;;
-esac
-pins="$(printf '%s' "$REQUIREMENTS" | sha256sum | cut -d' ' -f1)"
-if [[ "$(cat "$venv/.pins-sha256" 2>/dev/null)" != "$pins" ]] ||
-  ! "$venv/bin/python" -c 'import numpy, small_gicp' 2>/dev/null; then
-  echo "[vs-small_gicp] installing the pinned small_gicp and numpy into $venv" >&2
-  rm -rf "$venv"
-  python3 -m venv "$venv" || fail "could not create a virtual environment (python3 -m venv $venv)"
-  printf '%s' "$REQUIREMENTS" >"$venv/requirements.txt"
-  # --only-binary: the hashes are of the wheels; --no-deps: every package is pinned here.
-  if ! "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --retries 1 \
-    --timeout 30 --no-deps --only-binary :all: --require-hashes -r "$venv/requirements.txt"; then
-    rm -rf "$venv"
-    fail "could not install small_gicp 1.0.1 and numpy 2.2.6 from PyPI: PyPI is unreachable, or \
-there is no pinned wheel for $(python3 -c 'import platform; print("CPython", platform.python_version(), platform.machine())') \
-(pinned: CPython 3.10-3.13, manylinux x86_64/aarch64); pip's message is above" 3
-  fi
-  echo "$pins" >"$venv/.pins-sha256"
-fi
-python="$venv/bin/python"
+# --- small_gicp from the peers' virtual environment, outside the repository ---------------------
+python="$(scripts/peers_venv.sh)" || exit $?
 
 # --- our binary ------------------------------------------------------------------------------
 echo "[vs-small_gicp] building mac-ego3d (release; up to date unless the sources changed)" >&2

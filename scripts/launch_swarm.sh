@@ -2,7 +2,7 @@
 # Launches one mac-consensus and N mac-agent processes (each its own OS process, in parallel),
 # waits for all of them, and writes the run's figures.
 #
-#   scripts/launch_swarm.sh [--config FILE] [--agents N] [--agent DATASET[:FIRST..END]]...
+#   scripts/launch_swarm.sh [--config FILE] [--agents N] [--agent DATASET[:FIRST..END[:STEP]]]...
 #                           [--tcomm K] [--link-schedule FILE] [--noise rgb|depth|rgbd]
 #                           [--frames N] [--descriptor-weights FILE] [--out DIR]
 #                           [--set KEY=VALUE]...
@@ -358,9 +358,9 @@ echo "[swarm] $agents agents on $cores cores: $agent_threads tracking threads ea
 for ((k = 0; k < agents; k++)); do
   if ((${#specs[@]})); then
     spec="${specs[$k]}"
-    # DATASET[:FIRST..END]; a synthetic spec has colons of its own, so only a trailing range
-    # is split off.
-    if [[ "$spec" =~ ^(.*):([0-9]*\.\.[0-9]*)$ ]]; then
+    # DATASET[:FIRST..END[:STEP]] (datasets::DatasetSpec); a synthetic spec has colons of its
+    # own, so only a trailing range is split off.
+    if [[ "$spec" =~ ^(.*):([0-9]*\.\.[0-9]*(:[0-9]+)?)$ ]]; then
       dataset="${BASH_REMATCH[1]}"
       range="${BASH_REMATCH[2]}"
     else

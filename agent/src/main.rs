@@ -26,7 +26,7 @@ use std::time::Instant;
 use anyhow::bail;
 use clap::Parser;
 use config::{Config, Pace};
-use datasets::FrameRange;
+use datasets::{DatasetSpec, FrameRange};
 use mac_agent::link_schedule::{LinkPlan, LinkSchedule};
 use mac_agent::run::{AgentOptions, metrics_table, run_agent, run_standalone};
 use mac_agent::spool::KEYFRAME_SPOOL_DIR;
@@ -43,11 +43,12 @@ struct Args {
     /// Configuration file (configs/*.toml); the built-in defaults (those of configs/7scenes.toml) when absent.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Dataset directory (7-Scenes, Replica, TUM) or a `synthetic:...` spec; the embedded
-    /// synthetic scene when absent.
+    /// Dataset directory (7-Scenes, Replica, TUM) or a `synthetic:...` spec, optionally with its
+    /// frames (`DIR:0..600:10`); the embedded synthetic scene when absent.
     #[arg(long)]
     dataset: Option<String>,
-    /// Frame range `A..B` (positions in the dataset, end exclusive).
+    /// Frame numbers `A..B` (end exclusive), optionally `:STEP` for every STEP-th frame
+    /// (`0..1000:10`); instead of a range in --dataset.
     #[arg(long, default_value = "..")]
     frames: String,
     #[arg(long, default_value_t = 0)]
@@ -148,13 +149,29 @@ fn main() -> anyhow::Result<()> {
         .frames
         .parse()
         .map_err(|e| anyhow::anyhow!("--frames {:?}: {e}", args.frames))?;
+    let spec = match &args.dataset {
+        Some(text) => text
+            .parse::<DatasetSpec>()
+            .map_err(|e| anyhow::anyhow!("--dataset: {e}"))?,
+        None => DatasetSpec {
+            dataset: AgentOptions::synthetic_dataset(args.agent_id),
+            frames: FrameRange::ALL,
+        },
+    };
+    if frames != FrameRange::ALL && spec.frames != FrameRange::ALL {
+        bail!(
+            "frames given twice: --dataset {} and --frames {frames}; give them once",
+            spec
+        );
+    }
     let options = AgentOptions {
         config,
-        dataset: args
-            .dataset
-            .clone()
-            .unwrap_or_else(|| AgentOptions::synthetic_dataset(args.agent_id)),
-        frames,
+        frames: if frames == FrameRange::ALL {
+            spec.frames
+        } else {
+            frames
+        },
+        dataset: spec.dataset,
         agent_id: args.agent_id,
         out: args.out.clone(),
         refine_iterations: args.refine_iters,

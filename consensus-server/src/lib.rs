@@ -29,7 +29,6 @@ pub mod alignment;
 pub mod engine;
 pub mod inbox;
 pub mod map_links;
-pub mod map_registration;
 pub mod place_recognition;
 pub mod pose_graph;
 pub mod process;

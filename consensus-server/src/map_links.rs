@@ -1,4 +1,4 @@
-//! Links between agents found by registering their maps (see [`crate::map_registration`] for the
+//! Links between agents found by registering their maps (see [`registration::map_registration`] for the
 //! registration itself and docs/method.md, The consensus: association and alignment, for why).
 //!
 //! Keyframe-to-keyframe alignment needs two views that see the same surfaces from similar
@@ -35,12 +35,12 @@ use serde::{Deserialize, Serialize};
 use render_core::types::GaussianCloud;
 
 use crate::alignment::PreparedKeyframe;
-use crate::alignment::verification::{DepthComparison, compare_depth};
-use crate::map_registration::colour::Rgb;
-use crate::map_registration::{MapPoints, MapRegistration, register_maps};
 use crate::place_recognition::KeyframeRef;
 use config::AlignmentConfig;
 use config::MapRegistrationConfig;
+use registration::alignment::verification::{DepthComparison, compare_depth};
+use registration::map_registration::colour::Rgb;
+use registration::map_registration::{MapPoints, MapRegistration, register_maps};
 
 /// One agent's map as a registration input: points in its own tracked frame, their colours,
 /// and the keyframes that saw them.
@@ -59,7 +59,7 @@ pub struct AgentMap {
 /// cloud does not say which pixel each point came from, or a pixel lies outside the image.
 fn keyframe_point_colours(prepared: &PreparedKeyframe) -> Option<Vec<Rgb>> {
     let keyframe = &prepared.keyframe;
-    let cloud = prepared.cloud.cloud();
+    let cloud = prepared.view.cloud.cloud();
     if cloud.pixels.len() != cloud.positions.len() {
         return None;
     }
@@ -100,6 +100,7 @@ impl AgentMap {
             let agent_from_camera = prepared.keyframe.agent_from_camera.cast::<f32>();
             points.extend(
                 prepared
+                    .view
                     .cloud
                     .positions()
                     .iter()

@@ -74,22 +74,54 @@ pub trait Dataset: Send + Sync {
     fn load(&self, position: usize) -> Result<Frame, DatasetError>;
 }
 
-/// A half-open range of frame numbers, written `A..B` (B excluded), `A..` (to the end) or `..B`.
-/// `0..600` and `400..1000` split a 1000-frame sequence into two overlapping agents.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+/// A half-open range of frame numbers with an optional stride, written `A..B` (B excluded),
+/// `A..` (to the end) or `..B`, each optionally followed by `:S` to take every `S`-th frame from
+/// `A` on (`0..1000:10` = frames 0, 10, ..., 990). `0..600` and `400..1000` split a 1000-frame
+/// sequence into two overlapping agents. A strided selection keeps each frame's own number and
+/// timestamp, so a sensor-paced replay runs at the strided rate (every 10th frame of a 30 Hz
+/// sequence arrives at 3 Hz) and ground truth stays associated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FrameRange {
     pub first: usize,
     pub end: Option<usize>,
+    /// Take every `step`-th frame number from `first` on (1: every frame).
+    pub step: usize,
+}
+
+impl Default for FrameRange {
+    fn default() -> Self {
+        Self::ALL
+    }
 }
 
 impl FrameRange {
     pub const ALL: FrameRange = FrameRange {
         first: 0,
         end: None,
+        step: 1,
     };
 
+    /// Frames `first..end` (end excluded), every one.
+    pub fn new(first: usize, end: Option<usize>) -> Self {
+        Self {
+            first,
+            end,
+            step: 1,
+        }
+    }
+
+    /// The same frames taken every `step`-th (at least 1).
+    pub fn with_step(self, step: usize) -> Self {
+        Self {
+            step: step.max(1),
+            ..self
+        }
+    }
+
     pub fn contains(&self, frame: usize) -> bool {
-        frame >= self.first && self.end.is_none_or(|end| frame < end)
+        frame >= self.first
+            && self.end.is_none_or(|end| frame < end)
+            && (frame - self.first).is_multiple_of(self.step.max(1))
     }
 }
 
@@ -98,10 +130,23 @@ impl FromStr for FrameRange {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         let bad = || {
             format!(
-                "invalid frame range {s:?}: expected FIRST..END (END excluded), FIRST.. or ..END"
+                "invalid frame range {s:?}: expected FIRST..END (END excluded), FIRST.. or ..END, \
+                 optionally followed by :STEP (every STEP-th frame)"
             )
         };
-        let (a, b) = s.trim().split_once("..").ok_or_else(bad)?;
+        let (range, step) = match s.trim().split_once(':') {
+            Some((range, step)) => {
+                let step: usize = step.trim().parse().map_err(|_| bad())?;
+                if step == 0 {
+                    return Err(format!(
+                        "invalid frame range {s:?}: STEP must be at least 1"
+                    ));
+                }
+                (range, step)
+            }
+            None => (s.trim(), 1),
+        };
+        let (a, b) = range.trim().split_once("..").ok_or_else(bad)?;
         let first = if a.is_empty() {
             0
         } else {
@@ -119,15 +164,82 @@ impl FromStr for FrameRange {
                 "invalid frame range {s:?}: END must be greater than FIRST"
             ));
         }
-        Ok(Self { first, end })
+        Ok(Self { first, end, step })
     }
 }
 
 impl fmt::Display for FrameRange {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self.end {
-            Some(end) => write!(f, "{}..{}", self.first, end),
-            None => write!(f, "{}..", self.first),
+            Some(end) => write!(f, "{}..{}", self.first, end)?,
+            None => write!(f, "{}..", self.first)?,
+        }
+        if self.step > 1 {
+            write!(f, ":{}", self.step)?;
+        }
+        Ok(())
+    }
+}
+
+/// What one agent replays: a dataset (a folder or a `synthetic:` spec) and its frames, written
+/// `DATASET`, `DATASET:RANGE` or `DATASET:RANGE:STEP` (`RANGE` and `STEP` as in [`FrameRange`]):
+/// `../shared/datasets/7scenes-redkitchen:0..600:10`. A synthetic spec has colons of its own, so
+/// only a trailing range (with its step) is split off. The one parser of these specs: the agent,
+/// the benchmarks and the swarm launcher all read them through it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DatasetSpec {
+    /// The folder or synthetic spec [`open`] takes.
+    pub dataset: String,
+    pub frames: FrameRange,
+}
+
+impl DatasetSpec {
+    /// Opens the dataset with its frame selection.
+    pub fn open(&self) -> Result<Box<dyn Dataset>, DatasetError> {
+        open(&self.dataset, self.frames)
+    }
+}
+
+impl FromStr for DatasetSpec {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let s = s.trim();
+        if s.is_empty() {
+            return Err("empty dataset spec: expected DATASET[:FIRST..END[:STEP]]".into());
+        }
+        // The range is the last part holding "..", possibly followed by one more part (its
+        // step); everything before it is the dataset.
+        let parts: Vec<&str> = s.split(':').collect();
+        let range_at = (1..parts.len())
+            .rev()
+            .take(2)
+            .find(|&i| parts[i].contains(".."));
+        let Some(range_at) = range_at else {
+            return Ok(Self {
+                dataset: s.to_string(),
+                frames: FrameRange::ALL,
+            });
+        };
+        let dataset = parts[..range_at].join(":");
+        let range = parts[range_at..].join(":");
+        let frames = range
+            .parse()
+            .map_err(|e| format!("dataset spec {s:?}: {e}"))?;
+        if dataset.is_empty() {
+            return Err(format!(
+                "dataset spec {s:?}: no dataset before the frame range"
+            ));
+        }
+        Ok(Self { dataset, frames })
+    }
+}
+
+impl fmt::Display for DatasetSpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.frames == FrameRange::ALL {
+            f.write_str(&self.dataset)
+        } else {
+            write!(f, "{}:{}", self.dataset, self.frames)
         }
     }
 }
@@ -372,24 +484,15 @@ mod tests {
     fn frame_range_parses_and_refuses() {
         assert_eq!(
             "0..600".parse::<FrameRange>().unwrap(),
-            FrameRange {
-                first: 0,
-                end: Some(600)
-            }
+            FrameRange::new(0, Some(600))
         );
         assert_eq!(
             "400..".parse::<FrameRange>().unwrap(),
-            FrameRange {
-                first: 400,
-                end: None
-            }
+            FrameRange::new(400, None)
         );
         assert_eq!(
             "..10".parse::<FrameRange>().unwrap(),
-            FrameRange {
-                first: 0,
-                end: Some(10)
-            }
+            FrameRange::new(0, Some(10))
         );
         assert!("5..5".parse::<FrameRange>().is_err());
         assert!("a..5".parse::<FrameRange>().is_err());
@@ -397,6 +500,55 @@ mod tests {
         let r: FrameRange = "400..1000".parse().unwrap();
         assert!(r.contains(400) && r.contains(999) && !r.contains(1000) && !r.contains(399));
         assert_eq!(r.to_string(), "400..1000");
+    }
+
+    #[test]
+    fn frame_range_strides_keep_frame_numbers() {
+        let r: FrameRange = "5..40:10".parse().unwrap();
+        assert_eq!(r, FrameRange::new(5, Some(40)).with_step(10));
+        let taken: Vec<usize> = (0..50).filter(|&n| r.contains(n)).collect();
+        assert_eq!(taken, [5, 15, 25, 35]);
+        assert_eq!(r.to_string(), "5..40:10");
+        assert_eq!("..:3".parse::<FrameRange>().unwrap().to_string(), "0..:3");
+        assert_eq!(
+            "0..100:1".parse::<FrameRange>().unwrap().to_string(),
+            "0..100"
+        );
+        for bad in ["0..100:0", "0..100:x", "0..100:", ":3"] {
+            let error = bad.parse::<FrameRange>().unwrap_err();
+            assert!(error.contains(bad), "{bad}: {error}");
+        }
+    }
+
+    #[test]
+    fn dataset_specs_split_off_a_trailing_range_and_step() {
+        let spec = |s: &str| s.parse::<DatasetSpec>().unwrap();
+        assert_eq!(
+            spec("../shared/datasets/7scenes-redkitchen:0..600:10"),
+            DatasetSpec {
+                dataset: "../shared/datasets/7scenes-redkitchen".into(),
+                frames: FrameRange::new(0, Some(600)).with_step(10),
+            }
+        );
+        assert_eq!(
+            spec("synthetic:agents=2,agent=1:100.."),
+            DatasetSpec {
+                dataset: "synthetic:agents=2,agent=1".into(),
+                frames: FrameRange::new(100, None),
+            }
+        );
+        assert_eq!(spec("synthetic:agents=2").frames, FrameRange::ALL);
+        assert_eq!(spec("data/run..1").dataset, "data/run..1");
+        for text in ["a/b:0..600:10", "synthetic:frames=20:3..9", "dir"] {
+            assert_eq!(spec(text).to_string(), text);
+        }
+        let error = "dir:9..3".parse::<DatasetSpec>().unwrap_err();
+        assert!(
+            error.contains("dir:9..3") && error.contains("END"),
+            "{error}"
+        );
+        assert!(":0..5".parse::<DatasetSpec>().is_err());
+        assert!("".parse::<DatasetSpec>().is_err());
     }
 
     #[test]

@@ -16,13 +16,22 @@
 //! 5. [`odometry`]: the driver that strings them together with a constant-velocity prediction,
 //!    keyframes and failure recovery; used by `mac-ego3d bench tracking`.
 //!
+//! Registration without an initial guess, shared by the consensus (linking agents) and the agent
+//! (relocalising after tracking failed):
+//! - [`alignment`]: two RGB-D views, by image features lifted to 3-D, RANSAC, G-ICP and a
+//!   depth-agreement verification;
+//! - [`map_registration`]: two point maps, by FPFH-style features, RANSAC, G-ICP and a
+//!   verification of overlap, residual, degeneracy and colour.
+//!
 //! Every parameter comes from [`crate::config::TrackingConfig`] / [`crate::config::KeyframeConfig`]
 //! or is a named constant next to the code that uses it, with the reason for its value.
 
+pub mod alignment;
 pub mod config;
 pub mod covariance;
 pub mod gicp;
 pub mod kdtree;
+pub mod map_registration;
 pub mod odometry;
 pub mod points;
 pub mod voxel_map;

@@ -180,10 +180,7 @@ fn print_info(i: &DatasetInfo) {
 }
 
 fn export_frame(args: &FrameArgs) -> anyhow::Result<()> {
-    let range = FrameRange {
-        first: args.frame,
-        end: Some(args.frame + 1),
-    };
+    let range = FrameRange::new(args.frame, Some(args.frame + 1));
     let ds = datasets::open(&args.path, range)
         .with_context(|| format!("opening dataset {}", args.path))?;
     anyhow::ensure!(

@@ -4,9 +4,7 @@
 //! Every field has a serde default, so a configuration file names only what it changes; the
 //! defaults suit a 640x480 RGB-D sensor (7-Scenes, TUM, the synthetic scene).
 
-mod alignment;
 mod false_closures;
-mod map_registration;
 mod merge;
 mod pose_graph;
 mod refinement;
@@ -16,12 +14,12 @@ use std::path::PathBuf;
 use geometry::checks::{FieldError, at_least_one, fraction, nice_value, non_negative, positive};
 use serde::{Deserialize, Serialize};
 
-pub use alignment::AlignmentConfig;
 pub use false_closures::FalseClosureConfig;
-pub use map_registration::MapRegistrationConfig;
 pub use merge::MergeConfig;
 pub use pose_graph::PoseGraphConfig;
 pub use refinement::RefinementConfig;
+pub use registration::alignment::AlignmentConfig;
+pub use registration::map_registration::MapRegistrationConfig;
 
 /// Inter-agent consensus (docs/method.md, The consensus).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

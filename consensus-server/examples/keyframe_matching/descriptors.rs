@@ -2,7 +2,7 @@
 //! several rules, and the oracle (B described exactly where A's keypoints fall).
 
 use config::AlignmentConfig;
-use mac_consensus::alignment::features::{Features, describe_at, hamming};
+use registration::alignment::features::{Features, describe_at, hamming};
 
 use crate::measure::Truth;
 use crate::report::{Counted, median};

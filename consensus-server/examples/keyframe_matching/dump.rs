@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use image::RgbImage;
-use mac_consensus::alignment::features::Features;
+use registration::alignment::features::Features;
 
 use crate::pairs::Pair;
 

@@ -7,12 +7,12 @@ use std::time::Instant;
 
 use config::AlignmentConfig;
 use geometry::camera::Intrinsics;
-use mac_consensus::alignment::features::Features;
 use mac_consensus::alignment::{
     AlignmentResult, Keyframe, PreparedKeyframe, Verdict, align_prepared,
 };
 use mac_consensus::place_recognition::KeyframeRef;
 use nalgebra::{Isometry3, Point2, Point3};
+use registration::alignment::features::Features;
 use registration::{GicpParams, register_coarse_to_fine};
 
 use crate::descriptors::{DescriptorTable, Matching, Oracle};
@@ -132,14 +132,14 @@ impl<'p> Truth<'p> {
         polish: bool,
         radius: f64,
     ) -> Self {
-        let (fa, fb): (&Features, &Features) = (&source.features, &target.features);
+        let (fa, fb): (&Features, &Features) = (&source.view.features, &target.view.features);
         let recorded = pair.b.world_from_camera.inverse() * pair.a.world_from_camera;
         // Ground truth of real data is itself an estimate (KinectFusion tracking, cm-level drift
         // between distant frames): polish it with G-ICP from the truth and keep the polished pose
         // when G-ICP agrees with most of the overlap.
         let polished = register_coarse_to_fine(
-            source.cloud.cloud(),
-            &target.cloud,
+            source.view.cloud.cloud(),
+            &target.view.cloud,
             &recorded,
             &[0.05, 0.03, 0.02],
             &GicpParams {
@@ -235,7 +235,7 @@ fn ransac_outcome(
     let (fa, fb) = (truth.a, truth.b);
     let estimate = result.target_camera_from_source_camera;
     let matched: Vec<(usize, usize)> =
-        mac_consensus::alignment::features::match_features(fa, fb, config);
+        registration::alignment::features::match_features(fa, fb, config);
     let correct = matched
         .iter()
         .filter(|&&(i, j)| {

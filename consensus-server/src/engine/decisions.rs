@@ -16,10 +16,10 @@ use super::{
     AttemptKind, CandidateSource, ClosureEvent, ClosureMeasurement, Engine, Finished,
     FinishedAlignment,
 };
-use crate::alignment::Verdict;
 use crate::map_links::FinishedMapJob;
 use crate::place_recognition::KeyframeRef;
 use crate::pose_graph::{EdgeSigmas, LoopClosure};
+use registration::alignment::Verdict;
 
 /// One attempt's outcome, as consensus.json reports it and the store keeps it.
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -1,5 +1,5 @@
 //! `mac-ego3d bench map-registration`: global registration of two agents' maps with no initial
-//! guess (`mac_consensus::map_registration`), against ground truth.
+//! guess (`registration::map_registration`), against ground truth.
 //!
 //! Each map is built from a dataset with its ground-truth poses: every `--every`-th frame's depth
 //! is back-projected (every `--pixel-stride`-th pixel) into the world frame, thinned to one point
@@ -26,10 +26,10 @@ use anyhow::Context;
 use clap::Args;
 use config::{Config, MapRegistrationConfig};
 use datasets::{self, FrameRange};
-use mac_consensus::map_registration::colour::Rgb;
-use mac_consensus::map_registration::{MapPoints, MapRegistration, register_maps};
 use metrics::stats::median;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use registration::map_registration::colour::Rgb;
+use registration::map_registration::{MapPoints, MapRegistration, register_maps};
 use registration::{PointTree, points_from_depth};
 use serde::Serialize;
 
@@ -117,7 +117,7 @@ struct Run {
     accepted: bool,
     success: bool,
     rejection: Option<String>,
-    stage_ms: mac_consensus::map_registration::StageTimings,
+    stage_ms: registration::map_registration::StageTimings,
 }
 
 #[derive(Serialize)]
@@ -217,7 +217,7 @@ fn build_map(
             rgb.map(|c| f32::from(c) / 255.0)
         }));
     }
-    let down = mac_consensus::map_registration::downsample::voxel_downsample_coloured(
+    let down = registration::map_registration::downsample::voxel_downsample_coloured(
         &points,
         Some(&colours),
         args.map_voxel,

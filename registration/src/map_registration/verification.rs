@@ -44,11 +44,9 @@
 //! for colours unrelated to the pairing. A scene of one colour (chance near 1) cannot be judged
 //! and is not.
 
+use crate::{GicpParams, PointCloud, PointTree, RegistrationResult, RegistrationTarget, register};
 use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, RowVector6, Vector3};
 use rayon::prelude::*;
-use registration::{
-    GicpParams, PointCloud, PointTree, RegistrationResult, RegistrationTarget, register,
-};
 
 use super::colour::{Rgb, chromaticity};
 

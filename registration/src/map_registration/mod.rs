@@ -48,7 +48,7 @@
 //! walls of a room differ in colour, and the hue part of the descriptors lets the true
 //! correspondences find each other. The verification's colour kappa refuses poses whose colours
 //! are unrelated (another room), not a turned room whose floor matches; those are left to the
-//! correspondence evidence and, between agents, to the free-space check of [`crate::map_links`].
+//! correspondence evidence and, between agents, to the free-space check of the consensus (consensus-server/src/map_links.rs).
 //! A kappa well above anything a wrong pose reaches confirms a pose enough to accept a small
 //! overlap (`colour_confirmed_*`). Colour also raises chance support (matches concentrate in
 //! regions of distinctive colour), which the ambiguity test absorbs. The measurements behind
@@ -58,6 +58,7 @@
 //! The information matrix treats residuals as independent and is therefore optimistic.
 
 pub mod colour;
+mod config;
 pub mod consistency;
 pub mod correspondences;
 pub mod downsample;
@@ -72,9 +73,9 @@ mod tests;
 use std::borrow::Cow;
 use std::time::Instant;
 
-use config::MapRegistrationConfig;
 use nalgebra::{Isometry3, Matrix6, Point3};
 
+pub use config::MapRegistrationConfig;
 use consistency::{Consensus, RansacParams, find_consensus, transform_difference};
 use correspondences::FeatureMatch;
 use downsample::Cloud;

@@ -12,7 +12,7 @@ use nalgebra::{Isometry3, Point3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use config::AlignmentConfig;
+use crate::alignment::AlignmentConfig;
 
 /// Points per minimal sample of a rigid transform.
 const SAMPLE_SIZE: usize = 3;

@@ -1,20 +1,22 @@
 //! Keyframe-to-keyframe alignment (docs/method.md, The consensus: association and alignment):
-//! the relative pose of two RGB-D keyframes, from the same agent or from two agents whose frames
-//! are unrelated.
+//! the relative pose of two RGB-D views with no initial guess, from the same agent or from two
+//! agents whose frames are unrelated. The consensus aligns keyframe pairs with it, and an agent
+//! relocalises against its own keyframes with it.
 //!
 //! 1. Coarse ([`features`], [`ransac`]): FAST + BRIEF keypoints on both images, mutual ratio-test
 //!    matches, lifted to 3-D with depth, RANSAC over 3-point rigid fits. Needs no initial guess, so
 //!    it works when the cameras are metres and tens of degrees apart.
-//! 2. Refinement: G-ICP between the two keyframes' point clouds with both covariances
-//!    (`Sigma_k + Sigma_l`), coarse-to-fine correspondence distances (the registration crate's
-//!    [`register_coarse_to_fine`]).
+//! 2. Refinement: G-ICP between the two views' point clouds with both covariances
+//!    (`Sigma_k + Sigma_l`), coarse-to-fine correspondence distances
+//!    ([`crate::register_coarse_to_fine`]).
 //! 3. Verification ([`verification`]): inlier fraction, point-to-plane residual and depth
 //!    agreement in both directions against [`AlignmentConfig`] thresholds. The result always says
 //!    why an estimate was rejected.
 //!
-//! The estimate is `target_camera_from_source_camera`: it maps points of the source keyframe's
-//! camera frame into the target keyframe's camera frame.
+//! The estimate is `target_camera_from_source_camera`: it maps points of the source view's
+//! camera frame into the target view's camera frame.
 
+mod config;
 pub mod features;
 pub mod ransac;
 pub mod verification;
@@ -23,65 +25,54 @@ use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
 use image::RgbImage;
 use nalgebra::{Isometry3, Point3};
-use registration::{
-    GicpParams, PointTree, RegistrationFailure, points_from_depth, register_coarse_to_fine,
-};
 use serde::Serialize;
 
-use crate::place_recognition::KeyframeRef;
-use config::AlignmentConfig;
+use crate::{
+    GicpParams, PointTree, RegistrationFailure, points_from_depth, register_coarse_to_fine,
+};
+pub use config::AlignmentConfig;
 use features::Features;
 use verification::DepthComparison;
 
-/// One keyframe as the consensus receives it.
-#[derive(Debug, Clone)]
-pub struct Keyframe {
-    pub id: KeyframeRef,
-    pub rgb: RgbImage,
-    /// Metres, 0 = invalid.
-    pub depth: DepthImage,
-    pub intrinsics: Intrinsics,
-    /// The keyframe's pose in its agent's own frame (agents start at identity).
-    pub agent_from_camera: Isometry3<f64>,
-}
-
-/// A keyframe with what alignment computes from it once, however many candidates it is paired
-/// with: lifted keypoints and the point cloud with G-ICP covariances.
-pub struct PreparedKeyframe {
-    pub keyframe: Keyframe,
+/// What alignment computes once per view, however many others it is paired with: lifted
+/// keypoints and the point cloud with G-ICP covariances.
+pub struct PreparedView {
     pub features: Features,
     /// Camera-frame points with covariances: G-ICP source and target.
     pub cloud: PointTree,
 }
 
-impl PreparedKeyframe {
-    pub fn new(keyframe: Keyframe, config: &AlignmentConfig) -> Self {
-        let _span = tracing::debug_span!("prepare keyframe", id = ?keyframe.id).entered();
-        let features =
-            features::extract(&keyframe.rgb, &keyframe.depth, &keyframe.intrinsics, config);
-        let points = points_from_depth(
-            &keyframe.depth,
-            &keyframe.intrinsics,
-            config.pixel_stride,
-            config.truncation_m,
-        );
+impl PreparedView {
+    pub fn new(
+        rgb: &RgbImage,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        config: &AlignmentConfig,
+    ) -> Self {
+        let features = features::extract(rgb, depth, intrinsics, config);
+        let points = points_from_depth(depth, intrinsics, config.pixel_stride, config.truncation_m);
         let cloud = PointTree::with_covariances(
             points,
             config.covariance_neighbours,
             config.covariance_epsilon,
         )
-        // Points back-projected with valid intrinsics are finite; if not, the keyframe simply
+        // Points back-projected with valid intrinsics are finite; if not, the view simply
         // has no cloud and every alignment with it is rejected as a refinement failure.
         .unwrap_or_else(|error| {
-            tracing::warn!(%error, "keyframe points cannot be indexed");
+            tracing::warn!(%error, "view points cannot be indexed");
             PointTree::new(Vec::new()).expect("an empty cloud always indexes")
         });
-        Self {
-            keyframe,
-            features,
-            cloud,
-        }
+        Self { features, cloud }
     }
+}
+
+/// One side of an alignment: a prepared view with the depth image it was made from (the depth
+/// agreement test projects the other side's points into it).
+#[derive(Clone, Copy)]
+pub struct AlignmentInput<'a> {
+    pub prepared: &'a PreparedView,
+    pub depth: &'a DepthImage,
+    pub intrinsics: &'a Intrinsics,
 }
 
 /// Scores of the coarse registration.
@@ -154,11 +145,9 @@ pub enum Verdict {
     Rejected(RejectionReason),
 }
 
-/// The outcome of aligning a source keyframe to a target keyframe.
+/// The outcome of aligning a source view to a target view.
 #[derive(Debug, Clone)]
-pub struct AlignmentResult {
-    pub source: KeyframeRef,
-    pub target: KeyframeRef,
+pub struct Alignment {
     /// The estimate: refined when refinement ran, the coarse one when refinement failed,
     /// identity when there were too few matches to estimate anything.
     pub target_camera_from_source_camera: Isometry3<f64>,
@@ -169,59 +158,31 @@ pub struct AlignmentResult {
     pub verdict: Verdict,
 }
 
-impl AlignmentResult {
+impl Alignment {
     pub fn is_accepted(&self) -> bool {
         self.verdict == Verdict::Accepted
     }
-
-    /// The transform between the two agents' frames that this estimate implies:
-    /// `target_agent_from_source_agent`.
-    pub fn target_agent_from_source_agent(
-        &self,
-        source_agent_from_camera: &Isometry3<f64>,
-        target_agent_from_camera: &Isometry3<f64>,
-    ) -> Isometry3<f64> {
-        target_agent_from_camera
-            * self.target_camera_from_source_camera
-            * source_agent_from_camera.inverse()
-    }
 }
 
-/// Aligns two keyframes; see the module documentation. Prepares both first; use
-/// [`align_prepared`] to reuse prepared keyframes across many pairs.
-pub fn align(source: Keyframe, target: Keyframe, config: &AlignmentConfig) -> AlignmentResult {
-    let source = PreparedKeyframe::new(source, config);
-    let target = PreparedKeyframe::new(target, config);
-    align_prepared(&source, &target, config)
-}
-
-/// Aligns two prepared keyframes.
-pub fn align_prepared(
-    source: &PreparedKeyframe,
-    target: &PreparedKeyframe,
+/// Aligns two prepared views; see the module documentation.
+pub fn align(
+    source: AlignmentInput<'_>,
+    target: AlignmentInput<'_>,
     config: &AlignmentConfig,
-) -> AlignmentResult {
-    let _span = tracing::info_span!(
-        "align",
-        source = ?source.keyframe.id,
-        target = ?target.keyframe.id
-    )
-    .entered();
-    let mut result = AlignmentResult {
-        source: source.keyframe.id,
-        target: target.keyframe.id,
+) -> Alignment {
+    let mut result = Alignment {
         target_camera_from_source_camera: Isometry3::identity(),
         coarse: None,
         refinement: None,
         verdict: Verdict::Accepted,
     };
-    let reject = |mut result: AlignmentResult, reason: RejectionReason| {
+    let reject = |mut result: Alignment, reason: RejectionReason| {
         tracing::debug!(%reason, "alignment rejected");
         result.verdict = Verdict::Rejected(reason);
         result
     };
 
-    let coarse = match coarse_estimate(source, target, config, &mut result) {
+    let coarse = match coarse_estimate(source.prepared, target.prepared, config, &mut result) {
         Ok(coarse) => coarse,
         Err(reason) => return reject(result, reason),
     };
@@ -230,8 +191,8 @@ pub fn align_prepared(
     let refined = {
         let _span = tracing::debug_span!("gicp").entered();
         register_coarse_to_fine(
-            source.cloud.cloud(),
-            &target.cloud,
+            source.prepared.cloud.cloud(),
+            &target.prepared.cloud,
             &coarse.target_from_source,
             &config.correspondence_distances_m,
             &gicp_params(config),
@@ -271,10 +232,10 @@ pub fn align_prepared(
 
 /// Coarse stage: descriptor matches lifted to 3-D, then RANSAC; its scores go into `result`.
 fn coarse_estimate(
-    source: &PreparedKeyframe,
-    target: &PreparedKeyframe,
+    source: &PreparedView,
+    target: &PreparedView,
     config: &AlignmentConfig,
-    result: &mut AlignmentResult,
+    result: &mut Alignment,
 ) -> Result<ransac::CoarseEstimate, RejectionReason> {
     let matches = features::match_features(&source.features, &target.features, config);
     if matches.len() < config.min_coarse_inliers {
@@ -320,26 +281,30 @@ struct Measured {
 
 impl Measured {
     fn of(
-        source: &PreparedKeyframe,
-        target: &PreparedKeyframe,
+        source: AlignmentInput<'_>,
+        target: AlignmentInput<'_>,
         estimate: &Isometry3<f64>,
         config: &AlignmentConfig,
     ) -> Self {
         let finest = finest_distance(config);
-        let (residual_m, _) =
-            verification::point_to_plane_rms(&source.cloud, &target.cloud, estimate, finest);
-        let source_in_target = verification::compare_depth(
-            source.cloud.positions(),
+        let (residual_m, _) = verification::point_to_plane_rms(
+            &source.prepared.cloud,
+            &target.prepared.cloud,
             estimate,
-            &target.keyframe.depth,
-            &target.keyframe.intrinsics,
+            finest,
+        );
+        let source_in_target = verification::compare_depth(
+            source.prepared.cloud.positions(),
+            estimate,
+            target.depth,
+            target.intrinsics,
             config,
         );
         let target_in_source = verification::compare_depth(
-            target.cloud.positions(),
+            target.prepared.cloud.positions(),
             &estimate.inverse(),
-            &source.keyframe.depth,
-            &source.keyframe.intrinsics,
+            source.depth,
+            source.intrinsics,
             config,
         );
         Self {

@@ -1,7 +1,7 @@
 //! Matching: mutual nearest neighbours in Hamming distance with Lowe's ratio test.
 
 use super::{Descriptor, Features};
-use config::AlignmentConfig;
+use crate::alignment::AlignmentConfig;
 
 /// Bits in which two descriptors differ.
 pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {

@@ -11,13 +11,13 @@
 //!   directions, so a pose that merely matches one planar region but contradicts the rest of the
 //!   views is refused.
 
+use crate::covariance::smallest_eigenvector;
+use crate::{PointTree, RegistrationTarget};
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
 use nalgebra::{Isometry3, Point3};
-use registration::covariance::smallest_eigenvector;
-use registration::{PointTree, RegistrationTarget};
 
-use config::AlignmentConfig;
+use crate::alignment::AlignmentConfig;
 
 /// Projected comparisons of one direction of the depth check.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]

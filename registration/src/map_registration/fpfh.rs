@@ -40,11 +40,11 @@
 //! produced them: the descriptors are bit-identical between runs, thread counts and the
 //! kd-tree and brute-force searches (the unit test's reference).
 
+use crate::PointTree;
+use crate::covariance::smallest_eigenvector;
 use kiddo::SquaredEuclidean;
 use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
-use registration::PointTree;
-use registration::covariance::smallest_eigenvector;
 
 /// Bins per angle.
 pub const BINS: usize = 11;

@@ -2,10 +2,10 @@
 //! signatures for matching) and the refinement level (covariances and normals for G-ICP and the
 //! verification).
 
-use config::MapRegistrationConfig;
+use crate::covariance::smallest_eigenvector;
+use crate::map_registration::MapRegistrationConfig;
+use crate::{PointCloud, PointTree};
 use nalgebra::Vector3;
-use registration::covariance::smallest_eigenvector;
-use registration::{PointCloud, PointTree};
 
 use super::colour::{self, Rgb};
 use super::correspondences::{MATCH_LEN, MatchDescriptor};

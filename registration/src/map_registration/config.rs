@@ -1,11 +1,12 @@
 //! The `[consensus.map_registration]` table: map-to-map global registration without an initial
-//! guess (consensus-server/src/map_registration).
+//! guess (this module's parent). It lives beside the code it configures; the config crate
+//! embeds it in the `[consensus]` section.
 
 use geometry::checks::{FieldError, at_least_one, fraction, non_negative, positive};
 use serde::{Deserialize, Serialize};
 
 /// Map-level global registration between two agents' maps, without an initial guess: the
-/// `[consensus.map_registration]` table (consensus-server/src/map_registration). Both maps are
+/// `[consensus.map_registration]` table (registration/src/map_registration). Both maps are
 /// voxel-downsampled, described by FPFH-style local geometry histograms, matched in feature
 /// space, pruned by RANSAC over rigid 3-point fits, refined by G-ICP and verified.
 ///

@@ -27,10 +27,10 @@
 use std::borrow::Cow;
 use std::num::NonZeroUsize;
 
+use crate::PointTree;
 use kiddo::SquaredEuclidean;
 use nalgebra::Point3;
 use rayon::prelude::*;
-use registration::PointTree;
 
 use super::colour::Rgb;
 

@@ -2,7 +2,7 @@
 //! furniture, an unrelated outdoor-like scene, and a room with four-fold symmetry; each surface
 //! painted its own colour, for the tests with colour.
 
-use config::MapRegistrationConfig;
+use crate::map_registration::MapRegistrationConfig;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -477,22 +477,21 @@ fn registration_is_deterministic() {
 
 #[test]
 fn the_configuration_is_validated() {
-    let mut config = config::Config::default();
+    let mut config = MapRegistrationConfig::default();
     assert_eq!(config.validate(), Ok(()));
-    let g = &mut config.consensus.map_registration;
-    g.refine_distances_voxels = vec![1.0, 2.0];
+    config.refine_distances_voxels = vec![1.0, 2.0];
     assert_eq!(
         config.validate().unwrap_err().0,
         "consensus.map_registration.refine_distances_voxels"
     );
-    let mut config = config::Config::default();
-    config.consensus.map_registration.max_ambiguity_ratio = 1.5;
+    let mut config = MapRegistrationConfig::default();
+    config.max_ambiguity_ratio = 1.5;
     assert_eq!(
         config.validate().unwrap_err().0,
         "consensus.map_registration.max_ambiguity_ratio"
     );
-    let mut config = config::Config::default();
-    config.consensus.map_registration.voxel_m = 0.0;
+    let mut config = MapRegistrationConfig::default();
+    config.voxel_m = 0.0;
     assert_eq!(
         config.validate().unwrap_err().0,
         "consensus.map_registration.voxel_m"
@@ -512,8 +511,8 @@ fn the_configuration_is_validated() {
             g.colour_confirmed_kappa = f64::NAN
         }),
     ] {
-        let mut config = config::Config::default();
-        set(&mut config.consensus.map_registration);
+        let mut config = MapRegistrationConfig::default();
+        set(&mut config);
         assert_eq!(
             config.validate().unwrap_err().0,
             format!("consensus.map_registration.{field}")

@@ -15,7 +15,7 @@ use super::{
     BOX_RADIUS, Candidate, DESCRIPTOR_BITS, DESCRIPTOR_WORDS, Descriptor, PATCH_RADIUS,
     TEST_PAIR_SEED, TEST_POINT_SIGMA,
 };
-use config::AlignmentConfig;
+use crate::alignment::AlignmentConfig;
 
 /// One intensity test: offsets of its two points from the keypoint (pixels, image axes).
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -1,8 +1,8 @@
 //! What [`super::register_maps`] returns: the estimate, the verdict with the numbers that decided
 //! it, and everything measured on the way.
 
+use crate::RegistrationFailure;
 use nalgebra::{Isometry3, Matrix6};
-use registration::RegistrationFailure;
 use serde::Serialize;
 
 /// Why a map registration is refused. Each names the numbers that decided it.

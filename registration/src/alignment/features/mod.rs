@@ -32,7 +32,7 @@ use geometry::depth::DepthImage;
 use image::RgbImage;
 use nalgebra::Point3;
 
-use config::AlignmentConfig;
+use crate::alignment::AlignmentConfig;
 use detection::{local_maxima, pyramid, spread};
 pub use matching::{hamming, match_features};
 use patch::{Patch, PatchSampler, SAMPLING_LEVELS, descriptor, orientation};
