@@ -49,7 +49,7 @@ if [[ "${1:-}" == "--relock" ]]; then
   exit 0
 fi
 
-if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then
   if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null 2>&1; then
     log "installing libusb-1.0-0 (open3d's wheel links it)"
     apt-get install -y -qq libusb-1.0-0 >/dev/null 2>&1 ||

@@ -170,8 +170,12 @@ pub fn run_agent(
     let _span = tracing::info_span!("agent", id = options.agent_id).entered();
     config::process::prepare_output_dir(&options.out)?;
     let dataset: Arc<dyn Dataset> = Arc::from(
-        datasets::open(&options.dataset, options.frames)
-            .with_context(|| format!("opening dataset {}", options.dataset))?,
+        datasets::open_with(
+            &options.dataset,
+            options.frames,
+            options.config.camera.distortion(),
+        )
+        .with_context(|| format!("opening dataset {}", options.dataset))?,
     );
     tracing::info!(dataset = %dataset.describe(), frames = dataset.len(), "agent starting");
     let config = &options.config;

@@ -5,7 +5,7 @@
 //!
 //! Each section's type, its defaults and its `validate()` live next to the code that reads it:
 //! `[tracking]` and `[keyframes]` in the `registration` crate (the tracker decides keyframes),
-//! `[noise]` in `datasets`, `[mapping]` ([`mapping`]), `[consensus]` ([`consensus`]) and `[network]` ([`network`]) here.
+//! `[noise]` and `[camera]` in `datasets`, `[mapping]` ([`mapping`]), `[consensus]` ([`consensus`]) and `[network]` ([`network`]) here.
 //!
 //! Why this crate, and why those two sections here: every binary (`mac-agent`,
 //! `mac-consensus`, `mac-ego3d`) loads the whole file, so that all processes of a swarm check the
@@ -30,6 +30,7 @@ pub mod process;
 use std::path::{Path, PathBuf};
 
 use datasets::noise::NoiseConfig;
+use datasets::undistort::CameraConfig;
 use geometry::checks::FieldError;
 use registration::config::{KeyframeConfig, TrackingConfig};
 use serde::{Deserialize, Serialize};
@@ -53,6 +54,8 @@ pub struct Config {
     pub network: NetworkConfig,
     /// Sensor noise for robustness runs; absent = clean data.
     pub noise: Option<NoiseConfig>,
+    /// Lens parameters that replace the dataset folder's (`distortion`).
+    pub camera: CameraConfig,
 }
 
 /// A configuration file that cannot be used.
@@ -151,7 +154,7 @@ impl Config {
         if let Some(noise) = &self.noise {
             noise.validate()?;
         }
-        Ok(())
+        self.camera.validate()
     }
 
     /// Stable 64-bit hash of the configuration (FNV-1a over its canonical TOML), announced by agents

@@ -20,6 +20,7 @@ pub mod seven_scenes;
 pub mod shared_data;
 pub mod synthetic;
 pub mod tum;
+pub mod undistort;
 
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -27,6 +28,7 @@ use std::str::FromStr;
 
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
+use geometry::distortion::{DISTORTION_FILE, Distortion};
 use geometry::files::DatasetError;
 use image::RgbImage;
 use nalgebra::Isometry3;
@@ -56,8 +58,14 @@ pub struct Frame {
 pub trait Dataset: Send + Sync {
     /// Human-readable description (layout and path).
     fn describe(&self) -> String;
-    /// Intrinsics shared by all frames.
+    /// Intrinsics shared by all frames (of the colour camera as recorded, before any
+    /// undistortion [`open`] adds).
     fn intrinsics(&self) -> Intrinsics;
+    /// Where the depth pixels are relative to the colour image: aligned pixel for pixel unless a
+    /// layout knows its sensor's driver registered them to a pinhole of its own.
+    fn depth_registration(&self) -> undistort::DepthRegistration {
+        undistort::DepthRegistration::ColourGrid
+    }
     /// Number of frames in the (range-selected) sequence.
     fn len(&self) -> usize;
     fn is_empty(&self) -> bool {
@@ -380,18 +388,51 @@ pub fn check_size(
 /// - a folder with `frame-XXXXXX.color.{png,jpg}` files: 7-Scenes (also what `mac-ego3d synth`
 ///   writes).
 ///
-/// `range` selects frame numbers (see [`FrameRange`]).
+/// `range` selects frame numbers (see [`FrameRange`]). A folder holding
+/// [`geometry::distortion::DISTORTION_FILE`] (`k1 k2 p1 p2 k3`) has its frames undistorted as
+/// they load, and one holding [`undistort::DEPTH_INTRINSICS_FILE`] (a 3x3 K) has its colour
+/// re-projected into the depth's pinhole ([`undistort`]).
 pub fn open(spec: &str, range: FrameRange) -> Result<Box<dyn Dataset>, DatasetError> {
-    if spec == "synthetic" || spec.starts_with("synthetic:") {
+    open_with(spec, range, None)
+}
+
+/// [`open`] with lens distortion coefficients that replace the folder's
+/// [`geometry::distortion::DISTORTION_FILE`] (the `[camera] distortion` configuration key; all
+/// zeros turns undistortion off).
+pub fn open_with(
+    spec: &str,
+    range: FrameRange,
+    distortion: Option<Distortion>,
+) -> Result<Box<dyn Dataset>, DatasetError> {
+    let dataset: Box<dyn Dataset> = if spec == "synthetic" || spec.starts_with("synthetic:") {
         let parsed: synthetic::SyntheticSpec = spec.parse().map_err(DatasetError::Invalid)?;
-        return Ok(Box::new(synthetic::SyntheticDataset::new(parsed, range)?));
-    }
-    let dir = Path::new(spec);
-    match detect_layout(dir)? {
-        Layout::Replica => Ok(Box::new(replica::Replica::open(dir, range)?)),
-        Layout::Tum => Ok(Box::new(tum::Tum::open(dir, range)?)),
-        Layout::SevenScenes => Ok(Box::new(seven_scenes::SevenScenes::open(dir, range)?)),
-    }
+        Box::new(synthetic::SyntheticDataset::new(parsed, range)?)
+    } else {
+        let dir = Path::new(spec);
+        match detect_layout(dir)? {
+            Layout::Replica => Box::new(replica::Replica::open(dir, range)?),
+            Layout::Tum => Box::new(tum::Tum::open(dir, range)?),
+            Layout::SevenScenes => Box::new(seven_scenes::SevenScenes::open(dir, range)?),
+        }
+    };
+    let folder_file = |name: &str| Some(Path::new(spec).join(name)).filter(|f| f.is_file());
+    let distortion = match distortion {
+        Some(given) => given,
+        None => folder_file(DISTORTION_FILE)
+            .map(|file| Distortion::read_file(&file))
+            .transpose()?
+            .unwrap_or_default(),
+    };
+    let colour = dataset.intrinsics();
+    let depth = match folder_file(undistort::DEPTH_INTRINSICS_FILE) {
+        Some(file) => undistort::DepthRegistration::Pinhole(Intrinsics::read_k_file(
+            &file,
+            colour.width,
+            colour.height,
+        )?),
+        None => dataset.depth_registration(),
+    };
+    undistort::Undistorted::wrap(dataset, distortion, depth)
 }
 
 /// On-disk layouts [`open`] recognises.

@@ -6,7 +6,17 @@
 //!
 //! Intrinsics: the calibrated pinhole of the Freiburg sensor named in the folder name
 //! (`freiburg1/2/3`), else the ROS default; `camera-intrinsics.txt` (3x3 K) overrides both.
-//! Lens distortion (small on fr1/fr2, none on fr3) is ignored.
+//! A `camera-distortion.txt` beside the lists (`k1 k2 p1 p2 k3`; TUM publishes them per Freiburg
+//! sensor) has [`crate::open`] undistort the colour frames.
+//!
+//! Depth: TUM's depth images were registered to the colour images by the Kinect's OpenNI driver,
+//! which projects them with the factory pinhole (fx = fy = 525, cx 319.5, cy 239.5: the "ROS
+//! default" TUM recommends for them), not with the calibrated colour lens. A recording from the
+//! Freiburg sensors (named `freiburgN` or `frN` in the folder name, or in the
+//! `# file: 'rgbd_dataset_freiburgN_...'` header TUM's lists carry) therefore reports its depth
+//! as that pinhole ([`crate::undistort::DepthRegistration::Pinhole`]), and the colour image is
+//! re-projected into it; other folders in this layout have depth aligned to the colour grid, unless
+//! a `depth-intrinsics.txt` says otherwise.
 
 use std::path::{Path, PathBuf};
 
@@ -16,6 +26,7 @@ use geometry::camera::Intrinsics;
 use geometry::files::DatasetError;
 use geometry::trajectory::Trajectory;
 
+use crate::undistort::DepthRegistration;
 use crate::{Dataset, DepthEncoding, Frame, FrameRange, read_rgbd};
 
 /// Largest timestamp difference accepted when pairing colour with depth and ground truth (s).
@@ -71,6 +82,36 @@ pub struct Tum {
     dir: PathBuf,
     frames: Vec<(usize, TumFrame)>,
     intrinsics: Intrinsics,
+    depth_registration: DepthRegistration,
+}
+
+/// The Freiburg sensor (1, 2 or 3) a TUM recording comes from, from the folder name
+/// (`freiburg2`, `fr2`) or the `# file: 'rgbd_dataset_freiburgN_...'` header of its depth list.
+fn freiburg_sensor(dir: &Path) -> Option<u8> {
+    let sensor_in = |text: &str| {
+        let text = text.to_ascii_lowercase();
+        (1..=3u8).find(|n| {
+            text.contains(&format!("freiburg{n}"))
+                || text
+                    .split(|c: char| !c.is_ascii_alphanumeric())
+                    .any(|word| word == format!("fr{n}"))
+        })
+    };
+    let name = dir
+        .canonicalize()
+        .unwrap_or_else(|_| dir.to_path_buf())
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    sensor_in(&name).or_else(|| {
+        let header = std::fs::read_to_string(dir.join("depth.txt")).ok()?;
+        let comments: String = header
+            .lines()
+            .take_while(|l| l.starts_with('#'))
+            .collect::<Vec<_>>()
+            .join(" ");
+        sensor_in(&comments)
+    })
 }
 
 /// Reads a `timestamp path` list file.
@@ -158,24 +199,26 @@ impl Tum {
                 dir.display()
             )));
         }
-        let name = dir.to_string_lossy();
-        let mut intrinsics = if name.contains("freiburg1") {
-            FREIBURG1
-        } else if name.contains("freiburg2") {
-            FREIBURG2
-        } else if name.contains("freiburg3") {
-            FREIBURG3
-        } else {
-            ROS_DEFAULT
+        let sensor = freiburg_sensor(dir);
+        let mut intrinsics = match sensor {
+            Some(1) => FREIBURG1,
+            Some(2) => FREIBURG2,
+            Some(3) => FREIBURG3,
+            _ => ROS_DEFAULT,
         };
         let k_path = dir.join(crate::seven_scenes::INTRINSICS_FILE);
         if k_path.is_file() {
             intrinsics = Intrinsics::read_k_file(&k_path, intrinsics.width, intrinsics.height)?;
         }
+        let depth_registration = match sensor {
+            Some(_) => DepthRegistration::Pinhole(ROS_DEFAULT),
+            None => DepthRegistration::ColourGrid,
+        };
         Ok(Self {
             dir: dir.to_path_buf(),
             frames,
             intrinsics,
+            depth_registration,
         })
     }
 }
@@ -186,6 +229,9 @@ impl Dataset for Tum {
     }
     fn intrinsics(&self) -> Intrinsics {
         self.intrinsics
+    }
+    fn depth_registration(&self) -> DepthRegistration {
+        self.depth_registration
     }
     fn len(&self) -> usize {
         self.frames.len()

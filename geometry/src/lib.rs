@@ -1,5 +1,6 @@
 //! The geometric vocabulary every other crate of mac-ego3d speaks: rigid and similarity
-//! transforms ([`se3`]), the pinhole camera model ([`camera`]), depth images ([`depth`]),
+//! transforms ([`se3`]), the pinhole camera model ([`camera`]) and its lens distortion
+//! ([`distortion`]), depth images ([`depth`]),
 //! timestamped trajectories and their file formats ([`trajectory`]), pose corrections
 //! ([`correction`]), the errors and number parsing of the text files these are read from
 //! ([`files`]), and the range checks configuration sections share ([`checks`]).
@@ -19,6 +20,7 @@ pub mod camera;
 pub mod checks;
 pub mod correction;
 pub mod depth;
+pub mod distortion;
 pub mod files;
 pub mod se3;
 pub mod trajectory;

@@ -331,6 +331,31 @@ impl Odometry {
             world_from_previous
         };
         timings.registration_ms = elapsed_ms(&clock);
+        if self.mode == OdometryMode::FrameToModel {
+            let clock = Instant::now();
+            let sample = self.map.sample_view(4000);
+            let camera_from_world = registration.target_from_source.inverse();
+            let check = crate::alignment::verification::compare_depth_within(
+                &sample,
+                &camera_from_world,
+                depth,
+                intrinsics,
+                &crate::alignment::verification::DepthTolerance {
+                    metres: 0.02,
+                    fraction: 0.01,
+                    truncation_m: self.tracking.truncation_m,
+                },
+            );
+            tracing::debug!(
+                frame = self.stats.frames - 1,
+                agree = check.agreeing,
+                violate = check.violating,
+                occluded = check.occluded,
+                agreement = check.agreement(),
+                ms = elapsed_ms(&clock),
+                "depth check"
+            );
+        }
         self.stats.still_starts += usize::from(guess == InitialGuess::Still);
         self.last_initial_guess = guess;
         let points = frame.len();

@@ -321,6 +321,33 @@ impl VoxelMap {
         self.points.iter().flatten()
     }
 
+    /// About `max_points` points of the selected view (the whole map when none is selected),
+    /// spread evenly: every n-th point of each voxel, counted across voxels. World frame.
+    pub fn sample_view(&self, max_points: usize) -> Vec<Point3<f32>> {
+        let selected =
+            |voxel: &&Voxel| self.view_epoch == 0 || voxel.in_view_epoch == self.view_epoch;
+        let total: usize = self
+            .voxels
+            .iter()
+            .filter(selected)
+            .map(|v| v.points.len())
+            .sum();
+        let step = total.div_ceil(max_points.max(1)).max(1);
+        let mut sample = Vec::with_capacity(total / step + 1);
+        let mut counter = 0usize;
+        for voxel in self.voxels.iter().filter(selected) {
+            for slot in voxel.points.slots() {
+                if counter.is_multiple_of(step)
+                    && let Some(point) = &self.points[slot as usize]
+                {
+                    sample.push(point.position);
+                }
+                counter += 1;
+            }
+        }
+        sample
+    }
+
     /// Restricts later queries to the voxels that reach into `view` (the candidates of docs/method.md,
     /// One agent: Tracking: map points in the predicted view frustum within truncation depth). Returns how
     /// many voxels were selected. The selection holds until the next call or [`Self::clear_view`];

@@ -48,6 +48,10 @@ impl VoxelPoints {
         self.len == 0
     }
 
+    pub(crate) fn len(&self) -> usize {
+        self.len
+    }
+
     pub(crate) fn push(&mut self, position: [f32; 3], slot: u32) {
         if self.len.is_multiple_of(LANES) {
             self.blocks.push(EMPTY_BLOCK);

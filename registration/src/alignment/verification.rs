@@ -73,14 +73,51 @@ pub fn point_to_plane_rms(
     }
 }
 
+/// When a projected point agrees with a measured depth: within `metres + fraction * depth` of it
+/// (depth noise grows with depth), measured depths at or beyond `truncation_m` ignored.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthTolerance {
+    pub metres: f64,
+    pub fraction: f64,
+    pub truncation_m: f64,
+}
+
+impl DepthTolerance {
+    /// The alignment's tolerance (`[consensus.alignment] depth_tolerance_*`, `truncation_m`).
+    pub fn of(config: &AlignmentConfig) -> Self {
+        Self {
+            metres: config.depth_tolerance_m,
+            fraction: config.depth_tolerance_fraction,
+            truncation_m: config.truncation_m,
+        }
+    }
+}
+
 /// Projects `points` (camera frame of the first view) into the second view (`second_from_first`)
-/// and compares with its depth image.
+/// and compares with its depth image, with the alignment's tolerance.
 pub fn compare_depth(
     points: &[Point3<f32>],
     second_from_first: &Isometry3<f64>,
     second_depth: &DepthImage,
     second_intrinsics: &Intrinsics,
     config: &AlignmentConfig,
+) -> DepthComparison {
+    compare_depth_within(
+        points,
+        second_from_first,
+        second_depth,
+        second_intrinsics,
+        &DepthTolerance::of(config),
+    )
+}
+
+/// [`compare_depth`] with an explicit tolerance.
+pub fn compare_depth_within(
+    points: &[Point3<f32>],
+    second_from_first: &Isometry3<f64>,
+    second_depth: &DepthImage,
+    second_intrinsics: &Intrinsics,
+    tolerance: &DepthTolerance,
 ) -> DepthComparison {
     let mut comparison = DepthComparison::default();
     for point in points {
@@ -92,10 +129,10 @@ pub fn compare_depth(
             continue;
         }
         let measured = second_depth.get(pixel.x.round() as u32, pixel.y.round() as u32) as f64;
-        if !(measured > 0.0 && measured < config.truncation_m) {
+        if !(measured > 0.0 && measured < tolerance.truncation_m) {
             continue;
         }
-        let tolerance = config.depth_tolerance_m + config.depth_tolerance_fraction * measured;
+        let tolerance = tolerance.metres + tolerance.fraction * measured;
         let difference = in_second.z - measured;
         if difference.abs() <= tolerance {
             comparison.agreeing += 1;

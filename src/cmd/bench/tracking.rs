@@ -138,7 +138,8 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         Some(path) => Config::load(path)?,
         None => Config::default(),
     };
-    let ds = datasets::open(&spec, args.frames).with_context(|| format!("opening {spec}"))?;
+    let ds = datasets::open_with(&spec, args.frames, config.camera.distortion())
+        .with_context(|| format!("opening {spec}"))?;
     anyhow::ensure!(!ds.is_empty(), "{spec}: no frames in {}", args.frames);
     let mut odometry = Odometry::new(args.mode, &config.tracking, &config.keyframes);
     let mut estimate = Trajectory::default();
