@@ -28,6 +28,7 @@ pub mod pipeline;
 pub mod progress;
 pub mod run;
 pub mod seeding;
+pub mod segments;
 pub mod source;
 pub mod spool;
 pub mod swarm;

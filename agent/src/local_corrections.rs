@@ -529,11 +529,15 @@ mod tests {
             let mut checked = 0;
             for position in 0..dataset.len() {
                 let frame = dataset.load(position).unwrap();
-                let expected = reference
-                    .track(frame.timestamp, &frame.depth, &frame.intrinsics)
-                    .world_from_camera;
+                let input = registration::FrameInput {
+                    timestamp_s: frame.timestamp,
+                    depth: &frame.depth,
+                    rgb: Some(&frame.rgb),
+                    intrinsics: &frame.intrinsics,
+                };
+                let expected = reference.track(input).world_from_camera;
                 let first_point = odometry.next_point_id();
-                let tracked = odometry.track(frame.timestamp, &frame.depth, &frame.intrinsics);
+                let tracked = odometry.track(input);
                 if odometry.next_point_id() > first_point {
                     corrections.record_tracker_points(first_point, frame.timestamp);
                 }

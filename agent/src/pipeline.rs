@@ -13,15 +13,22 @@ use datasets::Frame;
 use live_view::LiveView;
 use nalgebra::Isometry3;
 use registration::config::TrackingKeyframeSeeds;
-use registration::odometry::{Odometry, OdometryMode, TrackedFrame, TrackingOutcome};
+use registration::odometry::{
+    FrameInput, Odometry, OdometryMode, Placement, SegmentJoin, TrackedFrame, TrackingOutcome,
+};
 use render_core::types::{GaussianCloud, RigidTransform};
 
 use crate::local_corrections::{LocalCorrections, LocalMaps};
 use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe};
 use crate::progress::{Progress, Stage};
 use crate::seeding::{CoverageIndex, SeedFrame, seed_gaussians};
+use crate::segments::PendingKeyframes;
 use crate::source::SourceFrame;
 use crate::swarm::{PublishableKeyframe, SwarmLink, run_anchor};
+
+/// Keyframes an unjoined tracking segment may hold back at most (crate::segments): 64 keyframes
+/// of 640x480 images are about 130 MB.
+const PENDING_KEYFRAMES: usize = 64;
 
 /// One frame's estimate, as the outputs report it.
 #[derive(Clone, Copy)]
@@ -29,9 +36,15 @@ pub struct TrackedPose {
     /// Position in the frame source (what `Dataset::load` takes).
     pub position: usize,
     pub timestamp: f64,
-    /// In the tracked frame (the consensus's frame for this agent).
+    /// In the tracked frame (the consensus's frame for this agent), or, while
+    /// `placement` is an unjoined segment, in that segment's frame.
     pub world_from_camera: Isometry3<f64>,
     pub ground_truth: Option<Isometry3<f64>>,
+    pub placement: Placement,
+    /// The tracker placed the frame (false: lost, the pose is the prediction).
+    pub tracked: bool,
+    /// The frame's tracking confidence (see `registration::TrackedFrame::confidence`).
+    pub confidence: f64,
 }
 
 /// Keyframes made so far, by the rule that made them.
@@ -48,17 +61,21 @@ impl KeyframeCounts {
 }
 
 /// The tracker's answer for one frame.
+#[derive(Clone)]
 pub struct Tracked {
     /// The odometry's answer with its pose in the local-map frame, where mapping runs (and
     /// tracking, when the tracking map moves with corrections: `move_tracking_map`).
     pub local: TrackedFrame,
     /// The same pose in the tracked frame (crate::local_corrections explains the two frames).
     pub world_from_camera: Isometry3<f64>,
+    /// The odometry's own pose (in an unjoined segment's frame while it tracks one).
+    pub odometry_from_camera: Isometry3<f64>,
     /// Depth was present and the tracker found a pose: the frame may become a mapping keyframe.
     pub usable: bool,
 }
 
 /// A frame the keyframe rule selected, with the points that seed new Gaussians.
+#[derive(Clone)]
 pub struct KeyframeDecision {
     pub kind: KeyframeKind,
     pub seed_mask: Vec<bool>,
@@ -72,6 +89,8 @@ pub struct FinishedPipeline {
     pub poses: Vec<TrackedPose>,
     pub tracking_ms: Vec<f64>,
     pub keyframes: KeyframeCounts,
+    /// Keyframes of segments never joined, dropped from the map.
+    pub keyframes_dropped_unjoined: usize,
 }
 
 /// The per-frame state of one agent.
@@ -93,6 +112,8 @@ pub struct AgentPipeline<'a> {
     /// Frames, keyframes, seeded points and placements for the rerun viewer (off the hot path:
     /// each call only queues, or drops when the queue is full).
     live_view: LiveView,
+    /// Keyframes of an unjoined tracking segment, waiting to be joined (crate::segments).
+    pending: PendingKeyframes,
 }
 
 impl<'a> AgentPipeline<'a> {
@@ -124,6 +145,7 @@ impl<'a> AgentPipeline<'a> {
             tracking_ms: Vec::with_capacity(frames_expected),
             agent_id,
             live_view,
+            pending: PendingKeyframes::new(PENDING_KEYFRAMES),
         })
     }
 
@@ -137,33 +159,94 @@ impl<'a> AgentPipeline<'a> {
         }
     }
 
-    /// Frame-to-model G-ICP against the trackable Gaussians (docs/method.md, Tracking).
+    /// Frame-to-model G-ICP against the trackable Gaussians (docs/method.md, Tracking). When
+    /// the tracker joins a segment to the map at this frame, the segment's poses and waiting
+    /// keyframes move into the agent's frame first.
     pub fn track(&mut self, item: &SourceFrame) -> Tracked {
         let frame = &item.frame;
         let tracker_first_point = self.odometry.next_point_id();
-        let mut local = self
-            .odometry
-            .track(frame.timestamp, &frame.depth, &frame.intrinsics);
+        let local = self.odometry.track(FrameInput {
+            timestamp_s: frame.timestamp,
+            depth: &frame.depth,
+            rgb: Some(&frame.rgb),
+            intrinsics: &frame.intrinsics,
+        });
         if self.odometry.next_point_id() > tracker_first_point {
             self.corrections
                 .record_tracker_points(tracker_first_point, frame.timestamp);
         }
+        if let Some(join) = local.join {
+            self.join_segment(&join);
+        }
+        self.placed(frame.timestamp, local, item.has_depth)
+    }
+
+    /// The odometry's answer with its pose in the two frames of crate::local_corrections.
+    fn placed(&self, timestamp: f64, mut local: TrackedFrame, has_depth: bool) -> Tracked {
+        let odometry_from_camera = local.world_from_camera;
         let (local_from_camera, world_from_camera) = self
             .corrections
-            .from_odometry(frame.timestamp, &local.world_from_camera);
+            .from_odometry(timestamp, &odometry_from_camera);
         local.world_from_camera = local_from_camera;
-        let usable = item.has_depth
-            && matches!(
-                local.outcome,
-                TrackingOutcome::Initialised
-                    | TrackingOutcome::Tracked
-                    | TrackingOutcome::TrackedNotConverged
-            );
+        let usable = has_depth
+            && (local.outcome == TrackingOutcome::Initialised || local.outcome.is_tracked());
         Tracked {
             local,
             world_from_camera,
+            odometry_from_camera,
             usable,
         }
+    }
+
+    /// A segment joined to the map: its recorded poses move into the agent's frame, and its
+    /// waiting keyframes are handled, in order, as if they had just been made there.
+    fn join_segment(&mut self, join: &SegmentJoin) {
+        for pose in &mut self.poses {
+            if let Some((placement, moved)) = join.moved(pose.placement, &pose.world_from_camera) {
+                pose.placement = placement;
+                pose.world_from_camera = moved;
+            }
+        }
+        let released = self.pending.release(join);
+        tracing::info!(
+            segment = join.segment,
+            keyframes = released.len(),
+            "tracking segment joined: its keyframes join the map"
+        );
+        for (frame, tracked, decision) in released {
+            let mut local = tracked.local;
+            local.world_from_camera = join.root_from_segment * tracked.odometry_from_camera;
+            local.placement = Placement::Root;
+            let tracked = self.placed(frame.timestamp, local, true);
+            let seed_mask = self.seed_mask(decision.kind, &frame, &tracked);
+            self.make_keyframe(
+                &frame,
+                &tracked,
+                KeyframeDecision {
+                    kind: decision.kind,
+                    seed_mask,
+                },
+            );
+        }
+    }
+
+    /// Seeds, publishes and maps a keyframe the rule selected, or, while the tracker follows an
+    /// unjoined segment, keeps it until the segment is joined (crate::segments).
+    pub fn keyframe(&mut self, frame: &Frame, tracked: &Tracked, decision: KeyframeDecision) {
+        match tracked.local.placement {
+            Placement::Root => self.make_keyframe(frame, tracked, decision),
+            Placement::Unjoined(segment) => {
+                self.pending
+                    .hold(segment, frame.clone(), tracked.clone(), decision)
+            }
+        }
+    }
+
+    fn make_keyframe(&mut self, frame: &Frame, tracked: &Tracked, decision: KeyframeDecision) {
+        let keyframe_id = self.next_keyframe_id();
+        let seeds = self.seed(keyframe_id, frame, tracked, &decision);
+        self.publish(keyframe_id, frame, tracked, &seeds);
+        self.hand_to_mapper(keyframe_id, frame, tracked, decision, seeds);
     }
 
     /// The keyframe rule (docs/method.md, Keyframes): a tracking keyframe when too few points
@@ -176,24 +259,34 @@ impl<'a> AgentPipeline<'a> {
     ) -> Option<KeyframeDecision> {
         self.frames_since_tracking_keyframe += 1;
         let keyframes = &self.config.keyframes;
-        if let Some(trackable) = &tracked.local.trackable {
+        let kind = if tracked.local.trackable.is_some() {
             self.frames_since_tracking_keyframe = 0;
-            let seed_mask = match keyframes.tracking_keyframe_seeds {
-                TrackingKeyframeSeeds::All => vec![true; trackable.len()],
-                TrackingKeyframeSeeds::Uncovered => self.uncovered_points(frame, tracked),
-            };
-            return Some(KeyframeDecision {
-                kind: KeyframeKind::Tracking,
-                seed_mask,
-            });
+            KeyframeKind::Tracking
+        } else if tracked.usable
+            && self
+                .frames_since_tracking_keyframe
+                .is_multiple_of(keyframes.mapping_keyframe_every)
+        {
+            KeyframeKind::Mapping
+        } else {
+            return None;
+        };
+        // The seeds of a keyframe held for an unjoined segment are chosen when it is joined:
+        // the coverage index is in the agent's frame.
+        let seed_mask = match tracked.local.placement {
+            Placement::Root => self.seed_mask(kind, frame, tracked),
+            Placement::Unjoined(_) => Vec::new(),
+        };
+        Some(KeyframeDecision { kind, seed_mask })
+    }
+
+    /// Which points of a keyframe seed Gaussians (docs/method.md, Seeding).
+    fn seed_mask(&self, kind: KeyframeKind, frame: &Frame, tracked: &Tracked) -> Vec<bool> {
+        let points = tracked.local.frame_points.len();
+        match (kind, self.config.keyframes.tracking_keyframe_seeds) {
+            (KeyframeKind::Tracking, TrackingKeyframeSeeds::All) => vec![true; points],
+            _ => self.uncovered_points(frame, tracked),
         }
-        let mapping_due = self
-            .frames_since_tracking_keyframe
-            .is_multiple_of(keyframes.mapping_keyframe_every);
-        (tracked.usable && mapping_due).then(|| KeyframeDecision {
-            kind: KeyframeKind::Mapping,
-            seed_mask: self.uncovered_points(frame, tracked),
-        })
     }
 
     /// New Gaussians from the keyframe's selected points (docs/method.md, Seeding); they join
@@ -315,6 +408,10 @@ impl<'a> AgentPipeline<'a> {
             timestamp: item.frame.timestamp,
             world_from_camera: tracked.world_from_camera,
             ground_truth: item.frame.world_from_camera_gt,
+            placement: tracked.local.placement,
+            tracked: tracked.local.outcome.is_tracked()
+                || tracked.local.outcome == TrackingOutcome::Initialised,
+            confidence: tracked.local.confidence(),
         });
         self.live_view.frame(
             self.agent_id,
@@ -362,13 +459,15 @@ impl<'a> AgentPipeline<'a> {
         self.poses.len()
     }
 
-    pub fn finish(self) -> (Mapper, Option<SwarmLink>, FinishedPipeline) {
+    pub fn finish(mut self) -> (Mapper, Option<SwarmLink>, FinishedPipeline) {
+        self.pending.give_up();
         let finished = FinishedPipeline {
             odometry: self.odometry,
             corrections: self.corrections,
             poses: self.poses,
             tracking_ms: self.tracking_ms,
             keyframes: self.keyframes,
+            keyframes_dropped_unjoined: self.pending.dropped,
         };
         (self.mapper, self.swarm, finished)
     }

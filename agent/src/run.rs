@@ -26,6 +26,7 @@ use live_view::{LiveView, LiveViewStats};
 use metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate};
 use metrics::stats::{median, quantile};
 use nalgebra::Isometry3;
+use registration::odometry::{Placement, SegmentId};
 use render_core::types::GaussianCloud;
 use serde::Serialize;
 
@@ -37,6 +38,7 @@ use crate::mapper::{MappingOutcome, MappingStats};
 use crate::pace::SensorClock;
 use crate::pipeline::{AgentPipeline, FinishedPipeline, TrackedPose, progress_snapshot};
 use crate::progress::{ProgressFile, Stage};
+use crate::segments::TrackingReport;
 use crate::source::{FrameSource, SourceStats};
 use crate::swarm::{SwarmLink, SwarmSummary};
 
@@ -115,8 +117,8 @@ pub struct AgentMetrics {
     /// Frames per second of the whole real-time loop (decode, tracking, seeding, hand-off).
     pub fps: f64,
     pub wall_s: f64,
-    pub tracking_failures: usize,
-    pub reinitialisations: usize,
+    /// Tracking failures, recoveries and segments.
+    pub tracking: TrackingReport,
     /// How the loop was timed (`mapping.pace`).
     pub pace: Pace,
     /// Sensor pace: frames a live camera would have overwritten before the agent took them
@@ -221,10 +223,7 @@ pub fn run_agent(
             let tracked = agent.track(&item);
             let tracked_at = clock.elapsed();
             if let Some(decision) = agent.decide_keyframe(frame, &tracked) {
-                let keyframe_id = agent.next_keyframe_id();
-                let seeds = agent.seed(keyframe_id, frame, &tracked, &decision);
-                agent.publish(keyframe_id, frame, &tracked, &seeds);
-                agent.hand_to_mapper(keyframe_id, frame, &tracked, decision, seeds);
+                agent.keyframe(frame, &tracked, decision);
             }
             let keyframe_done_at = clock.elapsed();
             agent.apply_corrections(frame);
@@ -339,6 +338,7 @@ fn evaluate_maps(
     let evaluated = |pose_refinement: &CorrectionField| -> Vec<TrackedPose> {
         run.poses
             .iter()
+            .filter(|p| p.placement == Placement::Root)
             .enumerate()
             .filter(|(i, _)| i % options.eval_every.max(1) == 0)
             .map(|(_, p)| TrackedPose {
@@ -406,7 +406,6 @@ fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
         realtime,
         ..
     } = record;
-    let tracking = run.odometry.stats();
     let frames = run.poses.len();
     AgentMetrics {
         agent_id: options.agent_id,
@@ -434,8 +433,7 @@ fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
             0.0
         },
         wall_s: record.wall_s,
-        tracking_failures: tracking.failures,
-        reinitialisations: tracking.reinitialisations,
+        tracking: tracking_report(run),
         pace: options.config.mapping.pace,
         frames_dropped: record.frames_dropped,
         frames_missing: record.source.frames_missing,
@@ -469,12 +467,59 @@ fn finish_live_view(options: &AgentOptions, map: &GaussianCloud) -> Option<LiveV
     Some(stats)
 }
 
-/// trajectory.tum (the estimate, in the tracked frame) and, when the dataset has ground
-/// truth, groundtruth.tum next to it (evo and the swarm report read both).
+/// trajectory.tum (the estimate, in the tracked frame; frames of tracking segments never joined
+/// to the map go to trajectory_segment_K.tum, each in its own frame), tracking.csv (every
+/// frame's outcome and confidence) and, when the dataset has ground truth, groundtruth.tum next
+/// to it (evo and the swarm report read these).
 fn write_trajectories(poses: &[TrackedPose], out: &Path) -> anyhow::Result<Trajectory> {
-    let trajectory =
-        Trajectory::from_pairs(poses.iter().map(|p| (p.timestamp, p.world_from_camera)));
+    let trajectory = Trajectory::from_pairs(
+        poses
+            .iter()
+            .filter(|p| p.placement == Placement::Root)
+            .map(|p| (p.timestamp, p.world_from_camera)),
+    );
     trajectory.write_tum(&out.join("trajectory.tum"))?;
+    let mut segments: Vec<SegmentId> = poses
+        .iter()
+        .filter_map(|p| match p.placement {
+            Placement::Unjoined(segment) => Some(segment),
+            Placement::Root => None,
+        })
+        .collect();
+    segments.dedup();
+    for segment in segments {
+        let path = out.join(format!("trajectory_segment_{segment}.tum"));
+        tracing::warn!(
+            segment,
+            path = %path.display(),
+            "a tracking segment was never joined to the map: its poses are in a frame of their own"
+        );
+        Trajectory::from_pairs(
+            poses
+                .iter()
+                .filter(|p| p.placement == Placement::Unjoined(segment))
+                .map(|p| (p.timestamp, p.world_from_camera)),
+        )
+        .write_tum(&path)?;
+    }
+    let csv_path = out.join("tracking.csv");
+    geometry::files::write_whole(&csv_path, |file| -> std::io::Result<()> {
+        let mut file = std::io::BufWriter::new(file);
+        writeln!(file, "timestamp,frame_position,segment,tracked,confidence")?;
+        for p in poses {
+            let segment = match p.placement {
+                Placement::Root => "root".to_string(),
+                Placement::Unjoined(segment) => segment.to_string(),
+            };
+            writeln!(
+                file,
+                "{:.6},{},{segment},{},{:.4}",
+                p.timestamp, p.position, p.tracked, p.confidence
+            )?;
+        }
+        file.flush()
+    })
+    .with_context(|| format!("writing {}", csv_path.display()))?;
     let ground_truth: Vec<(f64, Isometry3<f64>)> = poses
         .iter()
         .filter_map(|p| Some((p.timestamp, p.ground_truth?)))
@@ -483,6 +528,32 @@ fn write_trajectories(poses: &[TrackedPose], out: &Path) -> anyhow::Result<Traje
         Trajectory::from_pairs(ground_truth).write_tum(&out.join("groundtruth.tum"))?;
     }
     Ok(trajectory)
+}
+
+/// metrics.json's tracking block.
+fn tracking_report(run: &FinishedPipeline) -> TrackingReport {
+    let stats = run.odometry.stats();
+    let confidences: Vec<f64> = run
+        .poses
+        .iter()
+        .filter(|p| p.tracked)
+        .map(|p| p.confidence)
+        .collect();
+    TrackingReport {
+        frames_lost: stats.failures,
+        divergences_detected: stats.divergences,
+        recoveries: stats.recoveries,
+        segments_started: stats.segments_started,
+        segments_joined: stats.segments_joined,
+        frames_unjoined: run
+            .poses
+            .iter()
+            .filter(|p| p.placement != Placement::Root)
+            .count(),
+        keyframes_dropped_unjoined: run.keyframes_dropped_unjoined,
+        confidence_median: median(&confidences),
+        confidence_min: confidences.iter().copied().reduce(f64::min),
+    }
 }
 
 /// map.ply (the real-time map) and map_refined.ply (after the optional refinement).
@@ -516,6 +587,7 @@ fn trajectory_ate(poses: &[TrackedPose], estimate: &Trajectory) -> Option<AteSta
     let ground_truth = Trajectory::from_pairs(
         poses
             .iter()
+            .filter(|p| p.placement == Placement::Root)
             .filter_map(|p| p.ground_truth.map(|gt| (p.timestamp, gt))),
     );
     if ground_truth.len() < 3 {

@@ -63,7 +63,12 @@ fn track(agent_id: u32, dir: &str, range: &str) -> TrackedAgent {
     };
     for (position, frame) in Prefetcher::new(dataset, DECODE_WORKERS, QUEUE_PER_WORKER) {
         let frame = frame.unwrap();
-        let result = odometry.track(frame.timestamp, &frame.depth, &frame.intrinsics);
+        let result = odometry.track(registration::FrameInput {
+            timestamp_s: frame.timestamp,
+            depth: &frame.depth,
+            rgb: Some(&frame.rgb),
+            intrinsics: &frame.intrinsics,
+        });
         tracked.frames.push((
             frame.timestamp,
             result.world_from_camera,

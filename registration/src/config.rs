@@ -43,6 +43,49 @@ pub struct TrackingConfig {
     /// Tracking fails (too few correspondences) when fewer than this fraction of the frame's
     /// points have a map point within `max_correspondence_m` after alignment.
     pub min_inlier_fraction: f64,
+
+    // --- The check (registration/src/odometry/check.rs) ---
+    /// Map points in view sampled to check a pose against the frame's depth.
+    pub check_points: usize,
+    /// A map point agrees with the measured depth within this many metres...
+    pub depth_tolerance_m: f64,
+    /// ...plus this fraction of the depth (depth noise grows with it).
+    pub depth_tolerance_fraction: f64,
+    /// Pixels around a map point's projection it is compared with as well (it agrees with any,
+    /// violates only in front of all): depth edges, where a pixel's error flips foreground to
+    /// background, then do not count as seeing through surfaces.
+    pub depth_check_pixel_radius: u32,
+    /// A pose is refused when fewer of the map points compared agree with the frame's depth
+    /// (the rest lie in front of it, in space the camera sees through).
+    pub min_depth_agreement: f64,
+    /// ...or when fewer map points than this could be compared at all.
+    pub min_depth_comparisons: usize,
+
+    // --- Recovery (registration/src/odometry/recovery.rs) ---
+    /// The wide-baseline guesses also run when a frame's overlap with the map falls by more than
+    /// this fraction of the previous frame's (a pose that passed the check may still have slid).
+    pub recovery_overlap_drop: f64,
+    /// Coarse-to-fine G-ICP: correspondence distances before the fine `max_correspondence_m`,
+    /// largest first (metres).
+    pub recovery_distances_m: Vec<f64>,
+    /// Iterations at most per coarse stage.
+    pub recovery_max_iterations: usize,
+    /// Try the FPFH registration of the frame to the map when the cheaper guesses fail (for
+    /// scenes without texture; costs up to a second).
+    pub recovery_geometry: bool,
+
+    // --- Segments and relocalisation (registration/src/odometry/segments.rs) ---
+    /// Lost frames in a row after which a new segment starts. Three frames (0.1 s at 30 Hz)
+    /// ride out a burst of bad depth on the prediction.
+    pub max_consecutive_failures: usize,
+    /// Root keyframes kept (images) for relocalisation; the archive thins evenly when full.
+    pub relocalisation_keyframes: usize,
+    /// Archived keyframes, the most similar first, aligned with each keyframe of an unjoined
+    /// segment.
+    pub relocalisation_candidates: usize,
+    /// Every this many keyframes of an unjoined segment whose keyframe alignments failed, its
+    /// map is registered to the root's (0: never).
+    pub relocalisation_map_every: usize,
 }
 
 impl Default for TrackingConfig {
@@ -59,6 +102,20 @@ impl Default for TrackingConfig {
             translation_epsilon_m: 1e-3,
             constant_velocity: true,
             min_inlier_fraction: 0.2,
+            check_points: 4000,
+            depth_tolerance_m: 0.02,
+            depth_tolerance_fraction: 0.01,
+            depth_check_pixel_radius: 1,
+            min_depth_agreement: 0.8,
+            min_depth_comparisons: 100,
+            recovery_overlap_drop: 0.3,
+            recovery_distances_m: vec![0.2, 0.1, 0.05],
+            recovery_max_iterations: 20,
+            recovery_geometry: true,
+            max_consecutive_failures: 3,
+            relocalisation_keyframes: 64,
+            relocalisation_candidates: 3,
+            relocalisation_map_every: 3,
         }
     }
 }
@@ -164,6 +221,36 @@ impl TrackingConfig {
         positive("tracking.rotation_epsilon_rad", self.rotation_epsilon_rad)?;
         positive("tracking.translation_epsilon_m", self.translation_epsilon_m)?;
         fraction("tracking.min_inlier_fraction", self.min_inlier_fraction)?;
+        at_least_one("tracking.check_points", self.check_points)?;
+        non_negative("tracking.depth_tolerance_m", self.depth_tolerance_m)?;
+        non_negative(
+            "tracking.depth_tolerance_fraction",
+            self.depth_tolerance_fraction,
+        )?;
+        fraction("tracking.min_depth_agreement", self.min_depth_agreement)?;
+        fraction("tracking.recovery_overlap_drop", self.recovery_overlap_drop)?;
+        if self
+            .recovery_distances_m
+            .iter()
+            .any(|d| !(d.is_finite() && *d > 0.0))
+            || self.recovery_distances_m.windows(2).any(|w| w[1] >= w[0])
+        {
+            return Err((
+                "tracking.recovery_distances_m",
+                format!(
+                    "must be positive and decreasing, got {:?}",
+                    self.recovery_distances_m
+                ),
+            ));
+        }
+        at_least_one(
+            "tracking.recovery_max_iterations",
+            self.recovery_max_iterations,
+        )?;
+        at_least_one(
+            "tracking.max_consecutive_failures",
+            self.max_consecutive_failures,
+        )?;
         Ok(())
     }
 }

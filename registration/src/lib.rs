@@ -44,7 +44,8 @@ pub use gicp::{
 };
 pub use kdtree::{PointTree, PointTreeError};
 pub use odometry::{
-    Odometry, OdometryMode, OdometryStats, StageTimings, TrackedFrame, TrackingOutcome,
+    FrameInput, Odometry, OdometryMode, OdometryStats, Placement, StageTimings, TrackedFrame,
+    TrackingFailure, TrackingOutcome,
 };
 pub use points::{PointCloud, points_from_depth};
 pub use voxel_map::{MapPoint, MapPointId, ViewFrustum, VoxelMap};

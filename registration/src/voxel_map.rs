@@ -324,8 +324,17 @@ impl VoxelMap {
     /// About `max_points` points of the selected view (the whole map when none is selected),
     /// spread evenly: every n-th point of each voxel, counted across voxels. World frame.
     pub fn sample_view(&self, max_points: usize) -> Vec<Point3<f32>> {
-        let selected =
-            |voxel: &&Voxel| self.view_epoch == 0 || voxel.in_view_epoch == self.view_epoch;
+        self.sample(max_points, true)
+    }
+
+    /// [`Self::sample_view`] over the whole map, whatever view is selected.
+    pub fn sample_all(&self, max_points: usize) -> Vec<Point3<f32>> {
+        self.sample(max_points, false)
+    }
+
+    fn sample(&self, max_points: usize, only_selected_view: bool) -> Vec<Point3<f32>> {
+        let use_view = only_selected_view && self.view_epoch != 0;
+        let selected = |voxel: &&Voxel| !use_view || voxel.in_view_epoch == self.view_epoch;
         let total: usize = self
             .voxels
             .iter()

@@ -80,6 +80,11 @@ pub struct DepthTolerance {
     pub metres: f64,
     pub fraction: f64,
     pub truncation_m: f64,
+    /// Pixels around the projection compared too: a point agrees when any of them agrees, and
+    /// violates only when it lies in front of all of them. A point at an object's edge that
+    /// lands a pixel off (depth edges are where noise, motion blur and rolling shutter move
+    /// the measurement) then does not count as seeing through the object. 0: the pixel only.
+    pub pixel_radius: u32,
 }
 
 impl DepthTolerance {
@@ -89,6 +94,7 @@ impl DepthTolerance {
             metres: config.depth_tolerance_m,
             fraction: config.depth_tolerance_fraction,
             truncation_m: config.truncation_m,
+            pixel_radius: 0,
         }
     }
 }
@@ -120,6 +126,11 @@ pub fn compare_depth_within(
     tolerance: &DepthTolerance,
 ) -> DepthComparison {
     let mut comparison = DepthComparison::default();
+    let radius = i64::from(tolerance.pixel_radius);
+    let (width, height) = (
+        i64::from(second_intrinsics.width),
+        i64::from(second_intrinsics.height),
+    );
     for point in points {
         let in_second = second_from_first * point.cast::<f64>();
         let Some(pixel) = second_intrinsics.project(&in_second) else {
@@ -128,15 +139,31 @@ pub fn compare_depth_within(
         if !second_intrinsics.contains(&pixel) {
             continue;
         }
-        let measured = second_depth.get(pixel.x.round() as u32, pixel.y.round() as u32) as f64;
-        if !(measured > 0.0 && measured < tolerance.truncation_m) {
+        let (u, v) = (pixel.x.round() as i64, pixel.y.round() as i64);
+        // Over the pixel's neighbourhood: does any measurement agree, and is the point in front
+        // of every measurement (a violation)?
+        let mut any_measured = false;
+        let mut agrees = false;
+        let mut in_front_of_all = true;
+        for y in (v - radius).max(0)..=(v + radius).min(height - 1) {
+            for x in (u - radius).max(0)..=(u + radius).min(width - 1) {
+                let measured = second_depth.get(x as u32, y as u32) as f64;
+                if !(measured > 0.0 && measured < tolerance.truncation_m) {
+                    continue;
+                }
+                any_measured = true;
+                let allowed = tolerance.metres + tolerance.fraction * measured;
+                let difference = in_second.z - measured;
+                agrees |= difference.abs() <= allowed;
+                in_front_of_all &= difference < -allowed;
+            }
+        }
+        if !any_measured {
             continue;
         }
-        let tolerance = tolerance.metres + tolerance.fraction * measured;
-        let difference = in_second.z - measured;
-        if difference.abs() <= tolerance {
+        if agrees {
             comparison.agreeing += 1;
-        } else if difference < 0.0 {
+        } else if in_front_of_all {
             comparison.violating += 1;
         } else {
             comparison.occluded += 1;

@@ -15,7 +15,7 @@ use geometry::trajectory::Trajectory;
 use metrics::ate::{Alignment, DEFAULT_MAX_DT, ate};
 use metrics::stats::{median, quantile};
 use nalgebra::Point3;
-use registration::{Odometry, OdometryMode, TrackingOutcome};
+use registration::{FrameInput, Odometry, OdometryMode, TrackingOutcome};
 use serde::Serialize;
 
 use crate::cmd::{fmt_num, print_json};
@@ -163,7 +163,12 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
             Err(e) => return Err(e.into()),
         };
         let start = Instant::now();
-        let tracked = odometry.track(frame.timestamp, &frame.depth, &frame.intrinsics);
+        let tracked = odometry.track(FrameInput {
+            timestamp_s: frame.timestamp,
+            depth: &frame.depth,
+            rgb: Some(&frame.rgb),
+            intrinsics: &frame.intrinsics,
+        });
         let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
         // The first frame only seeds the target; timing it would mix set-up into tracking.
         if tracked.outcome != TrackingOutcome::Initialised {
@@ -222,7 +227,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         ate_mean_m: ate_stats.map(|s| s.mean),
         failures: stats.failures,
         not_converged: stats.not_converged,
-        reinitialisations: stats.reinitialisations,
+        reinitialisations: stats.segments_started,
         still_starts: stats.still_starts,
         keyframes: stats.keyframes,
         map_points: odometry.map().len(),

@@ -1,0 +1,117 @@
+//! The agent's side of tracking segments (docs/method.md, One agent: Tracking, "Relocalisation";
+//! the tracker's side is registration/src/odometry/segments.rs).
+//!
+//! While the tracker follows a segment that is not joined to the agent's map, its poses are in
+//! a frame of their own: nothing of it may reach the mapper or the consensus, which both work
+//! in the agent's frame. Its keyframes wait here, with their images, until the segment is joined
+//! (then they are moved into the agent's frame and handled as if they had just been made, in
+//! order) or given up (a newer segment started, or the run ended: they are dropped and
+//! counted). At most `capacity` wait; beyond that the oldest is dropped, so a long unjoined
+//! segment cannot exhaust memory.
+
+use std::collections::VecDeque;
+
+use datasets::Frame;
+use registration::odometry::{SegmentId, SegmentJoin};
+use serde::Serialize;
+
+use crate::pipeline::{KeyframeDecision, Tracked};
+
+/// Keyframes of an unjoined segment waiting to be joined (see the module documentation).
+pub struct PendingKeyframes {
+    segment: Option<SegmentId>,
+    waiting: VecDeque<(Frame, Tracked, KeyframeDecision)>,
+    capacity: usize,
+    /// Dropped because their segment was given up or never joined, or the queue was full.
+    pub dropped: usize,
+}
+
+impl PendingKeyframes {
+    pub fn new(capacity: usize) -> Self {
+        Self {
+            segment: None,
+            waiting: VecDeque::new(),
+            capacity,
+            dropped: 0,
+        }
+    }
+
+    /// Holds a keyframe of the unjoined `segment`; an older segment's keyframes are given up.
+    pub fn hold(
+        &mut self,
+        segment: SegmentId,
+        frame: Frame,
+        tracked: Tracked,
+        decision: KeyframeDecision,
+    ) {
+        if self.segment != Some(segment) {
+            self.give_up();
+            self.segment = Some(segment);
+        }
+        if self.waiting.len() >= self.capacity.max(1) {
+            self.waiting.pop_front();
+            self.dropped += 1;
+            tracing::warn!(
+                segment,
+                capacity = self.capacity,
+                "too many keyframes wait for their segment to be joined: the oldest is dropped"
+            );
+        }
+        self.waiting.push_back((frame, tracked, decision));
+    }
+
+    /// The waiting keyframes of the segment `join` placed, in the order they were made (the
+    /// caller moves them into the agent's frame); any others are given up.
+    pub fn release(&mut self, join: &SegmentJoin) -> Vec<(Frame, Tracked, KeyframeDecision)> {
+        if self.segment != Some(join.segment) {
+            self.give_up();
+            return Vec::new();
+        }
+        self.segment = None;
+        self.waiting.drain(..).collect()
+    }
+
+    /// Drops every waiting keyframe (their segment will not be joined).
+    pub fn give_up(&mut self) {
+        if !self.waiting.is_empty() {
+            tracing::warn!(
+                segment = self.segment,
+                keyframes = self.waiting.len(),
+                "a segment that was never joined: its keyframes are dropped from the map"
+            );
+        }
+        self.dropped += self.waiting.len();
+        self.waiting.clear();
+        self.segment = None;
+    }
+
+    pub fn len(&self) -> usize {
+        self.waiting.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.waiting.is_empty()
+    }
+}
+
+/// What metrics.json reports of tracking: failures, recoveries and segments
+/// (registration's `OdometryStats`, plus what the agent made of them).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct TrackingReport {
+    /// Frames no guess placed: their pose is the constant-velocity prediction.
+    pub frames_lost: usize,
+    /// Frames whose ordinary G-ICP result the check refused (divergence detected).
+    pub divergences_detected: usize,
+    /// Frames placed by a wide-baseline guess.
+    pub recoveries: usize,
+    /// Segments started after repeated failures, and how many were joined to the map.
+    pub segments_started: usize,
+    pub segments_joined: usize,
+    /// Frames of segments never joined: in trajectory_segment_K.tum, not in trajectory.tum.
+    pub frames_unjoined: usize,
+    /// Keyframes of unjoined segments, dropped from the map.
+    pub keyframes_dropped_unjoined: usize,
+    /// Median and lowest per-frame confidence (the check's depth agreement) over placed frames.
+    pub confidence_median: Option<f64>,
+    pub confidence_min: Option<f64>,
+}

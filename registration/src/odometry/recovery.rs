@@ -1,0 +1,237 @@
+//! Wide-baseline guesses (docs/method.md, One agent: Tracking, "Recovery"): where to start G-ICP
+//! when the small-motion prior is doubtful, and how to choose among the answers.
+//!
+//! The frame-to-model G-ICP matches each point to the nearest map point within 2 cm, so it only
+//! converges from a guess within a few centimetres (and a degree or two) of the truth. When the
+//! check (crate::odometry::check) refuses its pose, or its overlap with the map drops suddenly,
+//! the frame is tried again from guesses that need no small motion, cheapest first:
+//! 1. coarse-to-fine G-ICP from the constant-velocity prediction and from the previous pose:
+//!    correspondence distances `recovery_distances_m` (20, 10, 5 cm) before the fine one, each
+//!    stage on every k-th point of the frame (k = stage distance / fine distance: a coarse
+//!    stage's matches are coarse anyway, and the search around each point grows with the
+//!    distance, so fewer points keep each stage about as cheap as the fine one);
+//! 2. image features: FAST + BRIEF keypoints of the frame and of the last trusted frame, lifted
+//!    to 3-D with depth and fitted by RANSAC (the keyframe alignment of
+//!    registration/src/alignment), the relative pose chained onto the trusted frame's pose;
+//! 3. geometry alone, for scenes without texture: the frame's points registered to the map's
+//!    points around the last trusted pose by FPFH features and RANSAC (the map registration of
+//!    registration/src/map_registration).
+//!
+//! Every guess ends with the fine G-ICP against the map and is judged by the same check; the
+//! best passing one (most of the frame on the map, then the depth agreement) wins, the result of
+//! the ordinary path included. A stage is only run when the cheaper ones found no passing pose.
+
+use geometry::camera::Intrinsics;
+use geometry::depth::DepthImage;
+use image::RgbImage;
+use nalgebra::Isometry3;
+use serde::Serialize;
+
+use crate::alignment::{AlignmentConfig, AlignmentInput, PreparedView};
+use crate::config::TrackingConfig;
+use crate::gicp::{GicpParams, RegistrationResult, register};
+use crate::map_registration::{MapRegistrationConfig, register_maps};
+use crate::points::PointCloud;
+use crate::voxel_map::VoxelMap;
+
+use super::check::FrameCheck;
+
+/// Where the G-ICP of a frame's final pose started.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Guess {
+    /// The ordinary path: fine G-ICP from the constant-velocity prediction or the previous pose.
+    Ordinary,
+    /// Coarse-to-fine G-ICP from the constant-velocity prediction.
+    WidePrediction,
+    /// Coarse-to-fine G-ICP from the previous pose.
+    WidePrevious,
+    /// Image features against the last trusted frame.
+    ImageFeatures,
+    /// FPFH registration of the frame's points to the map.
+    MapGeometry,
+}
+
+/// What the image features gave.
+pub enum FeatureGuess {
+    /// No colour, or the images did not align (too little texture or overlap): the geometry
+    /// guess is worth its cost.
+    Unavailable,
+    /// A pose, refined and checked.
+    Found(Candidate),
+}
+
+/// One candidate pose of a frame: the G-ICP result and its check.
+#[derive(Debug, Clone)]
+pub struct Candidate {
+    pub guess: Guess,
+    pub result: RegistrationResult,
+    pub check: FrameCheck,
+}
+
+impl Candidate {
+    /// G-ICP gave a pose (converged, or out of iterations while still improving).
+    pub fn has_pose(&self) -> bool {
+        self.result
+            .failure
+            .as_ref()
+            .is_none_or(|failure| failure.pose_is_usable())
+    }
+
+    pub fn passes(&self, tracking: &TrackingConfig) -> bool {
+        self.has_pose() && self.check.verdict(tracking).is_ok()
+    }
+}
+
+/// The last frame whose pose was trusted, kept for the feature guess.
+pub struct TrustedFrame {
+    pub rgb: RgbImage,
+    pub depth: DepthImage,
+    pub intrinsics: Intrinsics,
+    pub world_from_camera: Isometry3<f64>,
+}
+
+/// What the guesses of one frame share.
+pub struct Recovery<'a> {
+    pub tracking: &'a TrackingConfig,
+    pub fine: &'a GicpParams,
+    pub map: &'a VoxelMap,
+    pub frame: &'a PointCloud,
+    pub depth: &'a DepthImage,
+    pub rgb: Option<&'a RgbImage>,
+    pub intrinsics: &'a Intrinsics,
+}
+
+impl Recovery<'_> {
+    /// Fine G-ICP from `start` and its check.
+    pub fn fine(&self, guess: Guess, start: &Isometry3<f64>) -> Candidate {
+        let result = register(self.frame, self.map, start, self.fine);
+        self.judge(guess, result)
+    }
+
+    /// Coarse-to-fine G-ICP from `start` (see the module documentation) and its check.
+    pub fn wide(&self, guess: Guess, start: &Isometry3<f64>) -> Candidate {
+        let mut pose = *start;
+        let mut iterations = 0;
+        for &distance in &self.tracking.recovery_distances_m {
+            let step = (distance / self.fine.max_correspondence_m).round().max(1.0) as usize;
+            let sample = every_nth(self.frame, step);
+            let scale = step as f64;
+            let params = GicpParams {
+                max_correspondence_m: distance,
+                max_iterations: self.tracking.recovery_max_iterations,
+                rotation_epsilon_rad: self.fine.rotation_epsilon_rad * scale,
+                translation_epsilon_m: self.fine.translation_epsilon_m * scale,
+                ..self.fine.clone()
+            };
+            let stage = register(&sample, self.map, &pose, &params);
+            iterations += stage.iterations;
+            if stage
+                .failure
+                .as_ref()
+                .is_some_and(|failure| !failure.pose_is_usable())
+            {
+                let mut failed = stage;
+                failed.iterations = iterations;
+                return self.judge(guess, failed);
+            }
+            pose = stage.target_from_source;
+        }
+        let mut result = register(self.frame, self.map, &pose, self.fine);
+        result.iterations += iterations;
+        self.judge(guess, result)
+    }
+
+    /// The feature guess against `trusted`, refined by coarse-to-fine G-ICP.
+    pub fn features(&self, trusted: &TrustedFrame, config: &AlignmentConfig) -> FeatureGuess {
+        let Some(rgb) = self.rgb else {
+            return FeatureGuess::Unavailable;
+        };
+        let (current, previous) = rayon::join(
+            || PreparedView::new(rgb, self.depth, self.intrinsics, config),
+            || PreparedView::new(&trusted.rgb, &trusted.depth, &trusted.intrinsics, config),
+        );
+        let alignment = crate::alignment::align(
+            AlignmentInput {
+                prepared: &current,
+                depth: self.depth,
+                intrinsics: self.intrinsics,
+            },
+            AlignmentInput {
+                prepared: &previous,
+                depth: &trusted.depth,
+                intrinsics: &trusted.intrinsics,
+            },
+            config,
+        );
+        if !alignment.is_accepted() {
+            tracing::debug!(verdict = ?alignment.verdict, "feature guess refused");
+            return FeatureGuess::Unavailable;
+        }
+        let start = trusted.world_from_camera * alignment.target_camera_from_source_camera;
+        FeatureGuess::Found(self.wide(Guess::ImageFeatures, &start))
+    }
+
+    /// The geometry guess: the frame's points registered to `map_points` (world frame) without
+    /// an initial guess, refined by coarse-to-fine G-ICP.
+    pub fn geometry(
+        &self,
+        map_points: &[nalgebra::Point3<f32>],
+        config: &MapRegistrationConfig,
+    ) -> Option<Candidate> {
+        let registration = register_maps(&self.frame.positions, map_points, config);
+        if !registration.is_accepted() {
+            tracing::debug!(verdict = ?registration.verdict, "geometry guess refused");
+            return None;
+        }
+        Some(self.wide(Guess::MapGeometry, &registration.target_from_source))
+    }
+
+    fn judge(&self, guess: Guess, result: RegistrationResult) -> Candidate {
+        let check = FrameCheck::measure(
+            self.map,
+            &result,
+            self.depth,
+            self.intrinsics,
+            self.tracking,
+        );
+        Candidate {
+            guess,
+            result,
+            check,
+        }
+    }
+}
+
+/// The best of `candidates` that passes the check, else the best with a pose, else the first.
+pub fn choose(candidates: Vec<Candidate>, tracking: &TrackingConfig) -> Option<Candidate> {
+    let best_of = |filter: &dyn Fn(&Candidate) -> bool| {
+        candidates
+            .iter()
+            .filter(|c| filter(c))
+            .reduce(|best, c| {
+                if c.check.better_than(&best.check) {
+                    c
+                } else {
+                    best
+                }
+            })
+            .cloned()
+    };
+    best_of(&|c| c.passes(tracking))
+        .or_else(|| best_of(&|c| c.has_pose()))
+        .or_else(|| candidates.first().cloned())
+}
+
+/// Every `step`-th point of `cloud` with its covariance (no pixels, no grid).
+fn every_nth(cloud: &PointCloud, step: usize) -> PointCloud {
+    if step <= 1 {
+        return cloud.clone();
+    }
+    PointCloud {
+        positions: cloud.positions.iter().step_by(step).copied().collect(),
+        covariances: cloud.covariances.iter().step_by(step).copied().collect(),
+        pixels: Vec::new(),
+        grid: None,
+    }
+}
