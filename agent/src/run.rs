@@ -338,7 +338,7 @@ fn evaluate_maps(
     let evaluated = |pose_refinement: &CorrectionField| -> Vec<TrackedPose> {
         run.poses
             .iter()
-            .filter(|p| p.placement == Placement::Root)
+            .filter(|p| p.placement == Placement::Root && p.tracked)
             .enumerate()
             .filter(|(i, _)| i % options.eval_every.max(1) == 0)
             .map(|(_, p)| TrackedPose {
@@ -467,15 +467,16 @@ fn finish_live_view(options: &AgentOptions, map: &GaussianCloud) -> Option<LiveV
     Some(stats)
 }
 
-/// trajectory.tum (the estimate, in the tracked frame; frames of tracking segments never joined
-/// to the map go to trajectory_segment_K.tum, each in its own frame), tracking.csv (every
-/// frame's outcome and confidence) and, when the dataset has ground truth, groundtruth.tum next
-/// to it (evo and the swarm report read these).
+/// trajectory.tum (the estimate, in the tracked frame; lost frames, whose pose is only the
+/// prediction, left out; frames of tracking segments never joined to the map go to
+/// trajectory_segment_K.tum, each in its own frame), tracking.csv (every frame's outcome and
+/// confidence) and, when the dataset has ground truth, groundtruth.tum next to it (evo and the
+/// swarm report read these).
 fn write_trajectories(poses: &[TrackedPose], out: &Path) -> anyhow::Result<Trajectory> {
     let trajectory = Trajectory::from_pairs(
         poses
             .iter()
-            .filter(|p| p.placement == Placement::Root)
+            .filter(|p| p.placement == Placement::Root && p.tracked)
             .map(|p| (p.timestamp, p.world_from_camera)),
     );
     trajectory.write_tum(&out.join("trajectory.tum"))?;

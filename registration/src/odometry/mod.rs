@@ -386,8 +386,13 @@ impl Odometry {
             candidates.push(candidate);
         }
         // Geometry alone only where the images could not place the frame (no texture, no
-        // colour): it costs up to a second.
-        if self.tracking.recovery_geometry && texture_failed && !passed(&candidates) {
+        // colour), and once per streak of lost frames: it costs up to a second, and the frames
+        // after a loss are the segment logic's.
+        if self.tracking.recovery_geometry
+            && texture_failed
+            && self.consecutive_failures == 0
+            && !passed(&candidates)
+        {
             // The map around the last trusted pose (the prediction may be far off by now), then
             // the view at the prediction again for the check.
             let anchor = self

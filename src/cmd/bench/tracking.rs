@@ -1,10 +1,14 @@
-//! `mac-ego3d bench tracking`: G-ICP odometry over a dataset from the identity pose, timed per
-//! frame (points, covariances, alignment and map update; image decoding is excluded), with the
-//! trajectory's ATE against ground truth. `--dump-points` also writes the frames' points so an
-//! outside tracker can run on exactly the same input (scripts/bench_vs_small_gicp.sh).
+//! `mac-ego3d bench tracking`: the odometry over a dataset from the identity pose, timed per
+//! frame (points, covariances, alignment, recovery and map update; image decoding is excluded),
+//! with the trajectory's ATE against ground truth and what the tracker reported: frames lost,
+//! divergences detected, recoveries, segments started and joined. `--dump-points` and
+//! `--dump-images` also write the frames as the tracker saw them so outside trackers can run on
+//! exactly the same input (scripts/bench_vs_small_gicp.sh), `--frames-csv` every frame's outcome.
+
+mod dump;
 
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
@@ -14,29 +18,37 @@ use datasets::{self, FrameRange};
 use geometry::trajectory::Trajectory;
 use metrics::ate::{Alignment, DEFAULT_MAX_DT, ate};
 use metrics::stats::{median, quantile};
-use nalgebra::Point3;
-use registration::{FrameInput, Odometry, OdometryMode, TrackingOutcome};
+use nalgebra::Isometry3;
+use registration::{FrameInput, Odometry, OdometryMode, Placement, TrackingOutcome};
 use serde::Serialize;
 
 use crate::cmd::{fmt_num, print_json};
+use dump::{ImageDump, PointDump};
 
 #[derive(Args)]
 pub struct TrackingArgs {
-    /// Dataset folder or synthetic spec. Default: the shared redkitchen frames.
+    /// Dataset folder or synthetic spec, optionally with its frames (`DIR:0..1000:10`).
+    /// Default: the shared redkitchen frames.
     #[arg(long)]
     dataset: Option<String>,
-    /// Frames to track, FIRST..END (END excluded). The default is the benchmark range.
+    /// Frames to track, FIRST..END (END excluded), optionally :STEP for every STEP-th frame.
+    /// The default is the benchmark range.
     #[arg(long, default_value = "0..300")]
     frames: FrameRange,
     /// Align each frame to the previous one, or to the map of keyframe points.
     #[arg(long, default_value_t = OdometryMode::FrameToModel)]
     mode: OdometryMode,
-    /// Configuration file (its [tracking] and [keyframes] sections). Default: the built-in defaults.
+    /// Configuration file (its [tracking], [keyframes] and [camera] sections). Default: the
+    /// built-in defaults.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Write the estimated trajectory here (TUM format).
+    /// Write the estimated trajectory here (TUM format): the frames placed in the first
+    /// segment's frame (segments joined to it included; lost frames left out).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Write every frame's outcome here (CSV: timestamp, segment, placed, outcome, confidence).
+    #[arg(long)]
+    frames_csv: Option<PathBuf>,
     /// Also write each tracked frame's points, as the tracker back-projected them (pixel stride,
     /// truncation, intrinsics applied), to this folder: DIR/points-NNNNNN.f32 (x y z per point,
     /// little-endian f32, camera frame, metres; NNNNNN is the frame number) and DIR/frames.tsv
@@ -44,60 +56,13 @@ pub struct TrackingArgs {
     /// the file writes still disturb the caches, so time with a run without it.
     #[arg(long)]
     dump_points: Option<PathBuf>,
+    /// Also write each frame's images as the tracker saw them (undistorted where the dataset
+    /// is): DIR/rgb-NNNNNN.png, DIR/depth-NNNNNN.png (u16 millimetres), DIR/intrinsics.json and
+    /// DIR/frames.tsv. The same caveat on timings as --dump-points.
+    #[arg(long)]
+    dump_images: Option<PathBuf>,
     #[arg(long)]
     json: bool,
-}
-
-/// Writes frames' points for `--dump-points`: one raw f32 file per frame plus an index.
-struct PointDump {
-    dir: PathBuf,
-    index: std::io::BufWriter<std::fs::File>,
-}
-
-impl PointDump {
-    const INDEX: &str = "frames.tsv";
-
-    fn create(dir: &Path) -> anyhow::Result<Self> {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        let path = dir.join(Self::INDEX);
-        let mut index = std::io::BufWriter::new(
-            std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?,
-        );
-        writeln!(
-            index,
-            "# timestamp\tpoints file (x y z little-endian f32, camera frame, m)"
-        )
-        .with_context(|| format!("writing {}", path.display()))?;
-        Ok(Self {
-            dir: dir.to_path_buf(),
-            index,
-        })
-    }
-
-    fn write(
-        &mut self,
-        frame_index: usize,
-        timestamp: f64,
-        points: &[Point3<f32>],
-    ) -> anyhow::Result<()> {
-        let name = format!("points-{frame_index:06}.f32");
-        let path = self.dir.join(&name);
-        let bytes: Vec<u8> = points
-            .iter()
-            .flat_map(|p| [p.x, p.y, p.z])
-            .flat_map(f32::to_le_bytes)
-            .collect();
-        std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
-        // The timestamp as the TUM writer prints it, so trajectories match the ground truth.
-        writeln!(self.index, "{timestamp:.6}\t{name}")
-            .with_context(|| format!("writing {}", self.dir.join(Self::INDEX).display()))
-    }
-
-    fn finish(mut self) -> anyhow::Result<()> {
-        self.index
-            .flush()
-            .with_context(|| format!("writing {}", self.dir.join(Self::INDEX).display()))
-    }
 }
 
 #[derive(Serialize)]
@@ -110,48 +75,91 @@ struct TrackingReport {
     tracking_ms_median: f64,
     tracking_ms_p90: f64,
     tracking_ms_max: f64,
-    /// Medians of the stages: points + covariances, registration, map update.
+    /// Medians of the stages: points + covariances, registration, recovery, map update.
     points_ms_median: f64,
     registration_ms_median: f64,
+    recovery_ms_median: f64,
     map_update_ms_median: f64,
     iterations_median: f64,
-    /// SE(3)-aligned against ground truth; `null` without ground truth.
+    /// SE(3)-aligned against ground truth over the frames placed in the first segment's frame;
+    /// `null` without ground truth.
     ate_rmse_m: Option<f64>,
     ate_mean_m: Option<f64>,
+    /// The same with the lost frames at the pose they kept (the constant-velocity prediction).
+    ate_rmse_with_lost_m: Option<f64>,
+    /// Frames in the trajectory (placed in the first segment's frame).
+    frames_placed: usize,
+    /// Frames no guess placed (pose = prediction).
     failures: usize,
+    /// Frames whose ordinary G-ICP result the check refused.
+    divergences: usize,
+    /// Frames placed by a wide-baseline guess.
+    recoveries: usize,
     not_converged: usize,
-    reinitialisations: usize,
-    /// Frames whose G-ICP started from the previous pose (`OdometryStats::still_starts`).
+    segments_started: usize,
+    segments_joined: usize,
+    /// Frames of segments never joined (not in the trajectory).
+    frames_unjoined: usize,
+    /// Median per-frame confidence (the check's depth agreement) over placed frames.
+    confidence_median: Option<f64>,
+    /// Frames whose ordinary G-ICP started from the previous pose (`OdometryStats::still_starts`).
     still_starts: usize,
     keyframes: usize,
     map_points: usize,
 }
 
+/// One frame's result as the report and --frames-csv need it.
+struct FrameRecord {
+    timestamp: f64,
+    world_from_camera: Isometry3<f64>,
+    placement: Placement,
+    outcome: String,
+    placed: bool,
+    confidence: f64,
+    ground_truth: Option<Isometry3<f64>>,
+}
+
 pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
-    let spec = args.dataset.clone().unwrap_or_else(|| {
-        datasets::shared_data::shared_dir()
-            .join("datasets/7scenes-redkitchen")
-            .to_string_lossy()
-            .into_owned()
-    });
+    let spec: datasets::DatasetSpec = match &args.dataset {
+        Some(text) => text
+            .parse()
+            .map_err(|e| anyhow::anyhow!("--dataset: {e}"))?,
+        None => datasets::DatasetSpec {
+            dataset: datasets::shared_data::shared_dir()
+                .join("datasets/7scenes-redkitchen")
+                .to_string_lossy()
+                .into_owned(),
+            frames: FrameRange::ALL,
+        },
+    };
+    let frames = if spec.frames == FrameRange::ALL {
+        args.frames
+    } else {
+        spec.frames
+    };
     let config = match &args.config {
         Some(path) => Config::load(path)?,
         None => Config::default(),
     };
-    let ds = datasets::open_with(&spec, args.frames, config.camera.distortion())
-        .with_context(|| format!("opening {spec}"))?;
-    anyhow::ensure!(!ds.is_empty(), "{spec}: no frames in {}", args.frames);
+    let name = &spec.dataset;
+    let ds = datasets::open_with(name, frames, config.camera.distortion())
+        .with_context(|| format!("opening {name}"))?;
+    anyhow::ensure!(!ds.is_empty(), "{name}: no frames in {frames}");
     let mut odometry = Odometry::new(args.mode, &config.tracking, &config.keyframes);
-    let mut estimate = Trajectory::default();
-    let mut ground_truth = Trajectory::default();
+    let mut records: Vec<FrameRecord> = Vec::with_capacity(ds.len());
     let mut times_ms = Vec::with_capacity(ds.len());
     let mut iterations = Vec::with_capacity(ds.len());
-    let mut stage_ms: [Vec<f64>; 3] = Default::default();
+    let mut stage_ms: [Vec<f64>; 4] = Default::default();
     let mut points = 0usize;
-    let mut dump = args
+    let mut point_dump = args
         .dump_points
         .as_deref()
         .map(PointDump::create)
+        .transpose()?;
+    let mut image_dump = args
+        .dump_images
+        .as_deref()
+        .map(ImageDump::create)
         .transpose()?;
     for position in 0..ds.len() {
         let frame = match ds.load(position) {
@@ -171,63 +179,129 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         });
         let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
         // The first frame only seeds the target; timing it would mix set-up into tracking.
-        if tracked.outcome != TrackingOutcome::Initialised {
+        if position > 0 {
             times_ms.push(elapsed_ms);
-            stage_ms[0].push(tracked.timings.points_ms);
-            stage_ms[1].push(tracked.timings.registration_ms);
-            stage_ms[2].push(tracked.timings.map_update_ms);
+            let t = &tracked.timings;
+            for (stage, ms) in stage_ms.iter_mut().zip([
+                t.points_ms,
+                t.registration_ms,
+                t.recovery_ms,
+                t.map_update_ms,
+            ]) {
+                stage.push(ms);
+            }
         }
         if let Some(registration) = &tracked.registration {
             iterations.push(registration.iterations as f64);
         }
         points += tracked.points;
-        if let Some(dump) = dump.as_mut() {
+        if let Some(join) = &tracked.join {
+            for record in &mut records {
+                if let Some((placement, moved)) =
+                    join.moved(record.placement, &record.world_from_camera)
+                {
+                    record.placement = placement;
+                    record.world_from_camera = moved;
+                }
+            }
+        }
+        records.push(FrameRecord {
+            timestamp: frame.timestamp,
+            world_from_camera: tracked.world_from_camera,
+            placement: tracked.placement,
+            outcome: outcome_label(&tracked.outcome),
+            placed: !matches!(tracked.outcome, TrackingOutcome::Lost(_)),
+            confidence: tracked.confidence(),
+            ground_truth: frame.world_from_camera_gt,
+        });
+        if let Some(dump) = point_dump.as_mut() {
             dump.write(
                 frame.index,
                 frame.timestamp,
                 &tracked.frame_points.positions,
             )?;
         }
-        estimate.push(frame.timestamp, tracked.world_from_camera);
-        if let Some(gt) = frame.world_from_camera_gt {
-            ground_truth.push(frame.timestamp, gt);
+        if let Some(dump) = image_dump.as_mut() {
+            dump.write(&frame)?;
         }
     }
-    if let Some(dump) = dump {
+    if let Some(dump) = point_dump {
         dump.finish()?;
     }
+    if let Some(dump) = image_dump {
+        dump.finish()?;
+    }
+    let in_root = |r: &&FrameRecord| r.placement == Placement::Root;
+    let placed = |r: &&FrameRecord| in_root(r) && r.placed;
+    let estimate = Trajectory::from_pairs(
+        records
+            .iter()
+            .filter(placed)
+            .map(|r| (r.timestamp, r.world_from_camera)),
+    );
+    let with_lost = Trajectory::from_pairs(
+        records
+            .iter()
+            .filter(in_root)
+            .map(|r| (r.timestamp, r.world_from_camera)),
+    );
+    let ground_truth = Trajectory::from_pairs(
+        records
+            .iter()
+            .filter(in_root)
+            .filter_map(|r| Some((r.timestamp, r.ground_truth?))),
+    );
     if let Some(out) = &args.out {
         estimate
             .write_tum(out)
             .with_context(|| format!("writing {}", out.display()))?;
     }
-    let ate_stats = if ground_truth.len() >= 3 {
-        Some(ate(&ground_truth, &estimate, Alignment::Se3, DEFAULT_MAX_DT)?.stats)
+    if let Some(path) = &args.frames_csv {
+        write_frames_csv(path, &records)?;
+    }
+    let (ate_stats, ate_with_lost) = if ground_truth.len() >= 3 && estimate.len() >= 3 {
+        (
+            Some(ate(&ground_truth, &estimate, Alignment::Se3, DEFAULT_MAX_DT)?.stats),
+            Some(ate(&ground_truth, &with_lost, Alignment::Se3, DEFAULT_MAX_DT)?.stats),
+        )
     } else {
-        tracing::warn!("{spec}: no ground truth, ATE not computed");
-        None
+        tracing::warn!("{name}: no ground truth, ATE not computed");
+        (None, None)
     };
     // An empty run has no timings: NaN prints as such in the table and as null in the JSON.
     let median_or_nan = |values: &[f64]| median(values).unwrap_or(f64::NAN);
     let stats = odometry.stats();
+    let confidences: Vec<f64> = records
+        .iter()
+        .filter(|r| r.placed)
+        .map(|r| r.confidence)
+        .collect();
     let report = TrackingReport {
         dataset: ds.describe(),
         mode: args.mode.to_string(),
         threads: registration::worker_threads(),
-        frames: estimate.len(),
-        points_per_frame: points as f64 / estimate.len().max(1) as f64,
+        frames: records.len(),
+        points_per_frame: points as f64 / records.len().max(1) as f64,
         tracking_ms_median: median_or_nan(&times_ms),
         tracking_ms_p90: quantile(&times_ms, 0.9).unwrap_or(f64::NAN),
         tracking_ms_max: quantile(&times_ms, 1.0).unwrap_or(f64::NAN),
         points_ms_median: median_or_nan(&stage_ms[0]),
         registration_ms_median: median_or_nan(&stage_ms[1]),
-        map_update_ms_median: median_or_nan(&stage_ms[2]),
+        recovery_ms_median: median_or_nan(&stage_ms[2]),
+        map_update_ms_median: median_or_nan(&stage_ms[3]),
         iterations_median: median_or_nan(&iterations),
         ate_rmse_m: ate_stats.map(|s| s.rmse),
         ate_mean_m: ate_stats.map(|s| s.mean),
+        ate_rmse_with_lost_m: ate_with_lost.map(|s| s.rmse),
+        frames_placed: estimate.len(),
         failures: stats.failures,
+        divergences: stats.divergences,
+        recoveries: stats.recoveries,
         not_converged: stats.not_converged,
-        reinitialisations: stats.segments_started,
+        segments_started: stats.segments_started,
+        segments_joined: stats.segments_joined,
+        frames_unjoined: records.iter().filter(|r| !in_root(r)).count(),
+        confidence_median: median(&confidences),
         still_starts: stats.still_starts,
         keyframes: stats.keyframes,
         map_points: odometry.map().len(),
@@ -235,12 +309,47 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     if args.json {
         return print_json(&report);
     }
+    print_report(&report);
+    Ok(())
+}
+
+fn outcome_label(outcome: &TrackingOutcome) -> String {
+    match outcome {
+        TrackingOutcome::Initialised => "initialised".into(),
+        TrackingOutcome::Tracked => "tracked".into(),
+        TrackingOutcome::TrackedNotConverged => "tracked_not_converged".into(),
+        TrackingOutcome::Recovered(guess) => format!("recovered_{guess:?}").to_lowercase(),
+        TrackingOutcome::Lost(_) => "lost".into(),
+    }
+}
+
+fn write_frames_csv(path: &std::path::Path, records: &[FrameRecord]) -> anyhow::Result<()> {
+    let mut file = std::io::BufWriter::new(
+        std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?,
+    );
+    writeln!(file, "timestamp,segment,placed,outcome,confidence")?;
+    for r in records {
+        let segment = match r.placement {
+            Placement::Root => "root".to_string(),
+            Placement::Unjoined(segment) => segment.to_string(),
+        };
+        writeln!(
+            file,
+            "{:.6},{segment},{},{},{:.4}",
+            r.timestamp, r.placed, r.outcome, r.confidence
+        )?;
+    }
+    file.flush()
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+fn print_report(report: &TrackingReport) {
     let cm = |m: Option<f64>| m.map_or("n/a".to_string(), |m| fmt_num(m * 100.0, 2));
     println!(
         "G-ICP tracking ({}, {} threads): {}",
         report.mode, report.threads, report.dataset
     );
-    let rows: [(&str, String); 17] = [
+    let rows = [
         ("frames", report.frames.to_string()),
         ("points per frame", fmt_num(report.points_per_frame, 0)),
         ("tracking ms, median", fmt_num(report.tracking_ms_median, 2)),
@@ -255,6 +364,10 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
             fmt_num(report.registration_ms_median, 2),
         ),
         (
+            "  recovery ms, median",
+            fmt_num(report.recovery_ms_median, 2),
+        ),
+        (
             "  map update ms, median",
             fmt_num(report.map_update_ms_median, 2),
         ),
@@ -264,9 +377,27 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         ),
         ("ATE RMSE cm (SE(3)-aligned)", cm(report.ate_rmse_m)),
         ("ATE mean cm", cm(report.ate_mean_m)),
-        ("failures", report.failures.to_string()),
+        (
+            "ATE RMSE cm, lost frames included",
+            cm(report.ate_rmse_with_lost_m),
+        ),
+        ("frames placed", report.frames_placed.to_string()),
+        ("frames lost", report.failures.to_string()),
+        ("divergences detected", report.divergences.to_string()),
+        ("recoveries", report.recoveries.to_string()),
         ("not converged", report.not_converged.to_string()),
-        ("re-initialisations", report.reinitialisations.to_string()),
+        ("segments started", report.segments_started.to_string()),
+        ("segments joined", report.segments_joined.to_string()),
+        (
+            "frames in unjoined segments",
+            report.frames_unjoined.to_string(),
+        ),
+        (
+            "confidence, median",
+            report
+                .confidence_median
+                .map_or("n/a".to_string(), |c| fmt_num(c, 3)),
+        ),
         (
             "started from the previous pose",
             report.still_starts.to_string(),
@@ -277,5 +408,4 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     for (name, value) in rows {
         println!("  {name:<32} {value:>10}");
     }
-    Ok(())
 }
