@@ -1,14 +1,16 @@
 #!/usr/bin/env bash
-# Tracking speed and accuracy side by side: ours (`mac-ego3d bench tracking`) and small_gicp's
-# frame-to-model odometry (scripts/small_gicp_odometry.py), on the same points, in one run.
+# Tracking speed and accuracy side by side: ours (`mac-ego3d bench tracking`), small_gicp's
+# frame-to-model odometry and Open3D's RGB-D odometry (scripts/small_gicp_odometry.py), on the
+# same input, in one run. --frames takes a stride (0..1000:10) for fast-motion runs.
 #
-#   scripts/bench_vs_small_gicp.sh [--frames 0..300] [--threads 2] [--voxels 0.05,0.02]
-#       [--repeats 5] [--omp-wait-policy passive] [--dataset DIR] [--gt TUM] [--config FILE]
-#       [--out DIR] [--json FILE]
+#   scripts/bench_vs_small_gicp.sh [--frames 0..300[:STEP]] [--threads 2] [--voxels 0.05,0.02]
+#       [--repeats 5] [--omp-wait-policy passive] [--no-open3d] [--dataset DIR] [--gt TUM]
+#       [--config FILE] [--out DIR] [--json FILE] [--bin MAC_EGO3D]
 #
 # Same input: a first, untimed run of ours writes every frame's points as our tracker
 # back-projected them (`bench tracking --dump-points`: same depth frames, pixel stride, truncation
-# and intrinsics, from --config, default configs/7scenes.toml) and small_gicp tracks those. Same
+# and intrinsics, from --config, default configs/7scenes.toml) and small_gicp tracks those, and
+# its images (`--dump-images`: undistorted where the dataset is), which Open3D tracks. Same
 # threads: RAYON_NUM_THREADS and OMP_NUM_THREADS = --threads, and small_gicp's num_threads too.
 # small_gicp's OpenMP threads wait passively by default (--omp-wait-policy, OMP_WAIT_POLICY), as
 # rayon's idle workers sleep: on a machine shared with other work, spinning OpenMP threads wait
@@ -18,19 +20,22 @@
 # trajectories are scored by the same code, `mac-ego3d eval ate` against --gt (default:
 # DIR/groundtruth_tum.txt of the dataset).
 # Prints one table (per tracker: medians over the repeats of ms/frame median and p90, ATE RMSE,
-# ours / small_gicp ms ratio, stage medians) and writes it as JSON to --json (default
+# ours / peer ms ratio, frames the tracker flagged as failed, real failures (steps wrong by more
+# than 10 cm against --gt) and those of them it did not flag, stage medians) and writes it as JSON
+# to --json (default
 # OUT/summary.json). Every run's files stay in --out (default: a new folder under $TMPDIR).
 #
 # small_gicp and numpy come from the peers' virtual environment (scripts/peers_venv.sh: pinned,
 # hash-checked PyPI wheels, outside the repository). Without PyPI the script says so and exits 3.
-# Dataset: $MAC_EGO3D_SHARED (default ../shared).
+# Dataset: $MAC_EGO3D_SHARED (default ../shared). --bin names a built mac-ego3d to time (default:
+# build the release one).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/vulkan_env.sh
 repo="$(pwd)"
 
 fail() { echo "[vs-small_gicp] $1" >&2; exit "${2:-1}"; }
-usage() { sed -n '2,27p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,31p' "$0" | sed 's/^# \{0,1\}//'; }
 
 shared="${MAC_EGO3D_SHARED:-../shared}"
 frames=0..300
@@ -38,11 +43,13 @@ threads=2
 voxels=0.05,0.02
 repeats=5
 omp_wait_policy=passive
+open3d=1
 dataset="$shared/datasets/7scenes-redkitchen"
 gt=""
 config=configs/7scenes.toml
 out=""
 json=""
+bin=""
 command_line="scripts/bench_vs_small_gicp.sh $*"
 while (($#)); do
   case "$1" in
@@ -51,11 +58,13 @@ while (($#)); do
     --voxels) voxels="$2"; shift 2 ;;
     --repeats) repeats="$2"; shift 2 ;;
     --omp-wait-policy) omp_wait_policy="$2"; shift 2 ;;
+    --no-open3d) open3d=0; shift ;;
     --dataset) dataset="$2"; shift 2 ;;
     --gt) gt="$2"; shift 2 ;;
     --config) config="$2"; shift 2 ;;
     --out) out="$2"; shift 2 ;;
     --json) json="$2"; shift 2 ;;
+    --bin) bin="$2"; shift 2 ;;
     -h | --help) usage; exit 0 ;;
     *) usage >&2; fail "unknown argument: $1" 2 ;;
   esac
@@ -69,7 +78,10 @@ for v in "${voxel_list[@]}"; do
   [[ "$v" =~ ^[0-9]*\.?[0-9]+$ ]] || fail "--voxels: $v is not a size in metres" 2
 done
 [[ -d "$dataset" ]] || fail "--dataset $dataset: no such folder (set MAC_EGO3D_SHARED to the folder that holds datasets/)" 2
-gt="${gt:-$dataset/groundtruth_tum.txt}"
+if [[ -z "$gt" ]]; then
+  gt="$dataset/groundtruth_tum.txt"
+  [[ -f "$gt" ]] || gt="$dataset/groundtruth.txt"
+fi
 [[ -f "$gt" ]] || fail "--gt $gt: no such file (the ground truth both trajectories are scored against)" 2
 [[ -f "$config" ]] || fail "--config $config: no such file" 2
 command -v python3 >/dev/null 2>&1 || fail "python3 is required (with venv and pip) but is not on PATH"
@@ -82,9 +94,12 @@ json="${json:-$out/summary.json}"
 python="$(scripts/peers_venv.sh)" || exit $?
 
 # --- our binary ------------------------------------------------------------------------------
-echo "[vs-small_gicp] building mac-ego3d (release; up to date unless the sources changed)" >&2
-cargo build --release --quiet -p mac-ego3d --bin mac-ego3d
-bin="${CARGO_TARGET_DIR:-target}/release/mac-ego3d"
+if [[ -z "$bin" ]]; then
+  echo "[vs-small_gicp] building mac-ego3d (release; up to date unless the sources changed)" >&2
+  cargo build --release --quiet -p mac-ego3d --bin mac-ego3d
+  bin="${CARGO_TARGET_DIR:-target}/release/mac-ego3d"
+fi
+[[ -x "$bin" ]] || fail "--bin $bin: not an executable" 2
 
 export RAYON_NUM_THREADS="$threads" OMP_NUM_THREADS="$threads" OMP_WAIT_POLICY="$omp_wait_policy"
 load_before="$(cut -d' ' -f1-3 /proc/loadavg 2>/dev/null || echo unknown)"
@@ -92,15 +107,22 @@ echo "[vs-small_gicp] $dataset frames $frames, $threads threads, $repeats repeat
 
 # Untimed: our points for small_gicp (the file writes would disturb the timings).
 "$bin" bench tracking --dataset "$dataset" --frames "$frames" --config "$config" \
-  --dump-points "$out/points" --json >"$out/dump-run.json"
+  --dump-points "$out/points" --dump-images "$out/images" --json >"$out/dump-run.json"
 
 ate() { "$bin" eval ate --gt "$gt" --est "$1" --json >"${1%.tum}.ate.json"; }
 for ((r = 1; r <= repeats; r++)); do
   echo "[vs-small_gicp] round $r/$repeats" >&2
   run="$out/runs/ours-r$r"
   "$bin" bench tracking --dataset "$dataset" --frames "$frames" --config "$config" \
-    --out "$run.tum" --json >"$run.json"
+    --out "$run.tum" --frames-csv "$run.frames.csv" --json >"$run.json"
+  # Our flagged frames: the ones no guess placed (left out of the trajectory).
+  awk -F, 'NR > 1 && $3 == "false" { print $1 }' "$run.frames.csv" >"$run.flagged.txt"
   ate "$run.tum"
+  if ((open3d)); then
+    run="$out/runs/open3d-r$r"
+    "$python" scripts/small_gicp_odometry.py open3d --images "$out/images" --out "$run.tum" >"$run.json"
+    ate "$run.tum"
+  fi
   for v in "${voxel_list[@]}"; do
     run="$out/runs/small_gicp-voxel$v-r$r"
     "$python" scripts/small_gicp_odometry.py track --points "$out/points" --voxel "$v" \
@@ -123,5 +145,5 @@ print(json.dumps(context))
 PYTHON
 )"
 echo "[vs-small_gicp] load (1, 5, 15 min) before $load_before, after $load_after" >&2
-python3 scripts/small_gicp_odometry.py report --runs "$out/runs" --json "$json" --context "$context"
+python3 scripts/small_gicp_odometry.py report --runs "$out/runs" --gt "$gt" --json "$json" --context "$context"
 echo "[vs-small_gicp] JSON: $json" >&2

@@ -206,3 +206,62 @@ fn report_tabulates_medians_over_repeats_and_the_ratio_to_each_configuration() {
     let message = String::from_utf8_lossy(&out.stderr);
     assert!(message.contains("ours-r2.ate.json"), "{message}");
 }
+
+#[test]
+fn report_counts_real_failures_against_ground_truth_and_which_were_flagged() {
+    let dir = tempfile::tempdir().unwrap();
+    let runs = dir.path().join("runs");
+    std::fs::create_dir(&runs).unwrap();
+    // Ground truth: 12 frames 1 cm apart along x, 30 Hz.
+    let tum = |offset: &dyn Fn(usize) -> f64| -> String {
+        (0..12)
+            .map(|i| {
+                format!(
+                    "{:.6} {} 0 0 0 0 0 1\n",
+                    i as f64 / 30.0,
+                    0.01 * i as f64 + offset(i)
+                )
+            })
+            .collect()
+    };
+    let gt = dir.path().join("groundtruth.txt");
+    write(&gt, &tum(&|_| 0.0));
+    let run = |name: &str, trajectory: String, flagged: &str| {
+        write(
+            &runs.join(format!("{name}.json")),
+            r#"{"frames": 12, "tracking_ms_median": 5.0, "tracking_ms_p90": 6.0}"#,
+        );
+        write(
+            &runs.join(format!("{name}.ate.json")),
+            r#"{"rmse": 0.01, "mean": 0.0, "median": 0.0, "max": 0.0, "pairs": 12}"#,
+        );
+        write(&runs.join(format!("{name}.tum")), &trajectory);
+        write(&runs.join(format!("{name}.flagged.txt")), flagged);
+    };
+    run("ours-r1", tum(&|_| 0.0), "");
+    // The peer jumps 20 cm at frame 5 without saying so, and 30 cm at frame 8, which it flags.
+    let jumps = |i: usize| 0.2 * f64::from(u8::from(i >= 5)) + 0.3 * f64::from(u8::from(i >= 8));
+    run("peer-r1", tum(&jumps), &format!("{:.6}\n", 8.0 / 30.0));
+    let json = dir.path().join("summary.json");
+    let table = succeeded(&python(&[
+        DRIVER,
+        "report",
+        "--runs",
+        runs.to_str().unwrap(),
+        "--gt",
+        gt.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]));
+    assert!(
+        table.contains("flagged") && table.contains("silent"),
+        "{table}"
+    );
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let (ours, peer) = (&summary["trackers"]["ours"], &summary["trackers"]["peer"]);
+    assert_eq!(ours["real_failures"], 0.0);
+    assert_eq!(peer["real_failures"], 2.0);
+    assert_eq!(peer["real_failures_unreported"], 1.0);
+    assert_eq!(peer["failures_reported"], 1.0);
+}
