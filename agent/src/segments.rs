@@ -115,3 +115,80 @@ pub struct TrackingReport {
     pub confidence_median: Option<f64>,
     pub confidence_min: Option<f64>,
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mapper::KeyframeKind;
+    use nalgebra::Isometry3;
+    use registration::odometry::{JoinEvidence, Placement};
+
+    fn keyframe(index: usize) -> (Frame, Tracked, KeyframeDecision) {
+        let dataset = datasets::open(
+            "synthetic:agents=1,frames=3,width=32,height=24",
+            Default::default(),
+        )
+        .unwrap();
+        let frame = dataset.load(index % 3).unwrap();
+        let mut odometry = registration::Odometry::new(
+            registration::OdometryMode::FrameToModel,
+            &Default::default(),
+            &Default::default(),
+        );
+        let local = odometry.track(registration::FrameInput {
+            timestamp_s: frame.timestamp,
+            depth: &frame.depth,
+            rgb: Some(&frame.rgb),
+            intrinsics: &frame.intrinsics,
+        });
+        let tracked = Tracked {
+            local: registration::TrackedFrame {
+                placement: Placement::Unjoined(1),
+                ..local
+            },
+            world_from_camera: Isometry3::identity(),
+            odometry_from_camera: Isometry3::identity(),
+            usable: true,
+        };
+        let decision = KeyframeDecision {
+            kind: KeyframeKind::Tracking,
+            seed_mask: Vec::new(),
+        };
+        (frame, tracked, decision)
+    }
+
+    fn join(segment: SegmentId) -> SegmentJoin {
+        SegmentJoin {
+            segment,
+            root_from_segment: Isometry3::identity(),
+            evidence: JoinEvidence::KeyframeAlignment,
+        }
+    }
+
+    #[test]
+    fn a_joined_segment_releases_its_keyframes_in_order_and_others_are_dropped() {
+        let mut pending = PendingKeyframes::new(2);
+        for index in 0..3 {
+            let (frame, tracked, decision) = keyframe(index);
+            pending.hold(1, frame, tracked, decision);
+        }
+        // Full at 2: the oldest went.
+        assert_eq!((pending.len(), pending.dropped), (2, 1));
+        let released = pending.release(&join(1));
+        let indices: Vec<usize> = released.iter().map(|(f, _, _)| f.index).collect();
+        assert_eq!(indices, [1, 2]);
+        assert!(pending.is_empty());
+        // A newer segment gives the older one's keyframes up; a join of another segment too.
+        let (frame, tracked, decision) = keyframe(0);
+        pending.hold(2, frame, tracked, decision);
+        let (frame, tracked, decision) = keyframe(1);
+        pending.hold(3, frame, tracked, decision);
+        assert_eq!((pending.len(), pending.dropped), (1, 2));
+        assert!(pending.release(&join(2)).is_empty());
+        assert_eq!(pending.dropped, 3);
+        let (frame, tracked, decision) = keyframe(2);
+        pending.hold(4, frame, tracked, decision);
+        pending.give_up();
+        assert_eq!((pending.len(), pending.dropped), (0, 4));
+    }
+}
