@@ -58,6 +58,8 @@ export MAC_EGO3D_SHARED="${MAC_EGO3D_SHARED:-$repo_root/../shared}"
 required=(
   datasets/7scenes-redkitchen/camera-intrinsics.txt
   datasets/7scenes-redkitchen/groundtruth_tum.txt
+  datasets/tum-fr1-rpy/groundtruth.txt
+  datasets/tum-fr1-rpy/camera-distortion.txt
   weights/lpips/alexnet.npz
   weights/lpips/imgs/ex_ref.png
   reference/tum-trajectories/freiburg1_xyz-groundtruth.txt

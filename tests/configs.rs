@@ -60,6 +60,7 @@ fn every_config_loads_and_is_documented() {
         "scenarios/swarm-2-agents.toml",
         "scenarios/swarm-3-agents.toml",
         "scenarios/swarm-4-agents.toml",
+        "scenarios/fast-motion.toml",
     ] {
         assert!(
             names.iter().any(|n| n == expected),
