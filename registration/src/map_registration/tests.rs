@@ -484,14 +484,18 @@ fn the_configuration_is_validated() {
         config.validate().unwrap_err().0,
         "consensus.map_registration.refine_distances_voxels"
     );
-    let mut config = MapRegistrationConfig::default();
-    config.max_ambiguity_ratio = 1.5;
+    let config = MapRegistrationConfig {
+        max_ambiguity_ratio: 1.5,
+        ..Default::default()
+    };
     assert_eq!(
         config.validate().unwrap_err().0,
         "consensus.map_registration.max_ambiguity_ratio"
     );
-    let mut config = MapRegistrationConfig::default();
-    config.voxel_m = 0.0;
+    let config = MapRegistrationConfig {
+        voxel_m: 0.0,
+        ..Default::default()
+    };
     assert_eq!(
         config.validate().unwrap_err().0,
         "consensus.map_registration.voxel_m"

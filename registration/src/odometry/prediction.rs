@@ -31,22 +31,13 @@ impl InitialGuess {
 }
 
 /// The constant-velocity model: the motion of the last tracked step and the time it took.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct ConstantVelocity {
     /// `previous_from_current` of the last tracked step.
     pub motion: Isometry3<f64>,
     /// Seconds the motion took; `None` before two tracked frames or when their timestamps did
     /// not increase (the motion is then taken as per frame).
     pub span_s: Option<f64>,
-}
-
-impl Default for ConstantVelocity {
-    fn default() -> Self {
-        Self {
-            motion: Isometry3::identity(),
-            span_s: None,
-        }
-    }
 }
 
 impl ConstantVelocity {

@@ -21,6 +21,8 @@
 //! best passing one (most of the frame on the map, then the depth agreement) wins, the result of
 //! the ordinary path included. A stage is only run when the cheaper ones found no passing pose.
 
+use std::borrow::Cow;
+
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
 use image::RgbImage;
@@ -223,15 +225,16 @@ pub fn choose(candidates: Vec<Candidate>, tracking: &TrackingConfig) -> Option<C
         .or_else(|| candidates.first().cloned())
 }
 
-/// Every `step`-th point of `cloud` with its covariance (no pixels, no grid).
-fn every_nth(cloud: &PointCloud, step: usize) -> PointCloud {
+/// Every `step`-th point of `cloud` with its covariance (no pixels, no grid); the cloud itself
+/// for a step of 1.
+fn every_nth(cloud: &PointCloud, step: usize) -> Cow<'_, PointCloud> {
     if step <= 1 {
-        return cloud.clone();
+        return Cow::Borrowed(cloud);
     }
-    PointCloud {
+    Cow::Owned(PointCloud {
         positions: cloud.positions.iter().step_by(step).copied().collect(),
         covariances: cloud.covariances.iter().step_by(step).copied().collect(),
         pixels: Vec::new(),
         grid: None,
-    }
+    })
 }
