@@ -19,8 +19,8 @@
 //! analytic backward pass.
 
 use crate::types::{
-    Camera, GaussianCloud, RasterConfig,
-    RenderMode, RenderOutput, constants, depth_sort_key, rotation_from_quaternion_f64,
+    Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput, constants, depth_sort_key,
+    rotation_from_quaternion_f64,
 };
 
 mod backward;
