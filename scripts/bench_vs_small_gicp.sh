@@ -82,9 +82,8 @@ json="${json:-$out/summary.json}"
 python="$(scripts/peers_venv.sh)" || exit $?
 
 # --- our binary ------------------------------------------------------------------------------
-echo "[vs-small_gicp] building mac-ego3d (release; up to date unless the sources changed)" >&2
-cargo build --release --quiet -p mac-ego3d --bin mac-ego3d
-bin="${CARGO_TARGET_DIR:-target}/release/mac-ego3d"
+echo "[vs-small_gicp] building (scripts/build.sh: the tests' profile unless MAC_EGO3D_PROFILE says)" >&2
+bin="$(bash scripts/build.sh)/mac-ego3d"
 
 export RAYON_NUM_THREADS="$threads" OMP_NUM_THREADS="$threads" OMP_WAIT_POLICY="$omp_wait_policy"
 load_before="$(cut -d' ' -f1-3 /proc/loadavg 2>/dev/null || echo unknown)"

@@ -235,6 +235,23 @@ impl LinkSchedule {
             .collect()
     }
 
+    /// Every agent's windows in a swarm of `agents`, and the ids in the file that swarm does
+    /// not have (`mac-agent --check-link-schedule`, `mac-ego3d swarm --link-schedule`).
+    pub fn describe(&self, agents: u32) -> String {
+        let mut text = format!(
+            "link schedule {} (queue bound {:.0} MiB per agent)\n",
+            self.path().display(),
+            self.queue_limit_bytes() as f64 / (1024.0 * 1024.0)
+        );
+        for agent_id in 0..agents {
+            text += &format!("  agent {agent_id}: {}\n", self.windows(agent_id));
+        }
+        for agent_id in self.agents_outside(agents) {
+            text += &format!("  agent {agent_id}: not in this swarm of {agents} agents: ignored\n");
+        }
+        text
+    }
+
     /// The link plan of one agent whose clock started at `started`.
     pub fn plan(&self, agent_id: u32, started: Instant) -> LinkPlan {
         LinkPlan {

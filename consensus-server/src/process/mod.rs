@@ -39,7 +39,8 @@ use crate::store::{Opened, RunIdentity, Store};
 use main_thread::Listener;
 pub use outputs::{AgentRecord, ConsensusReport, PairAttempts, agent_trajectory_path};
 use outputs::{OutputKind, WorldMap, refine_world_map, write_outputs};
-use worker::{ProgressStage, WorkerHandle, write_progress};
+pub use worker::{ConsensusProgress, PROGRESS_FILE_NAME, ProgressStage};
+use worker::{WorkerHandle, write_progress};
 
 /// What to run and where to write.
 #[derive(Debug, Clone)]

@@ -15,13 +15,16 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use clap::Args;
+use datasets::DatasetSpec;
 use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use checks::{RunChecks, check_run};
-use swarm::{Role, Swarm, SwarmSetup};
+use swarm::SwarmSetup;
+
+use crate::cmd::swarm::supervisor::{Role, Supervisor};
 
 use crate::cmd::eval::swarm::{SwarmArgs, swarm_metrics};
 use crate::cmd::{fmt_num, print_json};
@@ -119,7 +122,12 @@ pub fn run(args: &ChaosArgs) -> anyhow::Result<()> {
         config: run_config.clone(),
         out: args.out.join(name),
         namespace: format!("chaos{}{name}", std::process::id()),
-        datasets: (0..args.agents).map(|k| dataset(args, k)).collect(),
+        datasets: (0..args.agents)
+            .map(|k| DatasetSpec {
+                dataset: dataset(args, k),
+                frames: datasets::FrameRange::ALL,
+            })
+            .collect(),
     };
     let timeout = Duration::from_secs(1800);
 
@@ -127,8 +135,8 @@ pub fn run(args: &ChaosArgs) -> anyhow::Result<()> {
         "[chaos] reference run (no kills) in {}",
         args.out.join("reference").display()
     );
-    let mut reference = Swarm::start(setup("reference"))?;
-    let first_agent_ended = reference.wait_all(timeout)?;
+    let mut reference = swarm::start(setup("reference"))?;
+    let first_agent_ended = swarm::wait_all(&mut reference, timeout)?;
     drop(reference);
     // Kills after the agents are done would find nothing to kill: on a fast machine the window
     // shrinks to 80 % of the time the reference's first agent took.
@@ -145,14 +153,14 @@ pub fn run(args: &ChaosArgs) -> anyhow::Result<()> {
         args.out.join("killed").display()
     );
     let plan = kill_plan(args, window);
-    let mut swarm = Swarm::start(setup("killed"))?;
+    let mut killed = swarm::start(setup("killed"))?;
     let kills = execute(
-        &mut swarm,
+        &mut killed,
         plan,
         Duration::from_secs_f64(args.restart_after),
     )?;
-    swarm.wait_all(timeout)?;
-    drop(swarm);
+    swarm::wait_all(&mut killed, timeout)?;
+    drop(killed);
 
     let evaluate = |name: &str| -> anyhow::Result<RunChecks> {
         let dir = args.out.join(name);
@@ -212,7 +220,7 @@ fn kill_plan(args: &ChaosArgs, window: f64) -> Vec<(f64, Role)> {
 /// Carries out `plan`: at each time, SIGKILL the target if it runs and start it again after
 /// `restart_after`.
 fn execute(
-    swarm: &mut Swarm,
+    swarm: &mut Supervisor,
     plan: Vec<(f64, Role)>,
     restart_after: Duration,
 ) -> anyhow::Result<Vec<Kill>> {
@@ -220,9 +228,10 @@ fn execute(
     let mut kills = Vec::new();
     for (at_s, target) in plan {
         while started.elapsed().as_secs_f64() < at_s {
-            swarm.reap()?;
+            swarm::reap(swarm)?;
             std::thread::sleep(Duration::from_millis(50));
         }
+        swarm::reap(swarm)?;
         let killed = swarm.kill(target)?;
         eprintln!(
             "[chaos] {:>6.1} s: {target} {}",
