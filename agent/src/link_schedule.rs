@@ -377,6 +377,13 @@ impl<T> BoundedQueue<T> {
         self.pop_front_with_bytes().map(|(item, _)| item)
     }
 
+    /// Puts back at the head an item just taken with [`Self::pop_front`] (one whose delivery
+    /// failed): nothing is dropped for it, the bound holds again once it goes out.
+    pub fn push_front(&mut self, item: T, bytes: u64) {
+        self.items.push_front((item, bytes));
+        self.bytes += bytes;
+    }
+
     fn pop_front_with_bytes(&mut self) -> Option<(T, u64)> {
         let (item, bytes) = self.items.pop_front()?;
         self.bytes -= bytes;

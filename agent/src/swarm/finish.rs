@@ -49,6 +49,11 @@ impl SwarmLink {
         self.publish_latest();
         self.deliver_described(true, true);
         self.flush_queue(true);
+        // A consensus that was killed and resumed meanwhile (or lost messages) says what it
+        // lacks: it gets that before the final map and the goodbye, or it would end the run
+        // without keyframes this agent delivered to its previous process.
+        self.answer_control_messages();
+        self.flush_queue(true);
         if !self.queue.is_empty() {
             tracing::warn!(
                 keyframes = self.queue.len(),

@@ -69,7 +69,8 @@ pub struct PublishableKeyframe {
 /// What the swarm link did, for metrics.json.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct SwarmSummary {
-    /// Keyframes delivered (those published again on request included).
+    /// Keyframes delivered, each counted once (`keyframes_resent` counts those published
+    /// again).
     pub keyframes_published: usize,
     pub send_failures: usize,
     pub corrections_received: usize,
@@ -90,7 +91,7 @@ pub struct SwarmSummary {
     pub undelivered_at_end: usize,
     /// The consensus's requests to publish a keyframe again (it arrived incomplete there).
     pub resend_requests: usize,
-    /// Keyframes published again on request.
+    /// Keyframes published again: on request, or after the consensus resumed or lost messages.
     pub keyframes_resent: usize,
     /// Requests for keyframes this agent no longer held (`[consensus.resend] agent_keeps`).
     pub resend_unavailable: usize,
@@ -162,7 +163,14 @@ pub struct SwarmLink {
     spool_limit_bytes: u64,
     /// Keyframes the consensus confirmed it stored (named in a correction or a resume).
     confirmed: BTreeSet<u64>,
+    /// After a failed send, queued keyframes wait until then (see [`SEND_RETRY_AFTER`]).
+    retry_sends_at: Option<Instant>,
 }
+
+/// How long sends wait after one failed (a queue that stayed full, a consensus gone): every
+/// failed send costs the transport's full-queue or delivery timeout, which tracking must not pay
+/// at every frame.
+const SEND_RETRY_AFTER: std::time::Duration = std::time::Duration::from_secs(1);
 
 impl SwarmLink {
     /// Opens this agent's services (a second live agent with the same id is refused here). The
@@ -212,6 +220,7 @@ impl SwarmLink {
             spool: None,
             spool_limit_bytes: config.consensus.resend.agent_spool_bytes,
             confirmed: BTreeSet::new(),
+            retry_sends_at: None,
         })
     }
 

@@ -309,3 +309,43 @@ fn keyframes_beyond_those_in_memory_are_spooled_until_confirmed_and_none_is_unre
     assert_eq!(summary.spool_failures, 0);
     assert!(summary.keyframes_spooled >= 3);
 }
+
+/// A keyframe whose send fails (its consensus died) is not dropped: it waits in the queue and
+/// goes out whole to the consensus that comes back, counted once as published.
+#[test]
+fn a_keyframe_whose_send_fails_goes_out_to_the_consensus_that_comes_back() {
+    let mut transport =
+        TransportConfig::with_namespace(format!("failed-send-{}", std::process::id()));
+    transport.delivery_timeout = Duration::from_millis(300);
+    let consumer = protocol::transport::ConsumerLink::open(&transport).unwrap();
+    let mut config = Config::default();
+    config.consensus.t_comm = 1;
+    let mut swarm = SwarmLink::connect(0, &transport, &config, LinkPlan::always_up()).unwrap();
+    let intrinsics = Intrinsics::new(40.0, 40.0, 16.0, 12.0, 32, 24);
+    swarm.announce(&intrinsics, run_anchor("synthetic", 0, 0.0));
+    drop(consumer);
+
+    swarm.on_keyframe(small_keyframe(3, intrinsics));
+    after_frame(&mut swarm);
+    assert_eq!(swarm.summary().send_failures, 1);
+    assert!(swarm.summary().keyframes_published_ids.is_empty());
+    assert_eq!(swarm.status().queued_keyframes, 1, "queued, not dropped");
+
+    let mut consumer = protocol::transport::ConsumerLink::open(&transport).unwrap();
+    // The agent looks for its consensus once a second, and waits as long after a failure.
+    std::thread::sleep(Duration::from_millis(1200));
+    after_frame(&mut swarm);
+    let received = received_keyframes(&mut consumer);
+    assert_eq!(received.ids(), (vec![3], vec![3], vec![3]));
+    let summary = swarm.summary();
+    assert_eq!(summary.keyframes_published, 1);
+    assert_eq!(
+        summary
+            .keyframes_published_ids
+            .iter()
+            .copied()
+            .collect::<Vec<_>>(),
+        [3]
+    );
+    assert_eq!(swarm.status().queued_keyframes, 0);
+}

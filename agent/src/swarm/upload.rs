@@ -2,14 +2,17 @@
 //! once described it is sent (or queued behind what waits for the link); a delivered keyframe
 //! is kept for re-sends, the newest in memory, older unconfirmed ones in the spool.
 
+use std::time::Instant;
+
 use anyhow::Context;
 use protocol::convert::{gaussian_record, rgbd_pixel};
 use protocol::messages::CoordinateFrame;
+use protocol::transport::TransportError;
 
 use crate::describer::Described;
 
 use super::wire::{WireKeyframe, prepare};
-use super::{PublishableKeyframe, SwarmLink};
+use super::{PublishableKeyframe, SEND_RETRY_AFTER, SwarmLink};
 
 impl SwarmLink {
     /// Remembers the latest keyframe; it goes out at the next publication. The Gaussians seeded
@@ -83,37 +86,66 @@ impl SwarmLink {
     }
 
     /// Sends a keyframe now when nothing it must not overtake waits (the hello, queued
-    /// keyframes) and the link is up; otherwise queues it behind them.
+    /// keyframes, a failed send's back-off) and the link is up; otherwise queues it behind them.
+    /// A keyframe whose send fails is queued too: it goes out again once the consensus takes
+    /// messages (never dropped for a failed send).
     pub(super) fn send_or_enqueue(&mut self, wire: WireKeyframe, link_up: bool) {
-        if link_up && self.queue.is_empty() && self.pending_hello.is_none() {
-            self.send_now(wire);
+        if link_up && self.queue.is_empty() && self.pending_hello.is_none() && !self.backing_off() {
+            if let Some(undelivered) = self.send_now(wire) {
+                self.enqueue(undelivered);
+            }
         } else {
             self.enqueue(wire);
         }
     }
 
-    /// Sends a keyframe's messages; a delivered keyframe is kept for resend requests.
-    pub(super) fn send_now(&mut self, wire: WireKeyframe) -> bool {
-        match self.send(&wire) {
+    /// Whether sends wait after a failure (see [`SEND_RETRY_AFTER`]).
+    pub(super) fn backing_off(&self) -> bool {
+        self.retry_sends_at.is_some_and(|at| Instant::now() < at)
+    }
+
+    /// Sends a keyframe's messages; a delivered keyframe is kept for resend requests. A
+    /// keyframe that did not get through (the consensus gone, a queue that stayed full) is
+    /// returned for the caller to queue, and sends wait [`SEND_RETRY_AFTER`]: a consensus that is
+    /// killed after taking part of it, or before storing it, gets it whole again. One the
+    /// transport refuses as invalid could never be delivered: it is dropped, counted and logged.
+    pub(super) fn send_now(&mut self, wire: WireKeyframe) -> Option<WireKeyframe> {
+        let error = match self.send(&wire) {
             Ok(()) => {
-                self.summary.keyframes_published += 1;
-                self.summary
+                let first_delivery = self
+                    .summary
                     .keyframes_published_ids
                     .insert(wire.descriptor.keyframe_id);
+                if first_delivery {
+                    self.summary.keyframes_published += 1;
+                }
                 self.keep_for_resend(wire);
-                true
+                self.retry_sends_at = None;
+                return None;
             }
-            Err(error) => {
-                self.summary.send_failures += 1;
-                tracing::warn!(
-                    keyframe = wire.descriptor.keyframe_id,
-                    error = %format!("{error:#}"),
-                    "keyframe not published"
-                );
-                self.recheck_presence();
-                false
+            Err(error) => error,
+        };
+        self.summary.send_failures += 1;
+        let invalid = matches!(
+            error.downcast_ref::<TransportError>(),
+            Some(TransportError::InvalidMessage { .. })
+        );
+        tracing::warn!(
+            keyframe = wire.descriptor.keyframe_id,
+            error = %format!("{error:#}"),
+            "{}",
+            if invalid {
+                "keyframe not published: refused as invalid"
+            } else {
+                "keyframe not delivered: queued to go out again"
             }
+        );
+        self.recheck_presence();
+        if invalid {
+            return None;
         }
+        self.retry_sends_at = Some(Instant::now() + SEND_RETRY_AFTER);
+        Some(wire)
     }
 
     pub(super) fn enqueue(&mut self, wire: WireKeyframe) {
@@ -121,10 +153,17 @@ impl SwarmLink {
         let bytes = wire.bytes();
         self.summary.link.keyframes_queued += 1;
         for (dropped, dropped_bytes) in self.queue.push(wire, bytes) {
+            let id = dropped.descriptor.keyframe_id;
+            if self.summary.keyframes_published_ids.contains(&id) {
+                // Delivered once and queued to go out again: the spool keeps it for the
+                // consensus's requests, as any delivered keyframe it has not confirmed.
+                self.spool_unless_confirmed(&dropped);
+                continue;
+            }
             self.summary.link.keyframes_dropped_queue_full += 1;
             self.summary.link.bytes_dropped_queue_full += dropped_bytes;
             tracing::warn!(
-                dropped_keyframe = dropped.descriptor.keyframe_id,
+                dropped_keyframe = id,
                 limit_bytes = self.plan.queue_limit_bytes,
                 dropped_total = self.summary.link.keyframes_dropped_queue_full,
                 "link queue full: oldest queued keyframe dropped"
@@ -139,9 +178,13 @@ impl SwarmLink {
         );
     }
 
-    /// Delivers the pending hello and every queued keyframe, oldest first. `despite_schedule`:
-    /// the end of the run, which delivers whatever the schedule says.
+    /// Delivers the pending hello and every queued keyframe, oldest first, until a send fails
+    /// (that keyframe stays at the head). `despite_schedule`: the end of the run, which delivers
+    /// whatever the schedule and a failed send's back-off say.
     pub(super) fn flush_queue(&mut self, despite_schedule: bool) {
+        if !despite_schedule && self.backing_off() {
+            return;
+        }
         if !self.deliver_pending_hello() {
             // Nothing may overtake the hello; it is tried again after the next frame.
             return;
@@ -151,8 +194,18 @@ impl SwarmLink {
             && let Some(wire) = self.queue.pop_front()
         {
             let waited_s = wire.due.elapsed().as_secs_f64();
-            if self.send_now(wire) {
-                self.summary.link.delivered_late(waited_s, with_link_down);
+            let failures = self.summary.send_failures;
+            match self.send_now(wire) {
+                None if self.summary.send_failures == failures => {
+                    self.summary.link.delivered_late(waited_s, with_link_down)
+                }
+                // Refused as invalid: dropped and counted.
+                None => {}
+                Some(undelivered) => {
+                    let bytes = undelivered.bytes();
+                    self.queue.push_front(undelivered, bytes);
+                    break;
+                }
             }
         }
     }

@@ -18,6 +18,8 @@ pub struct SwarmSetup {
     pub namespace: String,
     /// One dataset spec per agent.
     pub datasets: Vec<DatasetSpec>,
+    /// The consensus runs with its fault injection (`--fault-injection`).
+    pub fault_injection: bool,
 }
 
 /// Starts the consensus (a new run: `--fresh`) and every agent.
@@ -36,7 +38,11 @@ pub fn start(setup: SwarmSetup) -> anyhow::Result<Supervisor> {
         agent_args: ["--eval-every", "10", "--renders", "0"]
             .map(Into::into)
             .to_vec(),
-        consensus_args: Vec::new(),
+        consensus_args: if setup.fault_injection {
+            vec!["--fault-injection".into()]
+        } else {
+            Vec::new()
+        },
         hosts: None,
     })
 }
