@@ -89,7 +89,7 @@ for name in "${names[@]}"; do
       timeout "$timeout_s" "$bin_dir/mac-ego3d" bench render --gaussians "$gaussians" --json \
         >"$out/render.json" 2>"$out/render/render.log" || rc=$? ;;
     swarm_sensor)
-      timeout "$timeout_s" bash scripts/launch_swarm.sh --bin-dir "$bin_dir" --config "$config" \
+      timeout "$timeout_s" "$bin_dir/mac-ego3d" swarm --bin-dir "$bin_dir" --config "$config" \
         "${swarm_agents[@]}" "${full_resolution[@]}" "${weight_args[@]}" --out "$out/$name" \
         >"$out/$name/launch.log" 2>&1 || rc=$? ;;
     agent_sensor)
@@ -98,7 +98,7 @@ for name in "${names[@]}"; do
           --frames "0..$end" --standalone --pace sensor "${weight_args[@]}" --out "$out/$name"; } \
         >"$out/$name/agent.log" 2>&1 || rc=$? ;;
     swarm_paced)
-      timeout "$timeout_s" bash scripts/launch_swarm.sh --bin-dir "$bin_dir" --config "$config" \
+      timeout "$timeout_s" "$bin_dir/mac-ego3d" swarm --bin-dir "$bin_dir" --config "$config" \
         "${swarm_agents[@]}" "${full_resolution[@]}" --set mapping.pace=paced \
         --set keyframes.tracking_keyframe_seeds=all "${weight_args[@]}" --out "$out/$name" \
         >"$out/$name/launch.log" 2>&1 || rc=$? ;;

@@ -5,7 +5,7 @@
 #
 #   scripts/bench_live_view.sh [--frames 200] [--repeats 3] [--config configs/synthetic.toml] [--out DIR]
 #
-# Binaries: target/$MAC_EGO3D_PROFILE (default release), built first.
+# Binaries: the workspace's one build (scripts/build.sh; MAC_EGO3D_PROFILE picks another profile).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/vulkan_env.sh
@@ -14,7 +14,6 @@ frames=200
 repeats=3
 config=configs/synthetic.toml
 out=out/bench_live_view
-profile="${MAC_EGO3D_PROFILE:-release}"
 while (($#)); do
   case "$1" in
     --frames) frames="$2"; shift 2 ;;
@@ -25,10 +24,7 @@ while (($#)); do
     *) echo "[bench] unknown argument: $1" >&2; exit 2 ;;
   esac
 done
-build_args=(-p mac-agent --bins)
-[[ "$profile" == release ]] && build_args+=(--release)
-cargo build "${build_args[@]}"
-bin="${CARGO_TARGET_DIR:-target}/$profile/mac-agent"
+bin="$(bash scripts/build.sh)/mac-agent"
 if [[ "${XDG_RUNTIME_DIR:-}" != /* ]]; then
   XDG_RUNTIME_DIR="$(mktemp -d)"
   export XDG_RUNTIME_DIR

@@ -109,9 +109,8 @@ IFS=, read -r -a names <<<"$rows"
 for name in "${names[@]}"; do overrides_of "$name" >/dev/null; done
 
 if [[ -z "$bin_dir" ]]; then
-  echo "[map-levers] building (release)" >&2
-  cargo build --release --quiet -p mac-ego3d --bin mac-ego3d -p mac-agent --bin mac-agent
-  bin_dir=target/release
+  echo "[map-levers] building (scripts/build.sh: the tests' profile unless MAC_EGO3D_PROFILE says)" >&2
+  bin_dir="$(bash scripts/build.sh)"
 fi
 for binary in mac-ego3d mac-agent; do
   [[ -x "$bin_dir/$binary" ]] || fail "$bin_dir/$binary is missing" 2

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Runs the swarm once per communication interval T_comm and tabulates the figures.
 #
-#   scripts/bench_tcomm.sh [--values 15,30,60,120,240] [launch_swarm.sh agent options] --out DIR
+#   scripts/bench_tcomm.sh [--values 15,30,60,120,240] [mac-ego3d swarm options] --out DIR
 #
-# Every option other than --values and --out goes to scripts/launch_swarm.sh (--config, --agents,
+# Every option other than --values and --out goes to `mac-ego3d swarm` (--config, --agents,
 # --agent DATASET[:FIRST..END], --noise, --frames, ...). Each run lands in DIR/tcomm_K/; the table
 # is DIR/tcomm.csv with columns t_comm, ate_joint_rmse_m, psnr, bytes_per_agent_per_s (mean over
 # agents), consensus_latency_ms_median, fps_per_agent_mean, loop_closures_accepted, and
@@ -12,7 +12,6 @@
 # DIR/tcomm.png plots every column against T_comm (`mac-ego3d plot tcomm`; empty cells are gaps).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-source scripts/vulkan_env.sh
 
 values=15,30,60,120,240
 out=""
@@ -26,6 +25,10 @@ while (($#)); do
   esac
 done
 [[ -n "$out" ]] || { echo "[tcomm] --out DIR is required" >&2; exit 2; }
+# Set-up and the one build, once for every run (scripts/build.sh: the tests' profile).
+bash scripts/setup.sh
+bin="$(bash scripts/build.sh)"
+source scripts/vulkan_env.sh
 mkdir -p "$out"
 csv="$out/tcomm.csv"
 echo "t_comm,ate_joint_rmse_m,psnr,bytes_per_agent_per_s,consensus_latency_ms_median,fps_per_agent_mean,loop_closures_accepted,agents_not_linked" >"$csv"
@@ -36,7 +39,7 @@ for t in "${list[@]}"; do
   [[ "$t" =~ ^[0-9]+$ && "$t" -gt 0 ]] || { echo "[tcomm] --values: $t is not a positive integer" >&2; exit 2; }
   run="$out/tcomm_$t"
   echo "[tcomm] T_comm = $t -> $run"
-  if ! bash scripts/launch_swarm.sh "${passthrough[@]}" --tcomm "$t" --out "$run"; then
+  if ! "$bin/mac-ego3d" swarm "${passthrough[@]}" --tcomm "$t" --out "$run"; then
     echo "[tcomm] the run with T_comm = $t failed; see $run" >&2
     failed=1
     continue
@@ -65,10 +68,9 @@ EOF
 done
 echo "[tcomm] table: $csv"
 column -s, -t <"$csv" 2>/dev/null || cat "$csv"
-# launch_swarm.sh built the binaries; MAC_EGO3D_PROFILE picks the same build as it did.
 plot="$out/tcomm.png"
 if (($(wc -l <"$csv") > 1)); then
-  if "${CARGO_TARGET_DIR:-target}/${MAC_EGO3D_PROFILE:-release}/mac-ego3d" plot tcomm --csv "$csv" --out "$plot"; then
+  if "$bin/mac-ego3d" plot tcomm --csv "$csv" --out "$plot"; then
     echo "[tcomm] plots: $plot"
   else
     echo "[tcomm] plotting $csv failed" >&2

@@ -28,7 +28,7 @@
 # small_gicp and numpy come from the peers' virtual environment (scripts/peers_venv.sh: pinned,
 # hash-checked PyPI wheels, outside the repository). Without PyPI the script says so and exits 3.
 # Dataset: $MAC_EGO3D_SHARED (default ../shared). --bin names a built mac-ego3d to time (default:
-# build the release one).
+# scripts/build.sh's build).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/vulkan_env.sh
@@ -95,9 +95,8 @@ python="$(scripts/peers_venv.sh)" || exit $?
 
 # --- our binary ------------------------------------------------------------------------------
 if [[ -z "$bin" ]]; then
-  echo "[vs-small_gicp] building mac-ego3d (release; up to date unless the sources changed)" >&2
-  cargo build --release --quiet -p mac-ego3d --bin mac-ego3d
-  bin="${CARGO_TARGET_DIR:-target}/release/mac-ego3d"
+  echo "[vs-small_gicp] building (scripts/build.sh: the tests' profile unless MAC_EGO3D_PROFILE says)" >&2
+  bin="$(bash scripts/build.sh)/mac-ego3d"
 fi
 [[ -x "$bin" ]] || fail "--bin $bin: not an executable" 2
 

@@ -11,8 +11,8 @@ bash scripts/setup.sh
 
 # Headless Vulkan (lavapipe, through libwayland) prints "error: XDG_RUNTIME_DIR is invalid or not
 # set in the environment." in every process that opens a device when the variable is unset: a
-# private, empty runtime folder for the tests and the processes they start silences it (as in
-# scripts/launch_swarm.sh).
+# private, empty runtime folder for the test binaries silences it (the workspace's own binaries
+# make one themselves, config::process::provide_runtime_dir).
 if [[ "${XDG_RUNTIME_DIR:-}" != /* ]]; then
   XDG_RUNTIME_DIR="$(mktemp -d "${TMPDIR:-/tmp}/mac-ego3d-runtime.XXXXXX")"
   export XDG_RUNTIME_DIR

@@ -2,7 +2,8 @@
 //!
 //! Subcommands: `synth` writes the embedded synthetic multi-agent dataset, `dataset info`
 //! describes a dataset, `eval` computes metrics (ATE, PSNR/SSIM, LPIPS, depth L1), `bench`
-//! measures reader throughput and metric timings, `plot tcomm` draws the T_comm benchmark, `config` resolves a run's configuration.
+//! measures reader throughput and metric timings, `plot tcomm` draws the T_comm benchmark, `config` resolves a run's configuration, `swarm` runs
+//! and supervises a whole swarm, `chaos` soaks one under crashes.
 //! `eval swarm` also writes the run's report.html (see `report`).
 
 mod cmd;
@@ -41,6 +42,9 @@ enum Command {
     /// Plots of benchmark tables (PNG).
     #[command(subcommand)]
     Plot(cmd::plot::PlotCommand),
+    /// Run a swarm: one consensus and N agents (each its own process), supervised, then the
+    /// run's figures (metrics.json, report.html).
+    Swarm(cmd::swarm::SwarmArgs),
     /// Soak the swarm under crashes: SIGKILL its processes at seeded random times, start them
     /// again, check nothing was lost and compare with a run without kills (table + chaos.json).
     Chaos(cmd::chaos::ChaosArgs),
@@ -57,13 +61,18 @@ fn main() -> std::process::ExitCode {
         Command::Bench(c) => cmd::bench::run(c),
         Command::Plot(c) => cmd::plot::run(c),
         Command::Config(args) => cmd::config::run(args),
+        Command::Swarm(args) => cmd::swarm::run(args),
         Command::Chaos(args) => cmd::chaos::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
-            std::process::ExitCode::FAILURE
+            if e.downcast_ref::<cmd::UsageError>().is_some() {
+                std::process::ExitCode::from(2)
+            } else {
+                std::process::ExitCode::FAILURE
+            }
         }
     }
 }

@@ -1,5 +1,7 @@
 //! The chaos soak in its short form: 2 agents on a small synthetic scene, each agent and the
-//! consensus SIGKILLed twice at seeded random times and started again; `mac-ego3d chaos` checks
+//! consensus SIGKILLed twice at seeded random times and started again, and the consensus killed
+//! twice more while storing a keyframe (before its commit, and after it before the consensus
+//! acted on it); `mac-ego3d chaos` checks
 //! that every keyframe the agents delivered is in the final consensus state and that the outputs
 //! are complete, and compares with the same swarm without kills. The long form is documented in
 //! the README.
@@ -48,6 +50,7 @@ fn real_data_chaos_soak_short_form_loses_no_keyframe() {
         .args(["--agents", "2", "--frames", &FRAMES.to_string()])
         .args(["--width", "320", "--height", "240"])
         .args(["--seed", SEED, "--kills-each", "2", "--window", WINDOW_S])
+        .args(["--store-crashes", "2"])
         .args(["--render-every", "0", "--json"])
         .arg("--binaries")
         .arg(common::workspace_binary("mac-agent").parent().unwrap())
@@ -78,6 +81,10 @@ fn real_data_chaos_soak_short_form_loses_no_keyframe() {
     {
         assert!(kills >= 2, "{process} killed {kills} times");
     }
+    assert_eq!(
+        report["store_crashes"], 2,
+        "deaths while storing a keyframe"
+    );
     let chaos = &report["chaos"];
     assert!(chaos["keyframes_delivered"].as_u64().unwrap() > 0);
     assert_eq!(

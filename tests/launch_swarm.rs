@@ -1,10 +1,12 @@
-//! scripts/launch_swarm.sh as a user runs it from a terminal. A terminal's Ctrl-C sends SIGINT to
-//! the whole foreground process group at once; the run must still end in order (the agents
-//! finish their frame and write their outputs, then the consensus writes the world outputs from
-//! them) and leave a complete result.
+//! `mac-ego3d swarm` (the launcher scripts/launch_swarm.sh and scripts/run.sh run) as a user
+//! runs it from a terminal. A terminal's Ctrl-C sends SIGINT to the whole foreground process
+//! group at once; the run must still end in order (the agents finish their frame and write their
+//! outputs, then the consensus writes the world outputs from them) and leave a complete result.
+//! A consensus killed mid-run is started again on its store, and a wrong option is refused
+//! before anything starts.
 
 use std::os::unix::process::CommandExt;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, ExitStatus};
 use std::time::{Duration, Instant};
 
@@ -14,29 +16,10 @@ const FRAMES: usize = 150;
 const INTERRUPT_AFTER_FRAMES: u64 = 40;
 const TIMEOUT: Duration = Duration::from_secs(600);
 
-/// The target folder the test binaries were built in (launch_swarm.sh finds the binaries there).
-fn target_dir() -> PathBuf {
-    Path::new(env!("CARGO_BIN_EXE_mac-ego3d"))
-        .ancestors()
-        .nth(2)
-        .expect("binaries live in <target>/<profile>/")
-        .to_path_buf()
-}
-
-/// `bash` with SIGINT at its default action, as a terminal gives its foreground job. A shell
-/// started in the background (a CI runner's job, `cmd &` in a script) passes SIGINT on ignored,
-/// and a signal ignored at a shell's start cannot be trapped: the script's Ctrl-C handling would
-/// never run.
-fn bash() -> Command {
-    let mut command = Command::new("bash");
-    // SAFETY: the closure runs between fork and exec and only calls signal(2), which is
-    // async-signal-safe.
-    unsafe {
-        command.pre_exec(|| {
-            libc::signal(libc::SIGINT, libc::SIG_DFL);
-            Ok(())
-        });
-    }
+/// `mac-ego3d swarm`, the binaries beside it (as cargo test built them).
+fn swarm() -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_mac-ego3d"));
+    command.arg("swarm");
     command
 }
 
@@ -67,14 +50,9 @@ fn lines(path: &Path) -> usize {
 
 #[test]
 fn ctrl_c_to_the_whole_process_group_leaves_every_agents_outputs_and_the_world_outputs() {
-    let repository = Path::new(env!("CARGO_MANIFEST_DIR"));
     let out = tempfile::tempdir().unwrap();
     let runtime = tempfile::tempdir().unwrap();
-    // The profile folder these binaries were built in (`debug` under `cargo test`).
-    let binaries = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
-    let profile = binaries.file_name().unwrap().to_str().unwrap();
-    let mut child = bash()
-        .arg(repository.join("scripts/launch_swarm.sh"))
+    let mut child = swarm()
         .args([
             "--agents",
             &AGENTS.to_string(),
@@ -85,10 +63,6 @@ fn ctrl_c_to_the_whole_process_group_leaves_every_agents_outputs_and_the_world_o
         ])
         .arg("--out")
         .arg(out.path())
-        .env("MAC_EGO3D_PROFILE", profile)
-        // Built as cargo test just built them: nothing to rebuild with other features.
-        .env("MAC_EGO3D_BUILD_AS_TESTS", "1")
-        .env("CARGO_TARGET_DIR", target_dir())
         .env("XDG_RUNTIME_DIR", runtime.path())
         // As a terminal's foreground job: its own process group, SIGINT at its default action.
         .process_group(0)
@@ -137,7 +111,7 @@ fn ctrl_c_to_the_whole_process_group_leaves_every_agents_outputs_and_the_world_o
             .status();
         panic!("the interrupted swarm did not end:\n{}", log())
     });
-    assert!(status.success(), "launch_swarm.sh failed:\n{}", log());
+    assert!(status.success(), "mac-ego3d swarm failed:\n{}", log());
     assert!(log().contains("interrupted"), "{}", log());
 
     let consensus: serde_json::Value =
@@ -192,26 +166,18 @@ fn consensus_pid(out: &Path) -> Option<u32> {
     })
 }
 
-/// A consensus killed mid-run (SIGKILL) is started again by launch_swarm.sh on the run folder;
+/// A consensus killed mid-run (SIGKILL) is started again by the launcher on the run folder;
 /// it resumes from its store and the run ends as one without the crash: every keyframe the
 /// agents delivered is in consensus.json, both agents placed with every pose.
 #[test]
 fn a_killed_consensus_is_restarted_and_the_run_ends_complete() {
-    let repository = Path::new(env!("CARGO_MANIFEST_DIR"));
     let out = tempfile::tempdir().unwrap();
     let runtime = tempfile::tempdir().unwrap();
-    let binaries = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
-    let profile = binaries.file_name().unwrap().to_str().unwrap();
-    let mut child = bash()
-        .arg(repository.join("scripts/launch_swarm.sh"))
+    let mut child = swarm()
         .args(["--agents", &AGENTS.to_string()])
         .args(["--frames", &FRAMES.to_string()])
         .arg("--out")
         .arg(out.path())
-        .env("MAC_EGO3D_PROFILE", profile)
-        // Built as cargo test just built them: nothing to rebuild with other features.
-        .env("MAC_EGO3D_BUILD_AS_TESTS", "1")
-        .env("CARGO_TARGET_DIR", target_dir())
         .env("XDG_RUNTIME_DIR", runtime.path())
         .process_group(0)
         .stdout(std::fs::File::create(out.path().join("launch.log")).unwrap())
@@ -258,7 +224,7 @@ fn a_killed_consensus_is_restarted_and_the_run_ends_complete() {
             .status();
         panic!("the swarm did not end:\n{}", log())
     });
-    assert!(status.success(), "launch_swarm.sh failed:\n{}", log());
+    assert!(status.success(), "mac-ego3d swarm failed:\n{}", log());
     assert!(
         log().contains("starting it again on its store"),
         "{}",
@@ -314,19 +280,11 @@ fn a_killed_consensus_is_restarted_and_the_run_ends_complete() {
 /// A wrong `--set` stops the run before any process starts, naming the key.
 #[test]
 fn a_wrong_set_override_is_refused_before_anything_starts() {
-    let repository = Path::new(env!("CARGO_MANIFEST_DIR"));
     let out = tempfile::tempdir().unwrap();
-    let binaries = Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap();
-    let profile = binaries.file_name().unwrap().to_str().unwrap();
-    let output = Command::new("bash")
-        .arg(repository.join("scripts/launch_swarm.sh"))
+    let output = swarm()
         .args(["--agents", "1", "--set", "consensus.t_comm=often"])
         .arg("--out")
         .arg(out.path())
-        .env("MAC_EGO3D_PROFILE", profile)
-        // Built as cargo test just built them: nothing to rebuild with other features.
-        .env("MAC_EGO3D_BUILD_AS_TESTS", "1")
-        .env("CARGO_TARGET_DIR", target_dir())
         .output()
         .unwrap();
     let log = String::from_utf8_lossy(&output.stderr).to_string()

@@ -1,4 +1,4 @@
-//! The synthetic swarm over zenoh (`scripts/launch_swarm.sh --transport zenoh`: the consensus
+//! The synthetic swarm over zenoh (`mac-ego3d swarm --transport zenoh`: the consensus
 //! and each agent on a simulated host of its own, joined only by their bridges over TCP on
 //! 127.0.0.1) gives the same result as over one host's iceoryx2 shared memory, and metrics.json
 //! says which transport ran and what each agent put on the network; and the IPC benchmark's
@@ -49,7 +49,7 @@ fn short_config(dir: &Path) -> PathBuf {
     path
 }
 
-/// Starts `scripts/launch_swarm.sh --transport TRANSPORT` on the synthetic scene with `extra`
+/// Starts `mac-ego3d swarm --transport TRANSPORT` on the synthetic scene with `extra`
 /// arguments; the runtime folder must outlive the run.
 fn spawn_swarm(
     agents: usize,
@@ -58,12 +58,9 @@ fn spawn_swarm(
     out: &Path,
     extra: &[&str],
 ) -> (std::process::Child, tempfile::TempDir) {
-    let repository = Path::new(env!("CARGO_MANIFEST_DIR"));
     let runtime = tempfile::tempdir().unwrap();
-    let profile = binaries().file_name().unwrap().to_str().unwrap();
-    let target = binaries().parent().unwrap();
-    let child = Command::new("bash")
-        .arg(repository.join("scripts/launch_swarm.sh"))
+    let child = Command::new(binaries().join("mac-ego3d"))
+        .arg("swarm")
         .args([
             "--agents",
             &agents.to_string(),
@@ -76,10 +73,6 @@ fn spawn_swarm(
         .arg("--out")
         .arg(out)
         .args(extra)
-        .env("MAC_EGO3D_PROFILE", profile)
-        // Built as cargo test just built them: nothing to rebuild with other features.
-        .env("MAC_EGO3D_BUILD_AS_TESTS", "1")
-        .env("CARGO_TARGET_DIR", target)
         .env("XDG_RUNTIME_DIR", runtime.path())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -93,7 +86,7 @@ fn finish_swarm(child: std::process::Child, transport: &str, out: &Path) -> serd
     let output = child.wait_with_output().unwrap();
     assert!(
         output.status.success(),
-        "launch_swarm.sh --transport {transport} failed:\n{}\n{}",
+        "mac-ego3d swarm --transport {transport} failed:\n{}\n{}",
         String::from_utf8_lossy(&output.stdout),
         String::from_utf8_lossy(&output.stderr)
     );

@@ -235,6 +235,23 @@ impl LinkSchedule {
             .collect()
     }
 
+    /// Every agent's windows in a swarm of `agents`, and the ids in the file that swarm does
+    /// not have (`mac-agent --check-link-schedule`, `mac-ego3d swarm --link-schedule`).
+    pub fn describe(&self, agents: u32) -> String {
+        let mut text = format!(
+            "link schedule {} (queue bound {:.0} MiB per agent)\n",
+            self.path().display(),
+            self.queue_limit_bytes() as f64 / (1024.0 * 1024.0)
+        );
+        for agent_id in 0..agents {
+            text += &format!("  agent {agent_id}: {}\n", self.windows(agent_id));
+        }
+        for agent_id in self.agents_outside(agents) {
+            text += &format!("  agent {agent_id}: not in this swarm of {agents} agents: ignored\n");
+        }
+        text
+    }
+
     /// The link plan of one agent whose clock started at `started`.
     pub fn plan(&self, agent_id: u32, started: Instant) -> LinkPlan {
         LinkPlan {
@@ -358,6 +375,13 @@ impl<T> BoundedQueue<T> {
 
     pub fn pop_front(&mut self) -> Option<T> {
         self.pop_front_with_bytes().map(|(item, _)| item)
+    }
+
+    /// Puts back at the head an item just taken with [`Self::pop_front`] (one whose delivery
+    /// failed): nothing is dropped for it, the bound holds again once it goes out.
+    pub fn push_front(&mut self, item: T, bytes: u64) {
+        self.items.push_front((item, bytes));
+        self.bytes += bytes;
     }
 
     fn pop_front_with_bytes(&mut self) -> Option<(T, u64)> {

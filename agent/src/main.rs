@@ -113,7 +113,7 @@ fn main() -> anyhow::Result<()> {
         None => None,
     };
     if let (Some(schedule), Some(agents)) = (&schedule, args.check_link_schedule) {
-        print!("{}", describe_schedule(schedule, agents));
+        print!("{}", schedule.describe(agents));
         return Ok(());
     }
     if schedule.is_some() && args.standalone {
@@ -224,20 +224,4 @@ fn main() -> anyhow::Result<()> {
     print!("{}", metrics_table(&metrics));
     println!("outputs in {}", options.out.display());
     Ok(())
-}
-
-/// `--check-link-schedule`: every agent's windows, and the ids the swarm does not have.
-fn describe_schedule(schedule: &LinkSchedule, agents: u32) -> String {
-    let mut text = format!(
-        "link schedule {} (queue bound {:.0} MiB per agent)\n",
-        schedule.path().display(),
-        schedule.queue_limit_bytes() as f64 / (1024.0 * 1024.0)
-    );
-    for agent_id in 0..agents {
-        text += &format!("  agent {agent_id}: {}\n", schedule.windows(agent_id));
-    }
-    for agent_id in schedule.agents_outside(agents) {
-        text += &format!("  agent {agent_id}: not in this swarm of {agents} agents: ignored\n");
-    }
-    text
 }

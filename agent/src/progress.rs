@@ -1,5 +1,5 @@
 //! `progress.json` in the agent's output directory: how far the run is, for
-//! `scripts/launch_swarm.sh`'s progress line.
+//! `mac-ego3d swarm`'s progress line.
 //!
 //! Written from the tracking loop at most every [`PROGRESS_FILE_EVERY`], so it costs one small
 //! write twice a second; atomically (a temporary file renamed over the old one), so a reader
@@ -8,7 +8,7 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// Least time between two writes of the progress file.
 pub const PROGRESS_FILE_EVERY: Duration = Duration::from_millis(500);
@@ -16,7 +16,7 @@ pub const PROGRESS_FILE_EVERY: Duration = Duration::from_millis(500);
 pub const PROGRESS_FILE_NAME: &str = "progress.json";
 
 /// What the agent is doing.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Stage {
     Tracking,
@@ -26,7 +26,7 @@ pub enum Stage {
 }
 
 /// One snapshot of progress.json.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Progress {
     pub stage: Stage,
     pub frames_done: usize,

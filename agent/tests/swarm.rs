@@ -68,6 +68,7 @@ fn spawn_consensus(
         run_id: None,
         fresh: false,
         live_view: live_view::LiveView::disabled(),
+        fault_injection: false,
     };
     std::thread::spawn(move || run(&options, &stop))
 }
@@ -313,6 +314,7 @@ fn a_stopping_consensus_stops_its_agents_and_keeps_their_final_maps() {
         run_id: None,
         fresh: false,
         live_view: live_view::LiveView::disabled(),
+        fault_injection: false,
     };
     let consensus = {
         let stop = stop.clone();

@@ -129,6 +129,8 @@ fn main() -> Result<()> {
             tracing_subscriber::EnvFilter::try_from_default_env()
                 .unwrap_or_else(|_| "info,zenoh=warn".into()),
         )
+        // Colours only on a terminal: a log redirected to a file is plain text.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_writer(std::io::stderr)
         .init();
     if let Some(theirs) = users_zenoh_runtime {

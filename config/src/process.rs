@@ -2,22 +2,59 @@
 //! logging, the stop flag raised by termination signals, and the scheduling priority of work
 //! that must yield to real-time tracking, set up the same way everywhere.
 
+use std::io::IsTerminal;
 use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
 
-/// Logs with `tracing` to stderr (stdout is for results a user or script reads), at the level
-/// `RUST_LOG` names, `info` without it.
+/// The start-up every binary makes first in `main`, before any thread runs: a runtime folder for
+/// the Vulkan loader when the environment lacks one ([`provide_runtime_dir`]), then logging with
+/// `tracing` to stderr (stdout is for results a user or script reads), at the level `RUST_LOG`
+/// names, `info` without it. Colours only on a terminal: a log redirected to a file (a swarm's
+/// `*.log`) is plain text.
 pub fn init_logging() {
+    provide_runtime_dir();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
+        .with_ansi(std::io::stderr().is_terminal())
         .with_writer(std::io::stderr)
         .init();
+}
+
+/// Mesa's Vulkan loader (libwayland, probing for a display) prints "error: XDG_RUNTIME_DIR is
+/// invalid or not set in the environment." twice in every process that opens a device when the
+/// variable is unset or not an absolute path to a folder, as on a headless machine, in a
+/// container or over plain ssh. Nothing here opens a window: a private, empty runtime folder
+/// (`$TMPDIR/mac-ego3d-runtime-UID`, mode 700, owned by this user) silences it and hides no other
+/// message; child processes inherit it. A folder of that name owned by someone else is not used
+/// (the message then stays).
+///
+/// Sets an environment variable: call it before any thread is started (as [`init_logging`]).
+pub fn provide_runtime_dir() {
+    use std::os::unix::fs::{DirBuilderExt, MetadataExt, PermissionsExt};
+    let valid = std::env::var_os("XDG_RUNTIME_DIR")
+        .map(std::path::PathBuf::from)
+        .is_some_and(|dir| dir.is_absolute() && dir.is_dir());
+    if valid {
+        return;
+    }
+    // SAFETY: getuid(2) has no preconditions and cannot fail.
+    let uid = unsafe { libc::getuid() };
+    let dir = std::env::temp_dir().join(format!("mac-ego3d-runtime-{uid}"));
+    let _ = std::fs::DirBuilder::new().mode(0o700).create(&dir);
+    let private = std::fs::symlink_metadata(&dir).is_ok_and(|meta| {
+        meta.is_dir() && meta.uid() == uid && meta.permissions().mode() & 0o777 == 0o700
+    });
+    if private {
+        // SAFETY: called at the start of `main` before any thread exists (see above), so no
+        // other thread reads or writes the environment meanwhile.
+        unsafe { std::env::set_var("XDG_RUNTIME_DIR", &dir) };
+    }
 }
 
 /// A flag raised by SIGINT or SIGTERM: long runs check it between steps, finish the current

@@ -66,6 +66,11 @@ struct Args {
     /// DIR/consensus.redb.replaced.
     #[arg(long)]
     fresh: bool,
+    /// Fault injection for `mac-ego3d chaos`: kill this process (SIGKILL) while storing a
+    /// keyframe whenever OUT/crash_while_storing exists (it names the point: before_commit or
+    /// after_commit). Never for a real run.
+    #[arg(long, hide = true)]
+    fault_injection: bool,
     #[command(flatten)]
     live_view: live_view::LiveViewArgs,
 }
@@ -95,6 +100,7 @@ fn main() -> anyhow::Result<()> {
             .transpose()?,
         run_id: args.run_id.clone(),
         fresh: args.fresh,
+        fault_injection: args.fault_injection,
         live_view: args.live_view.open(
             "consensus",
             args.run_id.as_deref().unwrap_or(&args.namespace),

@@ -35,6 +35,7 @@ fn an_incomplete_keyframe_is_asked_for_again_and_completed() {
         run_id: None,
         fresh: false,
         live_view: live_view::LiveView::disabled(),
+        fault_injection: false,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let consensus = {

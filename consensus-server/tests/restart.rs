@@ -60,6 +60,7 @@ fn a_restart_on_other_frames_is_ignored_whole() {
         run_id: None,
         fresh: false,
         live_view: live_view::LiveView::disabled(),
+        fault_injection: false,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let consensus = {

@@ -26,6 +26,7 @@ fn a_snapshot_is_written_on_request_and_the_run_goes_on() {
         run_id: None,
         fresh: false,
         live_view: live_view::LiveView::disabled(),
+        fault_injection: false,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let snapshot = Arc::new(AtomicBool::new(false));

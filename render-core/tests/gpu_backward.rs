@@ -1,5 +1,5 @@
 //! The wgpu backward pass against the CPU reference backward (itself checked by finite
-//! differences in src/reference.rs).
+//! differences in src/reference/tests.rs).
 
 mod common;
 

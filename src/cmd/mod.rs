@@ -7,6 +7,7 @@ pub mod dataset;
 pub mod eval;
 pub mod plot;
 pub mod render;
+pub mod swarm;
 pub mod synth;
 
 /// Prints `value` as one JSON object on stdout.
@@ -23,3 +24,16 @@ pub fn fmt_num(v: f64, decimals: usize) -> String {
         format!("{v}")
     }
 }
+
+/// A refused option or input, found before anything ran: the command exits with status 2 (as
+/// for a command-line error) and this message.
+#[derive(Debug)]
+pub struct UsageError(pub String);
+
+impl std::fmt::Display for UsageError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for UsageError {}

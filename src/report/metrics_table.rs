@@ -138,6 +138,12 @@ const FORMATS: &[(&str, &str, Unit)] = &[
             decimals: 1,
         },
     ),
+    ("transport", "Transport between the processes", Unit::Text),
+    (
+        "network_bytes_per_agent",
+        "Network traffic per agent (bridge reports)",
+        Unit::Text,
+    ),
 ];
 
 /// Shown for a figure that is `null` (not measured in this run).
@@ -248,6 +254,8 @@ mod tests {
             loop_closures_rejected: 1,
             inter_agent_closures_accepted: 2,
             wall_s: Some(100.0),
+            transport: Some(crate::cmd::swarm::record::Transport::Zenoh),
+            network_bytes_per_agent: Some(Default::default()),
         }
     }
 

@@ -39,7 +39,8 @@ use crate::store::{Opened, RunIdentity, Store};
 use main_thread::Listener;
 pub use outputs::{AgentRecord, ConsensusReport, PairAttempts, agent_trajectory_path};
 use outputs::{OutputKind, WorldMap, refine_world_map, write_outputs};
-use worker::{ProgressStage, WorkerHandle, write_progress};
+pub use worker::{ConsensusProgress, PROGRESS_FILE_NAME, ProgressStage};
+use worker::{WorkerHandle, write_progress};
 
 /// What to run and where to write.
 #[derive(Debug, Clone)]
@@ -65,6 +66,10 @@ pub struct ConsensusOptions {
     pub fresh: bool,
     /// The rerun live view ([`LiveView::disabled`] unless `--viewer` or `--record`).
     pub live_view: LiveView,
+    /// Fault injection for the chaos soak: the process kills itself while storing a keyframe
+    /// when `out/crash_while_storing` asks it to ([`Store::crash_when_armed`]). Off in normal
+    /// runs.
+    pub fault_injection: bool,
 }
 
 /// Runs the consensus until the expected agents are done or `stop` is raised.
@@ -93,7 +98,10 @@ pub fn run_with_snapshots(
     };
     // Opened before the transport: a store of another run stops the consensus before any
     // agent hears of it.
-    let (store, opened, inputs) = Store::open(&options.out, &identity, options.fresh)?;
+    let (mut store, opened, inputs) = Store::open(&options.out, &identity, options.fresh)?;
+    if options.fault_injection {
+        store.crash_when_armed(&options.out);
+    }
     let link = ConsumerLink::open(&options.transport).context("opening the transport")?;
     tracing::info!(namespace = %options.transport.namespace, "consensus listening");
     let worker = WorkerHandle::spawn(options.clone(), store.decisions()?, store.decision_log()?)?;

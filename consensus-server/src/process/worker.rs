@@ -11,7 +11,7 @@ use anyhow::Context;
 use crossbeam_channel::{Receiver, Sender, unbounded};
 use nalgebra::Isometry3;
 use render_core::types::GaussianCloud;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::ConsensusOptions;
 use super::outputs::{AgentRecord, OutputKind, WorldMap, write_outputs};
@@ -295,33 +295,38 @@ impl Worker {
 const PROGRESS_INTERVAL: std::time::Duration = std::time::Duration::from_millis(500);
 
 /// What the consensus is doing, for the progress display.
-#[derive(Debug, Clone, Copy, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub(super) enum ProgressStage {
+pub enum ProgressStage {
     Aligning,
     Refining,
     Done,
 }
 
-/// OUT/consensus_progress.json, read by scripts/launch_swarm.sh's progress line: one flat JSON
-/// object, written to a temporary file and renamed so a reader never sees half of it. A failed
-/// write is logged at debug level only: progress is a display, never a reason to stop.
+/// OUT/consensus_progress.json: how far the consensus is, for `mac-ego3d swarm`'s progress line.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ConsensusProgress {
+    pub stage: ProgressStage,
+    pub keyframes: usize,
+    pub closures_verified: usize,
+    pub closures_rejected: usize,
+    pub inter_agent_closures: usize,
+    pub pending_alignments: usize,
+}
+
+/// The progress file's name in the output folder.
+pub const PROGRESS_FILE_NAME: &str = "consensus_progress.json";
+
+/// Writes [`ConsensusProgress`]: one flat JSON object, written to a temporary file and renamed
+/// so a reader never sees half of it. A failed write is logged at debug level only: progress
+/// is a display, never a reason to stop.
 pub(super) fn write_progress(out: &Path, engine: &Engine, stage: ProgressStage) {
-    #[derive(Serialize)]
-    struct Progress {
-        stage: ProgressStage,
-        keyframes: usize,
-        closures_verified: usize,
-        closures_rejected: usize,
-        inter_agent_closures: usize,
-        pending_alignments: usize,
-    }
     let events: Vec<&ClosureEvent> = engine
         .events()
         .iter()
         .filter(|e| e.origin != CandidateSource::Injected)
         .collect();
-    let progress = Progress {
+    let progress = ConsensusProgress {
         stage,
         keyframes: engine.keyframes().len(),
         closures_verified: events.iter().filter(|e| e.verified).count(),
@@ -332,8 +337,8 @@ pub(super) fn write_progress(out: &Path, engine: &Engine, stage: ProgressStage) 
             .count(),
         pending_alignments: engine.pending(),
     };
-    let path = out.join("consensus_progress.json");
-    let temporary = out.join(".consensus_progress.json.tmp");
+    let path = out.join(PROGRESS_FILE_NAME);
+    let temporary = out.join(format!(".{PROGRESS_FILE_NAME}.tmp"));
     let written = serde_json::to_string(&progress)
         .map_err(std::io::Error::other)
         .and_then(|text| std::fs::write(&temporary, text))

@@ -67,7 +67,37 @@ pub struct Store {
     next_correction: BTreeMap<u32, u64>,
     /// Milliseconds each commit of a keyframe took (serialisation, write and flush).
     keyframe_write_ms: Vec<f64>,
+    /// Fault injection for the chaos soak ([`Store::crash_when_armed`]).
+    crash_trigger: Option<PathBuf>,
 }
+
+/// Where in storing a keyframe an armed crash kills the process.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CrashPoint {
+    /// The keyframe is written in the open transaction, not committed: the store stays as it
+    /// was before it.
+    BeforeCommit,
+    /// The keyframe is committed, and the consensus has not acted on it yet.
+    AfterCommit,
+}
+
+impl CrashPoint {
+    pub const fn name(self) -> &'static str {
+        match self {
+            CrashPoint::BeforeCommit => "before_commit",
+            CrashPoint::AfterCommit => "after_commit",
+        }
+    }
+
+    fn parse(text: &str) -> Option<Self> {
+        [CrashPoint::BeforeCommit, CrashPoint::AfterCommit]
+            .into_iter()
+            .find(|point| point.name() == text.trim())
+    }
+}
+
+/// The file in the output folder that arms a crash (see [`Store::crash_when_armed`]).
+pub const CRASH_TRIGGER_FILE: &str = "crash_while_storing";
 
 impl Store {
     /// Opens the store in `out` for the run `identity`. An existing store of the same run is
@@ -103,6 +133,7 @@ impl Store {
             next_sequence: 0,
             next_correction: BTreeMap::new(),
             keyframe_write_ms: Vec::new(),
+            crash_trigger: None,
         };
         match store.identity()? {
             Some(stored) => {
@@ -148,11 +179,18 @@ impl Store {
         let started = Instant::now();
         let bytes = bincode::serde::encode_to_vec(input, bincode::config::standard())
             .context("encoding a consensus input for the store")?;
+        let crash = match input {
+            StoredInput::Keyframe(_) => self.armed_crash(),
+            _ => None,
+        };
         let write = || -> Result<(), redb::Error> {
             let transaction = self.db.begin_write()?;
             transaction
                 .open_table(INPUTS)?
                 .insert(self.next_sequence, bytes.as_slice())?;
+            if crash == Some(CrashPoint::BeforeCommit) {
+                crash_now(CrashPoint::BeforeCommit);
+            }
             transaction.commit()?;
             Ok(())
         };
@@ -163,12 +201,35 @@ impl Store {
                 self.next_sequence
             )
         })?;
+        if crash == Some(CrashPoint::AfterCommit) {
+            crash_now(CrashPoint::AfterCommit);
+        }
         self.next_sequence += 1;
         if matches!(input, StoredInput::Keyframe(_)) {
             self.keyframe_write_ms
                 .push(started.elapsed().as_secs_f64() * 1e3);
         }
         Ok(())
+    }
+
+    /// Fault injection for the chaos soak (`mac-consensus --fault-injection`): from now on,
+    /// whenever `OUT/crash_while_storing` exists when a keyframe is stored, the file is removed
+    /// and the process kills itself (SIGKILL) at the point it names ([`CrashPoint`]: `before_commit`
+    /// or `after_commit`), as a crash at that instant would. Never armed in a normal run.
+    pub fn crash_when_armed(&mut self, out: &Path) {
+        self.crash_trigger = Some(out.join(CRASH_TRIGGER_FILE));
+    }
+
+    /// The crash armed for this keyframe, if any (the trigger file is consumed).
+    fn armed_crash(&self) -> Option<CrashPoint> {
+        let trigger = self.crash_trigger.as_ref()?;
+        let text = std::fs::read_to_string(trigger).ok()?;
+        let _ = std::fs::remove_file(trigger);
+        let point = CrashPoint::parse(&text);
+        if point.is_none() {
+            tracing::warn!(file = %trigger.display(), %text, "unknown crash point: not crashing");
+        }
+        point
     }
 
     /// Commits the corrections about to be sent (one transaction for all of one solution's),
@@ -387,3 +448,16 @@ where
 
 #[cfg(test)]
 mod tests;
+
+/// Kills this process at once (SIGKILL: no destructor, no flush), for [`Store::crash_when_armed`].
+fn crash_now(point: CrashPoint) -> ! {
+    tracing::warn!(
+        point = point.name(),
+        "fault injection: killing the consensus while storing a keyframe"
+    );
+    // SAFETY: kill(2) on this very process; it does not return once the signal is delivered.
+    unsafe {
+        libc::kill(libc::getpid(), libc::SIGKILL);
+    }
+    unreachable!("SIGKILL is delivered before kill(2) returns to its own process")
+}

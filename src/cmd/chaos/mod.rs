@@ -1,8 +1,11 @@
 //! `mac-ego3d chaos`: a soak of the swarm under crashes. Runs the synthetic swarm once as is
 //! (the reference) and once while SIGKILLing its processes at seeded random times (each agent
-//! and the consensus `--kills-each` times, within `--window` seconds), starting each again as a
-//! user would (same command line; the consensus resumes from its store, an agent re-runs its
-//! frames). Then checks that every keyframe each agent's last run delivered is in the final
+//! and the consensus `--kills-each` times, or only the consensus with `--only-consensus`, within
+//! `--window` seconds), starting each again as a user would (same command line; the consensus
+//! resumes from its store, an agent re-runs its frames). `--store-crashes N` adds N deaths of the
+//! consensus in the middle of storing a keyframe (before its commit, or after it and before the
+//! consensus acted on it, in turn; the consensus runs with its fault injection armed by a file).
+//! Then checks that every keyframe each agent's last run delivered is in the final
 //! consensus.json, that the outputs are complete and readable, and compares joint ATE and PSNR
 //! with the reference. Prints a table and writes OUT/chaos.json; exits non-zero when a check
 //! fails.
@@ -15,13 +18,17 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use clap::Args;
+use datasets::DatasetSpec;
 use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use checks::{RunChecks, check_run};
-use swarm::{Role, Swarm, SwarmSetup};
+use mac_consensus::store::{CRASH_TRIGGER_FILE, CrashPoint};
+use swarm::SwarmSetup;
+
+use crate::cmd::swarm::supervisor::{Role, Supervisor};
 
 use crate::cmd::eval::swarm::{SwarmArgs, swarm_metrics};
 use crate::cmd::{fmt_num, print_json};
@@ -47,6 +54,13 @@ pub struct ChaosArgs {
     /// SIGKILLs per process (each agent and the consensus).
     #[arg(long, default_value_t = 2)]
     kills_each: usize,
+    /// Kill only the consensus (the agents run through).
+    #[arg(long)]
+    only_consensus: bool,
+    /// Deaths of the consensus while it stores a keyframe, on top of the SIGKILLs (before the
+    /// commit and after it, in turn).
+    #[arg(long, default_value_t = 0)]
+    store_crashes: usize,
     /// The kills fall in this many seconds after the start (at most 80 % of the time the
     /// reference run's first agent took).
     #[arg(long, default_value_t = 60.0)]
@@ -67,14 +81,33 @@ pub struct ChaosArgs {
     out: PathBuf,
 }
 
+/// How a process is made to die.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Fault {
+    /// SIGKILL from outside, at any instant.
+    Sigkill,
+    /// The consensus kills itself while storing its next keyframe, at this point.
+    WhileStoring(#[serde(serialize_with = "crash_point_name")] CrashPoint),
+}
+
+fn crash_point_name<S: serde::Serializer>(point: &CrashPoint, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(point.name())
+}
+
 /// One planned kill and what happened.
 #[derive(Debug, Clone, Serialize)]
 pub struct Kill {
     pub at_s: f64,
     pub target: Role,
-    /// False when the process had already ended by then (nothing to kill).
+    pub fault: Fault,
+    /// False when the process had already ended by then (nothing to kill), or, while storing,
+    /// when no keyframe was stored within [`STORE_CRASH_WAIT`].
     pub killed: bool,
 }
+
+/// How long an armed store crash waits for the consensus to store a keyframe.
+const STORE_CRASH_WAIT: Duration = Duration::from_secs(60);
 
 /// OUT/chaos.json.
 #[derive(Debug, Serialize)]
@@ -85,6 +118,8 @@ pub struct ChaosReport {
     pub kills: Vec<Kill>,
     /// Kills done per process (`consensus`, `agent 0`, ...).
     pub kills_per_process: Vec<(String, usize)>,
+    /// Deaths of the consensus while storing a keyframe.
+    pub store_crashes: usize,
     pub restarts: usize,
     pub reference: RunChecks,
     pub chaos: RunChecks,
@@ -119,7 +154,13 @@ pub fn run(args: &ChaosArgs) -> anyhow::Result<()> {
         config: run_config.clone(),
         out: args.out.join(name),
         namespace: format!("chaos{}{name}", std::process::id()),
-        datasets: (0..args.agents).map(|k| dataset(args, k)).collect(),
+        fault_injection: name == "killed" && args.store_crashes > 0,
+        datasets: (0..args.agents)
+            .map(|k| DatasetSpec {
+                dataset: dataset(args, k),
+                frames: datasets::FrameRange::ALL,
+            })
+            .collect(),
     };
     let timeout = Duration::from_secs(1800);
 
@@ -127,8 +168,8 @@ pub fn run(args: &ChaosArgs) -> anyhow::Result<()> {
         "[chaos] reference run (no kills) in {}",
         args.out.join("reference").display()
     );
-    let mut reference = Swarm::start(setup("reference"))?;
-    let first_agent_ended = reference.wait_all(timeout)?;
+    let mut reference = swarm::start(setup("reference"))?;
+    let first_agent_ended = swarm::wait_all(&mut reference, timeout)?;
     drop(reference);
     // Kills after the agents are done would find nothing to kill: on a fast machine the window
     // shrinks to 80 % of the time the reference's first agent took.
@@ -145,14 +186,14 @@ pub fn run(args: &ChaosArgs) -> anyhow::Result<()> {
         args.out.join("killed").display()
     );
     let plan = kill_plan(args, window);
-    let mut swarm = Swarm::start(setup("killed"))?;
+    let mut killed = swarm::start(setup("killed"))?;
     let kills = execute(
-        &mut swarm,
+        &mut killed,
         plan,
         Duration::from_secs_f64(args.restart_after),
     )?;
-    swarm.wait_all(timeout)?;
-    drop(swarm);
+    swarm::wait_all(&mut killed, timeout)?;
+    drop(killed);
 
     let evaluate = |name: &str| -> anyhow::Result<RunChecks> {
         let dir = args.out.join(name);
@@ -192,45 +233,67 @@ fn dataset(args: &ChaosArgs, k: u32) -> String {
     spec
 }
 
-/// `kills_each` kills of every process, in a seeded random order at seeded random times in
-/// (1 s, window), sorted by time.
-fn kill_plan(args: &ChaosArgs, window: f64) -> Vec<(f64, Role)> {
+/// `kills_each` SIGKILLs of every process (of the consensus only with `--only-consensus`) and
+/// `store_crashes` deaths of the consensus while storing (before and after the commit, in turn),
+/// in a seeded random order at seeded random times in (1 s, window), sorted by time.
+fn kill_plan(args: &ChaosArgs, window: f64) -> Vec<(f64, Role, Fault)> {
     let mut rng = ChaCha8Rng::seed_from_u64(args.seed);
-    let mut targets: Vec<Role> = std::iter::once(Role::Consensus)
-        .chain((0..args.agents).map(Role::Agent))
-        .flat_map(|role| std::iter::repeat_n(role, args.kills_each))
+    let agents = if args.only_consensus { 0 } else { args.agents };
+    let mut faults: Vec<(Role, Fault)> = std::iter::once(Role::Consensus)
+        .chain((0..agents).map(Role::Agent))
+        .flat_map(|role| std::iter::repeat_n((role, Fault::Sigkill), args.kills_each))
+        .chain((0..args.store_crashes).map(|i| {
+            let point = if i % 2 == 0 {
+                CrashPoint::BeforeCommit
+            } else {
+                CrashPoint::AfterCommit
+            };
+            (Role::Consensus, Fault::WhileStoring(point))
+        }))
         .collect();
-    targets.shuffle(&mut rng);
-    let mut times: Vec<f64> = targets
+    faults.shuffle(&mut rng);
+    let mut times: Vec<f64> = faults
         .iter()
         .map(|_| rng.random_range(1.0..window.max(1.5)))
         .collect();
     times.sort_by(f64::total_cmp);
-    times.into_iter().zip(targets).collect()
+    times
+        .into_iter()
+        .zip(faults)
+        .map(|(at_s, (role, fault))| (at_s, role, fault))
+        .collect()
 }
 
-/// Carries out `plan`: at each time, SIGKILL the target if it runs and start it again after
-/// `restart_after`.
+/// Carries out `plan`: at each time, kill the target if it runs (SIGKILL, or the consensus
+/// while storing its next keyframe) and start it again after `restart_after`.
 fn execute(
-    swarm: &mut Swarm,
-    plan: Vec<(f64, Role)>,
+    swarm: &mut Supervisor,
+    plan: Vec<(f64, Role, Fault)>,
     restart_after: Duration,
 ) -> anyhow::Result<Vec<Kill>> {
     let started = Instant::now();
     let mut kills = Vec::new();
-    for (at_s, target) in plan {
+    for (at_s, target, fault) in plan {
         while started.elapsed().as_secs_f64() < at_s {
-            swarm.reap()?;
+            swarm::reap(swarm)?;
             std::thread::sleep(Duration::from_millis(50));
         }
-        let killed = swarm.kill(target)?;
+        swarm::reap(swarm)?;
+        let killed = match fault {
+            Fault::Sigkill => swarm.kill(target)?,
+            Fault::WhileStoring(point) => crash_while_storing(swarm, point)?,
+        };
+        let how = match fault {
+            Fault::Sigkill => "killed (SIGKILL)".to_string(),
+            Fault::WhileStoring(point) => format!("died storing a keyframe ({})", point.name()),
+        };
         eprintln!(
             "[chaos] {:>6.1} s: {target} {}",
             started.elapsed().as_secs_f64(),
             if killed {
-                "killed (SIGKILL), starting it again"
+                format!("{how}, starting it again")
             } else {
-                "had already ended: not killed"
+                "had already ended (or stored nothing): not killed".to_string()
             }
         );
         if killed {
@@ -240,10 +303,44 @@ fn execute(
         kills.push(Kill {
             at_s,
             target,
+            fault,
             killed,
         });
     }
     Ok(kills)
+}
+
+/// Arms the consensus's fault injection and waits until it has killed itself storing a
+/// keyframe; false when it was not running, or stored none within [`STORE_CRASH_WAIT`].
+fn crash_while_storing(swarm: &mut Supervisor, point: CrashPoint) -> anyhow::Result<bool> {
+    if !swarm.is_running(Role::Consensus) {
+        return Ok(false);
+    }
+    let trigger = swarm.launch().out.join(CRASH_TRIGGER_FILE);
+    std::fs::write(&trigger, point.name())
+        .with_context(|| format!("writing {}", trigger.display()))?;
+    let armed = Instant::now();
+    loop {
+        for (role, exit) in swarm.poll()? {
+            if role == Role::Consensus && exit.signal == Some(libc::SIGKILL) {
+                return Ok(true);
+            }
+            anyhow::ensure!(
+                exit.success(),
+                "{role} exited with {exit}; see {}",
+                swarm.log_of(role).display()
+            );
+            if role == Role::Consensus {
+                let _ = std::fs::remove_file(&trigger);
+                return Ok(false);
+            }
+        }
+        if armed.elapsed() > STORE_CRASH_WAIT {
+            let _ = std::fs::remove_file(&trigger);
+            return Ok(false);
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
 }
 
 fn report(
@@ -253,19 +350,31 @@ fn report(
     chaos: RunChecks,
 ) -> ChaosReport {
     let mut failures = Vec::new();
+    let killed_agents = if args.only_consensus { 0 } else { args.agents };
     let roles: Vec<Role> = std::iter::once(Role::Consensus)
-        .chain((0..args.agents).map(Role::Agent))
+        .chain((0..killed_agents).map(Role::Agent))
         .collect();
     let kills_per_process: Vec<(String, usize)> = roles
         .iter()
         .map(|role| {
             let done = kills
                 .iter()
-                .filter(|k| k.killed && k.target == *role)
+                .filter(|k| k.killed && k.target == *role && k.fault == Fault::Sigkill)
                 .count();
             (role.to_string(), done)
         })
         .collect();
+    let store_crashes = kills
+        .iter()
+        .filter(|k| k.killed && matches!(k.fault, Fault::WhileStoring(_)))
+        .count();
+    if store_crashes < args.store_crashes {
+        failures.push(format!(
+            "the consensus died storing a keyframe {store_crashes} times, {} planned (it stored \
+             none in time: narrow --window)",
+            args.store_crashes
+        ));
+    }
     for (role, done) in &kills_per_process {
         if *done < args.kills_each {
             failures.push(format!(
@@ -283,6 +392,7 @@ fn report(
         agents: args.agents,
         frames: args.frames,
         restarts: kills.iter().filter(|k| k.killed).count(),
+        store_crashes,
         kills,
         kills_per_process,
         reference,
@@ -302,6 +412,10 @@ fn print_table(report: &ChaosReport) {
     for (role, done) in &report.kills_per_process {
         println!("  {:<36} {:>12}", format!("{role}: SIGKILLs"), done);
     }
+    println!(
+        "  {:<36} {:>12}",
+        "consensus deaths while storing", report.store_crashes
+    );
     println!("  {:<36} {:>12}", "restarts", report.restarts);
     println!("  {:<36} {:>12} {:>12}", "", "no kills", "with kills");
     let (a, b) = (&report.reference, &report.chaos);

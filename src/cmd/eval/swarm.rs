@@ -12,6 +12,7 @@
 //! DIR/report.html (crate::report) is written next to metrics.json: the figures, trajectories,
 //! renders and consensus events of the run in one offline page.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use alexnet::lpips::Lpips;
@@ -24,11 +25,12 @@ use metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
 use serde::Serialize;
 use serde_json::Value;
 
+use crate::cmd::swarm::record::{AgentNetwork, LaunchRecord, Transport, network_per_agent};
 use crate::cmd::{fmt_num, print_json};
 
 #[derive(Args)]
 pub struct SwarmArgs {
-    /// The run's output directory (scripts/launch_swarm.sh --out).
+    /// The run's output directory (`mac-ego3d swarm --out`).
     #[arg(long)]
     dir: PathBuf,
     /// Print the JSON instead of a table (DIR/metrics.json is written either way).
@@ -47,6 +49,18 @@ pub struct SwarmArgs {
 }
 
 impl SwarmArgs {
+    /// The figures `mac-ego3d swarm` computes at the end of a run: a table, two comparison
+    /// images per agent, LPIPS with `lpips_weights` (else the default weights).
+    pub fn for_run(dir: &Path, render_every: usize, lpips_weights: Option<PathBuf>) -> Self {
+        Self {
+            dir: dir.to_path_buf(),
+            json: false,
+            render_every,
+            renders: 2,
+            lpips_weights,
+        }
+    }
+
     /// The figures of the run in `dir`, rendering every `render_every`-th frame (0: none), with
     /// no comparison images.
     pub fn for_dir(dir: &Path, render_every: usize) -> Self {
@@ -86,6 +100,14 @@ pub struct SwarmMetrics {
     pub loop_closures_rejected: u64,
     pub inter_agent_closures_accepted: u64,
     pub wall_s: Option<f64>,
+    /// Which transport carried the run (DIR/launch.json); absent for a run `mac-ego3d swarm`
+    /// did not launch.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub transport: Option<Transport>,
+    /// Over zenoh: each agent's traffic on the network as its host's bridge counted it (`null`
+    /// for an agent whose bridge wrote no report).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub network_bytes_per_agent: Option<BTreeMap<String, Option<AgentNetwork>>>,
 }
 
 fn read_json(path: &Path) -> anyhow::Result<Value> {
@@ -212,6 +234,7 @@ const TIMESTAMP_TOLERANCE_S: f64 = 1e-5;
 /// Computes the swarm's figures and writes DIR/metrics.json.
 pub fn swarm_metrics(dir: &Path, args: &SwarmArgs) -> anyhow::Result<SwarmMetrics> {
     let consensus = read_json(&dir.join("consensus.json"))?;
+    let launch = LaunchRecord::read(dir)?;
     let mut agent_ids: Vec<u32> = consensus["agents"]
         .as_object()
         .map(|agents| agents.keys().filter_map(|k| k.parse().ok()).collect())
@@ -313,6 +336,13 @@ pub fn swarm_metrics(dir: &Path, args: &SwarmArgs) -> anyhow::Result<SwarmMetric
         loop_closures_rejected: count("loop_closures_rejected"),
         inter_agent_closures_accepted: count("inter_agent_closures_accepted"),
         wall_s: consensus["wall_s"].as_f64(),
+        transport: launch.as_ref().map(|record| record.transport),
+        network_bytes_per_agent: match &launch {
+            Some(record) if record.transport == Transport::Zenoh => {
+                Some(network_per_agent(dir, record.datasets.len())?)
+            }
+            _ => None,
+        },
     };
     let path = dir.join("metrics.json");
     std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
