@@ -16,7 +16,8 @@
 //! - [`swarm`]: the link to the consensus, [`describer`]: keyframe descriptors computed beside
 //!   the frame loop, [`local_corrections`]: the consensus's corrections applied to the local
 //!   maps, and [`link_schedule`]: simulated intermittent links;
-//! - [`progress`]: progress.json for the swarm launcher's progress line.
+//! - [`progress`]: progress.json for the swarm launcher's progress line;
+//! - [`views`]: keyframes.csv and trajectory_map.tum, what held-out evaluation needs of a run.
 
 pub mod describer;
 pub mod evaluation;
@@ -32,3 +33,4 @@ pub mod segments;
 pub mod source;
 pub mod spool;
 pub mod swarm;
+pub mod views;

@@ -60,6 +60,17 @@ impl KeyframeCounts {
     }
 }
 
+/// A keyframe handed to the mapper: one of the views its map is optimised on (keyframes.csv,
+/// which held-out evaluation reads to leave them out).
+#[derive(Debug, Clone, Copy)]
+pub struct KeyframeMade {
+    pub keyframe_id: usize,
+    /// The frame's number in its sequence ([`Frame::index`]).
+    pub frame_index: usize,
+    pub timestamp_s: f64,
+    pub kind: KeyframeKind,
+}
+
 /// The tracker's answer for one frame.
 #[derive(Clone)]
 pub struct Tracked {
@@ -89,6 +100,8 @@ pub struct FinishedPipeline {
     pub poses: Vec<TrackedPose>,
     pub tracking_ms: Vec<f64>,
     pub keyframes: KeyframeCounts,
+    /// Every keyframe the mapper was given, in order.
+    pub keyframes_made: Vec<KeyframeMade>,
     /// Keyframes of segments never joined, dropped from the map.
     pub keyframes_dropped_unjoined: usize,
 }
@@ -105,6 +118,7 @@ pub struct AgentPipeline<'a> {
     corrections: LocalCorrections,
     swarm: Option<SwarmLink>,
     keyframes: KeyframeCounts,
+    keyframes_made: Vec<KeyframeMade>,
     frames_since_tracking_keyframe: usize,
     poses: Vec<TrackedPose>,
     tracking_ms: Vec<f64>,
@@ -140,6 +154,7 @@ impl<'a> AgentPipeline<'a> {
             corrections: LocalCorrections::new(&config.consensus.local_corrections),
             swarm,
             keyframes: KeyframeCounts::default(),
+            keyframes_made: Vec::new(),
             frames_since_tracking_keyframe: 0,
             poses: Vec::with_capacity(frames_expected),
             tracking_ms: Vec::with_capacity(frames_expected),
@@ -359,6 +374,12 @@ impl<'a> AgentPipeline<'a> {
             KeyframeKind::Tracking => self.keyframes.tracking += 1,
             KeyframeKind::Mapping => self.keyframes.mapping += 1,
         }
+        self.keyframes_made.push(KeyframeMade {
+            keyframe_id,
+            frame_index: frame.index,
+            timestamp_s: frame.timestamp,
+            kind: decision.kind,
+        });
         tracing::debug!(
             frame = frame.index,
             kind = ?decision.kind,
@@ -467,6 +488,7 @@ impl<'a> AgentPipeline<'a> {
             poses: self.poses,
             tracking_ms: self.tracking_ms,
             keyframes: self.keyframes,
+            keyframes_made: self.keyframes_made,
             keyframes_dropped_unjoined: self.pending.dropped,
         };
         (self.mapper, self.swarm, finished)

@@ -41,6 +41,7 @@ use crate::progress::{ProgressFile, Stage};
 use crate::segments::TrackingReport;
 use crate::source::{FrameSource, SourceStats};
 use crate::swarm::{SwarmLink, SwarmSummary};
+use crate::views::{poses_in_map, write_view_files};
 
 /// Synthetic scene used when no dataset is given: three agents' loops, this agent's share.
 pub const DEFAULT_SYNTHETIC_AGENTS: usize = 3;
@@ -271,6 +272,11 @@ pub fn run_agent(
     // Outputs that need no rendering first: an interrupted evaluation still leaves these.
     let trajectory = write_trajectories(&run.poses, &options.out)?;
     write_maps(&outcome, &options.out)?;
+    write_view_files(
+        &run,
+        &outcome.realtime.keyframe_pose_corrections,
+        &options.out,
+    )?;
     // The consensus reads trajectory.tum once this agent has said goodbye, so that goes first;
     // the evaluation below takes a while and needs nothing from the swarm.
     let swarm_summary = swarm.map(|link| link.finish(&outcome.realtime_map_at_tracked_poses()));
@@ -336,17 +342,9 @@ fn evaluate_maps(
     // to the map put it (the tracked pose when none were), then where the mapper's keyframe pose
     // refinement moved it (`refine_keyframe_poses`; nothing otherwise).
     let evaluated = |pose_refinement: &CorrectionField| -> Vec<TrackedPose> {
-        run.poses
-            .iter()
-            .filter(|p| p.placement == Placement::Root && p.tracked)
-            .enumerate()
-            .filter(|(i, _)| i % options.eval_every.max(1) == 0)
-            .map(|(_, p)| TrackedPose {
-                world_from_camera: pose_refinement.at(p.timestamp)
-                    * run.corrections.applied().at(p.timestamp)
-                    * p.world_from_camera,
-                ..*p
-            })
+        poses_in_map(run, pose_refinement)
+            .into_iter()
+            .step_by(options.eval_every.max(1))
             .collect()
     };
     let evaluate = |map: &GaussianCloud, stats: &MappingStats, renders: &str| {

@@ -19,6 +19,8 @@
 //!   poses through render-core, with the pose-consistency term over the pose graph's edges;
 //! - [`store`]: every accepted input, committed to a crash-safe database in the run folder
 //!   before it is acted on, so a consensus started again on the folder resumes the run;
+//! - [`rebuild`]: a finished run's end (merged map, refinement, outputs) built again from its
+//!   store with another configuration;
 //!
 //! Their parameters are the config crate's `[consensus.*]` sections.
 //!
@@ -32,6 +34,7 @@ pub mod map_links;
 pub mod place_recognition;
 pub mod pose_graph;
 pub mod process;
+pub mod rebuild;
 pub mod refinement;
 pub mod store;
 

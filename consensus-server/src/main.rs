@@ -16,6 +16,10 @@
 //! what they still hold of the rest. A store of another run is refused; `--fresh` moves it aside
 //! (DIR/consensus.redb.replaced) and starts over.
 //!
+//! `--rebuild-from RUN --out NEW` builds the end of the finished run in RUN again (merged map,
+//! joint refinement, outputs) with this configuration, from a copy of its store and without its
+//! agents, into NEW: e.g. another `[consensus.refinement]` on the same agents' maps and keyframes.
+//!
 //! `--viewer [ADDR]` streams closures, corrected trajectories, the merged map and the figures to
 //! a rerun viewer, `--record DIR` writes them to DIR/consensus.rrd, under `--recording-id`
 //! (default: the run id); see the `live_view` crate.
@@ -71,6 +75,11 @@ struct Args {
     /// after_commit). Never for a real run.
     #[arg(long, hide = true)]
     fault_injection: bool,
+    /// Build the end of the finished run in RUN again (merged map, joint refinement, outputs)
+    /// with this configuration, into --out (an empty folder), from a copy of RUN's store and
+    /// without its agents; RUN is only read (see mac_consensus::rebuild).
+    #[arg(long, value_name = "RUN", conflicts_with_all = ["fresh", "run_id", "agents"])]
+    rebuild_from: Option<PathBuf>,
     #[command(flatten)]
     live_view: live_view::LiveViewArgs,
 }
@@ -86,11 +95,20 @@ fn main() -> anyhow::Result<()> {
         // Real time on a shared host: the agents' tracking comes first.
         config::process::lower_process_priority(config.consensus.sensor_niceness);
     }
+    let (run_id, agents, namespace) = match &args.rebuild_from {
+        Some(run) => {
+            let identity = mac_consensus::rebuild::prepare(run, &args.out, config.hash())?;
+            // A namespace of its own: no running swarm hears the rebuild, nor it them.
+            let namespace = format!("{}rebuild{}", args.namespace, std::process::id());
+            (Some(identity.run_id), identity.agents, namespace)
+        }
+        None => (args.run_id.clone(), args.agents, args.namespace.clone()),
+    };
     let options = ConsensusOptions {
         config,
-        transport: TransportConfig::for_swarm(args.namespace.clone(), args.agents),
+        transport: TransportConfig::for_swarm(namespace.clone(), agents),
         out: args.out.clone(),
-        expected_agents: args.agents,
+        expected_agents: agents,
         stop_agents_wait: args
             .stop_agents
             .map(|seconds| {
@@ -98,13 +116,12 @@ fn main() -> anyhow::Result<()> {
                     .with_context(|| format!("--stop-agents {seconds}: not a number of seconds"))
             })
             .transpose()?,
-        run_id: args.run_id.clone(),
+        live_view: args
+            .live_view
+            .open("consensus", run_id.as_deref().unwrap_or(&namespace))?,
+        run_id,
         fresh: args.fresh,
         fault_injection: args.fault_injection,
-        live_view: args.live_view.open(
-            "consensus",
-            args.run_id.as_deref().unwrap_or(&args.namespace),
-        )?,
     };
     let stop = config::process::stop_on_termination_signals()?;
     let snapshot = Arc::new(AtomicBool::new(false));

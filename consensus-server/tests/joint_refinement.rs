@@ -209,3 +209,44 @@ fn pose_refinement_keeps_the_anchor_and_reduces_the_pose_disagreement() {
     );
     assert!(error_after.norm() < error_before.norm());
 }
+
+#[test]
+fn gaussians_the_refinement_leaves_transparent_are_pruned() {
+    let frames = frames();
+    let views: Vec<RefinementView> = frames
+        .iter()
+        .enumerate()
+        .map(|(k, f)| view(k, f, f.world_from_camera_gt.unwrap()))
+        .collect();
+    let mut map = map_from_views(&frames, 0.0);
+    let visible = map.len();
+    // Nearly transparent copies far behind every view (a faded duplicate): nothing brings
+    // them back, and the pruning removes them.
+    const FADED: usize = 40;
+    for k in 0..FADED {
+        map.push(
+            [k as f32 * 0.05, 50.0, 50.0],
+            [0.01f32.ln(); 3],
+            [1.0, 0.0, 0.0, 0.0],
+            -8.0,
+            [0.5; 3],
+        );
+    }
+    let mut config = config(8, false);
+    config.refinement.prune_min_opacity = 0.005;
+    config.refinement.lr_final_fraction = 0.1;
+    let outcome = refine(
+        RefinementProblem {
+            map,
+            views,
+            edges: Vec::new(),
+            anchor: Some(0),
+        },
+        &config,
+    )
+    .unwrap();
+    assert_eq!(outcome.report.gaussians, visible + FADED);
+    assert!(outcome.report.pruned >= FADED, "{:?}", outcome.report);
+    assert_eq!(outcome.map.len(), visible + FADED - outcome.report.pruned);
+    assert!(outcome.map.means.iter().all(|m| m[1] < 49.0));
+}

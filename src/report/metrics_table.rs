@@ -95,6 +95,44 @@ const FORMATS: &[(&str, &str, Unit)] = &[
     ),
     ("rendering_frames", "Frames rendered", Unit::Count),
     (
+        "psnr_held_out",
+        "PSNR, held-out frames (no map was optimised on them)",
+        Unit::Scaled {
+            suffix: " dB",
+            decimals: 2,
+        },
+    ),
+    (
+        "ssim_held_out",
+        "SSIM, held-out frames",
+        Unit::Scaled {
+            suffix: "",
+            decimals: 3,
+        },
+    ),
+    (
+        "lpips_held_out",
+        "LPIPS (AlexNet), held-out frames",
+        Unit::Scaled {
+            suffix: "",
+            decimals: 3,
+        },
+    ),
+    (
+        "depth_l1_cm_held_out",
+        "Depth L1, held-out frames",
+        Unit::Scaled {
+            suffix: " cm",
+            decimals: 2,
+        },
+    ),
+    ("held_out_frames", "Held-out frames rendered", Unit::Count),
+    (
+        "held_out_unavailable",
+        "Why there are no held-out figures",
+        Unit::Text,
+    ),
+    (
         "fps_per_agent",
         "Frames per second, per agent",
         Unit::Scaled {
@@ -247,6 +285,12 @@ mod tests {
             depth_l1_cm: Some(1.5),
             rendering_source: "merged map",
             rendering_frames: 10,
+            psnr_held_out: Some(25.0),
+            ssim_held_out: Some(0.79),
+            lpips_held_out: None,
+            depth_l1_cm_held_out: Some(1.6),
+            held_out_frames: 9,
+            held_out_unavailable: None,
             fps_per_agent: vec![Some(2.0), None],
             bytes_per_agent_per_s: vec![Some(150_000.0), None],
             consensus_latency_ms_median: Some(420.0),

@@ -19,6 +19,13 @@ pub struct MergeConfig {
     /// A Gaussian is in the overlap when another agent has a Gaussian within this distance
     /// (metres): about the agents' residual misalignment after the pose graph (a few cm).
     pub overlap_radius_m: f64,
+    /// In the merged map the joint refinement starts from: where agents' maps overlap, fuse
+    /// each pair of duplicates (a Gaussian of each agent, each the other's nearest, closer than
+    /// `fuse_radius_m`) into one Gaussian carrying both (their moment-matched mixture). Off: the
+    /// refinement starts from every agent's whole map.
+    pub fuse_duplicates: bool,
+    /// Largest distance (metres) between two duplicates that are fused.
+    pub fuse_radius_m: f64,
 }
 
 impl Default for MergeConfig {
@@ -26,6 +33,8 @@ impl Default for MergeConfig {
         Self {
             nearest_observer: true,
             overlap_radius_m: 0.05,
+            fuse_duplicates: false,
+            fuse_radius_m: 0.03,
         }
     }
 }
@@ -33,6 +42,7 @@ impl Default for MergeConfig {
 impl MergeConfig {
     /// Checks ranges; returns the offending field (`consensus.merge.*`) and why.
     pub fn validate(&self) -> Result<(), FieldError> {
-        positive("consensus.merge.overlap_radius_m", self.overlap_radius_m)
+        positive("consensus.merge.overlap_radius_m", self.overlap_radius_m)?;
+        positive("consensus.merge.fuse_radius_m", self.fuse_radius_m)
     }
 }

@@ -53,6 +53,14 @@ pub struct RefinementConfig {
     pub max_pose_change_rad: f64,
     /// Seed of the view order (runs are repeatable).
     pub random_seed: u64,
+    /// The Gaussians' learning rates decay exponentially from the `lr_*` values at the first
+    /// iteration to this fraction of them at the last (1: constant). A fine-tuning of maps that
+    /// are already fitted gains from smaller steps at its end: the last iterations, each on one
+    /// view, would otherwise leave the map tilted towards whichever views came last.
+    pub lr_final_fraction: f64,
+    /// After the refinement, Gaussians whose opacity it brought below this are removed (0: none
+    /// is): where agents' maps overlap, the refinement fades the copies it does not need.
+    pub prune_min_opacity: f64,
 }
 
 impl Default for RefinementConfig {
@@ -74,6 +82,8 @@ impl Default for RefinementConfig {
             max_pose_change_m: 0.05,
             max_pose_change_rad: 2f64.to_radians(),
             random_seed: 0,
+            lr_final_fraction: 1.0,
+            prune_min_opacity: 0.0,
         }
     }
 }
@@ -97,6 +107,14 @@ impl RefinementConfig {
         fraction(
             "consensus.refinement.pose_warmup_fraction",
             self.pose_warmup_fraction,
+        )?;
+        positive(
+            "consensus.refinement.lr_final_fraction",
+            self.lr_final_fraction,
+        )?;
+        fraction(
+            "consensus.refinement.prune_min_opacity",
+            self.prune_min_opacity,
         )?;
         at_least_one(
             "consensus.refinement.image_downscale",

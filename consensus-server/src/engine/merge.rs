@@ -145,6 +145,7 @@ pub(super) mod tests {
         let config = MergeConfig {
             nearest_observer: true,
             overlap_radius_m: 0.021,
+            ..MergeConfig::default()
         };
         let (merged, stats) = merge(&maps, &config);
         // Every Gaussian of [0.5, 1) is in the overlap, 50 from each agent.

@@ -24,6 +24,7 @@
 
 mod decisions;
 mod false_closures;
+mod fuse;
 mod jobs;
 mod merge;
 mod records;

@@ -9,6 +9,7 @@ use geometry::se3::isometry_from_tum;
 use nalgebra::{Isometry3, Point3};
 use render_core::types::{GaussianCloud, RigidTransform};
 
+use super::fuse::fuse;
 use super::merge::{WorldAgentMap, merge};
 use super::{Engine, KeyframeInfo};
 use crate::place_recognition::KeyframeRef;
@@ -58,6 +59,15 @@ impl Engine {
                 observers: self.placed_cameras(agent_id),
             })
             .collect();
+        if refinement_follows && self.config.merge.fuse_duplicates {
+            let (fused, stats) = fuse(&maps, self.config.merge.fuse_radius_m);
+            tracing::info!(
+                fused_pairs = stats.fused_pairs,
+                merged = fused.len(),
+                "merged map: duplicates of overlapping agents' maps fused"
+            );
+            return (fused, unplaced);
+        }
         let config = MergeConfig {
             nearest_observer: self.config.merge.nearest_observer && !refinement_follows,
             ..self.config.merge.clone()

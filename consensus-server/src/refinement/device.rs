@@ -5,7 +5,7 @@ use nalgebra::Isometry3;
 use render_core::backward::{DeviceGradients, DeviceImageGradients};
 use render_core::context::{GpuContext, GpuError};
 use render_core::gpu::GpuRenderer;
-use render_core::map::DeviceMap;
+use render_core::map::{DeviceMap, PruneCriteria};
 use render_core::training::{AdamConfig, DeviceTarget, LossWeights, TrainingKernels};
 use render_core::types::{GaussianCloud, RasterConfig, RenderMode};
 
@@ -32,6 +32,8 @@ pub(super) struct MapTrainer<'v> {
     renderer: GpuRenderer,
     kernels: TrainingKernels,
     map: DeviceMap,
+    /// The learning rates the refinement starts with ([`Self::scale_learning_rates`]).
+    initial_rates: AdamConfig,
     views: &'v [PreparedView],
     targets: Vec<DeviceTarget>,
     image_gradients: Vec<DeviceImageGradients>,
@@ -68,6 +70,7 @@ impl<'v> MapTrainer<'v> {
             ..Default::default()
         };
         let map = DeviceMap::upload(&context, map, adam)?;
+        let initial_rates = adam;
         let targets: Vec<DeviceTarget> = views
             .iter()
             .map(|view| DeviceTarget::upload(&context, &view.target))
@@ -83,6 +86,7 @@ impl<'v> MapTrainer<'v> {
             renderer,
             kernels,
             map,
+            initial_rates,
             views,
             targets,
             image_gradients,
@@ -165,6 +169,24 @@ impl<'v> MapTrainer<'v> {
         }
         self.map.adam_step(context, &self.kernels, &gradients)?;
         Ok(gradients)
+    }
+
+    /// Sets every Gaussian learning rate to `factor` times its initial value.
+    pub fn scale_learning_rates(&mut self, factor: f64) {
+        let f = factor as f32;
+        let initial = self.initial_rates;
+        let rates = self.map.adam_config_mut();
+        rates.means = initial.means * f;
+        rates.log_scales = initial.log_scales * f;
+        rates.quaternions = initial.quaternions * f;
+        rates.opacity_logits = initial.opacity_logits * f;
+        rates.colours = initial.colours * f;
+    }
+
+    /// Removes the Gaussians that fail `criteria` (their Adam state with them); returns how
+    /// many.
+    pub fn prune(&mut self, criteria: &PruneCriteria) -> Result<usize, GpuError> {
+        Ok(self.map.prune(&self.context, criteria)?.removed)
     }
 
     pub fn view_count(&self) -> usize {

@@ -45,6 +45,7 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use render_core::context::GpuError;
+use render_core::map::PruneCriteria;
 use render_core::training::TargetImage;
 use render_core::types::{Camera, GaussianCloud, RigidTransform};
 use serde::Serialize;
@@ -108,6 +109,8 @@ pub struct RefinementReport {
     pub max_pose_change_m: f64,
     pub max_pose_change_deg: f64,
     pub poses_reverted: usize,
+    /// Gaussians removed after the refinement (`prune_min_opacity`).
+    pub pruned: usize,
 }
 
 /// The refined map and poses.
@@ -211,6 +214,14 @@ pub fn refine(
         config,
         &mut report,
     )?;
+    if config.prune_min_opacity > 0.0 {
+        // Only the opacity decides: the agents' mappers pruned by shape already.
+        report.pruned = trainer.prune(&PruneCriteria {
+            min_opacity: config.prune_min_opacity as f32,
+            max_scale_m: f32::MAX,
+            max_elongation: f32::MAX,
+        })?;
+    }
     // Poses that moved too far are put back before the final figures.
     let poses = poses.into_bounded(&initial, config, &mut report);
     report.psnr_views_after = trainer.mean_psnr(&poses)?;
@@ -222,6 +233,7 @@ pub fn refine(
         psnr_before = ?report.psnr_views_before,
         psnr_after = ?report.psnr_views_after,
         poses_reverted = report.poses_reverted,
+        pruned = report.pruned,
         "joint refinement done"
     );
     let refined_map = trainer.download()?;
@@ -268,6 +280,10 @@ fn optimise(
             order.shuffle(&mut rng);
         }
         let view = order.pop().expect("refilled above");
+        if config.lr_final_fraction != 1.0 {
+            let progress = report.iterations as f64 / iterations as f64;
+            trainer.scale_learning_rates(config.lr_final_fraction.powf(progress));
+        }
         let gradients = trainer.step(view, &poses.poses[view], report.iterations)?;
         let pose_time = report.iterations >= pose_warmup
             || started.elapsed().as_secs_f64() >= config.pose_warmup_fraction * config.max_seconds;

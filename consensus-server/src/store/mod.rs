@@ -400,6 +400,32 @@ impl DecisionLog {
     }
 }
 
+/// Makes the store at `path` (a copy of a finished run's, see `mac-consensus --rebuild-from`)
+/// the store of a run with the configuration of hash `config_hash`: its recorded identity keeps
+/// the run id and agents and takes that hash, so a consensus with the other configuration
+/// resumes it instead of refusing it. Returns the identity now recorded.
+pub fn adopt_configuration(path: &Path, config_hash: u64) -> anyhow::Result<RunIdentity> {
+    let db = Database::open(path)
+        .with_context(|| format!("opening the consensus store {}", path.display()))?;
+    let store = Store {
+        db: Arc::new(db),
+        path: path.to_path_buf(),
+        next_sequence: 0,
+        next_correction: BTreeMap::new(),
+        keyframe_write_ms: Vec::new(),
+        crash_trigger: None,
+    };
+    let Some(mut identity) = store.identity()? else {
+        bail!(
+            "{}: no run recorded in this consensus store",
+            path.display()
+        );
+    };
+    identity.config_hash = config_hash;
+    store.write_identity(&identity)?;
+    Ok(identity)
+}
+
 /// The decisions in the store at `path`, oldest first, read without resuming it (for
 /// inspection; the store must not be open in a running consensus).
 pub fn read_decisions(path: &Path) -> anyhow::Result<Vec<Decision>> {

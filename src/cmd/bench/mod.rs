@@ -19,6 +19,7 @@ use super::{fmt_num, print_json};
 
 mod ipc;
 mod map_registration;
+mod merge;
 mod render;
 mod tracking;
 
@@ -34,6 +35,8 @@ pub enum BenchCommand {
     Tracking(tracking::TrackingArgs),
     /// Global registration of two agents' maps without an initial guess, against ground truth.
     MapRegistration(map_registration::MapRegistrationArgs),
+    /// A swarm run's merged map against each agent's own map, on held-out and on all frames.
+    Merge(merge::MergeArgs),
     /// Latency and throughput of the agent <-> consensus IPC transport between two processes.
     Ipc(ipc::IpcArgs),
     /// Peer process of `bench ipc` (started by it).
@@ -272,6 +275,7 @@ pub fn run(command: &BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Render(a) => render::run_bench(a),
         BenchCommand::Tracking(a) => tracking::run(a),
         BenchCommand::MapRegistration(a) => map_registration::run(a),
+        BenchCommand::Merge(a) => merge::run(a),
         BenchCommand::Ipc(a) => ipc::run(a),
         BenchCommand::IpcPeer(a) => ipc::run_peer(a),
     }

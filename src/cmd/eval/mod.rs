@@ -15,6 +15,7 @@ use serde::Serialize;
 
 use super::{fmt_num, print_json};
 
+pub mod held_out;
 pub mod swarm;
 
 #[derive(Subcommand)]

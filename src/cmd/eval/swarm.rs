@@ -18,13 +18,13 @@ use std::path::{Path, PathBuf};
 use alexnet::lpips::Lpips;
 use anyhow::{Context, bail};
 use clap::Args;
-use datasets::{self, FrameRange};
 use geometry::trajectory::Trajectory;
-use mac_agent::evaluation::{MapRenderer, QualitySummary, evaluate_frame};
+use mac_agent::evaluation::{MapRenderer, QualitySummary};
 use metrics::ate::{Alignment, DEFAULT_MAX_DT, joint_ate};
 use serde::Serialize;
 use serde_json::Value;
 
+use super::held_out::{AgentFrames, Protocol, score, summary};
 use crate::cmd::swarm::record::{AgentNetwork, LaunchRecord, Transport, network_per_agent};
 use crate::cmd::{fmt_num, print_json};
 
@@ -93,6 +93,15 @@ pub struct SwarmMetrics {
     pub rendering_source: &'static str,
     /// Frames the rendering figures average over.
     pub rendering_frames: usize,
+    /// The merged map on held-out frames (no map was optimised on them; one per window of
+    /// `--render-every` frames, `crate::cmd::eval::held_out`), at the same world poses (`null`:
+    /// not rendered, or `held_out_unavailable` says why).
+    pub psnr_held_out: Option<f64>,
+    pub ssim_held_out: Option<f64>,
+    pub lpips_held_out: Option<f64>,
+    pub depth_l1_cm_held_out: Option<f64>,
+    pub held_out_frames: usize,
+    pub held_out_unavailable: Option<String>,
     pub fps_per_agent: Vec<Option<f64>>,
     pub bytes_per_agent_per_s: Vec<Option<f64>>,
     pub consensus_latency_ms_median: Option<f64>,
@@ -121,6 +130,15 @@ fn mean(values: &[Option<f64>]) -> Option<f64> {
     (!present.is_empty()).then(|| present.iter().sum::<f64>() / present.len() as f64)
 }
 
+/// The merged map's figures on the linked agents' frames at their world poses, under both
+/// protocols (all frames, held out).
+struct MergedQuality {
+    all_frames: Option<QualitySummary>,
+    held_out: Option<QualitySummary>,
+    /// Why there are no held-out figures, when there are none.
+    held_out_unavailable: Option<String>,
+}
+
 /// Renders the merged map at the linked agents' world poses; `None` when an agent's frames
 /// cannot be reopened (its metrics.json lacks the dataset spec) or nothing was evaluated.
 fn merged_map_quality(
@@ -128,27 +146,11 @@ fn merged_map_quality(
     linked: &[u32],
     agent_metrics: &[(u32, Option<Value>)],
     args: &SwarmArgs,
-) -> anyhow::Result<Option<QualitySummary>> {
+) -> anyhow::Result<Option<MergedQuality>> {
     if args.render_every == 0 || linked.is_empty() {
         return Ok(None);
     }
-    let map_path = dir.join("map.ply");
-    let map = render_core::ply::load_ply(&map_path)
-        .with_context(|| format!("reading the merged map {}", map_path.display()))?;
-    let renderer = MapRenderer::new(&map).context("uploading the merged map")?;
-    let weights = args
-        .lpips_weights
-        .clone()
-        .or_else(alexnet::weights::default_alexnet_weights);
-    let lpips = match &weights {
-        Some(path) => Some(
-            Lpips::load(path)
-                .with_context(|| format!("loading LPIPS weights {}", path.display()))?,
-        ),
-        None => None,
-    };
-    let renders = dir.join("renders");
-    let mut qualities = Vec::new();
+    let mut agents = Vec::new();
     for &id in linked {
         let Some(metrics) = agent_metrics
             .iter()
@@ -157,53 +159,72 @@ fn merged_map_quality(
         else {
             return Ok(None);
         };
-        let (Some(spec), Some(range)) = (
-            metrics["dataset_spec"].as_str(),
-            metrics["frame_range"].as_str(),
-        ) else {
+        let Some(agent) = AgentFrames::open(dir, id, metrics)? else {
             return Ok(None);
         };
-        let range: FrameRange = range
-            .parse()
-            .map_err(|e| anyhow::anyhow!("agent {id}: frame range {range:?}: {e}"))?;
-        let dataset = datasets::open(spec, range)
-            .with_context(|| format!("reopening agent {id}'s frames ({spec})"))?;
-        let world = Trajectory::read_tum(&dir.join(format!("agent_{id}.tum")))?;
-        let evaluated: Vec<usize> = (0..dataset.len()).step_by(args.render_every).collect();
-        let comparison_every = evaluated.len().div_ceil(args.renders.max(1)).max(1);
-        if args.renders > 0 {
-            std::fs::create_dir_all(&renders)
-                .with_context(|| format!("creating {}", renders.display()))?;
-        }
-        for (i, position) in evaluated.into_iter().enumerate() {
-            let frame = match dataset.load(position) {
-                Ok(frame) => frame,
-                Err(error) => {
-                    tracing::warn!(agent = id, %error, "frame skipped");
-                    continue;
-                }
-            };
-            // The agent wrote one pose per frame it tracked, stamped with the frame's time.
-            let Some(pose) = world
-                .stamps
-                .iter()
-                .position(|t| (t - frame.timestamp).abs() < TIMESTAMP_TOLERANCE_S)
-                .map(|k| world.poses[k])
-            else {
-                continue;
-            };
-            let comparison = (args.renders > 0 && i % comparison_every == 0)
-                .then(|| renders.join(format!("agent_{id}_frame_{:06}.png", frame.index)));
-            qualities.push(evaluate_frame(
+        agents.push(agent);
+    }
+    let map_path = dir.join("map.ply");
+    let map = render_core::ply::load_ply(&map_path)
+        .with_context(|| format!("reading the merged map {}", map_path.display()))?;
+    let renderer = MapRenderer::new(&map).context("uploading the merged map")?;
+    let lpips = load_lpips(args.lpips_weights.as_deref())?;
+    let renders = dir.join("renders");
+    if args.renders > 0 {
+        std::fs::create_dir_all(&renders)
+            .with_context(|| format!("creating {}", renders.display()))?;
+    }
+    let mut all_frames = Vec::new();
+    let mut held_out = Vec::new();
+    let mut held_out_unavailable = None;
+    for agent in &agents {
+        let id = agent.agent_id;
+        let positions = agent.positions(&agents, args.render_every, Protocol::AllFrames)?;
+        let comparison_every = positions.len().div_ceil(args.renders.max(1)).max(1);
+        let comparisons = |i: usize, frame: usize| {
+            (args.renders > 0 && i.is_multiple_of(comparison_every))
+                .then(|| renders.join(format!("agent_{id}_frame_{frame:06}.png")))
+        };
+        all_frames.extend(score(
+            &renderer,
+            agent,
+            &agent.world,
+            &positions,
+            lpips.as_ref(),
+            &comparisons,
+        )?);
+        match agent.positions(&agents, args.render_every, Protocol::HeldOut) {
+            Ok(positions) => held_out.extend(score(
                 &renderer,
-                &frame,
-                &pose,
+                agent,
+                &agent.world,
+                &positions,
                 lpips.as_ref(),
-                comparison.as_deref(),
-            )?);
+                &|_, _| None,
+            )?),
+            Err(error) => held_out_unavailable = Some(format!("{error:#}")),
         }
     }
-    Ok((!qualities.is_empty()).then(|| QualitySummary::of(&qualities)))
+    if held_out_unavailable.is_some() {
+        held_out.clear();
+    }
+    Ok(Some(MergedQuality {
+        all_frames: summary(&all_frames),
+        held_out: summary(&held_out),
+        held_out_unavailable,
+    }))
+}
+
+/// The LPIPS network from `given` weights, else the default lookup; `None` without weights.
+pub fn load_lpips(given: Option<&Path>) -> anyhow::Result<Option<Lpips>> {
+    let weights = given
+        .map(Path::to_path_buf)
+        .or_else(alexnet::weights::default_alexnet_weights);
+    weights
+        .map(|path| {
+            Lpips::load(&path).with_context(|| format!("loading LPIPS weights {}", path.display()))
+        })
+        .transpose()
 }
 
 /// "alexnet-gem" when every agent ran it; otherwise the kinds per agent, the fallback named.
@@ -226,10 +247,6 @@ fn describe_descriptors(per_agent: &[Option<String>]) -> String {
             .join(", "),
     }
 }
-
-/// Largest difference between a trajectory stamp and its frame's timestamp (the agent writes
-/// them with microsecond precision).
-const TIMESTAMP_TOLERANCE_S: f64 = 1e-5;
 
 /// Computes the swarm's figures and writes DIR/metrics.json.
 pub fn swarm_metrics(dir: &Path, args: &SwarmArgs) -> anyhow::Result<SwarmMetrics> {
@@ -300,24 +317,32 @@ pub fn swarm_metrics(dir: &Path, args: &SwarmArgs) -> anyhow::Result<SwarmMetric
         .collect();
     let count = |name: &str| consensus[name].as_u64().unwrap_or(0);
     let merged = merged_map_quality(dir, &linked, &agent_metrics, args)?;
-    let (psnr, ssim, lpips, depth_l1_cm, rendering_source, rendering_frames) = match merged {
+    let (held_out, held_out_unavailable) = match &merged {
         Some(q) => (
-            q.psnr,
-            q.ssim,
-            q.lpips,
-            q.depth_l1_cm,
-            "merged map at the consensus's world poses",
-            q.frames,
+            q.held_out.clone().unwrap_or_default(),
+            q.held_out_unavailable.clone(),
         ),
-        None => (
-            mean(&field("psnr")),
-            mean(&field("ssim")),
-            mean(&field("lpips")),
-            mean(&field("depth_l1_cm")),
-            "mean over agents of each agent's own map at its own poses",
-            0,
-        ),
+        None => (QualitySummary::default(), None),
     };
+    let (psnr, ssim, lpips, depth_l1_cm, rendering_source, rendering_frames) =
+        match merged.and_then(|q| q.all_frames) {
+            Some(q) => (
+                q.psnr,
+                q.ssim,
+                q.lpips,
+                q.depth_l1_cm,
+                "merged map at the consensus's world poses",
+                q.frames,
+            ),
+            None => (
+                mean(&field("psnr")),
+                mean(&field("ssim")),
+                mean(&field("lpips")),
+                mean(&field("depth_l1_cm")),
+                "mean over agents of each agent's own map at its own poses",
+                0,
+            ),
+        };
     let metrics = SwarmMetrics {
         ate_joint_rmse_m: joint.as_ref().map(|j| j.joint.rmse),
         ate_per_agent_rmse_m: per_agent,
@@ -329,6 +354,12 @@ pub fn swarm_metrics(dir: &Path, args: &SwarmArgs) -> anyhow::Result<SwarmMetric
         depth_l1_cm,
         rendering_source,
         rendering_frames,
+        psnr_held_out: held_out.psnr,
+        ssim_held_out: held_out.ssim,
+        lpips_held_out: held_out.lpips,
+        depth_l1_cm_held_out: held_out.depth_l1_cm,
+        held_out_frames: held_out.frames,
+        held_out_unavailable,
         fps_per_agent: field("fps"),
         bytes_per_agent_per_s: bytes,
         consensus_latency_ms_median: consensus["consensus_latency_ms_median"].as_f64(),
@@ -389,6 +420,23 @@ pub fn run(args: &SwarmArgs) -> anyhow::Result<()> {
     println!("  {:<34} {:>12}", "SSIM", num(m.ssim, 3));
     println!("  {:<34} {:>12}", "LPIPS (AlexNet)", num(m.lpips, 3));
     println!("  {:<34} {:>12}", "depth L1 cm", num(m.depth_l1_cm, 2));
+    if m.held_out_frames > 0 {
+        println!(
+            "  {:<34} {:>12}",
+            format!(
+                "held out ({} frames): PSNR / SSIM / LPIPS",
+                m.held_out_frames
+            ),
+            format!(
+                "{} / {} / {}",
+                num(m.psnr_held_out, 2),
+                num(m.ssim_held_out, 3),
+                num(m.lpips_held_out, 3)
+            )
+        );
+    } else if let Some(why) = &m.held_out_unavailable {
+        println!("  held-out frames: none ({why})");
+    }
     println!(
         "  {:<34} {:>12}",
         "loop closures accepted / rejected",

@@ -1,0 +1,269 @@
+//! `mac-ego3d bench merge --dir RUN`: what the consensus's merged map adds over each agent's own
+//! map, per agent, on that agent's frames: both maps rendered on the same frames (each from the
+//! poses of its own frame: the own map from agent_K/trajectory_map.tum, the merged map from the
+//! consensus's agent_K.tum), under both protocols of `crate::cmd::eval::held_out` (held-out
+//! frames, which no map was optimised on, and every n-th frame). With the Gaussian counts and the
+//! joint refinement's time; a table, or JSON with `--json`; DIR/merge_bench.json either way.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use clap::Args;
+use mac_agent::evaluation::{FrameQuality, MapRenderer, QualitySummary};
+use serde::Serialize;
+use serde_json::Value;
+
+use crate::cmd::eval::held_out::{AgentFrames, Protocol, score, summary};
+use crate::cmd::eval::swarm::load_lpips;
+use crate::cmd::{fmt_num, print_json};
+
+#[derive(Args)]
+pub struct MergeArgs {
+    /// A finished swarm run's folder (scripts/launch_swarm.sh --out).
+    #[arg(long)]
+    dir: PathBuf,
+    /// One frame per window of this many frames of each agent (as `eval swarm --render-every`).
+    #[arg(long, default_value_t = 20)]
+    every: usize,
+    /// LPIPS weights (.npz). Default: $MAC_EGO3D_WEIGHTS, else the cache scripts/setup.sh
+    /// fills; LPIPS is left out without them.
+    #[arg(long)]
+    lpips_weights: Option<PathBuf>,
+    /// Print the JSON instead of a table (DIR/merge_bench.json is written either way).
+    #[arg(long)]
+    json: bool,
+}
+
+/// Own and merged map on the same frames of one agent.
+#[derive(Debug, Clone, Serialize)]
+pub struct Comparison {
+    pub frames: usize,
+    pub own: QualitySummary,
+    pub merged: QualitySummary,
+}
+
+impl Comparison {
+    fn of(own: &[FrameQuality], merged: &[FrameQuality]) -> Self {
+        Self {
+            frames: own.len().min(merged.len()),
+            own: summary(own).unwrap_or_default(),
+            merged: summary(merged).unwrap_or_default(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct AgentComparison {
+    pub agent_id: u32,
+    pub own_gaussians: usize,
+    pub held_out: Comparison,
+    pub all_frames: Comparison,
+}
+
+/// DIR/merge_bench.json.
+#[derive(Debug, Clone, Serialize)]
+pub struct MergeBench {
+    pub dir: PathBuf,
+    pub every: usize,
+    pub agents: Vec<AgentComparison>,
+    /// The merged map over every agent's held-out (and all) frames together.
+    pub merged_held_out: QualitySummary,
+    pub merged_all_frames: QualitySummary,
+    pub merged_gaussians: usize,
+    pub own_gaussians_sum: usize,
+    /// `merged_gaussians / own_gaussians_sum`.
+    pub gaussian_ratio: Option<f64>,
+    /// The consensus's joint refinement (consensus.json; `null`: not run).
+    pub refinement_seconds: Option<f64>,
+    pub refinement_iterations: Option<u64>,
+    pub refinement_views: Option<u64>,
+}
+
+fn read_json(path: &Path) -> anyhow::Result<Value> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
+fn load_map(path: &Path) -> anyhow::Result<render_core::types::GaussianCloud> {
+    render_core::ply::load_ply(path).with_context(|| format!("reading the map {}", path.display()))
+}
+
+/// Measures the run in `dir` (see the module documentation).
+pub fn measure(
+    dir: &Path,
+    every: usize,
+    lpips_weights: Option<&Path>,
+) -> anyhow::Result<MergeBench> {
+    let consensus = read_json(&dir.join("consensus.json"))?;
+    let mut ids: Vec<u32> = consensus["agents"]
+        .as_object()
+        .map(|agents| agents.keys().filter_map(|k| k.parse().ok()).collect())
+        .unwrap_or_default();
+    ids.sort_unstable();
+    let mut agents = Vec::new();
+    for id in ids {
+        let metrics_path = dir.join(format!("agent_{id}/metrics.json"));
+        let metrics = read_json(&metrics_path)?;
+        match AgentFrames::open(dir, id, &metrics)? {
+            Some(agent) if agent.own_map_poses.is_some() => agents.push(agent),
+            Some(_) => bail!(
+                "agent {id} wrote no agent_{id}/{}: its own map's poses are unknown",
+                mac_agent::views::MAP_TRAJECTORY_FILE
+            ),
+            None => tracing::warn!(agent = id, "not linked to the world: left out"),
+        }
+    }
+    if agents.is_empty() {
+        bail!("{}: no agent linked to the world", dir.display());
+    }
+    let merged_map = load_map(&dir.join("map.ply"))?;
+    let merged = MapRenderer::new(&merged_map).context("uploading the merged map")?;
+    let lpips = load_lpips(lpips_weights)?;
+    let mut rows = Vec::new();
+    let (mut merged_held_out, mut merged_all) = (Vec::new(), Vec::new());
+    let mut own_gaussians_sum = 0;
+    for agent in &agents {
+        let id = agent.agent_id;
+        let own_map = load_map(&dir.join(format!("agent_{id}/map.ply")))?;
+        own_gaussians_sum += own_map.len();
+        let own = MapRenderer::new(&own_map).context("uploading an agent's map")?;
+        let own_poses = agent.own_map_poses.as_ref().expect("checked above");
+        let compare = |protocol| -> anyhow::Result<(Comparison, Vec<FrameQuality>)> {
+            let positions = agent.positions(&agents, every, protocol)?;
+            let _span = tracing::info_span!("scoring", agent = id, ?protocol).entered();
+            let own_q = score(
+                &own,
+                agent,
+                own_poses,
+                &positions,
+                lpips.as_ref(),
+                &|_, _| None,
+            )?;
+            let merged_q = score(
+                &merged,
+                agent,
+                &agent.world,
+                &positions,
+                lpips.as_ref(),
+                &|_, _| None,
+            )?;
+            Ok((Comparison::of(&own_q, &merged_q), merged_q))
+        };
+        let (held_out, merged_q) = compare(Protocol::HeldOut)?;
+        merged_held_out.extend(merged_q);
+        let (all_frames, merged_q) = compare(Protocol::AllFrames)?;
+        merged_all.extend(merged_q);
+        rows.push(AgentComparison {
+            agent_id: id,
+            own_gaussians: own_map.len(),
+            held_out,
+            all_frames,
+        });
+    }
+    let refinement = &consensus["refinement"];
+    Ok(MergeBench {
+        dir: dir.to_path_buf(),
+        every,
+        agents: rows,
+        merged_held_out: summary(&merged_held_out).unwrap_or_default(),
+        merged_all_frames: summary(&merged_all).unwrap_or_default(),
+        merged_gaussians: merged_map.len(),
+        own_gaussians_sum,
+        gaussian_ratio: (own_gaussians_sum > 0)
+            .then(|| merged_map.len() as f64 / own_gaussians_sum as f64),
+        refinement_seconds: refinement["seconds"].as_f64(),
+        refinement_iterations: refinement["iterations"].as_u64(),
+        refinement_views: refinement["views"].as_u64(),
+    })
+}
+
+pub fn run(args: &MergeArgs) -> anyhow::Result<()> {
+    let bench = measure(&args.dir, args.every, args.lpips_weights.as_deref())?;
+    let path = args.dir.join("merge_bench.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&bench)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    if args.json {
+        return print_json(&bench);
+    }
+    print_table(&bench);
+    println!("  json: {}", path.display());
+    Ok(())
+}
+
+fn print_table(bench: &MergeBench) {
+    let num = |v: Option<f64>, d: usize| v.map_or("-".into(), |v| fmt_num(v, d));
+    println!(
+        "merged map against each agent's own map, {} (one frame per {} of each agent)",
+        bench.dir.display(),
+        bench.every
+    );
+    println!(
+        "  {:<7} {:<11} {:>6} {:>15} {:>15} {:>7} {:>15} {:>15}",
+        "agent",
+        "frames",
+        "count",
+        "PSNR own/merged",
+        "delta dB",
+        "",
+        "SSIM own/merged",
+        "LPIPS own/merged"
+    );
+    for row in &bench.agents {
+        for (name, c) in [("held out", &row.held_out), ("all", &row.all_frames)] {
+            let delta = match (c.own.psnr, c.merged.psnr) {
+                (Some(own), Some(merged)) => format!("{:+.2}", merged - own),
+                _ => "-".into(),
+            };
+            println!(
+                "  {:<7} {:<11} {:>6} {:>15} {:>15} {:>7} {:>15} {:>15}",
+                row.agent_id,
+                name,
+                c.frames,
+                format!("{} / {}", num(c.own.psnr, 2), num(c.merged.psnr, 2)),
+                delta,
+                "",
+                format!("{} / {}", num(c.own.ssim, 3), num(c.merged.ssim, 3)),
+                format!("{} / {}", num(c.own.lpips, 3), num(c.merged.lpips, 3)),
+            );
+        }
+    }
+    let q = &bench.merged_held_out;
+    println!(
+        "  merged, every agent's held-out frames ({}): PSNR {} SSIM {} LPIPS {} depth L1 {} cm",
+        q.frames,
+        num(q.psnr, 2),
+        num(q.ssim, 3),
+        num(q.lpips, 3),
+        num(q.depth_l1_cm, 2)
+    );
+    let q = &bench.merged_all_frames;
+    println!(
+        "  merged, every agent's frames ({}):          PSNR {} SSIM {} LPIPS {} depth L1 {} cm",
+        q.frames,
+        num(q.psnr, 2),
+        num(q.ssim, 3),
+        num(q.lpips, 3),
+        num(q.depth_l1_cm, 2)
+    );
+    println!(
+        "  Gaussians: merged {}, own maps {} in all (ratio {}); own per agent: {}",
+        bench.merged_gaussians,
+        bench.own_gaussians_sum,
+        num(bench.gaussian_ratio, 2),
+        bench
+            .agents
+            .iter()
+            .map(|a| a.own_gaussians.to_string())
+            .collect::<Vec<_>>()
+            .join(" / ")
+    );
+    println!(
+        "  joint refinement: {} iterations over {} views, {} s",
+        bench
+            .refinement_iterations
+            .map_or("-".into(), |v| v.to_string()),
+        bench.refinement_views.map_or("-".into(), |v| v.to_string()),
+        num(bench.refinement_seconds, 1)
+    );
+}
