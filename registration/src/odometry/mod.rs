@@ -20,6 +20,9 @@
 //!    with points for Gaussians).
 //!
 //! Frame-to-frame mode (a benchmark baseline) runs steps 1, 2 and 4 without segments.
+//!
+//! On the first frame the correspondence distance is widened when the frame's points lie further
+//! apart than it (low resolution, large stride: [`spacing`]).
 
 pub mod check;
 mod map_update;
@@ -27,6 +30,7 @@ mod prediction;
 pub mod recovery;
 mod relocalisation;
 pub mod segments;
+pub mod spacing;
 mod types;
 
 use std::time::Instant;
@@ -101,6 +105,8 @@ pub struct Odometry {
     segment_archive: KeyframeArchive,
     detached: Option<Detached>,
     next_segment: SegmentId,
+    /// Whether the distances were fitted to the point spacing yet (on the first frame).
+    spacing_checked: bool,
 }
 
 impl Odometry {
@@ -132,6 +138,7 @@ impl Odometry {
             segment_archive: KeyframeArchive::new(tracking.relocalisation_keyframes),
             detached: None,
             next_segment: 1,
+            spacing_checked: false,
         }
     }
 
@@ -205,6 +212,30 @@ impl Odometry {
         })
     }
 
+    /// Widens the correspondence distance (and the map's voxels with it) when `cloud`'s points
+    /// are further apart than it ([`spacing`]); once, before any map exists.
+    fn fit_distances_to_spacing(&mut self, cloud: &PointCloud, intrinsics: &Intrinsics) {
+        self.spacing_checked = true;
+        let Some(spacing_m) =
+            spacing::median_point_spacing_m(cloud, intrinsics, self.tracking.pixel_stride)
+        else {
+            return;
+        };
+        let scale = spacing::distance_scale(spacing_m, self.tracking.max_correspondence_m);
+        if scale <= 1.0 || !self.map.is_empty() {
+            return;
+        }
+        tracing::info!(
+            spacing_m,
+            configured_m = self.tracking.max_correspondence_m,
+            scale,
+            "frame points lie further apart than the correspondence distance: the distance is widened"
+        );
+        self.tracking.max_correspondence_m *= scale;
+        self.params = GicpParams::tracking(&self.tracking, &self.keyframes);
+        self.map = VoxelMap::for_correspondence_distance(self.tracking.max_correspondence_m);
+    }
+
     /// Tracks one frame and updates the map. Never panics on bad depth: a frame without enough
     /// valid points is a counted failure whose pose is the prediction.
     pub fn track(&mut self, input: FrameInput<'_>) -> TrackedFrame {
@@ -220,6 +251,9 @@ impl Odometry {
             .replace(input.timestamp_s)
             .map(|previous| input.timestamp_s - previous)
             .filter(|span| span.is_finite() && *span > 0.0);
+        if !self.spacing_checked && !frame.is_empty() {
+            self.fit_distances_to_spacing(frame.cloud(), input.intrinsics);
+        }
         let Some(world_from_previous) = self.world_from_previous else {
             return self.initialise(frame, &input);
         };

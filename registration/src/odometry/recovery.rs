@@ -115,7 +115,14 @@ impl Recovery<'_> {
     pub fn wide(&self, guess: Guess, start: &Isometry3<f64>) -> Candidate {
         let mut pose = *start;
         let mut iterations = 0;
-        for &distance in &self.tracking.recovery_distances_m {
+        // Stages no coarser than the fine distance (widened for sparse points, see
+        // super::spacing) would repeat the fine stage.
+        let coarse = self
+            .tracking
+            .recovery_distances_m
+            .iter()
+            .filter(|&&distance| distance > self.fine.max_correspondence_m);
+        for &distance in coarse {
             let step = (distance / self.fine.max_correspondence_m).round().max(1.0) as usize;
             let sample = every_nth(self.frame, step);
             let scale = step as f64;

@@ -227,11 +227,12 @@ fn track_covered(
 /// Every 15th frame of the synthetic scene: steps of ~30 cm.
 const FAST_MOTION: &str = "synthetic:agents=1,frames=300,width=320,height=240:0..300:15";
 
-/// The tracking configuration of the synthetic tests: at 320x240 every 3rd pixel samples the
-/// surfaces about as densely as the default stride does at 640x480.
+/// The tracking configuration of the synthetic tests: at 320x240 every 2nd pixel samples the
+/// surfaces as densely as the default stride does at 640x480 (about 3.4 cm apart at the scene's
+/// median depth, so the correspondence distance is hardly widened, see `spacing`).
 fn tracking_320x240() -> TrackingConfig {
     TrackingConfig {
-        pixel_stride: 3,
+        pixel_stride: 2,
         ..TrackingConfig::default()
     }
 }
@@ -327,6 +328,9 @@ fn a_segment_after_the_lens_was_covered_is_joined_to_the_map() {
     let tracking = TrackingConfig {
         // Texture only: the FPFH guess is not what this test is about.
         recovery_geometry: false,
+        // Every 3rd pixel (the correspondence distance widened to about 3.6 cm); at every 2nd
+        // the second segment was not joined within the 80 frames (noted on the tracking issue).
+        pixel_stride: 3,
         ..tracking_320x240()
     };
     let (rmse, stats, placed) = track_covered(spec, &tracking, |p| (30..37).contains(&p), 0.4);
