@@ -21,8 +21,9 @@
 //!
 //! Frame-to-frame mode (a benchmark baseline) runs steps 1, 2 and 4 without segments.
 //!
-//! On the first frame the correspondence distance is widened when the frame's points lie further
-//! apart than it (low resolution, large stride: [`spacing`]).
+//! When the frames' points lie further apart than the correspondence distance (low resolution,
+//! large stride), a frame with too few correspondences is registered again at a distance that
+//! follows the spacing ([`spacing`]).
 
 pub mod check;
 mod map_update;
@@ -105,8 +106,11 @@ pub struct Odometry {
     segment_archive: KeyframeArchive,
     detached: Option<Detached>,
     next_segment: SegmentId,
-    /// Whether the distances were fitted to the point spacing yet (on the first frame).
+    /// Whether the point spacing was measured yet (on the first frame).
     spacing_checked: bool,
+    /// The ordinary path's parameters at the sparse-points distance ([`spacing`]), when the
+    /// frames' points lie further apart than the correspondence distance.
+    sparse_params: Option<GicpParams>,
 }
 
 impl Odometry {
@@ -139,6 +143,7 @@ impl Odometry {
             detached: None,
             next_segment: 1,
             spacing_checked: false,
+            sparse_params: None,
         }
     }
 
@@ -212,8 +217,8 @@ impl Odometry {
         })
     }
 
-    /// Widens the correspondence distance (and the map's voxels with it) when `cloud`'s points
-    /// are further apart than it ([`spacing`]); once, before any map exists.
+    /// Prepares the sparse-points retry ([`spacing`]) when `cloud`'s points lie further apart
+    /// than the correspondence distance; once, on the first frame with points.
     fn fit_distances_to_spacing(&mut self, cloud: &PointCloud, intrinsics: &Intrinsics) {
         self.spacing_checked = true;
         let Some(spacing_m) =
@@ -221,19 +226,18 @@ impl Odometry {
         else {
             return;
         };
-        let scale = spacing::distance_scale(spacing_m, self.tracking.max_correspondence_m);
-        if scale <= 1.0 || !self.map.is_empty() {
-            return;
+        let fine_m = self.tracking.max_correspondence_m;
+        let sparse_m = spacing::sparse_correspondence_m(spacing_m, fine_m);
+        if sparse_m > fine_m {
+            tracing::info!(
+                spacing_m,
+                fine_m,
+                sparse_m,
+                "frame points lie further apart than the correspondence distance: frames with too \
+                 few correspondences are registered again at the sparse distance"
+            );
+            self.sparse_params = Some(self.params.with_max_correspondence(sparse_m));
         }
-        tracing::info!(
-            spacing_m,
-            configured_m = self.tracking.max_correspondence_m,
-            scale,
-            "frame points lie further apart than the correspondence distance: the distance is widened"
-        );
-        self.tracking.max_correspondence_m *= scale;
-        self.params = GicpParams::tracking(&self.tracking, &self.keyframes);
-        self.map = VoxelMap::for_correspondence_distance(self.tracking.max_correspondence_m);
     }
 
     /// Tracks one frame and updates the map. Never panics on bad depth: a frame without enough
@@ -453,15 +457,29 @@ impl Odometry {
         velocity: &Isometry3<f64>,
         world_from_previous: &Isometry3<f64>,
     ) -> Candidate {
-        let (result, initial) = register_from_prediction(
-            cloud,
-            &self.map,
-            velocity,
-            world_from_previous,
-            &self.params,
-            self.tracking.constant_velocity,
-            self.last_initial_guess,
-        );
+        let register = |params: &GicpParams| {
+            register_from_prediction(
+                cloud,
+                &self.map,
+                velocity,
+                world_from_previous,
+                params,
+                self.tracking.constant_velocity,
+                self.last_initial_guess,
+            )
+        };
+        let (mut result, mut initial) = register(&self.params);
+        if let Some(sparse) = &self.sparse_params
+            && matches!(
+                result.failure,
+                Some(RegistrationFailure::TooFewCorrespondences { .. })
+            )
+        {
+            let (retry, retry_initial) = register(sparse);
+            if retry.is_success() {
+                (result, initial) = (retry, retry_initial);
+            }
+        }
         self.note_initial_guess(initial);
         let check = FrameCheck::measure(
             &self.map,

@@ -228,8 +228,9 @@ fn track_covered(
 const FAST_MOTION: &str = "synthetic:agents=1,frames=300,width=320,height=240:0..300:15";
 
 /// The tracking configuration of the synthetic tests: at 320x240 every 2nd pixel samples the
-/// surfaces as densely as the default stride does at 640x480 (about 3.4 cm apart at the scene's
-/// median depth, so the correspondence distance is hardly widened, see `spacing`).
+/// surfaces as densely as every 4th does at 640x480 (about 3.4 cm apart at the scene's median
+/// depth), so the sparse-points retry (`spacing`) reaches at most 2.4 cm and steps of 30 cm stay
+/// far beyond what the ordinary path can take.
 fn tracking_320x240() -> TrackingConfig {
     TrackingConfig {
         pixel_stride: 2,
@@ -328,8 +329,8 @@ fn a_segment_after_the_lens_was_covered_is_joined_to_the_map() {
     let tracking = TrackingConfig {
         // Texture only: the FPFH guess is not what this test is about.
         recovery_geometry: false,
-        // Every 3rd pixel (the correspondence distance widened to about 3.6 cm); at every 2nd
-        // the second segment was not joined within the 80 frames (noted on the tracking issue).
+        // Every 3rd pixel, as this test was written for; at every 2nd the second segment was
+        // not joined within the 80 frames (noted on the tracking issue).
         pixel_stride: 3,
         ..tracking_320x240()
     };
