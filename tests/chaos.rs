@@ -63,15 +63,17 @@ fn real_data_chaos_soak_short_form_loses_no_keyframe() {
     let output = command.output().unwrap();
     let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap_or_else(|e| {
         panic!(
-            "chaos printed no JSON ({e}); stderr:\n{}",
-            String::from_utf8_lossy(&output.stderr)
+            "chaos printed no JSON ({e}); stderr:\n{}\n{}",
+            String::from_utf8_lossy(&output.stderr),
+            common::log_tails(&out, 40)
         )
     });
     eprintln!("{}", serde_json::to_string_pretty(&report).unwrap());
     assert!(
         output.status.success(),
-        "the soak failed: {}",
-        report["failures"]
+        "the soak failed: {}\n{}",
+        report["failures"],
+        common::log_tails(&out, 40)
     );
     for (process, kills) in report["kills_per_process"]
         .as_array()

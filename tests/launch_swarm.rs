@@ -5,6 +5,8 @@
 //! A consensus killed mid-run is started again on its store, and a wrong option is refused
 //! before anything starts.
 
+mod common;
+
 use std::os::unix::process::CommandExt;
 use std::path::Path;
 use std::process::{Command, ExitStatus};
@@ -111,7 +113,12 @@ fn ctrl_c_to_the_whole_process_group_leaves_every_agents_outputs_and_the_world_o
             .status();
         panic!("the interrupted swarm did not end:\n{}", log())
     });
-    assert!(status.success(), "mac-ego3d swarm failed:\n{}", log());
+    assert!(
+        status.success(),
+        "mac-ego3d swarm failed:\n{}\n{}",
+        log(),
+        common::log_tails(out.path(), 40)
+    );
     assert!(log().contains("interrupted"), "{}", log());
 
     let consensus: serde_json::Value =
@@ -224,7 +231,12 @@ fn a_killed_consensus_is_restarted_and_the_run_ends_complete() {
             .status();
         panic!("the swarm did not end:\n{}", log())
     });
-    assert!(status.success(), "mac-ego3d swarm failed:\n{}", log());
+    assert!(
+        status.success(),
+        "mac-ego3d swarm failed:\n{}\n{}",
+        log(),
+        common::log_tails(out.path(), 40)
+    );
     assert!(
         log().contains("starting it again on its store"),
         "{}",

@@ -81,6 +81,41 @@ pub fn repository_config(relative: &str) -> Config {
     Config::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join(relative)).unwrap()
 }
 
+/// The last `lines` lines of every `*.log` file in `dir` and its sub-folders (two levels), each
+/// under its path: what a failed run's processes said, for the failure message (the run's
+/// temporary folder is gone once the test ends).
+pub fn log_tails(dir: &Path, lines: usize) -> String {
+    let mut logs = Vec::new();
+    let mut folders = vec![(dir.to_path_buf(), 0)];
+    while let Some((folder, depth)) = folders.pop() {
+        let Ok(entries) = std::fs::read_dir(&folder) else {
+            continue;
+        };
+        for entry in entries.flatten() {
+            let path = entry.path();
+            if path.is_dir() && depth < 2 {
+                folders.push((path, depth + 1));
+            } else if path.extension().is_some_and(|e| e == "log") {
+                logs.push(path);
+            }
+        }
+    }
+    logs.sort();
+    let mut text = String::new();
+    for path in logs {
+        let content = std::fs::read_to_string(&path).unwrap_or_default();
+        let all: Vec<&str> = content.lines().collect();
+        let tail = &all[all.len().saturating_sub(lines)..];
+        text += &format!(
+            "--- {} (last {} lines)\n{}\n",
+            path.display(),
+            tail.len(),
+            tail.join("\n")
+        );
+    }
+    text
+}
+
 /// One agent of a run: its dataset (path or `synthetic:...` spec) and frame range.
 #[derive(Debug, Clone)]
 pub struct AgentSpec {
