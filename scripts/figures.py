@@ -13,7 +13,7 @@ Each JSON file holds one figure (an object) or several (a list of objects), with
     date            when, YYYY-MM-DD
     source_section  the heading of the docs/benchmarks.md entry that reports it, as written
 
-Rows follow the files' names, then their order inside a file.
+Rows follow the files' names (a number in front orders them), then their order inside a file.
 
     python3 scripts/figures.py          rewrite the block between the markers
     python3 scripts/figures.py --check  exit 1 when the block is out of date, 2 when a JSON file
@@ -23,6 +23,7 @@ Python 3 standard library only.
 """
 
 import argparse
+import decimal
 import json
 import re
 import sys
@@ -84,7 +85,7 @@ def check_figure(path, index, figure, anchors):
     for field in FIELDS:
         value = figure[field]
         if field == "value":
-            if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            if isinstance(value, bool) or not isinstance(value, (int, decimal.Decimal, str)):
                 raise FigureError(f"{where}: field 'value' must be a number or a text")
             if isinstance(value, str) and not value.strip():
                 raise FigureError(f"{where}: field 'value' is empty")
@@ -117,7 +118,8 @@ def load_figures(anchors):
     figures = []
     for path in files:
         try:
-            data = json.loads(path.read_text(encoding="utf-8"))
+            # Decimal keeps a number as written (20.30 stays 20.30, not 20.3).
+            data = json.loads(path.read_text(encoding="utf-8"), parse_float=decimal.Decimal)
         except (OSError, UnicodeDecodeError) as error:
             raise FigureError(f"{relative(path)}: cannot be read: {error}") from error
         except json.JSONDecodeError as error:
@@ -139,8 +141,7 @@ def cell(text):
 
 
 def format_value(figure):
-    value = figure["value"]
-    text = repr(value) if isinstance(value, float) else str(value)
+    text = str(figure["value"])
     unit = figure["unit"].strip()
     return f"{text} {unit}" if unit else text
 
