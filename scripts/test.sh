@@ -22,6 +22,8 @@ fi
 # Formatting first: it fails in seconds, the tests take minutes.
 echo "[test] cargo fmt --check"
 cargo fmt --all --check
+echo "[test] docs/benchmarks.md current figures (scripts/figures.py --check)"
+python3 scripts/figures.py --check
 
 # Clippy's lints (warnings are errors) run while the tests build: clippy-driver compiles the
 # workspace's own crates in place of rustc (RUSTC_WORKSPACE_WRAPPER, as `cargo clippy` uses it,

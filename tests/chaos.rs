@@ -4,7 +4,7 @@
 //! acted on it); `mac-ego3d chaos` checks
 //! that every keyframe the agents delivered is in the final consensus state and that the outputs
 //! are complete, and compares with the same swarm without kills. The long form is documented in
-//! the README.
+//! docs/architecture.md ("The chaos soak").
 //!
 //! Named real_data_* because the agents' global descriptor needs the AlexNet weights of the
 //! shared data folder (as in swarm.rs).
