@@ -3,8 +3,8 @@
 //! score above tau proposes a loop closure: tau_same_agent (0.80) within one agent,
 //! tau_other_agent (0.85) between agents. Proposals are only candidates: association and alignment verify or reject them.
 
-use alexnet::descriptor::score;
 use config::ConsensusConfig;
+use protocol::messages::descriptor_score as score;
 use serde::{Deserialize, Serialize};
 
 /// Identifies one keyframe in the swarm.

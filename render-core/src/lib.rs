@@ -34,7 +34,8 @@ mod gaussians;
 pub mod gpu;
 pub mod map;
 mod passes;
-pub mod ply;
+/// The 3DGS PLY format (the `splats` crate's).
+pub use splats::ply;
 pub mod pose;
 mod profile;
 pub mod reference;
