@@ -12,7 +12,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::MetricError;
 
-pub use geometry::ssim::{SSIM_K1, SSIM_K2, SSIM_SIGMA, SSIM_WINDOW, gaussian_window};
+// SSIM's window and constants are geometry's, shared with the training loss (render-core).
+use geometry::ssim::{SSIM_K1, SSIM_K2, SSIM_WINDOW, gaussian_window};
 const CHANNELS: usize = 3;
 
 /// PSNR and both SSIM variants of one image pair.

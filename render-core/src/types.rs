@@ -7,12 +7,12 @@
 //! - Pixel `(col, row)` has its centre at image coordinate `(col, row)`, so a principal point
 //!   `cx = (width - 1) / 2` is the image centre (Replica: `cx = 599.5` for width 1200).
 //! - Colours are SH degree 0 already converted to linear RGB in `[0, 1]` (not `f_dc`); see
-//!   [`crate::ply`] for the `f_dc` conversion used in files.
+//!   [`splats::ply`] for the `f_dc` conversion used in files.
 
 use geometry::camera::Intrinsics;
-pub use splats::{
-    GaussianCloud, RigidTransform, quaternion_multiply, rotation_from_quaternion_f64, se3_exp,
-};
+// The map as data is the splats crate's (one definition for the GPU-free crates and this one);
+// the modules of this crate name it through here.
+pub(crate) use splats::{GaussianCloud, RigidTransform, rotation_from_quaternion_f64};
 
 /// Activation and rasterisation constants of the image model (docs/method.md, The map) and the
 /// 3DGS reference.

@@ -14,4 +14,4 @@ pub mod ply;
 mod transform;
 
 pub use cloud::GaussianCloud;
-pub use transform::{RigidTransform, quaternion_multiply, rotation_from_quaternion_f64, se3_exp};
+pub use transform::{RigidTransform, quaternion_multiply, rotation_from_quaternion_f64};

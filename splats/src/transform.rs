@@ -119,7 +119,7 @@ pub fn rotation_from_quaternion_f64(q: [f64; 4]) -> [[f64; 3]; 3] {
 
 /// SE(3) exponential with `xi = [rho, phi]`: returns (rotation, translation) where the
 /// translation is `V(phi) * rho` (the exact group exponential).
-pub fn se3_exp(xi: [f64; 6]) -> (DMat3, DVec3) {
+pub(crate) fn se3_exp(xi: [f64; 6]) -> (DMat3, DVec3) {
     let rho = DVec3::new(xi[0], xi[1], xi[2]);
     let phi = DVec3::new(xi[3], xi[4], xi[5]);
     let theta = phi.length();
