@@ -246,7 +246,7 @@ fn real_data_redkitchen_reads_through_the_cli() {
 
 #[test]
 fn render_command_renders_a_saved_map() {
-    use render_core::types::GaussianCloud;
+    use splats::GaussianCloud;
     let dir = tempfile::tempdir().unwrap();
     let map = dir.path().join("map.ply");
     let mut cloud = GaussianCloud::default();
@@ -258,7 +258,7 @@ fn render_command_renders_a_saved_map() {
         6.0,
         [0.9, 0.1, 0.1],
     );
-    render_core::ply::save_ply(&map, &cloud).unwrap();
+    splats::ply::save_ply(&map, &cloud).unwrap();
     let rgb = dir.path().join("rgb.png");
     let depth = dir.path().join("depth.png");
     let out = mac_ego3d(&[

@@ -129,7 +129,7 @@ mod tests {
     use geometry::depth::DepthImage;
     use image::RgbImage;
     use nalgebra::Isometry3;
-    use render_core::types::GaussianCloud;
+    use splats::GaussianCloud;
 
     fn keyframe(keyframe_id: u64) -> PublishableKeyframe {
         PublishableKeyframe {

@@ -16,8 +16,9 @@ use metrics::image::image_quality;
 use nalgebra::Isometry3;
 use render_core::context::{GpuContext, GpuError};
 use render_core::gpu::{DeviceGaussians, GpuRenderer};
-use render_core::types::{Camera, GaussianCloud, RenderMode, RenderOutput, RigidTransform};
+use render_core::types::{Camera, RenderMode, RenderOutput};
 use serde::Serialize;
+use splats::{GaussianCloud, RigidTransform};
 
 /// Pixels whose accumulated opacity is below this get no depth: there the map is mostly empty and
 /// depth / alpha would be a guess.

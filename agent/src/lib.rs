@@ -34,3 +34,8 @@ pub mod source;
 pub mod spool;
 pub mod swarm;
 pub mod views;
+
+// The extractor the agent runs and the wire format it publishes in must agree on the
+// descriptor length.
+const _: () =
+    assert!(protocol::messages::DESCRIPTOR_LEN == alexnet::descriptor::GLOBAL_DESCRIPTOR_LEN);

@@ -30,8 +30,8 @@ use geometry::se3::rotation_angle;
 use nalgebra::Isometry3;
 use registration::odometry::Odometry;
 use registration::voxel_map::MapPointId;
-use render_core::types::RigidTransform;
 use serde::Serialize;
+use splats::RigidTransform;
 
 use crate::mapper::Mapper;
 use crate::seeding::CoverageIndex;

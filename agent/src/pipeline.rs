@@ -16,7 +16,7 @@ use registration::config::TrackingKeyframeSeeds;
 use registration::odometry::{
     FrameInput, Odometry, OdometryMode, Placement, SegmentJoin, TrackedFrame, TrackingOutcome,
 };
-use render_core::types::{GaussianCloud, RigidTransform};
+use splats::{GaussianCloud, RigidTransform};
 
 use crate::local_corrections::{LocalCorrections, LocalMaps};
 use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe};

@@ -27,8 +27,8 @@ use metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate};
 use metrics::stats::{median, quantile};
 use nalgebra::Isometry3;
 use registration::odometry::{Placement, SegmentId};
-use render_core::types::GaussianCloud;
 use serde::Serialize;
+use splats::GaussianCloud;
 
 use crate::evaluation::{
     FrameQuality, MapRenderer, QualitySummary, comparison_path, evaluate_frame,
@@ -558,11 +558,11 @@ fn tracking_report(run: &FinishedPipeline) -> TrackingReport {
 /// map.ply (the real-time map) and map_refined.ply (after the optional refinement).
 fn write_maps(outcome: &MappingOutcome, out: &Path) -> anyhow::Result<()> {
     let map_path = out.join("map.ply");
-    render_core::ply::save_ply(&map_path, &outcome.realtime_map)
+    splats::ply::save_ply(&map_path, &outcome.realtime_map)
         .with_context(|| format!("writing {}", map_path.display()))?;
     if let Some((refined_map, _)) = &outcome.refined {
         let path = out.join("map_refined.ply");
-        render_core::ply::save_ply(&path, refined_map)
+        splats::ply::save_ply(&path, refined_map)
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())

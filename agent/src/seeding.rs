@@ -20,7 +20,7 @@ use registration::config::{KeyframeConfig, SeedScale, TrackingConfig};
 use registration::covariance::{Covariance, smallest_eigenvector};
 use registration::points::PointCloud;
 use registration::voxel_map::{MapPoint, MapPointId, VoxelMap};
-use render_core::types::GaussianCloud;
+use splats::GaussianCloud;
 
 /// The published seeding scale (docs/method.md, Seeding):
 /// `sqrt(eigenvalue) / max(1, PUBLISHED_DEPTH_FACTOR * z^PUBLISHED_DEPTH_EXPONENT)`.

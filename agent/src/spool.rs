@@ -37,7 +37,7 @@ pub struct SpooledKeyframe {
     pub rgb: Vec<u8>,
     /// Row-major metres, 0 = invalid.
     pub depth_m: Vec<f32>,
-    /// The keyframe's Gaussians, structure of arrays as in `render_core::types::GaussianCloud`.
+    /// The keyframe's Gaussians, structure of arrays as in `splats::GaussianCloud`.
     pub means: Vec<[f32; 3]>,
     pub log_scales: Vec<[f32; 3]>,
     pub quaternions: Vec<[f32; 4]>,

@@ -124,14 +124,14 @@ fn l2_normalised(values: Vec<f64>) -> Vec<f32> {
     values.into_iter().map(|v| (v / norm) as f32).collect()
 }
 
-/// Similarity of two descriptors (cosine, as both are unit length).
-pub fn score(a: &[f32], b: &[f32]) -> f32 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The consensus's similarity (protocol::messages::descriptor_score): a dot product.
+    fn score(a: &[f32], b: &[f32]) -> f32 {
+        a.iter().zip(b).map(|(x, y)| x * y).sum()
+    }
 
     /// A diagonal ramp with a bright disc: distinct layout, smooth enough for a thumbnail.
     fn textured(shift: u32) -> RgbImage {

@@ -13,7 +13,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
 
 use config::ResendConfig;
-use render_core::types::GaussianCloud;
+use splats::GaussianCloud;
 
 use crate::alignment::Keyframe;
 use crate::engine::KeyframeArrival;

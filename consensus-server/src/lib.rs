@@ -37,7 +37,3 @@ pub mod process;
 pub mod rebuild;
 pub mod refinement;
 pub mod store;
-
-// The wire format and the extractor must agree on the descriptor length.
-const _: () =
-    assert!(protocol::messages::DESCRIPTOR_LEN == alexnet::descriptor::GLOBAL_DESCRIPTOR_LEN);

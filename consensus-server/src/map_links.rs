@@ -32,7 +32,7 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
 
-use render_core::types::GaussianCloud;
+use splats::GaussianCloud;
 
 use crate::alignment::PreparedKeyframe;
 use crate::place_recognition::KeyframeRef;

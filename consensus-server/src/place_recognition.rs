@@ -3,8 +3,8 @@
 //! score above tau proposes a loop closure: tau_same_agent (0.80) within one agent,
 //! tau_other_agent (0.85) between agents. Proposals are only candidates: association and alignment verify or reject them.
 
-use alexnet::descriptor::score;
 use config::ConsensusConfig;
+use protocol::messages::descriptor_score;
 use serde::{Deserialize, Serialize};
 
 /// Identifies one keyframe in the swarm.
@@ -98,7 +98,7 @@ impl PlaceDatabase {
                 {
                     return None;
                 }
-                let s = score(descriptor, &stored.descriptor);
+                let s = descriptor_score(descriptor, &stored.descriptor);
                 let tau = if inter_agent {
                     self.thresholds.tau_other_agent
                 } else {

@@ -9,7 +9,7 @@ use datasets::{Dataset, Frame, FrameRange};
 use mac_consensus::place_recognition::KeyframeRef;
 use mac_consensus::refinement::{PoseEdge, RefinementProblem, RefinementView, refine};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use render_core::types::GaussianCloud;
+use splats::GaussianCloud;
 
 const WIDTH: u32 = 160;
 const HEIGHT: u32 = 120;

@@ -23,4 +23,5 @@ pub mod depth;
 pub mod distortion;
 pub mod files;
 pub mod se3;
+pub mod ssim;
 pub mod trajectory;

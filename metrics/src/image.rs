@@ -12,12 +12,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::MetricError;
 
-/// Gaussian window side, pixels.
-pub const SSIM_WINDOW: usize = 11;
-/// Gaussian window standard deviation, pixels.
-pub const SSIM_SIGMA: f64 = 1.5;
-pub const SSIM_K1: f64 = 0.01;
-pub const SSIM_K2: f64 = 0.03;
+// SSIM's window and constants are geometry's, shared with the training loss (render-core).
+use geometry::ssim::{SSIM_K1, SSIM_K2, SSIM_WINDOW, gaussian_window};
 const CHANNELS: usize = 3;
 
 /// PSNR and both SSIM variants of one image pair.
@@ -92,19 +88,6 @@ pub fn psnr(reference: &[f64], rendered: &[f64]) -> f64 {
         .sum::<f64>()
         / reference.len() as f64;
     -10.0 * mse.log10()
-}
-
-/// The SSIM window's normalised 1-D Gaussian weights (the 2-D window is their outer product);
-/// render-core's training loss uses the same ones.
-pub fn gaussian_window() -> [f64; SSIM_WINDOW] {
-    let radius = (SSIM_WINDOW / 2) as f64;
-    let mut w = [0.0; SSIM_WINDOW];
-    for (i, v) in w.iter_mut().enumerate() {
-        let x = i as f64 - radius;
-        *v = (-x * x / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp();
-    }
-    let sum: f64 = w.iter().sum();
-    w.map(|v| v / sum)
 }
 
 /// Separable Gaussian filter of one plane with zero padding (same-size output).

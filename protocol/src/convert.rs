@@ -3,14 +3,14 @@
 //! intrinsics, keyframe RGB-D images, Gaussian patches. The agent uses the "to the wire" half
 //! (building messages in place in shared memory), the consensus the "from the wire" half.
 //!
-//! The in-memory types come from geometry (camera intrinsics, depth images) and render-core
-//! (the Gaussian cloud); those crates know nothing of the wire.
+//! The in-memory types come from geometry (camera intrinsics, depth images) and splats (the
+//! Gaussian cloud); those crates know nothing of the wire.
 
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
 use image::RgbImage;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
-use render_core::types::GaussianCloud;
+use splats::GaussianCloud;
 
 use crate::messages::{GaussianRecord, Intrinsics as WireIntrinsics, Pose, RgbdPixel};
 

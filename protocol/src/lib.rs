@@ -1,7 +1,8 @@
 //! protocol: every message type and service name exchanged between mac-ego3d processes, the
 //! control-message codec, the conversions between wire and in-memory types, and the iceoryx2
-//! transport. Of this workspace it depends only on geometry and render-core, for the in-memory
-//! side of the conversions.
+//! transport. Of this workspace it depends only on geometry and splats, for the in-memory side of
+//! the conversions (no GPU crate: a process that only moves messages, mac-bridge included,
+//! builds without wgpu).
 //!
 //! - [`messages`]: `#[repr(C)]` zero-copy payloads (descriptor, Gaussian patch, keyframe RGB-D
 //!   image, correction, lifecycle) and the serde control messages (carried consumer -> agent on

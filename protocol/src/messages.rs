@@ -157,12 +157,14 @@ impl KeyframeDescriptor {
     /// Dot-product similarity of two descriptors: the selection score (docs/method.md, The
     /// consensus: selection).
     pub fn score(&self, other: &KeyframeDescriptor) -> f32 {
-        self.descriptor
-            .iter()
-            .zip(&other.descriptor)
-            .map(|(a, b)| a * b)
-            .sum()
+        descriptor_score(&self.descriptor, &other.descriptor)
     }
+}
+
+/// Similarity of two global descriptors: their dot product, the cosine as both are unit length
+/// (docs/method.md, The consensus: selection).
+pub fn descriptor_score(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
 /// One Gaussian of the map (docs/method.md, The map). 14 f32 = 56 bytes, no padding.

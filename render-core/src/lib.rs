@@ -1,12 +1,13 @@
 //! render-core: the wgpu Gaussian-splat kernels shared by agents (mapping) and the consensus
-//! (joint refinement). Depends on nothing else of this workspace.
+//! (joint refinement). Of this workspace it depends on geometry (pinhole intrinsics, SSIM's
+//! definition) and splats, the map as data: [`splats::GaussianCloud`], [`splats::RigidTransform`]
+//! and the PLY format are splats' (a crate without a GPU), and this crate's functions take them.
 //!
-//! - [`types`]: the CPU scene description ([`GaussianCloud`], [`Camera`], [`RenderMode`], ...)
+//! - [`types`]: the CPU scene description ([`Camera`], [`RenderMode`], [`RasterConfig`], ...)
 //!   and the conventions every boundary follows (quaternions `[w, x, y, z]`, OpenCV camera axes,
 //!   pixel centres at integer coordinates, colours as RGB in `[0, 1]`, pose gradients as a left
 //!   perturbation of `camera_from_world` ordered `[translation, rotation]`).
 //! - [`reference`](mod@reference): the scalar CPU renderer (forward and backward), the test oracle.
-//! - [`ply`]: 3DGS PLY import/export.
 //! - [`context`]: the wgpu adapter/device and its capabilities (float atomics, subgroups,
 //!   storage-binding limit).
 //! - [`gpu`]: device-resident Gaussians ([`gpu::DeviceGaussians`]) and the forward renderer
@@ -34,7 +35,6 @@ mod gaussians;
 pub mod gpu;
 pub mod map;
 mod passes;
-pub mod ply;
 pub mod pose;
 mod profile;
 pub mod reference;
@@ -44,6 +44,6 @@ pub mod types;
 mod wgsl;
 
 pub use types::{
-    Camera, GaussianCloud, GaussianGradients, ImageGradients, PoseGradient, RasterConfig,
-    RenderMode, RenderOutput, RigidTransform, constants, depth_sort_key,
+    Camera, GaussianGradients, ImageGradients, PoseGradient, RasterConfig, RenderMode,
+    RenderOutput, constants, depth_sort_key,
 };

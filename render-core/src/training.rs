@@ -20,15 +20,16 @@ use crate::wgsl::{
     SSIM_COEFFICIENT_VEC4S_PER_PIXEL, WORKGROUP_SIZE, source,
 };
 use bytemuck::Zeroable;
+use geometry::ssim;
 
-// SSIM is defined once, by the evaluation metric (metrics::image): the maps are optimised for
-// the SSIM they are scored with.
+// SSIM is defined once (geometry::ssim), for the evaluation metric and this loss: the maps are
+// optimised for the SSIM they are scored with.
 /// SSIM window half-width (11x11 window) and standard deviation.
-pub const SSIM_WINDOW_RADIUS: i32 = (metrics::image::SSIM_WINDOW / 2) as i32;
-pub const SSIM_WINDOW_SIGMA: f64 = metrics::image::SSIM_SIGMA;
+pub const SSIM_WINDOW_RADIUS: i32 = (ssim::SSIM_WINDOW / 2) as i32;
+pub const SSIM_WINDOW_SIGMA: f64 = ssim::SSIM_SIGMA;
 /// SSIM stabilisers for data range 1: K1^2 and K2^2.
-pub const SSIM_C1: f64 = metrics::image::SSIM_K1 * metrics::image::SSIM_K1;
-pub const SSIM_C2: f64 = metrics::image::SSIM_K2 * metrics::image::SSIM_K2;
+pub const SSIM_C1: f64 = ssim::SSIM_K1 * ssim::SSIM_K1;
+pub const SSIM_C2: f64 = ssim::SSIM_K2 * ssim::SSIM_K2;
 
 /// Loss weights; [`Default`] is the mapping loss (docs/method.md, One agent: Map optimisation).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -131,7 +132,7 @@ pub fn reference_image_loss(
     let rgb = rendered.rgb.as_ref().expect("loss needs the rendered rgb");
     let zero_depth = vec![0.0f32; pixels];
     let depth = rendered.depth.as_ref().unwrap_or(&zero_depth);
-    let window = metrics::image::gaussian_window();
+    let window = ssim::gaussian_window();
     let radius = SSIM_WINDOW_RADIUS as isize;
     let colour_normaliser = 1.0 / (3.0 * pixels as f64);
     let mut loss = 0.0;

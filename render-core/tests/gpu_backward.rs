@@ -14,7 +14,8 @@ use render_core::gpu::{
     DeviceGaussians, GpuRenderer, GradientAtomics, GradientOrder, RendererOptions, Subgroups,
 };
 use render_core::reference;
-use render_core::{Camera, GaussianCloud, GaussianGradients, ImageGradients, RasterConfig};
+use render_core::{Camera, GaussianGradients, ImageGradients, RasterConfig};
+use splats::GaussianCloud;
 
 /// Relative error allowed per entry, plus this fraction of the group's largest magnitude
 /// (f32 device arithmetic and atomic summation order against the f64 reference).

@@ -10,7 +10,8 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use render_core::gpu::{DeviceGaussians, GpuRenderer};
 use render_core::reference;
-use render_core::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput, constants};
+use render_core::{Camera, RasterConfig, RenderMode, RenderOutput, constants};
+use splats::GaussianCloud;
 
 /// f32 GPU arithmetic against the f64 reference: colours and alpha are in [0, 1].
 const COLOUR_TOLERANCE: f32 = 1e-5;

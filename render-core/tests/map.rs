@@ -13,7 +13,8 @@ use render_core::map::{DeviceMap, MIN_GROWN_CAPACITY, PruneCriteria};
 use render_core::training::{
     AdamConfig, AdamMoments, DeviceAdam, DeviceTarget, LossWeights, TargetImage, TrainingKernels,
 };
-use render_core::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput, RigidTransform};
+use render_core::{Camera, RasterConfig, RenderMode, RenderOutput};
+use splats::{GaussianCloud, RigidTransform};
 
 /// Footprints of a few pixels at 1-4 m and mostly visible opacities.
 const LOG_SCALE_RANGE: (f32, f32) = (-4.0, -2.5);

@@ -12,7 +12,8 @@ use render_core::training::{
     AdamConfig, DeviceAdam, DeviceTarget, LossWeights, TargetImage, TrainingKernels,
     reference_image_loss,
 };
-use render_core::{Camera, GaussianCloud, RasterConfig, RenderMode, RenderOutput, reference};
+use render_core::{Camera, RasterConfig, RenderMode, RenderOutput, reference};
+use splats::GaussianCloud;
 
 fn random_image(width: u32, height: u32, seed: u64) -> (Vec<[f32; 3]>, Vec<f32>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);

@@ -9,8 +9,9 @@ use datasets::write_depth_png;
 use geometry::depth::DepthImage;
 use render_core::context::GpuContext;
 use render_core::gpu::{DeviceGaussians, GpuRenderer};
-use render_core::ply::load_ply;
-use render_core::types::{Camera, RenderMode, RigidTransform};
+use render_core::types::{Camera, RenderMode};
+use splats::RigidTransform;
+use splats::ply::load_ply;
 
 /// Depth PNG units: millimetres.
 const DEPTH_UNITS_PER_METRE: f64 = 1000.0;

@@ -6,7 +6,8 @@ use config::MappingConfig;
 use nalgebra::{Isometry3, Vector6};
 use rand::RngExt;
 use render_core::pose::pose_rates;
-use render_core::types::{PoseGradient, RigidTransform};
+use render_core::types::PoseGradient;
+use splats::RigidTransform;
 
 use super::state::{MapperState, StoredKeyframe};
 use super::{MapperError, MappingStats};

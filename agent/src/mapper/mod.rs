@@ -36,7 +36,7 @@ use nalgebra::Isometry3;
 
 use registration::config::TrackingConfig;
 use render_core::context::{GpuContext, GpuError};
-use render_core::types::{GaussianCloud, RigidTransform};
+use splats::{GaussianCloud, RigidTransform};
 
 mod iteration;
 mod state;

@@ -20,7 +20,8 @@ use render_core::gpu::GpuRenderer;
 use render_core::map::{DeviceMap, PruneCriteria};
 use render_core::pose::PoseAdam;
 use render_core::training::{DeviceTarget, LossWeights, TargetImage, TrainingKernels};
-use render_core::types::{Camera, GaussianCloud, RasterConfig, RigidTransform};
+use render_core::types::{Camera, RasterConfig};
+use splats::{GaussianCloud, RigidTransform};
 
 use super::{
     Command, MapperError, MapperProgress, MappingKeyframe, MappingOutcome, MappingStats,

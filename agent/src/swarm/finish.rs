@@ -5,7 +5,7 @@ use geometry::se3::isometry_to_tum;
 use protocol::convert::gaussian_record;
 use protocol::messages::{CoordinateFrame, FINAL_MAP_KEYFRAME_ID};
 use protocol::transport::{Direction, TransportError};
-use render_core::types::GaussianCloud;
+use splats::GaussianCloud;
 
 use super::{SwarmLink, SwarmSummary};
 

@@ -34,8 +34,8 @@ use image::RgbImage;
 use nalgebra::Isometry3;
 use protocol::messages::Intrinsics as WireIntrinsics;
 use protocol::transport::{AgentLink, TransportConfig};
-use render_core::types::GaussianCloud;
 use serde::Serialize;
+use splats::GaussianCloud;
 
 use crate::describer::Describer;
 use crate::link_schedule::{BoundedQueue, CorrectionGate, LinkPlan, LinkSummary};

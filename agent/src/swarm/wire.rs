@@ -10,7 +10,7 @@ use protocol::messages::{
     GaussianRecord, Intrinsics as WireIntrinsics, KeyframeDescriptor, Pose, RgbdPixel,
 };
 use protocol::transport::KeyframeImageMeta;
-use render_core::types::GaussianCloud;
+use splats::GaussianCloud;
 
 use crate::spool::SpooledKeyframe;
 

@@ -14,7 +14,7 @@
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use nalgebra::{Matrix3, Quaternion, Rotation3, SymmetricEigen, UnitQuaternion, Vector3};
-use render_core::types::GaussianCloud;
+use splats::GaussianCloud;
 
 use super::merge::WorldAgentMap;
 

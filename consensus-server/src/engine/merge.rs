@@ -10,7 +10,7 @@
 use config::MergeConfig;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use nalgebra::Point3;
-use render_core::types::GaussianCloud;
+use splats::GaussianCloud;
 
 /// One agent's map in the world frame and where its keyframes saw it from.
 pub struct WorldAgentMap {

@@ -36,7 +36,7 @@ use std::time::Instant;
 
 use geometry::se3::isometry_to_tum;
 use protocol::messages::FINAL_MAP_KEYFRAME_ID;
-use render_core::types::GaussianCloud;
+use splats::GaussianCloud;
 
 use crate::alignment::{Keyframe, PreparedKeyframe};
 use crate::map_links::{AgentMap, MapJob, MapScheduler};

@@ -7,7 +7,7 @@ use config::MergeConfig;
 use geometry::correction::{CorrectionField, correction};
 use geometry::se3::isometry_from_tum;
 use nalgebra::{Isometry3, Point3};
-use render_core::types::{GaussianCloud, RigidTransform};
+use splats::{GaussianCloud, RigidTransform};
 
 use super::fuse::fuse;
 use super::merge::{WorldAgentMap, merge};

@@ -10,8 +10,8 @@ use anyhow::Context;
 use geometry::trajectory::Trajectory;
 use metrics::stats::median;
 use nalgebra::Isometry3;
-use render_core::types::GaussianCloud;
 use serde::Serialize;
+use splats::GaussianCloud;
 
 use super::ConsensusOptions;
 use crate::engine::{AttemptKind, CandidateSource, ClosureEvent, Engine, KeyframeInfo};
@@ -165,7 +165,7 @@ pub(super) fn refine_world_map(
         return Ok((map, None));
     };
     let realtime_path = options.out.join("map_realtime.ply");
-    render_core::ply::save_ply(&realtime_path, &map)
+    splats::ply::save_ply(&realtime_path, &map)
         .with_context(|| format!("writing {}", realtime_path.display()))?;
     // Paced runs give the same map on any machine: the refinement runs all its iterations,
     // however long they take (docs/method.md, Pace).
@@ -226,7 +226,7 @@ pub(super) fn write_outputs(
         refinement,
     } = world;
     let map_path = out.join("map.ply");
-    render_core::ply::save_ply(&map_path, &map)
+    splats::ply::save_ply(&map_path, &map)
         .with_context(|| format!("writing {}", map_path.display()))?;
     options.live_view.merged_map(&map.means, &map.colours);
     write_world_trajectories(out, engine, &agents)?;

@@ -10,8 +10,8 @@ use std::time::Instant;
 use anyhow::Context;
 use crossbeam_channel::{Receiver, Sender, unbounded};
 use nalgebra::Isometry3;
-use render_core::types::GaussianCloud;
 use serde::{Deserialize, Serialize};
+use splats::GaussianCloud;
 
 use super::ConsensusOptions;
 use super::outputs::{AgentRecord, OutputKind, WorldMap, write_outputs};

@@ -7,7 +7,8 @@ use render_core::context::{GpuContext, GpuError};
 use render_core::gpu::GpuRenderer;
 use render_core::map::{DeviceMap, PruneCriteria};
 use render_core::training::{AdamConfig, DeviceTarget, LossWeights, TrainingKernels};
-use render_core::types::{GaussianCloud, RasterConfig, RenderMode};
+use render_core::types::{RasterConfig, RenderMode};
+use splats::GaussianCloud;
 
 use super::PreparedView;
 use config::ConsensusConfig;

@@ -47,8 +47,9 @@ use rand_chacha::ChaCha8Rng;
 use render_core::context::GpuError;
 use render_core::map::PruneCriteria;
 use render_core::training::TargetImage;
-use render_core::types::{Camera, GaussianCloud, RigidTransform};
+use render_core::types::Camera;
 use serde::Serialize;
+use splats::{GaussianCloud, RigidTransform};
 
 use crate::place_recognition::KeyframeRef;
 use config::{ConsensusConfig, RefinementConfig};

@@ -9,7 +9,8 @@ use render_core::context::GpuContext;
 use render_core::gpu::{
     DeviceFrame, DeviceGaussians, GpuRenderer, PairUsage, RendererOptions, Subgroups,
 };
-use render_core::{Camera, GaussianCloud, RasterConfig, RigidTransform};
+use render_core::{Camera, RasterConfig};
+use splats::{GaussianCloud, RigidTransform};
 
 pub struct Gpu {
     pub context: GpuContext,

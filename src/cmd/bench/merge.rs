@@ -85,8 +85,8 @@ fn read_json(path: &Path) -> anyhow::Result<Value> {
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }
 
-fn load_map(path: &Path) -> anyhow::Result<render_core::types::GaussianCloud> {
-    render_core::ply::load_ply(path).with_context(|| format!("reading the map {}", path.display()))
+fn load_map(path: &Path) -> anyhow::Result<splats::GaussianCloud> {
+    splats::ply::load_ply(path).with_context(|| format!("reading the map {}", path.display()))
 }
 
 /// Measures the run in `dir` (see the module documentation).

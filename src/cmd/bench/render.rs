@@ -15,8 +15,9 @@ use render_core::constants::TILE_SIZE;
 use render_core::context::GpuContext;
 use render_core::gpu::{GpuRenderer, GradientOrder, RendererOptions, StageTimes, Subgroups};
 use render_core::training::TrainingKernels;
-use render_core::{Camera, GaussianCloud, RasterConfig};
+use render_core::{Camera, RasterConfig};
 use serde::Serialize;
+use splats::GaussianCloud;
 
 use crate::cmd::{fmt_num, print_json};
 
@@ -348,7 +349,7 @@ pub fn run_bench(args: &BenchRenderArgs) -> anyhow::Result<()> {
     if let (Some(path), Some(pose), Some(intrinsics)) = (&args.map, &args.pose, &args.intrinsics) {
         let (width, height) = sizes[0];
         let camera = crate::cmd::render::camera_from_args(pose, intrinsics, width, height)?;
-        let map = render_core::ply::load_ply(path)
+        let map = splats::ply::load_ply(path)
             .with_context(|| format!("reading map {}", path.display()))?;
         if !args.json {
             eprintln!(

@@ -100,7 +100,7 @@ pub fn check_run(
         }
     }
     let map = dir.join("map.ply");
-    match render_core::ply::load_ply(&map) {
+    match splats::ply::load_ply(&map) {
         Ok(cloud) if !cloud.is_empty() => {}
         Ok(_) => failures.push(format!("{}: no Gaussians", map.display())),
         Err(error) => failures.push(format!("{}: {error:#}", map.display())),

@@ -165,7 +165,7 @@ fn merged_map_quality(
         agents.push(agent);
     }
     let map_path = dir.join("map.ply");
-    let map = render_core::ply::load_ply(&map_path)
+    let map = splats::ply::load_ply(&map_path)
         .with_context(|| format!("reading the merged map {}", map_path.display()))?;
     let renderer = MapRenderer::new(&map).context("uploading the merged map")?;
     let lpips = load_lpips(args.lpips_weights.as_deref())?;

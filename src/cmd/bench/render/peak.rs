@@ -9,7 +9,8 @@
 use render_core::constants::TILE_SIZE;
 use render_core::context::{GpuContext, GpuError};
 use render_core::gpu::{DeviceGaussians, GpuRenderer, StageTimes};
-use render_core::{Camera, GaussianCloud, RasterConfig};
+use render_core::{Camera, RasterConfig};
+use splats::GaussianCloud;
 
 use super::harness::{BenchConfig, bench_camera};
 

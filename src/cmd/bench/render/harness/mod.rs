@@ -17,7 +17,8 @@ use render_core::gpu::{DeviceGaussians, DeviceSortBench, GpuRenderer, StageTimes
 use render_core::training::{
     AdamConfig, DeviceAdam, DeviceTarget, LossWeights, TargetImage, TrainingKernels,
 };
-use render_core::{Camera, GaussianCloud, RasterConfig};
+use render_core::{Camera, RasterConfig};
+use splats::GaussianCloud;
 
 mod scene;
 #[cfg(test)]

@@ -1,6 +1,8 @@
 //! The benchmark's synthetic indoor scene and camera (deterministic per seed).
 
-use render_core::{Camera, GaussianCloud, RigidTransform};
+use render_core::Camera;
+
+use splats::{GaussianCloud, RigidTransform};
 
 /// Focal length of the benchmark camera at 640 pixels of width (a Kinect-like sensor);
 /// other widths scale it so that the field of view stays the same.

@@ -2,7 +2,8 @@
 
 use render_core::context::GpuError;
 use render_core::reference::{ProjectedGaussian, project_and_sort, splat_at_pixel};
-use render_core::{Camera, GaussianCloud, RasterConfig};
+use render_core::{Camera, RasterConfig};
+use splats::GaussianCloud;
 
 /// The (pixel, splat) work of a tile rasterizer on one view, counted on the host (no device):
 /// what the rasterizer kernels spend their arithmetic on, against what contributes to the

@@ -1,7 +1,7 @@
 //! PLY round trip, foreign layouts, and malformed input.
 
-use render_core::GaussianCloud;
-use render_core::ply::{PlyError, SH_C0, load_ply, read_ply, save_ply, write_ply};
+use splats::GaussianCloud;
+use splats::ply::{PlyError, SH_C0, load_ply, read_ply, save_ply, write_ply};
 
 fn sample_cloud() -> GaussianCloud {
     let mut cloud = GaussianCloud::default();

@@ -13,7 +13,7 @@
 use std::io::{BufRead, BufReader, BufWriter, Read, Write};
 use std::path::Path;
 
-use crate::types::GaussianCloud;
+use crate::cloud::GaussianCloud;
 
 /// Zeroth-order real spherical-harmonic constant: `colour = 0.5 + SH_C0 * f_dc`.
 pub const SH_C0: f32 = 0.282_094_8;
