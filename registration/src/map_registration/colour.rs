@@ -362,6 +362,9 @@ mod tests {
         );
         let same = relative_white_balance(&scene, &scene, 0.26);
         assert_eq!(same, [1.0; 3]);
-        assert_eq!(relative_white_balance(&scene, &[[0.0; 3]; 4], 0.26), [1.0; 3]);
+        assert_eq!(
+            relative_white_balance(&scene, &[[0.0; 3]; 4], 0.26),
+            [1.0; 3]
+        );
     }
 }

@@ -146,8 +146,7 @@ impl NearestTwo {
     /// does not depend on how the work was split); the second the next smaller distance.
     #[inline]
     fn offer(&mut self, index: u32, distance_sq: f32) {
-        if distance_sq < self.distance_sq
-            || (distance_sq == self.distance_sq && index < self.index)
+        if distance_sq < self.distance_sq || (distance_sq == self.distance_sq && index < self.index)
         {
             self.second_sq = self.distance_sq;
             self.distance_sq = distance_sq;
@@ -324,9 +323,8 @@ pub fn mutual_matches(
             mutual: false,
         })
         .collect();
-    let by_pair = |a: &FeatureMatch, b: &FeatureMatch| {
-        a.source.cmp(&b.source).then(a.target.cmp(&b.target))
-    };
+    let by_pair =
+        |a: &FeatureMatch, b: &FeatureMatch| a.source.cmp(&b.source).then(a.target.cmp(&b.target));
     extra.sort_by(|a, b| {
         let a_passes = a.ratio < params.max_ratio;
         let b_passes = b.ratio < params.max_ratio;
@@ -350,7 +348,11 @@ pub fn mutual_matches(
     matches.extend(extra.by_ref().take(taken));
     if matches.len() < params.min_correspondences {
         let mut rest: Vec<FeatureMatch> = extra.collect();
-        rest.sort_by(|a, b| a.distance_sq.total_cmp(&b.distance_sq).then_with(|| by_pair(a, b)));
+        rest.sort_by(|a, b| {
+            a.distance_sq
+                .total_cmp(&b.distance_sq)
+                .then_with(|| by_pair(a, b))
+        });
         let missing = params.min_correspondences - matches.len();
         matches.extend(rest.into_iter().take(missing));
     }

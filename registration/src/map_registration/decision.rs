@@ -75,9 +75,9 @@ impl Judge<'_> {
     /// at the origin would depend on where the map's frame lies).
     fn source_centre(&self) -> Point3<f64> {
         let points = self.fine.source.tree.positions();
-        let sum = points
-            .iter()
-            .fold(nalgebra::Vector3::zeros(), |sum, p| sum + p.coords.cast::<f64>());
+        let sum = points.iter().fold(nalgebra::Vector3::zeros(), |sum, p| {
+            sum + p.coords.cast::<f64>()
+        });
         Point3::from(sum / points.len().max(1) as f64)
     }
 
@@ -171,19 +171,6 @@ impl Judge<'_> {
         }
         let overlap = self.overlap(&judged.estimate);
         judged.verdict = verdict(&overlap, self.config);
-        // DEBUG-TRUTH
-        if let (Ok(t), Some(check)) = (std::env::var("MAC_TRUTH"), self.free_space) {
-            let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
-            let m = nalgebra::Matrix4::from_row_slice(&v);
-            let truth = Isometry3::from_parts(
-                nalgebra::Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]),
-                nalgebra::UnitQuaternion::from_matrix(&m.fixed_view::<3, 3>(0, 0).into_owned()),
-            );
-            let (a, d) = transform_difference(&judged.estimate, &truth, &self.source_centre());
-            let fs = check.measure(self.inputs.0, self.inputs.1, &judged.estimate);
-            let ft = check.measure(self.inputs.0, self.inputs.1, &truth);
-            eprintln!("CAND err {:.1}deg {:.1}cm support {} kept {} ovl {:.3} res {:.4} kappa {:.2} fs {:.3} ({:?}) truth_fs {:.3} ({:?}) verdict {:?}", a.to_degrees(), d*100.0, judged.support, judged.support_kept, overlap.fraction, overlap.residual_m, overlap.colour_kappa(), fs.agreement(), (fs.source_in_target, fs.target_in_source), ft.agreement(), (ft.source_in_target, ft.target_in_source), judged.verdict.as_ref().err().map(|e| e.to_string().chars().take(40).collect::<String>()));
-        }
         judged.overlap = Some(overlap);
         if judged.verdict.is_ok()
             && let Some(check) = self.free_space
@@ -197,7 +184,10 @@ impl Judge<'_> {
 }
 
 /// Accepted, or the first check `overlap` fails (see the module documentation of the parent).
-pub(super) fn verdict(overlap: &Overlap, config: &MapRegistrationConfig) -> Result<(), MapRejection> {
+pub(super) fn verdict(
+    overlap: &Overlap,
+    config: &MapRegistrationConfig,
+) -> Result<(), MapRejection> {
     let colour_judged = overlap.colour_compared >= config.min_colour_comparisons;
     let colour_confirms = colour_judged
         && overlap.colour_kappa() >= config.colour_confirmed_kappa
@@ -273,18 +263,22 @@ pub(super) fn decide(
     // The verified candidates, one per refined transform (the better supported first).
     let mut passed: Vec<usize> = Vec::new();
     for (k, j) in judged.iter().enumerate() {
-        if j.verdict.is_ok() && !passed.iter().any(|&p| same(&judged[p].estimate, &j.estimate)) {
+        if j.verdict.is_ok()
+            && !passed
+                .iter()
+                .any(|&p| same(&judged[p].estimate, &j.estimate))
+        {
             passed.push(k);
         }
     }
     let chosen = match passed.as_slice() {
         [] => 0,
         [only] => *only,
-        _ => match passed
-            .iter()
-            .copied()
-            .find(|&a| passed.iter().all(|&b| a == b || beats(&judged[a], &judged[b], config)))
-        {
+        _ => match passed.iter().copied().find(|&a| {
+            passed
+                .iter()
+                .all(|&b| a == b || beats(&judged[a], &judged[b], config))
+        }) {
             Some(winner) => winner,
             None => {
                 let (a, b) = (&judged[passed[0]], &judged[passed[1]]);

@@ -87,7 +87,13 @@ fn spread(points: &[Point3<f32>], max_points: usize) -> Vec<Point3<f32>> {
 /// `tolerance_m` of each other: a depth edge (a foreground object's rim, where a pixel mixes two
 /// surfaces and the map's points of the far one lie in front of the near one's measurement, or
 /// the reverse) cannot say whether a point lies in free space.
-fn smooth_depth(depth: &DepthImage, u: u32, v: u32, tolerance_m: f64, truncation_m: f64) -> Option<f64> {
+fn smooth_depth(
+    depth: &DepthImage,
+    u: u32,
+    v: u32,
+    tolerance_m: f64,
+    truncation_m: f64,
+) -> Option<f64> {
     if u == 0 || v == 0 || u + 1 >= depth.width || v + 1 >= depth.height {
         return None;
     }
@@ -97,7 +103,7 @@ fn smooth_depth(depth: &DepthImage, u: u32, v: u32, tolerance_m: f64, truncation
     }
     for (du, dv) in (0..9).map(|k| (k % 3, k / 3)) {
         let d = f64::from(depth.get(u + du - 1, v + dv - 1));
-        if !(d > 0.0) || (d - centre).abs() > tolerance_m {
+        if d.is_nan() || d <= 0.0 || (d - centre).abs() > tolerance_m {
             return None;
         }
     }
@@ -249,7 +255,13 @@ mod tests {
         };
         // The wall itself, seen by both maps.
         let wall: Vec<Point3<f32>> = (0..600)
-            .map(|k| Point3::new((k % 30) as f32 * 0.03 - 0.45, (k / 30) as f32 * 0.03 - 0.3, 2.0))
+            .map(|k| {
+                Point3::new(
+                    (k % 30) as f32 * 0.03 - 0.45,
+                    (k / 30) as f32 * 0.03 - 0.3,
+                    2.0,
+                )
+            })
             .collect();
         let right = check.measure(&wall, &wall, &Isometry3::identity());
         assert_eq!(right.decisive(), 600);

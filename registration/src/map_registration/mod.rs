@@ -64,8 +64,8 @@ pub mod consistency;
 pub mod correspondences;
 mod decision;
 pub mod downsample;
-pub mod free_space;
 pub mod fpfh;
+pub mod free_space;
 mod maps;
 mod outcome;
 pub mod verification;
@@ -78,17 +78,16 @@ use std::time::Instant;
 
 use nalgebra::{Isometry3, Matrix6, Point3};
 
-pub use config::MapRegistrationConfig;
 use compatibility::CliqueParams;
+pub use config::MapRegistrationConfig;
 use consistency::{Consensus, Hypothesis, RansacParams, find_consensus, transform_difference};
-use decision::{FineLevel, Judge, decide};
 use correspondences::{FeatureMatch, MatchParams};
+use decision::{FineLevel, Judge, decide};
 use downsample::Cloud;
 pub use downsample::MapPoints;
 pub use free_space::{DepthView, FreeSpace, FreeSpaceCheck};
 use maps::{PreparedMap, RefinementMap, prepare};
 pub use outcome::{MapRegistration, MapRegistrationScores, MapRejection, StageTimings};
-
 
 /// A map needs at least this many points after downsampling, and descriptors, to be registered:
 /// fewer cannot describe a scene that fixes six degrees of freedom.
@@ -133,8 +132,8 @@ pub fn register_maps_checked<'a, 'b>(
     .entered();
     let mut scores = MapRegistrationScores::new(source.points.len(), target.points.len());
     scores.colour = use_colour;
-    let outcome = run_stages(source, target, config, free_space, &mut scores)
-        .unwrap_or_else(Outcome::from);
+    let outcome =
+        run_stages(source, target, config, free_space, &mut scores).unwrap_or_else(Outcome::from);
     match &outcome.verdict {
         Ok(()) => tracing::debug!("map registration accepted"),
         Err(reason) => tracing::debug!(%reason, "map registration refused"),
@@ -159,14 +158,16 @@ struct Outcome {
 /// A registration a stage refused before the verification: the estimate so far and why.
 struct Refusal {
     target_from_source: Isometry3<f64>,
-    reason: MapRejection,
+    /// Boxed: a rejection carries its numbers, and every stage's `Result` would otherwise be as
+    /// large as the largest of them.
+    reason: Box<MapRejection>,
 }
 
 impl Refusal {
     fn new(target_from_source: Isometry3<f64>, reason: MapRejection) -> Self {
         Self {
             target_from_source,
-            reason,
+            reason: Box::new(reason),
         }
     }
 }
@@ -175,7 +176,7 @@ impl From<Refusal> for Outcome {
     fn from(refusal: Refusal) -> Self {
         Self {
             target_from_source: refusal.target_from_source,
-            verdict: Err(refusal.reason),
+            verdict: Err(*refusal.reason),
             information: None,
         }
     }
@@ -429,28 +430,13 @@ fn consistent_hypotheses(
         seed: config.ransac_seed,
         distinct_rotation_rad: config.distinct_rotation_rad,
         distinct_translation_m: config.distinct_translation_m,
-        cliques: (config.clique_seeds > 0).then(|| CliqueParams {
+        cliques: (config.clique_seeds > 0).then_some(CliqueParams {
             tolerance_m: config.edge_tolerance_voxels * voxel,
             max_seeds: config.clique_seeds,
             max_clique: config.max_clique_size,
         }),
     };
     let consensus = find_consensus(&source_points, &target_points, &ransac);
-    // DEBUG-TRUTH (temporary analysis)
-    if let Ok(t) = std::env::var("MAC_TRUTH") {
-        let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
-        let m = nalgebra::Matrix4::from_row_slice(&v);
-        let truth = Isometry3::from_parts(
-            nalgebra::Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]),
-            nalgebra::UnitQuaternion::from_matrix(&m.fixed_view::<3, 3>(0, 0).into_owned()),
-        );
-        let lim = ransac.inlier_distance_m;
-        let true_inl: Vec<usize> = (0..source_points.len()).filter(|&k| (truth * source_points[k] - target_points[k]).norm() <= lim).collect();
-        let mutual_true = true_inl.iter().filter(|&&k| matches[k].mutual).count();
-        let c = Point3::from(source_points.iter().fold(nalgebra::Vector3::zeros(), |a, p| a + p.coords) / source_points.len() as f64);
-        let err = consensus.best.as_ref().map(|h| transform_difference(&h.target_from_source, &truth, &c));
-        eprintln!("TRUTH corr {} true_inliers {} (mutual {}) best {} runner {} coarse_err {:?}", matches.len(), true_inl.len(), mutual_true, consensus.best.as_ref().map_or(0, |h| h.support()), consensus.runner_up.as_ref().map_or(0, |h| h.support()), err.map(|(a, d)| (a.to_degrees(), d)));
-    }
     scores.ransac_samples = consensus.samples;
     scores.ransac_fitted = consensus.fitted;
     scores.timings.consistency_ms = elapsed_ms(stage);
@@ -494,7 +480,7 @@ fn consistent_hypotheses(
             })
             .filter(|&(own, _)| own as f64 > config.max_ambiguity_ratio * best_support as f64)
             .collect();
-        alternatives.sort_by(|a, b| b.0.cmp(&a.0));
+        alternatives.sort_by_key(|a| std::cmp::Reverse(a.0));
         hypotheses.extend(
             alternatives
                 .into_iter()
@@ -538,4 +524,3 @@ fn score_support(
         scores.runner_up_translation_m = distance;
     }
 }
-

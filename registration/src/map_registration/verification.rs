@@ -687,7 +687,10 @@ mod tests {
         let corrected = measure(0.3, &Isometry3::identity());
         assert!(corrected.colour_kappa() > 0.95, "{corrected:?}");
         let [r, g, b] = corrected.colour_gains;
-        assert!((r / g - 1.15).abs() < 0.02 && (b / g - 0.88).abs() < 0.02, "{corrected:?}");
+        assert!(
+            (r / g - 1.15).abs() < 0.02 && (b / g - 0.88).abs() < 0.02,
+            "{corrected:?}"
+        );
         // Shifted by a quarter of the floor (other colours laid onto each): still no agreement
         // beyond chance, gains or not.
         let shifted = measure(0.3, &Isometry3::translation(0.5, 0.0, 0.0));

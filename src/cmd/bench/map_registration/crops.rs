@@ -96,12 +96,21 @@ fn principal_axes(points: &[Point3<f32>]) -> [Vector3<f32>; 2] {
     let eigen = scatter.symmetric_eigen();
     let mut order = [0, 1, 2];
     order.sort_by(|&i, &j| eigen.eigenvalues[j].total_cmp(&eigen.eigenvalues[i]));
-    [0, 1].map(|k| eigen.eigenvectors.column(order[k]).into_owned().cast::<f32>())
+    [0, 1].map(|k| {
+        eigen
+            .eigenvectors
+            .column(order[k])
+            .into_owned()
+            .cast::<f32>()
+    })
 }
 
 impl CropScene {
     pub fn new(a: Map, b: Map) -> Self {
-        let (a_partner, b_partner) = (partners(&a.points, &b.points), partners(&b.points, &a.points));
+        let (a_partner, b_partner) = (
+            partners(&a.points, &b.points),
+            partners(&b.points, &a.points),
+        );
         let mut union = a.points.clone();
         union.extend_from_slice(&b.points);
         let axes = principal_axes(&union);
@@ -115,7 +124,11 @@ impl CropScene {
         };
         let everything = |below| HalfSpace {
             direction: Vector3::x(),
-            limit: if below { f32::INFINITY } else { f32::NEG_INFINITY },
+            limit: if below {
+                f32::INFINITY
+            } else {
+                f32::NEG_INFINITY
+            },
             below,
         };
         scene.full_overlap = scene.overlap(&everything(true), &everything(false));
@@ -143,8 +156,20 @@ impl CropScene {
             }
             (kept, overlapping)
         };
-        let (na, oa) = count(&self.a.points, &self.a_partner, a_side, &self.b.points, b_side);
-        let (nb, ob) = count(&self.b.points, &self.b_partner, b_side, &self.a.points, a_side);
+        let (na, oa) = count(
+            &self.a.points,
+            &self.a_partner,
+            a_side,
+            &self.b.points,
+            b_side,
+        );
+        let (nb, ob) = count(
+            &self.b.points,
+            &self.b_partner,
+            b_side,
+            &self.a.points,
+            a_side,
+        );
         let (kept, overlapping) = if na <= nb { (na, oa) } else { (nb, ob) };
         overlapping as f64 / kept.max(1) as f64
     }

@@ -41,9 +41,7 @@ use config::{Config, MapRegistrationConfig};
 use datasets::FrameRange;
 use nalgebra::{Isometry3, Point3, Vector3};
 use registration::alignment::AlignmentConfig;
-use registration::map_registration::{
-    DepthView, FreeSpaceCheck, MapPoints, register_maps_checked,
-};
+use registration::map_registration::{DepthView, FreeSpaceCheck, MapPoints, register_maps_checked};
 use serde::Serialize;
 
 use crate::cmd::{fmt_num, print_json};
@@ -336,12 +334,6 @@ fn run_ours(
         min_agreement: config.min_depth_agreement,
         max_points: config.depth_check_points,
     });
-    {
-        let m = pair.target_from_source.to_homogeneous();
-        let v: Vec<String> = (0..4).flat_map(|r| (0..4).map(move |c| (r, c))).map(|(r, c)| m[(r, c)].to_string()).collect();
-        unsafe { std::env::set_var("MAC_TRUTH", v.join(",")) };
-        eprintln!("PAIR {} {}", pair.bin, pair.name);
-    }
     let result = register_maps_checked(
         MapPoints::coloured(&pair.source.points, source_colours.as_deref()),
         MapPoints::coloured(&pair.target.points, target_colours.as_deref()),
@@ -380,8 +372,16 @@ fn run_peers(
     maps::write_gaussian_map(&files.source, &pair.source, args.map_voxel)?;
     maps::write_gaussian_map(&files.target, &pair.target, args.map_voxel)?;
     let coarse = |map: &Map| map.resampled(SPLATREG_SPACING_M);
-    maps::write_gaussian_map(&files.splat_source, &coarse(&pair.source), SPLATREG_SPACING_M)?;
-    maps::write_gaussian_map(&files.splat_target, &coarse(&pair.target), SPLATREG_SPACING_M)?;
+    maps::write_gaussian_map(
+        &files.splat_source,
+        &coarse(&pair.source),
+        SPLATREG_SPACING_M,
+    )?;
+    maps::write_gaussian_map(
+        &files.splat_target,
+        &coarse(&pair.target),
+        SPLATREG_SPACING_M,
+    )?;
     let answers = driver.register(&stem, &files)?;
     let centre = centre(&pair.source.points);
     Ok(answers

@@ -169,7 +169,10 @@ impl PeerDriver {
             bail!("the peers' driver refused pair {pair}: {error}");
         }
         if reply.pair.as_deref() != Some(pair) {
-            bail!("the peers' driver answered for {:?}, not {pair}", reply.pair);
+            bail!(
+                "the peers' driver answered for {:?}, not {pair}",
+                reply.pair
+            );
         }
         let mut answers = BTreeMap::new();
         for peer in &self.peers {

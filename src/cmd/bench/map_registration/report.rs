@@ -70,7 +70,11 @@ impl MethodRun {
             method: method.to_string(),
             accepted,
             correct,
-            success: if disjoint { !accepted } else { accepted && correct },
+            success: if disjoint {
+                !accepted
+            } else {
+                accepted && correct
+            },
             rotation_error_deg,
             translation_error_m,
             time_ms,
@@ -162,7 +166,10 @@ pub fn summarise(runs: &[PairRun]) -> Vec<BinSummary> {
                 wrong: group.iter().filter(|m| m.accepted && !m.success).count(),
                 correct: group.iter().filter(|m| m.correct).count(),
                 median_rotation_error_deg: median(
-                    &good.iter().map(|m| m.rotation_error_deg).collect::<Vec<_>>(),
+                    &good
+                        .iter()
+                        .map(|m| m.rotation_error_deg)
+                        .collect::<Vec<_>>(),
                 )
                 .unwrap_or(f64::NAN),
                 median_translation_error_m: median(
@@ -230,11 +237,7 @@ pub fn print_summary(summaries: &[BinSummary]) {
             s.bin,
             s.method,
             s.pairs,
-            format!(
-                "{} ({}%)",
-                s.successes,
-                fmt_num(s.success_rate * 100.0, 0)
-            ),
+            format!("{} ({}%)", s.successes, fmt_num(s.success_rate * 100.0, 0)),
             s.accepted,
             s.wrong,
             s.correct,
