@@ -106,9 +106,9 @@ pub struct MapRegistrationConfig {
     /// laid onto the synthetic room 0.19; a turned synthetic room whose floor agrees 0.25-0.58,
     /// which this cannot refuse.
     pub min_colour_kappa: f64,
-    /// The source's colours are multiplied per channel by the gains that best explain the
-    /// overlap's colour pairs (another camera's white balance; see `verification.rs`), each
-    /// within this factor of 1 (and its inverse). 1: no correction.
+    /// The relative white balance of the two maps (`balance_colours`) is searched with each
+    /// channel's gain within this factor of 1 (and its inverse); the same gains apply to the
+    /// colour signatures and the verification's colour check. 1: no correction.
     pub max_white_balance_gain: f64,
     /// The colour agreement is only judged over at least this many compared points.
     pub min_colour_comparisons: usize,

@@ -53,6 +53,9 @@ pub(super) struct Judge<'a> {
     /// The maps' points as given (the free-space test moves them, not voxel centroids, which at
     /// a depth edge float between the two surfaces).
     pub inputs: (&'a [Point3<f32>], &'a [Point3<f32>]),
+    /// The source's colours times these gains are compared with the target's (the maps'
+    /// relative white balance).
+    pub colour_gains: [f64; 3],
     pub config: &'a MapRegistrationConfig,
 }
 
@@ -121,7 +124,7 @@ impl Judge<'_> {
                 source,
                 target,
                 tolerance: config.colour_tolerance as f32,
-                max_log_gain: config.max_white_balance_gain.ln(),
+                source_gains: self.colour_gains,
             }),
             _ => None,
         };

@@ -237,6 +237,7 @@ fn run_stages(
         voxel_m: voxel,
         free_space,
         inputs,
+        colour_gains: scores.source_colour_gains,
         config,
     };
     scores.timings.refinement_ms = elapsed_ms(stage);
