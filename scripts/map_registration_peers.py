@@ -276,6 +276,12 @@ def main():
     parser.add_argument("--threads", type=int, default=0, help="threads per peer (0: leave as is)")
     parser.add_argument("--splatreg-init", default="robust", help="splatreg.register's init mode")
     args = parser.parse_args()
+    # The replies own stdout: the libraries' own printing (Open3D's C++ warnings, e.g. "Too few
+    # correspondences after mutual filter") goes to stderr instead, at the file-descriptor
+    # level, so that no line of theirs is read as a reply.
+    replies = os.fdopen(os.dup(1), "w")
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
     if args.threads > 0:
         os.environ["OMP_NUM_THREADS"] = str(args.threads)
         try:
@@ -292,8 +298,8 @@ def main():
             reply = handle(json.loads(line), args)
         except (MapError, KeyError, ValueError) as error:
             reply = {"error": str(error)}
-        sys.stdout.write(json.dumps(reply) + "\n")
-        sys.stdout.flush()
+        replies.write(json.dumps(reply) + "\n")
+        replies.flush()
 
 
 if __name__ == "__main__":
