@@ -19,23 +19,30 @@
 //!    unknowable sign of a map normal does not matter (the reason is in that file). With colour,
 //!    [`colour`] appends the neighbourhood's hue histogram (exposure-invariant chromaticity),
 //!    weighted by `colour_weight`.
-//! 3. [`correspondences`]: mutual nearest neighbours in descriptor space, topped up with the best
-//!    one-way matches when too few are mutual.
-//! 4. [`consistency`]: RANSAC over three correspondences with distance-preservation pre-checks
-//!    and local least-squares refits: the transform most correspondences agree on, and the best
-//!    *distinct* runner-up, whose relative support measures ambiguity (symmetric rooms,
-//!    repeated shelves).
-//! 5. [`verification`]: coarse-to-fine G-ICP from the RANSAC transform (slam_core's, plane to
-//!    plane, with each map's covariances), then overlap, point-to-plane residual, the
-//!    information matrix of the estimate and, with colour, how far the overlap's colours agree
-//!    beyond chance (Cohen's kappa of chromaticity agreement).
+//! 3. [`correspondences`]: mutual nearest neighbours in descriptor space, plus one-way matches
+//!    that pass Lowe's ratio test (`match_ratio`), topped up with the best one-way matches when
+//!    too few are mutual.
+//! 4. [`compatibility`] (when `clique_seeds` > 0) and [`consistency`]: cliques of mutually
+//!    distance-compatible correspondences (SC^2-scored seeds) as hypotheses, then RANSAC over
+//!    three correspondences with distance-preservation pre-checks and local least-squares
+//!    refits: the transform most correspondences agree on, and the best *distinct* runner-up,
+//!    whose relative support measures ambiguity (symmetric rooms, repeated shelves).
+//! 5. [`verification`]: coarse-to-fine G-ICP from the hypothesis (slam_core's, plane to plane,
+//!    with each map's covariances), then overlap, point-to-plane residual, the information
+//!    matrix of the estimate and, with colour, how far the overlap's colours agree beyond chance
+//!    (Cohen's kappa of chromaticity agreement, after the maps' relative white balance).
+//! 6. [`decision`] and [`free_space`]: when the correspondences leave alternatives nearly tied,
+//!    each is refined and verified and the free-space test of the maps' depth views (when
+//!    given), else the residual, chooses; the accepted result must pass the free-space test.
 //!
 //! The verdict refuses, with the numbers, every estimate that is not trustworthy: too few points,
-//! descriptors or consistent correspondences; ambiguous (the runner-up nearly as well supported);
-//! G-ICP failure; too little overlap (below `min_overlap_fraction`, or below the smaller
+//! descriptors or consistent correspondences; ambiguous (verified alternatives that neither the
+//! free-space test nor the residual tells apart: `Tied`); G-ICP failure or drift away from the
+//! correspondences; too little overlap (below `min_overlap_fraction`, or below the smaller
 //! `colour_confirmed_overlap_fraction` when colour agrees with a kappa of at least
 //! `colour_confirmed_kappa`); a high residual; a degenerate overlap (one plane, a corridor: a
-//! direction the overlap does not constrain); or colours that agree no better than chance.
+//! direction the overlap does not constrain); colours that agree no better than chance; or map
+//! points in the free space of the other map's depth views.
 //!
 //! Lengths of the configuration ending in `_voxels` scale with the voxel actually used. Every
 //! stage is parallel (rayon) except RANSAC, which is sequential so that the result depends on
