@@ -29,11 +29,20 @@ fn bench_map_registration_registers_the_synthetic_agents() {
         String::from_utf8_lossy(&out.stderr)
     );
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).expect("one JSON object");
-    let run = &report["runs"][0];
-    assert!(run["source_points"].as_u64().unwrap() > 10_000, "{run}");
-    assert!(run["time_ms"].as_f64().unwrap() > 0.0);
-    assert_eq!(run["accepted"], true, "{run}");
-    assert!(run["rotation_error_deg"].as_f64().unwrap() < 2.0, "{run}");
-    assert!(run["translation_error_m"].as_f64().unwrap() < 0.05, "{run}");
-    assert_eq!(report["successes"], 1);
+    let pair = &report["pairs"][0];
+    assert!(pair["source_points"].as_u64().unwrap() > 10_000, "{pair}");
+    assert_eq!(pair["disjoint"], false, "{pair}");
+    let ours = &pair["methods"][0];
+    assert_eq!(ours["method"], "ours", "{pair}");
+    assert!(ours["time_ms"].as_f64().unwrap() > 0.0);
+    assert_eq!(ours["accepted"], true, "{ours}");
+    assert_eq!(ours["success"], true, "{ours}");
+    assert!(ours["rotation_error_deg"].as_f64().unwrap() < 2.0, "{ours}");
+    assert!(
+        ours["translation_error_m"].as_f64().unwrap() < 0.05,
+        "{ours}"
+    );
+    let summary = &report["summary"][0];
+    assert_eq!(summary["method"], "ours");
+    assert_eq!(summary["successes"], 1, "{summary}");
 }

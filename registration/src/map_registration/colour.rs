@@ -167,6 +167,105 @@ pub fn signatures(
         .collect()
 }
 
+/// Width of a bin of the log-chromaticity histograms [`relative_white_balance`] compares.
+const BALANCE_BIN: f32 = 0.02;
+/// Bins per axis: log-ratios within +-1 (a factor of 2.7 between channels).
+const BALANCE_BINS: usize = 100;
+
+/// A map's colours as a histogram over `(ln(r / g), ln(b / g))`, blurred over the 3 x 3 bins
+/// around each (so that a gain between two bins still matches); colours without a
+/// chromaticity or outside the range are left out.
+fn log_chroma_histogram(colours: &[Rgb]) -> Vec<f32> {
+    let mut counts = vec![0.0f32; BALANCE_BINS * BALANCE_BINS];
+    let bin = |v: f32| {
+        let b = (v / BALANCE_BIN + (BALANCE_BINS / 2) as f32).floor();
+        (b >= 0.0 && b < BALANCE_BINS as f32).then_some(b as usize)
+    };
+    for c in colours.iter().filter(|c| chromaticity(c).is_some()) {
+        if c.iter().all(|&v| v > 0.0)
+            && let (Some(x), Some(y)) = (bin((c[0] / c[1]).ln()), bin((c[2] / c[1]).ln()))
+        {
+            counts[y * BALANCE_BINS + x] += 1.0;
+        }
+    }
+    let mut blurred = vec![0.0f32; counts.len()];
+    for y in 0..BALANCE_BINS {
+        for x in 0..BALANCE_BINS {
+            let mut sum = 0.0;
+            for (dx, dy) in (0..9).map(|k| (k % 3, k / 3)) {
+                let (xx, yy) = ((x + dx).wrapping_sub(1), (y + dy).wrapping_sub(1));
+                if xx < BALANCE_BINS && yy < BALANCE_BINS {
+                    sum += counts[yy * BALANCE_BINS + xx];
+                }
+            }
+            blurred[y * BALANCE_BINS + x] = sum;
+        }
+    }
+    blurred
+}
+
+/// The per-channel gains (green's 1) that make the `source` map's colours look as through the
+/// `target` map's camera: the shift of the source's log-chromaticity histogram that overlays it
+/// best on the target's, within `max_log_gain` per channel. `[1, 1, 1]` when either map has no
+/// chromatic colours.
+///
+/// Two cameras with other white balances see every surface with other per-channel gains, which
+/// shift every point's `(ln(r / g), ln(b / g))` by the same amount. The surfaces both maps hold
+/// (and indoors, the many neutral walls and floors) make the two histograms peak at the same
+/// places up to that shift; where one map holds surfaces the other does not, they add to one
+/// histogram only, which moves the best overlay little. So the shift is found by correlating
+/// the histograms over every shift within range, at [`BALANCE_BIN`] steps (2 % of a gain).
+pub fn relative_white_balance(source: &[Rgb], target: &[Rgb], max_log_gain: f64) -> [f32; 3] {
+    let (from, to) = rayon::join(
+        || log_chroma_histogram(source),
+        || log_chroma_histogram(target),
+    );
+    if from.iter().all(|&v| v == 0.0) || to.iter().all(|&v| v == 0.0) {
+        return [1.0; 3];
+    }
+    let reach = (max_log_gain as f32 / BALANCE_BIN).floor() as isize;
+    let n = BALANCE_BINS as isize;
+    let shifts: Vec<(isize, isize)> = (-reach..=reach)
+        .flat_map(|dy| (-reach..=reach).map(move |dx| (dx, dy)))
+        .collect();
+    let score = |&(dx, dy): &(isize, isize)| -> f64 {
+        let mut sum = 0.0f64;
+        for y in 0.max(-dy)..n.min(n - dy) {
+            for x in 0.max(-dx)..n.min(n - dx) {
+                let a = from[(y * n + x) as usize];
+                if a > 0.0 {
+                    sum += f64::from(a * to[((y + dy) * n + x + dx) as usize]);
+                }
+            }
+        }
+        sum
+    };
+    let scores: Vec<f64> = shifts.par_iter().map(score).collect();
+    // The best score; among equals, the smallest shift (then the first).
+    let best = (0..shifts.len())
+        .max_by(|&a, &b| {
+            scores[a].total_cmp(&scores[b]).then_with(|| {
+                let size = |(dx, dy): (isize, isize)| dx * dx + dy * dy;
+                size(shifts[b]).cmp(&size(shifts[a]))
+            })
+        })
+        .expect("at least the zero shift");
+    let (dx, dy) = shifts[best];
+    [
+        (dx as f32 * BALANCE_BIN).exp(),
+        1.0,
+        (dy as f32 * BALANCE_BIN).exp(),
+    ]
+}
+
+/// `colours` with each channel multiplied by its gain.
+pub fn balanced(colours: &[Rgb], gains: [f32; 3]) -> Vec<Rgb> {
+    colours
+        .iter()
+        .map(|c| [c[0] * gains[0], c[1] * gains[1], c[2] * gains[2]])
+        .collect()
+}
+
 /// Euclidean distance between two signatures.
 pub fn signature_distance(a: &Signature, b: &Signature) -> f32 {
     a.iter()
@@ -237,5 +336,35 @@ mod tests {
         assert!(overlap < 0.2, "{s:?} {green:?}");
         assert!(signature_distance(&s, &green) > 0.5);
         assert_eq!(signature_of(terms(&[[0.0f32; 3]; 3]).iter()), None);
+    }
+
+    #[test]
+    fn the_relative_white_balance_of_two_maps_is_found() {
+        // Mostly neutral surfaces of several brightnesses and a few coloured ones; the other
+        // map holds part of them (and one colour of its own), through another white balance.
+        let scene: Vec<Rgb> = (0..400)
+            .map(|k| match k % 10 {
+                0 => [0.7, 0.3, 0.2],
+                1 => [0.2, 0.5, 0.3],
+                2 => [0.55, 0.5, 0.42],
+                _ => [0.5, 0.5, 0.5].map(|v| v * (0.6 + 0.002 * k as f32)),
+            })
+            .collect();
+        let mut other: Vec<Rgb> = scene[..250]
+            .iter()
+            .map(|c| [c[0] * 1.12, c[1], c[2] * 0.9])
+            .collect();
+        other.extend([[0.3, 0.3, 0.7]; 40]);
+        let gains = relative_white_balance(&scene, &other, 0.26);
+        assert!(
+            (gains[0] - 1.12).abs() < 0.03 && gains[1] == 1.0 && (gains[2] - 0.9).abs() < 0.03,
+            "{gains:?}"
+        );
+        let same = relative_white_balance(&scene, &scene, 0.26);
+        assert_eq!(same, [1.0; 3]);
+        assert_eq!(
+            relative_white_balance(&scene, &[[0.0; 3]; 4], 0.26),
+            [1.0; 3]
+        );
     }
 }

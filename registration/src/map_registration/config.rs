@@ -26,8 +26,13 @@ pub struct MapRegistrationConfig {
     /// an independent constraint for the pose graph. 0: never.
     pub refresh_after_keyframes: usize,
     /// Map points (evenly spread) moved into the other agent's keyframes for the free-space
-    /// check of an accepted registration (the keyframe alignment's depth test and thresholds).
+    /// test (`free_space.rs`: the keyframe alignment's depth test, its tolerances and
+    /// `min_depth_comparisons`).
     pub depth_check_points: usize,
+    /// Each direction of the free-space test must agree at least this much. Lower than the
+    /// keyframe alignment's (0.8): whole maps carry their agents' drift, which no rigid transform
+    /// undoes; true transforms measured 0.75-0.86 on 7-Scenes, wrong ones 0.24-0.44.
+    pub min_depth_agreement: f64,
 
     // --- Downsampling ---
     /// Smallest voxel edge (metres): each map is reduced to one point (the centroid) per voxel.
@@ -63,8 +68,15 @@ pub struct MapRegistrationConfig {
     /// Walls and floors, most of an indoor map, all look alike and mostly add wrong matches, and
     /// matching costs the product of the two counts.
     pub max_matched_features: usize,
-    /// Mutual nearest neighbours in feature space are the correspondences; when fewer than this
-    /// are mutual, the best one-way matches (smallest feature distance) are added up to it.
+    /// Mutual nearest neighbours in feature space are correspondences; so are one-way nearest
+    /// neighbours whose distance is below this fraction of the distance to the second nearest
+    /// (Lowe's ratio test). 0: mutual ones only.
+    pub match_ratio: f64,
+    /// Correspondences at most (mutual ones first, then one-way ones by ratio): the clique
+    /// search's graph costs their square (5000: 3 MB, 25 million length comparisons).
+    pub max_correspondences: usize,
+    /// When fewer correspondences than this were found, the best remaining one-way matches
+    /// (smallest feature distance) are added up to it.
     pub min_correspondences: usize,
 
     // --- Colour (used when both maps have colours) ---
@@ -75,6 +87,12 @@ pub struct MapRegistrationConfig {
     /// two of the 17 pairs that 1.0 registers ambiguous; on 7-Scenes 1.0 finds as many true
     /// correspondences as geometry alone.
     pub colour_weight: f64,
+    /// Multiply the source's colours by the two maps' relative white balance
+    /// (`colour::relative_white_balance`, within `max_white_balance_gain`) before the colour
+    /// signatures are computed: two cameras' white balances differ, and on 7-Scenes crops 10 %
+    /// more of one channel left fewer right correspondences than geometry alone
+    /// (docs/benchmarks.md).
+    pub balance_colours: bool,
     /// Two overlapping points agree in colour when their chromaticities (invariant to exposure:
     /// `((r - g) / s, (2 b - r - g) / (sqrt(3) s))` with `s = r + g + b`, an orthogonal view of
     /// `(r, g, b) / s`) are within this distance.
@@ -88,6 +106,10 @@ pub struct MapRegistrationConfig {
     /// laid onto the synthetic room 0.19; a turned synthetic room whose floor agrees 0.25-0.58,
     /// which this cannot refuse.
     pub min_colour_kappa: f64,
+    /// The relative white balance of the two maps (`balance_colours`) is searched with each
+    /// channel's gain within this factor of 1 (and its inverse); the same gains apply to the
+    /// colour signatures and the verification's colour check. 1: no correction.
+    pub max_white_balance_gain: f64,
     /// The colour agreement is only judged over at least this many compared points.
     pub min_colour_comparisons: usize,
     /// An overlap below `min_overlap_fraction` but at least this large is accepted when its
@@ -99,7 +121,13 @@ pub struct MapRegistrationConfig {
     pub colour_confirmed_overlap_fraction: f64,
     pub colour_confirmed_kappa: f64,
 
-    // --- Robust pruning (RANSAC over 3 correspondences) ---
+    // --- Robust pruning: cliques of the compatibility graph, then RANSAC ---
+    /// Seeds of the clique search over the compatibility graph (`compatibility.rs`): each grows
+    /// one clique of mutually compatible correspondences, a hypothesis. 0: RANSAC alone.
+    pub clique_seeds: usize,
+    /// A clique stops growing at this many correspondences (enough for a fit; the local
+    /// optimisation gathers the rest of the supporters).
+    pub max_clique_size: usize,
     /// A correspondence supports a hypothesis when the hypothesis puts its source point within
     /// this distance of its target point (voxels): matched points are voxel centroids of two
     /// different samplings, up to about a voxel apart on the same surface.
@@ -150,10 +178,24 @@ pub struct MapRegistrationConfig {
     /// alignments of ~500 correspondences reach 8-16 on the synthetic and redkitchen maps; true
     /// ones 20-180.
     pub min_consistent_correspondences: usize,
-    /// Refused as ambiguous when the best distinct runner-up hypothesis has more than this
-    /// fraction of the best one's support (symmetric or repetitive structure, or a best
-    /// hypothesis no better than chance). 0.5: the best must explain twice as much.
+    /// The correspondences single out the best hypothesis when no distinct alternative has more
+    /// than this fraction of its support among correspondences the best does not explain
+    /// (symmetric or repetitive structure, or a best hypothesis no better than chance). 0.5: the
+    /// best must explain twice as much. Otherwise the alternatives above it are refined and
+    /// verified too, and the verification chooses (`decision.rs`).
     pub max_ambiguity_ratio: f64,
+    /// Candidates refined and verified at most when the correspondences leave them nearly tied
+    /// (the best included).
+    pub max_verified_hypotheses: usize,
+    /// Between two verified candidates, one wins by the free-space test when its depth
+    /// agreement is higher by at least this...
+    pub ambiguity_free_space_margin: f64,
+    /// ...else when its residual is below this fraction of the other's with an overlap of at
+    /// least this fraction of the other's. Neither: refused as tied.
+    pub ambiguity_residual_ratio: f64,
+    /// A refined transform must keep this fraction of its hypothesis' supporting
+    /// correspondences: fewer, G-ICP slid away from what the features say (`decision.rs`).
+    pub min_support_kept: f64,
     /// Fraction of the smaller map's points that must have a point of the other map within the
     /// final refinement distance after alignment.
     pub min_overlap_fraction: f64,
@@ -178,6 +220,7 @@ impl Default for MapRegistrationConfig {
             retry_after_keyframes: 1,
             refresh_after_keyframes: 8,
             depth_check_points: 5000,
+            min_depth_agreement: 0.7,
             voxel_m: 0.05,
             max_points: 10_000,
             normal_radius_voxels: 2.5,
@@ -185,13 +228,19 @@ impl Default for MapRegistrationConfig {
             feature_radius_voxels: 5.0,
             min_feature_neighbours: 10,
             max_matched_features: 3000,
+            match_ratio: 0.0,
+            max_correspondences: 5000,
             min_correspondences: 300,
             colour_weight: 1.0,
+            balance_colours: true,
             colour_tolerance: 0.05,
             min_colour_kappa: 0.25,
+            max_white_balance_gain: 1.3,
             min_colour_comparisons: 100,
             colour_confirmed_overlap_fraction: 0.03,
             colour_confirmed_kappa: 0.75,
+            clique_seeds: 0,
+            max_clique_size: 100,
             inlier_distance_voxels: 1.5,
             edge_tolerance_voxels: 2.0,
             min_sample_spread_voxels: 4.0,
@@ -210,6 +259,10 @@ impl Default for MapRegistrationConfig {
             gicp_translation_epsilon_m: 1e-4,
             min_consistent_correspondences: 20,
             max_ambiguity_ratio: 0.5,
+            max_verified_hypotheses: 4,
+            ambiguity_free_space_margin: 0.05,
+            ambiguity_residual_ratio: 0.8,
+            min_support_kept: 0.5,
             min_overlap_fraction: 0.1,
             max_residual_m: 0.03,
             residual_sigma_floor_m: 0.005,
@@ -282,6 +335,15 @@ impl MapRegistrationConfig {
         ] {
             positive(field, v)?;
         }
+        if !(self.max_white_balance_gain >= 1.0 && self.max_white_balance_gain.is_finite()) {
+            return Err((
+                "consensus.map_registration.max_white_balance_gain",
+                format!(
+                    "must be a finite factor of at least 1, got {}",
+                    self.max_white_balance_gain
+                ),
+            ));
+        }
         for (field, v) in [
             (
                 "consensus.map_registration.min_sample_spread_voxels",
@@ -324,6 +386,23 @@ impl MapRegistrationConfig {
                 "consensus.map_registration.min_colour_kappa",
                 self.min_colour_kappa,
             ),
+            ("consensus.map_registration.match_ratio", self.match_ratio),
+            (
+                "consensus.map_registration.min_depth_agreement",
+                self.min_depth_agreement,
+            ),
+            (
+                "consensus.map_registration.ambiguity_free_space_margin",
+                self.ambiguity_free_space_margin,
+            ),
+            (
+                "consensus.map_registration.ambiguity_residual_ratio",
+                self.ambiguity_residual_ratio,
+            ),
+            (
+                "consensus.map_registration.min_support_kept",
+                self.min_support_kept,
+            ),
             (
                 "consensus.map_registration.colour_confirmed_overlap_fraction",
                 self.colour_confirmed_overlap_fraction,
@@ -348,6 +427,14 @@ impl MapRegistrationConfig {
             (
                 "consensus.map_registration.refine_max_points",
                 self.refine_max_points,
+            ),
+            (
+                "consensus.map_registration.max_correspondences",
+                self.max_correspondences,
+            ),
+            (
+                "consensus.map_registration.max_verified_hypotheses",
+                self.max_verified_hypotheses,
             ),
             (
                 "consensus.map_registration.ransac_max_samples",

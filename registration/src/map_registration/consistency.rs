@@ -1,5 +1,9 @@
-//! Stage 4: robust pruning of the correspondences, RANSAC over rigid 3-point fits with
-//! edge-length pre-checks, keeping the best hypothesis *and* the best distinct runner-up.
+//! Stage 4: robust pruning of the correspondences, keeping the best hypothesis *and* the best
+//! distinct runner-up. Hypotheses come from two sources: the cliques of the compatibility graph
+//! ([`super::compatibility`], which finds the right transform however few the right
+//! correspondences are), then RANSAC over rigid 3-point fits with edge-length pre-checks (which
+//! samples everything else, so that a well-supported alternative, such as a symmetric room's
+//! turn, is not missed by a clique search that covered it with a larger one).
 //!
 //! Descriptor correspondences between two partial maps are mostly wrong (a few percent right is
 //! typical: every flat wall point looks like every other, and the part of a map the other never
@@ -33,6 +37,8 @@
 
 use geometry::se3::umeyama;
 use nalgebra::{Isometry3, Point3, Vector3};
+
+use super::compatibility::{CliqueParams, clique_hypotheses};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -54,6 +60,8 @@ pub struct RansacParams {
     pub seed: u64,
     pub distinct_rotation_rad: f64,
     pub distinct_translation_m: f64,
+    /// The clique search over the compatibility graph (`None`: RANSAC alone).
+    pub cliques: Option<CliqueParams>,
 }
 
 /// A transform and the correspondences it explains.
@@ -83,6 +91,9 @@ pub struct Consensus {
     /// Samples drawn, samples that passed the edge checks (and were fitted).
     pub samples: usize,
     pub fitted: usize,
+    /// Cliques of the compatibility graph tried, and the largest.
+    pub cliques: usize,
+    pub largest_clique: usize,
 }
 
 /// How far apart two transforms are: the rotation angle between them (radians) and the distance
@@ -176,6 +187,30 @@ impl Search<'_> {
         self.pool.first().map_or(0, Hypothesis::support)
     }
 
+    /// Fits the correspondences `indices`, counts the fit's supporters, locally optimises it and
+    /// offers it to the pool; a new best updates the samples RANSAC still needs (`required`).
+    fn try_sample(&mut self, indices: &[u32], required: &mut f64) {
+        let Some(pose) = self.fit(indices) else {
+            return;
+        };
+        let inliers = self.inliers(&pose);
+        if inliers.len() < 3 || !self.could_enter(inliers.len()) {
+            return;
+        }
+        let hypothesis = self.locally_optimise(Hypothesis {
+            target_from_source: pose,
+            inliers,
+        });
+        let previous_best = self.best_support();
+        self.offer(hypothesis);
+        if self.best_support() > previous_best {
+            *required = required_samples(
+                self.best_support() as f64 / self.source.len() as f64,
+                self.params.confidence,
+            );
+        }
+    }
+
     /// Whether three sampled correspondences can come from one rigid motion and are spread enough
     /// to fit one.
     fn plausible(&self, sample: [usize; 3]) -> bool {
@@ -235,8 +270,15 @@ pub fn find_consensus(
         centre,
         pool: Vec::new(),
     };
-    let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
     let mut required = params.max_samples as f64;
+    if let Some(clique_params) = &params.cliques {
+        for clique in clique_hypotheses(&source[..n], &target[..n], clique_params) {
+            consensus.cliques += 1;
+            consensus.largest_clique = consensus.largest_clique.max(clique.len());
+            search.try_sample(&clique, &mut required);
+        }
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
     while consensus.samples < params.max_samples
         && (consensus.samples < params.min_samples || (consensus.samples as f64) < required)
     {
@@ -253,23 +295,7 @@ pub fn find_consensus(
             continue;
         }
         consensus.fitted += 1;
-        let indices = sample.map(|k| k as u32);
-        let Some(pose) = search.fit(&indices) else {
-            continue;
-        };
-        let inliers = search.inliers(&pose);
-        if inliers.len() < 3 || !search.could_enter(inliers.len()) {
-            continue;
-        }
-        let hypothesis = search.locally_optimise(Hypothesis {
-            target_from_source: pose,
-            inliers,
-        });
-        let previous_best = search.best_support();
-        search.offer(hypothesis);
-        if search.best_support() > previous_best {
-            required = required_samples(search.best_support() as f64 / n as f64, params.confidence);
-        }
+        search.try_sample(&sample.map(|k| k as u32), &mut required);
     }
     consensus.pool = search.pool.clone();
     let mut pool = std::mem::take(&mut search.pool).into_iter();
@@ -312,6 +338,7 @@ mod tests {
             seed: 7,
             distinct_rotation_rad: 10f64.to_radians(),
             distinct_translation_m: 0.3,
+            cliques: None,
         }
     }
 

@@ -43,6 +43,9 @@ pub struct FeatureMatch {
     pub target: u32,
     /// Squared descriptor distance.
     pub distance_sq: f32,
+    /// Descriptor distance over the distance to the chooser's second nearest descriptor (Lowe's
+    /// ratio; 1 when there is no second); the smaller of the two directions for a mutual pair.
+    pub ratio: f32,
     /// Whether the pair chose each other.
     pub mutual: bool,
 }
@@ -114,32 +117,69 @@ fn padded_distance_sq(a: &Padded, b: &Padded) -> f32 {
 /// Each query's nearest neighbour: (index, squared distance).
 pub type Nearest = Vec<(u32, f32)>;
 
-/// The better of two (index, squared distance) candidates: smaller distance, then lower index.
-/// Associative and commutative, so the parallel reduction's result does not depend on how the
-/// work was split.
-#[inline]
-fn better(a: (u32, f32), b: (u32, f32)) -> (u32, f32) {
-    if b.1 < a.1 || (b.1 == a.1 && b.0 < a.0) {
-        b
-    } else {
-        a
+/// A query's nearest neighbour and the squared distance to its second nearest.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NearestTwo {
+    pub index: u32,
+    pub distance_sq: f32,
+    /// Infinite when there is no second.
+    pub second_sq: f32,
+}
+
+impl NearestTwo {
+    const NONE: Self = Self {
+        index: u32::MAX,
+        distance_sq: f32::INFINITY,
+        second_sq: f32::INFINITY,
+    };
+
+    /// Lowe's ratio `distance / second distance` (1 without a second, or at distance 0 to both).
+    pub fn ratio(&self) -> f32 {
+        if self.second_sq.is_finite() && self.second_sq > 0.0 {
+            (self.distance_sq / self.second_sq).sqrt()
+        } else {
+            1.0
+        }
+    }
+
+    /// Adds a candidate: the nearest is the smaller distance, then the lower index (so merging
+    /// does not depend on how the work was split); the second the next smaller distance.
+    #[inline]
+    fn offer(&mut self, index: u32, distance_sq: f32) {
+        if distance_sq < self.distance_sq || (distance_sq == self.distance_sq && index < self.index)
+        {
+            self.second_sq = self.distance_sq;
+            self.distance_sq = distance_sq;
+            self.index = index;
+        } else if distance_sq < self.second_sq {
+            self.second_sq = distance_sq;
+        }
+    }
+
+    /// Both candidates' union: associative and commutative.
+    fn merge(mut self, other: Self) -> Self {
+        if other.index != u32::MAX {
+            self.offer(other.index, other.distance_sq);
+        }
+        self.second_sq = self.second_sq.min(other.second_sq);
+        self
     }
 }
 
 /// Nearest neighbours in both directions from one pass over all pairs: each source
-/// descriptor's nearest target and each target descriptor's nearest source, as (index, squared
-/// distance), ties to the lower index. Blocked so that a target descriptor is compared with
-/// [`ROWS_PER_BLOCK`] source descriptors while it is in cache; rows in parallel, each worker
-/// keeping its own column minima, merged at the end.
-pub fn nearest_brute_force_both_ways(
+/// descriptor's nearest target and each target descriptor's nearest source (ties to the lower
+/// index), with the distance to the second nearest. Blocked so that a target descriptor is
+/// compared with [`ROWS_PER_BLOCK`] source descriptors while it is in cache; rows in parallel,
+/// each worker keeping its own column minima, merged at the end.
+pub fn nearest_two_both_ways(
     source: &[MatchDescriptor],
     target: &[MatchDescriptor],
-) -> (Nearest, Nearest) {
+) -> (Vec<NearestTwo>, Vec<NearestTwo>) {
     if source.is_empty() || target.is_empty() {
         return (Vec::new(), Vec::new());
     }
     let (source, target) = (padded(source), padded(target));
-    let none = (u32::MAX, f32::INFINITY);
+    let none = NearestTwo::NONE;
     let (mut rows, columns) = source
         .par_chunks(ROWS_PER_BLOCK)
         .enumerate()
@@ -151,8 +191,8 @@ pub fn nearest_brute_force_both_ways(
                 for (t, (b, column)) in target.iter().zip(columns.iter_mut()).enumerate() {
                     for (r, a) in chunk.iter().enumerate() {
                         let d = padded_distance_sq(a, b);
-                        row_best[r] = better(row_best[r], (t as u32, d));
-                        *column = better(*column, ((first + r) as u32, d));
+                        row_best[r].offer(t as u32, d);
+                        column.offer((first + r) as u32, d);
                     }
                 }
                 rows.extend(
@@ -171,13 +211,23 @@ pub fn nearest_brute_force_both_ways(
                 let columns = columns_a
                     .into_iter()
                     .zip(columns_b)
-                    .map(|(a, b)| better(a, b))
+                    .map(|(a, b)| a.merge(b))
                     .collect();
                 (rows_a, columns)
             },
         );
     rows.sort_unstable_by_key(|&(row, _)| row);
     (rows.into_iter().map(|(_, best)| best).collect(), columns)
+}
+
+/// [`nearest_two_both_ways`] without the second distances.
+pub fn nearest_brute_force_both_ways(
+    source: &[MatchDescriptor],
+    target: &[MatchDescriptor],
+) -> (Nearest, Nearest) {
+    let (rows, columns) = nearest_two_both_ways(source, target);
+    let strip = |list: Vec<NearestTwo>| list.iter().map(|n| (n.index, n.distance_sq)).collect();
+    (strip(rows), strip(columns))
 }
 
 /// The same as [`nearest_kd_tree`] by comparing every pair (ties go to the lower index).
@@ -213,84 +263,123 @@ pub fn most_distinctive(descriptors: &[MatchDescriptor], max_count: usize) -> Ve
     kept
 }
 
-/// Mutual nearest neighbours between the two descriptor lists given each direction's nearest
-/// neighbours, topped up with the best one-way matches to `min_correspondences` (see the module
-/// documentation). Ordered: mutual ones by source index, then the one-way ones by distance.
+/// How correspondences are chosen (see the module documentation).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MatchParams {
+    /// The most distinctive descriptors of each map that take part.
+    pub max_per_map: usize,
+    /// One-way matches whose Lowe ratio is below this join the mutual ones (0: none).
+    pub max_ratio: f32,
+    /// Correspondences at most: mutual ones first, then one-way ones by ratio.
+    pub max_correspondences: usize,
+    /// When fewer, the best remaining one-way matches (by distance) top the list up to this.
+    pub min_correspondences: usize,
+}
+
+/// Correspondences from each direction's two nearest neighbours: the mutual nearest neighbours,
+/// then the one-way matches that pass Lowe's ratio test, up to `max_correspondences`, then, if
+/// fewer than `min_correspondences`, the best remaining one-way matches (see the module
+/// documentation). Ordered: mutual ones by source index, the ratio-tested ones by ratio, the
+/// rest by distance.
 pub fn mutual_matches(
-    source_to_target: &[(u32, f32)],
-    target_to_source: &[(u32, f32)],
-    min_correspondences: usize,
+    source_to_target: &[NearestTwo],
+    target_to_source: &[NearestTwo],
+    params: &MatchParams,
 ) -> Vec<FeatureMatch> {
+    let is_mutual = |s: u32, t: u32| {
+        source_to_target[s as usize].index == t && target_to_source[t as usize].index == s
+    };
     let mut matches: Vec<FeatureMatch> = source_to_target
         .iter()
         .enumerate()
-        .filter(|(s, (t, _))| target_to_source[*t as usize].0 as usize == *s)
-        .map(|(s, &(t, distance_sq))| FeatureMatch {
+        .filter(|(s, n)| is_mutual(*s as u32, n.index))
+        .map(|(s, n)| FeatureMatch {
             source: s as u32,
-            target: t,
-            distance_sq,
+            target: n.index,
+            distance_sq: n.distance_sq,
+            ratio: n.ratio().min(target_to_source[n.index as usize].ratio()),
             mutual: true,
         })
         .collect();
-    if matches.len() >= min_correspondences {
-        return matches;
-    }
+    matches.truncate(params.max_correspondences);
     let one_way = source_to_target
         .iter()
         .enumerate()
-        .map(|(s, &(t, d))| (s as u32, t, d))
+        .map(|(s, n)| (s as u32, n.index, n))
         .chain(
             target_to_source
                 .iter()
                 .enumerate()
-                .map(|(t, &(s, d))| (s, t as u32, d)),
+                .map(|(t, n)| (n.index, t as u32, n)),
         );
+    // Not mutual: mutual pairs are already in, and appear in both directions.
     let mut extra: Vec<FeatureMatch> = one_way
-        .filter(|&(s, t, _)| {
-            // Not mutual: mutual pairs are already in, and appear in both directions.
-            !(source_to_target[s as usize].0 == t && target_to_source[t as usize].0 == s)
-        })
-        .map(|(source, target, distance_sq)| FeatureMatch {
+        .filter(|&(s, t, _)| !is_mutual(s, t))
+        .map(|(source, target, n)| FeatureMatch {
             source,
             target,
-            distance_sq,
+            distance_sq: n.distance_sq,
+            ratio: n.ratio(),
             mutual: false,
         })
         .collect();
+    let by_pair =
+        |a: &FeatureMatch, b: &FeatureMatch| a.source.cmp(&b.source).then(a.target.cmp(&b.target));
     extra.sort_by(|a, b| {
-        a.distance_sq
-            .total_cmp(&b.distance_sq)
-            .then(a.source.cmp(&b.source))
-            .then(a.target.cmp(&b.target))
+        let a_passes = a.ratio < params.max_ratio;
+        let b_passes = b.ratio < params.max_ratio;
+        b_passes
+            .cmp(&a_passes)
+            .then_with(|| {
+                if a_passes {
+                    a.ratio.total_cmp(&b.ratio)
+                } else {
+                    std::cmp::Ordering::Equal
+                }
+            })
+            .then(a.distance_sq.total_cmp(&b.distance_sq))
+            .then_with(|| by_pair(a, b))
     });
     extra.dedup_by(|a, b| a.source == b.source && a.target == b.target);
-    let missing = min_correspondences - matches.len();
-    matches.extend(extra.into_iter().take(missing));
+    let passing = extra.partition_point(|m| m.ratio < params.max_ratio);
+    let room = params.max_correspondences.saturating_sub(matches.len());
+    let taken = passing.min(room);
+    let mut extra = extra.into_iter();
+    matches.extend(extra.by_ref().take(taken));
+    if matches.len() < params.min_correspondences {
+        let mut rest: Vec<FeatureMatch> = extra.collect();
+        rest.sort_by(|a, b| {
+            a.distance_sq
+                .total_cmp(&b.distance_sq)
+                .then_with(|| by_pair(a, b))
+        });
+        let missing = params.min_correspondences - matches.len();
+        matches.extend(rest.into_iter().take(missing));
+    }
     matches
 }
 
 /// Correspondences between two descriptor lists: the [`most_distinctive`] `max_per_map` of each,
-/// [`nearest_brute_force_both_ways`] between them, then [`mutual_matches`]. Indices refer to the
-/// full lists.
+/// [`nearest_two_both_ways`] between them, then [`mutual_matches`]. Indices refer to the full
+/// lists.
 pub fn match_descriptors(
     source: &[MatchDescriptor],
     target: &[MatchDescriptor],
-    max_per_map: usize,
-    min_correspondences: usize,
+    params: &MatchParams,
 ) -> Vec<FeatureMatch> {
     if source.is_empty() || target.is_empty() {
         return Vec::new();
     }
     let (source_kept, target_kept) = rayon::join(
-        || most_distinctive(source, max_per_map),
-        || most_distinctive(target, max_per_map),
+        || most_distinctive(source, params.max_per_map),
+        || most_distinctive(target, params.max_per_map),
     );
     let pick = |all: &[MatchDescriptor], kept: &[u32]| -> Vec<MatchDescriptor> {
         kept.iter().map(|&i| all[i as usize]).collect()
     };
     let (forward, backward) =
-        nearest_brute_force_both_ways(&pick(source, &source_kept), &pick(target, &target_kept));
-    let mut matches = mutual_matches(&forward, &backward, min_correspondences);
+        nearest_two_both_ways(&pick(source, &source_kept), &pick(target, &target_kept));
+    let mut matches = mutual_matches(&forward, &backward, params);
     for m in &mut matches {
         m.source = source_kept[m.source as usize];
         m.target = target_kept[m.target as usize];
@@ -303,6 +392,16 @@ mod tests {
     use super::*;
     use rand::{RngExt, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    /// Mutual matches of at most `max_per_map` descriptors each, topped up to `min`.
+    fn params(max_per_map: usize, min: usize) -> MatchParams {
+        MatchParams {
+            max_per_map,
+            max_ratio: 0.0,
+            max_correspondences: usize::MAX,
+            min_correspondences: min,
+        }
+    }
 
     /// Histogram-like random descriptors clustered around a few prototypes, as real ones are.
     fn descriptors(seed: u64, n: usize) -> Vec<MatchDescriptor> {
@@ -369,7 +468,7 @@ mod tests {
         let (blocked_forward, blocked_backward) = nearest_brute_force_both_ways(&source, &target);
         assert_same_neighbours(&blocked_forward, &forward);
         assert_same_neighbours(&blocked_backward, &backward);
-        let mutual = match_descriptors(&source, &target, usize::MAX, 0);
+        let mutual = match_descriptors(&source, &target, &params(usize::MAX, 0));
         let pairs: Vec<(u32, u32)> = mutual.iter().map(|m| (m.source, m.target)).collect();
         let expected: Vec<(u32, u32)> = (0..source.len())
             .filter(|&s| backward[forward[s].0 as usize].0 as usize == s)
@@ -390,9 +489,9 @@ mod tests {
     fn too_few_mutual_matches_are_topped_up_with_the_best_one_way_ones() {
         let source = descriptors(3, 400);
         let target = descriptors(4, 300);
-        let mutual = match_descriptors(&source, &target, usize::MAX, 0);
+        let mutual = match_descriptors(&source, &target, &params(usize::MAX, 0));
         let wanted = mutual.len() + 25;
-        let topped = match_descriptors(&source, &target, usize::MAX, wanted);
+        let topped = match_descriptors(&source, &target, &params(usize::MAX, wanted));
         assert_eq!(topped.len(), wanted);
         assert_eq!(&topped[..mutual.len()], &mutual[..]);
         let extra = &topped[mutual.len()..];
@@ -420,7 +519,7 @@ mod tests {
             .collect();
         one_way.sort_by(f32::total_cmp);
         assert!((extra.last().unwrap().distance_sq - one_way[24]).abs() < 1e-6);
-        assert!(match_descriptors(&source, &[], usize::MAX, 10).is_empty());
+        assert!(match_descriptors(&source, &[], &params(usize::MAX, 10)).is_empty());
     }
 
     #[test]
@@ -433,7 +532,7 @@ mod tests {
         assert_eq!(most_distinctive(&list, 5000).len(), 1000);
         // Matching a list with itself under a cap: every kept descriptor matches itself, and the
         // indices refer to the full list.
-        let matches = match_descriptors(&list, &list, 100, 0);
+        let matches = match_descriptors(&list, &list, &params(100, 0));
         assert_eq!(matches.len(), 100);
         assert!(
             matches

@@ -23,8 +23,14 @@ pub(super) struct PreparedMap {
     pub colours: Option<Vec<Rgb>>,
 }
 
-/// Normals, descriptors and, with `colours`, colour signatures of a downsampled map.
-pub(super) fn prepare(cloud: Cloud, voxel_m: f64, config: &MapRegistrationConfig) -> PreparedMap {
+/// Normals, descriptors and, with `colours`, colour signatures of a downsampled map, its colours
+/// multiplied by `gains` for the signatures (another camera's white balance).
+pub(super) fn prepare(
+    cloud: Cloud,
+    voxel_m: f64,
+    gains: [f32; 3],
+    config: &MapRegistrationConfig,
+) -> PreparedMap {
     let tree = PointTree::with_covariances(
         PointCloud::from_positions(cloud.points),
         config.covariance_neighbours,
@@ -40,10 +46,16 @@ pub(super) fn prepare(cloud: Cloud, voxel_m: f64, config: &MapRegistrationConfig
         (normal_radius, config.min_normal_neighbours),
         (feature_radius, config.min_feature_neighbours),
     );
-    let signatures = cloud
-        .colours
-        .as_ref()
-        .map(|colours| colour::signatures(colours, &neighbourhoods, &features.indices));
+    let signatures = cloud.colours.as_ref().map(|colours| {
+        let balanced;
+        let colours = if gains == [1.0; 3] {
+            colours
+        } else {
+            balanced = colour::balanced(colours, gains);
+            &balanced
+        };
+        colour::signatures(colours, &neighbourhoods, &features.indices)
+    });
     let weight = config.colour_weight as f32;
     let descriptors = (0..features.len())
         .map(|k| {

@@ -19,23 +19,30 @@
 //!    unknowable sign of a map normal does not matter (the reason is in that file). With colour,
 //!    [`colour`] appends the neighbourhood's hue histogram (exposure-invariant chromaticity),
 //!    weighted by `colour_weight`.
-//! 3. [`correspondences`]: mutual nearest neighbours in descriptor space, topped up with the best
-//!    one-way matches when too few are mutual.
-//! 4. [`consistency`]: RANSAC over three correspondences with distance-preservation pre-checks
-//!    and local least-squares refits: the transform most correspondences agree on, and the best
-//!    *distinct* runner-up, whose relative support measures ambiguity (symmetric rooms,
-//!    repeated shelves).
-//! 5. [`verification`]: coarse-to-fine G-ICP from the RANSAC transform (slam_core's, plane to
-//!    plane, with each map's covariances), then overlap, point-to-plane residual, the
-//!    information matrix of the estimate and, with colour, how far the overlap's colours agree
-//!    beyond chance (Cohen's kappa of chromaticity agreement).
+//! 3. [`correspondences`]: mutual nearest neighbours in descriptor space, plus one-way matches
+//!    that pass Lowe's ratio test (`match_ratio`), topped up with the best one-way matches when
+//!    too few are mutual.
+//! 4. [`compatibility`] (when `clique_seeds` > 0) and [`consistency`]: cliques of mutually
+//!    distance-compatible correspondences (SC^2-scored seeds) as hypotheses, then RANSAC over
+//!    three correspondences with distance-preservation pre-checks and local least-squares
+//!    refits: the transform most correspondences agree on, and the best *distinct* runner-up,
+//!    whose relative support measures ambiguity (symmetric rooms, repeated shelves).
+//! 5. [`verification`]: coarse-to-fine G-ICP from the hypothesis (slam_core's, plane to plane,
+//!    with each map's covariances), then overlap, point-to-plane residual, the information
+//!    matrix of the estimate and, with colour, how far the overlap's colours agree beyond chance
+//!    (Cohen's kappa of chromaticity agreement, after the maps' relative white balance).
+//! 6. [`decision`] and [`free_space`]: when the correspondences leave alternatives nearly tied,
+//!    each is refined and verified and the free-space test of the maps' depth views (when
+//!    given), else the residual, chooses; the accepted result must pass the free-space test.
 //!
 //! The verdict refuses, with the numbers, every estimate that is not trustworthy: too few points,
-//! descriptors or consistent correspondences; ambiguous (the runner-up nearly as well supported);
-//! G-ICP failure; too little overlap (below `min_overlap_fraction`, or below the smaller
+//! descriptors or consistent correspondences; ambiguous (verified alternatives that neither the
+//! free-space test nor the residual tells apart: `Tied`); G-ICP failure or drift away from the
+//! correspondences; too little overlap (below `min_overlap_fraction`, or below the smaller
 //! `colour_confirmed_overlap_fraction` when colour agrees with a kappa of at least
 //! `colour_confirmed_kappa`); a high residual; a degenerate overlap (one plane, a corridor: a
-//! direction the overlap does not constrain); or colours that agree no better than chance.
+//! direction the overlap does not constrain); colours that agree no better than chance; or map
+//! points in the free space of the other map's depth views.
 //!
 //! Lengths of the configuration ending in `_voxels` scale with the voxel actually used. Every
 //! stage is parallel (rayon) except RANSAC, which is sequential so that the result depends on
@@ -58,11 +65,14 @@
 //! The information matrix treats residuals as independent and is therefore optimistic.
 
 pub mod colour;
+pub mod compatibility;
 mod config;
 pub mod consistency;
 pub mod correspondences;
+mod decision;
 pub mod downsample;
 pub mod fpfh;
+pub mod free_space;
 mod maps;
 mod outcome;
 pub mod verification;
@@ -75,14 +85,16 @@ use std::time::Instant;
 
 use nalgebra::{Isometry3, Matrix6, Point3};
 
+use compatibility::CliqueParams;
 pub use config::MapRegistrationConfig;
-use consistency::{Consensus, RansacParams, find_consensus, transform_difference};
-use correspondences::FeatureMatch;
+use consistency::{Consensus, Hypothesis, RansacParams, find_consensus, transform_difference};
+use correspondences::{FeatureMatch, MatchParams};
+use decision::{FineLevel, Judge, decide};
 use downsample::Cloud;
 pub use downsample::MapPoints;
-use maps::{FineView, PreparedMap, RefinementMap, prepare};
+pub use free_space::{DepthView, FreeSpace, FreeSpaceCheck};
+use maps::{PreparedMap, RefinementMap, prepare};
 pub use outcome::{MapRegistration, MapRegistrationScores, MapRejection, StageTimings};
-use verification::{ColourCheck, Overlap, RefinementParams, measure_overlap, refine};
 
 /// A map needs at least this many points after downsampling, and descriptors, to be registered:
 /// fewer cannot describe a scene that fixes six degrees of freedom.
@@ -98,6 +110,18 @@ pub fn register_maps<'a, 'b>(
     source: impl Into<MapPoints<'a>>,
     target: impl Into<MapPoints<'b>>,
     config: &MapRegistrationConfig,
+) -> MapRegistration {
+    register_maps_checked(source, target, config, None)
+}
+
+/// [`register_maps`] with the free-space test of the maps' depth views ([`free_space`]): the
+/// accepted result must pass it, and it judges between candidates the correspondences leave
+/// nearly tied.
+pub fn register_maps_checked<'a, 'b>(
+    source: impl Into<MapPoints<'a>>,
+    target: impl Into<MapPoints<'b>>,
+    config: &MapRegistrationConfig,
+    free_space: Option<&FreeSpaceCheck<'_>>,
 ) -> MapRegistration {
     let start = Instant::now();
     let (mut source, mut target) = (source.into(), target.into());
@@ -115,7 +139,8 @@ pub fn register_maps<'a, 'b>(
     .entered();
     let mut scores = MapRegistrationScores::new(source.points.len(), target.points.len());
     scores.colour = use_colour;
-    let outcome = run_stages(source, target, config, &mut scores).unwrap_or_else(Outcome::from);
+    let outcome =
+        run_stages(source, target, config, free_space, &mut scores).unwrap_or_else(Outcome::from);
     match &outcome.verdict {
         Ok(()) => tracing::debug!("map registration accepted"),
         Err(reason) => tracing::debug!(%reason, "map registration refused"),
@@ -140,14 +165,16 @@ struct Outcome {
 /// A registration a stage refused before the verification: the estimate so far and why.
 struct Refusal {
     target_from_source: Isometry3<f64>,
-    reason: MapRejection,
+    /// Boxed: a rejection carries its numbers, and every stage's `Result` would otherwise be as
+    /// large as the largest of them.
+    reason: Box<MapRejection>,
 }
 
 impl Refusal {
     fn new(target_from_source: Isometry3<f64>, reason: MapRejection) -> Self {
         Self {
             target_from_source,
-            reason,
+            reason: Box::new(reason),
         }
     }
 }
@@ -156,7 +183,7 @@ impl From<Refusal> for Outcome {
     fn from(refusal: Refusal) -> Self {
         Self {
             target_from_source: refusal.target_from_source,
-            verdict: Err(refusal.reason),
+            verdict: Err(*refusal.reason),
             information: None,
         }
     }
@@ -170,9 +197,11 @@ fn run_stages(
     source: MapPoints<'_>,
     target: MapPoints<'_>,
     config: &MapRegistrationConfig,
+    free_space: Option<&FreeSpaceCheck<'_>>,
     scores: &mut MapRegistrationScores,
 ) -> Stage<Outcome> {
     let started = Instant::now();
+    let inputs = (source.points, target.points);
     let clean = downsample::clean_pair(
         source,
         target,
@@ -184,7 +213,8 @@ fn run_stages(
     let voxel = levels.voxel;
     let (source_map, target_map) = describe(levels.source, levels.target, voxel, config, scores)?;
     let matches = match_features(&source_map, &target_map, config, scores)?;
-    let coarse = consistent_transform(&source_map, &target_map, &matches, voxel, config, scores)?;
+    let candidates =
+        consistent_hypotheses(&source_map, &target_map, &matches, voxel, config, scores)?;
 
     let stage = Instant::now();
     let fine_maps = levels.refinement.map(|(source_fine, target_fine)| {
@@ -197,26 +227,28 @@ fn run_stages(
         Some((s, t)) => (s.fine_view(), t.fine_view()),
         None => (source_map.fine_view(), target_map.fine_view()),
     };
-    let fine = FineLevel {
-        source: fine_source,
-        target: fine_target,
-        distance_m: config
-            .refine_distances_voxels
-            .last()
-            .copied()
-            .unwrap_or(1.0)
-            * scores.refine_voxel_m,
-    };
-    let estimate = refine_transform(
-        (&source_map, &target_map),
-        &fine,
-        coarse,
-        voxel,
-        stage,
+    let judge = Judge {
+        source_map: &source_map,
+        target_map: &target_map,
+        fine: FineLevel {
+            source: fine_source,
+            target: fine_target,
+            distance_m: config
+                .refine_distances_voxels
+                .last()
+                .copied()
+                .unwrap_or(1.0)
+                * scores.refine_voxel_m,
+        },
+        matched: (&candidates.source_points, &candidates.target_points),
+        voxel_m: voxel,
+        free_space,
+        inputs,
+        colour_gains: scores.source_colour_gains,
         config,
-        scores,
-    )?;
-    Ok(verify(&fine, estimate, config, scores))
+    };
+    scores.timings.refinement_ms = elapsed_ms(stage);
+    Ok(decide(&judge, &candidates.hypotheses, scores))
 }
 
 /// Stage 1's output: the feature level (the cheaper, for descriptors, matching and the coarse
@@ -295,9 +327,16 @@ fn describe(
     scores: &mut MapRegistrationScores,
 ) -> Stage<(PreparedMap, PreparedMap)> {
     let stage = Instant::now();
+    let gains = match (&source.colours, &target.colours) {
+        (Some(s), Some(t)) if config.balance_colours => {
+            colour::relative_white_balance(s, t, config.max_white_balance_gain.ln())
+        }
+        _ => [1.0; 3],
+    };
+    scores.source_colour_gains = gains.map(f64::from);
     let (source_map, target_map) = rayon::join(
-        || prepare(source.into_owned(), voxel, config),
-        || prepare(target.into_owned(), voxel, config),
+        || prepare(source.into_owned(), voxel, gains, config),
+        || prepare(target.into_owned(), voxel, [1.0; 3], config),
     );
     scores.source_features = source_map.features.len();
     scores.target_features = target_map.features.len();
@@ -330,8 +369,12 @@ fn match_features(
     let matches = correspondences::match_descriptors(
         &source_map.descriptors,
         &target_map.descriptors,
-        config.max_matched_features,
-        config.min_correspondences,
+        &MatchParams {
+            max_per_map: config.max_matched_features,
+            max_ratio: config.match_ratio as f32,
+            max_correspondences: config.max_correspondences,
+            min_correspondences: config.min_correspondences,
+        },
     );
     scores.correspondences = matches.len();
     scores.mutual_correspondences = matches.iter().filter(|m| m.mutual).count();
@@ -352,16 +395,26 @@ fn match_features(
     Ok(matches)
 }
 
-/// Stage 4, the consistent subset: RANSAC's best transform, refused when too few
-/// correspondences support it or a distinct runner-up is nearly as well supported.
-fn consistent_transform(
+/// Stage 4's output: the candidate transforms (the best hypothesis first, then the distinct
+/// alternatives nearly as well supported), and the matched points.
+struct Candidates {
+    hypotheses: Vec<Hypothesis>,
+    source_points: Vec<Point3<f64>>,
+    target_points: Vec<Point3<f64>>,
+}
+
+/// Stage 4, the consistent subset: the best transform of the cliques and RANSAC, refused when
+/// too few correspondences support it, and the distinct alternatives whose own supporters reach
+/// `max_ambiguity_ratio` of its (up to `max_verified_hypotheses` in all), which
+/// [`decision`] verifies too.
+fn consistent_hypotheses(
     source_map: &PreparedMap,
     target_map: &PreparedMap,
     matches: &[FeatureMatch],
     voxel: f64,
     config: &MapRegistrationConfig,
     scores: &mut MapRegistrationScores,
-) -> Stage<Isometry3<f64>> {
+) -> Stage<Candidates> {
     let stage = Instant::now();
     let point_of = |map: &PreparedMap, feature: u32| {
         map.tree.positions()[map.features.indices[feature as usize] as usize].cast::<f64>()
@@ -385,6 +438,11 @@ fn consistent_transform(
         seed: config.ransac_seed,
         distinct_rotation_rad: config.distinct_rotation_rad,
         distinct_translation_m: config.distinct_translation_m,
+        cliques: (config.clique_seeds > 0).then_some(CliqueParams {
+            tolerance_m: config.edge_tolerance_voxels * voxel,
+            max_seeds: config.clique_seeds,
+            max_clique: config.max_clique_size,
+        }),
     };
     let consensus = find_consensus(&source_points, &target_points, &ransac);
     scores.ransac_samples = consensus.samples;
@@ -415,18 +473,34 @@ fn consistent_transform(
         };
         return Err(Refusal::new(coarse, reason));
     }
+    let mut hypotheses = vec![best.clone()];
     if scores.ambiguity_ratio > config.max_ambiguity_ratio {
-        let reason = MapRejection::Ambiguous {
-            best: best_support,
-            runner_up: scores.runner_up_support,
-            ratio: scores.ambiguity_ratio,
-            allowed: config.max_ambiguity_ratio,
-            rotation_deg: scores.runner_up_rotation_deg,
-            translation_m: scores.runner_up_translation_m,
-        };
-        return Err(Refusal::new(coarse, reason));
+        // The alternatives, by their own supporters (those the best does not also have).
+        let mut alternatives: Vec<(usize, &Hypothesis)> = consensus.pool[1..]
+            .iter()
+            .map(|h| {
+                let own = h
+                    .inliers
+                    .iter()
+                    .filter(|k| best.inliers.binary_search(k).is_err())
+                    .count();
+                (own, h)
+            })
+            .filter(|&(own, _)| own as f64 > config.max_ambiguity_ratio * best_support as f64)
+            .collect();
+        alternatives.sort_by_key(|a| std::cmp::Reverse(a.0));
+        hypotheses.extend(
+            alternatives
+                .into_iter()
+                .take(config.max_verified_hypotheses.saturating_sub(1))
+                .map(|(_, h)| h.clone()),
+        );
     }
-    Ok(coarse)
+    Ok(Candidates {
+        hypotheses,
+        source_points,
+        target_points,
+    })
 }
 
 /// The support of RANSAC's best and runner-up hypotheses, their ratio and how far apart they
@@ -456,150 +530,5 @@ fn score_support(
         );
         scores.runner_up_rotation_deg = angle.to_degrees();
         scores.runner_up_translation_m = distance;
-    }
-}
-
-/// The maps the final G-ICP stage and the verification work on, and the finest refinement
-/// distance (also the overlap distance).
-struct FineLevel<'m> {
-    source: FineView<'m>,
-    target: FineView<'m>,
-    distance_m: f64,
-}
-
-/// Stage 5, G-ICP refinement from RANSAC's `coarse` transform: the coarse distances on the
-/// feature level, the finest on `fine`.
-fn refine_transform(
-    (source_map, target_map): (&PreparedMap, &PreparedMap),
-    fine: &FineLevel<'_>,
-    coarse: Isometry3<f64>,
-    voxel: f64,
-    started: Instant,
-    config: &MapRegistrationConfig,
-    scores: &mut MapRegistrationScores,
-) -> Stage<Isometry3<f64>> {
-    let distances = &config.refine_distances_voxels;
-    let refined = refine(
-        (source_map.tree.cloud(), &target_map.tree),
-        (fine.source.tree.cloud(), fine.target.tree),
-        &coarse,
-        &RefinementParams {
-            coarse_distances_m: distances[..distances.len().saturating_sub(1)]
-                .iter()
-                .map(|d| d * voxel)
-                .collect(),
-            fine_distance_m: fine.distance_m,
-            max_iterations: config.gicp_max_iterations,
-            rotation_epsilon_rad: config.gicp_rotation_epsilon_rad,
-            translation_epsilon_m: config.gicp_translation_epsilon_m,
-        },
-    );
-    scores.gicp_iterations = refined.iterations;
-    scores.gicp_converged = refined.converged;
-    scores.timings.refinement_ms = elapsed_ms(started);
-    tracing::debug!(
-        iterations = refined.iterations,
-        converged = refined.converged,
-        ms = scores.timings.refinement_ms,
-        "refined"
-    );
-    if let Some(failure) = refined.failure.clone().filter(|f| !f.pose_is_usable()) {
-        return Err(Refusal::new(
-            coarse,
-            MapRejection::RefinementFailed(failure),
-        ));
-    }
-    Ok(refined.target_from_source)
-}
-
-/// Stage 6, verification of `estimate` on the fine level: overlap, residual, information and
-/// colour, and the verdict they give.
-fn verify(
-    fine: &FineLevel<'_>,
-    estimate: Isometry3<f64>,
-    config: &MapRegistrationConfig,
-    scores: &mut MapRegistrationScores,
-) -> Outcome {
-    let stage = Instant::now();
-    let colour_check = match (fine.source.colours, fine.target.colours) {
-        (Some(source), Some(target)) => Some(ColourCheck {
-            source,
-            target,
-            tolerance: config.colour_tolerance as f32,
-        }),
-        _ => None,
-    };
-    let overlap = measure_overlap(
-        fine.source.tree.positions(),
-        fine.target.tree,
-        fine.target.normals,
-        &estimate,
-        fine.distance_m,
-        config.residual_sigma_floor_m,
-        colour_check,
-    );
-    scores.overlapping_points = overlap.overlapping;
-    scores.overlap_fraction = overlap.fraction;
-    scores.residual_m = overlap.residual_m;
-    scores.rotation_sigma_deg = overlap.rotation_sigma_rad.to_degrees();
-    scores.translation_sigma_m = overlap.translation_sigma_m;
-    scores.colour_compared = overlap.colour_compared;
-    scores.colour_agreement = overlap.colour_agreement();
-    scores.colour_chance = overlap.colour_chance;
-    scores.colour_kappa = overlap.colour_kappa();
-    scores.timings.verification_ms = elapsed_ms(stage);
-    tracing::debug!(
-        overlap = overlap.fraction,
-        residual_m = overlap.residual_m,
-        colour_agreement = scores.colour_agreement,
-        colour_kappa = scores.colour_kappa,
-        ms = scores.timings.verification_ms,
-        "verified"
-    );
-    Outcome {
-        target_from_source: estimate,
-        verdict: verdict(&overlap, config),
-        information: Some(overlap.information),
-    }
-}
-
-/// Accepted, or the first check `overlap` fails (see the module documentation).
-fn verdict(overlap: &Overlap, config: &MapRegistrationConfig) -> Result<(), MapRejection> {
-    let colour_judged = overlap.colour_compared >= config.min_colour_comparisons;
-    let colour_confirms = colour_judged
-        && overlap.colour_kappa() >= config.colour_confirmed_kappa
-        && overlap.fraction >= config.colour_confirmed_overlap_fraction;
-    if overlap.fraction < config.min_overlap_fraction && !colour_confirms {
-        Err(MapRejection::LowOverlap {
-            found: overlap.fraction,
-            required: config.min_overlap_fraction,
-            confirmed: config.colour_confirmed_overlap_fraction,
-            required_kappa: config.colour_confirmed_kappa,
-            kappa: overlap.colour_kappa(),
-        })
-    } else if overlap.residual_m.is_nan() || overlap.residual_m > config.max_residual_m {
-        Err(MapRejection::HighResidual {
-            found_m: overlap.residual_m,
-            allowed_m: config.max_residual_m,
-        })
-    } else if overlap.rotation_sigma_rad > config.max_rotation_sigma_rad
-        || overlap.translation_sigma_m > config.max_translation_sigma_m
-    {
-        Err(MapRejection::Degenerate {
-            rotation_deg: overlap.rotation_sigma_rad.to_degrees(),
-            translation_m: overlap.translation_sigma_m,
-            allowed_rotation_deg: config.max_rotation_sigma_rad.to_degrees(),
-            allowed_translation_m: config.max_translation_sigma_m,
-        })
-    } else if colour_judged && overlap.colour_kappa() < config.min_colour_kappa {
-        Err(MapRejection::ColourDisagreement {
-            compared: overlap.colour_compared,
-            agreement: overlap.colour_agreement(),
-            chance: overlap.colour_chance,
-            kappa: overlap.colour_kappa(),
-            required: config.min_colour_kappa,
-        })
-    } else {
-        Ok(())
     }
 }

@@ -39,8 +39,30 @@ pub enum MapRejection {
         rotation_deg: f64,
         translation_m: f64,
     },
+    #[error(
+        "two verified transforms {rotation_deg:.1} degrees and {translation_m:.2} m apart tie: residuals {:.4} / {:.4} m, overlaps {:.3} / {:.3}, depth agreements {:.3} / {:.3}",
+        residuals_m[0], residuals_m[1], overlaps[0], overlaps[1], depth_agreements[0], depth_agreements[1]
+    )]
+    Tied {
+        rotation_deg: f64,
+        translation_m: f64,
+        /// Of the better supported first (depth agreements NaN without the free-space test).
+        residuals_m: [f64; 2],
+        overlaps: [f64; 2],
+        depth_agreements: [f64; 2],
+    },
     #[error("G-ICP refinement failed: {0}")]
     RefinementFailed(RegistrationFailure),
+    #[error(
+        "G-ICP moved {rotation_deg:.1} degrees and {translation_m:.2} m from the correspondences' transform and keeps {kept} of its {support} supporters, at least {required} needed"
+    )]
+    RefinementDrifted {
+        kept: usize,
+        support: usize,
+        required: usize,
+        rotation_deg: f64,
+        translation_m: f64,
+    },
     #[error(
         "overlap {found:.3} of the smaller map below {required:.3} (or {confirmed:.3} with a colour kappa of {required_kappa:.2}; found {kappa:.2})"
     )]
@@ -64,6 +86,14 @@ pub enum MapRejection {
         allowed_rotation_deg: f64,
         allowed_translation_m: f64,
     },
+    #[error(
+        "map points lie in the free space of the other map's depth views: depth agreement {agreement:.3} below {required:.3}"
+    )]
+    FreeSpaceViolated { agreement: f64, required: f64 },
+    #[error(
+        "{comparisons} depth comparisons against the other map's depth views, at least {required} needed"
+    )]
+    TooFewDepthComparisons { comparisons: usize, required: usize },
     #[error(
         "colours disagree: {agreement:.3} of {compared} overlapping points agree in chromaticity, {chance:.3} by chance: kappa {kappa:.3} below {required:.3}"
     )]
@@ -108,6 +138,9 @@ pub struct MapRegistrationScores {
     pub target_features: usize,
     /// Whether colour was used (both maps have colours).
     pub colour: bool,
+    /// Per-channel gains of the source's colours for its colour signatures: the two maps'
+    /// relative white balance (`colour::relative_white_balance`).
+    pub source_colour_gains: [f64; 3],
     /// Putative correspondences, and how many of them are mutual nearest neighbours.
     pub correspondences: usize,
     pub mutual_correspondences: usize,
@@ -123,6 +156,12 @@ pub struct MapRegistrationScores {
     /// How far the runner-up is from the best (NaN without one).
     pub runner_up_rotation_deg: f64,
     pub runner_up_translation_m: f64,
+    /// Candidate transforms refined and verified (more than one when the correspondences left
+    /// them nearly tied), and whether the verification chose between them.
+    pub hypotheses_verified: usize,
+    pub ambiguity_resolved: bool,
+    /// Supporting correspondences of the refined transform.
+    pub support_kept: usize,
     pub gicp_iterations: usize,
     pub gicp_converged: bool,
     /// Source points with a target point within the finest refinement distance.
@@ -141,6 +180,12 @@ pub struct MapRegistrationScores {
     pub colour_agreement: f64,
     pub colour_chance: f64,
     pub colour_kappa: f64,
+    /// Per-channel gains applied to the source's colours before comparing (white balance).
+    pub colour_gains: [f64; 3],
+    /// The free-space test of the result, when the maps' depth views were given: the smaller
+    /// direction's depth agreement and decisive comparisons (NaN and 0 without).
+    pub depth_agreement: f64,
+    pub depth_comparisons: usize,
     pub timings: StageTimings,
 }
 
@@ -158,6 +203,7 @@ impl MapRegistrationScores {
             source_features: 0,
             target_features: 0,
             colour: false,
+            source_colour_gains: [1.0; 3],
             correspondences: 0,
             mutual_correspondences: 0,
             ransac_samples: 0,
@@ -167,6 +213,9 @@ impl MapRegistrationScores {
             ambiguity_ratio: f64::NAN,
             runner_up_rotation_deg: f64::NAN,
             runner_up_translation_m: f64::NAN,
+            hypotheses_verified: 0,
+            ambiguity_resolved: false,
+            support_kept: 0,
             gicp_iterations: 0,
             gicp_converged: false,
             overlapping_points: 0,
@@ -178,6 +227,9 @@ impl MapRegistrationScores {
             colour_agreement: f64::NAN,
             colour_chance: f64::NAN,
             colour_kappa: f64::NAN,
+            colour_gains: [1.0; 3],
+            depth_agreement: f64::NAN,
+            depth_comparisons: 0,
             timings: StageTimings::default(),
         }
     }
