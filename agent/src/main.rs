@@ -59,6 +59,11 @@ struct Args {
     /// iceoryx2 service namespace shared with the consensus (swarm mode).
     #[arg(long, default_value = protocol::services::DEFAULT_NAMESPACE)]
     namespace: String,
+    /// Agents in the swarm (ids 0..N), as `mac-consensus --agents N` says: whichever process
+    /// sets the swarm's services up first sizes them for this many. Default: 8, or what the
+    /// swarm already running in the namespace was set up for.
+    #[arg(long, value_name = "N")]
+    agents: Option<u32>,
     /// Global-descriptor weights (AlexNet .npz) for the swarm; overrides the config. Default:
     /// `consensus.descriptor_weights`, else $MAC_EGO3D_WEIGHTS, else the cache that
     /// scripts/setup.sh fills (~/.cache/mac-ego3d/weights/lpips/alexnet.npz); without any, the
@@ -190,7 +195,7 @@ fn main() -> anyhow::Result<()> {
     let metrics = if args.standalone {
         run_standalone(&options, &stop)?
     } else {
-        let transport = TransportConfig::with_namespace(args.namespace.clone());
+        let transport = TransportConfig::for_swarm(args.namespace.clone(), args.agents);
         let plan = match &schedule {
             Some(schedule) => {
                 let ignored = schedule.agents_outside(transport.max_agents);

@@ -217,6 +217,7 @@ impl SwarmRun {
             .arg(&self.config)
             .args(["--dataset", &agent.dataset, "--frames", &agent.frames])
             .args(["--agent-id", &agent_id.to_string()])
+            .args(["--agents", &self.agents.len().to_string()])
             .args(["--namespace", &self.namespace])
             .args(["--eval-every", "50", "--renders", "0"])
             .arg("--out")

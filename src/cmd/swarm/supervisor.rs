@@ -119,6 +119,7 @@ impl Launch {
                 command
                     .args(["--dataset", &self.datasets[k as usize].to_string()])
                     .args(["--agent-id", &k.to_string()])
+                    .args(["--agents", &self.agents().to_string()])
                     .arg("--out")
                     .arg(self.out.join(format!("agent_{k}")))
                     .args(&self.agent_args);
