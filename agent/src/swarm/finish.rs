@@ -94,6 +94,17 @@ impl SwarmLink {
     /// published again (repeats are dropped there), then the final map, then another goodbye.
     /// A goodbye merely not acknowledged in time (a slow drain) is not said again.
     pub(super) fn say_goodbye(&mut self, final_map: &GaussianCloud) {
+        // With no consensus attached (killed, not yet started again), the goodbye would wait in
+        // the publisher's history and the next consensus would end this agent's run on it
+        // without asking for what it lacks (a keyframe published again to the process that
+        // died storing it). Wait for it, then publish again what it has not confirmed and the
+        // final map before saying goodbye.
+        if !self.link.consumers_present() {
+            match self.link.await_all_consumers() {
+                Ok(()) => self.publish_again_before_goodbye(final_map),
+                Err(error) => tracing::warn!(%error, "no consensus to say goodbye to"),
+            }
+        }
         for attempt in 1..=GOODBYE_ATTEMPTS {
             let error = match self.link.say_goodbye() {
                 Ok(_) => return,
@@ -112,15 +123,21 @@ impl SwarmLink {
                 return;
             }
             self.summary.goodbye_retries += 1;
-            let confirmed = self.confirmed.clone();
-            let resent = self.publish_again_unless(|id| confirmed.contains(&id));
-            tracing::warn!(
-                publishing_again = resent,
-                "the consensus is reachable again: publishing again what it has not confirmed, \
-                 the final map and the goodbye"
-            );
-            self.send_final_map(final_map);
+            self.publish_again_before_goodbye(final_map);
         }
+    }
+
+    /// Every keyframe the consensus has not confirmed, published again (repeats are dropped
+    /// there), then the final map: what a consensus reached again needs before a goodbye.
+    fn publish_again_before_goodbye(&mut self, final_map: &GaussianCloud) {
+        let confirmed = self.confirmed.clone();
+        let resent = self.publish_again_unless(|id| confirmed.contains(&id));
+        tracing::warn!(
+            publishing_again = resent,
+            "the consensus is reachable again: publishing again what it has not confirmed, the \
+             final map and the goodbye"
+        );
+        self.send_final_map(final_map);
     }
 
     /// The summary with the link's traffic figures.
