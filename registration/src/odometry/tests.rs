@@ -162,6 +162,21 @@ fn track_placed(
     track_covered(spec, tracking, blank, 0.0)
 }
 
+/// The frames of `spec` and a frame-to-model tracker with `tracking` and default keyframes.
+fn frame_to_model(spec: &str, tracking: &TrackingConfig) -> (Box<dyn datasets::Dataset>, Odometry) {
+    let ds = spec
+        .parse::<datasets::DatasetSpec>()
+        .unwrap()
+        .open()
+        .unwrap();
+    let odometry = Odometry::new(
+        OdometryMode::FrameToModel,
+        tracking,
+        &KeyframeConfig::default(),
+    );
+    (ds, odometry)
+}
+
 /// [`track_placed`] with the frames `covered` picks replaced by a flat surface at `cover_depth_m`
 /// filling the view (a hand over the lens; 0: no depth at all) in a uniform colour.
 fn track_covered(
@@ -170,16 +185,7 @@ fn track_covered(
     covered: impl Fn(usize) -> bool,
     cover_depth_m: f32,
 ) -> (f64, OdometryStats, usize) {
-    let ds = spec
-        .parse::<datasets::DatasetSpec>()
-        .unwrap()
-        .open()
-        .unwrap();
-    let mut odometry = Odometry::new(
-        OdometryMode::FrameToModel,
-        tracking,
-        &KeyframeConfig::default(),
-    );
+    let (ds, mut odometry) = frame_to_model(spec, tracking);
     let mut poses: Vec<(f64, Isometry3<f64>, Placement, bool)> = Vec::new();
     let mut ground_truth = Trajectory::default();
     for position in 0..ds.len() {
@@ -261,16 +267,7 @@ fn divergence_is_reported_when_it_cannot_be_recovered() {
         max_consecutive_failures: usize::MAX,
         ..TrackingConfig::default()
     };
-    let ds = spec
-        .parse::<datasets::DatasetSpec>()
-        .unwrap()
-        .open()
-        .unwrap();
-    let mut odometry = Odometry::new(
-        OdometryMode::FrameToModel,
-        &blind,
-        &KeyframeConfig::default(),
-    );
+    let (ds, mut odometry) = frame_to_model(spec, &blind);
     let mut silent_errors = 0;
     let mut reported = 0;
     let mut previous: Option<(Isometry3<f64>, Isometry3<f64>)> = None;
