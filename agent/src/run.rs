@@ -129,6 +129,10 @@ pub struct AgentMetrics {
     pub frames_missing: usize,
     /// Frames skipped because a file could not be decoded or validated (the log names it).
     pub frames_broken: usize,
+    /// Where the dataset is damaged (a bag cut short), when it is: the run used the frames
+    /// before the damage.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dataset_damage: Option<String>,
     /// Tracked frames whose ground-truth pose file is broken (the log names it): left out of
     /// the ATE only.
     pub ground_truth_broken: usize,
@@ -176,7 +180,7 @@ pub fn run_agent(
         datasets::open_with(
             &options.dataset,
             options.frames,
-            options.config.camera.distortion(),
+            &options.config.dataset_options(),
         )
         .with_context(|| format!("opening dataset {}", options.dataset))?,
     );
@@ -436,6 +440,7 @@ fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
         frames_dropped: record.frames_dropped,
         frames_missing: record.source.frames_missing,
         frames_broken: record.source.frames_broken,
+        dataset_damage: record.source.dataset_damage.clone(),
         ground_truth_broken: record.source.ground_truth_broken,
         frames_without_depth: record.source.frames_without_depth,
         eval_frames: record.realtime_frames,

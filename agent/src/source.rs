@@ -9,7 +9,9 @@
 //! - NaN, infinite and negative depth become invalid (0) and are counted;
 //! - a frame with no valid depth at all is still yielded (tracking must see the gap in time) but
 //!   flagged, so the mapper can leave the map untouched;
-//! - robustness-protocol noise is added when configured (seeded per frame number).
+//! - robustness-protocol noise is added when configured (seeded per frame number);
+//! - a dataset damaged part way (a bag cut short) gives its frames before the damage, with an
+//!   error log and the damage in the statistics.
 
 use std::sync::Arc;
 
@@ -38,6 +40,8 @@ pub struct SourceStats {
     pub ground_truth_broken: usize,
     /// Depth pixels that were NaN, infinite or negative and were made invalid.
     pub depth_pixels_sanitized: usize,
+    /// Where the dataset is damaged (a bag cut short): its frames end there.
+    pub dataset_damage: Option<String>,
 }
 
 /// A frame ready for tracking, with what the source did to it.
@@ -63,10 +67,20 @@ impl FrameSource {
         decode_workers: usize,
         noise: Option<NoiseConfig>,
     ) -> Self {
+        let dataset_damage = dataset.damage();
+        if let Some(damage) = &dataset_damage {
+            tracing::error!(
+                %damage,
+                "the dataset is damaged: the run uses the frames before the damage"
+            );
+        }
         Self {
             frames: Prefetcher::new(dataset, decode_workers, QUEUE_PER_WORKER),
             noise,
-            stats: SourceStats::default(),
+            stats: SourceStats {
+                dataset_damage,
+                ..SourceStats::default()
+            },
         }
     }
 

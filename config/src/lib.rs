@@ -30,6 +30,7 @@ pub mod process;
 use std::path::{Path, PathBuf};
 
 use datasets::noise::NoiseConfig;
+use datasets::rosbag::Ros2Config;
 use datasets::undistort::CameraConfig;
 use geometry::checks::FieldError;
 use registration::config::{KeyframeConfig, TrackingConfig};
@@ -56,6 +57,8 @@ pub struct Config {
     pub noise: Option<NoiseConfig>,
     /// Lens parameters that replace the dataset folder's (`distortion`).
     pub camera: CameraConfig,
+    /// Which topics of a ROS 2 bag carry the camera and the ground truth.
+    pub ros2: Ros2Config,
 }
 
 /// A configuration file that cannot be used.
@@ -154,7 +157,16 @@ impl Config {
         if let Some(noise) = &self.noise {
             noise.validate()?;
         }
-        self.camera.validate()
+        self.camera.validate()?;
+        self.ros2.validate()
+    }
+
+    /// What this configuration tells the dataset readers ([`datasets::open_with`]).
+    pub fn dataset_options(&self) -> datasets::OpenOptions {
+        datasets::OpenOptions {
+            distortion: self.camera.distortion(),
+            ros2: self.ros2.clone(),
+        }
     }
 
     /// Stable 64-bit hash of the configuration (FNV-1a over its canonical TOML), announced by agents

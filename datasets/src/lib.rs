@@ -3,8 +3,8 @@
 //! the intrinsics.
 //!
 //! Layouts (docs/method.md, Datasets): 7-Scenes ([`seven_scenes`]), Replica / Multi-agent Replica
-//! ([`replica`]), TUM RGB-D ([`tum`]) and the embedded procedural scene ([`synthetic`]), which
-//! needs no files at all. [`open`] picks the reader from a path or a `synthetic:` spec string;
+//! ([`replica`]), TUM RGB-D ([`tum`]), ROS 2 bags ([`rosbag`]) and the embedded procedural scene
+//! ([`synthetic`]), which needs no files at all. [`open`] picks the reader from a path or a `synthetic:` spec string;
 //! [`prefetch::Prefetcher`] decodes frames on worker threads so disk I/O overlaps compute;
 //! [`noise`] degrades frames for robustness runs (the `[noise]` configuration section);
 //! [`shared_data`] finds the real data tests and benchmarks read.
@@ -16,6 +16,7 @@
 pub mod noise;
 pub mod prefetch;
 pub mod replica;
+pub mod rosbag;
 pub mod seven_scenes;
 pub mod shared_data;
 pub mod synthetic;
@@ -65,6 +66,16 @@ pub trait Dataset: Send + Sync {
     /// layout knows its sensor's driver registered them to a pinhole of its own.
     fn depth_registration(&self) -> undistort::DepthRegistration {
         undistort::DepthRegistration::ColourGrid
+    }
+    /// The colour lens's distortion when the dataset itself says it (a bag's CameraInfo); folders
+    /// say it with [`geometry::distortion::DISTORTION_FILE`] instead.
+    fn lens_distortion(&self) -> Option<Distortion> {
+        None
+    }
+    /// Where the dataset is damaged, when its reader could only read part of it (a bag cut
+    /// short): the frames are those before the damage.
+    fn damage(&self) -> Option<String> {
+        None
     }
     /// Number of frames in the (range-selected) sequence.
     fn len(&self) -> usize;
@@ -386,23 +397,33 @@ pub fn check_size(
 ///   Multi-agent Replica;
 /// - a folder with `rgb.txt` and `depth.txt`: TUM RGB-D;
 /// - a folder with `frame-XXXXXX.color.{png,jpg}` files: 7-Scenes (also what `mac-ego3d synth`
-///   writes).
+///   writes);
+/// - a rosbag2 bag: a `.mcap` or `.db3` file, or a folder of them (with its metadata.yaml).
 ///
 /// `range` selects frame numbers (see [`FrameRange`]). A folder holding
 /// [`geometry::distortion::DISTORTION_FILE`] (`k1 k2 p1 p2 k3`) has its frames undistorted as
 /// they load, and one holding [`undistort::DEPTH_INTRINSICS_FILE`] (a 3x3 K) has its colour
 /// re-projected into the depth's pinhole ([`undistort`]).
 pub fn open(spec: &str, range: FrameRange) -> Result<Box<dyn Dataset>, DatasetError> {
-    open_with(spec, range, None)
+    open_with(spec, range, &OpenOptions::default())
 }
 
-/// [`open`] with lens distortion coefficients that replace the folder's
-/// [`geometry::distortion::DISTORTION_FILE`] (the `[camera] distortion` configuration key; all
-/// zeros turns undistortion off).
+/// What the configuration adds to a dataset's own description of itself.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct OpenOptions {
+    /// Lens distortion coefficients that replace the folder's
+    /// [`geometry::distortion::DISTORTION_FILE`] or the bag's CameraInfo (the `[camera]
+    /// distortion` configuration key; all zeros turns undistortion off).
+    pub distortion: Option<Distortion>,
+    /// Which topics of a ROS 2 bag to read (the `[ros2]` section).
+    pub ros2: rosbag::Ros2Config,
+}
+
+/// [`open`] with the configuration's [`OpenOptions`].
 pub fn open_with(
     spec: &str,
     range: FrameRange,
-    distortion: Option<Distortion>,
+    options: &OpenOptions,
 ) -> Result<Box<dyn Dataset>, DatasetError> {
     let dataset: Box<dyn Dataset> = if spec == "synthetic" || spec.starts_with("synthetic:") {
         let parsed: synthetic::SyntheticSpec = spec.parse().map_err(DatasetError::Invalid)?;
@@ -410,18 +431,19 @@ pub fn open_with(
     } else {
         let dir = Path::new(spec);
         match detect_layout(dir)? {
+            Layout::RosBag => Box::new(rosbag::RosBag::open(dir, range, &options.ros2)?),
             Layout::Replica => Box::new(replica::Replica::open(dir, range)?),
             Layout::Tum => Box::new(tum::Tum::open(dir, range)?),
             Layout::SevenScenes => Box::new(seven_scenes::SevenScenes::open(dir, range)?),
         }
     };
     let folder_file = |name: &str| Some(Path::new(spec).join(name)).filter(|f| f.is_file());
-    let distortion = match distortion {
+    let distortion = match options.distortion {
         Some(given) => given,
-        None => folder_file(DISTORTION_FILE)
-            .map(|file| Distortion::read_file(&file))
-            .transpose()?
-            .unwrap_or_default(),
+        None => match folder_file(DISTORTION_FILE) {
+            Some(file) => Distortion::read_file(&file)?,
+            None => dataset.lens_distortion().unwrap_or_default(),
+        },
     };
     let colour = dataset.intrinsics();
     let depth = match folder_file(undistort::DEPTH_INTRINSICS_FILE) {
@@ -441,10 +463,16 @@ pub enum Layout {
     SevenScenes,
     Replica,
     Tum,
+    /// A rosbag2 bag: a `.mcap` / `.db3` file or a folder of them.
+    RosBag,
 }
 
-/// Recognises the layout of a dataset folder from the files it holds.
+/// Recognises the layout of a dataset folder from the files it holds (or a bag file by its
+/// extension).
 pub fn detect_layout(dir: &Path) -> Result<Layout, DatasetError> {
+    if rosbag::is_bag(&dir.to_string_lossy()) {
+        return Ok(Layout::RosBag);
+    }
     if !dir.is_dir() {
         return Err(DatasetError::io(
             dir,
@@ -469,7 +497,7 @@ pub fn detect_layout(dir: &Path) -> Result<Layout, DatasetError> {
     }
     Err(DatasetError::Invalid(format!(
         "{}: unknown dataset layout: expected 7-Scenes (frame-XXXXXX.color.png/jpg), Replica \
-         (results/ + traj.txt) or TUM RGB-D (rgb.txt + depth.txt)",
+         (results/ + traj.txt), TUM RGB-D (rgb.txt + depth.txt) or a ROS 2 bag (.mcap / .db3)",
         dir.display()
     )))
 }

@@ -152,7 +152,7 @@ fn read_list(path: &Path) -> Result<Vec<(f64, PathBuf)>, DatasetError> {
 }
 
 /// Index of the entry of sorted `stamps` nearest to `t`, if within `max_dt`.
-fn nearest(stamps: &[f64], t: f64, max_dt: f64) -> Option<usize> {
+pub(crate) fn nearest(stamps: &[f64], t: f64, max_dt: f64) -> Option<usize> {
     let i = stamps.partition_point(|&s| s < t);
     let candidates = [i.checked_sub(1), (i < stamps.len()).then_some(i)];
     candidates

@@ -248,6 +248,10 @@ impl Dataset for Undistorted {
         self.inner.timestamp(position)
     }
 
+    fn damage(&self) -> Option<String> {
+        self.inner.damage()
+    }
+
     fn ground_truth(&self, position: usize) -> Result<Option<Isometry3<f64>>, DatasetError> {
         self.inner.ground_truth(position)
     }

@@ -35,25 +35,60 @@ pub enum DecodeError {
         type_name: &'static str,
         reason: String,
     },
+    #[error(
+        "{extra} bytes left over after decoding it as {type_name}: the message is of another type"
+    )]
+    Trailing {
+        type_name: &'static str,
+        extra: usize,
+    },
 }
+
+/// Bytes CDR may pad a message's end with (alignment of a following field that is not there).
+const MAX_END_PADDING: usize = 7;
 
 /// Decodes a serialized ROS 2 message (encapsulation header + CDR body) as `T`.
 pub fn decode<'de, T: Deserialize<'de>>(payload: &'de [u8]) -> Result<T, DecodeError> {
     if payload.len() < 4 {
         return Err(DecodeError::TooShort(payload.len()));
     }
+    let type_name = std::any::type_name::<T>()
+        .split('<')
+        .next()
+        .and_then(|path| path.rsplit("::").next())
+        .unwrap_or("message");
     let cdr_error = |e: re_cdr::Error| DecodeError::Cdr {
-        type_name: std::any::type_name::<T>()
-            .rsplit("::")
-            .next()
-            .unwrap_or("message"),
+        type_name,
+        reason: e.to_string(),
+    };
+    let body = &payload[4..];
+    let (value, consumed) = match u16::from_be_bytes([payload[0], payload[1]]) {
+        0x0000 => re_cdr::from_bytes::<T, re_cdr::BigEndian>(body).map_err(cdr_error)?,
+        0x0001 => re_cdr::from_bytes::<T, re_cdr::LittleEndian>(body).map_err(cdr_error)?,
+        other => return Err(DecodeError::Encapsulation(other)),
+    };
+    let extra = body.len().saturating_sub(consumed);
+    if extra > MAX_END_PADDING {
+        return Err(DecodeError::Trailing { type_name, extra });
+    }
+    Ok(value)
+}
+
+/// Decodes the first fields of a message as `T` (a prefix of its definition, such as its
+/// header), ignoring the rest.
+pub fn decode_prefix<'de, T: Deserialize<'de>>(payload: &'de [u8]) -> Result<T, DecodeError> {
+    if payload.len() < 4 {
+        return Err(DecodeError::TooShort(payload.len()));
+    }
+    let cdr_error = |e: re_cdr::Error| DecodeError::Cdr {
+        type_name: "a message header",
         reason: e.to_string(),
     };
     let body = &payload[4..];
     match u16::from_be_bytes([payload[0], payload[1]]) {
         0x0000 => re_cdr::from_bytes::<T, re_cdr::BigEndian>(body).map_err(cdr_error),
         0x0001 => re_cdr::from_bytes::<T, re_cdr::LittleEndian>(body).map_err(cdr_error),
-        other => return Err(DecodeError::Encapsulation(other)),
+        other => Err(DecodeError::Encapsulation(other)),
     }
     .map(|(value, _)| value)
 }
@@ -392,5 +427,10 @@ mod tests {
             Err(DecodeError::Encapsulation(0x0007))
         ));
         assert!((Time::from_seconds(12.25).seconds() - 12.25).abs() < 1e-9);
+        let error = decode::<PoseStamped>(&encode(&info)).unwrap_err();
+        assert!(
+            matches!(error, DecodeError::Trailing { type_name: "PoseStamped", .. }),
+            "{error}"
+        );
     }
 }

@@ -1,4 +1,5 @@
-//! `mac-ego3d dataset info PATH`: what a dataset holds, read through the same readers SLAM uses;
+//! `mac-ego3d dataset info PATH`: what a dataset holds, read through the same readers SLAM uses
+//! (for a ROS 2 bag also its topics, types, counts and rates, and which topics it would use);
 //! `dataset frame` exports one frame; `dataset covisibility` measures how much two sequences (two
 //! agents) share, from their ground truth.
 
@@ -11,6 +12,7 @@ use geometry::camera::Intrinsics;
 use geometry::trajectory::Trajectory;
 use serde::Serialize;
 
+use super::bag_info::{BagInfo, bag_info, print_bag_info};
 use super::{fmt_num, print_json};
 
 #[derive(Subcommand)]
@@ -70,6 +72,9 @@ pub struct InfoArgs {
     /// Frames decoded to measure depth validity (evenly spread).
     #[arg(long, default_value_t = 20)]
     samples: usize,
+    /// Configuration whose `[ros2]` topics (and `[camera]` lens) the readers use.
+    #[arg(long)]
+    config: Option<std::path::PathBuf>,
     #[arg(long)]
     json: bool,
 }
@@ -92,6 +97,9 @@ struct DatasetInfo {
     sampled_frames: usize,
     ground_truth_poses: usize,
     trajectory_length_m: Option<f64>,
+    /// A ROS 2 bag's topics and what the reader takes from them.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    bag: Option<BagInfo>,
 }
 
 fn info(ds: &dyn Dataset, samples: usize) -> anyhow::Result<DatasetInfo> {
@@ -147,6 +155,7 @@ fn info(ds: &dyn Dataset, samples: usize) -> anyhow::Result<DatasetInfo> {
         sampled_frames: samples,
         ground_truth_poses: gt.len(),
         trajectory_length_m: (!gt.is_empty()).then(|| gt.path_length()),
+        bag: None,
     })
 }
 
@@ -176,6 +185,9 @@ fn print_info(i: &DatasetInfo) {
             i.ground_truth_poses
         ),
         None => println!("  ground truth      none"),
+    }
+    if let Some(bag) = &i.bag {
+        print_bag_info(bag);
     }
 }
 
@@ -222,13 +234,20 @@ pub fn run(command: &DatasetCommand) -> anyhow::Result<()> {
     } else {
         vec![args.path.clone()]
     };
+    let config = match &args.config {
+        Some(path) => config::Config::load(path)?,
+        None => config::Config::default(),
+    };
     let mut infos = Vec::new();
     for source in &sources {
-        let ds = datasets::open(source, args.frames)
+        let ds = datasets::open_with(source, args.frames, &config.dataset_options())
             .with_context(|| format!("opening dataset {source}"))?;
-        infos.push(
-            info(ds.as_ref(), args.samples).with_context(|| format!("reading dataset {source}"))?,
-        );
+        let mut dataset_info =
+            info(ds.as_ref(), args.samples).with_context(|| format!("reading dataset {source}"))?;
+        if datasets::detect_layout(Path::new(source))? == datasets::Layout::RosBag {
+            dataset_info.bag = Some(bag_info(source, &config.ros2)?);
+        }
+        infos.push(dataset_info);
     }
     if args.json {
         return if infos.len() == 1 {

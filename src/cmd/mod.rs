@@ -1,5 +1,6 @@
 //! One module per subcommand; nested subcommands (`bench ...`, `eval ...`) are folders.
 
+pub mod bag_info;
 pub mod bench;
 pub mod chaos;
 pub mod config;

@@ -12,6 +12,19 @@ use rusqlite::{Connection, OpenFlags};
 use super::{BagError, FileScan, HEAD_BYTES, Location, SMALL_MESSAGE_BYTES, Storage};
 
 fn error(path: &Path, e: rusqlite::Error) -> BagError {
+    if e.sqlite_error_code() == Some(rusqlite::ErrorCode::DatabaseCorrupt) {
+        // SQLite reads its schema before any table: a file cut short before the pages the
+        // schema points at cannot be opened at all, unlike a cut-short MCAP file.
+        return BagError::format(
+            path,
+            format!(
+                "sqlite3: {e}: the database is damaged (cut short?) where SQLite keeps its \
+                 tables, so no message can be read; `sqlite3 {} .recover | sqlite3 \
+                 recovered.db3` salvages what it can",
+                path.display()
+            ),
+        );
+    }
     BagError::format(path, format!("sqlite3: {e}"))
 }
 

@@ -142,7 +142,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         None => Config::default(),
     };
     let name = &spec.dataset;
-    let ds = datasets::open_with(name, frames, config.camera.distortion())
+    let ds = datasets::open_with(name, frames, &config.dataset_options())
         .with_context(|| format!("opening {name}"))?;
     anyhow::ensure!(!ds.is_empty(), "{name}: no frames in {frames}");
     let mut odometry = Odometry::new(args.mode, &config.tracking, &config.keyframes);
