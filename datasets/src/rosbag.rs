@@ -72,7 +72,10 @@ impl Ros2Config {
         if !(self.pairing_tolerance_s.is_finite() && self.pairing_tolerance_s > 0.0) {
             return Err((
                 "ros2.pairing_tolerance_s",
-                format!("must be a positive number of seconds, got {}", self.pairing_tolerance_s),
+                format!(
+                    "must be a positive number of seconds, got {}",
+                    self.pairing_tolerance_s
+                ),
             ));
         }
         for (field, topic) in [
@@ -81,7 +84,10 @@ impl Ros2Config {
             ("ros2.camera_info_topic", &self.camera_info_topic),
         ] {
             if !topic.starts_with('/') {
-                return Err((field, format!("{topic:?} is not a topic name starting with /")));
+                return Err((
+                    field,
+                    format!("{topic:?} is not a topic name starting with /"),
+                ));
             }
         }
         Ok(())
@@ -248,7 +254,8 @@ impl RosBag {
             None,
             format!(
                 "{} message {}: {reason}",
-                self.bag.topics()[message.topic].name, message.index_in_topic
+                self.bag.topics()[message.topic].name,
+                message.index_in_topic
             ),
         )
     }
@@ -386,7 +393,10 @@ pub fn choose_topics(bag: &Bag, config: &Ros2Config) -> Result<BagChoice, Datase
             .map(|suffix| format!("{base}{suffix}"))
             .find(|name| has(name, &image_types))
     };
-    let colour = first_present(&config.qualified(&config.colour_topic), &["", "/compressed"]);
+    let colour = first_present(
+        &config.qualified(&config.colour_topic),
+        &["", "/compressed"],
+    );
     let depth = first_present(
         &config.qualified(&config.depth_topic),
         &["", "/compressedDepth", "/compressed"],
@@ -458,7 +468,9 @@ pub fn choose_topics(bag: &Bag, config: &Ros2Config) -> Result<BagChoice, Datase
         let poses: Vec<&str> = bag
             .topics()
             .iter()
-            .filter(|t| [type_names::POSE_STAMPED, type_names::ODOMETRY].contains(&t.type_name.as_str()))
+            .filter(|t| {
+                [type_names::POSE_STAMPED, type_names::ODOMETRY].contains(&t.type_name.as_str())
+            })
             .map(|t| t.name.as_str())
             .collect();
         match poses.as_slice() {
@@ -501,9 +513,9 @@ fn topic_messages<'a>(bag: &'a Bag, topic: &str) -> impl Iterator<Item = (usize,
 
 /// The first message on `topic`, decoded.
 fn first_message<T: for<'de> Deserialize<'de>>(bag: &Bag, topic: &str) -> Result<T, DatasetError> {
-    let (_, message) = topic_messages(bag, topic).next().ok_or_else(|| {
-        DatasetError::format(bag.path(), None, format!("{topic} has no message"))
-    })?;
+    let (_, message) = topic_messages(bag, topic)
+        .next()
+        .ok_or_else(|| DatasetError::format(bag.path(), None, format!("{topic} has no message")))?;
     let payload = bag.read(message).map_err(bag_error)?;
     msg::decode(&payload)
         .map_err(|e| DatasetError::format(bag.path(), None, format!("{topic} message 0: {e}")))
@@ -545,7 +557,10 @@ fn ground_truth_poses(bag: &Bag, source: &str) -> Result<Vec<(f64, Isometry3<f64
             for transform in tf.transforms.iter().filter(|t| t.child_frame_id == child) {
                 poses.push((
                     transform.header.stamp.seconds(),
-                    msg::isometry(transform.transform.translation, transform.transform.rotation),
+                    msg::isometry(
+                        transform.transform.translation,
+                        transform.transform.rotation,
+                    ),
                 ));
             }
         }
@@ -571,7 +586,10 @@ fn ground_truth_poses(bag: &Bag, source: &str) -> Result<Vec<(f64, Isometry3<f64
                     msg::decode(&payload).map_err(|e| error(source, message.index_in_topic, &e))?;
                 (p.header, p.pose)
             };
-            poses.push((header.stamp.seconds(), msg::isometry(pose.position, pose.orientation)));
+            poses.push((
+                header.stamp.seconds(),
+                msg::isometry(pose.position, pose.orientation),
+            ));
         }
     }
     poses.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -582,9 +600,12 @@ fn ground_truth_poses(bag: &Bag, source: &str) -> Result<Vec<(f64, Isometry3<f64
 fn intrinsics_of(info: &msg::CameraInfo) -> Result<Intrinsics, String> {
     let k = &info.k;
     let intrinsics = Intrinsics::new(k[0], k[4], k[2], k[5], info.width, info.height);
-    intrinsics
-        .validate()
-        .map_err(|reason| format!("CameraInfo K {k:?} at {}x{}: {reason}", info.width, info.height))?;
+    intrinsics.validate().map_err(|reason| {
+        format!(
+            "CameraInfo K {k:?} at {}x{}: {reason}",
+            info.width, info.height
+        )
+    })?;
     Ok(intrinsics)
 }
 

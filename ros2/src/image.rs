@@ -15,9 +15,13 @@ use crate::msg::{CompressedImage, Image};
 /// Why an image message cannot be used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ImageError {
-    #[error("encoding {0:?} is not a colour encoding this reader knows (rgb8, bgr8, rgba8, bgra8, mono8)")]
+    #[error(
+        "encoding {0:?} is not a colour encoding this reader knows (rgb8, bgr8, rgba8, bgra8, mono8)"
+    )]
     ColourEncoding(String),
-    #[error("encoding {0:?} is not a depth encoding this reader knows (16UC1 or mono16 in millimetres, 32FC1 in metres)")]
+    #[error(
+        "encoding {0:?} is not a depth encoding this reader knows (16UC1 or mono16 in millimetres, 32FC1 in metres)"
+    )]
     DepthEncoding(String),
     #[error("{width}x{height} {encoding} needs rows of at least {row} bytes, but step is {step}")]
     Step {
@@ -37,7 +41,9 @@ pub enum ImageError {
     },
     #[error("an image of size 0x0")]
     Empty,
-    #[error("compressed format {0:?} is not one this reader knows (jpeg, png, or '16UC1; compressedDepth png')")]
+    #[error(
+        "compressed format {0:?} is not one this reader knows (jpeg, png, or '16UC1; compressedDepth png')"
+    )]
     Format(String),
     #[error("cannot decode the compressed image: {0}")]
     Codec(String),
@@ -175,8 +181,7 @@ pub fn depth_from_compressed(image: &CompressedImage) -> Result<DepthImage, Imag
     }
     const HEADER: usize = 12;
     const PNG_MAGIC: &[u8] = &[0x89, b'P', b'N', b'G'];
-    if image.data.len() < HEADER + PNG_MAGIC.len() || &image.data[HEADER..HEADER + 4] != PNG_MAGIC
-    {
+    if image.data.len() < HEADER + PNG_MAGIC.len() || &image.data[HEADER..HEADER + 4] != PNG_MAGIC {
         return Err(ImageError::Codec(
             "compressedDepth data is not a 12-byte header followed by a PNG".into(),
         ));
@@ -250,7 +255,8 @@ mod tests {
     #[test]
     fn colour_encodings_give_the_same_rgb() {
         // 2x1 pixels: red-ish then blue-ish, rows padded to 8 bytes.
-        let rgb = colour_from_image(&raw("rgb8", 2, 1, 8, &[10, 20, 30, 40, 50, 60, 0, 0])).unwrap();
+        let rgb =
+            colour_from_image(&raw("rgb8", 2, 1, 8, &[10, 20, 30, 40, 50, 60, 0, 0])).unwrap();
         let bgr = colour_from_image(&raw("bgr8", 2, 1, 6, &[30, 20, 10, 60, 50, 40])).unwrap();
         let bgra =
             colour_from_image(&raw("bgra8", 2, 1, 8, &[30, 20, 10, 255, 60, 50, 40, 255])).unwrap();
@@ -277,9 +283,29 @@ mod tests {
         let error = colour_from_image(&raw("yuv422", 2, 1, 4, &[0; 4])).unwrap_err();
         assert!(error.to_string().contains("yuv422"), "{error}");
         let error = colour_from_image(&raw("rgb8", 4, 2, 12, &[0; 20])).unwrap_err();
-        assert!(matches!(error, ImageError::DataLength { needed: 24, found: 20, .. }), "{error}");
+        assert!(
+            matches!(
+                error,
+                ImageError::DataLength {
+                    needed: 24,
+                    found: 20,
+                    ..
+                }
+            ),
+            "{error}"
+        );
         let error = depth_from_image(&raw("16UC1", 4, 2, 6, &[0; 16])).unwrap_err();
-        assert!(matches!(error, ImageError::Step { row: 8, step: 6, .. }), "{error}");
+        assert!(
+            matches!(
+                error,
+                ImageError::Step {
+                    row: 8,
+                    step: 6,
+                    ..
+                }
+            ),
+            "{error}"
+        );
         let error = depth_from_image(&raw("rgb8", 1, 1, 3, &[0; 3])).unwrap_err();
         assert!(error.to_string().contains("rgb8"), "{error}");
     }
@@ -299,20 +325,28 @@ mod tests {
             format: "16UC1; compressedDepth png".into(),
             data: &data,
         };
-        assert_eq!(depth_from_compressed(&message).unwrap().data, vec![2.5, 0.0]);
+        assert_eq!(
+            depth_from_compressed(&message).unwrap().data,
+            vec![2.5, 0.0]
+        );
         let cut = CompressedImage {
             data: &data[..data.len() - 10],
             ..message.clone()
         };
-        assert!(matches!(depth_from_compressed(&cut), Err(ImageError::Codec(_))));
+        assert!(matches!(
+            depth_from_compressed(&cut),
+            Err(ImageError::Codec(_))
+        ));
         let jpeg = CompressedImage {
             format: "jpeg".into(),
             data: &[0xFF, 0xD8, 1, 2, 3],
             ..message
         };
-        assert!(colour_from_compressed(&jpeg)
-            .unwrap_err()
-            .to_string()
-            .contains("cut short"));
+        assert!(
+            colour_from_compressed(&jpeg)
+                .unwrap_err()
+                .to_string()
+                .contains("cut short")
+        );
     }
 }

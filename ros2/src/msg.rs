@@ -26,9 +26,7 @@ pub mod type_names {
 pub enum DecodeError {
     #[error("payload of {0} bytes is shorter than the 4-byte CDR encapsulation header")]
     TooShort(usize),
-    #[error(
-        "encapsulation {0:#06x} is not plain CDR (0x0000 big endian or 0x0001 little endian)"
-    )]
+    #[error("encapsulation {0:#06x} is not plain CDR (0x0000 big endian or 0x0001 little endian)")]
     Encapsulation(u16),
     #[error("CDR does not decode as {type_name}: {reason}")]
     Cdr {
@@ -371,7 +369,13 @@ mod tests {
         bytes.extend_from_slice(&6u32.to_le_bytes()); // data length
         bytes.extend_from_slice(&[1, 2, 3, 4, 5, 6]);
         let image: Image = decode(&bytes).unwrap();
-        assert_eq!(image.header.stamp, Time { sec: 7, nanosec: 500 });
+        assert_eq!(
+            image.header.stamp,
+            Time {
+                sec: 7,
+                nanosec: 500
+            }
+        );
         assert_eq!(image.header.frame_id, "cam");
         assert_eq!((image.width, image.height, image.step), (3, 2, 3));
         assert_eq!(image.encoding, "mono8");
@@ -429,7 +433,13 @@ mod tests {
         assert!((Time::from_seconds(12.25).seconds() - 12.25).abs() < 1e-9);
         let error = decode::<PoseStamped>(&encode(&info)).unwrap_err();
         assert!(
-            matches!(error, DecodeError::Trailing { type_name: "PoseStamped", .. }),
+            matches!(
+                error,
+                DecodeError::Trailing {
+                    type_name: "PoseStamped",
+                    ..
+                }
+            ),
             "{error}"
         );
     }

@@ -62,7 +62,10 @@ pub(crate) fn scan(path: &Path, number: usize) -> Result<FileScan, BagError> {
         || file.read_exact_at(&mut magic, 0).is_err()
         || magic != mcap::MAGIC
     {
-        return Err(BagError::format(path, "not an MCAP file (no MCAP magic at its start)"));
+        return Err(BagError::format(
+            path,
+            "not an MCAP file (no MCAP magic at its start)",
+        ));
     }
     let mut channels = Channels::default();
     let mut messages = Vec::new();
@@ -166,9 +169,8 @@ pub(crate) fn scan(path: &Path, number: usize) -> Result<FileScan, BagError> {
 /// Reads one message's payload again.
 pub(crate) fn read(path: &Path, file: &File, location: Location) -> Result<Vec<u8>, BagError> {
     let (offset, length) = match location {
-        Location::McapChunk { offset, length, .. } | Location::McapRecord { offset, length, .. } => {
-            (offset, length)
-        }
+        Location::McapChunk { offset, length, .. }
+        | Location::McapRecord { offset, length, .. } => (offset, length),
         Location::Sqlite { .. } => unreachable!("an sqlite location in an MCAP file"),
     };
     let mut body = vec![0u8; length as usize];

@@ -73,7 +73,11 @@ pub(crate) enum Location {
         ordinal: u32,
     },
     /// A message record outside chunks (its body).
-    McapRecord { file: usize, offset: u64, length: u64 },
+    McapRecord {
+        file: usize,
+        offset: u64,
+        length: u64,
+    },
     /// A row of the messages table.
     Sqlite { file: usize, id: i64 },
 }
