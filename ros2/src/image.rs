@@ -98,8 +98,12 @@ pub fn colour_from_image(image: &Image) -> Result<RgbImage, ImageError> {
     let mut rgb = Vec::with_capacity(image.width as usize * image.height as usize * 3);
     for y in 0..image.height as usize {
         let start = y * image.step as usize;
-        for p in image.data[start..start + row].chunks_exact(bytes_per_pixel) {
-            rgb.extend_from_slice(&pixel(p));
+        let pixels = &image.data[start..start + row];
+        if image.encoding == "rgb8" {
+            // Already the layout wanted: one copy per row.
+            rgb.extend_from_slice(pixels);
+        } else {
+            rgb.extend(pixels.chunks_exact(bytes_per_pixel).flat_map(pixel));
         }
     }
     Ok(RgbImage::from_raw(image.width, image.height, rgb).expect("buffer sized above"))
