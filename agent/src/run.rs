@@ -276,6 +276,13 @@ pub fn run_agent(
     // Outputs that need no rendering first: an interrupted evaluation still leaves these.
     let trajectory = write_trajectories(&run.poses, &options.out)?;
     write_maps(&outcome, &options.out)?;
+    crate::ros2_outputs::write_agent_bag(
+        &options.out,
+        options.agent_id,
+        &run.poses,
+        &outcome.realtime_map,
+        &config.ros2,
+    )?;
     write_view_files(
         &run,
         &outcome.realtime.keyframe_pose_corrections,

@@ -15,7 +15,8 @@
 //! `pairing_tolerance_s`, numbered 0, 1, 2, ... in stamp order (frame ranges select these
 //! numbers); the timestamp is the colour image's header stamp (its receive time when the stamp is
 //! zero). Ground truth is the pose of the colour camera's optical frame in the world, nearest in
-//! stamp within the same tolerance. A bag damaged part way ([`ros2::bag::Damage`]) gives the frames
+//! stamp within the same tolerance. The section also names the frames and topics of the outputs
+//! written for ROS users (the agent's and the consensus's `ros2_bag/`). A bag damaged part way ([`ros2::bag::Damage`]) gives the frames
 //! before the damage, and says where it broke ([`Dataset::damage`]).
 
 use std::path::Path;
@@ -51,6 +52,13 @@ pub struct Ros2Config {
     /// Largest stamp difference between a colour image and its depth image (and its ground
     /// truth), seconds.
     pub pairing_tolerance_s: f64,
+    /// Outputs: the frame all agents share (REP 105's map frame).
+    pub world_frame: String,
+    /// Outputs: agent K's frames are `<prefix>K/odom` and `<prefix>K/camera_optical_frame`, its
+    /// topics `/<prefix>K/path` and `/<prefix>K/map`.
+    pub frame_prefix: String,
+    /// Outputs: most points of a map's PointCloud2 (every k-th Gaussian beyond it).
+    pub cloud_max_points: usize,
 }
 
 impl Default for Ros2Config {
@@ -62,6 +70,9 @@ impl Default for Ros2Config {
             camera_info_topic: "/camera/camera/color/camera_info".into(),
             ground_truth: String::new(),
             pairing_tolerance_s: 0.02,
+            world_frame: "world".into(),
+            frame_prefix: "agent".into(),
+            cloud_max_points: 200_000,
         }
     }
 }
@@ -77,6 +88,9 @@ impl Ros2Config {
                     self.pairing_tolerance_s
                 ),
             ));
+        }
+        if self.cloud_max_points == 0 {
+            return Err(("ros2.cloud_max_points", "must be at least 1".into()));
         }
         for (field, topic) in [
             ("ros2.colour_topic", &self.colour_topic),

@@ -11,6 +11,7 @@
 pub mod mcap;
 pub mod metadata;
 pub mod sqlite;
+pub mod writer;
 
 use std::path::{Path, PathBuf};
 
