@@ -122,6 +122,36 @@ fn assert_bags_replay_like_the_folder(
     folder_ate
 }
 
+/// Reads an agent's ros2_bag with rosbags and compares its path with trajectory.tum; prints
+/// `tf N, path N, map rgb`.
+const OUTPUT_BAG_CHECK: &str = r##"
+import sys
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+store = get_typestore(Stores.ROS2_HUMBLE)
+rows = [l.split() for l in open(sys.argv[2]) if l.strip() and not l.startswith("#")]
+tf = path = 0
+fields = []
+with Reader(sys.argv[1]) as reader:
+    for connection, _, raw in reader.messages():
+        message = store.deserialize_cdr(raw, connection.msgtype)
+        if connection.topic == "/tf":
+            tf += len(message.transforms)
+            assert message.transforms[0].child_frame_id == "agent0/camera_optical_frame"
+        elif connection.topic == "/agent0/path":
+            path = len(message.poses)
+            assert path == len(rows), (path, len(rows))
+            for pose, row in zip(message.poses, rows):
+                p = pose.pose.position
+                stamp = pose.header.stamp.sec + pose.header.stamp.nanosec * 1e-9
+                assert abs(stamp - float(row[0])) < 1e-6, (stamp, row)
+                assert max(abs(p.x - float(row[1])), abs(p.y - float(row[2])), abs(p.z - float(row[3]))) < 1e-6
+        elif connection.topic == "/agent0/map":
+            assert message.width > 1000 and message.point_step == 16, message.width
+            fields = [f.name for f in message.fields]
+print(f"tf {tf}, path {path}, map {fields[3]}")
+"##;
+
 #[test]
 fn real_data_bags_replay_like_their_folders() {
     let Some(python) = peers_python() else {
@@ -182,6 +212,20 @@ fn real_data_bags_replay_like_their_folders() {
         ],
         &config,
     );
+
+    // The agent's ROS 2 outputs, read by rosbags: the path is trajectory.tum, a tf per placed
+    // frame, the map as a coloured PointCloud2.
+    let out = work.path().join("out-kitchen-compressed-mcap");
+    let check = Command::new(&python)
+        .arg("-c")
+        .arg(OUTPUT_BAG_CHECK)
+        .arg(out.join("ros2_bag"))
+        .arg(out.join("trajectory.tum"))
+        .output()
+        .unwrap();
+    assert!(check.status.success(), "{}", log(&check));
+    let summary = String::from_utf8_lossy(&check.stdout);
+    assert!(summary.contains("tf 60, path 60, map rgb"), "{summary}");
 
     // dataset info: counts, rates and the topics it would use.
     let info = Command::new(env!("CARGO_BIN_EXE_mac-ego3d"))
