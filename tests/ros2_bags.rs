@@ -374,3 +374,56 @@ fn real_data_damaged_bags_are_named_and_what_came_before_is_kept() {
         "{text}"
     );
 }
+
+#[test]
+fn real_data_a_swarm_runs_on_ranges_of_a_bag() {
+    let Some(python) = peers_python() else {
+        return;
+    };
+    let work = tempfile::tempdir().unwrap();
+    let runtime = tempfile::tempdir().unwrap();
+    let kitchen = shared_data("datasets/7scenes-redkitchen");
+    let bag = work.path().join("kitchen");
+    write_bag(
+        &python,
+        &kitchen,
+        "0..200",
+        &bag,
+        &["--images", "compressed"],
+    );
+    let out = work.path().join("swarm");
+    let run = Command::new(env!("CARGO_BIN_EXE_mac-ego3d"))
+        .arg("swarm")
+        .arg("--config")
+        .arg(Path::new(REPO).join("configs/7scenes.toml"))
+        .args(["--agent", &format!("{}:0..120", bag.display())])
+        .args(["--agent", &format!("{}:80..200", bag.display())])
+        .args(["--render-every", "1000"])
+        .arg("--out")
+        .arg(&out)
+        .env("XDG_RUNTIME_DIR", runtime.path())
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}\n{}",
+        log(&run),
+        common::log_tails(&out, 20)
+    );
+    let metrics: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(
+        metrics["agents_not_linked"],
+        serde_json::json!([]),
+        "{metrics}"
+    );
+    let joint = metrics["ate_joint_rmse_m"].as_f64().unwrap();
+    assert!(joint <= 0.05, "joint ATE {joint} m");
+    for k in 0..2 {
+        assert!(
+            out.join(format!("agent_{k}/ros2_bag/metadata.yaml"))
+                .is_file()
+        );
+    }
+}
