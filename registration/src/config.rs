@@ -122,18 +122,35 @@ pub struct PhotometricConfig {
     /// than this fraction of its depth lies on a depth edge, where its 3-D position is
     /// unreliable; it is skipped.
     pub max_depth_spread_fraction: f64,
+    /// Which placed frame the current one is compared with (see [`PhotometricReferenceFrame`]).
+    pub reference: PhotometricReferenceFrame,
+}
+
+/// The frame the photometric term compares the current one with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum PhotometricReferenceFrame {
+    /// The previous placed frame: the smallest motion, but each frame's error carries on into
+    /// the next through the term (frame-to-frame drift).
+    PreviousFrame,
+    /// The latest tracking keyframe (the frame whose points last joined the map): its pose is
+    /// the map's, so the term, like G-ICP, aligns to the model and drift does not build up
+    /// between keyframes.
+    #[default]
+    Keyframe,
 }
 
 impl Default for PhotometricConfig {
     fn default() -> Self {
         Self {
-            weight: 1.0,
+            weight: 0.3,
             level: 1,
             max_points: 4000,
             min_gradient: 0.02,
             huber_threshold: 0.05,
             occlusion_m: 0.05,
             max_depth_spread_fraction: 0.03,
+            reference: PhotometricReferenceFrame::default(),
         }
     }
 }

@@ -43,7 +43,7 @@ use geometry::depth::DepthImage;
 use nalgebra::Isometry3;
 
 use crate::alignment::AlignmentConfig;
-use crate::config::{KeyframeConfig, TrackingConfig};
+use crate::config::{KeyframeConfig, PhotometricReferenceFrame, TrackingConfig};
 use crate::gicp::{GicpParams, JointTerm, MIN_POINTS_FOR_A_POSE, RegistrationFailure};
 use crate::kdtree::PointTree;
 use crate::map_registration::MapRegistrationConfig;
@@ -324,7 +324,11 @@ impl Odometry {
             world_from_camera = join.root_from_segment * world_from_camera;
         }
         self.world_from_previous = Some(world_from_camera);
-        if !matches!(outcome, TrackingOutcome::Lost(_)) {
+        let new_reference = match self.tracking.photometric.reference {
+            PhotometricReferenceFrame::PreviousFrame => outcome.is_tracked(),
+            PhotometricReferenceFrame::Keyframe => keyframe,
+        };
+        if new_reference || (outcome.is_tracked() && self.photometric_reference.is_none()) {
             self.note_photometric_reference(photometric, &input, &world_from_camera);
         }
         timings.map_update_ms = elapsed_ms(&clock);
