@@ -86,6 +86,98 @@ pub struct TrackingConfig {
     /// Every this many keyframes of an unjoined segment whose keyframe alignments failed, its
     /// map is registered to the root's (0: never).
     pub relocalisation_map_every: usize,
+
+    /// The photometric term of the ordinary path ([`crate::photometric`]).
+    pub photometric: PhotometricConfig,
+}
+
+/// The photometric term minimised with G-ICP on the ordinary path (`[tracking.photometric]`;
+/// docs/method.md, One agent: Tracking, "Photometric term"): the previous placed frame's
+/// textured pixels, lifted by its depth, must show the same brightness where the current pose
+/// projects them into the current image.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PhotometricConfig {
+    /// Weight of a squared intensity residual (intensities in [0, 1]) against G-ICP's cost;
+    /// 0 turns the term off. G-ICP's cost per point is a Mahalanobis distance in its normalised
+    /// covariances (eigenvalues 1, 1, `covariance_epsilon`): a point 1 cm off the surface costs
+    /// about 0.05, as much as an intensity residual of 0.05 / sqrt(weight).
+    pub weight: f64,
+    /// Pyramid level the images are compared at (each level halves the resolution: 1 is
+    /// 320x240 for a 640x480 sensor). Coarser levels see further (their gradients span more of
+    /// the scene) and blur less matters; finer ones place edges more precisely.
+    pub level: u32,
+    /// Reference pixels at most (evenly thinned when more pass the gradient threshold).
+    pub max_points: usize,
+    /// A reference pixel is used when its intensity gradient is at least this (intensity per
+    /// pixel of the level): flat pixels carry no pose information, only noise.
+    pub min_gradient: f64,
+    /// Residuals beyond this (intensity) get Huber weights (their influence stops growing):
+    /// occlusions, specularities and blur the model does not explain.
+    pub huber_threshold: f64,
+    /// A reference point is occluded in the current frame when the current depth at its
+    /// projection lies more than this (metres) in front of it; occluded points are skipped.
+    pub occlusion_m: f64,
+    /// A reference pixel whose depth block (the full-resolution pixels it bins) spreads by more
+    /// than this fraction of its depth lies on a depth edge, where its 3-D position is
+    /// unreliable; it is skipped.
+    pub max_depth_spread_fraction: f64,
+    /// Which placed frame the current one is compared with (see [`PhotometricReferenceFrame`]).
+    pub reference: PhotometricReferenceFrame,
+}
+
+/// The frame the photometric term compares the current one with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum PhotometricReferenceFrame {
+    /// The previous placed frame: the smallest motion, but each frame's error carries on into
+    /// the next through the term (frame-to-frame drift).
+    PreviousFrame,
+    /// The latest tracking keyframe (the frame whose points last joined the map): its pose is
+    /// the map's, so the term, like G-ICP, aligns to the model and drift does not build up
+    /// between keyframes.
+    #[default]
+    Keyframe,
+}
+
+impl Default for PhotometricConfig {
+    fn default() -> Self {
+        Self {
+            weight: 0.3,
+            level: 1,
+            max_points: 4000,
+            min_gradient: 0.02,
+            huber_threshold: 0.05,
+            occlusion_m: 0.05,
+            max_depth_spread_fraction: 0.03,
+            reference: PhotometricReferenceFrame::default(),
+        }
+    }
+}
+
+impl PhotometricConfig {
+    pub fn enabled(&self) -> bool {
+        self.weight > 0.0 && self.max_points > 0
+    }
+
+    /// Checks ranges; returns the offending field (`tracking.photometric.*`) and why.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        non_negative("tracking.photometric.weight", self.weight)?;
+        if self.level > 4 {
+            return Err((
+                "tracking.photometric.level",
+                format!("must be at most 4 (1/16 resolution), got {}", self.level),
+            ));
+        }
+        non_negative("tracking.photometric.min_gradient", self.min_gradient)?;
+        positive("tracking.photometric.huber_threshold", self.huber_threshold)?;
+        positive("tracking.photometric.occlusion_m", self.occlusion_m)?;
+        positive(
+            "tracking.photometric.max_depth_spread_fraction",
+            self.max_depth_spread_fraction,
+        )?;
+        Ok(())
+    }
 }
 
 impl Default for TrackingConfig {
@@ -116,6 +208,7 @@ impl Default for TrackingConfig {
             relocalisation_keyframes: 64,
             relocalisation_candidates: 3,
             relocalisation_map_every: 3,
+            photometric: PhotometricConfig::default(),
         }
     }
 }
@@ -251,7 +344,7 @@ impl TrackingConfig {
             "tracking.max_consecutive_failures",
             self.max_consecutive_failures,
         )?;
-        Ok(())
+        self.photometric.validate()
     }
 }
 

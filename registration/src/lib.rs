@@ -33,6 +33,7 @@ pub mod gicp;
 pub mod kdtree;
 pub mod map_registration;
 pub mod odometry;
+pub mod photometric;
 pub mod points;
 pub mod voxel_map;
 mod voxel_points;

@@ -47,7 +47,7 @@ mod solver;
 mod tests;
 
 pub use coarse_to_fine::{count_correspondences, register_coarse_to_fine};
-pub use solver::{RivalGuess, register_unless_outscored};
+pub use solver::{RivalGuess, register_joint_unless_outscored, register_unless_outscored};
 
 /// A rigid transform has six degrees of freedom: fewer points (or correspondences) than this can
 /// never determine it, whatever the configured inlier fraction.
@@ -92,6 +92,27 @@ pub trait RegistrationTarget: Sync {
     fn covariance(&self, index: u32) -> Covariance;
     /// Number of points that can be matched.
     fn target_len(&self) -> usize;
+}
+
+/// Normal equations of a [`JointTerm`] at one pose, in G-ICP's perturbation (right, `(omega,
+/// v)`): `hessian = sum J^T w J`, `gradient = sum J^T w r` for residuals `r` with Jacobians `J`
+/// and weights `w`, and `error = sum w r^2`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JointSystem {
+    pub hessian: nalgebra::Matrix6<f64>,
+    pub gradient: nalgebra::Vector6<f64>,
+    pub error: f64,
+}
+
+/// A second cost minimised together with G-ICP's ([`register_joint_unless_outscored`]), such as
+/// the photometric term of tracking ([`crate::photometric`]).
+pub trait JointTerm {
+    /// Linearises the term at `pose` (`target_from_source`). It may refresh per-linearisation
+    /// state here (robust weights, brightness), which [`Self::evaluate`] then keeps, as G-ICP
+    /// keeps its correspondences and weights while judging damped steps.
+    fn linearize(&mut self, pose: &Isometry3<f64>) -> JointSystem;
+    /// The cost at `pose` with the last linearisation's weights.
+    fn evaluate(&self, pose: &Isometry3<f64>) -> f64;
 }
 
 /// Parameters of one G-ICP run. Build them from the configuration with [`GicpParams::tracking`];

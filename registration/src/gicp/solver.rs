@@ -9,7 +9,7 @@ use super::correspondences::{
     residual_and_weight,
 };
 use super::{
-    GicpParams, LM_INITIAL_LAMBDA, LM_LAMBDA_FACTOR, LM_MAX_INNER_ITERATIONS,
+    GicpParams, JointTerm, LM_INITIAL_LAMBDA, LM_LAMBDA_FACTOR, LM_MAX_INNER_ITERATIONS,
     MIN_POINTS_FOR_A_POSE, NO_HINT, RegistrationFailure, RegistrationResult, RegistrationTarget,
 };
 use crate::points::PointCloud;
@@ -38,6 +38,22 @@ pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
     initial: &Isometry3<f64>,
     params: &GicpParams,
     rival: Option<RivalGuess>,
+) -> Option<RegistrationResult> {
+    register_joint_unless_outscored(source, target, initial, params, rival, None)
+}
+
+/// [`register_unless_outscored`] minimising G-ICP's cost plus `term`'s (when given): `term` is
+/// linearised at every correspondence search, its normal equations are added to G-ICP's, and a
+/// damped step is judged by the sum of both costs. The result's statistics (`error`,
+/// correspondences, overlap) are G-ICP's alone, so the checks that read them mean what they
+/// mean without the term.
+pub fn register_joint_unless_outscored<T: RegistrationTarget + ?Sized>(
+    source: &PointCloud,
+    target: &T,
+    initial: &Isometry3<f64>,
+    params: &GicpParams,
+    rival: Option<RivalGuess>,
+    mut term: Option<&mut dyn JointTerm>,
 ) -> Option<RegistrationResult> {
     if let Some(failure) = check_inputs(source, target) {
         return Some(RegistrationResult::failed(initial, source.len(), failure));
@@ -93,10 +109,20 @@ pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
                 ..RegistrationResult::failed(initial, source.len(), RegistrationFailure::Diverged)
             });
         }
+        let (mut hessian, mut gradient, mut error) =
+            (system.hessian, system.gradient, system.error);
+        if let Some(term) = term.as_deref_mut() {
+            let joint = term.linearize(&pose);
+            if joint.error.is_finite() {
+                hessian += joint.hessian;
+                gradient += joint.gradient;
+                error += joint.error;
+            }
+        }
         let mut accepted = false;
         for _ in 0..LM_MAX_INNER_ITERATIONS {
-            let damped = system.hessian + Matrix6::identity() * lambda;
-            let Some(delta) = damped.cholesky().map(|c| -c.solve(&system.gradient)) else {
+            let damped = hessian + Matrix6::identity() * lambda;
+            let Some(delta) = damped.cholesky().map(|c| -c.solve(&gradient)) else {
                 lambda *= LM_LAMBDA_FACTOR;
                 continue;
             };
@@ -113,7 +139,8 @@ pub fn register_unless_outscored<T: RegistrationTarget + ?Sized>(
             let rotation_change = delta.fixed_rows::<3>(0).into_owned();
             let translation_change = delta.fixed_rows::<3>(3).into_owned();
             let candidate = pose * Isometry3::new(translation_change, rotation_change);
-            if evaluate(source, &candidate, &correspondences) <= system.error {
+            let term_error = term.as_deref().map_or(0.0, |t| t.evaluate(&candidate));
+            if evaluate(source, &candidate, &correspondences) + term_error <= error {
                 pose = candidate;
                 lambda /= LM_LAMBDA_FACTOR;
                 accepted = true;

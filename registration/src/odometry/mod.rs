@@ -5,7 +5,9 @@
 //! 1. points from depth and their covariances;
 //! 2. the ordinary path: G-ICP at the fine correspondence distance from the constant-velocity
 //!    prediction (or the previous pose, [`prediction`]) against the map of keyframe points in the
-//!    predicted view (frame-to-model) or the previous frame (frame-to-frame);
+//!    predicted view (frame-to-model) or the previous frame (frame-to-frame); frame-to-model, with
+//!    colour, it minimises the photometric term against the previous placed frame with it
+//!    ([`crate::photometric`]);
 //! 3. the check ([`check`]): the map's points in view must agree with the frame's depth at the
 //!    estimated pose; a refused pose, a sudden drop of the overlap with the map, or a doubtful
 //!    prior (the previous frame recovered or lost) sends the frame to the wide-baseline guesses
@@ -41,10 +43,11 @@ use geometry::depth::DepthImage;
 use nalgebra::Isometry3;
 
 use crate::alignment::AlignmentConfig;
-use crate::config::{KeyframeConfig, TrackingConfig};
-use crate::gicp::{GicpParams, MIN_POINTS_FOR_A_POSE, RegistrationFailure};
+use crate::config::{KeyframeConfig, PhotometricReferenceFrame, TrackingConfig};
+use crate::gicp::{GicpParams, JointTerm, MIN_POINTS_FOR_A_POSE, RegistrationFailure};
 use crate::kdtree::PointTree;
 use crate::map_registration::MapRegistrationConfig;
+use crate::photometric::{PhotometricFrame, PhotometricReference, PhotometricTerm};
 use crate::points::{PointCloud, points_from_depth};
 use crate::voxel_map::{MapPointId, ViewFrustum, VoxelMap};
 pub use check::{Divergence, FrameCheck};
@@ -111,6 +114,9 @@ pub struct Odometry {
     /// The ordinary path's parameters at the sparse-points distance ([`spacing`]), when the
     /// frames' points lie further apart than the correspondence distance.
     sparse_params: Option<GicpParams>,
+    /// The previous placed frame's textured points for the photometric term, in the frame of
+    /// the map tracked against.
+    photometric_reference: Option<PhotometricReference>,
 }
 
 impl Odometry {
@@ -144,6 +150,7 @@ impl Odometry {
             next_segment: 1,
             spacing_checked: false,
             sparse_params: None,
+            photometric_reference: None,
         }
     }
 
@@ -192,6 +199,9 @@ impl Odometry {
         if let Some(world_from_previous) = self.world_from_previous.as_mut() {
             *world_from_previous = current * *world_from_previous;
             world_from_previous.rotation.renormalize();
+        }
+        if let Some(reference) = self.photometric_reference.as_mut() {
+            reference.transform(current);
         }
         self.map.transform_points(transform_of)
     }
@@ -245,6 +255,7 @@ impl Odometry {
     pub fn track(&mut self, input: FrameInput<'_>) -> TrackedFrame {
         let clock = Instant::now();
         let frame = self.prepare_frame(input.depth, input.intrinsics);
+        let photometric = self.photometric_frame(&input);
         let mut timings = StageTimings {
             points_ms: elapsed_ms(&clock),
             ..StageTimings::default()
@@ -259,7 +270,9 @@ impl Odometry {
             self.fit_distances_to_spacing(frame.cloud(), input.intrinsics);
         }
         let Some(world_from_previous) = self.world_from_previous else {
-            return self.initialise(frame, &input);
+            let tracked = self.initialise(frame, &input);
+            self.note_photometric_reference(photometric, &input, &tracked.world_from_camera);
+            return tracked;
         };
         let velocity = self.velocity.over(since_previous_s);
         let predicted = if self.tracking.constant_velocity {
@@ -275,6 +288,7 @@ impl Odometry {
             OdometryMode::FrameToModel => self.frame_to_model(
                 frame.cloud(),
                 &input,
+                photometric.as_ref(),
                 &velocity,
                 &world_from_previous,
                 &mut timings,
@@ -287,7 +301,9 @@ impl Odometry {
             && self.consecutive_failures >= self.tracking.max_consecutive_failures
             && frame.len() >= MIN_POINTS_FOR_A_POSE
         {
-            return self.start_segment(frame, &input, chosen, timings);
+            let tracked = self.start_segment(frame, &input, chosen, timings);
+            self.note_photometric_reference(photometric, &input, &tracked.world_from_camera);
+            return tracked;
         }
         self.update_motion(
             &outcome,
@@ -308,6 +324,13 @@ impl Odometry {
             world_from_camera = join.root_from_segment * world_from_camera;
         }
         self.world_from_previous = Some(world_from_camera);
+        let new_reference = match self.tracking.photometric.reference {
+            PhotometricReferenceFrame::PreviousFrame => outcome.is_tracked(),
+            PhotometricReferenceFrame::Keyframe => keyframe,
+        };
+        if new_reference || (outcome.is_tracked() && self.photometric_reference.is_none()) {
+            self.note_photometric_reference(photometric, &input, &world_from_camera);
+        }
         timings.map_update_ms = elapsed_ms(&clock);
         tracing::debug!(
             frame = self.stats.frames - 1,
@@ -351,6 +374,7 @@ impl Odometry {
             &self.params,
             self.tracking.constant_velocity,
             self.last_initial_guess,
+            None,
         );
         self.note_initial_guess(guess);
         result.target_from_source = world_from_previous * result.target_from_source;
@@ -374,6 +398,7 @@ impl Odometry {
         &mut self,
         cloud: &PointCloud,
         input: &FrameInput<'_>,
+        photometric: Option<&PhotometricFrame>,
         velocity: &Isometry3<f64>,
         world_from_previous: &Isometry3<f64>,
         timings: &mut StageTimings,
@@ -385,7 +410,7 @@ impl Odometry {
         let mut candidates = Vec::new();
         // Without enough points no guess can place the frame: the ordinary path says why.
         if !self.prior_doubtful || cloud.len() < MIN_POINTS_FOR_A_POSE {
-            let ordinary = self.ordinary(cloud, input, velocity, world_from_previous);
+            let ordinary = self.ordinary(cloud, input, photometric, velocity, world_from_previous);
             let passes = ordinary.passes(&self.tracking);
             let overlap_dropped = self.previous_overlap.is_some_and(|previous| {
                 ordinary.check.overlap_fraction
@@ -449,15 +474,28 @@ impl Odometry {
         recovery::choose(candidates, &self.tracking)
     }
 
-    /// The ordinary path (see [`prediction`]) and its check.
+    /// The ordinary path (see [`prediction`]), with the photometric term when there are images
+    /// for it, and its check.
     fn ordinary(
         &mut self,
         cloud: &PointCloud,
         input: &FrameInput<'_>,
+        photometric: Option<&PhotometricFrame>,
         velocity: &Isometry3<f64>,
         world_from_previous: &Isometry3<f64>,
     ) -> Candidate {
-        let register = |params: &GicpParams| {
+        let mut term =
+            photometric
+                .zip(self.photometric_reference.as_ref())
+                .map(|(current, reference)| {
+                    PhotometricTerm::new(
+                        reference,
+                        current,
+                        input.depth,
+                        &self.tracking.photometric,
+                    )
+                });
+        let register = |params: &GicpParams, term: Option<&mut dyn JointTerm>| {
             register_from_prediction(
                 cloud,
                 &self.map,
@@ -466,16 +504,18 @@ impl Odometry {
                 params,
                 self.tracking.constant_velocity,
                 self.last_initial_guess,
+                term,
             )
         };
-        let (mut result, mut initial) = register(&self.params);
+        let (mut result, mut initial) =
+            register(&self.params, term.as_mut().map(|t| t as &mut dyn JointTerm));
         if let Some(sparse) = &self.sparse_params
             && matches!(
                 result.failure,
                 Some(RegistrationFailure::TooFewCorrespondences { .. })
             )
         {
-            let (retry, retry_initial) = register(sparse);
+            let (retry, retry_initial) = register(sparse, None);
             if retry.is_success() {
                 (result, initial) = (retry, retry_initial);
             }
@@ -505,6 +545,34 @@ impl Odometry {
             rgb: input.rgb,
             intrinsics: input.intrinsics,
         }
+    }
+
+    /// The current frame's images for the photometric term: frame-to-model, with colour of the
+    /// depth camera's size, when the term is on.
+    fn photometric_frame(&self, input: &FrameInput<'_>) -> Option<PhotometricFrame> {
+        let config = &self.tracking.photometric;
+        if self.mode != OdometryMode::FrameToModel || !config.enabled() {
+            return None;
+        }
+        PhotometricFrame::new(input.rgb?, input.intrinsics, config.level)
+    }
+
+    /// The placed frame becomes the photometric term's reference (none without images).
+    fn note_photometric_reference(
+        &mut self,
+        frame: Option<PhotometricFrame>,
+        input: &FrameInput<'_>,
+        world_from_camera: &Isometry3<f64>,
+    ) {
+        self.photometric_reference = frame.map(|frame| {
+            PhotometricReference::select(
+                &frame,
+                input.depth,
+                world_from_camera,
+                &self.tracking.photometric,
+                self.tracking.truncation_m,
+            )
+        });
     }
 
     fn select_view(&mut self, world_from_camera: &Isometry3<f64>, intrinsics: &Intrinsics) {

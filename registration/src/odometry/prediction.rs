@@ -5,8 +5,8 @@
 use nalgebra::Isometry3;
 
 use crate::gicp::{
-    GicpParams, RegistrationResult, RegistrationTarget, RivalGuess, count_correspondences,
-    register, register_unless_outscored,
+    GicpParams, JointTerm, RegistrationResult, RegistrationTarget, RivalGuess,
+    count_correspondences, register_joint_unless_outscored,
 };
 use crate::points::PointCloud;
 
@@ -70,7 +70,9 @@ impl ConstantVelocity {
 /// counts that guess's correspondences (`register_unless_outscored`): only the other guess gets
 /// a sampled search of its own, and G-ICP starts over from it only when it wins. Without a
 /// constant-velocity model (`use_velocity` false, or no motion yet) it starts from the previous
-/// pose. Returns the result and the guess it started from.
+/// pose. `term` (the photometric term) is minimised with G-ICP in whichever run gives the
+/// result. Returns the result and the guess it started from.
+#[allow(clippy::too_many_arguments)]
 pub fn register_from_prediction<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,
@@ -79,14 +81,19 @@ pub fn register_from_prediction<T: RegistrationTarget + ?Sized>(
     params: &GicpParams,
     use_velocity: bool,
     first: InitialGuess,
+    mut term: Option<&mut dyn JointTerm>,
 ) -> (RegistrationResult, InitialGuess) {
     let start = |guess: InitialGuess| match guess {
         InitialGuess::Prediction => world_from_previous * velocity,
         InitialGuess::Still => *world_from_previous,
     };
+    let register = |initial: &Isometry3<f64>, rival, term: Option<&mut dyn JointTerm>| {
+        register_joint_unless_outscored(source, target, initial, params, rival, term)
+    };
     if !use_velocity || *velocity == Isometry3::identity() {
         let guess = InitialGuess::Still;
-        return (register(source, target, &start(guess), params), guess);
+        let result = register(&start(guess), None, term).expect("no rival: never given up");
+        return (result, guess);
     }
     let other = first.other();
     let rival = RivalGuess {
@@ -101,9 +108,13 @@ pub fn register_from_prediction<T: RegistrationTarget + ?Sized>(
         // A tie goes to the prediction.
         wins_ties: other == InitialGuess::Prediction,
     };
-    match register_unless_outscored(source, target, &start(first), params, Some(rival)) {
+    let first_term = term.as_mut().map(|t| &mut **t as &mut dyn JointTerm);
+    match register(&start(first), Some(rival), first_term) {
         Some(result) => (result, first),
-        None => (register(source, target, &start(other), params), other),
+        None => {
+            let result = register(&start(other), None, term).expect("no rival: never given up");
+            (result, other)
+        }
     }
 }
 
