@@ -49,8 +49,13 @@ pub enum ImageError {
     Codec(String),
 }
 
+/// Reads one pixel of a colour encoding as RGB.
+type ColourPixel = fn(&[u8]) -> [u8; 3];
+/// Reads one depth pixel as metres, given the message's byte order (true: big endian).
+type DepthPixel = fn(&[u8], bool) -> f32;
+
 /// Bytes per pixel of a colour encoding, and how to read one pixel as RGB.
-fn colour_layout(encoding: &str) -> Option<(usize, fn(&[u8]) -> [u8; 3])> {
+fn colour_layout(encoding: &str) -> Option<(usize, ColourPixel)> {
     Some(match encoding {
         "rgb8" => (3, |p| [p[0], p[1], p[2]]),
         "bgr8" => (3, |p| [p[2], p[1], p[0]]),
@@ -112,31 +117,30 @@ pub fn colour_from_image(image: &Image) -> Result<RgbImage, ImageError> {
 /// A raw depth image in metres.
 pub fn depth_from_image(image: &Image) -> Result<DepthImage, ImageError> {
     let big_endian = image.is_bigendian != 0;
-    let (bytes_per_pixel, to_metres): (usize, fn(&[u8], bool) -> f32) =
-        match image.encoding.as_str() {
-            "16UC1" | "mono16" => (2, |p, big| {
-                let raw = if big {
-                    u16::from_be_bytes([p[0], p[1]])
-                } else {
-                    u16::from_le_bytes([p[0], p[1]])
-                };
-                (raw as f64 / 1000.0) as f32
-            }),
-            "32FC1" => (4, |p, big| {
-                let bytes = [p[0], p[1], p[2], p[3]];
-                let metres = if big {
-                    f32::from_be_bytes(bytes)
-                } else {
-                    f32::from_le_bytes(bytes)
-                };
-                if metres.is_finite() && metres > 0.0 {
-                    metres
-                } else {
-                    0.0
-                }
-            }),
-            other => return Err(ImageError::DepthEncoding(other.to_string())),
-        };
+    let (bytes_per_pixel, to_metres): (usize, DepthPixel) = match image.encoding.as_str() {
+        "16UC1" | "mono16" => (2, |p, big| {
+            let raw = if big {
+                u16::from_be_bytes([p[0], p[1]])
+            } else {
+                u16::from_le_bytes([p[0], p[1]])
+            };
+            (raw as f64 / 1000.0) as f32
+        }),
+        "32FC1" => (4, |p, big| {
+            let bytes = [p[0], p[1], p[2], p[3]];
+            let metres = if big {
+                f32::from_be_bytes(bytes)
+            } else {
+                f32::from_le_bytes(bytes)
+            };
+            if metres.is_finite() && metres > 0.0 {
+                metres
+            } else {
+                0.0
+            }
+        }),
+        other => return Err(ImageError::DepthEncoding(other.to_string())),
+    };
     let row = check_rows(image, bytes_per_pixel)?;
     let mut depth = Vec::with_capacity(image.width as usize * image.height as usize);
     for y in 0..image.height as usize {
