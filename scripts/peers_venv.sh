@@ -61,6 +61,10 @@ if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then
 fi
 
 pins="$(sha256sum "$lock" | cut -d' ' -f1)"
+# Tests call this script from several threads at once: one installs, the others wait for it.
+mkdir -p "$(dirname "$venv")"
+exec 9>"$venv.install-lock"
+flock 9
 if [[ "$(cat "$venv/.lock-sha256" 2>/dev/null)" != "$pins" ]] || ! "$venv/bin/python" -c 'import numpy' 2>/dev/null; then
   log "installing the pinned peers into $venv (once; ~400 MB)"
   rm -rf "$venv"
