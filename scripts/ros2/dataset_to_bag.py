@@ -8,8 +8,8 @@ on /gt_pose (geometry_msgs/PoseStamped, frame "world") and on /tf (world -> gt_c
       --storage mcap|sqlite3 --images raw|compressed
 
 raw: colour rgb8, depth 16UC1 millimetres (7-Scenes) or 32FC1 metres (TUM, whose depth PNGs have
-0.2 mm steps; TUM's own bags carry 32FC1). compressed: colour as JPEG (7-Scenes' own JPEG bytes;
-TUM's PNGs re-encoded at quality 95) on <colour>/compressed, depth as compressed_depth_image_
+0.2 mm steps; TUM's own bags carry 32FC1). compressed: colour as JPEG (a dataset's own JPEG bytes
+unchanged; PNG colour encoded at quality 95) on <colour>/compressed, depth as compressed_depth_image_
 transport's 16UC1 PNG in millimetres on <depth>/compressedDepth.
 
 Frames are what mac-ego3d's folder reader yields: TUM colour images with the depth image nearest in

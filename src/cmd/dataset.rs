@@ -244,7 +244,7 @@ pub fn run(command: &DatasetCommand) -> anyhow::Result<()> {
             .with_context(|| format!("opening dataset {source}"))?;
         let mut dataset_info =
             info(ds.as_ref(), args.samples).with_context(|| format!("reading dataset {source}"))?;
-        if datasets::detect_layout(Path::new(source))? == datasets::Layout::RosBag {
+        if datasets::rosbag::is_bag(source) {
             dataset_info.bag = Some(bag_info(source, &config.ros2)?);
         }
         infos.push(dataset_info);
