@@ -450,4 +450,47 @@ fn real_data_a_swarm_runs_on_ranges_of_a_bag() {
                 .is_file()
         );
     }
+    // The consensus's bag, read by rosbags: both agents' frames placed in the world, their
+    // world paths as agent_K.tum, the merged map.
+    let check = Command::new(&python)
+        .arg("-c")
+        .arg(CONSENSUS_BAG_CHECK)
+        .arg(out.join("ros2_bag"))
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(check.status.success(), "{}", log(&check));
+    assert_eq!(
+        String::from_utf8_lossy(&check.stdout).trim(),
+        "agent0/odom agent1/odom, paths 2, map"
+    );
 }
+
+/// Reads the consensus's ros2_bag with rosbags and compares the paths with OUT/agent_K.tum.
+const CONSENSUS_BAG_CHECK: &str = r##"
+import sys
+from pathlib import Path
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+store = get_typestore(Stores.ROS2_HUMBLE)
+out = Path(sys.argv[2])
+children, paths, cloud = [], 0, ""
+with Reader(sys.argv[1]) as reader:
+    for connection, _, raw in reader.messages():
+        message = store.deserialize_cdr(raw, connection.msgtype)
+        if connection.topic == "/tf_static":
+            children = sorted(t.child_frame_id for t in message.transforms)
+            assert all(t.header.frame_id == "world" for t in message.transforms)
+        elif connection.topic.endswith("/path"):
+            agent = connection.topic.split("/")[1].removeprefix("agent")
+            rows = [l.split() for l in open(out / f"agent_{agent}.tum") if l.strip() and not l.startswith("#")]
+            assert len(rows) == len(message.poses), (len(rows), len(message.poses))
+            for pose, row in zip(message.poses, rows):
+                p = pose.pose.position
+                assert max(abs(p.x - float(row[1])), abs(p.y - float(row[2])), abs(p.z - float(row[3]))) < 1e-6
+            paths += 1
+        elif connection.topic == "/map":
+            assert message.width > 1000 and message.header.frame_id == "world"
+            cloud = "map"
+print(" ".join(children) + f", paths {paths}, {cloud}")
+"##;

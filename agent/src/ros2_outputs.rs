@@ -1,7 +1,9 @@
 //! The agent's results as a ROS 2 bag (`ros2_bag/`, MCAP) next to its TUM files, for ROS users:
-//! `/tf` with `agentK/odom -> agentK/camera_optical_frame` at every placed frame and
-//! `world -> agentK/odom` (the identity for a standalone agent: its odometry frame is its world),
-//! `/agentK/path` (`nav_msgs/Path` of the placed frames, in the world frame) and `/agentK/map`
+//! `/tf` with `agentK/odom -> agentK/camera_optical_frame` at every placed frame; for a standalone
+//! agent also `world -> agentK/odom` on `/tf_static` (the identity: its odometry frame is its
+//! world), while in a swarm that transform is the consensus's (its own bag); `/agentK/path`
+//! (`nav_msgs/Path` of the placed frames, in the world frame when standalone, else in
+//! `agentK/odom`) and `/agentK/map`
 //! (`sensor_msgs/PointCloud2` of the map's Gaussian centres with their colour, decimated to
 //! `ros2.cloud_max_points`). `ros2 bag play` feeds rviz2 with it; Foxglove and rerun open it.
 
@@ -28,6 +30,7 @@ pub fn write_agent_bag(
     poses: &[TrackedPose],
     map: &GaussianCloud,
     config: &Ros2Config,
+    standalone: bool,
 ) -> anyhow::Result<std::path::PathBuf> {
     let folder = out.join(BAG_FOLDER);
     let frames = AgentFrames::new(&config.world_frame, &config.frame_prefix, agent_id);
@@ -39,20 +42,28 @@ pub fn write_agent_bag(
     let mut bag = BagWriter::create(&folder)?;
     let first_stamp = placed.first().map_or(0.0, |p| p.0);
     let last_stamp = placed.last().map_or(0.0, |p| p.0);
-    let world_from_odom = transform(
-        &frames.world,
-        &frames.odom,
-        first_stamp,
-        &Isometry3::identity(),
-    );
-    bag.write(
-        "/tf_static",
-        type_names::TF_MESSAGE,
-        first_stamp,
-        &TfMessage {
-            transforms: vec![world_from_odom],
-        },
-    )?;
+    if standalone {
+        let world_from_odom = transform(
+            &frames.world,
+            &frames.odom,
+            first_stamp,
+            &Isometry3::identity(),
+        );
+        bag.write(
+            "/tf_static",
+            type_names::TF_MESSAGE,
+            first_stamp,
+            &TfMessage {
+                transforms: vec![world_from_odom],
+            },
+        )?;
+    }
+    // The frame the agent's own poses are in: the world only when it is alone.
+    let pose_frame = if standalone {
+        &frames.world
+    } else {
+        &frames.odom
+    };
     for (stamp, odom_from_camera) in &placed {
         let tf = TfMessage {
             transforms: vec![transform(
@@ -69,7 +80,7 @@ pub fn write_agent_bag(
         &topic("path"),
         type_names::PATH,
         last_stamp,
-        &path(&frames.world, &placed),
+        &path(pose_frame, &placed),
     )?;
     let colours: Vec<[u8; 3]> = map
         .colours
@@ -81,7 +92,7 @@ pub fn write_agent_bag(
         type_names::POINT_CLOUD2,
         last_stamp,
         &point_cloud(
-            &frames.world,
+            pose_frame,
             last_stamp,
             &map.means,
             &colours,

@@ -282,6 +282,7 @@ pub fn run_agent(
         &run.poses,
         &outcome.realtime_map,
         &config.ros2,
+        !in_swarm,
     )?;
     write_view_files(
         &run,

@@ -30,7 +30,7 @@ pub mod process;
 use std::path::{Path, PathBuf};
 
 use datasets::noise::NoiseConfig;
-use datasets::rosbag::Ros2Config;
+pub use datasets::rosbag::Ros2Config;
 use datasets::undistort::CameraConfig;
 use geometry::checks::FieldError;
 use registration::config::{KeyframeConfig, TrackingConfig};

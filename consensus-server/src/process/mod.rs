@@ -24,6 +24,7 @@
 mod live;
 mod main_thread;
 mod outputs;
+mod ros2_outputs;
 mod worker;
 
 use std::path::PathBuf;

@@ -209,7 +209,8 @@ pub(super) enum OutputKind {
     Snapshot,
 }
 
-/// Writes map.ply, every linked agent's world trajectory and consensus.json.
+/// Writes map.ply, every linked agent's world trajectory, the ROS 2 bag of both (ros2_bag/)
+/// and consensus.json.
 pub(super) fn write_outputs(
     options: &ConsensusOptions,
     engine: &Engine,
@@ -230,6 +231,7 @@ pub(super) fn write_outputs(
         .with_context(|| format!("writing {}", map_path.display()))?;
     options.live_view.merged_map(&map.means, &map.colours);
     write_world_trajectories(out, engine, &agents)?;
+    super::ros2_outputs::write_consensus_bag(out, &agents, &map, &options.config.ros2)?;
     let events = engine.events().to_vec();
     let (injected, real): (Vec<&ClosureEvent>, Vec<&ClosureEvent>) = events
         .iter()
