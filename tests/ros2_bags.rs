@@ -166,15 +166,19 @@ fn real_data_bags_replay_like_their_folders() {
     // Both shared sequences store colour as JPEG. A raw bag holds the pixels the converter's
     // decoder (Pillow) made, which differ from the image crate's by a few levels on some
     // pixels, so tracking's photometric term sees slightly different images; the depth is the
-    // same. Raw bags are therefore compared with depth-only tracking, which must agree
-    // exactly; the compressed bag carries the dataset's own JPEG bytes and is compared with the
-    // photometric term on.
+    // same. Raw bags are therefore compared with depth-only tracking (the default), which must
+    // agree exactly; the compressed bag carries the dataset's own JPEG bytes and is compared
+    // with the photometric term turned on.
     let depth_only = light_config(
         work.path(),
         "depth-only",
         "[tracking.photometric]\nweight = 0.0\n",
     );
-    let config = light_config(work.path(), "light", "");
+    let config = light_config(
+        work.path(),
+        "photometric",
+        "[tracking.photometric]\nweight = 0.3\n",
+    );
 
     // TUM fr1/rpy: raw colour + 32FC1 depth (as TUM's own bags) reproduce the folder's frames
     // exactly, in both storages. The depth has its own CameraInfo (the Kinect's registration

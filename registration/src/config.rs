@@ -99,7 +99,9 @@ pub struct TrackingConfig {
 #[serde(default, deny_unknown_fields)]
 pub struct PhotometricConfig {
     /// Weight of a squared intensity residual (intensities in [0, 1]) against G-ICP's cost;
-    /// 0 turns the term off. G-ICP's cost per point is a Mahalanobis distance in its normalised
+    /// 0 (the default) turns the term off. 0.3 is the weight measured in docs/benchmarks.md: it
+    /// helps paced replays of fast rotation (tum-fr1-rpy) but costs accuracy at sensor pace,
+    /// where dropped frames make larger steps, so it is off until it is gated on them. G-ICP's cost per point is a Mahalanobis distance in its normalised
     /// covariances (eigenvalues 1, 1, `covariance_epsilon`): a point 1 cm off the surface costs
     /// about 0.05, as much as an intensity residual of 0.05 / sqrt(weight).
     pub weight: f64,
@@ -143,7 +145,7 @@ pub enum PhotometricReferenceFrame {
 impl Default for PhotometricConfig {
     fn default() -> Self {
         Self {
-            weight: 0.3,
+            weight: 0.0,
             level: 1,
             max_points: 4000,
             min_gradient: 0.02,
