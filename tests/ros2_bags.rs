@@ -290,9 +290,11 @@ fn real_data_bags_replay_like_their_folders() {
         &work.path().join("out-tf"),
     );
     assert!(run.status.success(), "{}", log(&run));
+    // The same tracking as the tf run's (depth only, the default): only the ground truth's
+    // source differs.
     let (run, from_pose) = run_agent(
         &format!("{}:10..50", tum_mcap.display()),
-        &config,
+        &depth_only,
         &work.path().join("out-pose"),
     );
     assert!(run.status.success(), "{}", log(&run));
