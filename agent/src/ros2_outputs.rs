@@ -82,11 +82,6 @@ pub fn write_agent_bag(
         last_stamp,
         &path(pose_frame, &placed),
     )?;
-    let colours: Vec<[u8; 3]> = map
-        .colours
-        .iter()
-        .map(|c| c.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8))
-        .collect();
     bag.write(
         &topic("map"),
         type_names::POINT_CLOUD2,
@@ -95,7 +90,7 @@ pub fn write_agent_bag(
             pose_frame,
             last_stamp,
             &map.means,
-            &colours,
+            &map.colours,
             config.cloud_max_points,
         ),
     )?;

@@ -68,15 +68,16 @@ pub fn path(frame: &str, poses: &[(f64, Isometry3<f64>)]) -> msg::Path {
 }
 
 /// Points with colour as rviz2 reads them: x, y, z float32 and `rgb` packed into a float32 field
-/// (bytes b, g, r, 0). At most `max_points` points: every k-th point when there are more, so a
-/// large map does not flood the network.
+/// (bytes b, g, r, 0), from colours in [0, 1] (a Gaussian map's). At most `max_points` points:
+/// every k-th point when there are more, so a large map does not flood the network.
 pub fn point_cloud(
     frame: &str,
     stamp_s: f64,
     positions: &[[f32; 3]],
-    colours: &[[u8; 3]],
+    colours: &[[f32; 3]],
     max_points: usize,
 ) -> PointCloud2 {
+    let byte = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
     let step = positions.len().div_ceil(max_points.max(1)).max(1);
     let mut data = Vec::with_capacity(positions.len() / step * 16 + 16);
     let mut count = 0u32;
@@ -84,7 +85,7 @@ pub fn point_cloud(
         for c in position {
             data.extend_from_slice(&c.to_le_bytes());
         }
-        data.extend_from_slice(&[colour[2], colour[1], colour[0], 0]);
+        data.extend_from_slice(&[byte(colour[2]), byte(colour[1]), byte(colour[0]), 0]);
         count += 1;
     }
     let field = |name: &str, offset: u32| PointField {
@@ -121,13 +122,17 @@ mod tests {
     #[test]
     fn point_clouds_decimate_and_pack_colour_as_rviz_reads_it() {
         let positions: Vec<[f32; 3]> = (0..10).map(|i| [i as f32, 0.5, -1.0]).collect();
-        let colours: Vec<[u8; 3]> = (0..10).map(|i| [i as u8, 100, 200]).collect();
+        let colours: Vec<[f32; 3]> = (0..10).map(|i| [i as f32 / 255.0, 0.4, 1.5]).collect();
         let cloud = point_cloud("world", 3.5, &positions, &colours, 4);
         assert_eq!(cloud.width, 4, "every 3rd of 10 points");
         assert_eq!(cloud.data.len(), 4 * 16);
         let second = &cloud.data[16..32];
         assert_eq!(f32::from_le_bytes(second[0..4].try_into().unwrap()), 3.0);
-        assert_eq!(&second[12..16], &[200, 100, 3, 0]);
+        assert_eq!(
+            &second[12..16],
+            &[255, 102, 3, 0],
+            "b clamped to 1, g 0.4, r 3/255"
+        );
         let back: PointCloud2 = msg::decode(&msg::encode(&cloud)).unwrap();
         assert_eq!(back, cloud);
     }

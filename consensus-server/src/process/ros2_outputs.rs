@@ -92,11 +92,6 @@ pub fn write_consensus_bag(
             &path(&config.world_frame, poses),
         )?;
     }
-    let colours: Vec<[u8; 3]> = map
-        .colours
-        .iter()
-        .map(|c| c.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8))
-        .collect();
     bag.write(
         "/map",
         type_names::POINT_CLOUD2,
@@ -105,7 +100,7 @@ pub fn write_consensus_bag(
             &config.world_frame,
             last_stamp,
             &map.means,
-            &colours,
+            &map.colours,
             config.cloud_max_points,
         ),
     )?;
