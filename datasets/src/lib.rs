@@ -266,7 +266,7 @@ impl fmt::Display for DatasetSpec {
 /// Reads an 8-bit RGB image (PNG or JPEG; grey and RGBA are converted), naming the file on error.
 pub fn read_rgb(path: &Path, index: usize) -> Result<RgbImage, DatasetError> {
     let bytes = read_frame_file(path, index)?;
-    if is_truncated_jpeg(&bytes) {
+    if ros2::image::is_truncated_jpeg(&bytes) {
         return Err(DatasetError::decode(
             path,
             "JPEG without its end-of-image marker: the file is truncated",
@@ -297,17 +297,6 @@ fn read_frame_file(path: &Path, index: usize) -> Result<Vec<u8>, DatasetError> {
             DatasetError::io(path, e)
         }
     })
-}
-
-/// A JPEG (starts with the SOI marker) that does not end with the EOI marker `FF D9` (trailing
-/// zero padding allowed). The JPEG decoder fills a cut-short file's missing rows with grey
-/// instead of failing, which would hand tracking and mapping an image that is partly made up.
-fn is_truncated_jpeg(bytes: &[u8]) -> bool {
-    if !bytes.starts_with(&[0xFF, 0xD8]) {
-        return false;
-    }
-    let end = bytes.iter().rposition(|b| *b != 0).map_or(0, |i| i + 1);
-    !bytes[..end].ends_with(&[0xFF, 0xD9])
 }
 
 /// Reads a 16-bit single-channel depth PNG as raw units, refusing 8-bit or colour PNGs (a common

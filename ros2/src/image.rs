@@ -237,10 +237,16 @@ fn depth_from_png(bytes: &[u8], inverse: Option<(f32, f32)>) -> Result<DepthImag
     })
 }
 
-/// A JPEG (SOI marker first) without its EOI marker at the end: the decoder would fill the
-/// missing rows with grey instead of failing.
-fn is_truncated_jpeg(bytes: &[u8]) -> bool {
-    bytes.starts_with(&[0xFF, 0xD8]) && !bytes.ends_with(&[0xFF, 0xD9])
+/// A JPEG (starts with the SOI marker) that does not end with the EOI marker `FF D9` (trailing
+/// zero padding allowed). The JPEG decoder fills a cut-short file's missing rows with grey
+/// instead of failing, which would hand tracking and mapping an image that is partly made up.
+/// The one check of this, for dataset files and image messages alike.
+pub fn is_truncated_jpeg(bytes: &[u8]) -> bool {
+    if !bytes.starts_with(&[0xFF, 0xD8]) {
+        return false;
+    }
+    let end = bytes.iter().rposition(|b| *b != 0).map_or(0, |i| i + 1);
+    !bytes[..end].ends_with(&[0xFF, 0xD9])
 }
 
 #[cfg(test)]

@@ -47,14 +47,33 @@ const MAX_END_PADDING: usize = 7;
 
 /// Decodes a serialized ROS 2 message (encapsulation header + CDR body) as `T`.
 pub fn decode<'de, T: Deserialize<'de>>(payload: &'de [u8]) -> Result<T, DecodeError> {
-    if payload.len() < 4 {
-        return Err(DecodeError::TooShort(payload.len()));
-    }
     let type_name = std::any::type_name::<T>()
         .split('<')
         .next()
         .and_then(|path| path.rsplit("::").next())
         .unwrap_or("message");
+    let (value, extra) = decode_leaving(payload, type_name)?;
+    if extra > MAX_END_PADDING {
+        return Err(DecodeError::Trailing { type_name, extra });
+    }
+    Ok(value)
+}
+
+/// Decodes the first fields of a message as `T` (a prefix of its definition, such as its
+/// header), ignoring the rest.
+pub fn decode_prefix<'de, T: Deserialize<'de>>(payload: &'de [u8]) -> Result<T, DecodeError> {
+    decode_leaving(payload, "a message header").map(|(value, _)| value)
+}
+
+/// `T` from the payload's CDR body in the byte order its encapsulation header names, and the
+/// number of body bytes left after it.
+fn decode_leaving<'de, T: Deserialize<'de>>(
+    payload: &'de [u8],
+    type_name: &'static str,
+) -> Result<(T, usize), DecodeError> {
+    if payload.len() < 4 {
+        return Err(DecodeError::TooShort(payload.len()));
+    }
     let cdr_error = |e: re_cdr::Error| DecodeError::Cdr {
         type_name,
         reason: e.to_string(),
@@ -65,30 +84,7 @@ pub fn decode<'de, T: Deserialize<'de>>(payload: &'de [u8]) -> Result<T, DecodeE
         0x0001 => re_cdr::from_bytes::<T, re_cdr::LittleEndian>(body).map_err(cdr_error)?,
         other => return Err(DecodeError::Encapsulation(other)),
     };
-    let extra = body.len().saturating_sub(consumed);
-    if extra > MAX_END_PADDING {
-        return Err(DecodeError::Trailing { type_name, extra });
-    }
-    Ok(value)
-}
-
-/// Decodes the first fields of a message as `T` (a prefix of its definition, such as its
-/// header), ignoring the rest.
-pub fn decode_prefix<'de, T: Deserialize<'de>>(payload: &'de [u8]) -> Result<T, DecodeError> {
-    if payload.len() < 4 {
-        return Err(DecodeError::TooShort(payload.len()));
-    }
-    let cdr_error = |e: re_cdr::Error| DecodeError::Cdr {
-        type_name: "a message header",
-        reason: e.to_string(),
-    };
-    let body = &payload[4..];
-    match u16::from_be_bytes([payload[0], payload[1]]) {
-        0x0000 => re_cdr::from_bytes::<T, re_cdr::BigEndian>(body).map_err(cdr_error),
-        0x0001 => re_cdr::from_bytes::<T, re_cdr::LittleEndian>(body).map_err(cdr_error),
-        other => Err(DecodeError::Encapsulation(other)),
-    }
-    .map(|(value, _)| value)
+    Ok((value, body.len().saturating_sub(consumed)))
 }
 
 /// Serializes `message` as ROS 2 does: little-endian CDR behind its encapsulation header.
