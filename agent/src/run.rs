@@ -42,6 +42,7 @@ use crate::segments::TrackingReport;
 use crate::source::{FrameSource, SourceStats};
 use crate::swarm::{SwarmLink, SwarmSummary};
 use crate::views::{poses_in_map, write_view_files};
+use datasets::live::{LiveReport, LiveTopics};
 
 /// Synthetic scene used when no dataset is given: three agents' loops, this agent's share.
 pub const DEFAULT_SYNTHETIC_AGENTS: usize = 3;
@@ -133,6 +134,9 @@ pub struct AgentMetrics {
     /// before the damage.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub dataset_damage: Option<String>,
+    /// A live ROS 2 camera's input: what was received, paired, dropped, and why it ended.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub live: Option<LiveInputReport>,
     /// Tracked frames whose ground-truth pose file is broken (the log names it): left out of
     /// the ATE only.
     pub ground_truth_broken: usize,
@@ -161,6 +165,49 @@ pub struct AgentMetrics {
 /// A frame whose loop takes longer than this is logged (debug) with the time of each stage.
 const SLOW_FRAME: Duration = Duration::from_millis(100);
 
+/// metrics.json's `live`: a live camera's topics and how its frames ended.
+#[derive(Debug, Clone, Serialize)]
+pub struct LiveInputReport {
+    #[serde(flatten)]
+    pub topics: LiveReport,
+    /// Why the frames ended (a stop request, no frame for `[ros2] idle_timeout_s`, ...).
+    pub end: Option<String>,
+}
+
+/// The agent's frames: the dataset, and the live camera itself when the dataset is one (its
+/// frames come as they arrive).
+type OpenedFrames = (Arc<dyn Dataset>, Option<Arc<LiveTopics>>);
+
+/// Opens the agent's frames: a dataset (folder, bag, synthetic scene) or a live camera.
+fn open_frames(options: &AgentOptions) -> anyhow::Result<OpenedFrames> {
+    if datasets::live::is_live(&options.dataset) {
+        if options.frames != datasets::FrameRange::ALL {
+            anyhow::bail!(
+                "{}: a live camera takes no frame range (got {})",
+                options.dataset,
+                options.frames
+            );
+        }
+        let camera = Arc::new(
+            LiveTopics::open(
+                &options.dataset,
+                &options.config.ros2,
+                options.agent_id as usize,
+                options.eval_every,
+            )
+            .with_context(|| format!("subscribing to {}", options.dataset))?,
+        );
+        return Ok((camera.clone(), Some(camera)));
+    }
+    let dataset = datasets::open_with(
+        &options.dataset,
+        options.frames,
+        &options.config.dataset_options(),
+    )
+    .with_context(|| format!("opening dataset {}", options.dataset))?;
+    Ok((Arc::from(dataset), None))
+}
+
 /// Runs one agent without a consensus process and writes its outputs to `options.out`.
 pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Result<AgentMetrics> {
     run_agent(options, stop, None)
@@ -176,16 +223,9 @@ pub fn run_agent(
 ) -> anyhow::Result<AgentMetrics> {
     let _span = tracing::info_span!("agent", id = options.agent_id).entered();
     config::process::prepare_output_dir(&options.out)?;
-    let dataset: Arc<dyn Dataset> = Arc::from(
-        datasets::open_with(
-            &options.dataset,
-            options.frames,
-            &options.config.dataset_options(),
-        )
-        .with_context(|| format!("opening dataset {}", options.dataset))?,
-    );
-    tracing::info!(dataset = %dataset.describe(), frames = dataset.len(), "agent starting");
     let config = &options.config;
+    let (dataset, live_camera) = open_frames(options)?;
+    tracing::info!(dataset = %dataset.describe(), frames = dataset.len(), "agent starting");
     let lpips = options
         .lpips_weights
         .as_deref()
@@ -196,7 +236,15 @@ pub fn run_agent(
 
     let in_swarm = swarm.is_some();
     let started = Instant::now();
-    let mut source = FrameSource::new(dataset.clone(), options.decode_workers.max(1), config.noise);
+    let mut source = match &live_camera {
+        Some(camera) => FrameSource::live(
+            camera.clone(),
+            config.noise,
+            stop,
+            config.ros2.idle_timeout_s,
+        ),
+        None => FrameSource::new(dataset.clone(), options.decode_workers.max(1), config.noise),
+    };
     let mut agent = AgentPipeline::new(
         config,
         &options.dataset,
@@ -207,11 +255,13 @@ pub fn run_agent(
     )?;
     let progress = progress_bar(dataset.len());
     let mut progress_file = ProgressFile::new(&options.out);
-    let frames_total = Some(dataset.len());
+    let frames_total = live_camera.is_none().then(|| dataset.len());
     progress_file.write(&agent.progress(Stage::Tracking, frames_total));
 
     let mut interrupted = false;
-    let mut sensor = (config.mapping.pace == Pace::Sensor).then(SensorClock::new);
+    // A live camera sets its own pace (and drops what the agent cannot take).
+    let mut sensor =
+        (config.mapping.pace == Pace::Sensor && live_camera.is_none()).then(SensorClock::new);
     {
         let _span = tracing::info_span!("tracking").entered();
         for item in source.by_ref() {
@@ -325,6 +375,10 @@ pub fn run_agent(
         swarm: swarm_summary,
         in_swarm,
         live_view,
+        live: live_camera.as_ref().map(|camera| LiveInputReport {
+            topics: camera.report(),
+            end: source.stats().live_end.clone(),
+        }),
     });
     let metrics_path = options.out.join("metrics.json");
     let json = serde_json::to_string_pretty(&metrics)?;
@@ -353,10 +407,17 @@ fn evaluate_maps(
     // The map is in the local-map frame: each frame is rendered where the corrections applied
     // to the map put it (the tracked pose when none were), then where the mapper's keyframe pose
     // refinement moved it (`refine_keyframe_poses`; nothing otherwise).
+    // A live camera kept evenly spaced frames already (every eval_every-th or sparser).
+    let evaluation_stride = if datasets::live::is_live(&options.dataset) {
+        1
+    } else {
+        options.eval_every.max(1)
+    };
     let evaluated = |pose_refinement: &CorrectionField| -> Vec<TrackedPose> {
         poses_in_map(run, pose_refinement)
             .into_iter()
-            .step_by(options.eval_every.max(1))
+            .filter(|pose| dataset.can_load(pose.position))
+            .step_by(evaluation_stride)
             .collect()
     };
     let evaluate = |map: &GaussianCloud, stats: &MappingStats, renders: &str| {
@@ -406,6 +467,7 @@ struct RunRecord<'r> {
     swarm: Option<SwarmSummary>,
     in_swarm: bool,
     live_view: Option<LiveViewStats>,
+    live: Option<LiveInputReport>,
 }
 
 fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
@@ -449,6 +511,7 @@ fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
         frames_missing: record.source.frames_missing,
         frames_broken: record.source.frames_broken,
         dataset_damage: record.source.dataset_damage.clone(),
+        live: record.live,
         ground_truth_broken: record.source.ground_truth_broken,
         frames_without_depth: record.source.frames_without_depth,
         eval_frames: record.realtime_frames,

@@ -12,9 +12,16 @@
 //! - robustness-protocol noise is added when configured (seeded per frame number);
 //! - a dataset damaged part way (a bag cut short) gives its frames before the damage, with an
 //!   error log and the damage in the statistics.
+//!
+//! A live ROS 2 camera ([`FrameSource::live`]) gives frames as they arrive, each pair the camera
+//! sent that could not be decoded counted as broken, and ends on a stop request or after
+//! `[ros2] idle_timeout_s` without a frame.
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
 
+use datasets::live::{LiveNext, LiveTopics};
 use datasets::noise::NoiseConfig;
 use datasets::prefetch::Prefetcher;
 use datasets::{Dataset, Frame};
@@ -42,6 +49,8 @@ pub struct SourceStats {
     pub depth_pixels_sanitized: usize,
     /// Where the dataset is damaged (a bag cut short): its frames end there.
     pub dataset_damage: Option<String>,
+    /// A live camera: why its frames ended (idle, stopped, lost).
+    pub live_end: Option<String>,
 }
 
 /// A frame ready for tracking, with what the source did to it.
@@ -54,13 +63,29 @@ pub struct SourceFrame {
     pub has_depth: bool,
 }
 
-pub struct FrameSource {
-    frames: Prefetcher,
+pub struct FrameSource<'a> {
+    frames: Frames<'a>,
     noise: Option<NoiseConfig>,
     stats: SourceStats,
 }
 
-impl FrameSource {
+enum Frames<'a> {
+    Recorded(Prefetcher),
+    Live(LiveFrames<'a>),
+}
+
+struct LiveFrames<'a> {
+    camera: Arc<LiveTopics>,
+    stop: &'a AtomicBool,
+    /// None: only a stop request ends the run.
+    idle_timeout: Option<Duration>,
+    last_frame: Instant,
+}
+
+/// How long a live source waits for a frame before it looks at the stop flag again.
+const LIVE_WAIT: Duration = Duration::from_millis(200);
+
+impl<'a> FrameSource<'a> {
     /// Streams `dataset` with `decode_workers` decoding threads, adding `noise` if given.
     pub fn new(
         dataset: Arc<dyn Dataset>,
@@ -75,7 +100,7 @@ impl FrameSource {
             );
         }
         Self {
-            frames: Prefetcher::new(dataset, decode_workers, QUEUE_PER_WORKER),
+            frames: Frames::Recorded(Prefetcher::new(dataset, decode_workers, QUEUE_PER_WORKER)),
             noise,
             stats: SourceStats {
                 dataset_damage,
@@ -84,17 +109,42 @@ impl FrameSource {
         }
     }
 
+    /// Streams a live camera until `stop` is set or no frame came for `idle_timeout_s` seconds
+    /// (0: no limit).
+    pub fn live(
+        camera: Arc<LiveTopics>,
+        noise: Option<NoiseConfig>,
+        stop: &'a AtomicBool,
+        idle_timeout_s: f64,
+    ) -> Self {
+        Self {
+            frames: Frames::Live(LiveFrames {
+                camera,
+                stop,
+                idle_timeout: (idle_timeout_s > 0.0)
+                    .then(|| Duration::from_secs_f64(idle_timeout_s)),
+                last_frame: Instant::now(),
+            }),
+            noise,
+            stats: SourceStats::default(),
+        }
+    }
+
     pub fn stats(&self) -> &SourceStats {
         &self.stats
     }
 
-    /// Frames the dataset range holds, skipped ones included.
+    /// Frames the dataset range holds, skipped ones included; for a live camera, those received
+    /// so far.
     pub fn len(&self) -> usize {
-        self.frames.len()
+        match &self.frames {
+            Frames::Recorded(frames) => frames.len(),
+            Frames::Live(live) => live.camera.len(),
+        }
     }
 
     pub fn is_empty(&self) -> bool {
-        self.frames.is_empty()
+        self.len() == 0
     }
 
     /// Prepares one decoded frame: depth hygiene, noise, bookkeeping.
@@ -147,12 +197,67 @@ impl FrameSource {
     }
 }
 
-impl Iterator for FrameSource {
+impl FrameSource<'_> {
+    /// The next live frame, or why the live run ends.
+    fn next_live(&mut self) -> Result<(usize, Frame), String> {
+        let Frames::Live(live) = &mut self.frames else {
+            unreachable!("next_live on a recorded source")
+        };
+        loop {
+            if live.stop.load(Ordering::Relaxed) {
+                return Err("stop requested".into());
+            }
+            let next = live
+                .camera
+                .next_frame(LIVE_WAIT)
+                .map_err(|e| format!("the camera's topics were lost: {e}"))?;
+            match next {
+                LiveNext::Frame(frame) => {
+                    live.last_frame = Instant::now();
+                    return Ok((frame.index, *frame));
+                }
+                LiveNext::Waiting => {
+                    if let Some(timeout) = live.idle_timeout
+                        && live.last_frame.elapsed() >= timeout
+                    {
+                        let report = live.camera.report();
+                        return Err(format!(
+                            "no frame for {:.1} s (received {} colour and {} depth images, \
+                             {} paired)",
+                            timeout.as_secs_f64(),
+                            report.counts.colour_received,
+                            report.counts.depth_received,
+                            report.counts.pairing.paired
+                        ));
+                    }
+                }
+                LiveNext::Broken(error) => {
+                    tracing::error!(%error, "skipping a live frame that cannot be used");
+                    self.stats.frames_broken += 1;
+                }
+            }
+        }
+    }
+}
+
+impl Iterator for FrameSource<'_> {
     type Item = SourceFrame;
 
     fn next(&mut self) -> Option<SourceFrame> {
         loop {
-            let (position, result) = self.frames.next()?;
+            let (position, result) = match &mut self.frames {
+                Frames::Recorded(frames) => frames.next()?,
+                Frames::Live(_) => match self.next_live() {
+                    Ok((position, frame)) => (position, Ok(frame)),
+                    Err(end) => {
+                        if self.stats.live_end.is_none() {
+                            tracing::info!(reason = %end, "the live camera's frames end here");
+                            self.stats.live_end = Some(end);
+                        }
+                        return None;
+                    }
+                },
+            };
             match result {
                 Ok(frame) => return Some(self.prepare(position, frame)),
                 Err(error) => self.skip(&error),

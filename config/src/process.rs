@@ -9,17 +9,22 @@ use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
 
+/// The log filter without `RUST_LOG`: `info`, except RustDDS (live ROS 2 topics), which logs
+/// every discovery step at info and every unreachable peer at warn, and ros2-client, which warns
+/// that ROS_DISTRO is unset (no ROS installation is needed): their errors only.
+pub const DEFAULT_LOG_FILTER: &str = "info,rustdds=error,ros2_client::distributions=error";
+
 /// The start-up every binary makes first in `main`, before any thread runs: a runtime folder for
 /// the Vulkan loader when the environment lacks one ([`provide_runtime_dir`]), then logging with
 /// `tracing` to stderr (stdout is for results a user or script reads), at the level `RUST_LOG`
-/// names, `info` without it. Colours only on a terminal: a log redirected to a file (a swarm's
+/// names, [`DEFAULT_LOG_FILTER`] without it. Colours only on a terminal: a log redirected to a file (a swarm's
 /// `*.log`) is plain text.
 pub fn init_logging() {
     provide_runtime_dir();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(DEFAULT_LOG_FILTER)),
         )
         .with_ansi(std::io::stderr().is_terminal())
         .with_writer(std::io::stderr)

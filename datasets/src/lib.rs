@@ -13,6 +13,7 @@
 //! errors) are the `geometry` crate's, so code that only handles frames need not depend on the
 //! readers.
 
+pub mod live;
 pub mod noise;
 pub mod prefetch;
 pub mod replica;
@@ -89,6 +90,11 @@ pub trait Dataset: Send + Sync {
     /// Ground-truth pose of the `position`-th frame, without decoding images. `Ok(None)` when the
     /// dataset has no ground truth for it.
     fn ground_truth(&self, position: usize) -> Result<Option<Isometry3<f64>>, DatasetError>;
+    /// Whether [`Dataset::load`] can give the `position`-th frame again: always, except for a
+    /// live camera, which keeps only some frames for the evaluation.
+    fn can_load(&self, _position: usize) -> bool {
+        true
+    }
     /// Decodes the `position`-th frame.
     fn load(&self, position: usize) -> Result<Frame, DatasetError>;
 }
@@ -414,6 +420,12 @@ pub fn open_with(
     range: FrameRange,
     options: &OpenOptions,
 ) -> Result<Box<dyn Dataset>, DatasetError> {
+    if live::is_live(spec) {
+        return Err(DatasetError::Invalid(format!(
+            "{spec}: a live ROS 2 camera is a frame source for an agent (mac-agent --dataset \
+             {spec}), not a recording that can be read again"
+        )));
+    }
     let dataset: Box<dyn Dataset> = if spec == "synthetic" || spec.starts_with("synthetic:") {
         let parsed: synthetic::SyntheticSpec = spec.parse().map_err(DatasetError::Invalid)?;
         Box::new(synthetic::SyntheticDataset::new(parsed, range)?)

@@ -59,6 +59,21 @@ pub struct Ros2Config {
     pub frame_prefix: String,
     /// Outputs: most points of a map's PointCloud2 (every k-th Gaussian beyond it).
     pub cloud_max_points: usize,
+    /// Live topics: the DDS domain; unset: `ROS_DOMAIN_ID`, else 0 (as ROS 2 itself).
+    pub domain_id: Option<u16>,
+    /// Live topics: subscribe reliably (matches reliable publishers only); false: best effort,
+    /// which matches both kinds (a sensor-data publisher too).
+    pub reliable: bool,
+    /// Live topics: paired frames waiting for the agent at most; beyond it the oldest is
+    /// dropped and counted (1: the agent always gets the newest pair).
+    pub queue_pairs: usize,
+    /// Live topics: how long to wait for the camera's first CameraInfo before giving up.
+    pub wait_for_camera_s: f64,
+    /// Live topics: the run ends after this long without a frame (0: only on Ctrl-C / SIGTERM).
+    pub idle_timeout_s: f64,
+    /// Live topics: frames kept in memory for the map evaluation at most (evenly spaced; about
+    /// 2 MB each at 640x480).
+    pub evaluation_frames: usize,
 }
 
 impl Default for Ros2Config {
@@ -73,6 +88,12 @@ impl Default for Ros2Config {
             world_frame: "world".into(),
             frame_prefix: "agent".into(),
             cloud_max_points: 200_000,
+            domain_id: None,
+            reliable: false,
+            queue_pairs: 1,
+            wait_for_camera_s: 30.0,
+            idle_timeout_s: 10.0,
+            evaluation_frames: 100,
         }
     }
 }
@@ -88,6 +109,20 @@ impl Ros2Config {
                     self.pairing_tolerance_s
                 ),
             ));
+        }
+        for (field, seconds) in [
+            ("ros2.wait_for_camera_s", self.wait_for_camera_s),
+            ("ros2.idle_timeout_s", self.idle_timeout_s),
+        ] {
+            if !(seconds.is_finite() && seconds >= 0.0) {
+                return Err((field, format!("must be seconds, 0 or more, got {seconds}")));
+            }
+        }
+        if self.queue_pairs == 0 {
+            return Err(("ros2.queue_pairs", "must be at least 1".into()));
+        }
+        if self.evaluation_frames == 0 {
+            return Err(("ros2.evaluation_frames", "must be at least 1".into()));
         }
         if self.cloud_max_points == 0 {
             return Err(("ros2.cloud_max_points", "must be at least 1".into()));
@@ -105,6 +140,13 @@ impl Ros2Config {
             }
         }
         Ok(())
+    }
+
+    /// The DDS domain of live topics: `domain_id`, else `ROS_DOMAIN_ID`, else 0.
+    pub fn domain_id(&self) -> u16 {
+        self.domain_id
+            .or_else(|| std::env::var("ROS_DOMAIN_ID").ok()?.trim().parse().ok())
+            .unwrap_or(0)
     }
 
     /// `topic` under the namespace.
@@ -611,7 +653,7 @@ fn ground_truth_poses(bag: &Bag, source: &str) -> Result<Vec<(f64, Isometry3<f64
 }
 
 /// The pinhole of a CameraInfo (its K, at its image size).
-fn intrinsics_of(info: &msg::CameraInfo) -> Result<Intrinsics, String> {
+pub(crate) fn intrinsics_of(info: &msg::CameraInfo) -> Result<Intrinsics, String> {
     let k = &info.k;
     let intrinsics = Intrinsics::new(k[0], k[4], k[2], k[5], info.width, info.height);
     intrinsics.validate().map_err(|reason| {
@@ -625,7 +667,7 @@ fn intrinsics_of(info: &msg::CameraInfo) -> Result<Intrinsics, String> {
 
 /// The lens of a CameraInfo: plumb_bob coefficients, none when all are zero; other models with
 /// non-zero coefficients are refused.
-fn distortion_of(info: &msg::CameraInfo) -> Result<Option<Distortion>, String> {
+pub(crate) fn distortion_of(info: &msg::CameraInfo) -> Result<Option<Distortion>, String> {
     if info.d.iter().all(|c| *c == 0.0) {
         return Ok(None);
     }

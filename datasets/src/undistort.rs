@@ -252,6 +252,10 @@ impl Dataset for Undistorted {
         self.inner.damage()
     }
 
+    fn can_load(&self, position: usize) -> bool {
+        self.inner.can_load(position)
+    }
+
     fn ground_truth(&self, position: usize) -> Result<Option<Isometry3<f64>>, DatasetError> {
         self.inner.ground_truth(position)
     }

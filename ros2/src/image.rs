@@ -165,13 +165,13 @@ pub fn colour_from_compressed(image: &CompressedImage) -> Result<RgbImage, Image
     if !(format.contains("jpeg") || format.contains("jpg") || format.contains("png")) {
         return Err(ImageError::Format(image.format.clone()));
     }
-    if is_truncated_jpeg(image.data) {
+    if is_truncated_jpeg(&image.data) {
         return Err(ImageError::Codec(
             "JPEG without its end-of-image marker: the message is cut short".into(),
         ));
     }
     let decoded =
-        image::load_from_memory(image.data).map_err(|e| ImageError::Codec(e.to_string()))?;
+        image::load_from_memory(&image.data).map_err(|e| ImageError::Codec(e.to_string()))?;
     Ok(decoded.to_rgb8())
 }
 
@@ -183,7 +183,7 @@ pub fn depth_from_compressed(image: &CompressedImage) -> Result<DepthImage, Imag
     if !format.contains("compresseddepth") {
         if format.contains("png") {
             // A plain 16-bit PNG of millimetres (image_transport's png plugin).
-            return depth_from_png(image.data, None);
+            return depth_from_png(&image.data, None);
         }
         return Err(ImageError::Format(image.format.clone()));
     }
@@ -254,7 +254,7 @@ mod tests {
     use super::*;
     use crate::msg::Header;
 
-    fn raw<'a>(encoding: &str, width: u32, height: u32, step: u32, data: &'a [u8]) -> Image<'a> {
+    fn raw(encoding: &str, width: u32, height: u32, step: u32, data: &[u8]) -> Image {
         Image {
             header: Header::default(),
             height,
@@ -262,7 +262,7 @@ mod tests {
             encoding: encoding.into(),
             is_bigendian: 0,
             step,
-            data,
+            data: data.to_vec(),
         }
     }
 
@@ -337,14 +337,14 @@ mod tests {
         let message = CompressedImage {
             header: Header::default(),
             format: "16UC1; compressedDepth png".into(),
-            data: &data,
+            data: data.clone(),
         };
         assert_eq!(
             depth_from_compressed(&message).unwrap().data,
             vec![2.5, 0.0]
         );
         let cut = CompressedImage {
-            data: &data[..data.len() - 10],
+            data: data[..data.len() - 10].to_vec(),
             ..message.clone()
         };
         assert!(matches!(
@@ -353,7 +353,7 @@ mod tests {
         ));
         let jpeg = CompressedImage {
             format: "jpeg".into(),
-            data: &[0xFF, 0xD8, 1, 2, 3],
+            data: vec![0xFF, 0xD8, 1, 2, 3],
             ..message
         };
         assert!(

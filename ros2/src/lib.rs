@@ -7,5 +7,6 @@
 
 pub mod bag;
 pub mod image;
+pub mod live;
 pub mod msg;
 pub mod outputs;

@@ -129,27 +129,28 @@ pub struct Header {
     pub frame_id: String,
 }
 
-/// `sensor_msgs/Image`: raw pixels rows of `step` bytes.
+/// `sensor_msgs/Image`: raw pixels rows of `step` bytes. Messages own their bytes: a live
+/// subscription keeps them past the network buffer, and a bag read copies them once.
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct Image<'a> {
+pub struct Image {
     pub header: Header,
     pub height: u32,
     pub width: u32,
     pub encoding: String,
     pub is_bigendian: u8,
     pub step: u32,
-    #[serde(borrow, with = "serde_bytes")]
-    pub data: &'a [u8],
+    #[serde(with = "serde_bytes")]
+    pub data: Vec<u8>,
 }
 
 /// `sensor_msgs/CompressedImage`: `format` names the codec (`jpeg`, `png`, or the
 /// compressed_depth_image_transport's `16UC1; compressedDepth png`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct CompressedImage<'a> {
+pub struct CompressedImage {
     pub header: Header,
     pub format: String,
-    #[serde(borrow, with = "serde_bytes")]
-    pub data: &'a [u8],
+    #[serde(with = "serde_bytes")]
+    pub data: Vec<u8>,
 }
 
 /// `sensor_msgs/RegionOfInterest`.
