@@ -12,32 +12,9 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use common::{shared_data, workspace_binary};
+use common::{peers_python, shared_data, workspace_binary};
 
 const REPO: &str = env!("CARGO_MANIFEST_DIR");
-
-/// The peers' python (rosbags installed), or None when PyPI cannot be reached outside CI.
-fn peers_python() -> Option<PathBuf> {
-    let out = Command::new("bash")
-        .arg(Path::new(REPO).join("scripts/peers_venv.sh"))
-        .output()
-        .expect("running scripts/peers_venv.sh");
-    if out.status.code() == Some(3) && std::env::var("CI").as_deref() != Ok("true") {
-        eprintln!(
-            "NOT RUN: the peers' environment cannot be made (no PyPI): {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        return None;
-    }
-    assert!(
-        out.status.success(),
-        "scripts/peers_venv.sh failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    Some(PathBuf::from(
-        String::from_utf8(out.stdout).unwrap().trim().to_string(),
-    ))
-}
 
 /// Writes `dataset`'s `frames` as a bag at `out` with the converter's `options`.
 fn write_bag(python: &Path, dataset: &Path, frames: &str, out: &Path, options: &[&str]) {

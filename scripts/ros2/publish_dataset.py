@@ -209,9 +209,15 @@ def main():
         else:
             colour_msg = Image(header=header_at(stamp), height=height, width=width, encoding="rgb8",
                                is_bigendian=0, step=width * 3, data=rgb.tobytes())
-            millimetres = np.round(raw_depth.astype(np.float64) * 1000.0 / depth_units).astype(np.uint16)
-            depth_msg = Image(header=header_at(stamp), height=height, width=width, encoding="16UC1",
-                              is_bigendian=0, step=width * 2, data=millimetres.astype("<u2").tobytes())
+            if tum:
+                # TUM depth has 0.2 mm steps: metres as float (as TUM's own bags), not millimetres.
+                metres = (raw_depth.astype(np.float64) / depth_units).astype("<f4")
+                depth_msg = Image(header=header_at(stamp), height=height, width=width, encoding="32FC1",
+                                  is_bigendian=0, step=width * 4, data=metres.tobytes())
+            else:
+                millimetres = raw_depth.astype("<u2")
+                depth_msg = Image(header=header_at(stamp), height=height, width=width, encoding="16UC1",
+                                  is_bigendian=0, step=width * 2, data=millimetres.tobytes())
         colour_w.write(colour_msg)
         sent["colour"] += 1
         if args.duplicate_every and n % args.duplicate_every == args.duplicate_every - 1:

@@ -45,6 +45,30 @@ pub fn shared_data(relative: &str) -> PathBuf {
     path
 }
 
+/// The peers' python (scripts/peers_venv.sh: rosbags, cyclonedds, ...), or None when PyPI cannot
+/// be reached outside CI (the caller's test then says NOT RUN and passes; under CI it fails).
+pub fn peers_python() -> Option<PathBuf> {
+    let out = Command::new("bash")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/peers_venv.sh"))
+        .output()
+        .expect("running scripts/peers_venv.sh");
+    if out.status.code() == Some(3) && std::env::var("CI").as_deref() != Ok("true") {
+        eprintln!(
+            "NOT RUN: the peers' environment cannot be made (no PyPI): {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        return None;
+    }
+    assert!(
+        out.status.success(),
+        "scripts/peers_venv.sh failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    Some(PathBuf::from(
+        String::from_utf8(out.stdout).unwrap().trim().to_string(),
+    ))
+}
+
 /// Runs `scripts/<script>` with `args` on redkitchen from the shared data, with the binaries
 /// `cargo test --workspace` built (`--bin-dir`) and its outputs in `out` (`--out`); asserts it
 /// succeeded and returns its standard output.

@@ -25,7 +25,8 @@ pub struct PairingCounts {
     /// Messages that found no partner within the tolerance before a newer pair formed or their
     /// queue overflowed.
     pub unpaired: u64,
-    /// Messages stamped at or before the last pair formed (late, or sent twice): dropped.
+    /// Messages stamped at or before the last pair formed (late), or stamped like one of their
+    /// kind still waiting (sent twice): dropped.
     pub stale: u64,
     /// Messages with no stamp (zero): dropped, since nothing can pair them.
     pub unstamped: u64,
@@ -70,6 +71,10 @@ impl<C, D> Pairing<C, D> {
         if let Admission::Reject = self.admit(stamp_s) {
             return None;
         }
+        if is_waiting(&self.colour, stamp_s) {
+            self.counts.stale += 1;
+            return None;
+        }
         match take_nearest(&mut self.depth, stamp_s, self.tolerance_s) {
             Some((_, depth)) => Some(self.paired(stamp_s, colour, depth)),
             None => {
@@ -82,6 +87,10 @@ impl<C, D> Pairing<C, D> {
     /// A depth message; the pair it completes, if any: (stamp of the colour, colour, depth).
     pub fn push_depth(&mut self, stamp_s: f64, depth: D) -> Option<(f64, C, D)> {
         if let Admission::Reject = self.admit(stamp_s) {
+            return None;
+        }
+        if is_waiting(&self.depth, stamp_s) {
+            self.counts.stale += 1;
             return None;
         }
         match take_nearest(&mut self.colour, stamp_s, self.tolerance_s) {
@@ -131,6 +140,11 @@ impl<C, D> Pairing<C, D> {
         self.counts.paired += 1;
         (stamp_s, colour, depth)
     }
+}
+
+/// A message stamped `stamp_s` already waits: this one was sent twice.
+fn is_waiting<T>(queue: &VecDeque<(f64, T)>, stamp_s: f64) -> bool {
+    queue.iter().any(|(t, _)| *t == stamp_s)
 }
 
 /// Removes and returns the message nearest `stamp_s` within `tolerance_s`, if any.
@@ -227,9 +241,14 @@ mod tests {
         p.push_colour(3.0, "c");
         assert!(p.push_depth(3.0, "d").is_some());
         assert_eq!(p.push_colour(3.0, "c again"), None);
+        // Twice while the first still waits for its depth.
+        p.push_colour(4.0, "c4");
+        assert_eq!(p.push_colour(4.0, "c4 again"), None);
+        assert_eq!(p.push_depth(4.0, "d4"), Some((4.0, "c4", "d4")));
         assert_eq!(p.push_depth(0.0, "no stamp"), None);
-        assert_eq!(p.counts().stale, 1);
+        assert_eq!(p.counts().stale, 2);
         assert_eq!(p.counts().unstamped, 1);
+        assert_eq!(p.counts().unpaired, 0);
     }
 
     #[test]
