@@ -309,3 +309,69 @@ fn a_live_camera_that_never_appears_is_named() {
         "{log}"
     );
 }
+
+/// Two robots, each a camera under its own namespace, and `mac-ego3d swarm --agent
+/// ros2:/robot0 --agent ros2:/robot1`: both are linked into one map, with no ground truth (the
+/// figures leave the ATE out), and the consensus writes its bag.
+#[test]
+fn real_data_live_swarm_of_two_robots() {
+    let Some(python) = prerequisites() else {
+        return;
+    };
+    let _one_at_a_time = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let work = tempfile::tempdir().unwrap();
+    let config = config(
+        work.path(),
+        "swarm",
+        "colour_topic = \"/camera/camera/color/image_raw/compressed\"\n\
+         depth_topic = \"/camera/camera/aligned_depth_to_color/image_raw/compressedDepth\"\n\
+         [consensus.refinement]\nmax_seconds = 10.0\n",
+    );
+    let out = work.path().join("swarm");
+    let dataset = shared_data("datasets/7scenes-redkitchen");
+    let script = "set -e\n\
+         ip link set lo up\n\
+         ip link set lo multicast on\n\
+         ip route add 224.0.0.0/4 dev lo\n\
+         for k in 0 1; do\n\
+           \"$PYTHON\" \"$PUBLISHER\" --dataset \"$DATASET\" --frames $((k * 100))..$((k * 100 + 150)) \
+             --namespace /robot$k --rate 10 --images compressed > \"$OUT.sent$k\" &\n\
+         done\n\
+         \"$MAC_EGO3D\" swarm --config \"$CONFIG\" --agent ros2:/robot0 --agent ros2:/robot1 \
+           --out \"$OUT\"\n\
+         wait\n";
+    let run = Command::new("unshare")
+        .args(["--net", "bash", "-c", script])
+        .env("PYTHON", &python)
+        .env(
+            "PUBLISHER",
+            Path::new(REPO).join("scripts/ros2/publish_dataset.py"),
+        )
+        .env("MAC_EGO3D", workspace_binary("mac-ego3d"))
+        .env("DATASET", &dataset)
+        .env("CONFIG", &config)
+        .env("OUT", &out)
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap();
+    let tails = common::log_tails(&out, 30);
+    assert!(run.status.success(), "{}\n{tails}", log(&run));
+    let metrics: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(
+        metrics["agents_not_linked"],
+        serde_json::json!([]),
+        "{metrics}\n{tails}"
+    );
+    assert!(metrics["ate_joint_rmse_m"].is_null(), "{metrics}");
+    for k in 0..2 {
+        let agent: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(out.join(format!("agent_{k}/metrics.json"))).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(agent["live"]["paired"], 150, "agent {k}: {}", agent["live"]);
+        assert_eq!(agent["live"]["namespace"], format!("/robot{k}"));
+    }
+    assert!(out.join("ros2_bag/metadata.yaml").is_file());
+    assert!(out.join("map.ply").is_file());
+}

@@ -68,7 +68,8 @@ impl AgentFrames {
             return Ok(None);
         };
         let world_path = dir.join(format!("agent_{agent_id}.tum"));
-        if !world_path.exists() {
+        // A live camera's frames cannot be read again: nothing to score a map against.
+        if !world_path.exists() || datasets::live::is_live(spec) {
             return Ok(None);
         }
         let range: FrameRange = range
