@@ -20,6 +20,7 @@ const NOTABLE: &[&str] = &[
     "candle-core",
     "iceoryx2",
     "zenoh",
+    "rustdds",
     "rerun",
     "redb",
     "tokio",
