@@ -44,16 +44,27 @@ fn prerequisites() -> Option<PathBuf> {
     peers_python()
 }
 
+/// What one live run gave: the agent's output, what the publisher says it sent, the agent's
+/// metrics.json, and what a listener heard of the agent's live outputs (Null unless asked).
+struct LiveRun {
+    agent: Output,
+    sent: serde_json::Value,
+    metrics: serde_json::Value,
+    heard: serde_json::Value,
+}
+
 /// Runs the publisher (with `publisher_args`) and `mac-agent --standalone --dataset ros2:/robot0`
-/// (with `config`) side by side in a new network namespace; (the agent's output, what the
-/// publisher says it sent, the agent's metrics.json).
+/// (with `config`) side by side in a new network namespace, and with `listen`
+/// scripts/ros2/listen_outputs.py too.
 fn publish_and_track(
     python: &Path,
     publisher_args: &[&str],
     config: &Path,
     out: &Path,
-) -> (Output, serde_json::Value, serde_json::Value) {
+    listen: bool,
+) -> LiveRun {
     let sent = out.with_extension("sent.json");
+    let heard = out.with_extension("heard.json");
     let script = format!(
         "set -e\n\
          ip link set lo up\n\
@@ -61,12 +72,19 @@ fn publish_and_track(
          ip route add 224.0.0.0/4 dev lo\n\
          \"$PYTHON\" \"$PUBLISHER\" --namespace /robot0 {args} > \"$SENT\" &\n\
          publisher=$!\n\
+         {listener}\
          status=0\n\
          \"$AGENT\" --standalone --config \"$CONFIG\" --dataset ros2:/robot0 --renders 0 \
            --eval-every 5 --out \"$OUT\" || status=$?\n\
          wait $publisher || echo \"the publisher failed: $?\" >&2\n\
+         wait\n\
          exit $status\n",
-        args = publisher_args.join(" ")
+        args = publisher_args.join(" "),
+        listener = if listen {
+            "\"$PYTHON\" \"$LISTENER\" --agent 0 --idle 10 > \"$HEARD\" &\n"
+        } else {
+            ""
+        }
     );
     let run = Command::new("unshare")
         .args(["--net", "bash", "-c", &script])
@@ -79,6 +97,11 @@ fn publish_and_track(
         .env("CONFIG", config)
         .env("OUT", out)
         .env("SENT", &sent)
+        .env(
+            "LISTENER",
+            Path::new(REPO).join("scripts/ros2/listen_outputs.py"),
+        )
+        .env("HEARD", &heard)
         .env("NO_COLOR", "1")
         .output()
         .expect("running unshare");
@@ -88,7 +111,12 @@ fn publish_and_track(
             .and_then(|text| serde_json::from_str(text.trim()).ok())
             .unwrap_or(serde_json::Value::Null)
     };
-    (run, read(&sent), read(&out.join("metrics.json")))
+    LiveRun {
+        sent: read(&sent),
+        metrics: read(&out.join("metrics.json")),
+        heard: read(&heard),
+        agent: run,
+    }
 }
 
 fn log(out: &Output) -> String {
@@ -151,10 +179,15 @@ fn real_data_live_camera_over_dds_with_faults() {
     };
     let _one_at_a_time = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let work = tempfile::tempdir().unwrap();
-    let config = config(work.path(), "live", "");
+    let config = config(work.path(), "live", "publish = true\n");
     let out = work.path().join("agent");
     let dataset = shared_data("datasets/7scenes-redkitchen");
-    let (run, sent, metrics) = publish_and_track(
+    let LiveRun {
+        agent: run,
+        sent,
+        metrics,
+        heard,
+    } = publish_and_track(
         &python,
         &[
             "--dataset",
@@ -170,6 +203,7 @@ fn real_data_live_camera_over_dds_with_faults() {
         ],
         &config,
         &out,
+        true,
     );
     assert!(run.status.success(), "{}", log(&run));
     assert_eq!(sent["frames"], 90, "publisher: {sent}");
@@ -214,6 +248,37 @@ fn real_data_live_camera_over_dds_with_faults() {
         metrics["live"]["handover_ms_median"]
     );
     assert!(ate < 0.05, "ATE {ate} m");
+
+    // What the agent published live, as a ROS 2 node (rviz2) would hear it: a camera transform
+    // per placed frame, the world -> odom transform, the whole path, the map with colour.
+    let placed = std::fs::read_to_string(out.join("trajectory.tum"))
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .count() as u64;
+    eprintln!("heard: {heard}");
+    // /tf is volatile, as in ROS: transforms sent before the listener matched are not replayed.
+    let tf = heard["messages"]["tf"].as_u64().unwrap();
+    assert!(
+        tf <= placed && tf + 5 >= placed,
+        "{tf} of {placed}: {heard}"
+    );
+    assert_eq!(heard["messages"]["tf_static"].as_u64(), Some(1), "{heard}");
+    assert_eq!(
+        heard["tf_children"],
+        serde_json::json!(["agent0/camera_optical_frame", "agent0/odom"])
+    );
+    assert_eq!(heard["path"]["poses"].as_u64(), Some(placed), "{heard}");
+    assert_eq!(heard["path"]["frame"], "world");
+    assert_eq!(
+        heard["map"]["points"].as_u64(),
+        metrics["gaussians"].as_u64(),
+        "the final map, whole: {heard}"
+    );
+    assert_eq!(
+        heard["map"]["fields"],
+        serde_json::json!(["x", "y", "z", "rgb"])
+    );
 }
 
 /// Compressed images (JPEG colour, compressedDepth PNG), and a
@@ -233,7 +298,12 @@ fn real_data_live_compressed_camera_restarting() {
     );
     let out = work.path().join("agent");
     let dataset = shared_data("datasets/7scenes-redkitchen");
-    let (run, sent, metrics) = publish_and_track(
+    let LiveRun {
+        agent: run,
+        sent,
+        metrics,
+        ..
+    } = publish_and_track(
         &python,
         &[
             "--dataset",
@@ -249,6 +319,7 @@ fn real_data_live_compressed_camera_restarting() {
         ],
         &config,
         &out,
+        false,
     );
     assert!(run.status.success(), "{}", log(&run));
     // The whole range twice: the stamps jump back by 1.5 s, past the restart threshold.

@@ -27,6 +27,7 @@ pub mod mapper;
 pub mod pace;
 pub mod pipeline;
 pub mod progress;
+pub mod ros2_live;
 pub mod ros2_outputs;
 pub mod run;
 pub mod seeding;

@@ -21,6 +21,7 @@ use splats::{GaussianCloud, RigidTransform};
 use crate::local_corrections::{LocalCorrections, LocalMaps};
 use crate::mapper::{KeyframeKind, Mapper, MappingKeyframe};
 use crate::progress::{Progress, Stage};
+use crate::ros2_live::LiveOutputs;
 use crate::seeding::{CoverageIndex, SeedFrame, seed_gaussians};
 use crate::segments::PendingKeyframes;
 use crate::source::SourceFrame;
@@ -104,6 +105,8 @@ pub struct FinishedPipeline {
     pub keyframes_made: Vec<KeyframeMade>,
     /// Keyframes of segments never joined, dropped from the map.
     pub keyframes_dropped_unjoined: usize,
+    /// The live DDS outputs, when `[ros2] publish` is on: the final map goes there too.
+    pub ros2_live: Option<LiveOutputs>,
 }
 
 /// The per-frame state of one agent.
@@ -128,6 +131,8 @@ pub struct AgentPipeline<'a> {
     live_view: LiveView,
     /// Keyframes of an unjoined tracking segment, waiting to be joined (crate::segments).
     pending: PendingKeyframes,
+    /// tf, path and map published over DDS as they are made (`[ros2] publish`).
+    ros2_live: Option<LiveOutputs>,
 }
 
 impl<'a> AgentPipeline<'a> {
@@ -140,6 +145,7 @@ impl<'a> AgentPipeline<'a> {
         live_view: LiveView,
     ) -> anyhow::Result<Self> {
         use anyhow::Context;
+        let standalone = swarm.is_none();
         Ok(Self {
             config,
             dataset_spec,
@@ -161,6 +167,8 @@ impl<'a> AgentPipeline<'a> {
             agent_id,
             live_view,
             pending: PendingKeyframes::new(PENDING_KEYFRAMES),
+            ros2_live: LiveOutputs::start(&config.ros2, agent_id, standalone)
+                .context("starting the live ROS 2 outputs")?,
         })
     }
 
@@ -370,6 +378,9 @@ impl<'a> AgentPipeline<'a> {
             .keyframe(self.agent_id, &tracked.local.world_from_camera);
         self.live_view
             .map_points(self.agent_id, &seeds.means, &seeds.colours, false);
+        if let Some(live) = self.ros2_live.as_mut() {
+            live.keyframe(&seeds);
+        }
         match decision.kind {
             KeyframeKind::Tracking => self.keyframes.tracking += 1,
             KeyframeKind::Mapping => self.keyframes.mapping += 1,
@@ -424,6 +435,14 @@ impl<'a> AgentPipeline<'a> {
     /// Keeps the frame's pose and its time in the loop (started at `clock`).
     pub fn record(&mut self, item: &SourceFrame, tracked: &Tracked, clock: Instant) {
         self.tracking_ms.push(clock.elapsed().as_secs_f64() * 1e3);
+        let placed = tracked.local.placement == Placement::Root
+            && (tracked.local.outcome.is_tracked()
+                || tracked.local.outcome == TrackingOutcome::Initialised);
+        if let Some(live) = self.ros2_live.as_mut()
+            && placed
+        {
+            live.frame(item.frame.timestamp, &tracked.world_from_camera);
+        }
         self.poses.push(TrackedPose {
             position: item.position,
             timestamp: item.frame.timestamp,
@@ -490,6 +509,7 @@ impl<'a> AgentPipeline<'a> {
             keyframes: self.keyframes,
             keyframes_made: self.keyframes_made,
             keyframes_dropped_unjoined: self.pending.dropped,
+            ros2_live: self.ros2_live,
         };
         (self.mapper, self.swarm, finished)
     }

@@ -315,13 +315,16 @@ pub fn run_agent(
     let loop_seconds = started.elapsed().as_secs_f64();
     progress.finish_and_clear();
     progress_file.write(&agent.progress(Stage::Finishing, frames_total));
-    let (mapper, swarm, run) = agent.finish();
+    let (mapper, swarm, mut run) = agent.finish();
     let refine_iterations = if interrupted {
         0
     } else {
         options.refine_iterations
     };
     let outcome = mapper.finish(refine_iterations)?;
+    if let Some(live) = run.ros2_live.as_mut() {
+        live.finish(&outcome.realtime_map);
+    }
 
     // Outputs that need no rendering first: an interrupted evaluation still leaves these.
     let trajectory = write_trajectories(&run.poses, &options.out)?;

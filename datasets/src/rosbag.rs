@@ -74,6 +74,11 @@ pub struct Ros2Config {
     /// Live topics: frames kept in memory for the map evaluation at most (evenly spaced; about
     /// 2 MB each at 640x480).
     pub evaluation_frames: usize,
+    /// Live outputs: publish tf, the path and the map over DDS while the agent runs (topics as
+    /// in its bag), for rviz2.
+    pub publish: bool,
+    /// Live outputs: the map's PointCloud2 at most this often, seconds.
+    pub publish_map_every_s: f64,
 }
 
 impl Default for Ros2Config {
@@ -94,6 +99,8 @@ impl Default for Ros2Config {
             wait_for_camera_s: 30.0,
             idle_timeout_s: 10.0,
             evaluation_frames: 100,
+            publish: false,
+            publish_map_every_s: 2.0,
         }
     }
 }
@@ -113,6 +120,7 @@ impl Ros2Config {
         for (field, seconds) in [
             ("ros2.wait_for_camera_s", self.wait_for_camera_s),
             ("ros2.idle_timeout_s", self.idle_timeout_s),
+            ("ros2.publish_map_every_s", self.publish_map_every_s),
         ] {
             if !(seconds.is_finite() && seconds >= 0.0) {
                 return Err((field, format!("must be seconds, 0 or more, got {seconds}")));

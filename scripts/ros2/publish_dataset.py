@@ -26,75 +26,20 @@ import io
 import json
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from PIL import Image as PILImage
 
-import cyclonedds.idl as idl
-import cyclonedds.idl.types as t
 from cyclonedds.core import Qos, Policy
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.topic import Topic
+from cyclonedds.util import duration
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import dataset_to_bag as folders  # noqa: E402  (its frame readers, shared)
-
-
-@dataclass
-class Time(idl.IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
-    sec: t.int32 = 0
-    nanosec: t.uint32 = 0
-
-
-@dataclass
-class Header(idl.IdlStruct, typename="std_msgs::msg::dds_::Header_"):
-    stamp: Time = field(default_factory=Time)
-    frame_id: str = ""
-
-
-@dataclass
-class Image(idl.IdlStruct, typename="sensor_msgs::msg::dds_::Image_"):
-    header: Header
-    height: t.uint32
-    width: t.uint32
-    encoding: str
-    is_bigendian: t.uint8
-    step: t.uint32
-    data: t.sequence[t.uint8]
-
-
-@dataclass
-class CompressedImage(idl.IdlStruct, typename="sensor_msgs::msg::dds_::CompressedImage_"):
-    header: Header
-    format: str
-    data: t.sequence[t.uint8]
-
-
-@dataclass
-class RegionOfInterest(idl.IdlStruct, typename="sensor_msgs::msg::dds_::RegionOfInterest_"):
-    x_offset: t.uint32 = 0
-    y_offset: t.uint32 = 0
-    height: t.uint32 = 0
-    width: t.uint32 = 0
-    do_rectify: bool = False
-
-
-@dataclass
-class CameraInfo(idl.IdlStruct, typename="sensor_msgs::msg::dds_::CameraInfo_"):
-    header: Header
-    height: t.uint32
-    width: t.uint32
-    distortion_model: str
-    d: t.sequence[t.float64]
-    k: t.array[t.float64, 9]
-    r: t.array[t.float64, 9]
-    p: t.array[t.float64, 12]
-    binning_x: t.uint32 = 0
-    binning_y: t.uint32 = 0
-    roi: RegionOfInterest = field(default_factory=RegionOfInterest)
+from ros2_idl import CameraInfo, CompressedImage, Header, Image, Time  # noqa: E402
 
 
 def header_at(stamp_s, frame_id=folders.OPTICAL_FRAME):
@@ -145,7 +90,7 @@ def main():
     if args.qos == "sensor":
         qos = Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(5), Policy.Durability.Volatile)
     else:
-        qos = Qos(Policy.Reliability.Reliable(max_blocking_time=0.1), Policy.History.KeepLast(5),
+        qos = Qos(Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100)), Policy.History.KeepLast(5),
                   Policy.Durability.Volatile)
     participant = DomainParticipant(args.domain)
 

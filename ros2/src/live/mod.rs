@@ -9,6 +9,7 @@
 //! receiving thread, so a slow decode never stalls the network.
 
 pub mod pairing;
+pub mod publisher;
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -58,6 +59,8 @@ pub enum LiveError {
     Dds { domain_id: u16, reason: String },
     #[error("the ROS 2 receiving thread stopped: {0}")]
     Receiver(String),
+    #[error("publishing on {topic}: {reason}")]
+    Publish { topic: String, reason: String },
 }
 
 /// A colour or depth message as it arrived: raw or compressed.
@@ -283,6 +286,18 @@ fn topic_name(topic: &str) -> Result<Name, LiveError> {
     Name::new(namespace, base).map_err(|e| invalid(format!("{e:?}")))
 }
 
+/// A DDS participant on `domain_id` and a ROS 2 node named `node_name` in it.
+fn join_domain(domain_id: u16, node_name: &str) -> Result<(Context, ros2_client::Node), LiveError> {
+    let dds = |reason: String| LiveError::Dds { domain_id, reason };
+    let context = Context::with_options(ContextOptions::new().domain_id(domain_id))
+        .map_err(|e| dds(format!("{e:?}")))?;
+    let name = NodeName::new("/", node_name).map_err(|e| dds(format!("node name: {e:?}")))?;
+    let node = context
+        .new_node(name, NodeOptions::new().enable_rosout(false))
+        .map_err(|e| dds(format!("{e:?}")))?;
+    Ok((context, node))
+}
+
 enum ImageSubscription {
     Raw(ros2_client::Subscription<Image>),
     Compressed(ros2_client::Subscription<CompressedImage>),
@@ -326,13 +341,7 @@ impl Subscriptions {
             domain_id: options.domain_id,
             reason,
         };
-        let context = Context::with_options(ContextOptions::new().domain_id(options.domain_id))
-            .map_err(|e| dds(format!("{e:?}")))?;
-        let node_name =
-            NodeName::new("/", &options.node_name).map_err(|e| dds(format!("node name: {e:?}")))?;
-        let mut node = context
-            .new_node(node_name, NodeOptions::new().enable_rosout(false))
-            .map_err(|e| dds(format!("{e:?}")))?;
+        let (context, mut node) = join_domain(options.domain_id, &options.node_name)?;
         // Keep a few samples per reader so a burst is not lost before the thread takes it;
         // reliability as configured (best effort matches every publisher).
         let base = QosProfile::subscription_default().history(History::KeepLast { depth: 4 });
@@ -492,12 +501,10 @@ impl ImageSubscription {
     }
 }
 
-/// The message types a live camera publishes, for publishers written with this crate (tests,
-/// benchmarks): ros2-client wants them marked.
-impl ros2_client::Message for Image {}
-impl ros2_client::Message for CompressedImage {}
-impl ros2_client::Message for CameraInfo {}
-impl ros2_client::Message for msg::PoseStamped {}
+// The messages published live (ros2-client wants them marked).
+impl ros2_client::Message for msg::TfMessage {}
+impl ros2_client::Message for msg::Path {}
+impl ros2_client::Message for msg::PointCloud2 {}
 
 #[cfg(test)]
 mod tests {
