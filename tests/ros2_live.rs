@@ -396,6 +396,7 @@ fn real_data_live_swarm_of_two_robots() {
         "swarm",
         "colour_topic = \"/camera/camera/color/image_raw/compressed\"\n\
          depth_topic = \"/camera/camera/aligned_depth_to_color/image_raw/compressedDepth\"\n\
+         publish = true\n\
          [consensus.refinement]\nmax_seconds = 10.0\n",
     );
     let out = work.path().join("swarm");
@@ -408,6 +409,7 @@ fn real_data_live_swarm_of_two_robots() {
            \"$PYTHON\" \"$PUBLISHER\" --dataset \"$DATASET\" --frames $((k * 100))..$((k * 100 + 150)) \
              --namespace /robot$k --rate 10 --images compressed > \"$OUT.sent$k\" &\n\
          done\n\
+         \"$PYTHON\" \"$LISTENER\" --agent 0 --map-topic /map --idle 30 > \"$OUT.heard\" &\n\
          \"$MAC_EGO3D\" swarm --config \"$CONFIG\" --agent ros2:/robot0 --agent ros2:/robot1 \
            --out \"$OUT\"\n\
          wait\n";
@@ -419,6 +421,10 @@ fn real_data_live_swarm_of_two_robots() {
             Path::new(REPO).join("scripts/ros2/publish_dataset.py"),
         )
         .env("MAC_EGO3D", workspace_binary("mac-ego3d"))
+        .env(
+            "LISTENER",
+            Path::new(REPO).join("scripts/ros2/listen_outputs.py"),
+        )
         .env("DATASET", &dataset)
         .env("CONFIG", &config)
         .env("OUT", &out)
@@ -445,4 +451,29 @@ fn real_data_live_swarm_of_two_robots() {
     }
     assert!(out.join("ros2_bag/metadata.yaml").is_file());
     assert!(out.join("map.ply").is_file());
+    // What the consensus published live, as rviz2 hears it: both agents placed in the world,
+    // agent 0's world path, the merged map.
+    let heard: serde_json::Value = serde_json::from_str(
+        std::fs::read_to_string(out.with_extension("heard"))
+            .unwrap()
+            .trim(),
+    )
+    .unwrap_or_else(|e| panic!("the listener's JSON: {e}\n{}", log(&run)));
+    let children = heard["tf_children"].as_array().unwrap();
+    for expected in ["agent0/odom", "agent1/odom", "agent0/camera_optical_frame"] {
+        assert!(
+            children.iter().any(|c| c == expected),
+            "{expected}: {heard}"
+        );
+    }
+    assert_eq!(heard["path"]["frame"], "world", "{heard}");
+    let world_path = std::fs::read_to_string(out.join("agent_0.tum")).unwrap();
+    let world_poses = world_path.lines().filter(|l| !l.starts_with('#')).count();
+    assert_eq!(
+        heard["path"]["poses"].as_u64(),
+        Some(world_poses as u64),
+        "{heard}"
+    );
+    assert_eq!(heard["map"]["frame"], "world", "{heard}");
+    assert!(heard["map"]["points"].as_u64().unwrap() > 1000, "{heard}");
 }

@@ -1,7 +1,8 @@
 //! The agent's results published over DDS while it runs (`[ros2] publish = true`; docs/ros2.md,
 //! Live outputs), with the names and frames of its bag (crate::ros2_outputs): `/tf` with
 //! `agentK/odom -> agentK/camera_optical_frame` at every placed frame, `/tf_static` with `world ->
-//! agentK/odom` when standalone, `/agentK/path` at every keyframe, and `/agentK/map` at most every
+//! agentK/odom` when standalone, `/agentK/path` at every keyframe when standalone (in a swarm the
+//! consensus publishes the paths, in the world), and `/agentK/map` at most every
 //! `publish_map_every_s`: the Gaussians as seeded so far while the agent runs (the mapper holds
 //! the optimised map on its own thread), the optimised map at the end. A publishing failure is
 //! logged once and publishing stops; the run goes on.
@@ -20,7 +21,8 @@ pub struct LiveOutputs {
     frames: AgentFrames,
     /// The frame of the agent's poses: the world when standalone, its odometry frame in a swarm.
     pose_frame: String,
-    path_topic: String,
+    /// None in a swarm: the world paths are the consensus's.
+    path_topic: Option<String>,
     map_topic: String,
     placed: Vec<(f64, Isometry3<f64>)>,
     seeded_means: Vec<[f32; 3]>,
@@ -58,7 +60,7 @@ impl LiveOutputs {
         let topic = |name: &str| format!("/{}{agent_id}/{name}", config.frame_prefix);
         tracing::info!(
             domain_id = config.domain_id(),
-            path = %topic("path"),
+            standalone,
             map = %topic("map"),
             "publishing tf, path and map over DDS"
         );
@@ -70,7 +72,7 @@ impl LiveOutputs {
                 frames.odom.clone()
             },
             frames,
-            path_topic: topic("path"),
+            path_topic: standalone.then(|| topic("path")),
             map_topic: topic("map"),
             placed: Vec::new(),
             seeded_means: Vec::new(),
@@ -88,6 +90,13 @@ impl LiveOutputs {
         {
             tracing::error!(%error, "publishing over DDS failed: live outputs stop here");
             self.publisher = None;
+        }
+    }
+
+    fn send_path(&mut self) {
+        if let Some(topic) = self.path_topic.clone() {
+            let message = path(&self.pose_frame, &self.placed);
+            self.send(|p| p.path(&topic, message));
         }
     }
 
@@ -109,9 +118,7 @@ impl LiveOutputs {
     pub fn keyframe(&mut self, seeds: &GaussianCloud) {
         self.seeded_means.extend_from_slice(&seeds.means);
         self.seeded_colours.extend_from_slice(&seeds.colours);
-        let message = path(&self.pose_frame, &self.placed);
-        let topic = self.path_topic.clone();
-        self.send(|p| p.path(&topic, message));
+        self.send_path();
         if self
             .map_sent
             .is_none_or(|at| at.elapsed() >= self.map_every)
@@ -138,9 +145,7 @@ impl LiveOutputs {
             "publishing the final path and map over DDS"
         );
         let stamp = self.placed.last().map_or(0.0, |p| p.0);
-        let message = path(&self.pose_frame, &self.placed);
-        let topic = self.path_topic.clone();
-        self.send(|p| p.path(&topic, message));
+        self.send_path();
         let cloud = point_cloud(
             &self.pose_frame,
             stamp,

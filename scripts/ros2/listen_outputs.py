@@ -5,7 +5,8 @@ as rviz2 on a stock ROS 2 would: /tf, /tf_static, /<prefix>K/path and /<prefix>K
 one JSON line: messages per topic, the last path's length and stamps, the last map's points and
 fields, the child frames seen on /tf.
 
-  python scripts/ros2/listen_outputs.py --agent 0 [--prefix agent] [--domain 0] [--idle 5]
+  python scripts/ros2/listen_outputs.py --agent 0 [--prefix agent] [--domain 0] [--idle 5] \
+      [--map-topic /map]
 
 Run it in the peers' environment: python="$(scripts/peers_venv.sh)".
 """
@@ -18,7 +19,7 @@ from pathlib import Path as FilePath
 
 from cyclonedds.core import Policy, Qos
 from cyclonedds.domain import DomainParticipant
-from cyclonedds.sub import DataReader
+from cyclonedds.sub import DataReader, InvalidSample
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
@@ -31,6 +32,7 @@ def main():
     ap.add_argument("--agent", type=int, default=0)
     ap.add_argument("--prefix", default="agent")
     ap.add_argument("--domain", type=int, default=0)
+    ap.add_argument("--map-topic", help="default /<prefix>K/map (the agent's); /map is the consensus's")
     ap.add_argument("--idle", type=float, default=5.0)
     ap.add_argument("--timeout", type=float, default=300.0)
     args = ap.parse_args()
@@ -44,7 +46,8 @@ def main():
         "tf": DataReader(participant, Topic(participant, "rt/tf", TFMessage), qos=reliable),
         "tf_static": DataReader(participant, Topic(participant, "rt/tf_static", TFMessage), qos=latched),
         "path": DataReader(participant, Topic(participant, f"rt{agent}/path", Path), qos=latest),
-        "map": DataReader(participant, Topic(participant, f"rt{agent}/map", PointCloud2), qos=latest),
+        "map": DataReader(participant, Topic(participant, "rt" + (args.map_topic or f"{agent}/map"), PointCloud2),
+                          qos=latest),
     }
     seen = {name: 0 for name in readers}
     children = set()
@@ -55,6 +58,8 @@ def main():
         got = False
         for name, reader in readers.items():
             for sample in reader.take(N=100):
+                if isinstance(sample, InvalidSample):
+                    continue  # a writer left (an agent ended): no data
                 got = True
                 seen[name] += 1
                 if name in ("tf", "tf_static"):

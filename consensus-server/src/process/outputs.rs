@@ -231,7 +231,14 @@ pub(super) fn write_outputs(
         .with_context(|| format!("writing {}", map_path.display()))?;
     options.live_view.merged_map(&map.means, &map.colours);
     write_world_trajectories(out, engine, &agents)?;
-    super::ros2_outputs::write_consensus_bag(out, &agents, &map, &options.config.ros2)?;
+    let messages =
+        super::ros2_outputs::consensus_messages(out, &agents, &map, &options.config.ros2)?;
+    super::ros2_outputs::write_consensus_bag(out, &messages)?;
+    super::ros2_outputs::publish(
+        &messages,
+        &options.config.ros2,
+        kind != OutputKind::Snapshot,
+    );
     let events = engine.events().to_vec();
     let (injected, real): (Vec<&ClosureEvent>, Vec<&ClosureEvent>) = events
         .iter()

@@ -31,7 +31,7 @@ fn latest_only() -> QosProfile {
 }
 
 /// How long [`LivePublisher::linger`] gives reliable samples to reach their subscribers.
-pub const LINGER: Duration = Duration::from_secs(1);
+pub const LINGER: Duration = Duration::from_secs(3);
 
 impl LivePublisher {
     /// Joins `domain_id` as the node `node_name`, with `/tf` and `/tf_static` ready.
