@@ -477,3 +477,70 @@ fn real_data_live_swarm_of_two_robots() {
     assert_eq!(heard["map"]["frame"], "world", "{heard}");
     assert!(heard["map"]["points"].as_u64().unwrap() > 1000, "{heard}");
 }
+
+/// Garbage over the wire: colour images with an encoding nobody knows, with one row more than
+/// their data, unstamped pairs, and a burst at 200 Hz to start: each is counted where it belongs,
+/// the agent goes on, and its map is kept.
+#[test]
+fn real_data_live_camera_sending_garbage() {
+    let Some(python) = prerequisites() else {
+        return;
+    };
+    let _one_at_a_time = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let work = tempfile::tempdir().unwrap();
+    let config = config(work.path(), "garbage", "");
+    let out = work.path().join("agent");
+    let dataset = shared_data("datasets/7scenes-redkitchen");
+    let LiveRun {
+        agent: run,
+        sent,
+        metrics,
+        ..
+    } = publish_and_track(
+        &python,
+        &[
+            "--dataset",
+            dataset.to_str().unwrap(),
+            "--frames",
+            "0..60",
+            "--rate",
+            "10",
+            "--burst",
+            "20",
+            "--corrupt",
+            "encoding:10",
+            "--corrupt",
+            "size:14",
+            "--corrupt",
+            "zero-stamp:23",
+        ],
+        &config,
+        &out,
+        false,
+    );
+    assert!(run.status.success(), "{}", log(&run));
+    assert_eq!(
+        sent["corrupted"],
+        serde_json::json!({"encoding": 6, "size": 4, "zero-stamp": 2}),
+        "{sent}"
+    );
+    // Both images of an unstamped frame are refused before pairing.
+    assert_eq!(count(&metrics, "unstamped"), 4);
+    let paired = count(&metrics, "paired");
+    assert_eq!(paired, 58);
+    // A spoilt pair the agent took is a decode error; one it never took was dropped.
+    let decode_errors = count(&metrics, "decode_errors");
+    assert!((1..=10).contains(&decode_errors), "{}", metrics["live"]);
+    assert_eq!(
+        count(&metrics, "frames") + count(&metrics, "dropped") + decode_errors,
+        paired
+    );
+    assert_eq!(metrics["frames_broken"].as_u64(), Some(decode_errors));
+    let log = log(&run);
+    assert!(
+        log.contains("skipping a live frame that cannot be used"),
+        "{log}"
+    );
+    assert!(out.join("map.ply").is_file());
+    assert!(metrics["gaussians"].as_u64().unwrap() > 1000, "{metrics}");
+}

@@ -8,14 +8,15 @@ Image_). No ROS installation is needed.
   python scripts/ros2/publish_dataset.py --dataset DIR --frames 0..300 --namespace /robot0 \
       [--domain 0] [--rate 30 | --sensor-pace] [--images raw|compressed] [--qos sensor|reliable] \
       [--stamps dataset|now] [--wait-subscribers 1] [--skip-depth-every N] [--duplicate-every N] \
-      [--restart-after N]
+      [--restart-after N] [--corrupt encoding|size|zero-stamp:EVERY] [--burst N]
 
 Frames are read as scripts/ros2/dataset_to_bag.py reads them (the same association and stamps).
 --stamps now stamps each frame with the wall clock when it is sent (latency measurements);
 dataset keeps the recording's stamps (the ground truth can be matched). Faults for tests:
 --skip-depth-every N never sends every N-th depth image, --duplicate-every N sends every N-th
 colour image twice, --restart-after N starts over from the first frame after N frames (a driver
-restarted; stamps jump back). Prints one JSON line of what it sent at the end.
+restarted; stamps jump back), --corrupt spoils every EVERY-th frame as named, --burst N sends the
+first N frames at 200 Hz. Prints one JSON line of what it sent at the end.
 
 Raw images are serialised by cyclonedds in Python at about 30 ms per megabyte: use --rate 10 or
 --images compressed for 30 Hz. Run it in the peers' environment: python="$(scripts/peers_venv.sh)".
@@ -64,7 +65,17 @@ def main():
     ap.add_argument("--skip-depth-every", type=int, default=0)
     ap.add_argument("--duplicate-every", type=int, default=0)
     ap.add_argument("--restart-after", type=int, default=0)
+    ap.add_argument("--corrupt", action="append", default=[], metavar="KIND:EVERY",
+                    help="every EVERY-th frame bad: encoding (raw colour says yuv422), size (raw "
+                         "colour's height one row more than its data), zero-stamp (both unstamped)")
+    ap.add_argument("--burst", type=int, default=0, help="send the first N frames at 200 Hz")
     args = ap.parse_args()
+    corrupt = {}
+    for item in args.corrupt:
+        kind, _, every = item.partition(":")
+        if kind not in ("encoding", "size", "zero-stamp") or not every.isdigit() or int(every) < 1:
+            sys.exit(f"--corrupt {item!r}: expected encoding:N, size:N or zero-stamp:N")
+        corrupt[kind] = int(every)
 
     first, end = folders.parse_range(args.frames)
     folder = args.dataset
@@ -110,7 +121,7 @@ def main():
     time.sleep(0.5)
 
     sent = {"colour": 0, "depth": 0, "camera_info": 0, "duplicates": 0, "restarts": 0,
-            "depth_skipped": 0, "frames": 0, "topics": [colour_name, depth_name, info_name]}
+            "depth_skipped": 0, "frames": 0, "corrupted": {k: 0 for k in corrupt}, "topics": [colour_name, depth_name, info_name]}
     order = list(range(len(frames)))
     if args.restart_after:
         order = order[: args.restart_after] + order
@@ -122,7 +133,9 @@ def main():
             sent["restarts"] += 1
             time.sleep(0.5)
             start = time.time()
-        if args.sensor_pace:
+        if n < args.burst:
+            due = start + n / 200.0
+        elif args.sensor_pace:
             due = start + (stamp - t0)
         else:
             due = start + (n if not args.restart_after or n < args.restart_after else n - args.restart_after) / args.rate
@@ -163,6 +176,20 @@ def main():
                 millimetres = raw_depth.astype("<u2")
                 depth_msg = Image(header=header_at(stamp), height=height, width=width, encoding="16UC1",
                                   is_bigendian=0, step=width * 2, data=millimetres.tobytes())
+        def bad(kind):
+            every = corrupt.get(kind)
+            hit = every is not None and n % every == every - 1
+            if hit:
+                sent["corrupted"][kind] += 1
+            return hit
+
+        if not compressed and bad("encoding"):
+            colour_msg.encoding = "yuv422"
+        if not compressed and bad("size"):
+            colour_msg.height += 1
+        if bad("zero-stamp"):
+            colour_msg.header = header_at(0.0)
+            depth_msg.header = header_at(0.0)
         colour_w.write(colour_msg)
         sent["colour"] += 1
         if args.duplicate_every and n % args.duplicate_every == args.duplicate_every - 1:
