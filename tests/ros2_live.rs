@@ -544,3 +544,48 @@ fn real_data_live_camera_sending_garbage() {
     assert!(out.join("map.ply").is_file());
     assert!(metrics["gaussians"].as_u64().unwrap() > 1000, "{metrics}");
 }
+
+/// `mac-ego3d dataset info ros2:/robot0` lists the topics a camera announces, says that the
+/// agent's raw topics are not among them and which keys to set for the compressed ones, and
+/// counts what came.
+#[test]
+fn real_data_dataset_info_of_a_live_camera() {
+    let Some(python) = prerequisites() else {
+        return;
+    };
+    let _one_at_a_time = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dataset = shared_data("datasets/7scenes-redkitchen");
+    let script = "set -e\n\
+         ip link set lo up\n\
+         ip link set lo multicast on\n\
+         ip route add 224.0.0.0/4 dev lo\n\
+         \"$PYTHON\" \"$PUBLISHER\" --dataset \"$DATASET\" --frames 0..150 --namespace /robot0 \
+           --rate 10 --images compressed --wait-subscribers 0 > /dev/null &\n\
+         sleep 3\n\
+         \"$MAC_EGO3D\" dataset info ros2:/robot0\n\
+         kill %1\n";
+    let run = Command::new("unshare")
+        .args(["--net", "bash", "-c", script])
+        .env("PYTHON", &python)
+        .env(
+            "PUBLISHER",
+            Path::new(REPO).join("scripts/ros2/publish_dataset.py"),
+        )
+        .env("MAC_EGO3D", workspace_binary("mac-ego3d"))
+        .env("DATASET", &dataset)
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap();
+    let printed = String::from_utf8_lossy(&run.stdout);
+    assert!(run.status.success(), "{printed}\n{}", log(&run));
+    for expected in [
+        "/robot0/camera/camera/color/image_raw/compressed",
+        "sensor_msgs/msg/CompressedImage",
+        "/robot0/camera/camera/color/image_raw                        NOT ANNOUNCED",
+        "set [ros2] colour_topic = \"/camera/camera/color/image_raw/compressed\"",
+        "set [ros2] depth_topic = \"/camera/camera/aligned_depth_to_color/image_raw/compressedDepth\"",
+        "camera: 640x480 fx 585 fy 585",
+    ] {
+        assert!(printed.contains(expected), "{expected}:\n{printed}");
+    }
+}

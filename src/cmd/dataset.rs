@@ -64,7 +64,8 @@ pub struct FrameArgs {
 
 #[derive(Args)]
 pub struct InfoArgs {
-    /// Dataset folder or `synthetic[:agents=3,agent=0,frames=300,seed=0]`.
+    /// Dataset folder, bag, `synthetic[:agents=3,agent=0,frames=300,seed=0]`, or a live camera
+    /// `ros2:[NAMESPACE]` (the topics on the DDS domain and what comes on the agent's).
     path: String,
     /// Frame range, e.g. 0..600.
     #[arg(long, default_value = "0..")]
@@ -220,6 +221,19 @@ pub fn run(command: &DatasetCommand) -> anyhow::Result<()> {
         DatasetCommand::Frame(args) => return export_frame(args),
         DatasetCommand::Covisibility(args) => return covisibility(args),
     };
+    if datasets::live::is_live(&args.path) {
+        let config = match &args.config {
+            Some(path) => config::Config::load(path)?,
+            None => config::Config::default(),
+        };
+        let info = super::live_info::live_info(&args.path, &config.ros2)?;
+        return if args.json {
+            print_json(&info)
+        } else {
+            super::live_info::print_live_info(&info);
+            Ok(())
+        };
+    }
     let path = Path::new(&args.path);
     // A folder of agent folders (synth output, Multi-agent Replica) -> one block per agent.
     let sources: Vec<String> = if path.is_dir() && datasets::detect_layout(path).is_err() {

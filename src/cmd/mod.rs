@@ -6,6 +6,7 @@ pub mod chaos;
 pub mod config;
 pub mod dataset;
 pub mod eval;
+pub mod live_info;
 pub mod plot;
 pub mod render;
 pub mod swarm;

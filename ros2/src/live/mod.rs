@@ -286,6 +286,36 @@ fn topic_name(topic: &str) -> Result<Name, LiveError> {
     Name::new(namespace, base).map_err(|e| invalid(format!("{e:?}")))
 }
 
+/// The ROS 2 topics (name, type) other participants on `domain_id` announced within `wait`, as
+/// `ros2 topic list -t` names them (`/camera/color/image_raw`, `sensor_msgs/msg/Image`), sorted.
+pub fn discover_topics(domain_id: u16, wait: Duration) -> Result<Vec<(String, String)>, LiveError> {
+    let (context, _node) = join_domain(domain_id, "mac_ego3d_discovery")?;
+    std::thread::sleep(wait);
+    let mut topics: Vec<(String, String)> = context
+        .discovered_topics()
+        .into_iter()
+        .filter_map(|t| {
+            let name = t.name.strip_prefix("rt")?.to_string();
+            Some((name, ros_type_name(&t.type_name)))
+        })
+        .collect();
+    topics.sort();
+    topics.dedup();
+    Ok(topics)
+}
+
+/// `sensor_msgs::msg::dds_::Image_` as `sensor_msgs/msg/Image`; other names as they are.
+fn ros_type_name(dds: &str) -> String {
+    match dds.split_once("::dds_::") {
+        Some((package, name)) => format!(
+            "{}/{}",
+            package.replace("::", "/"),
+            name.strip_suffix('_').unwrap_or(name)
+        ),
+        None => dds.to_string(),
+    }
+}
+
 /// A DDS participant on `domain_id` and a ROS 2 node named `node_name` in it.
 fn join_domain(domain_id: u16, node_name: &str) -> Result<(Context, ros2_client::Node), LiveError> {
     let dds = |reason: String| LiveError::Dds { domain_id, reason };
@@ -520,5 +550,14 @@ mod tests {
         assert!(is_compressed("/c/image_raw/compressed"));
         assert!(is_compressed("/d/image_raw/compressedDepth"));
         assert!(!is_compressed("/c/image_raw"));
+    }
+
+    #[test]
+    fn dds_type_names_read_as_ros_names() {
+        assert_eq!(
+            ros_type_name("sensor_msgs::msg::dds_::Image_"),
+            "sensor_msgs/msg/Image"
+        );
+        assert_eq!(ros_type_name("custom"), "custom");
     }
 }
