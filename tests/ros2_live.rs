@@ -12,20 +12,19 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use common::{peers_python, shared_data, workspace_binary};
+use common::{is_root, peers_python, shared_data, workspace_binary};
 
 const REPO: &str = env!("CARGO_MANIFEST_DIR");
+
+/// The first lines of every test's script: the new namespace's loopback up, with multicast, as a
+/// LAN (standard DDS discovery; no packet leaves the namespace).
+const LOOPBACK_LAN: &str = "ip link set lo up\n\
+    ip link set lo multicast on\n\
+    ip route add 224.0.0.0/4 dev lo\n";
 
 /// 7-Scenes frames are published stamped 1.7e9 s + N / 30 (a ROS stamp of zero means none):
 /// scripts/ros2/dataset_to_bag.py's SEVEN_SCENES_EPOCH_S.
 const SEVEN_SCENES_EPOCH_S: f64 = 1.7e9;
-
-fn is_root() -> bool {
-    Command::new("id")
-        .arg("-u")
-        .output()
-        .is_ok_and(|out| String::from_utf8_lossy(&out.stdout).trim() == "0")
-}
 
 /// The camera tests run one at a time: each is a real-time publisher and agent, and two of them
 /// on a 2-core machine would measure the machine, not the agent.
@@ -67,9 +66,7 @@ fn publish_and_track(
     let heard = out.with_extension("heard.json");
     let script = format!(
         "set -e\n\
-         ip link set lo up\n\
-         ip link set lo multicast on\n\
-         ip route add 224.0.0.0/4 dev lo\n\
+         {LOOPBACK_LAN}\
          \"$PYTHON\" \"$PUBLISHER\" --namespace /robot0 {args} > \"$SENT\" &\n\
          publisher=$!\n\
          {listener}\
@@ -401,10 +398,9 @@ fn real_data_live_swarm_of_two_robots() {
     );
     let out = work.path().join("swarm");
     let dataset = shared_data("datasets/7scenes-redkitchen");
-    let script = "set -e\n\
-         ip link set lo up\n\
-         ip link set lo multicast on\n\
-         ip route add 224.0.0.0/4 dev lo\n\
+    let script = format!(
+        "set -e\n\
+         {LOOPBACK_LAN}\
          for k in 0 1; do\n\
            \"$PYTHON\" \"$PUBLISHER\" --dataset \"$DATASET\" --frames $((k * 100))..$((k * 100 + 150)) \
              --namespace /robot$k --rate 10 --images compressed > \"$OUT.sent$k\" &\n\
@@ -412,9 +408,10 @@ fn real_data_live_swarm_of_two_robots() {
          \"$PYTHON\" \"$LISTENER\" --agent 0 --map-topic /map --idle 30 > \"$OUT.heard\" &\n\
          \"$MAC_EGO3D\" swarm --config \"$CONFIG\" --agent ros2:/robot0 --agent ros2:/robot1 \
            --out \"$OUT\"\n\
-         wait\n";
+         wait\n"
+    );
     let run = Command::new("unshare")
-        .args(["--net", "bash", "-c", script])
+        .args(["--net", "bash", "-c", &script])
         .env("PYTHON", &python)
         .env(
             "PUBLISHER",
@@ -555,17 +552,17 @@ fn real_data_dataset_info_of_a_live_camera() {
     };
     let _one_at_a_time = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dataset = shared_data("datasets/7scenes-redkitchen");
-    let script = "set -e\n\
-         ip link set lo up\n\
-         ip link set lo multicast on\n\
-         ip route add 224.0.0.0/4 dev lo\n\
+    let script = format!(
+        "set -e\n\
+         {LOOPBACK_LAN}\
          \"$PYTHON\" \"$PUBLISHER\" --dataset \"$DATASET\" --frames 0..150 --namespace /robot0 \
            --rate 10 --images compressed --wait-subscribers 0 > /dev/null &\n\
          sleep 3\n\
          \"$MAC_EGO3D\" dataset info ros2:/robot0\n\
-         kill %1\n";
+         kill %1\n"
+    );
     let run = Command::new("unshare")
-        .args(["--net", "bash", "-c", script])
+        .args(["--net", "bash", "-c", &script])
         .env("PYTHON", &python)
         .env(
             "PUBLISHER",

@@ -5,9 +5,13 @@
 //! TLS link between two simulated hosts holds under sustained two-way load. Needs root (mount
 //! namespaces); skipped with a message otherwise.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
+
+use common::is_root;
 
 /// As the issue asked: the synthetic 3-agent swarm.
 const AGENTS: usize = 3;
@@ -26,13 +30,6 @@ const REFINEMENT_SECONDS: f64 = 5.0;
 
 fn binaries() -> &'static Path {
     Path::new(env!("CARGO_BIN_EXE_mac-ego3d")).parent().unwrap()
-}
-
-fn is_root() -> bool {
-    Command::new("id")
-        .arg("-u")
-        .output()
-        .is_ok_and(|out| String::from_utf8_lossy(&out.stdout).trim() == "0")
 }
 
 /// configs/synthetic.toml with a short joint refinement.

@@ -45,6 +45,15 @@ pub fn shared_data(relative: &str) -> PathBuf {
     path
 }
 
+/// True when this process runs as root (network and mount namespaces for simulated hosts and
+/// isolated DDS domains).
+pub fn is_root() -> bool {
+    Command::new("id")
+        .arg("-u")
+        .output()
+        .is_ok_and(|out| String::from_utf8_lossy(&out.stdout).trim() == "0")
+}
+
 /// The peers' python (scripts/peers_venv.sh: rosbags, cyclonedds, ...), or None when PyPI cannot
 /// be reached outside CI (the caller's test then says NOT RUN and passes; under CI it fails).
 pub fn peers_python() -> Option<PathBuf> {

@@ -83,40 +83,45 @@ impl LivePublisher {
     }
 
     pub fn path(&mut self, topic: &str, message: Path) -> Result<(), LiveError> {
-        let at = match self.paths.iter().position(|(t, _)| t == topic) {
-            Some(at) => at,
-            None => {
-                let made = publisher(
-                    &mut self.node,
-                    self.domain_id,
-                    topic,
-                    ("nav_msgs", "Path"),
-                    latest_only(),
-                )?;
-                self.paths.push((topic.to_string(), made));
-                self.paths.len() - 1
-            }
-        };
-        sent(self.paths[at].1.publish(message), topic)
+        let made = made_for(
+            &mut self.paths,
+            &mut self.node,
+            self.domain_id,
+            topic,
+            ("nav_msgs", "Path"),
+        )?;
+        sent(made.publish(message), topic)
     }
 
     pub fn cloud(&mut self, topic: &str, message: PointCloud2) -> Result<(), LiveError> {
-        let at = match self.clouds.iter().position(|(t, _)| t == topic) {
-            Some(at) => at,
-            None => {
-                let made = publisher(
-                    &mut self.node,
-                    self.domain_id,
-                    topic,
-                    ("sensor_msgs", "PointCloud2"),
-                    latest_only(),
-                )?;
-                self.clouds.push((topic.to_string(), made));
-                self.clouds.len() - 1
-            }
-        };
-        sent(self.clouds[at].1.publish(message), topic)
+        let made = made_for(
+            &mut self.clouds,
+            &mut self.node,
+            self.domain_id,
+            topic,
+            ("sensor_msgs", "PointCloud2"),
+        )?;
+        sent(made.publish(message), topic)
     }
+}
+
+/// The publisher of `topic` in `made`, made (keep-last 1, transient local) on first use.
+fn made_for<'a, M: serde::Serialize>(
+    made: &'a mut Vec<(String, Publisher<M>)>,
+    node: &mut ros2_client::Node,
+    domain_id: u16,
+    topic: &str,
+    type_name: (&str, &str),
+) -> Result<&'a Publisher<M>, LiveError> {
+    let at = match made.iter().position(|(t, _)| t == topic) {
+        Some(at) => at,
+        None => {
+            let publisher = publisher(node, domain_id, topic, type_name, latest_only())?;
+            made.push((topic.to_string(), publisher));
+            made.len() - 1
+        }
+    };
+    Ok(&made[at].1)
 }
 
 fn publisher<M: serde::Serialize>(
