@@ -34,6 +34,10 @@ declare -A PACKAGES=(
   # tests check the benchmark's Python driver.
   [python3]=/usr/share/doc/python3
   [python3-venv]=/usr/share/doc/python3-venv
+  # The live ROS 2 tests and scripts/bench_live.sh give each DDS domain a network namespace of
+  # its own (unshare from util-linux, ip from iproute2).
+  [iproute2]=/usr/share/doc/iproute2
+  [util-linux]=/usr/share/doc/util-linux
 )
 
 missing=()
