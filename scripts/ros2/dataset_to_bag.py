@@ -186,6 +186,15 @@ def camera_info(t, k, d, width, height):
     )
 
 
+def jpeg_bytes(colour_path, colour_bytes, rgb):
+    """The colour image as JPEG: a dataset's own JPEG bytes unchanged, PNG colour at quality 95."""
+    if colour_path.suffix == ".jpg":
+        return colour_bytes
+    out = io.BytesIO()
+    PILImage.fromarray(rgb).save(out, format="JPEG", quality=95)
+    return out.getvalue()
+
+
 def png_bytes(array):
     out = io.BytesIO()
     PILImage.fromarray(array).save(out, format="PNG")
@@ -276,12 +285,7 @@ def main():
                 depth_info = camera_info(t, depth_k, [0.0] * 5, width, height)
                 writer.write(depth_info_c, ns, TYPESTORE.serialize_cdr(depth_info, "sensor_msgs/msg/CameraInfo"))
             if compressed:
-                if colour_path.suffix == ".jpg":
-                    jpeg = colour_bytes
-                else:
-                    out = io.BytesIO()
-                    PILImage.fromarray(rgb).save(out, format="JPEG", quality=95)
-                    jpeg = out.getvalue()
+                jpeg = jpeg_bytes(colour_path, colour_bytes, rgb)
                 colour_msg = T["sensor_msgs/msg/CompressedImage"](
                     header=header(t), format="rgb8; jpeg compressed bgr8", data=np.frombuffer(jpeg, dtype=np.uint8))
                 millimetres = np.round(raw_depth.astype(np.float64) * 1000.0 / depth_units).astype(np.uint16)

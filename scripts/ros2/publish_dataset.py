@@ -154,12 +154,7 @@ def main():
             p=[fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]))
         sent["camera_info"] += 1
         if compressed:
-            if colour_path.suffix == ".jpg":
-                jpeg = colour_bytes
-            else:
-                out = io.BytesIO()
-                PILImage.fromarray(rgb).save(out, format="JPEG", quality=95)
-                jpeg = out.getvalue()
+            jpeg = folders.jpeg_bytes(colour_path, colour_bytes, rgb)
             colour_msg = CompressedImage(header=header_at(stamp), format="rgb8; jpeg compressed bgr8", data=jpeg)
             millimetres = np.round(raw_depth.astype(np.float64) * 1000.0 / depth_units).astype(np.uint16)
             depth_msg = CompressedImage(header=header_at(stamp), format="16UC1; compressedDepth png",

@@ -204,36 +204,27 @@ impl LiveCamera {
 
     /// The latest CameraInfo, waiting up to `timeout` for the first one.
     pub fn camera_info(&self, timeout: Duration) -> Result<Option<CameraInfo>, LiveError> {
-        let deadline = Instant::now() + timeout;
-        let mut state = self.shared.state.lock().expect("live state");
-        loop {
-            if let Some(info) = &state.camera_info {
-                return Ok(Some(info.clone()));
-            }
-            if let Some(reason) = &state.failed {
-                return Err(LiveError::Receiver(reason.clone()));
-            }
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return Ok(None);
-            }
-            state = self
-                .shared
-                .changed
-                .wait_timeout(state, left)
-                .expect("live state")
-                .0;
-        }
+        self.wait_for(timeout, |state| state.camera_info.clone())
     }
 
     /// The oldest waiting pair (with the default queue of one, the newest pair received),
     /// waiting up to `timeout` for one; `None` when none came.
     pub fn next_pair(&self, timeout: Duration) -> Result<Option<LivePair>, LiveError> {
+        self.wait_for(timeout, |state| state.pairs.pop_front())
+    }
+
+    /// What `take` finds in the receiver's state, waiting up to `timeout` for it; an error once
+    /// the receiving thread has failed.
+    fn wait_for<T>(
+        &self,
+        timeout: Duration,
+        mut take: impl FnMut(&mut State) -> Option<T>,
+    ) -> Result<Option<T>, LiveError> {
         let deadline = Instant::now() + timeout;
         let mut state = self.shared.state.lock().expect("live state");
         loop {
-            if let Some(pair) = state.pairs.pop_front() {
-                return Ok(Some(pair));
+            if let Some(found) = take(&mut state) {
+                return Ok(Some(found));
             }
             if let Some(reason) = &state.failed {
                 return Err(LiveError::Receiver(reason.clone()));
