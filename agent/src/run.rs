@@ -39,10 +39,9 @@ use crate::pace::SensorClock;
 use crate::pipeline::{AgentPipeline, FinishedPipeline, TrackedPose, progress_snapshot};
 use crate::progress::{ProgressFile, Stage};
 use crate::segments::TrackingReport;
-use crate::source::{FrameSource, SourceStats};
+use crate::source::{FrameSource, LiveInputReport, SourceStats, open_frames};
 use crate::swarm::{SwarmLink, SwarmSummary};
 use crate::views::{poses_in_map, write_view_files};
-use datasets::live::{LiveReport, LiveTopics};
 
 /// Synthetic scene used when no dataset is given: three agents' loops, this agent's share.
 pub const DEFAULT_SYNTHETIC_AGENTS: usize = 3;
@@ -164,49 +163,6 @@ pub struct AgentMetrics {
 
 /// A frame whose loop takes longer than this is logged (debug) with the time of each stage.
 const SLOW_FRAME: Duration = Duration::from_millis(100);
-
-/// metrics.json's `live`: a live camera's topics and how its frames ended.
-#[derive(Debug, Clone, Serialize)]
-pub struct LiveInputReport {
-    #[serde(flatten)]
-    pub topics: LiveReport,
-    /// Why the frames ended (a stop request, no frame for `[ros2] idle_timeout_s`, ...).
-    pub end: Option<String>,
-}
-
-/// The agent's frames: the dataset, and the live camera itself when the dataset is one (its
-/// frames come as they arrive).
-type OpenedFrames = (Arc<dyn Dataset>, Option<Arc<LiveTopics>>);
-
-/// Opens the agent's frames: a dataset (folder, bag, synthetic scene) or a live camera.
-fn open_frames(options: &AgentOptions) -> anyhow::Result<OpenedFrames> {
-    if datasets::live::is_live(&options.dataset) {
-        if options.frames != datasets::FrameRange::ALL {
-            anyhow::bail!(
-                "{}: a live camera takes no frame range (got {})",
-                options.dataset,
-                options.frames
-            );
-        }
-        let camera = Arc::new(
-            LiveTopics::open(
-                &options.dataset,
-                &options.config.ros2,
-                options.agent_id as usize,
-                options.eval_every,
-            )
-            .with_context(|| format!("subscribing to {}", options.dataset))?,
-        );
-        return Ok((camera.clone(), Some(camera)));
-    }
-    let dataset = datasets::open_with(
-        &options.dataset,
-        options.frames,
-        &options.config.dataset_options(),
-    )
-    .with_context(|| format!("opening dataset {}", options.dataset))?;
-    Ok((Arc::from(dataset), None))
-}
 
 /// Runs one agent without a consensus process and writes its outputs to `options.out`.
 pub fn run_standalone(options: &AgentOptions, stop: &AtomicBool) -> anyhow::Result<AgentMetrics> {

@@ -21,11 +21,58 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use datasets::live::{LiveNext, LiveTopics};
+use anyhow::Context;
+use datasets::live::{LiveNext, LiveReport, LiveTopics};
+use serde::Serialize;
+
+use crate::run::AgentOptions;
 use datasets::noise::NoiseConfig;
 use datasets::prefetch::Prefetcher;
 use datasets::{Dataset, Frame};
 use geometry::files::DatasetError;
+
+/// metrics.json's `live`: a live camera's topics and how its frames ended.
+#[derive(Debug, Clone, Serialize)]
+pub struct LiveInputReport {
+    #[serde(flatten)]
+    pub topics: LiveReport,
+    /// Why the frames ended (a stop request, no frame for `[ros2] idle_timeout_s`, ...).
+    pub end: Option<String>,
+}
+
+/// The agent's frames: the dataset, and the live camera itself when the dataset is one (its
+/// frames come as they arrive).
+pub type OpenedFrames = (Arc<dyn Dataset>, Option<Arc<LiveTopics>>);
+
+/// Opens the agent's frames: a dataset (folder, bag, synthetic scene) or a live camera.
+pub fn open_frames(options: &AgentOptions) -> anyhow::Result<OpenedFrames> {
+    if datasets::live::is_live(&options.dataset) {
+        if options.frames != datasets::FrameRange::ALL {
+            anyhow::bail!(
+                "{}: a live camera takes no frame range (got {})",
+                options.dataset,
+                options.frames
+            );
+        }
+        let camera = Arc::new(
+            LiveTopics::open(
+                &options.dataset,
+                &options.config.ros2,
+                options.agent_id as usize,
+                options.eval_every,
+            )
+            .with_context(|| format!("subscribing to {}", options.dataset))?,
+        );
+        return Ok((camera.clone(), Some(camera)));
+    }
+    let dataset = datasets::open_with(
+        &options.dataset,
+        options.frames,
+        &options.config.dataset_options(),
+    )
+    .with_context(|| format!("opening dataset {}", options.dataset))?;
+    Ok((Arc::from(dataset), None))
+}
 
 /// Decoded frames kept ready per decoding thread: enough to hide a slow PNG, small enough to
 /// bound memory (a 640x480 RGB-D frame is about 2 MB).
