@@ -100,6 +100,23 @@ impl LiveOutputs {
         }
     }
 
+    /// Points with colour in the pose frame, stamped with the latest placed frame.
+    fn cloud(&self, means: &[[f32; 3]], colours: &[[f32; 3]]) -> ros2::msg::PointCloud2 {
+        let stamp = self.placed.last().map_or(0.0, |p| p.0);
+        point_cloud(
+            &self.pose_frame,
+            stamp,
+            means,
+            colours,
+            self.cloud_max_points,
+        )
+    }
+
+    fn send_cloud(&mut self, cloud: ros2::msg::PointCloud2) {
+        let topic = self.map_topic.clone();
+        self.send(|p| p.cloud(&topic, cloud));
+    }
+
     /// A placed frame: its camera on `/tf`.
     pub fn frame(&mut self, stamp_s: f64, odom_from_camera: &Isometry3<f64>) {
         self.placed.push((stamp_s, *odom_from_camera));
@@ -124,16 +141,8 @@ impl LiveOutputs {
             .is_none_or(|at| at.elapsed() >= self.map_every)
         {
             self.map_sent = Some(Instant::now());
-            let stamp = self.placed.last().map_or(0.0, |p| p.0);
-            let cloud = point_cloud(
-                &self.pose_frame,
-                stamp,
-                &self.seeded_means,
-                &self.seeded_colours,
-                self.cloud_max_points,
-            );
-            let topic = self.map_topic.clone();
-            self.send(|p| p.cloud(&topic, cloud));
+            let cloud = self.cloud(&self.seeded_means, &self.seeded_colours);
+            self.send_cloud(cloud);
         }
     }
 
@@ -144,17 +153,9 @@ impl LiveOutputs {
             gaussians = map.len(),
             "publishing the final path and map over DDS"
         );
-        let stamp = self.placed.last().map_or(0.0, |p| p.0);
         self.send_path();
-        let cloud = point_cloud(
-            &self.pose_frame,
-            stamp,
-            &map.means,
-            &map.colours,
-            self.cloud_max_points,
-        );
-        let topic = self.map_topic.clone();
-        self.send(|p| p.cloud(&topic, cloud));
+        let cloud = self.cloud(&map.means, &map.colours);
+        self.send_cloud(cloud);
         if let Some(publisher) = &self.publisher {
             publisher.linger();
         }

@@ -186,6 +186,17 @@ def camera_info(t, k, d, width, height):
     )
 
 
+def read_images(colour_path, depth_path, tum):
+    """(the colour file's bytes, its RGB pixels, the raw 16-bit depth with 7-Scenes' 65535
+    "invalid" made 0)."""
+    colour_bytes = colour_path.read_bytes()
+    rgb = np.array(PILImage.open(io.BytesIO(colour_bytes)).convert("RGB"))
+    raw_depth = np.array(PILImage.open(depth_path), dtype=np.uint16)
+    if not tum:
+        raw_depth[raw_depth == 65535] = 0
+    return colour_bytes, rgb, raw_depth
+
+
 def jpeg_bytes(colour_path, colour_bytes, rgb):
     """The colour image as JPEG: a dataset's own JPEG bytes unchanged, PNG colour at quality 95."""
     if colour_path.suffix == ".jpg":
@@ -272,12 +283,8 @@ def main():
                 writer.write(tf_c, ns, TYPESTORE.serialize_cdr(tf, "tf2_msgs/msg/TFMessage"))
         for number, (t, colour_path, depth_path) in enumerate(frames):
             _, ns = stamp_of(t)
-            colour_bytes = colour_path.read_bytes()
-            rgb = np.array(PILImage.open(io.BytesIO(colour_bytes)).convert("RGB"))
+            colour_bytes, rgb, raw_depth = read_images(colour_path, depth_path, tum)
             height, width = rgb.shape[:2]
-            raw_depth = np.array(PILImage.open(depth_path), dtype=np.uint16)
-            if not tum:
-                raw_depth[raw_depth == 65535] = 0
             if info_c:
                 info = camera_info(t, k, distortion, width, height)
                 writer.write(info_c, ns, TYPESTORE.serialize_cdr(info, "sensor_msgs/msg/CameraInfo"))

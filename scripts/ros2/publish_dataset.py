@@ -23,14 +23,12 @@ Raw images are serialised by cyclonedds in Python at about 30 ms per megabyte: u
 """
 
 import argparse
-import io
 import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from PIL import Image as PILImage
 
 from cyclonedds.core import Qos, Policy
 from cyclonedds.domain import DomainParticipant
@@ -142,12 +140,8 @@ def main():
         time.sleep(max(0.0, due - time.time()))
         if args.stamps == "now":
             stamp = time.time()
-        colour_bytes = colour_path.read_bytes()
-        rgb = np.array(PILImage.open(io.BytesIO(colour_bytes)).convert("RGB"))
+        colour_bytes, rgb, raw_depth = folders.read_images(colour_path, depth_path, tum)
         height, width = rgb.shape[:2]
-        raw_depth = np.array(PILImage.open(depth_path), dtype=np.uint16)
-        if not tum:
-            raw_depth[raw_depth == 65535] = 0
         info_w.write(CameraInfo(
             header=header_at(stamp), height=height, width=width, distortion_model="plumb_bob", d=distortion,
             k=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0], r=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
