@@ -245,6 +245,19 @@ fn real_data_live_camera_over_dds_with_faults() {
         metrics["live"]["handover_ms_median"]
     );
     assert!(ate < 0.05, "ATE {ate} m");
+    // Publisher and agent share this host's clock: the latency from a frame's stamp to its
+    // pose is reported, after its arrival and no later than a second on this machine.
+    let live = &metrics["live"];
+    let (to_pose, to_pose_p99) = (
+        live["stamp_to_pose_ms_median"].as_f64().unwrap(),
+        live["stamp_to_pose_ms_p99"].as_f64().unwrap(),
+    );
+    let to_arrival = live["stamp_to_arrival_ms_median"].as_f64().unwrap();
+    assert!(
+        to_arrival < to_pose && to_pose <= to_pose_p99 && to_pose_p99 < 1000.0,
+        "{live}"
+    );
+    assert!(live["dropped_while_starting"].as_u64().unwrap() <= count(&metrics, "dropped"));
     // The same frames replayed from the folder, paced (every frame tracked): the live run, which
     // lost a few pairs on the way and took the newest of the rest, lands within 5 mm of it.
     let folder_out = work.path().join("folder");

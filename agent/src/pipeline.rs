@@ -100,6 +100,10 @@ pub struct FinishedPipeline {
     pub corrections: LocalCorrections,
     pub poses: Vec<TrackedPose>,
     pub tracking_ms: Vec<f64>,
+    /// Per placed frame: the wall clock when its pose was placed minus the frame's stamp,
+    /// milliseconds (a live camera's latency from capture to pose; meaningless for recordings,
+    /// whose stamps are another day's).
+    pub stamp_to_pose_ms: Vec<f64>,
     pub keyframes: KeyframeCounts,
     /// Every keyframe the mapper was given, in order.
     pub keyframes_made: Vec<KeyframeMade>,
@@ -125,6 +129,7 @@ pub struct AgentPipeline<'a> {
     frames_since_tracking_keyframe: usize,
     poses: Vec<TrackedPose>,
     tracking_ms: Vec<f64>,
+    stamp_to_pose_ms: Vec<f64>,
     agent_id: u32,
     /// Frames, keyframes, seeded points and placements for the rerun viewer (off the hot path:
     /// each call only queues, or drops when the queue is full).
@@ -164,6 +169,7 @@ impl<'a> AgentPipeline<'a> {
             frames_since_tracking_keyframe: 0,
             poses: Vec::with_capacity(frames_expected),
             tracking_ms: Vec::with_capacity(frames_expected),
+            stamp_to_pose_ms: Vec::with_capacity(frames_expected),
             agent_id,
             live_view,
             pending: PendingKeyframes::new(PENDING_KEYFRAMES),
@@ -438,6 +444,13 @@ impl<'a> AgentPipeline<'a> {
         let placed = tracked.local.placement == Placement::Root
             && (tracked.local.outcome.is_tracked()
                 || tracked.local.outcome == TrackingOutcome::Initialised);
+        if placed {
+            let now_s = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0.0, |d| d.as_secs_f64());
+            self.stamp_to_pose_ms
+                .push((now_s - item.frame.timestamp) * 1e3);
+        }
         if let Some(live) = self.ros2_live.as_mut()
             && placed
         {
@@ -506,6 +519,7 @@ impl<'a> AgentPipeline<'a> {
             corrections: self.corrections,
             poses: self.poses,
             tracking_ms: self.tracking_ms,
+            stamp_to_pose_ms: self.stamp_to_pose_ms,
             keyframes: self.keyframes,
             keyframes_made: self.keyframes_made,
             keyframes_dropped_unjoined: self.pending.dropped,

@@ -334,9 +334,12 @@ pub fn run_agent(
         swarm: swarm_summary,
         in_swarm,
         live_view,
-        live: live_camera.as_ref().map(|camera| LiveInputReport {
-            topics: camera.report(),
-            end: source.stats().live_end.clone(),
+        live: live_camera.as_ref().map(|camera| {
+            LiveInputReport::new(
+                camera,
+                source.stats().live_end.clone(),
+                &run.stamp_to_pose_ms,
+            )
         }),
     });
     let metrics_path = options.out.join("metrics.json");

@@ -38,6 +38,26 @@ pub struct LiveInputReport {
     pub topics: LiveReport,
     /// Why the frames ended (a stop request, no frame for `[ros2] idle_timeout_s`, ...).
     pub end: Option<String>,
+    /// From a frame's stamp to its pose being placed (the wall clock then minus the stamp),
+    /// milliseconds, over the frames placed: median and 99th percentile. Absent when the
+    /// stamps are plainly another clock's, as for stamp to arrival.
+    pub stamp_to_pose_ms_median: Option<f64>,
+    pub stamp_to_pose_ms_p99: Option<f64>,
+}
+
+impl LiveInputReport {
+    /// `camera`'s report with the run's end and its stamp-to-pose latencies.
+    pub fn new(camera: &LiveTopics, end: Option<String>, stamp_to_pose_ms: &[f64]) -> Self {
+        let agrees = |ms: &f64| ms.abs() < datasets::live::CLOCK_AGREEMENT_MS;
+        let median = metrics::stats::median(stamp_to_pose_ms).filter(agrees);
+        Self {
+            topics: camera.report(),
+            end,
+            stamp_to_pose_ms_median: median,
+            stamp_to_pose_ms_p99: median
+                .and_then(|_| metrics::stats::quantile(stamp_to_pose_ms, 0.99)),
+        }
+    }
 }
 
 /// The agent's frames: the dataset, and the live camera itself when the dataset is one (its

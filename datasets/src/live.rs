@@ -96,7 +96,7 @@ pub struct LiveTopics {
 
 /// A median stamp-to-arrival gap beyond this says the publisher's stamps are not this host's
 /// clock (a replayed recording): no latency is reported then.
-const CLOCK_AGREEMENT_MS: f64 = 10_000.0;
+pub const CLOCK_AGREEMENT_MS: f64 = 10_000.0;
 
 /// Latency samples kept for the medians: the latest ones (a long run keeps its recent past).
 const LATENCY_SAMPLES: usize = 4096;

@@ -214,6 +214,15 @@ impl Recovery<'_> {
 
 /// The best of `candidates` that passes the check, else the best with a pose, else the first.
 pub fn choose(candidates: Vec<Candidate>, tracking: &TrackingConfig) -> Option<Candidate> {
+    for candidate in &candidates {
+        tracing::debug!(
+            guess = ?candidate.guess,
+            passes = candidate.passes(tracking),
+            check = ?candidate.check,
+            world_from_camera = ?candidate.result.target_from_source.translation.vector,
+            "tracking candidate"
+        );
+    }
     let best_of = |filter: &dyn Fn(&Candidate) -> bool| {
         candidates
             .iter()

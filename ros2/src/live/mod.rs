@@ -120,6 +120,9 @@ pub struct LiveCounts {
     /// Pairs the consumer never took: a newer pair replaced them (the consumer was slower
     /// than the camera).
     pub dropped: u64,
+    /// Of `dropped`, those replaced before the consumer took its first pair (it was still
+    /// starting: an agent sets up its mapper after the camera's CameraInfo came).
+    pub dropped_while_starting: u64,
     /// Samples the DDS reader could not deserialise (a wrong type on the topic).
     pub read_errors: u64,
 }
@@ -129,6 +132,8 @@ struct State {
     pairs: VecDeque<LivePair>,
     camera_info: Option<CameraInfo>,
     counts: LiveCounts,
+    /// The consumer has taken a pair.
+    taken_any: bool,
     /// Set when the receiving thread ended on an error.
     failed: Option<String>,
 }
@@ -210,7 +215,11 @@ impl LiveCamera {
     /// The oldest waiting pair (with the default queue of one, the newest pair received),
     /// waiting up to `timeout` for one; `None` when none came.
     pub fn next_pair(&self, timeout: Duration) -> Result<Option<LivePair>, LiveError> {
-        self.wait_for(timeout, |state| state.pairs.pop_front())
+        self.wait_for(timeout, |state| {
+            let pair = state.pairs.pop_front();
+            state.taken_any |= pair.is_some();
+            pair
+        })
     }
 
     /// What `take` finds in the receiver's state, waiting up to `timeout` for it; an error once
@@ -495,6 +504,9 @@ impl Subscriptions {
                 if state.pairs.len() == queue_pairs {
                     state.pairs.pop_front();
                     state.counts.dropped += 1;
+                    if !state.taken_any {
+                        state.counts.dropped_while_starting += 1;
+                    }
                 }
                 state.pairs.push_back(LivePair {
                     stamp_s,

@@ -61,6 +61,11 @@ pub struct TrackingArgs {
     /// DIR/frames.tsv. The same caveat on timings as --dump-points.
     #[arg(long)]
     dump_images: Option<PathBuf>,
+    /// Track only these frame positions (of the opened frames), in the order given: a file with
+    /// one per line, or a CSV whose header names a `frame_position` column (an agent's
+    /// tracking.csv), so a sensor-pace run's frames, drops included, replay frame by frame.
+    #[arg(long)]
+    positions: Option<PathBuf>,
     #[arg(long)]
     json: bool,
 }
@@ -161,7 +166,11 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         .as_deref()
         .map(ImageDump::create)
         .transpose()?;
-    for position in 0..ds.len() {
+    let positions = match &args.positions {
+        Some(path) => read_positions(path, ds.len())?,
+        None => (0..ds.len()).collect(),
+    };
+    for (index, position) in positions.into_iter().enumerate() {
         let frame = match ds.load(position) {
             Ok(frame) => frame,
             Err(e) if e.is_missing_frame() => {
@@ -179,7 +188,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         });
         let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
         // The first frame only seeds the target; timing it would mix set-up into tracking.
-        if position > 0 {
+        if index > 0 {
             times_ms.push(elapsed_ms);
             let t = &tracked.timings;
             for (stage, ms) in stage_ms.iter_mut().zip([
@@ -408,4 +417,52 @@ fn print_report(report: &TrackingReport) {
     for (name, value) in rows {
         println!("  {name:<32} {value:>10}");
     }
+}
+
+/// The frame positions of `--positions`: one per line, or the `frame_position` column of a CSV
+/// with a header; each below `len` (the opened frames).
+fn read_positions(path: &std::path::Path, len: usize) -> anyhow::Result<Vec<usize>> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("--positions: reading {}", path.display()))?;
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let mut column = None;
+    let mut positions = Vec::new();
+    if let Some(first) = text.lines().find(|l| !l.trim().is_empty())
+        && first.contains(',')
+    {
+        let header: Vec<&str> = first.split(',').map(str::trim).collect();
+        column = Some(
+            header
+                .iter()
+                .position(|name| *name == "frame_position")
+                .with_context(|| {
+                    format!("--positions {}: no frame_position column", path.display())
+                })?,
+        );
+        lines.next();
+    }
+    for (number, line) in lines {
+        let field = match column {
+            Some(c) => line.split(',').nth(c).unwrap_or("").trim(),
+            None => line.trim(),
+        };
+        let position: usize = field.parse().with_context(|| {
+            format!(
+                "--positions {} line {}: {field:?} is not a frame position",
+                path.display(),
+                number + 1
+            )
+        })?;
+        anyhow::ensure!(
+            position < len,
+            "--positions {} line {}: position {position} is past the {len} frames opened",
+            path.display(),
+            number + 1
+        );
+        positions.push(position);
+    }
+    Ok(positions)
 }
