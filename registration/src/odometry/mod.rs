@@ -443,8 +443,10 @@ impl Odometry {
         };
         let recovery = self.recovery(cloud, input);
         candidates.push(recovery.wide(Guess::WidePrediction, &prediction));
+        tracing::debug!(ms = elapsed_ms(&clock), "wide guess from the prediction");
         if !self.tracking.constant_velocity || !passed(&candidates) {
             candidates.push(recovery.wide(Guess::WidePrevious, world_from_previous));
+            tracing::debug!(ms = elapsed_ms(&clock), "wide guess from the previous pose");
         }
         let mut texture_failed = true;
         if !passed(&candidates)
@@ -477,6 +479,7 @@ impl Odometry {
             }
         }
         timings.recovery_ms = elapsed_ms(&clock);
+        tracing::debug!(ms = timings.recovery_ms, "recovery guesses done");
         recovery::choose(candidates, &self.tracking)
     }
 

@@ -474,7 +474,10 @@ pub fn run(args: &MapRegistrationArgs) -> anyhow::Result<()> {
             target_points: pair.target.points.len(),
             methods,
         };
-        if !args.json {
+        // With --json the table goes to stderr as progress: a full run takes an hour.
+        if args.json {
+            eprintln!("{}", pair_line(&run));
+        } else {
             println!("{}", pair_line(&run));
         }
         runs.push(run);
