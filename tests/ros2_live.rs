@@ -245,18 +245,12 @@ fn real_data_live_camera_over_dds_with_faults() {
         metrics["live"]["handover_ms_median"]
     );
     assert!(ate < 0.05, "ATE {ate} m");
-    // Publisher and agent share this host's clock: the latency from a frame's stamp to its
-    // pose is reported, after its arrival and no later than a second on this machine.
+    // The publisher stamps 7-Scenes frames on an epoch of its own, not this host's clock: no
+    // latency is claimed, neither to arrival nor to pose (scripts/bench_live.sh measures them
+    // with stamps of this host's clock).
     let live = &metrics["live"];
-    let (to_pose, to_pose_p99) = (
-        live["stamp_to_pose_ms_median"].as_f64().unwrap(),
-        live["stamp_to_pose_ms_p99"].as_f64().unwrap(),
-    );
-    let to_arrival = live["stamp_to_arrival_ms_median"].as_f64().unwrap();
-    assert!(
-        to_arrival < to_pose && to_pose <= to_pose_p99 && to_pose_p99 < 1000.0,
-        "{live}"
-    );
+    assert!(live["stamp_to_arrival_ms_median"].is_null(), "{live}");
+    assert!(live["stamp_to_pose_ms_median"].is_null(), "{live}");
     assert!(live["dropped_while_starting"].as_u64().unwrap() <= count(&metrics, "dropped"));
     // The same frames replayed from the folder, paced (every frame tracked): the live run, which
     // lost a few pairs on the way and took the newest of the rest, lands within 5 mm of it.
@@ -320,6 +314,90 @@ fn real_data_live_camera_over_dds_with_faults() {
 
 /// Compressed images (JPEG colour, compressedDepth PNG), and a
 /// publisher that restarts part way (its stamps jump back): the agent pairs again and goes on.
+/// tum-fr1-rpy (a real Kinect with a lens to undistort, fast rotation) at 10 Hz with the
+/// recording's own stamps, depth as 32FC1 metres, the lens as CameraInfo's plumb_bob: the agent,
+/// which sets up its mapper before it subscribes, takes nearly every frame, and its ATE is within
+/// 1.5x of the paced folder run's on the same frames. Not within 5 mm: the folder reader puts
+/// TUM's depth on the Kinect's registration pinhole, which a live camera would announce on a
+/// depth CameraInfo topic, and the live input does not read one yet (bags do), so the two runs
+/// see slightly different frames from the first on (ATE 4.03 live, 5.29 cm folder in one run).
+#[test]
+fn real_data_live_tum_at_its_own_stamps() {
+    let Some(python) = prerequisites() else {
+        return;
+    };
+    let _one_at_a_time = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let work = tempfile::tempdir().unwrap();
+    let tum = shared_data("datasets/tum-fr1-rpy");
+    let config = work.path().join("live.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "{}\n[ros2]\nidle_timeout_s = 4.0\n",
+            std::fs::read_to_string(Path::new(REPO).join("configs/tum.toml")).unwrap()
+        ),
+    )
+    .unwrap();
+    let out = work.path().join("agent");
+    let LiveRun {
+        agent: run,
+        sent,
+        metrics,
+        ..
+    } = publish_and_track(
+        &python,
+        &[
+            "--dataset",
+            tum.to_str().unwrap(),
+            "--frames",
+            "0..100",
+            "--rate",
+            "10",
+            "--stamps",
+            "dataset",
+        ],
+        &config,
+        &out,
+        false,
+    );
+    assert!(run.status.success(), "{}", log(&run));
+    assert_eq!(sent["frames"], 100, "publisher: {sent}");
+    assert_eq!(count(&metrics, "paired"), 100, "{}", metrics["live"]);
+    assert_eq!(count(&metrics, "frames") + count(&metrics, "dropped"), 100);
+    assert!(count(&metrics, "frames") >= 90, "{}", metrics["live"]);
+    // A recording's stamps are not this host's clock: no latency is claimed.
+    assert!(metrics["live"]["stamp_to_arrival_ms_median"].is_null());
+    assert!(metrics["live"]["stamp_to_pose_ms_median"].is_null());
+
+    let folder_out = work.path().join("folder");
+    let folder = Command::new(workspace_binary("mac-agent"))
+        .args(["--standalone", "--renders", "0", "--eval-every", "1000"])
+        .args(["--pace", "paced", "--frames", "0..100"])
+        .arg("--config")
+        .arg(Path::new(REPO).join("configs/tum.toml"))
+        .arg("--dataset")
+        .arg(&tum)
+        .arg("--out")
+        .arg(&folder_out)
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap();
+    assert!(folder.status.success(), "{}", log(&folder));
+    let ground_truth = tum.join("groundtruth.txt");
+    let live_ate = ate_m(&ground_truth, &out.join("trajectory.tum"));
+    let folder_ate = ate_m(&ground_truth, &folder_out.join("trajectory.tum"));
+    eprintln!(
+        "tum-fr1-rpy live at 10 Hz: {} frames taken, ATE {:.2} cm; paced folder {:.2} cm",
+        count(&metrics, "frames"),
+        live_ate * 100.0,
+        folder_ate * 100.0
+    );
+    assert!(
+        live_ate < 1.5 * folder_ate,
+        "live {live_ate} m, folder {folder_ate} m"
+    );
+}
+
 #[test]
 fn real_data_live_compressed_camera_restarting() {
     let Some(python) = prerequisites() else {

@@ -14,7 +14,10 @@ use crate::swarm::PublishableKeyframe;
 
 /// A keyframe with its descriptor, or why there is none.
 pub struct Described {
+    /// The keyframe as it was handed in.
     pub keyframe: PublishableKeyframe,
+    /// Its L2-normalised global descriptor (AlexNet GeM features, or a grey thumbnail without
+    /// weights), or the extractor's error.
     pub descriptor: anyhow::Result<Vec<f32>>,
 }
 

@@ -26,6 +26,7 @@ pub const MIN_ALPHA_FOR_DEPTH: f32 = 0.5;
 
 /// A rendered view as images.
 pub struct RenderedView {
+    /// Rendered colour, clamped to [0, 1] and rounded to 8 bits; black where the map is empty.
     pub rgb: RgbImage,
     /// Expected depth (composited depth / alpha) where alpha >= [`MIN_ALPHA_FOR_DEPTH`], else 0.
     pub depth: DepthImage,
@@ -77,6 +78,8 @@ pub struct MapRenderer {
 }
 
 impl MapRenderer {
+    /// Opens a device and uploads `cloud` (nothing for an empty cloud). Fails when no usable
+    /// adapter is found or the upload fails.
     pub fn new(cloud: &GaussianCloud) -> Result<Self, GpuError> {
         let context = GpuContext::new()?;
         let renderer = GpuRenderer::new(&context);
@@ -132,24 +135,36 @@ impl MapRenderer {
 /// Per-frame quality.
 #[derive(Debug, Clone, Serialize)]
 pub struct FrameQuality {
+    /// The frame's number in its sequence ([`Frame::index`]).
     pub frame: usize,
+    /// PSNR in dB over the whole 8-bit RGB image, data range 1 (infinite for identical images).
     pub psnr: f64,
+    /// SSIM with zero padding, every pixel averaged (the 3DGS convention).
     pub ssim: f64,
+    /// LPIPS (AlexNet); `None` without the weights.
     pub lpips: Option<f64>,
+    /// Mean |rendered expected depth - measured depth| in cm over valid measured pixels;
+    /// `None` when the frame has no valid depth.
     pub depth_l1_cm: Option<f64>,
 }
 
 /// Means over the evaluated frames.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct QualitySummary {
+    /// How many frames were evaluated.
     pub frames: usize,
+    /// Mean PSNR in dB over the frames with a finite one; `None` when there is none.
     pub psnr: Option<f64>,
+    /// Mean SSIM; `None` without frames.
     pub ssim: Option<f64>,
+    /// Mean LPIPS over the frames that have one; `None` when none has.
     pub lpips: Option<f64>,
+    /// Mean depth L1 in cm over the frames that have one; `None` when none has.
     pub depth_l1_cm: Option<f64>,
 }
 
 impl QualitySummary {
+    /// Summarises per-frame figures: each mean skips the frames that lack that figure.
     pub fn of(frames: &[FrameQuality]) -> Self {
         fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
             let (sum, count) = values.fold((0.0, 0usize), |(s, c), v| (s + v, c + 1));

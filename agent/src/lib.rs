@@ -12,7 +12,8 @@
 //! - [`pipeline`]: the per-frame stages (track, decide keyframe, seed, publish, hand to the
 //!   mapper, apply corrections);
 //! - [`pace`]: the camera clock of the sensor pace (frames at their timestamps, late ones dropped);
-//! - [`run`]: one run: the frame loop over those stages, then its outputs;
+//! - [`run`]: one run: the frame loop over those stages, then its outputs; [`report`]: its
+//!   metrics.json;
 //! - [`swarm`]: the link to the consensus, [`describer`]: keyframe descriptors computed beside
 //!   the frame loop, [`local_corrections`]: the consensus's corrections applied to the local
 //!   maps, and [`link_schedule`]: simulated intermittent links;
@@ -27,6 +28,7 @@ pub mod mapper;
 pub mod pace;
 pub mod pipeline;
 pub mod progress;
+pub mod report;
 pub mod ros2_live;
 pub mod ros2_outputs;
 pub mod run;

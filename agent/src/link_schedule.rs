@@ -83,24 +83,51 @@ struct WindowEntry {
 /// A bad schedule file; every message names the file, and the agent and window at fault.
 #[derive(Debug, thiserror::Error)]
 pub enum LinkScheduleError {
+    /// The file could not be read.
     #[error("link schedule {path}: {source}")]
     Read {
+        /// The schedule file.
         path: PathBuf,
+        /// Why reading it failed.
         source: std::io::Error,
     },
+    /// The file is not valid TOML, or has unknown, missing or mistyped keys.
     #[error("link schedule {path}: {message}")]
-    Syntax { path: PathBuf, message: String },
+    Syntax {
+        /// The schedule file.
+        path: PathBuf,
+        /// The TOML parser's message (it names the line).
+        message: String,
+    },
+    /// `queue_limit_mib` is not a finite number above 0.
     #[error("link schedule {path}: queue_limit_mib = {value}: expected a positive number of MiB")]
-    QueueLimit { path: PathBuf, value: f64 },
+    QueueLimit {
+        /// The schedule file.
+        path: PathBuf,
+        /// The value given, in MiB.
+        value: f64,
+    },
+    /// Two `[[agent]]` entries have the same id.
     #[error("link schedule {path}: agent {agent} is listed twice")]
-    DuplicateAgent { path: PathBuf, agent: u32 },
+    DuplicateAgent {
+        /// The schedule file.
+        path: PathBuf,
+        /// The repeated agent id.
+        agent: u32,
+    },
+    /// A window of an agent's `up` list is invalid: a negative or non-finite start, an end not
+    /// after its start, or out of time order or overlapping the window before it.
     #[error("link schedule {path}: agent {agent}, window {window} ({text}): {reason}")]
     Window {
+        /// The schedule file.
         path: PathBuf,
+        /// The agent whose list holds the window.
         agent: u32,
         /// 1-based position in the agent's `up` list.
         window: usize,
+        /// The window as written (`from_s = ..., until_s = ...`).
         text: String,
+        /// What is wrong with it.
         reason: String,
     },
 }
@@ -108,6 +135,7 @@ pub enum LinkScheduleError {
 /// One window in which a link is up: `[from_s, until_s)`, seconds since the agent started.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct UpWindow {
+    /// Start, in seconds since the agent started (finite, 0 or more); the window includes it.
     pub from_s: f64,
     /// `f64::INFINITY`: up to the end of the run.
     pub until_s: f64,
@@ -172,6 +200,7 @@ pub struct LinkSchedule {
 }
 
 impl LinkSchedule {
+    /// Reads and validates the schedule file at `path`.
     pub fn load(path: &Path) -> Result<Self, LinkScheduleError> {
         let text = std::fs::read_to_string(path).map_err(|source| LinkScheduleError::Read {
             path: path.to_path_buf(),
@@ -210,10 +239,12 @@ impl LinkSchedule {
         })
     }
 
+    /// The file the schedule was read from (or that `parse` was given).
     pub fn path(&self) -> &Path {
         &self.path
     }
 
+    /// Bound of each agent's queue of unsent keyframes, in bytes (`queue_limit_mib` x 2^20).
     pub fn queue_limit_bytes(&self) -> u64 {
         self.queue_limit_bytes
     }
@@ -316,8 +347,11 @@ fn validate_windows(
 /// bound of its queue.
 #[derive(Debug, Clone)]
 pub struct LinkPlan {
+    /// When the link is up, in seconds since `started`.
     pub windows: UpWindows,
+    /// Bound of the queue of unsent keyframes, in bytes.
     pub queue_limit_bytes: u64,
+    /// The moment the agent's link clock started (time 0 of `windows`).
     pub started: Instant,
 }
 
@@ -336,6 +370,7 @@ impl LinkPlan {
         self.started.elapsed().as_secs_f64()
     }
 
+    /// Whether the schedule has the link up at this moment.
     pub fn is_up_now(&self) -> bool {
         self.windows.is_up(self.elapsed_s())
     }
@@ -351,6 +386,7 @@ pub struct BoundedQueue<T> {
 }
 
 impl<T> BoundedQueue<T> {
+    /// An empty queue that holds at most `limit_bytes` (as its items' sizes are given).
     pub fn new(limit_bytes: u64) -> Self {
         Self {
             items: VecDeque::new(),
@@ -373,6 +409,7 @@ impl<T> BoundedQueue<T> {
         dropped
     }
 
+    /// Takes the oldest item; `None` when the queue is empty.
     pub fn pop_front(&mut self) -> Option<T> {
         self.pop_front_with_bytes().map(|(item, _)| item)
     }
@@ -390,14 +427,17 @@ impl<T> BoundedQueue<T> {
         Some((item, bytes))
     }
 
+    /// Number of items held.
     pub fn len(&self) -> usize {
         self.items.len()
     }
 
+    /// Whether no item is held.
     pub fn is_empty(&self) -> bool {
         self.items.is_empty()
     }
 
+    /// Sum of the held items' sizes, as given to `push` and `push_front`.
     pub fn bytes(&self) -> u64 {
         self.bytes
     }
@@ -422,10 +462,16 @@ pub enum CorrectionArrival<T> {
     /// The link is up: apply it now.
     Apply(T),
     /// The link is down: held; `superseded` when it replaced an older held one.
-    Held { superseded: bool },
+    Held {
+        /// Whether an older held correction was replaced (and so will never be applied).
+        superseded: bool,
+    },
 }
 
 impl<T> CorrectionGate<T> {
+    /// Takes a correction that just arrived: with the link up it is to be applied now (and
+    /// anything held, being older, is discarded); with it down it is held in place of any older
+    /// one.
     pub fn arrive(&mut self, correction: T, link_up: bool) -> CorrectionArrival<T> {
         if link_up {
             // Anything held is older than this one.
@@ -448,10 +494,12 @@ impl<T> CorrectionGate<T> {
 pub struct LinkSummary {
     /// The agent's windows, in words ("always up" without a schedule).
     pub schedule: String,
+    /// Bound of the queue of unsent keyframes, in bytes.
     pub queue_limit_bytes: u64,
-    /// When the link was seen to go down and come back up (seconds since the agent started;
-    /// the state is checked between frames).
+    /// When the link was seen to go down (seconds since the agent started; the state is checked
+    /// between frames).
     pub went_down_at_s: Vec<f64>,
+    /// When the link was seen to come back up (seconds since the agent started).
     pub came_up_at_s: Vec<f64>,
     /// Keyframes (descriptor + image + patch each) produced while the link was down.
     pub keyframes_queued: usize,
@@ -461,10 +509,13 @@ pub struct LinkSummary {
     pub keyframes_flushed_at_goodbye: usize,
     /// Queued keyframes dropped because the queue exceeded its bound (oldest first).
     pub keyframes_dropped_queue_full: usize,
+    /// Size of those dropped keyframes' messages, in bytes.
     pub bytes_dropped_queue_full: u64,
+    /// Largest size the queue reached, in bytes.
     pub queue_peak_bytes: u64,
-    /// Longest and mean time a delivered keyframe waited in the queue.
+    /// Longest time a keyframe delivered late waited in the queue, in seconds.
     pub late_delivery_s_max: f64,
+    /// Mean time a keyframe delivered late waited in the queue, in seconds.
     pub late_delivery_s_mean: f64,
     /// Whether the hello itself waited for the link.
     pub hello_delivered_late: bool,
@@ -475,6 +526,7 @@ pub struct LinkSummary {
 }
 
 impl LinkSummary {
+    /// An empty summary of `plan`'s link: its windows in words and its queue bound.
     pub fn new(plan: &LinkPlan) -> Self {
         Self {
             schedule: plan.windows.to_string(),

@@ -39,6 +39,8 @@ use crate::seeding::CoverageIndex;
 /// A correction as the agent received it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ReceivedCorrection {
+    /// The agent's tracked frame in the world (agent 0's frame): the rigid transform that best
+    /// maps its tracked keyframes onto their corrected poses.
     pub world_from_agent: Isometry3<f64>,
     /// `(keyframe id, corrected world_from_camera)` of the agent's published keyframes.
     pub keyframes: Vec<(u64, Isometry3<f64>)>,
@@ -56,8 +58,11 @@ pub struct LocalCorrectionStats {
     /// Keyframe poses in corrections that name a keyframe this run never made (an earlier
     /// incarnation's, after a restart): ignored.
     pub unknown_keyframes: usize,
-    /// Largest keyframe move of an applied correction (metres, degrees).
+    /// Largest translation of a keyframe's part of the map (or of the current pose) by an
+    /// applied correction, metres.
     pub largest_translation_m: f64,
+    /// Largest rotation of a keyframe's part of the map (or of the current pose) by an applied
+    /// correction, in degrees.
     pub largest_rotation_deg: f64,
     /// Time the tracking thread spent applying corrections (milliseconds, all together).
     pub tracking_thread_ms: f64,
@@ -96,12 +101,16 @@ pub struct LocalCorrections {
 
 /// The parts of the agent a correction moves.
 pub struct LocalMaps<'a> {
+    /// The tracker; its tracking map moves only with `move_tracking_map`.
     pub odometry: &'a mut Odometry,
+    /// The seeded means that decide which points of a keyframe seed.
     pub coverage: &'a mut CoverageIndex,
+    /// The mapping thread: each keyframe's Gaussians and pose move by that keyframe's share.
     pub mapper: &'a Mapper,
 }
 
 impl LocalCorrections {
+    /// No correction applied yet (the identity field) and no keyframe recorded.
     pub fn new(config: &LocalCorrectionConfig) -> Self {
         Self {
             config: config.clone(),
@@ -120,6 +129,7 @@ impl LocalCorrections {
         &self.applied
     }
 
+    /// What the corrections did so far.
     pub fn stats(&self) -> &LocalCorrectionStats {
         &self.stats
     }

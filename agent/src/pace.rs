@@ -12,7 +12,11 @@ use std::time::{Duration, Instant};
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Admission {
     /// Take it, after waiting this long for it to arrive (zero when it is already there).
-    Take { wait: Duration },
+    Take {
+        /// The frame's arrival (its timestamp relative to the first frame's) minus the wall time
+        /// since the first frame was taken; zero when it is already there.
+        wait: Duration,
+    },
     /// A newer frame has already arrived: a live driver would have overwritten this one.
     Drop,
 }
@@ -28,6 +32,7 @@ pub struct SensorClock {
 }
 
 impl SensorClock {
+    /// A clock that has taken no frame yet: the first frame it admits starts it.
     pub fn new() -> Self {
         Self::default()
     }

@@ -36,11 +36,14 @@ const PENDING_KEYFRAMES: usize = 64;
 pub struct TrackedPose {
     /// Position in the frame source (what `Dataset::load` takes).
     pub position: usize,
+    /// The frame's timestamp, seconds on the dataset's (or camera's) clock.
     pub timestamp: f64,
     /// In the tracked frame (the consensus's frame for this agent), or, while
     /// `placement` is an unjoined segment, in that segment's frame.
     pub world_from_camera: Isometry3<f64>,
+    /// The dataset's ground-truth `world_from_camera`; `None` when it has none for this frame.
     pub ground_truth: Option<Isometry3<f64>>,
+    /// The root map, or the unjoined tracking segment whose frame `world_from_camera` is in.
     pub placement: Placement,
     /// The tracker placed the frame (false: lost, the pose is the prediction).
     pub tracked: bool,
@@ -51,11 +54,14 @@ pub struct TrackedPose {
 /// Keyframes made so far, by the rule that made them.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct KeyframeCounts {
+    /// Tracking keyframes: too little overlap with the tracking map.
     pub tracking: usize,
+    /// Mapping keyframes: every `mapping_keyframe_every`-th frame otherwise.
     pub mapping: usize,
 }
 
 impl KeyframeCounts {
+    /// All keyframes made; also the next keyframe's id.
     pub fn total(&self) -> usize {
         self.tracking + self.mapping
     }
@@ -65,10 +71,13 @@ impl KeyframeCounts {
 /// which held-out evaluation reads to leave them out).
 #[derive(Debug, Clone, Copy)]
 pub struct KeyframeMade {
+    /// Keyframe id, counting up from 0 in the order keyframes are made.
     pub keyframe_id: usize,
     /// The frame's number in its sequence ([`Frame::index`]).
     pub frame_index: usize,
+    /// The frame's timestamp, seconds.
     pub timestamp_s: f64,
+    /// Which rule made it.
     pub kind: KeyframeKind,
 }
 
@@ -89,21 +98,30 @@ pub struct Tracked {
 /// A frame the keyframe rule selected, with the points that seed new Gaussians.
 #[derive(Clone)]
 pub struct KeyframeDecision {
+    /// Which rule selected the frame.
     pub kind: KeyframeKind,
+    /// Per point of the frame's `frame_points`: whether it seeds a Gaussian. Empty while the
+    /// keyframe waits for an unjoined segment: its seeds are chosen when the segment is joined.
     pub seed_mask: Vec<bool>,
 }
 
 /// What the frame loop leaves for the outputs (the mapper and the swarm link are handed back
 /// separately: finishing them consumes them).
 pub struct FinishedPipeline {
+    /// The tracker, for its counters (metrics.json's tracking block).
     pub odometry: Odometry,
+    /// The consensus corrections: their counters, and the field that places frames in the map.
     pub corrections: LocalCorrections,
+    /// Every frame the loop took, in order, lost ones and those of unjoined segments included.
     pub poses: Vec<TrackedPose>,
+    /// Per frame of `poses`: wall time of its pass through the loop's stages (tracking,
+    /// keyframe, corrections), milliseconds.
     pub tracking_ms: Vec<f64>,
     /// Per placed frame: the wall clock when its pose was placed minus the frame's stamp,
     /// milliseconds (a live camera's latency from capture to pose; meaningless for recordings,
     /// whose stamps are another day's).
     pub stamp_to_pose_ms: Vec<f64>,
+    /// Keyframes made, by kind.
     pub keyframes: KeyframeCounts,
     /// Every keyframe the mapper was given, in order.
     pub keyframes_made: Vec<KeyframeMade>,
@@ -141,6 +159,9 @@ pub struct AgentPipeline<'a> {
 }
 
 impl<'a> AgentPipeline<'a> {
+    /// Starts the agent's stages: the tracker, the mapping thread and, with `[ros2] publish`,
+    /// the live DDS outputs; fails when either of the last two cannot start. `swarm` is the link
+    /// to the consensus (`None`: standalone); `frames_expected` only sizes the per-frame records.
     pub fn new(
         config: &'a Config,
         dataset_spec: &'a str,
@@ -508,10 +529,13 @@ impl<'a> AgentPipeline<'a> {
         )
     }
 
+    /// Frames the loop has taken so far (lost ones included).
     pub fn frames_done(&self) -> usize {
         self.poses.len()
     }
 
+    /// Ends the frame loop: keyframes still held for an unjoined segment are given up, and the
+    /// mapper, the swarm link (when there is one) and what the outputs need are handed back.
     pub fn finish(mut self) -> (Mapper, Option<SwarmLink>, FinishedPipeline) {
         self.pending.give_up();
         let finished = FinishedPipeline {

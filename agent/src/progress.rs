@@ -13,29 +13,36 @@ use serde::{Deserialize, Serialize};
 /// Least time between two writes of the progress file.
 pub const PROGRESS_FILE_EVERY: Duration = Duration::from_millis(500);
 
+/// The progress file's name, in the agent's output directory.
 pub const PROGRESS_FILE_NAME: &str = "progress.json";
 
 /// What the agent is doing.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Stage {
+    /// The frame loop runs.
     Tracking,
     /// Tracking is over: final map, goodbye, evaluation.
     Finishing,
+    /// The run is over and its outputs, metrics.json last, are written.
     Done,
 }
 
 /// One snapshot of progress.json.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Progress {
+    /// What the agent is doing.
     pub stage: Stage,
+    /// Frames the loop has taken so far (lost ones included, frames dropped at sensor pace not).
     pub frames_done: usize,
     /// Absent (null) when the source does not know its length.
     pub frames_total: Option<usize>,
+    /// Keyframes made so far.
     pub keyframes: usize,
     /// Swarm mode only: whether the link to the consensus is up, and keyframes queued for it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub link_up: Option<bool>,
+    /// Swarm mode only: keyframes queued until the link is up.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub queued_keyframes: Option<usize>,
 }
@@ -49,6 +56,8 @@ pub struct ProgressFile {
 }
 
 impl ProgressFile {
+    /// The progress file in the output directory `out`; nothing is written before the first
+    /// [`Self::update`] or [`Self::write`].
     pub fn new(out: &std::path::Path) -> Self {
         Self {
             path: out.join(PROGRESS_FILE_NAME),

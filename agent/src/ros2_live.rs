@@ -16,6 +16,7 @@ use ros2::msg::TfMessage;
 use ros2::outputs::{AgentFrames, path, point_cloud, transform};
 use splats::GaussianCloud;
 
+/// One agent's live DDS outputs: its tf, path and map topics (see the module documentation).
 pub struct LiveOutputs {
     publisher: Option<LivePublisher>,
     frames: AgentFrames,

@@ -24,37 +24,41 @@ use geometry::trajectory::Trajectory;
 use indicatif::{ProgressBar, ProgressStyle};
 use live_view::{LiveView, LiveViewStats};
 use metrics::ate::{Alignment, AteStats, DEFAULT_MAX_DT, ate};
-use metrics::stats::{median, quantile};
 use nalgebra::Isometry3;
 use registration::odometry::{Placement, SegmentId};
-use serde::Serialize;
 use splats::GaussianCloud;
 
 use crate::evaluation::{
     FrameQuality, MapRenderer, QualitySummary, comparison_path, evaluate_frame,
 };
-use crate::local_corrections::LocalCorrectionStats;
 use crate::mapper::{MappingOutcome, MappingStats};
 use crate::pace::SensorClock;
 use crate::pipeline::{AgentPipeline, FinishedPipeline, TrackedPose, progress_snapshot};
 use crate::progress::{ProgressFile, Stage};
-use crate::segments::TrackingReport;
-use crate::source::{FrameSource, LiveInputReport, SourceStats, open_frames};
-use crate::swarm::{SwarmLink, SwarmSummary};
+use crate::source::{FrameSource, LiveInputReport, open_frames};
+use crate::swarm::SwarmLink;
 use crate::views::{poses_in_map, write_view_files};
+
+pub use crate::report::{AgentMetrics, MapMetrics, metrics_table, peak_rss_mib};
+use crate::report::{RunRecord, agent_metrics, map_metrics};
 
 /// Synthetic scene used when no dataset is given: three agents' loops, this agent's share.
 pub const DEFAULT_SYNTHETIC_AGENTS: usize = 3;
+/// Frames per agent of that scene (10 s at 30 frames per second).
 pub const DEFAULT_SYNTHETIC_FRAMES: usize = 300;
 
 /// What to run and where to write.
 #[derive(Debug, Clone)]
 pub struct AgentOptions {
+    /// The agent's configuration (all of configs/*.toml's sections).
     pub config: Config,
     /// Dataset path or `synthetic:...` spec.
     pub dataset: String,
+    /// Which frames of the dataset to replay; a live camera takes only [`FrameRange::ALL`].
     pub frames: FrameRange,
+    /// This agent's id in the swarm (agent 0's frame is the world frame).
     pub agent_id: u32,
+    /// Output folder, created at the start if needed (checked to be writable).
     pub out: PathBuf,
     /// Post-run refinement iterations (0 = none), reported separately.
     pub refine_iterations: usize,
@@ -62,7 +66,9 @@ pub struct AgentOptions {
     pub eval_every: usize,
     /// Comparison images written (spread over the evaluated frames).
     pub comparison_renders: usize,
+    /// LPIPS weights (.npz); without them LPIPS is left out.
     pub lpips_weights: Option<PathBuf>,
+    /// Threads decoding frames ahead of tracking (at least 1 is used).
     pub decode_workers: usize,
     /// The rerun live view ([`LiveView::disabled`] unless `--viewer` or `--record`).
     pub live_view: LiveView,
@@ -74,91 +80,6 @@ impl AgentOptions {
         let agents = DEFAULT_SYNTHETIC_AGENTS.max(agent_id as usize + 1);
         format!("synthetic:agents={agents},agent={agent_id},frames={DEFAULT_SYNTHETIC_FRAMES}")
     }
-}
-
-/// Rendering quality of one map.
-#[derive(Debug, Clone, Serialize)]
-pub struct MapMetrics {
-    pub psnr: Option<f64>,
-    pub ssim: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub lpips: Option<f64>,
-    pub depth_l1_cm: Option<f64>,
-    pub eval_frames: usize,
-    pub gaussians: usize,
-    pub mapping_iters: usize,
-    pub mapping_iters_per_s: f64,
-}
-
-/// metrics.json.
-#[derive(Debug, Clone, Serialize)]
-pub struct AgentMetrics {
-    pub agent_id: u32,
-    pub dataset: String,
-    /// The `--dataset` argument and frame range, so that tools can reopen the same frames.
-    pub dataset_spec: String,
-    pub frame_range: String,
-    /// SE(3)-aligned ATE RMSE against ground truth; absent without ground truth.
-    pub ate_rmse_m: Option<f64>,
-    pub ate_mean_m: Option<f64>,
-    pub psnr: Option<f64>,
-    pub ssim: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub lpips: Option<f64>,
-    pub depth_l1_cm: Option<f64>,
-    pub frames: usize,
-    pub keyframes: usize,
-    pub tracking_keyframes: usize,
-    pub mapping_keyframes: usize,
-    pub gaussians: usize,
-    pub tracking_ms_median: f64,
-    pub tracking_ms_p90: f64,
-    pub mapping_iters_per_s: f64,
-    pub mapping_iters: usize,
-    /// Frames per second of the whole real-time loop (decode, tracking, seeding, hand-off).
-    pub fps: f64,
-    pub wall_s: f64,
-    /// Tracking failures, recoveries and segments.
-    pub tracking: TrackingReport,
-    /// How the loop was timed (`mapping.pace`).
-    pub pace: Pace,
-    /// Sensor pace: frames a live camera would have overwritten before the agent took them
-    /// (not tracked, not in `frames`).
-    pub frames_dropped: usize,
-    /// Frames skipped because a file is missing (the log names it).
-    pub frames_missing: usize,
-    /// Frames skipped because a file could not be decoded or validated (the log names it).
-    pub frames_broken: usize,
-    /// Where the dataset is damaged (a bag cut short), when it is: the run used the frames
-    /// before the damage.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub dataset_damage: Option<String>,
-    /// A live ROS 2 camera's input: what was received, paired, dropped, and why it ended.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub live: Option<LiveInputReport>,
-    /// Tracked frames whose ground-truth pose file is broken (the log names it): left out of
-    /// the ATE only.
-    pub ground_truth_broken: usize,
-    pub frames_without_depth: usize,
-    pub eval_frames: usize,
-    pub eval_every: usize,
-    pub mapping_image_downscale: u32,
-    pub peak_rss_mib: Option<f64>,
-    /// True when a stop request ended the run early.
-    pub interrupted: bool,
-    /// The optional post-run refinement, kept apart from the real-time figures.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub refined: Option<MapMetrics>,
-    /// Swarm mode only: what went to and came from the consensus.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub swarm: Option<SwarmSummary>,
-    /// Swarm mode only: the consensus corrections applied to the local maps.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub local_corrections: Option<LocalCorrectionStats>,
-    /// With `--viewer` or `--record`: what the live view queued and dropped (a full queue drops
-    /// visualisation, never slows the agent).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub live_view: Option<LiveViewStats>,
 }
 
 /// A frame whose loop takes longer than this is logged (debug) with the time of each stage.
@@ -180,6 +101,25 @@ pub fn run_agent(
     let _span = tracing::info_span!("agent", id = options.agent_id).entered();
     config::process::prepare_output_dir(&options.out)?;
     let config = &options.config;
+    let in_swarm = swarm.is_some();
+    let mut swarm = swarm;
+    let new_pipeline = |swarm, frames_expected| {
+        AgentPipeline::new(
+            config,
+            &options.dataset,
+            swarm,
+            frames_expected,
+            options.agent_id,
+            options.live_view.clone(),
+        )
+    };
+    // A live camera sends whether the agent is ready or not: the mapper (its device and
+    // shaders, seconds on a loaded CPU) is set up before subscribing, so no frame is dropped
+    // to it. A dataset is opened first: a wrong path fails at once.
+    let early_pipeline = match datasets::live::is_live(&options.dataset) {
+        true => Some(new_pipeline(swarm.take(), 0)?),
+        false => None,
+    };
     let (dataset, live_camera) = open_frames(options)?;
     tracing::info!(dataset = %dataset.describe(), frames = dataset.len(), "agent starting");
     let lpips = options
@@ -190,7 +130,6 @@ pub fn run_agent(
         })
         .transpose()?;
 
-    let in_swarm = swarm.is_some();
     let started = Instant::now();
     let mut source = match &live_camera {
         Some(camera) => FrameSource::live(
@@ -201,14 +140,10 @@ pub fn run_agent(
         ),
         None => FrameSource::new(dataset.clone(), options.decode_workers.max(1), config.noise),
     };
-    let mut agent = AgentPipeline::new(
-        config,
-        &options.dataset,
-        swarm,
-        dataset.len(),
-        options.agent_id,
-        options.live_view.clone(),
-    )?;
+    let mut agent = match early_pipeline {
+        Some(agent) => agent,
+        None => new_pipeline(swarm.take(), dataset.len())?,
+    };
     let progress = progress_bar(dataset.len());
     let mut progress_file = ProgressFile::new(&options.out);
     let frames_total = live_camera.is_none().then(|| dataset.len());
@@ -409,85 +344,6 @@ fn evaluate_maps(
     Ok((realtime, realtime_quality.frames, refined))
 }
 
-/// What a finished run measured, gathered for metrics.json.
-struct RunRecord<'r> {
-    options: &'r AgentOptions,
-    dataset: &'r dyn Dataset,
-    run: &'r FinishedPipeline,
-    outcome: &'r MappingOutcome,
-    source: &'r SourceStats,
-    /// Frames a live camera would have overwritten before the agent took them (sensor pace).
-    frames_dropped: usize,
-    /// The frame loop's duration (frames per second).
-    loop_seconds: f64,
-    wall_s: f64,
-    interrupted: bool,
-    ate: Option<AteStats>,
-    realtime: MapMetrics,
-    realtime_frames: usize,
-    refined: Option<MapMetrics>,
-    swarm: Option<SwarmSummary>,
-    in_swarm: bool,
-    live_view: Option<LiveViewStats>,
-    live: Option<LiveInputReport>,
-}
-
-fn agent_metrics(record: RunRecord<'_>) -> AgentMetrics {
-    let RunRecord {
-        options,
-        run,
-        outcome,
-        realtime,
-        ..
-    } = record;
-    let frames = run.poses.len();
-    AgentMetrics {
-        agent_id: options.agent_id,
-        dataset: record.dataset.describe(),
-        dataset_spec: options.dataset.clone(),
-        frame_range: options.frames.to_string(),
-        ate_rmse_m: record.ate.as_ref().map(|s| s.rmse),
-        ate_mean_m: record.ate.as_ref().map(|s| s.mean),
-        psnr: realtime.psnr,
-        ssim: realtime.ssim,
-        lpips: realtime.lpips,
-        depth_l1_cm: realtime.depth_l1_cm,
-        frames,
-        keyframes: run.keyframes.total(),
-        tracking_keyframes: run.keyframes.tracking,
-        mapping_keyframes: run.keyframes.mapping,
-        gaussians: outcome.realtime_map.len(),
-        tracking_ms_median: median(&run.tracking_ms).unwrap_or(0.0),
-        tracking_ms_p90: quantile(&run.tracking_ms, 0.9).unwrap_or(0.0),
-        mapping_iters_per_s: outcome.realtime.iterations_per_second(),
-        mapping_iters: outcome.realtime.iterations,
-        fps: if record.loop_seconds > 0.0 {
-            frames as f64 / record.loop_seconds
-        } else {
-            0.0
-        },
-        wall_s: record.wall_s,
-        tracking: tracking_report(run),
-        pace: options.config.mapping.pace,
-        frames_dropped: record.frames_dropped,
-        frames_missing: record.source.frames_missing,
-        frames_broken: record.source.frames_broken,
-        dataset_damage: record.source.dataset_damage.clone(),
-        live: record.live,
-        ground_truth_broken: record.source.ground_truth_broken,
-        frames_without_depth: record.source.frames_without_depth,
-        eval_frames: record.realtime_frames,
-        eval_every: options.eval_every.max(1),
-        mapping_image_downscale: options.config.mapping.image_downscale,
-        peak_rss_mib: peak_rss_mib(),
-        interrupted: record.interrupted,
-        refined: record.refined,
-        swarm: record.swarm,
-        local_corrections: record.in_swarm.then(|| run.corrections.stats().clone()),
-        live_view: record.live_view,
-    }
-}
-
 /// Shows the final map in the live view, then lets the view log what it holds (at most its
 /// finish timeout); what it took and dropped.
 fn finish_live_view(options: &AgentOptions, map: &GaussianCloud) -> Option<LiveViewStats> {
@@ -565,32 +421,6 @@ fn write_trajectories(poses: &[TrackedPose], out: &Path) -> anyhow::Result<Traje
         Trajectory::from_pairs(ground_truth).write_tum(&out.join("groundtruth.tum"))?;
     }
     Ok(trajectory)
-}
-
-/// metrics.json's tracking block.
-fn tracking_report(run: &FinishedPipeline) -> TrackingReport {
-    let stats = run.odometry.stats();
-    let confidences: Vec<f64> = run
-        .poses
-        .iter()
-        .filter(|p| p.tracked)
-        .map(|p| p.confidence)
-        .collect();
-    TrackingReport {
-        frames_lost: stats.failures,
-        divergences_detected: stats.divergences,
-        recoveries: stats.recoveries,
-        segments_started: stats.segments_started,
-        segments_joined: stats.segments_joined,
-        frames_unjoined: run
-            .poses
-            .iter()
-            .filter(|p| p.placement != Placement::Root)
-            .count(),
-        keyframes_dropped_unjoined: run.keyframes_dropped_unjoined,
-        confidence_median: median(&confidences),
-        confidence_min: confidences.iter().copied().reduce(f64::min),
-    }
 }
 
 /// map.ply (the real-time map) and map_refined.ply (after the optional refinement).
@@ -690,95 +520,4 @@ fn evaluate_map(
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(QualitySummary::of(&qualities))
-}
-
-fn map_metrics(quality: &QualitySummary, gaussians: usize, stats: &MappingStats) -> MapMetrics {
-    MapMetrics {
-        psnr: quality.psnr,
-        ssim: quality.ssim,
-        lpips: quality.lpips,
-        depth_l1_cm: quality.depth_l1_cm,
-        eval_frames: quality.frames,
-        gaussians,
-        mapping_iters: stats.iterations,
-        mapping_iters_per_s: stats.iterations_per_second(),
-    }
-}
-
-/// Peak resident set size of this process (Linux `VmHWM`), MiB.
-pub fn peak_rss_mib() -> Option<f64> {
-    const KIB_PER_MIB: f64 = 1024.0;
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib / KIB_PER_MIB)
-}
-
-/// The metrics as a readable table.
-pub fn metrics_table(metrics: &AgentMetrics) -> String {
-    fn opt(value: Option<f64>, scale: f64, digits: usize) -> String {
-        value.map_or("-".into(), |v| format!("{:.*}", digits, v * scale))
-    }
-    let mut rows = vec![
-        ("frames".to_string(), metrics.frames.to_string()),
-        ("ATE RMSE cm".into(), opt(metrics.ate_rmse_m, 100.0, 2)),
-        ("ATE mean cm".into(), opt(metrics.ate_mean_m, 100.0, 2)),
-        (
-            format!("PSNR dB ({} frames)", metrics.eval_frames),
-            opt(metrics.psnr, 1.0, 2),
-        ),
-        ("SSIM (zero-padded)".into(), opt(metrics.ssim, 1.0, 3)),
-        ("LPIPS".into(), opt(metrics.lpips, 1.0, 3)),
-        ("depth L1 cm".into(), opt(metrics.depth_l1_cm, 1.0, 2)),
-        (
-            "keyframes (tracking + mapping)".into(),
-            format!(
-                "{} ({} + {})",
-                metrics.keyframes, metrics.tracking_keyframes, metrics.mapping_keyframes
-            ),
-        ),
-        ("Gaussians".into(), metrics.gaussians.to_string()),
-        (
-            "tracking ms median / p90".into(),
-            format!(
-                "{:.1} / {:.1}",
-                metrics.tracking_ms_median, metrics.tracking_ms_p90
-            ),
-        ),
-        (
-            "mapping iterations (per s)".into(),
-            format!(
-                "{} ({:.2})",
-                metrics.mapping_iters, metrics.mapping_iters_per_s
-            ),
-        ),
-        ("frames per second".into(), format!("{:.2}", metrics.fps)),
-        ("peak RSS MiB".into(), opt(metrics.peak_rss_mib, 1.0, 0)),
-    ];
-    // Bad input shows here as well as in the log, where each file is named.
-    if metrics.frames_missing + metrics.frames_broken + metrics.ground_truth_broken > 0 {
-        rows.push((
-            "frames skipped missing / broken".into(),
-            format!("{} / {}", metrics.frames_missing, metrics.frames_broken),
-        ));
-        rows.push((
-            "broken ground-truth poses".into(),
-            metrics.ground_truth_broken.to_string(),
-        ));
-    }
-    if let Some(refined) = &metrics.refined {
-        rows.push((
-            format!("refined ({} iterations) PSNR dB", refined.mapping_iters),
-            opt(refined.psnr, 1.0, 2),
-        ));
-        rows.push(("refined SSIM".into(), opt(refined.ssim, 1.0, 3)));
-        rows.push((
-            "refined depth L1 cm".into(),
-            opt(refined.depth_l1_cm, 1.0, 2),
-        ));
-    }
-    let width = rows.iter().map(|r| r.0.len()).max().unwrap_or(0);
-    rows.iter()
-        .map(|(k, v)| format!("  {k:<width$}  {v:>12}\n"))
-        .collect()
 }

@@ -35,8 +35,11 @@ fn logit(probability: f64) -> f32 {
 pub struct SeedFrame<'a> {
     /// Points in the camera frame, with covariances and source pixels.
     pub points: &'a PointCloud,
+    /// The keyframe's camera in the agent's local-map frame, where the Gaussians are placed.
     pub world_from_camera: &'a Isometry3<f64>,
+    /// The keyframe's colour image: each Gaussian takes its point's pixel.
     pub rgb: &'a RgbImage,
+    /// The keyframe's intrinsics: their mean focal length sets the `sample_footprint` scale.
     pub intrinsics: &'a Intrinsics,
 }
 
@@ -143,10 +146,12 @@ impl CoverageIndex {
         }
     }
 
+    /// Number of means indexed.
     pub fn len(&self) -> usize {
         self.map.len()
     }
 
+    /// Whether no mean is indexed.
     pub fn is_empty(&self) -> bool {
         self.map.is_empty()
     }

@@ -27,6 +27,7 @@ pub struct PendingKeyframes {
 }
 
 impl PendingKeyframes {
+    /// An empty queue that holds at most `capacity` keyframes (at least 1).
     pub fn new(capacity: usize) -> Self {
         Self {
             segment: None,
@@ -85,10 +86,12 @@ impl PendingKeyframes {
         self.segment = None;
     }
 
+    /// Keyframes waiting now.
     pub fn len(&self) -> usize {
         self.waiting.len()
     }
 
+    /// Whether no keyframe waits.
     pub fn is_empty(&self) -> bool {
         self.waiting.is_empty()
     }
@@ -104,15 +107,18 @@ pub struct TrackingReport {
     pub divergences_detected: usize,
     /// Frames placed by a wide-baseline guess.
     pub recoveries: usize,
-    /// Segments started after repeated failures, and how many were joined to the map.
+    /// Segments started after repeated failures.
     pub segments_started: usize,
+    /// Segments joined to the map.
     pub segments_joined: usize,
     /// Frames of segments never joined: in trajectory_segment_K.tum, not in trajectory.tum.
     pub frames_unjoined: usize,
     /// Keyframes of unjoined segments, dropped from the map.
     pub keyframes_dropped_unjoined: usize,
-    /// Median and lowest per-frame confidence (the check's depth agreement) over placed frames.
+    /// Median per-frame confidence (the check's depth agreement, in [0, 1]) over placed frames;
+    /// `None` when no frame was placed.
     pub confidence_median: Option<f64>,
+    /// Lowest per-frame confidence over placed frames; `None` when no frame was placed.
     pub confidence_min: Option<f64>,
 }
 

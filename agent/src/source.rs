@@ -34,6 +34,8 @@ use geometry::files::DatasetError;
 /// metrics.json's `live`: a live camera's topics and how its frames ended.
 #[derive(Debug, Clone, Serialize)]
 pub struct LiveInputReport {
+    /// The camera's namespace, domain and what its subscriptions received, paired and dropped
+    /// (flattened into `live`).
     #[serde(flatten)]
     pub topics: LiveReport,
     /// Why the frames ended (a stop request, no frame for `[ros2] idle_timeout_s`, ...).
@@ -42,6 +44,7 @@ pub struct LiveInputReport {
     /// milliseconds, over the frames placed: median and 99th percentile. Absent when the
     /// stamps are plainly another clock's, as for stamp to arrival.
     pub stamp_to_pose_ms_median: Option<f64>,
+    /// The 99th percentile of the same latencies, milliseconds; absent whenever the median is.
     pub stamp_to_pose_ms_p99: Option<f64>,
 }
 
@@ -123,6 +126,7 @@ pub struct SourceStats {
 /// A frame ready for tracking, with what the source did to it.
 #[derive(Debug, Clone)]
 pub struct SourceFrame {
+    /// The frame, depth sanitised and noise added when configured.
     pub frame: Frame,
     /// Position of the frame in the dataset (0-based, in range order).
     pub position: usize,
@@ -130,6 +134,8 @@ pub struct SourceFrame {
     pub has_depth: bool,
 }
 
+/// The agent's frames in order, an iterator of [`SourceFrame`]s: a dataset decoded ahead on
+/// worker threads ([`Self::new`]) or a live camera ([`Self::live`]). See the module documentation.
 pub struct FrameSource<'a> {
     frames: Frames<'a>,
     noise: Option<NoiseConfig>,
@@ -197,6 +203,7 @@ impl<'a> FrameSource<'a> {
         }
     }
 
+    /// What the source has seen so far.
     pub fn stats(&self) -> &SourceStats {
         &self.stats
     }
@@ -210,6 +217,7 @@ impl<'a> FrameSource<'a> {
         }
     }
 
+    /// Whether [`Self::len`] is 0.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }

@@ -24,24 +24,36 @@ pub const KEYFRAME_SPOOL_DIR: &str = "keyframe_spool";
 /// One keyframe's messages as the spool keeps them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SpooledKeyframe {
+    /// The keyframe's id (ids count up from 0 in the order the agent made keyframes).
     pub keyframe_id: u64,
+    /// The frame's number in its sequence.
     pub frame_index: u64,
+    /// The frame's timestamp, seconds.
     pub timestamp_s: f64,
     /// `camera_to_agent_world` as the wire carries it: `[tx, ty, tz, qx, qy, qz, qw]`.
     pub agent_from_camera: [f64; 7],
+    /// The intrinsics of the images below.
     pub intrinsics: Intrinsics,
+    /// The global descriptor as sent (L2-normalised; the wire's length, checked on reading).
     pub descriptor: Vec<f32>,
+    /// Image width, pixels.
     pub width: u32,
+    /// Image height, pixels.
     pub height: u32,
     /// Row-major RGB, 3 bytes a pixel.
     pub rgb: Vec<u8>,
     /// Row-major metres, 0 = invalid.
     pub depth_m: Vec<f32>,
-    /// The keyframe's Gaussians, structure of arrays as in `splats::GaussianCloud`.
+    /// The keyframe's Gaussians, structure of arrays as in `splats::GaussianCloud`: here their
+    /// means, in the agent's tracked frame (metres).
     pub means: Vec<[f32; 3]>,
+    /// Natural-log standard deviations along each Gaussian's axes (metres before the log).
     pub log_scales: Vec<[f32; 3]>,
+    /// Rotations, `[w, x, y, z]`.
     pub quaternions: Vec<[f32; 4]>,
+    /// Opacities before the sigmoid.
     pub opacity_logits: Vec<f32>,
+    /// Linear RGB in `[0, 1]`.
     pub colours: Vec<[f32; 3]>,
 }
 

@@ -20,6 +20,7 @@ use crate::pipeline::{FinishedPipeline, KeyframeMade, TrackedPose};
 
 /// The file names, in the agent's output folder.
 pub const KEYFRAMES_FILE: &str = "keyframes.csv";
+/// Every tracked frame's camera in map.ply's frame, as the agent's evaluation renders it.
 pub const MAP_TRAJECTORY_FILE: &str = "trajectory_map.tum";
 
 /// Every tracked frame of the root map with its camera where the map renders it: `pose_refinement

@@ -32,8 +32,13 @@ pub const ALEXNET_INPUT_WIDTH: u32 = 320;
 const THUMBNAIL_SIDE: u32 = 16;
 const _: () = assert!((THUMBNAIL_SIDE * THUMBNAIL_SIDE) as usize == GLOBAL_DESCRIPTOR_LEN);
 
+/// Computes a keyframe's global descriptor ([`GLOBAL_DESCRIPTOR_LEN`] values, L2-normalised);
+/// built by [`Self::from_weights`], which picks the kind.
 pub enum GlobalDescriptorExtractor {
+    /// GeM-pooled relu5 features of the pretrained AlexNet (the LPIPS network, whose weights it
+    /// holds), on the image resized to [`ALEXNET_INPUT_WIDTH`] pixels wide.
     AlexNetGem(Box<Lpips>),
+    /// The classical fallback without weights: a zero-mean 16 x 16 grey thumbnail.
     Thumbnail,
 }
 

@@ -155,22 +155,33 @@ pub enum LpipsError {
     /// The weights file is absent, unreadable, not a zip/npz, or an array in it is corrupt.
     #[error("cannot read LPIPS weights file {}: {source}", path.display())]
     ReadWeights {
+        /// The weights file.
         path: PathBuf,
+        /// candle's error from opening or decoding it.
         #[source]
         source: candle_core::Error,
     },
     /// A required array is not in the weights file.
     #[error("LPIPS weights file {} has no array named `{key}`", path.display())]
-    MissingKey { path: PathBuf, key: String },
+    MissingKey {
+        /// The weights file.
+        path: PathBuf,
+        /// The array's name (e.g. `features.0.weight`, `lin0.model.1.weight`).
+        key: String,
+    },
     /// A required array has the wrong shape (e.g. weights of another network).
     #[error(
         "LPIPS weights file {}: array `{key}` has shape {found:?}, expected {expected:?}",
         path.display()
     )]
     WrongShape {
+        /// The weights file.
         path: PathBuf,
+        /// The array's name.
         key: String,
+        /// The shape this network needs (kernels OIHW, biases `[out]`, heads `[1, C, 1, 1]`).
         expected: Vec<usize>,
+        /// The shape in the file.
         found: Vec<usize>,
     },
     /// A required array does not hold floating-point numbers.
@@ -179,8 +190,11 @@ pub enum LpipsError {
         path.display()
     )]
     WrongElementType {
+        /// The weights file.
         path: PathBuf,
+        /// The array's name.
         key: String,
+        /// The element type in the file.
         dtype: DType,
     },
     /// The two images given to [`Lpips::distance`] differ in size.
@@ -189,9 +203,13 @@ pub enum LpipsError {
          {second_width}x{second_height}"
     )]
     SizeMismatch {
+        /// Width of the first image, in pixels.
         first_width: u32,
+        /// Height of the first image, in pixels.
         first_height: u32,
+        /// Width of the second image, in pixels.
         second_width: u32,
+        /// Height of the second image, in pixels.
         second_height: u32,
     },
     /// The image is smaller than AlexNet's receptive field.
@@ -200,15 +218,21 @@ pub enum LpipsError {
          {min_side} pixels"
     )]
     ImageTooSmall {
+        /// The image's width, in pixels.
         width: u32,
+        /// The image's height, in pixels.
         height: u32,
+        /// The smallest side accepted, [`MIN_IMAGE_SIDE`] pixels.
         min_side: u32,
     },
     /// [`Lpips::conv_features`] was asked for a layer outside relu1..relu5.
     #[error(
         "AlexNet has no feature layer {layer}: layers are 1..={FEATURE_LAYER_COUNT} (relu1..relu5)"
     )]
-    NoSuchLayer { layer: usize },
+    NoSuchLayer {
+        /// The 1-based layer asked for.
+        layer: usize,
+    },
     /// A tensor operation failed while evaluating the network.
     #[error("LPIPS evaluation failed: {0}")]
     Tensor(#[from] candle_core::Error),

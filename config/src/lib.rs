@@ -47,9 +47,15 @@ pub use network::NetworkConfig;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
+    /// Frame-to-model tracking (`[tracking]`): point selection, covariances, G-ICP
+    /// ([`TrackingConfig`] gives each key and its default).
     pub tracking: TrackingConfig,
+    /// Keyframe selection and the seeding of new Gaussians (`[keyframes]`, [`KeyframeConfig`]).
     pub keyframes: KeyframeConfig,
+    /// The agent's pace and its mapper's optimisation and pruning (`[mapping]`, [`MappingConfig`]).
     pub mapping: MappingConfig,
+    /// The consensus process and what agents read of it (`[consensus]` and its tables,
+    /// [`ConsensusConfig`]).
     pub consensus: ConsensusConfig,
     /// What agents may send between hosts (the agent host's bridge reads it).
     pub network: NetworkConfig,
@@ -64,18 +70,32 @@ pub struct Config {
 /// A configuration file that cannot be used.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
+    /// The file could not be read.
     #[error("{path}: {source}")]
     Io {
+        /// The configuration file.
         path: PathBuf,
+        /// The operating system's error.
         #[source]
         source: std::io::Error,
     },
+    /// The file is not TOML, or does not fit [`Config`]: an unknown key or section, a value of
+    /// the wrong type.
     #[error("{path}: {message}")]
-    Parse { path: PathBuf, message: String },
+    Parse {
+        /// The configuration file.
+        path: PathBuf,
+        /// The TOML parser's message, which names the line and the key.
+        message: String,
+    },
+    /// A value is out of range ([`Config::validate`]).
     #[error("{path}: {field}: {reason}")]
     Invalid {
+        /// The configuration file.
         path: PathBuf,
+        /// The offending key's dotted path (`tracking.pixel_stride`).
         field: &'static str,
+        /// Why the value is refused.
         reason: String,
     },
 }

@@ -40,18 +40,27 @@ pub struct MappingConfig {
     /// is left. 0: the same priority as tracking. Other paces ignore it (there tracking either
     /// waits for the mapper or runs a batch).
     pub sensor_background_niceness: i32,
+    /// Weight of the colour L1 term of the mapping loss (default 0.8).
     pub weight_l1: f64,
+    /// Weight of the (1 - SSIM) colour term of the mapping loss (default 0.2).
     pub weight_ssim: f64,
     /// Weight of L1(depth / truncation).
     pub weight_depth: f64,
     /// Learning rate of means, multiplied by the scene scale.
     pub lr_means: f64,
+    /// Adam learning rate of the Gaussians' RGB colours, on the [0, 1] scale (default 2.5e-3).
     pub lr_colours: f64,
+    /// Adam learning rate of the opacity logits, the opacities before the sigmoid (default 0.05).
     pub lr_opacity: f64,
+    /// Adam learning rate of the natural-log scales (default 0.01).
     pub lr_log_scales: f64,
+    /// Adam learning rate of the rotation quaternions (default 0: the optimisation leaves the
+    /// orientations as they are).
     pub lr_rotations: f64,
     /// Prune every n mapper iterations.
     pub prune_every: usize,
+    /// Pruning removes Gaussians whose opacity (after the sigmoid) is below this; in [0, 1]
+    /// (default 0.005).
     pub prune_min_opacity: f64,
     /// tau_s: largest allowed scale (metres; 1.0, or 0.25 for Replica-like scenes).
     pub prune_max_scale_m: f64,
@@ -72,10 +81,12 @@ pub struct MappingConfig {
     pub refine_keyframe_poses: bool,
     /// Adam step sizes of a keyframe pose (metres and radians per step).
     pub lr_pose_translation_m: f64,
+    /// Rotation step size of a keyframe pose, radians (default 2e-4).
     pub lr_pose_rotation_rad: f64,
     /// A keyframe pose stays within this distance of its tracked pose (metres, radians): a step
     /// that would take it farther is not taken.
     pub max_pose_change_m: f64,
+    /// Rotation limit of a keyframe pose, radians (default 2 degrees).
     pub max_pose_change_rad: f64,
     /// Read the pair count back every n iterations (one blocking read) to grow the binning
     /// buffers when the map outgrows them.

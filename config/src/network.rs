@@ -57,6 +57,7 @@ impl NetworkConfig {
         }
     }
 
+    /// Checks ranges; returns the offending field (`network.*`) and why.
     pub fn validate(&self) -> Result<(), FieldError> {
         non_negative("network.agent_kb_per_s", self.agent_kb_per_s)?;
         positive("network.burst_s", self.burst_s)?;

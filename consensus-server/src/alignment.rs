@@ -15,10 +15,13 @@ pub use registration::alignment::{CoarseScores, RefinementScores, RejectionReaso
 /// One keyframe as the consensus receives it.
 #[derive(Debug, Clone)]
 pub struct Keyframe {
+    /// The agent that made the keyframe and its number there.
     pub id: KeyframeRef,
+    /// The colour image, registered to `depth` (same size, same camera).
     pub rgb: RgbImage,
     /// Metres, 0 = invalid.
     pub depth: DepthImage,
+    /// The pinhole camera of `rgb` and `depth`, in pixels.
     pub intrinsics: Intrinsics,
     /// The keyframe's pose in its agent's own frame (agents start at identity).
     pub agent_from_camera: Isometry3<f64>,
@@ -27,11 +30,16 @@ pub struct Keyframe {
 /// A keyframe with what alignment computes from it once, however many candidates it is paired
 /// with.
 pub struct PreparedKeyframe {
+    /// The keyframe as received; the depth agreement test projects the other side's points into
+    /// its depth image.
     pub keyframe: Keyframe,
+    /// The keyframe's lifted keypoints and its point cloud with G-ICP covariances, in its camera
+    /// frame.
     pub view: PreparedView,
 }
 
 impl PreparedKeyframe {
+    /// Computes the keyframe's features and point cloud with `config`'s parameters.
     pub fn new(keyframe: Keyframe, config: &AlignmentConfig) -> Self {
         let _span = tracing::debug_span!("prepare keyframe", id = ?keyframe.id).entered();
         let view = PreparedView::new(&keyframe.rgb, &keyframe.depth, &keyframe.intrinsics, config);
@@ -51,7 +59,9 @@ impl PreparedKeyframe {
 /// The outcome of aligning a source keyframe to a target keyframe.
 #[derive(Debug, Clone)]
 pub struct AlignmentResult {
+    /// The keyframe whose camera frame the estimate maps from.
     pub source: KeyframeRef,
+    /// The keyframe whose camera frame the estimate maps into.
     pub target: KeyframeRef,
     /// The estimate: refined when refinement ran, the coarse one when refinement failed,
     /// identity when there were too few matches to estimate anything.
@@ -60,10 +70,12 @@ pub struct AlignmentResult {
     pub coarse: Option<CoarseScores>,
     /// `None` when refinement did not run or failed.
     pub refinement: Option<RefinementScores>,
+    /// Accepted, or rejected with the reason; only an accepted estimate is used.
     pub verdict: Verdict,
 }
 
 impl AlignmentResult {
+    /// Whether verification accepted the estimate ([`Verdict::Accepted`]).
     pub fn is_accepted(&self) -> bool {
         self.verdict == Verdict::Accepted
     }

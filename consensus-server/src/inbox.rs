@@ -106,13 +106,16 @@ impl AgentIncarnations {
 /// A request the process should send: agent, keyframe and the reason for its log.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ResendRequest {
+    /// The incomplete keyframe; its agent is the one asked.
     pub keyframe: KeyframeRef,
+    /// Which parts are missing and for how long (`"Gaussian patch missing after 2.0 s"`).
     pub reason: String,
 }
 
 /// What the inbox holds of an agent whose messages were lost, for `ControlMessage::MessagesLost`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LossReport {
+    /// The agent whose messages were lost.
     pub agent_id: u32,
     /// Keyframes of which every part arrived.
     pub keyframes_held: Vec<u64>,
@@ -141,6 +144,8 @@ pub struct KeyframeInbox {
 }
 
 impl KeyframeInbox {
+    /// An empty inbox that asks for missing parts by `policy` (`[consensus.resend]`, its wait
+    /// possibly lengthened by the process for a bandwidth budget).
     pub fn new(policy: ResendConfig) -> Self {
         Self {
             pending: BTreeMap::new(),

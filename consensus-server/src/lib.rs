@@ -9,8 +9,9 @@
 //! - [`engine`]: the consensus state (keyframes, candidates, decisions), free of transport;
 //! - [`place_recognition`]: the descriptor database that proposes loop closures;
 //! - [`alignment`]: verified relative pose of two keyframes (features + RANSAC, G-ICP, checks);
-//! - [`map_registration`]: verified transform between two agents' maps without an initial guess
-//!   (voxel downsampling, FPFH-style descriptors, RANSAC with a runner-up, G-ICP, checks);
+//! - [`registration::map_registration`] (in the registration crate): verified transform between
+//!   two agents' maps without an initial guess (voxel downsampling, FPFH-style descriptors,
+//!   RANSAC with a runner-up, G-ICP, checks);
 //! - [`map_links`]: when two agents' maps are registered, the free-space check of a result, and
 //!   the pose-graph edge it becomes;
 //! - [`pose_graph`]: robust (GNC) pose graph over all agents' keyframes, giving each agent's

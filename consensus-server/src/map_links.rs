@@ -45,7 +45,9 @@ use registration::map_registration::{MapPoints, MapRegistration, register_maps};
 /// One agent's map as a registration input: points in its own tracked frame, their colours,
 /// and the keyframes that saw them.
 pub struct AgentMap {
+    /// The agent whose map this is.
     pub agent_id: u32,
+    /// Gaussian means and keyframe depth points, metres, in the agent's tracked frame.
     pub points: Vec<Point3<f32>>,
     /// One per point (RGB in `[0, 1]`), or `None` when some point has none: the map is then
     /// registered on its geometry alone.
@@ -128,47 +130,76 @@ impl AgentMap {
 
 /// A map registration between two agents, free of the engine (runs on the aligner thread).
 pub struct MapJob {
+    /// The map moved onto the other (the higher agent id, as the engine schedules it).
     pub source: AgentMap,
+    /// The map the source is registered to.
     pub target: AgentMap,
+    /// The registration's parameters (`[consensus.map_registration]`), with
+    /// `depth_check_points`, how many map points the depth check projects per direction.
     pub registration: MapRegistrationConfig,
+    /// The keyframe alignment's parameters, whose depth test and thresholds check the result
+    /// (`[consensus.alignment]`).
     pub alignment: AlignmentConfig,
 }
 
 /// Why a registration that the map registration accepted was not used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum MapLinkRejection {
+    /// The map registration itself rejected its estimate (its reason, as text).
     #[error("{0}")]
     Registration(String),
+    /// Too few decisive depth comparisons to judge the result.
     #[error(
         "{comparisons} depth comparisons against the other agent's keyframes, at least {required} needed"
     )]
-    TooFewDepthComparisons { comparisons: usize, required: usize },
+    TooFewDepthComparisons {
+        /// Decisive comparisons (agreeing or violating) of the direction with fewer.
+        comparisons: usize,
+        /// `min_depth_comparisons` of the alignment configuration.
+        required: usize,
+    },
+    /// Too many map points lie in the free space in front of the other agent's measured depth.
     #[error(
         "map points lie in the free space of the other agent's keyframes: depth agreement {found:.3} below {required:.3}"
     )]
-    DepthDisagreement { found: f64, required: f64 },
+    DepthDisagreement {
+        /// The lower depth agreement of the two directions, in `[0, 1]`.
+        found: f64,
+        /// `min_depth_agreement` of the alignment configuration.
+        required: f64,
+    },
+    /// An agent has no keyframe, so no pose-graph edge can carry the link.
     #[error("an agent has no keyframe to attach the link to")]
     NoKeyframes,
 }
 
 /// Outcome of a [`MapJob`].
 pub struct FinishedMapJob {
+    /// The agent whose map was moved onto the other's.
     pub source_agent: u32,
+    /// The agent whose map the source's was registered to.
     pub target_agent: u32,
     /// The keyframes the attempt is filed under: the closure's ends when accepted, else each
-    /// agent's newest keyframe.
+    /// agent's newest keyframe. This is the source agent's; `None` when it has no keyframe.
     pub source_keyframe: Option<KeyframeRef>,
+    /// The target agent's keyframe the attempt is filed under; `None` when it has no keyframe.
     pub target_keyframe: Option<KeyframeRef>,
     /// Published keyframes of the source and the target agent when the maps were taken (what
     /// [`MapScheduler`] schedules the next attempt of the pair by).
     pub keyframes_at_attempt: (usize, usize),
+    /// The map registration's estimate (`target_from_source`, agent frames), scores and verdict.
     pub registration: MapRegistration,
-    /// Depth agreement of the source map in the target's keyframes, and the reverse.
+    /// Depth comparisons of the source map in the target agent's keyframes; all zero when the
+    /// registration was rejected (the check did not run).
     pub source_in_target: DepthComparison,
+    /// Depth comparisons of the target map in the source agent's keyframes; all zero when the
+    /// check did not run.
     pub target_in_source: DepthComparison,
     /// The loop closure's measurement when accepted: `target_camera_from_source_camera`.
     pub closure: Option<Isometry3<f64>>,
+    /// Why the link was not used; `None` when it was accepted.
     pub rejection: Option<MapLinkRejection>,
+    /// Wall-clock time of the whole job (registration, checks, keyframe pair), milliseconds.
     pub elapsed_ms: f64,
 }
 
@@ -422,20 +453,33 @@ impl MapScheduler {
 /// One map registration attempt as consensus.json reports it (inside the closure event).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct MapAttemptScores {
+    /// Source map points after voxel downsampling (the feature level).
     pub source_points: usize,
+    /// Target map points after voxel downsampling (the feature level).
     pub target_points: usize,
+    /// Putative correspondences between the two maps' descriptors.
     pub correspondences: usize,
+    /// Correspondences that support RANSAC's best hypothesis.
     pub consistent_correspondences: usize,
+    /// Source points with a target point within the finest refinement distance, over the
+    /// smaller map's points.
     pub overlap_fraction: f64,
+    /// RMS point-to-plane distance of the overlapping points, metres.
     pub residual_m: f64,
     /// Whether the maps' colours were used, and the overlap's colour agreement (NaN without).
     pub colour: bool,
+    /// The fraction of overlapping points compared in colour that agree (NaN when none were
+    /// compared).
     pub colour_agreement: f64,
+    /// The free-space check's depth agreement, the lower of the two directions (0 when the
+    /// check did not run).
     pub depth_agreement: f64,
+    /// Decisive depth comparisons (agreeing or violating), the fewer of the two directions.
     pub depth_comparisons: usize,
 }
 
 impl FinishedMapJob {
+    /// The figures consensus.json reports for this attempt.
     pub fn scores(&self) -> MapAttemptScores {
         let scores = &self.registration.scores;
         MapAttemptScores {

@@ -10,16 +10,26 @@ use serde::{Deserialize, Serialize};
 /// Identifies one keyframe in the swarm.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 pub struct KeyframeRef {
+    /// The agent that made the keyframe.
     pub agent_id: u32,
+    /// The keyframe's number on its agent: keyframes are numbered from 0 in the order the agent
+    /// makes them. `protocol::messages::FINAL_MAP_KEYFRAME_ID` names the agent's final map
+    /// instead.
     pub keyframe_id: u64,
 }
 
 /// A loop-closure candidate between a new keyframe and a stored one.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct LoopCandidate {
+    /// The keyframe whose descriptor was just inserted.
     pub query: KeyframeRef,
+    /// The stored keyframe it resembles.
     pub matched: KeyframeRef,
+    /// Dot product of the two unit descriptors (their cosine, at most 1); above the threshold
+    /// that applies.
     pub score: f32,
+    /// Whether the two keyframes come from different agents (`tau_other_agent` applied) or the
+    /// same one (`tau_same_agent`).
     pub inter_agent: bool,
 }
 
@@ -32,7 +42,9 @@ struct Entry {
 /// Thresholds of [`PlaceDatabase`], taken from the consensus configuration.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SelectionThresholds {
+    /// Minimum score (exclusive) for a candidate between two keyframes of one agent.
     pub tau_same_agent: f32,
+    /// Minimum score (exclusive) for a candidate between keyframes of two agents.
     pub tau_other_agent: f32,
     /// Same-agent keyframes closer than this many frames are not compared: they are neighbours
     /// on the agent's own trajectory, already linked by odometry, and trivially similar.
@@ -40,6 +52,7 @@ pub struct SelectionThresholds {
 }
 
 impl SelectionThresholds {
+    /// The thresholds of the `[consensus]` section.
     pub fn from_config(config: &ConsensusConfig) -> Self {
         Self {
             tau_same_agent: config.tau_same_agent as f32,
@@ -56,6 +69,7 @@ pub struct PlaceDatabase {
 }
 
 impl PlaceDatabase {
+    /// An empty database that proposes candidates by `thresholds`.
     pub fn new(thresholds: SelectionThresholds) -> Self {
         Self {
             thresholds,
@@ -63,10 +77,12 @@ impl PlaceDatabase {
         }
     }
 
+    /// How many keyframes' descriptors are stored.
     pub fn len(&self) -> usize {
         self.entries.len()
     }
 
+    /// Whether no descriptor has been stored yet.
     pub fn is_empty(&self) -> bool {
         self.entries.is_empty()
     }

@@ -44,7 +44,11 @@ pub struct Frame {
     /// Seconds. 7-Scenes and Replica have no clock: `index / fps` (30 Hz), as the shared
     /// groundtruth_tum.txt files use.
     pub timestamp: f64,
+    /// Colour image, 8-bit RGB, of the size the intrinsics give.
     pub rgb: RgbImage,
+    /// Depth in metres, `0.0` where invalid, the size of `rgb`. Frames from [`open`] have it on
+    /// `rgb`'s pixel grid (see [`undistort`]); a reader's own frames may have it on a pinhole of
+    /// its own ([`Dataset::depth_registration`]).
     pub depth: DepthImage,
     /// Ground-truth camera-to-world pose, when the dataset has one.
     pub world_from_camera_gt: Option<Isometry3<f64>>,
@@ -52,6 +56,8 @@ pub struct Frame {
     /// its pose file is there but broken. The frame itself is fine: it is tracked and mapped, and
     /// only left out of the evaluation.
     pub ground_truth_error: Option<String>,
+    /// The camera of `rgb` (and of `depth` in frames from [`open`]). For frames [`open`]
+    /// undistorts, it is the pinhole they were resampled into, not the recorded lens.
     pub intrinsics: Intrinsics,
 }
 
@@ -80,6 +86,7 @@ pub trait Dataset: Send + Sync {
     }
     /// Number of frames in the (range-selected) sequence.
     fn len(&self) -> usize;
+    /// True when the (range-selected) sequence has no frames.
     fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -107,7 +114,9 @@ pub trait Dataset: Send + Sync {
 /// sequence arrives at 3 Hz) and ground truth stays associated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FrameRange {
+    /// First frame number selected.
     pub first: usize,
+    /// Frame number the range stops before (excluded); `None`: to the end of the sequence.
     pub end: Option<usize>,
     /// Take every `step`-th frame number from `first` on (1: every frame).
     pub step: usize,
@@ -120,6 +129,7 @@ impl Default for FrameRange {
 }
 
 impl FrameRange {
+    /// Every frame: `0..`, step 1.
     pub const ALL: FrameRange = FrameRange {
         first: 0,
         end: None,
@@ -143,6 +153,8 @@ impl FrameRange {
         }
     }
 
+    /// True when frame number `frame` is selected: inside `first..end` and a whole number of steps
+    /// from `first`.
     pub fn contains(&self, frame: usize) -> bool {
         frame >= self.first
             && self.end.is_none_or(|end| frame < end)
@@ -215,6 +227,7 @@ impl fmt::Display for FrameRange {
 pub struct DatasetSpec {
     /// The folder or synthetic spec [`open`] takes.
     pub dataset: String,
+    /// Which of its frame numbers to replay ([`FrameRange::ALL`] when the spec names no range).
     pub frames: FrameRange,
 }
 
@@ -461,8 +474,13 @@ pub fn open_with(
 /// On-disk layouts [`open`] recognises.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Layout {
+    /// 7-Scenes, also what `mac-ego3d synth` writes: `frame-XXXXXX.color.{png,jpg}` files
+    /// ([`seven_scenes`]).
     SevenScenes,
+    /// Replica in the NICE-SLAM layout, or one agent of Multi-agent Replica: `results/` and
+    /// `traj.txt` ([`replica`]).
     Replica,
+    /// TUM RGB-D: `rgb.txt` and `depth.txt` ([`tum`]).
     Tum,
     /// A rosbag2 bag: a `.mcap` / `.db3` file or a folder of them.
     RosBag,

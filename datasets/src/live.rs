@@ -54,8 +54,12 @@ pub enum LiveNext {
 /// What a live run received, paired, dropped and could not use: metrics.json's `live`.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct LiveReport {
+    /// The namespace the camera's topics were under (`/robot0`; empty for none).
     pub namespace: String,
+    /// The DDS domain the topics were received on.
     pub domain_id: u16,
+    /// What the subscriptions received, paired and dropped (its fields sit beside these in
+    /// metrics.json).
     #[serde(flatten)]
     pub counts: LiveCounts,
     /// Pairs handed to the agent as frames.

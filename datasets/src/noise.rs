@@ -15,8 +15,11 @@ use crate::Frame;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum NoiseTarget {
+    /// Colour only.
     Rgb,
+    /// Depth only.
     Depth,
+    /// Colour and depth.
     Rgbd,
 }
 
@@ -38,11 +41,14 @@ impl std::str::FromStr for NoiseTarget {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct NoiseConfig {
+    /// Which channels receive noise: `rgb`, `depth` or `rgbd` (default `rgbd`).
     pub target: NoiseTarget,
     /// Standard deviation of RGB noise on the [0, 1] intensity scale.
     pub rgb_sigma: f64,
     /// Standard deviation of depth noise in metres.
     pub depth_sigma_m: f64,
+    /// Seed of the noise (default 0). Each frame draws from a stream of its own, made from this
+    /// seed and its frame number.
     pub seed: u64,
 }
 
@@ -58,6 +64,7 @@ impl Default for NoiseConfig {
 }
 
 impl NoiseConfig {
+    /// The protocol's default noise, on the channels `target` names.
     pub fn with_target(target: NoiseTarget) -> Self {
         Self {
             target,

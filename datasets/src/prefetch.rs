@@ -16,6 +16,9 @@ use crate::{Dataset, Frame};
 /// One item of the stream: the frame's position in the dataset and its decode result.
 pub type PrefetchItem = (usize, Result<Frame, DatasetError>);
 
+/// The frames of a dataset in sequence order as an iterator of [`PrefetchItem`]s, decoded ahead on
+/// worker threads (see the module documentation). Dropping it stops the workers and waits for each
+/// to finish the frame it is decoding.
 pub struct Prefetcher {
     /// Worker k decodes positions k, k + W, k + 2W, ...; reading the channels round-robin
     /// restores sequence order without a reorder buffer.
@@ -70,6 +73,7 @@ impl Prefetcher {
         self.len
     }
 
+    /// True when the stream yields no frames.
     pub fn is_empty(&self) -> bool {
         self.len == 0
     }

@@ -31,6 +31,8 @@ const DEPTH_ENCODING: DepthEncoding = DepthEncoding {
     invalid_raw: None,
 };
 
+/// A folder in the Replica layout (see the module documentation), indexed by [`Replica::open`];
+/// images are decoded as frames load.
 pub struct Replica {
     dir: PathBuf,
     /// (frame number, colour file) in frame order.
@@ -41,6 +43,11 @@ pub struct Replica {
 }
 
 impl Replica {
+    /// Indexes `dir`, keeping the frames whose number is in `range`, and reads `traj.txt` and the
+    /// optional `camera-intrinsics.txt` (its image size taken from the first colour image). No
+    /// image is decoded. Fails when `results/` cannot be listed, a frame number is not an integer,
+    /// no frame number is in `range`, `traj.txt` is unreadable or has no pose for the last frame,
+    /// or the K file (or the first image's size it needs) cannot be read.
     pub fn open(dir: &Path, range: FrameRange) -> Result<Self, DatasetError> {
         let results = dir.join("results");
         let mut frames = BTreeMap::new();

@@ -166,8 +166,12 @@ impl Ros2Config {
 /// What the reader chose to read in a bag.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct BagChoice {
+    /// The colour image topic, namespace and any `/compressed` suffix included.
     pub colour_topic: String,
+    /// The depth image topic, namespace and any `/compressedDepth` or `/compressed` suffix
+    /// included.
     pub depth_topic: String,
+    /// The colour camera's CameraInfo topic the intrinsics and lens come from.
     pub camera_info_topic: String,
     /// The depth topic's own CameraInfo, when the bag has one.
     pub depth_camera_info_topic: Option<String>,
@@ -210,6 +214,12 @@ struct Stamped {
 }
 
 impl RosBag {
+    /// Opens the bag at `path` (a `.mcap` or `.db3` file, or a rosbag2 folder), chooses its topics
+    /// ([`choose_topics`]), reads the intrinsics and lens from the first CameraInfo, pairs colour
+    /// with depth (and ground truth) by stamp within `pairing_tolerance_s`, and keeps the pairs
+    /// whose number is in `range`. No image is decoded. Fails when the bag cannot be read, the
+    /// camera's topics cannot be told, the CameraInfo is unusable, the depth images' frame_id is
+    /// not the colour images', or no pair is in `range`.
     pub fn open(path: &Path, range: FrameRange, config: &Ros2Config) -> Result<Self, DatasetError> {
         let bag = Bag::open(path).map_err(bag_error)?;
         let choice = choose_topics(&bag, config)?;

@@ -44,6 +44,8 @@ struct FrameFiles {
     color: PathBuf,
 }
 
+/// A folder in the 7-Scenes layout (see the module documentation), indexed by
+/// [`SevenScenes::open`]; images are decoded as frames load.
 pub struct SevenScenes {
     dir: PathBuf,
     frames: Vec<FrameFiles>,
@@ -131,6 +133,7 @@ impl SevenScenes {
         })
     }
 
+    /// The folder read.
     pub fn dir(&self) -> &Path {
         &self.dir
     }
@@ -269,6 +272,8 @@ pub struct SevenScenesWriter {
 }
 
 impl SevenScenesWriter {
+    /// Creates `dir` (with its parents) and writes [`INTRINSICS_FILE`] for `intrinsics` into it;
+    /// the image size is not written (the reader takes it from the first colour image).
     pub fn create(dir: &Path, intrinsics: &Intrinsics) -> Result<Self, DatasetError> {
         std::fs::create_dir_all(dir).map_err(|e| DatasetError::io(dir, e))?;
         let k_path = dir.join(INTRINSICS_FILE);
@@ -283,6 +288,9 @@ impl SevenScenesWriter {
         })
     }
 
+    /// Writes one frame's files, named by its frame number: the colour PNG, the depth PNG in
+    /// millimetres and, when the frame has a ground-truth pose, its pose file (the pose is also
+    /// kept for [`SevenScenesWriter::finish`]). Files already there are replaced.
     pub fn write(&mut self, frame: &Frame) -> Result<(), DatasetError> {
         let color = self.dir.join(format!("frame-{:06}.color.png", frame.index));
         frame

@@ -46,6 +46,7 @@ pub const FREIBURG1: Intrinsics = Intrinsics {
     width: 640,
     height: 480,
 };
+/// TUM's calibration of the Freiburg 2 sensor.
 pub const FREIBURG2: Intrinsics = Intrinsics {
     fx: 520.9,
     fy: 521.0,
@@ -54,6 +55,7 @@ pub const FREIBURG2: Intrinsics = Intrinsics {
     width: 640,
     height: 480,
 };
+/// TUM's calibration of the Freiburg 3 sensor.
 pub const FREIBURG3: Intrinsics = Intrinsics {
     fx: 535.4,
     fy: 539.2,
@@ -62,6 +64,8 @@ pub const FREIBURG3: Intrinsics = Intrinsics {
     width: 640,
     height: 480,
 };
+/// The ROS default pinhole: the intrinsics of folders that name no Freiburg sensor, and the pinhole
+/// a Freiburg sensor's depth images are registered to (see the module documentation).
 pub const ROS_DEFAULT: Intrinsics = Intrinsics {
     fx: 525.0,
     fy: 525.0,
@@ -78,6 +82,8 @@ struct TumFrame {
     world_from_camera_gt: Option<Isometry3<f64>>,
 }
 
+/// A folder in the TUM RGB-D layout (see the module documentation), with colour, depth and ground
+/// truth associated by [`Tum::open`]; images are decoded as frames load.
 pub struct Tum {
     dir: PathBuf,
     frames: Vec<(usize, TumFrame)>,
@@ -163,6 +169,10 @@ pub(crate) fn nearest(stamps: &[f64], t: f64, max_dt: f64) -> Option<usize> {
 }
 
 impl Tum {
+    /// Reads the lists of `dir` (and `groundtruth.txt` when there is one), associates them, and
+    /// keeps the association rows whose number is in `range`. No image is decoded. Fails when a
+    /// list or the ground truth cannot be read or parsed, no pair is in `range`, or
+    /// `camera-intrinsics.txt` is malformed.
     pub fn open(dir: &Path, range: FrameRange) -> Result<Self, DatasetError> {
         let rgb = read_list(&dir.join("rgb.txt"))?;
         let depth = read_list(&dir.join("depth.txt"))?;

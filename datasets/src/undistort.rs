@@ -112,6 +112,7 @@ impl Undistortion {
         }
     }
 
+    /// The lens distortion the map undoes (the recorded colour camera's).
     pub fn distortion(&self) -> &Distortion {
         &self.distortion
     }

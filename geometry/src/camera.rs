@@ -13,15 +13,23 @@ use crate::files::{DatasetError, parse_floats};
 /// principal point of a 640x480 sensor is near (319.5, 239.5).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Intrinsics {
+    /// Focal length along x, in pixels.
     pub fx: f64,
+    /// Focal length along y, in pixels.
     pub fy: f64,
+    /// Principal point x (the column the optical axis meets), in pixels.
     pub cx: f64,
+    /// Principal point y (the row the optical axis meets), in pixels.
     pub cy: f64,
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
 }
 
 impl Intrinsics {
+    /// Intrinsics from the focal lengths and principal point (pixels) and the image size. Nothing
+    /// is checked here: see [`Intrinsics::validate`].
     pub fn new(fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32) -> Self {
         Self {
             fx,

@@ -5,6 +5,7 @@
 /// The field (dotted TOML path) that is out of range and why.
 pub type FieldError = (&'static str, String);
 
+/// Accepts a finite `v > 0`; NaN, infinities, zero and negative values are refused.
 pub fn positive(field: &'static str, v: f64) -> Result<(), FieldError> {
     if v.is_finite() && v > 0.0 {
         Ok(())
@@ -13,6 +14,7 @@ pub fn positive(field: &'static str, v: f64) -> Result<(), FieldError> {
     }
 }
 
+/// Accepts a finite `v >= 0`; NaN, infinities and negative values are refused.
 pub fn non_negative(field: &'static str, v: f64) -> Result<(), FieldError> {
     if v.is_finite() && v >= 0.0 {
         Ok(())
@@ -21,6 +23,7 @@ pub fn non_negative(field: &'static str, v: f64) -> Result<(), FieldError> {
     }
 }
 
+/// Accepts `v` in [0, 1], both ends included; NaN is refused.
 pub fn fraction(field: &'static str, v: f64) -> Result<(), FieldError> {
     if (0.0..=1.0).contains(&v) {
         Ok(())
@@ -38,6 +41,7 @@ pub fn nice_value(field: &'static str, v: i32) -> Result<(), FieldError> {
     }
 }
 
+/// Accepts a count of at least 1.
 pub fn at_least_one(field: &'static str, v: usize) -> Result<(), FieldError> {
     if v >= 1 {
         Ok(())

@@ -62,6 +62,7 @@ impl CorrectionField {
         self.anchors.is_empty()
     }
 
+    /// Number of anchors (keyframe corrections) the field holds.
     pub fn len(&self) -> usize {
         self.anchors.len()
     }

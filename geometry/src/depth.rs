@@ -5,12 +5,17 @@
 /// A depth image in metres, row-major. Invalid pixels are exactly `0.0`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DepthImage {
+    /// Width in pixels.
     pub width: u32,
+    /// Height in pixels.
     pub height: u32,
+    /// `width * height` depths in metres, row-major (pixel (x, y) at `y * width + x`); `0.0` is
+    /// invalid.
     pub data: Vec<f32>,
 }
 
 impl DepthImage {
+    /// An image of the given size with every pixel invalid (`0.0`).
     pub fn new(width: u32, height: u32) -> Self {
         Self {
             width,
@@ -46,6 +51,9 @@ impl DepthImage {
         }
     }
 
+    /// Depth at pixel (x, y) in metres, `0.0` where invalid. The caller keeps (x, y) inside the
+    /// image: only an index past the end of `data` panics, and an `x` beyond the width reads the
+    /// next row.
     #[inline]
     pub fn get(&self, x: u32, y: u32) -> f32 {
         self.data[y as usize * self.width as usize + x as usize]

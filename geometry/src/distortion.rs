@@ -22,10 +22,15 @@ use crate::files::{DatasetError, parse_floats};
 /// Brown-Conrady coefficients (see the module documentation).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct Distortion {
+    /// Radial coefficient of r^2.
     pub k1: f64,
+    /// Radial coefficient of r^4.
     pub k2: f64,
+    /// First tangential coefficient.
     pub p1: f64,
+    /// Second tangential coefficient.
     pub p2: f64,
+    /// Radial coefficient of r^6.
     pub k3: f64,
 }
 
@@ -45,6 +50,8 @@ impl Distortion {
         }
     }
 
+    /// The coefficients as `[k1, k2, p1, p2, k3]`, the order of
+    /// [`Distortion::from_coefficients`] and [`DISTORTION_FILE`].
     pub fn coefficients(&self) -> [f64; 5] {
         [self.k1, self.k2, self.p1, self.p2, self.k3]
     }

@@ -12,43 +12,77 @@ use std::path::{Path, PathBuf};
 /// line.
 #[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
+    /// The file could not be opened, read, written or renamed.
     #[error("{path}: {source}")]
     Io {
+        /// The file.
         path: PathBuf,
+        /// The operating system's error.
         #[source]
         source: std::io::Error,
     },
+    /// An image file could not be decoded (or saved, by a writer), or is not the kind of image
+    /// expected (an 8-bit colour image, a 16-bit single-channel depth PNG).
     #[error("{path}: cannot decode image: {reason}")]
-    Decode { path: PathBuf, reason: String },
-    #[error("{path}{}: {reason}", line.map(|l| format!(" line {l}")).unwrap_or_default())]
-    Format {
+    Decode {
+        /// The image file.
         path: PathBuf,
-        line: Option<usize>,
+        /// The decoder's message, or which kind of image was expected and found.
         reason: String,
     },
+    /// A file holds something its format does not allow: a text file (trajectory, calibration,
+    /// association list) or a bag.
+    #[error("{path}{}: {reason}", line.map(|l| format!(" line {l}")).unwrap_or_default())]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// The offending line, 1-based; `None` when the problem is the file as a whole (no poses,
+        /// too few rows).
+        line: Option<usize>,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A file of a frame is not there. Callers may skip the frame
+    /// ([`DatasetError::is_missing_frame`]).
     #[error("{path}: missing frame {index} (file not found)")]
-    MissingFrame { path: PathBuf, index: usize },
+    MissingFrame {
+        /// The file that was not found.
+        path: PathBuf,
+        /// The frame's number in its sequence.
+        index: usize,
+    },
+    /// An image's size differs from the dataset's (its intrinsics' width and height).
     #[error(
         "{path}: image is {found_w}x{found_h}, expected {expected_w}x{expected_h} like the other images of this dataset"
     )]
     SizeMismatch {
+        /// The image file.
         path: PathBuf,
+        /// The dataset's width in pixels.
         expected_w: u32,
+        /// The dataset's height in pixels.
         expected_h: u32,
+        /// The image's width in pixels.
         found_w: u32,
+        /// The image's height in pixels.
         found_h: u32,
     },
+    /// Anything else that makes a dataset or a frame unusable: an unknown layout, a bad synthetic
+    /// spec, calibrations that do not fit together, no frames in the selected range, a decoder
+    /// thread that died. The message says what, and names the file where there is one.
     #[error("{0}")]
     Invalid(String),
 }
 
 impl DatasetError {
+    /// An [`DatasetError::Io`] error for `path`.
     pub fn io(path: &Path, source: std::io::Error) -> Self {
         Self::Io {
             path: path.to_path_buf(),
             source,
         }
     }
+    /// A [`DatasetError::Format`] error for `path`, at 1-based `line` when there is one.
     pub fn format(path: &Path, line: Option<usize>, reason: impl Into<String>) -> Self {
         Self::Format {
             path: path.to_path_buf(),
@@ -56,6 +90,7 @@ impl DatasetError {
             reason: reason.into(),
         }
     }
+    /// A [`DatasetError::Decode`] error for `path`, `reason` being the decoder's error or message.
     pub fn decode(path: &Path, reason: impl fmt::Display) -> Self {
         Self::Decode {
             path: path.to_path_buf(),

@@ -103,12 +103,16 @@ pub fn rotation_angle(pose: &Isometry3<f64>) -> f64 {
 /// Similarity transform `x -> scale * R x + t` (used by Sim(3) trajectory alignment).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Similarity {
+    /// The rotation R.
     pub rotation: UnitQuaternion<f64>,
+    /// The translation t, added after scaling and rotating.
     pub translation: Vector3<f64>,
+    /// The scale factor s (1 for a rigid transform).
     pub scale: f64,
 }
 
 impl Similarity {
+    /// The identity: no rotation, no translation, scale 1.
     pub fn identity() -> Self {
         Self {
             rotation: UnitQuaternion::identity(),
@@ -117,6 +121,7 @@ impl Similarity {
         }
     }
 
+    /// Maps a point: `scale * R p + t`.
     pub fn transform_point(&self, p: &Point3<f64>) -> Point3<f64> {
         Point3::from(self.scale * (self.rotation * p.coords) + self.translation)
     }

@@ -20,7 +20,10 @@ pub const NO_CLOCK_FRAMES_PER_SECOND: f64 = 30.0;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum TrajectoryFormat {
+    /// `tum`: TUM text, `timestamp tx ty tz qx qy qz qw` per line.
     Tum,
+    /// `kitti-c2w`: a row-major camera-to-world matrix per line (12 or 16 numbers), no timestamps;
+    /// Replica's traj.txt.
     KittiC2w,
 }
 
@@ -40,24 +43,30 @@ impl std::str::FromStr for TrajectoryFormat {
 /// Camera-to-world poses with timestamps (seconds), in file order.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Trajectory {
+    /// Timestamps in seconds, one per pose.
     pub stamps: Vec<f64>,
+    /// `world_from_camera` poses; `poses[i]` is at `stamps[i]`.
     pub poses: Vec<Isometry3<f64>>,
 }
 
 impl Trajectory {
+    /// A trajectory from `(timestamp in seconds, world_from_camera)` pairs, kept in their order.
     pub fn from_pairs(pairs: impl IntoIterator<Item = (f64, Isometry3<f64>)>) -> Self {
         let (stamps, poses) = pairs.into_iter().unzip();
         Self { stamps, poses }
     }
 
+    /// Number of poses.
     pub fn len(&self) -> usize {
         self.stamps.len()
     }
 
+    /// True when there are no poses.
     pub fn is_empty(&self) -> bool {
         self.stamps.is_empty()
     }
 
+    /// Appends a pose at `stamp` (seconds). Time order is not checked.
     pub fn push(&mut self, stamp: f64, pose: Isometry3<f64>) {
         self.stamps.push(stamp);
         self.poses.push(pose);
@@ -71,6 +80,9 @@ impl Trajectory {
             .sum()
     }
 
+    /// Reads a trajectory file in `format` ([`Trajectory::read_tum`] or
+    /// [`Trajectory::read_kitti_c2w`]). Fails when the file cannot be read, a line is not a pose,
+    /// or it holds no poses.
     pub fn read(path: &Path, format: TrajectoryFormat) -> Result<Self, DatasetError> {
         match format {
             TrajectoryFormat::Tum => Self::read_tum(path),

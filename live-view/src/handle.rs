@@ -63,6 +63,7 @@ pub struct LiveViewStats {
     pub items_dropped: u64,
     /// Of those, camera frames.
     pub frames_queued: u64,
+    /// Of `items_dropped`, camera frames.
     pub frames_dropped: u64,
     /// The background thread logged every queued item and flushed within the finish timeout.
     pub finished: bool,
@@ -166,6 +167,8 @@ impl LiveView {
         })
     }
 
+    /// Whether this handle logs anything (false for [`LiveView::disabled`]): callers skip
+    /// gathering what they would show when it does not.
     pub fn is_enabled(&self) -> bool {
         self.shared.is_some()
     }

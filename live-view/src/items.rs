@@ -38,8 +38,12 @@ impl ClosureOutcome {
 /// consensus has placed their agents).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ClosureLine {
+    /// The source keyframe's camera position, metres: in the world when the consensus has
+    /// placed it, else in its agent's frame.
     pub from: [f64; 3],
+    /// The target keyframe's camera position, in the same way.
     pub to: [f64; 3],
+    /// What became of the attempt; it gives the line's colour.
     pub outcome: ClosureOutcome,
 }
 

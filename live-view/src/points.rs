@@ -3,7 +3,9 @@
 /// Points with 8-bit colours.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ColouredPoints {
+    /// Where the points are, metres, in the frame of the entity they are logged under.
     pub positions: Vec<[f32; 3]>,
+    /// Each point's RGB colour (0 to 255), in the order of `positions`.
     pub colours: Vec<[u8; 3]>,
 }
 
@@ -20,10 +22,12 @@ impl ColouredPoints {
         }
     }
 
+    /// How many points it holds.
     pub fn len(&self) -> usize {
         self.positions.len()
     }
 
+    /// True when it holds no point.
     pub fn is_empty(&self) -> bool {
         self.positions.is_empty()
     }

@@ -48,14 +48,20 @@ impl std::str::FromStr for Alignment {
 /// published MAC-Ego3D code prints under the name "RMSE".
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct AteStats {
+    /// Root mean square error.
     pub rmse: f64,
+    /// Mean error.
     pub mean: f64,
+    /// Median error (the mean of the middle two for an even count).
     pub median: f64,
+    /// Largest error.
     pub max: f64,
+    /// Number of errors (associated pose pairs) summarised.
     pub pairs: usize,
 }
 
 impl AteStats {
+    /// Summarises errors in metres. With no errors every statistic is NaN and `pairs` is 0.
     pub fn from_errors(errors: &[f64]) -> Self {
         if errors.is_empty() {
             return Self {
@@ -129,6 +135,7 @@ pub fn associate(
 /// ATE of one trajectory: statistics, the alignment applied to the estimate, and per-pair errors.
 #[derive(Debug, Clone)]
 pub struct AteResult {
+    /// Statistics of the errors after alignment.
     pub stats: AteStats,
     /// Maps estimate positions into the ground-truth frame.
     pub alignment: Similarity,
@@ -202,6 +209,8 @@ pub struct JointAte {
     pub per_agent_joint_aligned: Vec<AteStats>,
     /// Each agent aligned on its own (the paper's per-agent protocol).
     pub per_agent_self_aligned: Vec<AteStats>,
+    /// The one alignment applied to all agents' estimates; maps estimate positions into the
+    /// ground-truth frame. Not serialised.
     #[serde(skip)]
     pub alignment: Similarity,
 }

@@ -14,7 +14,9 @@ use geometry::depth::DepthImage;
 pub struct CovisibilityParams {
     /// Use every n-th pixel of the first frame in both directions.
     pub pixel_stride: u32,
+    /// Fixed part of the tolerance, metres (default 0.03).
     pub tolerance_m: f64,
+    /// Part of the tolerance proportional to the other frame's measured depth (default 0.02, 2 %).
     pub tolerance_fraction: f64,
 }
 
@@ -31,8 +33,11 @@ impl Default for CovisibilityParams {
 /// One frame for [`covisibility`]: depth in metres (0 = invalid), intrinsics and pose.
 #[derive(Debug, Clone, Copy)]
 pub struct PosedDepth<'a> {
+    /// Depth image in metres, `0.0` invalid.
     pub depth: &'a DepthImage,
+    /// Intrinsics of the depth image.
     pub intrinsics: &'a Intrinsics,
+    /// Camera-to-world pose of the frame.
     pub world_from_camera: &'a Isometry3<f64>,
 }
 

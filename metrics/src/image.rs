@@ -21,7 +21,10 @@ const CHANNELS: usize = 3;
 pub struct ImageQuality {
     /// dB; infinite for identical images.
     pub psnr: f64,
+    /// SSIM, the 3DGS variant: zero padding, averaged over every pixel (see the module
+    /// documentation).
     pub ssim: f64,
+    /// SSIM, scikit-image's variant: averaged over the pixels whose window lies inside the image.
     pub ssim_valid: f64,
 }
 

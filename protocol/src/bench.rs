@@ -46,8 +46,9 @@ use crate::transport::{
 
 /// Agent id the benchmark driver uses.
 const BENCH_AGENT_ID: u32 = 0;
-/// Patch sizes of the report's keys.
+/// Records of the small patch (the `patch_10k*` keys of the report).
 pub const SMALL_PATCH_RECORDS: usize = 10_000;
+/// Records of the large patch (the `patch_100k*` keys).
 pub const LARGE_PATCH_RECORDS: usize = 100_000;
 /// Patch publisher sizing: the next power of two above the largest patch, so no data segment
 /// grows (and is zeroed) during timing.
@@ -74,28 +75,53 @@ const NS_PER_US: f64 = 1e3;
 const FNV_OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
 const FNV_PRIME: u64 = 0x0000_0100_0000_01b3;
 
+/// Why the IPC benchmark failed.
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
+    /// Opening a link, sending or receiving failed.
     #[error(transparent)]
     Transport(#[from] TransportError),
+    /// The peer process could not be started.
     #[error("could not start the benchmark peer '{program}': {reason}")]
-    PeerSpawn { program: String, reason: String },
+    PeerSpawn {
+        /// The executable.
+        program: String,
+        /// The operating system's error.
+        reason: String,
+    },
+    /// No acknowledgement (driver) or no message (peer) arrived within this time.
     #[error("the benchmark peer sent no acknowledgement within {0:?}")]
     PeerTimeout(Duration),
+    /// The peer exited unsuccessfully, could not be waited for, or was killed for not exiting.
     #[error("the benchmark peer exited with {status}")]
-    PeerFailed { status: String },
+    PeerFailed {
+        /// Its exit status, or what went wrong.
+        status: String,
+    },
+    /// An acknowledgement did not hold the two poses `[receive time, checksum]`.
     #[error("acknowledgement is malformed: {0}")]
     BadAck(String),
+    /// The checksum the peer computed differs from that of what the driver sent.
     #[error(
         "message content was corrupted in transit: {case} checksum {received:#x}, expected {expected:#x}"
     )]
     Corrupted {
+        /// The case (its report key).
         case: &'static str,
+        /// Checksum the peer reported.
         received: u64,
+        /// Checksum of what the driver sent.
         expected: u64,
     },
+    /// The driver or the peer could not be restricted to its CPU.
     #[error("could not pin the benchmark to CPU {cpu}: {reason}")]
-    Pin { cpu: usize, reason: String },
+    Pin {
+        /// The CPU index.
+        cpu: usize,
+        /// The operating system's error.
+        reason: String,
+    },
+    /// The settings cannot run (no latency samples or no throughput messages).
     #[error("invalid benchmark configuration: {0}")]
     InvalidConfig(String),
 }
@@ -136,16 +162,22 @@ impl Default for IpcBenchConfig {
 /// How to start the peer process: `program args... --namespace NS --poll-before-wait-us US`.
 #[derive(Debug, Clone)]
 pub struct PeerCommand {
+    /// The executable to run.
     pub program: PathBuf,
+    /// Its arguments, before the `--namespace` and `--poll-before-wait-us` the driver appends.
     pub args: Vec<String>,
 }
 
 /// Median and tail of one latency case, microseconds.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct LatencySummary {
+    /// Median, microseconds.
     pub median_us: f64,
+    /// 99th percentile, microseconds.
     pub p99_us: f64,
+    /// Largest sample, microseconds.
     pub max_us: f64,
+    /// Timed samples summarised (warm-up excluded); all figures are 0 when there are none.
     pub samples: usize,
 }
 
@@ -172,21 +204,30 @@ impl LatencySummary {
 /// The benchmark's result (`--json` prints it).
 #[derive(Debug, Clone, Serialize)]
 pub struct IpcBenchReport {
+    /// Median one-way latency of a keyframe descriptor, microseconds.
     pub descriptor_median_us: f64,
+    /// 99th percentile of the same, microseconds.
     pub descriptor_p99_us: f64,
     /// 10k-record patch copied from the agent's buffer (`send_patch`).
     pub patch_10k_median_us: f64,
+    /// 99th percentile of the same, microseconds.
     pub patch_10k_p99_us: f64,
+    /// Messages per second of the same patches, with as many in flight as the peer's queue holds.
     pub patch_10k_msgs_per_s: f64,
     /// 10k-record patch sent after the peer has been idle (blocked, not polling): includes
     /// waking the peer process.
     pub patch_10k_after_idle_median_us: f64,
+    /// 99th percentile of the same, microseconds.
     pub patch_10k_after_idle_p99_us: f64,
     /// 10k-record patch built in place in shared memory (`send_patch_with`); includes building.
     pub patch_10k_in_place_median_us: f64,
+    /// 99th percentile of the same, microseconds.
     pub patch_10k_in_place_p99_us: f64,
+    /// Median one-way latency of a 100k-record patch copied with `send_patch`, microseconds.
     pub patch_100k_median_us: f64,
+    /// 99th percentile of the same, microseconds.
     pub patch_100k_p99_us: f64,
+    /// Messages per second of the same patches, with as many in flight as the peer's queue holds.
     pub patch_100k_msgs_per_s: f64,
     /// Copies of the records from the agent's buffer to the consumer, measured by the
     /// transport's byte counters for the `patch_10k` path (`send_patch`).
@@ -195,18 +236,29 @@ pub struct IpcBenchReport {
     pub copies_per_patch_in_place: f64,
     /// The consumer reads records in shared memory.
     pub receiver_copies_per_patch: f64,
+    /// One-way latency of the descriptor case in full.
     pub descriptor: LatencySummary,
+    /// One-way latency of the `patch_10k` case in full.
     pub patch_10k: LatencySummary,
+    /// One-way latency of the `patch_10k_after_idle` case in full.
     pub patch_10k_after_idle: LatencySummary,
+    /// One-way latency of the `patch_10k_in_place` case in full.
     pub patch_10k_in_place: LatencySummary,
+    /// One-way latency of the `patch_100k` case in full.
     pub patch_100k: LatencySummary,
     /// The driver's send call alone in each latency case (part of the one-way latency above).
     pub descriptor_send_call: LatencySummary,
+    /// The same for `patch_10k`.
     pub patch_10k_send_call: LatencySummary,
+    /// The same for `patch_10k_after_idle`.
     pub patch_10k_after_idle_send_call: LatencySummary,
+    /// The same for `patch_10k_in_place`.
     pub patch_10k_in_place_send_call: LatencySummary,
+    /// The same for `patch_100k`.
     pub patch_100k_send_call: LatencySummary,
+    /// Bytes of one [`GaussianRecord`] on the wire.
     pub record_bytes: usize,
+    /// Bytes of one [`KeyframeDescriptor`] message on the wire.
     pub descriptor_bytes: usize,
     /// Receivers' poll before blocking ([`TransportConfig::poll_before_wait`]), microseconds.
     pub poll_before_wait_us: f64,
@@ -744,35 +796,4 @@ fn drive(config: &IpcBenchConfig, mut agent: AgentLink) -> Result<IpcBenchReport
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::messages::DESCRIPTOR_LEN;
-
-    #[test]
-    fn checksum_sees_order_and_content() {
-        let a: Vec<_> = (0..100).map(|i| synthetic_record(1, i)).collect();
-        let mut b = a.clone();
-        assert_eq!(records_checksum(&a), records_checksum(&b));
-        b.swap(3, 4);
-        assert_ne!(records_checksum(&a), records_checksum(&b));
-        let mut c = a.clone();
-        c[50].colour[2] += 1e-6;
-        assert_ne!(records_checksum(&a), records_checksum(&c));
-    }
-
-    #[test]
-    fn latency_summary_percentiles() {
-        let s = LatencySummary::from_ns((1..=100).map(|v| v * 1000).collect());
-        assert_eq!(s.samples, 100);
-        assert!((s.median_us - 51.0).abs() <= 1.0, "{}", s.median_us);
-        assert!((s.p99_us - 99.0).abs() <= 1.0, "{}", s.p99_us);
-        assert_eq!(s.max_us, 100.0);
-    }
-
-    #[test]
-    fn synthetic_descriptor_is_normalised() {
-        let d = synthetic_descriptor(7);
-        assert!((d.descriptor_norm() - 1.0).abs() < 1e-5);
-        assert_eq!(d.descriptor.len(), DESCRIPTOR_LEN);
-    }
-}
+mod tests;

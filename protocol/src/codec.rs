@@ -41,32 +41,77 @@ fn bincode_config() -> impl bincode::config::Config {
     bincode::config::standard().with_limit::<MAX_PAYLOAD_BYTES>()
 }
 
+/// Why a control message could not be encoded, or a frame decoded. Decoding reports every
+/// problem as one of these and never panics.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum CodecError {
+    /// The input is shorter than the [`HEADER_LEN`]-byte header.
     #[error("control frame truncated: {len} bytes, the header alone needs {HEADER_LEN}")]
-    TruncatedHeader { len: usize },
+    TruncatedHeader {
+        /// Bytes in the input.
+        len: usize,
+    },
+    /// The first four bytes are not [`MAGIC`]: this is not a control frame.
     #[error("not a mac-ego3d control frame: magic {found:02x?}, expected {MAGIC:02x?}")]
-    BadMagic { found: [u8; 4] },
+    BadMagic {
+        /// The four bytes found.
+        found: [u8; 4],
+    },
+    /// The frame has another format version than [`FORMAT_VERSION`] (an older or newer build).
     #[error(
         "control frame format version {found} is not supported (this build reads version {FORMAT_VERSION})"
     )]
-    UnsupportedVersion { found: u16 },
+    UnsupportedVersion {
+        /// The version in the header.
+        found: u16,
+    },
+    /// Reserved flag bits are set; this build knows none.
     #[error("control frame has reserved flags {found:#06x} set; this build knows none")]
-    UnknownFlags { found: u16 },
+    UnknownFlags {
+        /// The flags in the header.
+        found: u16,
+    },
+    /// The payload exceeds [`MAX_PAYLOAD_BYTES`]: on encode, or as the header declares it.
     #[error("control payload of {len} bytes exceeds the limit of {MAX_PAYLOAD_BYTES} bytes")]
-    TooLarge { len: usize },
+    TooLarge {
+        /// Payload bytes, encoded or declared.
+        len: usize,
+    },
+    /// The input ends before the payload length the header declares.
     #[error(
         "control frame truncated: header declares {declared} payload bytes, {available} present"
     )]
-    TruncatedPayload { declared: usize, available: usize },
+    TruncatedPayload {
+        /// Payload bytes the header declares.
+        declared: usize,
+        /// Bytes present after the header.
+        available: usize,
+    },
+    /// Bytes follow the declared payload: the input must be exactly one frame.
     #[error("control frame has {extra} bytes after the declared payload")]
-    TrailingFrameBytes { extra: usize },
+    TrailingFrameBytes {
+        /// Bytes after the declared payload.
+        extra: usize,
+    },
+    /// bincode could not decode the payload as the expected type (corrupt bytes, or an
+    /// allocation beyond the limit).
     #[error("control payload is malformed: {reason}")]
-    Malformed { reason: String },
+    Malformed {
+        /// bincode's error message.
+        reason: String,
+    },
+    /// The message decoded before the end of the payload.
     #[error("control payload decoded with {unused} bytes left over")]
-    TrailingPayloadBytes { unused: usize },
+    TrailingPayloadBytes {
+        /// Payload bytes left over.
+        unused: usize,
+    },
+    /// bincode could not encode the message.
     #[error("control message could not be encoded: {reason}")]
-    Encode { reason: String },
+    Encode {
+        /// bincode's error message.
+        reason: String,
+    },
 }
 
 /// Encodes `message` into a complete frame.

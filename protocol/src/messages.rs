@@ -61,12 +61,14 @@ pub struct Stamp {
 #[repr(C)]
 #[type_name("mac.v2.Pose")]
 pub struct Pose {
+    /// Translation in metres: the source frame's origin in target coordinates.
     pub translation: [f64; 3],
     /// Unit quaternion `[w, x, y, z]`.
     pub rotation_wxyz: [f64; 4],
 }
 
 impl Pose {
+    /// The identity transform (no translation, quaternion `[1, 0, 0, 0]`); also the `Default`.
     pub const IDENTITY: Pose = Pose {
         translation: [0.0; 3],
         rotation_wxyz: [1.0, 0.0, 0.0, 0.0],
@@ -97,11 +99,17 @@ impl Default for Pose {
 #[repr(C)]
 #[type_name("mac.v2.Intrinsics")]
 pub struct Intrinsics {
+    /// Focal length along the image columns (x), pixels.
     pub fx: f64,
+    /// Focal length along the image rows (y), pixels.
     pub fy: f64,
+    /// Principal point column, pixels (pixel centres sit at integer coordinates).
     pub cx: f64,
+    /// Principal point row, pixels.
     pub cy: f64,
+    /// Image width in pixels (columns).
     pub width: u32,
+    /// Image height in pixels (rows).
     pub height: u32,
 }
 
@@ -111,7 +119,10 @@ pub struct Intrinsics {
 #[repr(C)]
 #[type_name("mac.v2.KeyframeDescriptor")]
 pub struct KeyframeDescriptor {
+    /// Sender and ordering; filled in by the transport on send.
     pub stamp: Stamp,
+    /// The agent's id of the keyframe (counted up from 0); its keyframe image and patch carry
+    /// the same id.
     pub keyframe_id: u64,
     /// Index of the frame in the agent's input sequence.
     pub frame_index: u64,
@@ -119,6 +130,7 @@ pub struct KeyframeDescriptor {
     pub timestamp_s: f64,
     /// Camera-to-agent-world transform of the keyframe (agent's own world frame).
     pub camera_to_agent_world: Pose,
+    /// Pinhole intrinsics of the keyframe's camera.
     pub intrinsics: Intrinsics,
     /// L2-normalised global image descriptor (scores are dot products).
     pub descriptor: [f32; DESCRIPTOR_LEN],
@@ -216,7 +228,9 @@ impl TryFrom<u32> for CoordinateFrame {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("unknown {field} tag {tag}")]
 pub struct UnknownTag {
+    /// The field that held the tag (`"coordinate frame"` or `"lifecycle kind"`).
     pub field: &'static str,
+    /// The value found.
     pub tag: u32,
 }
 
@@ -226,6 +240,7 @@ pub struct UnknownTag {
 #[repr(C)]
 #[type_name("mac.v2.PatchHeader")]
 pub struct PatchHeader {
+    /// Sender and ordering; filled in by the transport on send.
     pub stamp: Stamp,
     /// Keyframe whose Gaussians these are.
     pub keyframe_id: u64,
@@ -238,6 +253,7 @@ pub struct PatchHeader {
 }
 
 impl PatchHeader {
+    /// The [`CoordinateFrame`] of the records; [`UnknownTag`] when the tag names none.
     pub fn frame(&self) -> Result<CoordinateFrame, UnknownTag> {
         CoordinateFrame::try_from(self.frame)
     }
@@ -299,6 +315,7 @@ impl RgbdPixel {
 #[repr(C)]
 #[type_name("mac.v2.KeyframeImageHeader")]
 pub struct KeyframeImageHeader {
+    /// Sender and ordering; filled in by the transport on send.
     pub stamp: Stamp,
     /// Keyframe this image belongs to (same id as its descriptor and patch).
     pub keyframe_id: u64,
@@ -313,6 +330,7 @@ pub struct KeyframeImageHeader {
     pub intrinsics: Intrinsics,
     /// Image size in pixels; the slice holds `width * height` pixels.
     pub width: u32,
+    /// Image height in pixels (rows).
     pub height: u32,
 }
 
@@ -330,6 +348,7 @@ impl KeyframeImageHeader {
 #[repr(C)]
 #[type_name("mac.v2.KeyframePose")]
 pub struct KeyframePose {
+    /// Keyframe of the receiving agent whose pose this is.
     pub keyframe_id: u64,
     /// Corrected camera-to-world pose (shared world frame).
     pub camera_to_world: Pose,
@@ -341,6 +360,7 @@ pub struct KeyframePose {
 #[repr(C)]
 #[type_name("mac.v2.CorrectionHeader")]
 pub struct CorrectionHeader {
+    /// Sender and ordering (agent id [`CONSUMER_AGENT_ID`]); filled in by the transport on send.
     pub stamp: Stamp,
     /// Agent the correction is for (the service is per agent; repeated for logging and checks).
     pub target_agent_id: u32,
@@ -385,6 +405,7 @@ impl TryFrom<u32> for LifecycleKind {
 #[repr(C)]
 #[type_name("mac.v2.Lifecycle")]
 pub struct Lifecycle {
+    /// Sender and ordering; filled in by the transport on send.
     pub stamp: Stamp,
     /// [`LifecycleKind`] tag.
     pub kind: u32,
@@ -402,6 +423,8 @@ pub struct Lifecycle {
 }
 
 impl Lifecycle {
+    /// The first message of an incarnation: the agent's camera, configuration hash and run
+    /// anchor (see the fields). The transport fills in the stamp.
     pub fn hello(intrinsics: Intrinsics, config_hash: u64, run_anchor: u64) -> Self {
         Self {
             run_anchor,
@@ -409,10 +432,12 @@ impl Lifecycle {
         }
     }
 
+    /// A heartbeat; intrinsics, configuration hash and run anchor are zero.
     pub fn alive() -> Self {
         Self::with_kind(LifecycleKind::Alive, Intrinsics::default(), 0)
     }
 
+    /// An orderly goodbye; intrinsics, configuration hash and run anchor are zero.
     pub fn goodbye() -> Self {
         Self::with_kind(LifecycleKind::Goodbye, Intrinsics::default(), 0)
     }
@@ -428,6 +453,7 @@ impl Lifecycle {
         }
     }
 
+    /// The [`LifecycleKind`]; [`UnknownTag`] when the tag names none.
     pub fn kind(&self) -> Result<LifecycleKind, UnknownTag> {
         LifecycleKind::try_from(self.kind)
     }
@@ -439,6 +465,7 @@ impl Lifecycle {
 #[repr(C)]
 #[type_name("mac.v2.ControlHeader")]
 pub struct ControlHeader {
+    /// Sender and ordering (agent id [`CONSUMER_AGENT_ID`]); filled in by the transport on send.
     pub stamp: Stamp,
     /// Agent the message is for (the service is per agent; repeated for checks).
     pub target_agent_id: u32,
@@ -455,18 +482,34 @@ pub struct ControlHeader {
 pub enum ControlMessage {
     /// An agent's full configuration (TOML text) for the swarm record; `Lifecycle::Hello` only
     /// carries its hash.
-    AgentConfig { agent_id: u32, config_toml: String },
+    AgentConfig {
+        /// The agent whose configuration this is.
+        agent_id: u32,
+        /// The configuration as TOML text.
+        config_toml: String,
+    },
     /// Orderly stop of the whole swarm, with the reason shown to the user: an agent finishes its
     /// current frame, sends its final map and says goodbye.
-    Shutdown { reason: String },
+    Shutdown {
+        /// Why the swarm stops, as shown to the user.
+        reason: String,
+    },
     /// The consensus holds a keyframe it cannot use (e.g. a descriptor whose keyframe image or
     /// patch never arrived, a gap on that topic) and asks its agent to publish it again, with
     /// the reason for the log. An agent that no longer holds the keyframe ignores the request.
-    ResendKeyframe { keyframe_id: u64, reason: String },
+    ResendKeyframe {
+        /// The keyframe whose descriptor, image and patch the agent publishes again.
+        keyframe_id: u64,
+        /// Why the consensus asks, for the agent's log.
+        reason: String,
+    },
     /// A consensus restarted on its run's store is back: it holds these keyframes of the agent
     /// complete. The agent publishes again every keyframe it still holds that is not among
     /// them (they were lost with the previous consensus process, or never reached it).
-    ConsensusResumed { keyframes_held: Vec<u64> },
+    ConsensusResumed {
+        /// Ids of the agent's keyframes the restarted consensus holds complete.
+        keyframes_held: Vec<u64>,
+    },
     /// Messages of the agent were lost on the way (its sequence numbers jumped: e.g. the bridge
     /// of its host died holding them). The consensus holds `keyframes_held` complete and
     /// `keyframes_in_part` in part (it asks for their missing parts itself with
@@ -474,8 +517,11 @@ pub enum ControlMessage {
     /// `newest_seen` (the newest id the consensus has seen of it; later ones may still be on
     /// the way) that is in neither and that it still holds.
     MessagesLost {
+        /// Ids of the agent's keyframes the consensus holds complete.
         keyframes_held: Vec<u64>,
+        /// Ids of the agent's keyframes it holds only some messages of.
         keyframes_in_part: Vec<u64>,
+        /// The newest keyframe id of the agent the consensus has seen.
         newest_seen: u64,
     },
 }

@@ -24,15 +24,22 @@ pub const DEFAULT_NAMESPACE: &str = "mac";
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Topic {
+    /// Keyframe descriptors, agent -> consumers.
     Descriptor,
+    /// Gaussian patches, agent -> consumers.
     Patch,
+    /// Corrections, consumer -> agent.
     Correction,
+    /// Hello, heartbeat and goodbye, agent -> consumers; one service shared by all agents.
     Lifecycle,
+    /// Keyframe RGB-D images, agent -> consumers.
     KeyframeImage,
+    /// Control messages as codec frames, consumer -> agent.
     Control,
 }
 
 impl Topic {
+    /// Every topic, in [`Topic::index`] order.
     pub const ALL: [Topic; 6] = [
         Topic::Descriptor,
         Topic::Patch,
@@ -61,6 +68,8 @@ impl Topic {
         matches!(self, Topic::Patch | Topic::KeyframeImage)
     }
 
+    /// Last component of the topic's service names (e.g. `keyframe_image`); also its `Display`
+    /// and serialised form.
     pub const fn name(self) -> &'static str {
         match self {
             Topic::Descriptor => "descriptor",
@@ -92,12 +101,14 @@ impl Default for ServiceNames {
 }
 
 impl ServiceNames {
+    /// Names under `namespace` ([`DEFAULT_NAMESPACE`] in production).
     pub fn new(namespace: impl Into<String>) -> Self {
         Self {
             namespace: namespace.into(),
         }
     }
 
+    /// The namespace: the first component of every name.
     pub fn namespace(&self) -> &str {
         &self.namespace
     }
@@ -110,26 +121,32 @@ impl ServiceNames {
         }
     }
 
+    /// `{ns}/agent/{agent_id}/descriptor`.
     pub fn descriptor(&self, agent_id: u32) -> String {
         self.topic(agent_id, Topic::Descriptor)
     }
 
+    /// `{ns}/agent/{agent_id}/patch`.
     pub fn patch(&self, agent_id: u32) -> String {
         self.topic(agent_id, Topic::Patch)
     }
 
+    /// `{ns}/agent/{agent_id}/keyframe_image`.
     pub fn keyframe_image(&self, agent_id: u32) -> String {
         self.topic(agent_id, Topic::KeyframeImage)
     }
 
+    /// `{ns}/agent/{agent_id}/correction`.
     pub fn correction(&self, agent_id: u32) -> String {
         self.topic(agent_id, Topic::Correction)
     }
 
+    /// `{ns}/agent/{agent_id}/control`.
     pub fn control(&self, agent_id: u32) -> String {
         self.topic(agent_id, Topic::Control)
     }
 
+    /// `{ns}/lifecycle`, shared by all agents.
     pub fn lifecycle(&self) -> String {
         format!("{}/lifecycle", self.namespace)
     }

@@ -158,6 +158,7 @@ impl Default for PhotometricConfig {
 }
 
 impl PhotometricConfig {
+    /// True when the term runs: a positive weight and at least one reference point allowed.
     pub fn enabled(&self) -> bool {
         self.weight > 0.0 && self.max_points > 0
     }

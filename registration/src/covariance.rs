@@ -34,15 +34,21 @@ pub struct Covariance(pub [f32; 6]);
 /// A map Gaussian's parameters that cannot describe a covariance.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum GaussianCovarianceError {
+    /// A log-scale component is NaN or infinite.
     #[error("log-scale {0:?} is not finite")]
     NonFiniteScale([f32; 3]),
+    /// The rotation quaternion (w, x, y, z) is zero, nearly zero or not finite, so it has no
+    /// direction to normalise.
     #[error("rotation quaternion (w, x, y, z) = {0:?} has zero or non-finite norm")]
     InvalidRotation([f32; 4]),
 }
 
 impl Covariance {
+    /// The identity matrix: unit variance in every direction, no preferred shape.
     pub const IDENTITY: Covariance = Covariance([1.0, 0.0, 0.0, 1.0, 0.0, 1.0]);
 
+    /// Stores the upper triangle of `m`; the lower triangle is ignored, so `m` should be
+    /// symmetric.
     pub fn from_matrix(m: &Matrix3<f64>) -> Self {
         Self([
             m[(0, 0)] as f32,
@@ -54,6 +60,7 @@ impl Covariance {
         ])
     }
 
+    /// The full symmetric 3x3 matrix.
     pub fn to_matrix(&self) -> Matrix3<f64> {
         let [xx, xy, xz, yy, yz, zz] = self.0.map(f64::from);
         Matrix3::new(xx, xy, xz, xy, yy, yz, xz, yz, zz)

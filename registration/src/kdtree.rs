@@ -12,12 +12,28 @@ use crate::points::PointCloud;
 /// A cloud that cannot be indexed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum PointTreeError {
+    /// A point has a NaN or infinite coordinate, which would corrupt the tree's splits.
     #[error("point {index} has non-finite coordinates {position:?}")]
-    NonFinitePoint { index: usize, position: Point3<f32> },
+    NonFinitePoint {
+        /// Index of the first such point in the cloud.
+        index: usize,
+        /// Its position.
+        position: Point3<f32>,
+    },
+    /// The cloud has more points than kiddo's 32-bit item indices can address.
     #[error("{count} points do not fit the kd-tree's 32-bit item indices")]
-    TooManyPoints { count: usize },
+    TooManyPoints {
+        /// Number of points in the cloud.
+        count: usize,
+    },
+    /// The cloud has covariances, but not exactly one per point.
     #[error("{covariances} covariances for {points} points")]
-    CovarianceCountMismatch { points: usize, covariances: usize },
+    CovarianceCountMismatch {
+        /// Number of points in the cloud.
+        points: usize,
+        /// Number of covariances in the cloud.
+        covariances: usize,
+    },
 }
 
 /// A point cloud with a kd-tree over its positions. Build once, query from many threads.
@@ -101,22 +117,27 @@ impl PointTree {
             })
     }
 
+    /// The indexed cloud; point `i` is the tree's item `i`.
     pub fn cloud(&self) -> &PointCloud {
         &self.cloud
     }
 
+    /// Drops the tree and returns the cloud.
     pub fn into_cloud(self) -> PointCloud {
         self.cloud
     }
 
+    /// The cloud's positions, indexed like the tree's items.
     pub fn positions(&self) -> &[Point3<f32>] {
         &self.cloud.positions
     }
 
+    /// Number of indexed points.
     pub fn len(&self) -> usize {
         self.cloud.len()
     }
 
+    /// True when the cloud has no points (and so no tree).
     pub fn is_empty(&self) -> bool {
         self.cloud.is_empty()
     }

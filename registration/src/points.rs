@@ -20,6 +20,7 @@ use crate::covariance::Covariance;
 /// normal equations stay `f64`.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct PointCloud {
+    /// Point positions in metres, in the cloud's frame.
     pub positions: Vec<Point3<f32>>,
     /// One per position, or empty before covariances are estimated.
     pub covariances: Vec<Covariance>,
@@ -35,7 +36,9 @@ pub struct PointCloud {
 /// intrinsics, starting at pixel (0, 0).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PixelGrid {
+    /// Intrinsics of the full-resolution image the grid samples.
     pub intrinsics: Intrinsics,
+    /// Pixels between grid cells in x and y (at least 1).
     pub stride: usize,
 }
 
@@ -67,10 +70,12 @@ impl PointCloud {
         }
     }
 
+    /// Number of points.
     pub fn len(&self) -> usize {
         self.positions.len()
     }
 
+    /// True when the cloud has no points.
     pub fn is_empty(&self) -> bool {
         self.positions.is_empty()
     }

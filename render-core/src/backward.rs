@@ -26,9 +26,14 @@ use crate::wgsl::{
 
 /// dL/d(image) on the device: per pixel (r, g, b, depth) and alpha.
 pub struct DeviceImageGradients {
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
+    /// Per pixel, row-major: `vec4<f32>` dL/d(r, g, b, depth), with respect to the composited
+    /// colour and depth of [`crate::RenderOutput`] (not divided by alpha).
     pub v_rgbd: wgpu::Buffer,
+    /// Per pixel, row-major: f32 dL/d(alpha).
     pub v_alpha: wgpu::Buffer,
 }
 
@@ -92,11 +97,17 @@ pub struct DeviceGradients {
     count: u32,
     /// Layout of the Gaussians the gradients belong to (checked by the Adam step).
     pub(crate) gaussian_layout: LayoutId,
+    /// dL/d(world-space mean): packed f32 triples, one per Gaussian.
     pub v_means: wgpu::Buffer,
+    /// dL/d(natural-log scale): packed f32 triples, one per Gaussian.
     pub v_log_scales: wgpu::Buffer,
+    /// dL/d(raw quaternion `[w, x, y, z]`): one `vec4<f32>` per Gaussian.
     pub v_quaternions: wgpu::Buffer,
+    /// dL/d(opacity logit): one f32 per Gaussian.
     pub v_opacity_logits: wgpu::Buffer,
+    /// dL/d(linear RGB colour): packed f32 triples, one per Gaussian.
     pub v_colours: wgpu::Buffer,
+    /// The camera-pose gradient: two `vec4<f32>`, (translation, 0) and (rotation, 0).
     pub v_pose: wgpu::Buffer,
 }
 
@@ -127,6 +138,7 @@ impl DeviceGradients {
         })
     }
 
+    /// Reads every gradient back to the host (blocking): the per-Gaussian ones and the pose's.
     pub fn download(&self, context: &GpuContext) -> Result<GaussianGradients, GpuError> {
         let n = self.count as usize;
         Ok(GaussianGradients {

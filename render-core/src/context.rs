@@ -10,16 +10,27 @@ use wgpu::util::DeviceExt;
 /// Errors of the wgpu path.
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
+    /// No adapter was found, or none matches [`ADAPTER_ENV`] (the message then lists those
+    /// there are).
     #[error("no wgpu adapter available: {0}")]
     NoAdapter(String),
+    /// The adapter refused to create the device (wgpu's message).
     #[error("wgpu device request failed: {0}")]
     RequestDevice(String),
+    /// The adapter offers fewer storage buffers per shader stage than the kernels bind
+    /// ([`REQUIRED_STORAGE_BUFFERS_PER_STAGE`]).
     #[error("adapter limit too small: {0}")]
     Limits(String),
+    /// A buffer would exceed the adapter's largest storage binding, or a count exceeds `u32`
+    /// (too many Gaussians or tile/Gaussian pairs for one frame).
     #[error("scene too large for this adapter: {0}")]
     TooLarge(String),
+    /// The caller's data does not fit together: attribute vectors of different lengths, an
+    /// empty image, a frame, gradients or Adam state built for other Gaussians or another
+    /// image size, and the like (the message says which).
     #[error("invalid input: {0}")]
     InvalidInput(String),
+    /// Waiting for the device or mapping a buffer for reading failed (wgpu's message).
     #[error("reading back a device buffer failed: {0}")]
     Readback(String),
 }
@@ -31,8 +42,11 @@ pub const REQUIRED_STORAGE_BUFFERS_PER_STAGE: u32 = 13;
 
 /// An adapter, its device and queue, and what the kernels may rely on.
 pub struct GpuContext {
+    /// The device every buffer and pipeline of this context is created on.
     pub device: wgpu::Device,
+    /// The device's queue, to which every pass is submitted.
     pub queue: wgpu::Queue,
+    /// Name, backend and driver of the adapter chosen (see [`adapter_label`]).
     pub adapter_info: wgpu::AdapterInfo,
     /// The limits the device was created with: the adapter's own, except
     /// `max_storage_buffers_per_shader_stage` ([`REQUIRED_STORAGE_BUFFERS_PER_STAGE`]).
@@ -58,6 +72,10 @@ impl GpuContext {
         pollster::block_on(Self::new_async())
     }
 
+    /// [`GpuContext::new`] without blocking. Picks the adapter [`ADAPTER_ENV`] names, else the
+    /// most preferred one (a discrete GPU first), and enables float atomics and subgroups where
+    /// the adapter has them. Fails with [`GpuError::NoAdapter`], [`GpuError::Limits`] or
+    /// [`GpuError::RequestDevice`].
     pub async fn new_async() -> Result<Self, GpuError> {
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
         let adapter = choose_adapter(&instance).await?;

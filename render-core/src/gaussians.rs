@@ -33,6 +33,10 @@ pub struct DeviceGaussians {
 }
 
 impl DeviceGaussians {
+    /// Copies `cloud` to the device, with room for exactly its Gaussians and a fresh layout.
+    /// Fails with [`GpuError::InvalidInput`] when the cloud's vectors differ in length and
+    /// [`GpuError::TooLarge`] when its widest buffer (16 bytes per Gaussian) exceeds one
+    /// storage binding or the count exceeds `u32`.
     pub fn upload(context: &GpuContext, cloud: &GaussianCloud) -> Result<Self, GpuError> {
         cloud.validate_lengths().map_err(GpuError::InvalidInput)?;
         let count = u32::try_from(cloud.len())
@@ -74,10 +78,12 @@ impl DeviceGaussians {
         })
     }
 
+    /// Number of live Gaussians (the first `len()` entries of the buffers).
     pub fn len(&self) -> usize {
         self.count as usize
     }
 
+    /// True when there are no live Gaussians.
     pub fn is_empty(&self) -> bool {
         self.count == 0
     }

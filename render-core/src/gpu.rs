@@ -137,7 +137,10 @@ pub(crate) fn pair_sum_bytes(pair_capacity: u32) -> u64 {
 /// in all; see render-core/README.md).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct PairUsage {
+    /// Tile/Gaussian pairs the frame needed, as counted on the device (may exceed
+    /// `capacity`: then the farthest Gaussians' pairs were dropped).
     pub pairs: u32,
+    /// Pairs the frame's binning buffers hold ([`DeviceFrame::pair_capacity`]).
     pub capacity: u32,
     /// A binning walk was cut short: some pairs are missing from the tile lists.
     pub binning_cut_short: bool,
@@ -192,11 +195,14 @@ impl PairUsage {
 
 /// The device-side result of one forward render (kept for a backward pass).
 pub struct DeviceFrame {
+    /// The camera the frame was rendered from (its size sizes the per-pixel buffers).
     pub camera: Camera,
     /// Layout of the Gaussians the frame was rendered from (checked by the backward pass).
     pub(crate) gaussian_layout: LayoutId,
     /// The `RenderParams` uniform the frame was rendered with (reused by the backward pass).
     pub(crate) params_buffer: wgpu::Buffer,
+    /// Live Gaussians of the [`DeviceGaussians`] the frame was rendered from (its `len()` then);
+    /// the per-Gaussian buffers below have this many entries.
     pub gaussian_count: u32,
     /// Tile/Gaussian pairs the frame's buffers hold at most (see [`GpuRenderer::check_pairs`]).
     pub pair_capacity: u32,
@@ -228,7 +234,10 @@ pub struct DeviceFrame {
     pub(crate) slot_pairs: wgpu::Buffer,
     /// Per pixel: r, g, b, depth.
     pub rgbd: wgpu::Buffer,
+    /// Per pixel (f32): accumulated opacity, `1 - transmittance`.
     pub alpha: wgpu::Buffer,
+    /// Per pixel (f32): the transmittance left after the last composited splat (read by the
+    /// backward pass).
     pub transmittance: wgpu::Buffer,
     /// Per pixel: number of tile-list entries consumed up to the last contributing splat.
     pub last_entry: wgpu::Buffer,
@@ -266,8 +275,11 @@ pub enum Subgroups {
 /// Kernel choices of a [`GpuRenderer`]; [`Default`] picks the fastest the device supports.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RendererOptions {
+    /// How the backward pass adds gradients atomically.
     pub atomics: GradientAtomics,
+    /// Whether the rasterizers may use subgroup operations.
     pub subgroups: Subgroups,
+    /// In what order the backward pass sums a Gaussian's gradient over its tiles.
     pub gradient_order: GradientOrder,
 }
 
@@ -325,6 +337,8 @@ pub struct GpuRenderer {
     pub uses_float_atomics: bool,
     /// True when the rasterizers use subgroup operations.
     pub uses_subgroups: bool,
+    /// The order asked for in [`RendererOptions`]; a frame may still fall back to
+    /// [`GradientOrder::Arrival`] ([`DeviceFrame::gradient_order`] says which it got).
     pub gradient_order: GradientOrder,
     /// [`GradientOrder::Fixed`]'s per-pair sums, kept between backward passes (all zeros
     /// between them, see pair_gradients.wgsl) and grown with the pair capacity; the lock is
@@ -333,10 +347,14 @@ pub struct GpuRenderer {
 }
 
 impl GpuRenderer {
+    /// Compiles the kernels with the default [`RendererOptions`]: the fastest atomics and
+    /// rasterizers `context` supports, [`GradientOrder::Fixed`].
     pub fn new(context: &GpuContext) -> Self {
         Self::with_atomics(context, GradientAtomics::Auto)
     }
 
+    /// [`GpuRenderer::new`] with the backward pass's atomics chosen, the other options default
+    /// (how the tests run the compare-exchange fallback on devices with float atomics).
     pub fn with_atomics(context: &GpuContext, atomics: GradientAtomics) -> Self {
         Self::with_options(
             context,
@@ -347,6 +365,9 @@ impl GpuRenderer {
         )
     }
 
+    /// Compiles every kernel for `context` with the kernel choices of `options`. `Auto` choices
+    /// use native float atomics and subgroups only where the device has them
+    /// ([`Self::uses_float_atomics`], [`Self::uses_subgroups`] record the outcome).
     pub fn with_options(context: &GpuContext, options: RendererOptions) -> Self {
         let device = &context.device;
         let uses_float_atomics =

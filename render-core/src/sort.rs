@@ -228,6 +228,8 @@ pub struct DeviceSortBench {
 }
 
 impl DeviceSortBench {
+    /// Uploads the (key, value) pairs to sort and allocates the sort's buffers. Fails with
+    /// [`GpuError::InvalidInput`] when `keys` and `values` differ in length.
     pub fn new(context: &GpuContext, keys: &[u32], values: &[u32]) -> Result<Self, GpuError> {
         if keys.len() != values.len() {
             return Err(GpuError::InvalidInput(format!(

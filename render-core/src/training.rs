@@ -24,18 +24,23 @@ use geometry::ssim;
 
 // SSIM is defined once (geometry::ssim), for the evaluation metric and this loss: the maps are
 // optimised for the SSIM they are scored with.
-/// SSIM window half-width (11x11 window) and standard deviation.
+/// SSIM window half-width in pixels: 5, for the 11x11 window.
 pub const SSIM_WINDOW_RADIUS: i32 = (ssim::SSIM_WINDOW / 2) as i32;
+/// Standard deviation of the SSIM window's Gaussian weights, in pixels (1.5).
 pub const SSIM_WINDOW_SIGMA: f64 = ssim::SSIM_SIGMA;
-/// SSIM stabilisers for data range 1: K1^2 and K2^2.
+/// SSIM stabiliser of the means' term for data range 1: `C1 = K1^2 = 0.01^2`.
 pub const SSIM_C1: f64 = ssim::SSIM_K1 * ssim::SSIM_K1;
+/// SSIM stabiliser of the (co)variances' term for data range 1: `C2 = K2^2 = 0.03^2`.
 pub const SSIM_C2: f64 = ssim::SSIM_K2 * ssim::SSIM_K2;
 
 /// Loss weights; [`Default`] is the mapping loss (docs/method.md, One agent: Map optimisation).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LossWeights {
+    /// Weight of the colour L1 term, `mean |rgb - target|` over pixels and channels.
     pub l1: f32,
+    /// Weight of the SSIM term, `1 - mean SSIM` over pixels and channels.
     pub ssim: f32,
+    /// Weight of the depth term, `mean |d - d*| / depth_truncation` over valid-depth pixels.
     pub depth: f32,
     /// Depth errors are divided by this (metres; 12 Replica, 10 7-Scenes).
     pub depth_truncation: f32,
@@ -55,9 +60,14 @@ impl Default for LossWeights {
 /// A ground-truth image. `depth` entries `<= 0` (or a missing depth image) are invalid.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TargetImage {
+    /// Width in pixels.
     pub width: u32,
+    /// Height in pixels.
     pub height: u32,
+    /// Linear RGB in `[0, 1]` per pixel, row-major, `width * height` entries.
     pub rgb: Vec<[f32; 3]>,
+    /// Depth in metres (camera z) per pixel, row-major, `width * height` entries; `None` when
+    /// there is no depth image (the depth term is then zero).
     pub depth: Option<Vec<f32>>,
 }
 
@@ -238,14 +248,20 @@ fn sign_or_zero(value: f64) -> f64 {
 
 /// A target image on the device: per pixel (r, g, b, depth), depth 0 where invalid.
 pub struct DeviceTarget {
+    /// Width in pixels.
     pub width: u32,
+    /// Height in pixels.
     pub height: u32,
+    /// Per pixel, row-major: `vec4<f32>` (r, g, b, depth in metres).
     pub rgbd: wgpu::Buffer,
     /// Number of pixels with valid depth (computed on upload, so no read-back later).
     pub valid_depth_pixels: u32,
 }
 
 impl DeviceTarget {
+    /// Copies `target` to the device; invalid depths (`<= 0`, NaN, or no depth image) become
+    /// 0. Fails with [`GpuError::InvalidInput`] when `rgb` or `depth` does not hold
+    /// `width * height` pixels.
     pub fn upload(context: &GpuContext, target: &TargetImage) -> Result<Self, GpuError> {
         let pixels = target.width as usize * target.height as usize;
         if target.rgb.len() != pixels || target.depth.as_ref().is_some_and(|d| d.len() != pixels) {
@@ -316,13 +332,22 @@ impl DeviceLoss {
 /// Learning rates per parameter group (a rate of 0 freezes the group) and Adam constants.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AdamConfig {
+    /// Learning rate of the means, in metres (an Adam step moves a value by about its rate);
+    /// the default is to be multiplied by the scene scale.
     pub means: f32,
+    /// Learning rate of the natural-log scales.
     pub log_scales: f32,
+    /// Learning rate of the raw quaternions `[w, x, y, z]` (0 by default: rotations frozen).
     pub quaternions: f32,
+    /// Learning rate of the opacity logits.
     pub opacity_logits: f32,
+    /// Learning rate of the linear RGB colours.
     pub colours: f32,
+    /// Decay of the first moment (the gradients' running mean).
     pub beta1: f32,
+    /// Decay of the second moment (the squared gradients' running mean).
     pub beta2: f32,
+    /// Added to the square root of the bias-corrected second moment before dividing by it.
     pub epsilon: f32,
 }
 
@@ -348,6 +373,7 @@ impl Default for AdamConfig {
 /// on the Gaussians alone, [`TrainingKernels::adam_step`] refuses the stale state. Edit the
 /// map through [`crate::map::DeviceMap`], which moves the moments with the Gaussians.
 pub struct DeviceAdam {
+    /// Learning rates and constants the next steps use (may be changed between steps).
     pub config: AdamConfig,
     step: u32,
     /// (first, second) moments per parameter group, in `PARAMETER_GROUP_WIDTHS` order, each
@@ -363,7 +389,9 @@ pub struct DeviceAdam {
 /// to (e.g. `first.means[i]` is the first moment of Gaussian i's mean).
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct AdamMoments {
+    /// First moments (running means of the gradients), not bias-corrected.
     pub first: GaussianCloud,
+    /// Second moments (running means of the squared gradients), not bias-corrected.
     pub second: GaussianCloud,
 }
 
@@ -384,6 +412,7 @@ impl DeviceAdam {
         })
     }
 
+    /// Adam steps taken so far (the `t` of the bias correction); 0 for a fresh state.
     pub fn step_count(&self) -> u32 {
         self.step
     }
@@ -393,6 +422,7 @@ impl DeviceAdam {
         self.count as usize
     }
 
+    /// True when the moments describe no Gaussians.
     pub fn is_empty(&self) -> bool {
         self.count == 0
     }
@@ -451,6 +481,8 @@ pub struct TrainingKernels {
 }
 
 impl TrainingKernels {
+    /// Compiles the loss (SSIM rows and columns, per-pixel loss) and Adam kernels for
+    /// `context`.
     pub fn new(context: &GpuContext) -> Self {
         let device = &context.device;
         Self {

@@ -76,11 +76,17 @@ pub fn depth_sort_key(camera_z: f32) -> u32 {
 pub struct Camera {
     /// Maps world points into the camera frame (the "view" matrix).
     pub camera_from_world: RigidTransform,
+    /// Horizontal focal length, in pixels.
     pub fx: f32,
+    /// Vertical focal length, in pixels.
     pub fy: f32,
+    /// Principal point's column, in pixels (pixel centres at integer coordinates).
     pub cx: f32,
+    /// Principal point's row, in pixels (pixel centres at integer coordinates).
     pub cy: f32,
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
 }
 
@@ -129,6 +135,7 @@ impl Camera {
         )
     }
 
+    /// Number of pixels, `width * height`.
     pub fn pixel_count(&self) -> usize {
         self.width as usize * self.height as usize
     }
@@ -138,16 +145,21 @@ impl Camera {
 /// expected depth = depth / alpha).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum RenderMode {
+    /// Colour and alpha.
     Rgb,
+    /// Depth and alpha.
     Depth,
+    /// Colour, depth and alpha.
     #[default]
     RgbD,
 }
 
 impl RenderMode {
+    /// True when the render produces colour ([`RenderOutput::rgb`] is `Some`).
     pub fn has_rgb(self) -> bool {
         matches!(self, RenderMode::Rgb | RenderMode::RgbD)
     }
+    /// True when the render produces depth ([`RenderOutput::depth`] is `Some`).
     pub fn has_depth(self) -> bool {
         matches!(self, RenderMode::Depth | RenderMode::RgbD)
     }
@@ -156,7 +168,9 @@ impl RenderMode {
 /// Rendered images, row-major, `width * height` pixels.
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct RenderOutput {
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     /// Alpha-composited colour (not divided by alpha; background is black). `None` in Depth mode.
     pub rgb: Option<Vec<[f32; 3]>>,
@@ -172,7 +186,9 @@ pub struct RenderOutput {
 /// frame), evaluated at `xi = 0`.
 #[derive(Clone, Copy, Debug, PartialEq, Default)]
 pub struct PoseGradient {
+    /// dL/d(translation part of `xi`), in the camera frame (loss units per metre).
     pub v_translation: [f32; 3],
+    /// dL/d(rotation part of `xi`, axis-angle in the camera frame; loss units per radian).
     pub v_rotation: [f32; 3],
 }
 
@@ -188,20 +204,30 @@ impl PoseGradient {
 /// Gradients of a scalar loss w.r.t. every Gaussian parameter and the camera pose.
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct GaussianGradients {
+    /// W.r.t. the world-space means, one per Gaussian (as are all the per-Gaussian vectors).
     pub v_means: Vec<[f32; 3]>,
+    /// W.r.t. the natural-log scales.
     pub v_log_scales: Vec<[f32; 3]>,
     /// W.r.t. the raw (unnormalised) quaternion `[w, x, y, z]`.
     pub v_quaternions: Vec<[f32; 4]>,
+    /// W.r.t. the opacity logits (before the sigmoid).
     pub v_opacity_logits: Vec<f32>,
+    /// W.r.t. the linear RGB colours.
     pub v_colours: Vec<[f32; 3]>,
+    /// W.r.t. the camera pose (see [`PoseGradient`] for the convention).
     pub v_pose: PoseGradient,
 }
 
 /// Gradient of a loss w.r.t. the rendered images (same layout as [`RenderOutput`]).
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct ImageGradients {
+    /// W.r.t. the composited colour ([`RenderOutput::rgb`]), one per pixel; empty means zero.
     pub v_rgb: Vec<[f32; 3]>,
+    /// W.r.t. the composited depth ([`RenderOutput::depth`], not divided by alpha), one per
+    /// pixel; empty means zero.
     pub v_depth: Vec<f32>,
+    /// W.r.t. the accumulated opacity ([`RenderOutput::alpha`]), one per pixel; empty means
+    /// zero.
     pub v_alpha: Vec<f32>,
 }
 
@@ -210,8 +236,12 @@ pub struct ImageGradients {
 /// [`constants::MIN_TRANSMITTANCE`]) and is what the wgpu renderer uses; the smooth variant exists for finite-difference tests only.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RasterConfig {
+    /// A splat whose alpha at a pixel falls below this is skipped at that pixel.
     pub min_splat_alpha: f32,
+    /// A splat's alpha at a pixel is clamped to at most this (keeps `1 - alpha` invertible in
+    /// the backward pass).
     pub max_splat_alpha: f32,
+    /// A pixel stops compositing before a splat that would bring its transmittance below this.
     pub min_transmittance: f32,
     /// Restrict each splat to the tiles its 3-sigma box overlaps (as the GPU binning does).
     pub restrict_to_tiles: bool,

@@ -15,36 +15,57 @@ use crate::msg::{CompressedImage, Image};
 /// Why an image message cannot be used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ImageError {
+    /// A raw colour image in another encoding (the message's `encoding`).
     #[error(
         "encoding {0:?} is not a colour encoding this reader knows (rgb8, bgr8, rgba8, bgra8, mono8)"
     )]
     ColourEncoding(String),
+    /// A raw depth image in another encoding (the message's `encoding`).
     #[error(
         "encoding {0:?} is not a depth encoding this reader knows (16UC1 or mono16 in millimetres, 32FC1 in metres)"
     )]
     DepthEncoding(String),
+    /// `step` is shorter than one row of pixels.
     #[error("{width}x{height} {encoding} needs rows of at least {row} bytes, but step is {step}")]
     Step {
+        /// The message's width, pixels.
         width: u32,
+        /// The message's height, pixels.
         height: u32,
+        /// The message's encoding.
         encoding: String,
+        /// Bytes one row of pixels takes: width times the encoding's pixel size.
         row: usize,
+        /// The message's row length, bytes.
         step: u32,
     },
+    /// `data` is too short for the rows: a message cut short, or a wrong size or step.
     #[error("{width}x{height} with step {step} needs {needed} bytes, the message carries {found}")]
     DataLength {
+        /// The message's width, pixels.
         width: u32,
+        /// The message's height, pixels.
         height: u32,
+        /// The message's row length, bytes.
         step: u32,
+        /// Bytes the rows need: `step` per row but the last, which need not carry its padding.
         needed: usize,
+        /// Bytes in `data`.
         found: usize,
     },
+    /// A width or a height of 0: an image without pixels.
     #[error("an image of size 0x0")]
     Empty,
+    /// A compressed image whose `format` this reader does not decode for the kind asked:
+    /// colour takes JPEG or PNG, depth compressedDepth or a 16-bit PNG (the message's
+    /// `format`).
     #[error(
         "compressed format {0:?} is not one this reader knows (jpeg, png, or '16UC1; compressedDepth png')"
     )]
     Format(String),
+    /// The compressed bytes do not decode (the decoder's message, or why they were refused:
+    /// a JPEG cut short, compressedDepth without its 12-byte header, a depth PNG that is not
+    /// 16-bit grey).
     #[error("cannot decode the compressed image: {0}")]
     Codec(String),
 }

@@ -18,6 +18,9 @@ pub struct AgentFrames {
 }
 
 impl AgentFrames {
+    /// Agent `agent_id`'s frames under `world` (`[ros2] world_frame`) and `prefix`
+    /// (`[ros2] frame_prefix`): `{prefix}{agent_id}/odom` and
+    /// `{prefix}{agent_id}/camera_optical_frame`.
     pub fn new(world: &str, prefix: &str, agent_id: u32) -> Self {
         let agent = format!("{prefix}{agent_id}");
         Self {

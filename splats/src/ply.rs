@@ -23,24 +23,52 @@ const MAX_HEADER_LINE_BYTES: usize = 4096;
 /// Upper bound for the up-front allocation; larger files grow as rows arrive.
 const MAX_PREALLOCATED_ROWS: usize = 1 << 20;
 
+/// Why reading or writing a PLY file or stream failed.
 #[derive(Debug, thiserror::Error)]
 pub enum PlyError {
+    /// Opening, reading, writing or flushing failed (a short read of the data is
+    /// [`Self::Truncated`] or [`Self::TruncatedElement`] instead).
     #[error("PLY I/O error: {0}")]
     Io(#[from] std::io::Error),
+    /// The header is malformed or unsupported other than by its format (for example: no `ply`
+    /// magic, an unknown line or property type, a list property before or in `vertex`, a line
+    /// over 4096 bytes, no `end_header`, no `vertex` element).
     #[error("PLY header, line {line}: {message}")]
-    Header { line: usize, message: String },
+    Header {
+        /// 1-based header line number; 0 when the problem is not on one line (no `vertex`
+        /// element).
+        line: usize,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// The `format` line names something other than `binary_little_endian 1.0` (its format
+    /// and version, space-separated).
     #[error("unsupported PLY format `{0}` (only binary_little_endian 1.0 is supported)")]
     UnsupportedFormat(String),
+    /// The vertex element lacks this property, one of `x y z f_dc_0..2 opacity scale_0..2
+    /// rot_0..3`.
     #[error("PLY vertex element lacks the required property `{0}`")]
     MissingProperty(&'static str),
+    /// The data ends before the last vertex row is complete.
     #[error("PLY data ends inside vertex row {row} of {count}, at property `{property}`")]
     Truncated {
+        /// 0-based index of the incomplete vertex row.
         row: usize,
+        /// Number of vertices the header declares.
         count: usize,
+        /// The first property of that row not fully read (empty if none could be named).
         property: String,
     },
+    /// The data ends inside an element declared before `vertex` (one being skipped).
     #[error("PLY data ends inside row {row} of element `{element}` that precedes the vertices")]
-    TruncatedElement { element: String, row: usize },
+    TruncatedElement {
+        /// The element's name in the header.
+        element: String,
+        /// 0-based index of the incomplete row.
+        row: usize,
+    },
+    /// On write: the cloud's attribute vectors differ in length (the message of
+    /// [`GaussianCloud::validate_lengths`]).
     #[error("GaussianCloud is inconsistent: {0}")]
     InvalidCloud(String),
 }

@@ -6,11 +6,16 @@ use glam::{DMat3, DQuat, DVec3, Mat3, Quat, Vec3};
 /// A rigid transform `p_to = rotation * p_from + translation`; `rotation` is row-major.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RigidTransform {
+    /// Rotation matrix, row-major (`rotation[row][column]`), from the `from` frame's axes to
+    /// the `to` frame's.
     pub rotation: [[f32; 3]; 3],
+    /// Translation, in the `to` frame (where the `from` frame's origin lands), in the
+    /// points' units (metres for the workspace's maps and poses).
     pub translation: [f32; 3],
 }
 
 impl RigidTransform {
+    /// The transform that maps every point to itself.
     pub const IDENTITY: Self = Self {
         rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
         translation: [0.0, 0.0, 0.0],

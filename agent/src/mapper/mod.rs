@@ -57,16 +57,24 @@ pub enum KeyframeKind {
 
 /// A keyframe as the mapper receives it.
 pub struct MappingKeyframe {
+    /// Keyframe id: ids count up from 0 in the order keyframes are made, and index the moves of
+    /// [`Mapper::correct`].
     pub keyframe_id: usize,
+    /// The frame's number in its sequence ([`datasets::Frame::index`]).
     pub frame_index: usize,
     /// The frame's timestamp (seconds): where the keyframe anchors its pose refinement's
     /// correction ([`MappingStats::keyframe_pose_corrections`]).
     pub timestamp_s: f64,
+    /// Which rule made the keyframe (the mapper optimises both kinds alike).
     pub kind: KeyframeKind,
+    /// The camera's pose in the agent's local-map frame (consensus corrections applied), the
+    /// frame the map is built in; metres.
     pub world_from_camera: Isometry3<f64>,
     /// Full-resolution intrinsics of `rgb` and `depth`.
     pub intrinsics: Intrinsics,
+    /// The frame's colour image, the colour target of its iterations.
     pub rgb: RgbImage,
+    /// The frame's depth (metres, 0 = invalid), the depth target of its iterations.
     pub depth: DepthImage,
     /// Gaussians this keyframe adds to the map (world frame).
     pub new_gaussians: GaussianCloud,
@@ -75,19 +83,26 @@ pub struct MappingKeyframe {
 /// Counters of a mapping phase.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct MappingStats {
+    /// Adam iterations of the phase (one keyframe view each).
     pub iterations: usize,
     /// Wall time of the phase, seconds.
     pub seconds: f64,
+    /// Gaussians removed by pruning during the phase.
     pub pruned: usize,
+    /// Keyframes in the map at the end of the phase.
     pub keyframes: usize,
     /// Consensus corrections applied to the map.
     pub corrections: usize,
     /// Loss of the last iteration whose loss was read back (weighted L1, SSIM, depth terms).
     pub last_loss: Option<[f32; 3]>,
-    /// `refine_keyframe_poses`: the farthest any keyframe pose moved from its tracked pose
-    /// (metres, degrees), and the pose steps not taken for going past the bound.
+    /// `refine_keyframe_poses`: the farthest any keyframe camera moved from its tracked pose,
+    /// metres.
     pub max_pose_change_m: f64,
+    /// `refine_keyframe_poses`: the largest rotation of any keyframe pose from its tracked pose,
+    /// in degrees.
     pub max_pose_change_deg: f64,
+    /// `refine_keyframe_poses`: pose steps not taken because they would have moved a pose past
+    /// `max_pose_change_m` or `max_pose_change_rad` from its tracked pose.
     pub pose_steps_refused: usize,
     /// `refine_keyframe_poses`: how the refinement moved the cameras, as a correction field
     /// anchored at the keyframes' timestamps (each keyframe's refined pose times its tracked
@@ -104,6 +119,7 @@ pub struct MappingStats {
 }
 
 impl MappingStats {
+    /// Iterations per wall-clock second of the phase; 0 when no time was measured.
     pub fn iterations_per_second(&self) -> f64 {
         if self.seconds > 0.0 {
             self.iterations as f64 / self.seconds
@@ -121,6 +137,7 @@ pub struct MappingOutcome {
     /// put the keyframe cameras back to their tracked poses (see
     /// [`MappingOutcome::realtime_map_at_tracked_poses`]).
     pub tracked_pose_moves: Option<TrackedPoseMoves>,
+    /// Counters of real-time mapping (while the frames came in).
     pub realtime: MappingStats,
     /// After the optional refinement pass.
     pub refined: Option<(GaussianCloud, MappingStats)>,
@@ -149,6 +166,8 @@ pub struct TrackedPoseMoves {
 }
 
 impl TrackedPoseMoves {
+    /// A copy of `map` with each Gaussian moved by its seeding keyframe's move. `map` must be
+    /// the map these moves were made for (the same Gaussians in the same order).
     pub fn apply(&self, map: &GaussianCloud) -> GaussianCloud {
         let mut moved = map.clone();
         moved.transform_groups(&self.keyframe_of, &self.moves);
@@ -156,10 +175,13 @@ impl TrackedPoseMoves {
     }
 }
 
+/// Why the mapping thread could not start or did not finish.
 #[derive(Debug, thiserror::Error)]
 pub enum MapperError {
+    /// The device failed: no usable adapter at start, or an upload, render or read-back.
     #[error("mapping device: {0}")]
     Gpu(#[from] GpuError),
+    /// The mapping thread panicked (or ended before it reported its start).
     #[error("the mapping thread panicked")]
     Panicked,
 }
@@ -177,7 +199,9 @@ enum Command {
 /// Live counters the tracker may read (progress display, logs).
 #[derive(Debug, Default)]
 pub struct MapperProgress {
+    /// Mapping iterations so far, real-time and refinement together.
     pub iterations: AtomicUsize,
+    /// Gaussians in the device map after the latest iteration or keyframe.
     pub gaussians: AtomicUsize,
 }
 
@@ -187,6 +211,7 @@ pub struct Mapper {
     /// Paced: one message each time the mapper has spent a keyframe's budget.
     budget_spent: Option<Receiver<()>>,
     thread: JoinHandle<Result<MappingOutcome, MapperError>>,
+    /// Live counters, updated by the mapping thread.
     pub progress: Arc<MapperProgress>,
 }
 

@@ -55,12 +55,20 @@ use wire::WireKeyframe;
 
 /// A keyframe the agent may publish.
 pub struct PublishableKeyframe {
+    /// The keyframe's id (ids count up from 0 in the order the agent makes keyframes).
     pub keyframe_id: u64,
+    /// The frame's number in its sequence.
     pub frame_index: u64,
+    /// The frame's timestamp, seconds.
     pub timestamp_s: f64,
+    /// The camera's pose in the agent's tracked frame, from which the consensus builds its
+    /// odometry edges (never moved by corrections); metres.
     pub agent_from_camera: Isometry3<f64>,
+    /// The intrinsics of `rgb` and `depth`.
     pub intrinsics: Intrinsics,
+    /// The colour image: sent, and what the global descriptor is computed from.
     pub rgb: RgbImage,
+    /// Depth in metres (0 = invalid), the same size as `rgb`; sent in whole millimetres.
     pub depth: DepthImage,
     /// The Gaussians this keyframe seeded, in the agent's frame.
     pub gaussians: GaussianCloud,
@@ -72,12 +80,18 @@ pub struct SwarmSummary {
     /// Keyframes delivered, each counted once (`keyframes_resent` counts those published
     /// again).
     pub keyframes_published: usize,
+    /// Sends that failed or never happened: a hello or keyframe send that failed (each try),
+    /// a keyframe whose descriptor or messages could not be made, a final map not delivered.
     pub send_failures: usize,
+    /// Corrections taken from the link, those held while it was down included.
     pub corrections_received: usize,
     /// Latest `world_from_agent` from the consensus, `[tx, ty, tz, qx, qy, qz, qw]`.
     pub world_from_agent: Option<[f64; 7]>,
+    /// Bytes this agent sent over the transport (set when the link finishes; 0 before).
     pub bytes_sent: u64,
+    /// `bytes_sent` over the seconds since the link opened.
     pub bytes_sent_per_s: f64,
+    /// The global descriptor the agent computes: `alexnet-gem`, or `thumbnail` without weights.
     pub descriptor: String,
     /// The link's schedule and what it queued, delivered late and dropped.
     pub link: LinkSummary,
@@ -110,12 +124,13 @@ pub struct SwarmSummary {
     /// (`[consensus.resend] agent_keeps` in memory, `agent_spool_bytes` on disk): lost to the
     /// consensus.
     pub keyframes_unrecoverable: Vec<u64>,
-    /// Delivered keyframes written to the spool (beyond `agent_keeps`, not confirmed yet), the
-    /// spool's peak size, keyframes it dropped to stay within `agent_spool_bytes`, and writes
-    /// that failed (a full disk).
+    /// Delivered keyframes written to the spool (beyond `agent_keeps`, not confirmed yet).
     pub keyframes_spooled: usize,
+    /// The spool's largest size, in bytes.
     pub spool_peak_bytes: u64,
+    /// Ids of the keyframes the spool dropped to stay within `agent_spool_bytes`.
     pub keyframes_spool_dropped: Vec<u64>,
+    /// Spool writes and reads that failed (a full disk, a file that does not read back).
     pub spool_failures: usize,
     /// The reason the consensus gave when it asked the swarm to stop
     /// (`ControlMessage::Shutdown`); absent when it never did.
@@ -125,10 +140,14 @@ pub struct SwarmSummary {
 /// Whether the link is up now and what waits for it, for the progress file.
 #[derive(Debug, Clone, Copy)]
 pub struct LinkStatus {
+    /// The schedule has the link up and the consensus was attached at the last check.
     pub up: bool,
+    /// Keyframes queued until the link is up.
     pub queued_keyframes: usize,
 }
 
+/// This agent's link to the consensus (see the module documentation): opened by
+/// [`Self::connect`], served between frames by [`Self::after_frame`], closed by `finish`.
 pub struct SwarmLink {
     link: AgentLink,
     describer: Describer,

@@ -43,7 +43,9 @@ pub struct ConsensusConfig {
     pub sensor_niceness: i32,
     /// Joint refinement weights.
     pub weight_l1: f64,
+    /// Weight of the (1 - SSIM) colour term of the joint refinement loss (default 0.2).
     pub weight_ssim: f64,
+    /// Weight of the depth L1 term of the joint refinement loss, errors in metres (default 0.1).
     pub weight_depth: f64,
     /// alpha: weight of the pose-consistency term.
     pub weight_pose_consistency: f64,

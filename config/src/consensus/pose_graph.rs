@@ -20,6 +20,7 @@ pub struct PoseGraphConfig {
     /// by 0.1-0.3 cm against 60 frames (the run also refined again kept its map's PSNR;
     /// docs/benchmarks.md).
     pub odometry_rotation_sigma_rad: f64,
+    /// Translation part of the odometry sigma above, metres (default 0.03).
     pub odometry_translation_sigma_m: f64,
     /// Frames between two keyframes that the odometry sigmas above are for (at least 1).
     pub odometry_sigma_span_frames: usize,
@@ -27,6 +28,7 @@ pub struct PoseGraphConfig {
     /// (KinectFusion) ground truth by a median 17 mm and 0.6 degrees, part of it the ground
     /// truth's own error.
     pub loop_rotation_sigma_rad: f64,
+    /// Translation part of the loop-closure sigma above, metres (default 0.02).
     pub loop_translation_sigma_m: f64,
     /// Truncated least squares: a loop edge whose squared Mahalanobis residual exceeds this is an
     /// outlier (16.81: the 99 % quantile of chi-square with 6 degrees of freedom).
@@ -45,6 +47,7 @@ pub struct PoseGraphConfig {
     /// (metres) and rotation (radians). Generous: odometry drift between the two closures
     /// separates even correct votes.
     pub vote_translation_m: f64,
+    /// Rotation part of the vote tolerance above, radians (default 10 degrees).
     pub vote_rotation_rad: f64,
 }
 

@@ -30,9 +30,14 @@ pub struct RefinementConfig {
     /// optimisation; the mean rate is
     /// multiplied by the map's radius, as the mapper does).
     pub lr_means: f64,
+    /// Adam learning rate of the Gaussians' RGB colours, on the [0, 1] scale (default 2.5e-3).
     pub lr_colours: f64,
+    /// Adam learning rate of the opacity logits, the opacities before the sigmoid (default 0.05).
     pub lr_opacity: f64,
+    /// Adam learning rate of the natural-log scales (default 0.01).
     pub lr_log_scales: f64,
+    /// Adam learning rate of the rotation quaternions (default 0: the optimisation leaves the
+    /// orientations as they are).
     pub lr_rotations: f64,
     /// Optimise the keyframe poses too (photometric gradient plus the pose-consistency term over
     /// the pose graph's odometry and accepted loop edges). Agent 0's first keyframe stays fixed:
@@ -45,11 +50,13 @@ pub struct RefinementConfig {
     /// Adam step sizes of the pose (metres and radians per step; an Adam step is about this
     /// size whatever the gradient's scale): 0.2 mm and 0.01 degrees.
     pub lr_pose_translation_m: f64,
+    /// Rotation step size of the pose, radians (default 2e-4).
     pub lr_pose_rotation_rad: f64,
     /// A refined pose may move at most this far from the pose graph's (metres, radians);
     /// farther means the photometric term pulled it into a wrong basin, and the pose graph's
     /// pose is kept.
     pub max_pose_change_m: f64,
+    /// Rotation limit of the refined pose, radians (default 2 degrees).
     pub max_pose_change_rad: f64,
     /// Seed of the view order (runs are repeatable).
     pub random_seed: u64,

@@ -24,6 +24,7 @@ use registration::alignment::Verdict;
 /// One attempt's outcome, as consensus.json reports it and the store keeps it.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Decision {
+    /// The attempt as recorded; its `measurement` joins the pose graph when it is `verified`.
     pub event: ClosureEvent,
     /// Map registrations: the two agents (source, target) and the keyframes each had published
     /// when their maps were taken.
@@ -33,7 +34,9 @@ pub struct Decision {
 /// Which agents' maps a registration compared, and how far each had grown.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct MapAttempt {
+    /// The source and the target agent.
     pub agents: (u32, u32),
+    /// Keyframes the source and the target agent had published when their maps were taken.
     pub keyframes_at_attempt: (usize, usize),
 }
 

@@ -65,11 +65,14 @@ pub struct FinishedAlignment {
 /// Work for the aligner thread: a keyframe pair or two agents' maps.
 /// Boxed: a job is made a few times a second and moved across threads.
 pub enum Job {
+    /// Align a queued keyframe candidate.
     Keyframes(Box<AlignmentJob>),
+    /// Register two agents' maps.
     Maps(Box<MapJob>),
 }
 
 impl Job {
+    /// Does the work on the calling thread (the aligner thread in the process).
     pub fn run(self) -> Finished {
         match self {
             Job::Keyframes(job) => Finished::Keyframes(Box::new(job.run())),
@@ -80,6 +83,8 @@ impl Job {
 
 /// A [`Job`]'s outcome, for [`Engine::record`](super::Engine::record).
 pub enum Finished {
+    /// A keyframe pair's alignment.
     Keyframes(Box<FinishedAlignment>),
+    /// Two agents' map registration, with its checks.
     Maps(Box<FinishedMapJob>),
 }

@@ -53,8 +53,12 @@ use world::agent_range;
 
 /// One published keyframe as the consensus receives it.
 pub struct KeyframeArrival {
+    /// The keyframe's images, camera and pose in its agent's own frame.
     pub keyframe: Keyframe,
+    /// Index of the keyframe's frame in its agent's input sequence (place recognition does not
+    /// compare same-agent keyframes closer than `same_agent_min_frame_gap` in it).
     pub frame_index: u64,
+    /// Capture time of the frame, seconds (dataset clock).
     pub timestamp_s: f64,
     /// L2-normalised global descriptor.
     pub descriptor: Vec<f32>,
@@ -95,6 +99,8 @@ pub struct Engine {
 }
 
 impl Engine {
+    /// An engine with no keyframes, run by the `[consensus]` configuration and its sections;
+    /// its clock (`at_s` of the events) starts now.
     pub fn new(config: ConsensusConfig) -> Self {
         Self {
             false_closures: FalseClosureInjector::new(&config.false_closures),
@@ -299,18 +305,23 @@ impl Engine {
         }
     }
 
+    /// The latest pose-graph solution; `None` before the first successful solve.
     pub fn solution(&self) -> Option<&PoseGraphSolution> {
         self.solution.as_ref()
     }
 
+    /// Every attempt applied so far (verified, rejected, or wrong closures injected), in the
+    /// order applied.
     pub fn events(&self) -> &[ClosureEvent] {
         &self.events
     }
 
+    /// Every keyframe received, with its frame index, capture time and tracked pose.
     pub fn keyframes(&self) -> &BTreeMap<KeyframeRef, KeyframeInfo> {
         &self.info
     }
 
+    /// Wall-clock time of each successful pose-graph solve, milliseconds, oldest first.
     pub fn solve_ms(&self) -> &[f64] {
         &self.solve_ms
     }

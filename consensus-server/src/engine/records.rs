@@ -25,9 +25,15 @@ pub enum AttemptKind {
 pub struct ClosureEvent {
     /// Seconds since the engine started.
     pub at_s: f64,
+    /// The keyframe whose camera frame the measurement maps from (for a map attempt, the source
+    /// agent's end of the link, or its newest keyframe when no closure came of it).
     pub source: KeyframeRef,
+    /// The keyframe whose camera frame the measurement maps into (for a map attempt, the target
+    /// agent's end of the link, or its newest keyframe).
     pub target: KeyframeRef,
+    /// Why the pair was attempted.
     pub origin: CandidateSource,
+    /// Whether `source` and `target` belong to different agents.
     pub inter_agent: bool,
     /// Descriptor score (place-recognition candidates only).
     pub score: Option<f32>,
@@ -46,6 +52,8 @@ pub struct ClosureEvent {
     pub rejection: Option<String>,
     /// Whether the latest pose-graph solve kept it (verified pairs only; `None` before a solve).
     pub accepted_by_pose_graph: Option<bool>,
+    /// Wall-clock time of the alignment or map registration, milliseconds (0 for an injected
+    /// closure).
     pub alignment_ms: f64,
     /// What joined the pose graph (verified and injected closures; `None` otherwise).
     pub measurement: Option<ClosureMeasurement>,
@@ -54,6 +62,7 @@ pub struct ClosureEvent {
 /// A closure's relative pose and uncertainty, as the pose graph takes it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ClosureMeasurement {
+    /// Maps the source keyframe's camera coordinates into the target keyframe's (metres).
     pub target_camera_from_source_camera: ExactIsometry,
     /// The measurement's own standard deviations; `None`: the configured loop-closure ones.
     pub sigmas: Option<EdgeSigmas>,
@@ -75,6 +84,7 @@ impl From<&Isometry3<f64>> for ExactIsometry {
 }
 
 impl ExactIsometry {
+    /// The transform, with the stored quaternion taken as is (not renormalised).
     pub fn isometry(&self) -> Isometry3<f64> {
         let [tx, ty, tz, qx, qy, qz, qw] = self.0;
         Isometry3::from_parts(
@@ -88,8 +98,11 @@ impl ExactIsometry {
 /// What the engine knows about one keyframe besides its images.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct KeyframeInfo {
+    /// Index of the keyframe's frame in its agent's input sequence.
     pub frame_index: u64,
+    /// Capture time of the frame, seconds (dataset clock).
     pub timestamp_s: f64,
+    /// The keyframe's pose as its agent tracked it (camera to the agent's own frame):
     /// `[tx, ty, tz, qx, qy, qz, qw]` (TUM order).
     pub agent_from_camera: [f64; 7],
 }

@@ -19,7 +19,9 @@ use config::PoseGraphConfig;
 /// The transform between two agents' frames implied by one inter-agent loop closure.
 #[derive(Debug, Clone, Copy)]
 pub struct ImpliedTransform {
+    /// The closure's agent with the lower id.
     pub lower_agent: u32,
+    /// The closure's agent with the higher id.
     pub higher_agent: u32,
     /// `lower_agent_from_higher_agent`.
     pub lower_from_higher: Isometry3<f64>,

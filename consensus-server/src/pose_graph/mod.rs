@@ -48,8 +48,12 @@ const ACCEPTED_WEIGHT: f64 = 0.5;
 /// a map registration carried to two keyframes, [`crate::map_links`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LoopClosure {
+    /// The keyframe whose camera frame the measurement maps from.
     pub source: KeyframeRef,
+    /// The keyframe whose camera frame the measurement maps into.
     pub target: KeyframeRef,
+    /// The measured relative pose: source camera coordinates to target camera coordinates
+    /// (metres).
     pub target_camera_from_source_camera: Isometry3<f64>,
     /// The measurement's own standard deviations; `None`: the configured loop-closure ones
     /// ([`PoseGraphConfig::loop_rotation_sigma_rad`], `loop_translation_sigma_m`).
@@ -59,17 +63,23 @@ pub struct LoopClosure {
 /// Standard deviations of a relative-pose measurement (isotropic per block).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct EdgeSigmas {
+    /// Standard deviation of each rotation-vector component, radians.
     pub rotation_rad: f64,
+    /// Standard deviation of each translation component, metres.
     pub translation_m: f64,
 }
 
 /// A graph that cannot be solved as given.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum PoseGraphError {
+    /// A loop closure names a keyframe that was never added ([`PoseGraph::add_loop`]).
     #[error("loop closure names keyframe {0:?}, which is not in the graph")]
     UnknownKeyframe(KeyframeRef),
+    /// A loop closure's two ends are the same keyframe ([`PoseGraph::add_loop`]).
     #[error("loop closure from keyframe {0:?} to itself")]
     SelfLoop(KeyframeRef),
+    /// No keyframe of agent [`WORLD_AGENT`] yet, so there is no world frame to solve in
+    /// ([`PoseGraph::solve`]).
     #[error("agent {WORLD_AGENT} (the world frame) has no keyframes")]
     NoWorldAgent,
 }
@@ -96,9 +106,14 @@ struct GraphKeyframe {
 pub struct LoopDecision {
     /// Index in the order the closures were added.
     pub index: usize,
+    /// The closure's source keyframe.
     pub source: KeyframeRef,
+    /// The closure's target keyframe.
     pub target: KeyframeRef,
+    /// Whether the two ends belong to different agents.
     pub inter_agent: bool,
+    /// Whether the closure is kept: its final GNC weight is at least 0.5. A closure not in the
+    /// solve is rejected.
     pub accepted: bool,
     /// Final GNC weight (0 = outlier, 1 = inlier).
     pub weight: f64,
@@ -120,17 +135,22 @@ pub struct PoseGraphSolution {
     /// [`correction::correction`]): apply it, or a [`correction::CorrectionField`] through them, to
     /// tracked poses.
     pub corrections: BTreeMap<KeyframeRef, Isometry3<f64>>,
+    /// The decision on every loop closure of the graph, in the order they were added.
     pub loops: Vec<LoopDecision>,
+    /// GNC steps taken (each a weighted Levenberg-Marquardt solve); 0 when no closure's residual
+    /// exceeded the outlier threshold at the initial guess, so none was needed.
     pub gnc_steps: usize,
 }
 
 impl PoseGraphSolution {
+    /// How many loop closures the solve accepted.
     pub fn accepted_loops(&self) -> usize {
         self.loops.iter().filter(|l| l.accepted).count()
     }
 }
 
 impl PoseGraph {
+    /// A graph with no keyframes and no closures.
     pub fn new() -> Self {
         Self::default()
     }
@@ -183,10 +203,12 @@ impl PoseGraph {
         &self.loops
     }
 
+    /// How many keyframes (nodes) the graph holds, of all agents.
     pub fn keyframe_count(&self) -> usize {
         self.keyframes.len()
     }
 
+    /// How many loop closures were added, whatever a solve decides about them.
     pub fn loop_count(&self) -> usize {
         self.loops.len()
     }

@@ -59,11 +59,16 @@ pub fn residual(
 
 /// Residual and its Jacobians with respect to the updates of node i and node j.
 pub struct Linearised {
+    /// The residual `r` (rotation first, then translation).
     pub residual: Vector6<f64>,
+    /// `d r / d (phi_i, dt_i)`: rows as `r`, columns rotation update first.
     pub jacobian_i: Matrix6<f64>,
+    /// `d r / d (phi_j, dt_j)`: rows as `r`, columns rotation update first.
     pub jacobian_j: Matrix6<f64>,
 }
 
+/// The residual of edge `Z = camera_i_from_camera_j` at poses `x_i`, `x_j`, with its closed-form
+/// Jacobians (see the module documentation).
 pub fn linearise(
     x_i: &Isometry3<f64>,
     x_j: &Isometry3<f64>,

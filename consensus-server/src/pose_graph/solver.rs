@@ -25,12 +25,15 @@ const DIAGONAL_FLOOR: f64 = 1e-6;
 /// A relative-pose constraint between two nodes.
 #[derive(Debug, Clone)]
 pub struct Edge {
+    /// Index of node i in the poses: the camera whose coordinates `measured` maps into.
     pub from: usize,
+    /// Index of node j in the poses: the camera whose coordinates `measured` maps from.
     pub to: usize,
     /// `camera_from_from_camera_to`.
     pub measured: Isometry3<f64>,
     /// Inverse variances of the rotation and translation residual components.
     pub rotation_information: f64,
+    /// Inverse variance of each translation residual component, 1/m^2.
     pub translation_information: f64,
 }
 
@@ -51,8 +54,12 @@ impl Edge {
 /// What one optimisation did.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SolverReport {
+    /// Levenberg-Marquardt iterations run (each builds the normal equations once).
     pub iterations: usize,
+    /// Weighted cost ([`cost`]) of the starting poses.
     pub initial_cost: f64,
+    /// Weighted cost of the poses returned; never above `initial_cost`, as only steps that lower
+    /// the cost are kept.
     pub final_cost: f64,
 }
 

@@ -46,7 +46,11 @@ use worker::{WorkerHandle, write_progress};
 /// What to run and where to write.
 #[derive(Debug, Clone)]
 pub struct ConsensusOptions {
+    /// The run's configuration: `[consensus]` runs the engine, `[ros2]` the ROS 2 outputs; its
+    /// hash is part of the run identity the store checks on resume.
     pub config: Config,
+    /// The iceoryx2 swarm to listen to (namespace, agent-id range); the namespace is also the
+    /// run id when `run_id` is `None`.
     pub transport: TransportConfig,
     /// Output directory; agent K's own outputs are expected in `out/agent_K/`.
     pub out: PathBuf,

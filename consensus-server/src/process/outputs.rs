@@ -21,11 +21,19 @@ use crate::refinement::{self, RefinementReport};
 /// Per agent, what the process saw of it.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct AgentRecord {
+    /// Hellos received: one per start of the agent's process (more than one after restarts).
     pub hellos: usize,
+    /// Goodbye messages: the agent said it was done.
     pub goodbyes: usize,
+    /// Hash of the agent's configuration from its latest hello (0 before any; a change on a
+    /// restart is logged).
     pub config_hash: u64,
+    /// Keyframes whose descriptor and image both arrived, handed to the engine.
     pub keyframes: usize,
+    /// Gaussians received in patches (keyframes' and the final map), without the records
+    /// dropped for non-finite values.
     pub gaussians_received: usize,
+    /// Sequence gaps on any of the agent's topics: each is one or more lost messages.
     pub gaps: usize,
     /// `ResendKeyframe` requests sent for keyframes that arrived incomplete.
     pub resend_requests: usize,
@@ -51,54 +59,86 @@ pub struct AgentRecord {
     pub last_run_on_other_frames: bool,
     /// Corrections not sent because the agent's running process is such a restart.
     pub corrections_withheld: usize,
+    /// Corrections delivered to the agent.
     pub corrections_sent: usize,
+    /// Corrections whose send failed (the agent had left or crashed); the final outputs carry
+    /// them anyway.
     pub corrections_undelivered: usize,
     /// `world_from_agent` as `[tx, ty, tz, qx, qy, qz, qw]` (TUM order); absent when the agent
     /// was never linked to the world.
     pub world_from_agent: Option<[f64; 7]>,
+    /// Bytes received from the agent over the transport, all topics together.
     pub bytes_received: u64,
+    /// Seconds from the agent's first message to when the record was completed (end of run or
+    /// snapshot); 0 for an agent never heard from.
     pub seconds_seen: f64,
 }
 
 /// consensus.json.
 #[derive(Debug, Clone, Serialize)]
 pub struct ConsensusReport {
+    /// Per agent id, what the process saw of it.
     pub agents: BTreeMap<u32, AgentRecord>,
+    /// Keyframes the engine received, of all agents.
     pub keyframes: usize,
+    /// Attempts made: keyframe pairs aligned and agent maps registered.
     pub closures_proposed: usize,
+    /// Attempts that alignment or map registration verified.
     pub closures_verified: usize,
+    /// Attempts not verified: refused by alignment or map registration, or verified but not
+    /// taken by the pose graph.
     pub closures_rejected_by_alignment: usize,
+    /// Attempts the latest pose-graph solve kept.
     pub loop_closures_accepted: usize,
+    /// Attempts not kept by the latest solve, those refused before the pose graph included.
     pub loop_closures_rejected: usize,
+    /// Kept attempts whose two keyframes belong to different agents.
     pub inter_agent_closures_accepted: usize,
     /// Deliberately wrong closures (`[consensus.false_closures]`, 0 when off): how many joined
     /// the pose graph and how many of them it kept. The `closures_*` and `*_accepted` counts
     /// above are of the real closures only.
     pub false_closures_injected: usize,
+    /// Injected wrong closures that the latest pose-graph solve kept.
     pub false_closures_accepted: usize,
     /// From a keyframe's arrival to the first correction that includes it.
     pub consensus_latency_ms_median: Option<f64>,
+    /// Each placed keyframe's latency, milliseconds, in the order they were placed; a keyframe
+    /// the pose graph never placed has none.
     pub consensus_latency_ms: Vec<f64>,
+    /// Median wall-clock time of a pose-graph solve, milliseconds; `None` before any solve.
     pub pose_graph_solve_ms_median: Option<f64>,
+    /// Gaussians in the written map.ply.
     pub merged_gaussians: usize,
+    /// Gaussians left out of map.ply because their agent (or keyframe) is not placed in the
+    /// world.
     pub unplaced_gaussians: usize,
     /// The joint photometric refinement of the merged map (`null`: not run).
     pub refinement: Option<RefinementReport>,
+    /// Seconds from the consensus's start to these outputs (the final refinement included; for
+    /// a snapshot, to its request).
     pub wall_s: f64,
+    /// A stop was requested (SIGINT / SIGTERM) before the run ended by itself; the joint
+    /// refinement is then skipped.
     pub interrupted: bool,
     /// Written on request while the run went on (no refinement; later outputs replace it).
     pub snapshot: bool,
     /// Per pair of agents (`"A-B"`, A < B), what linking them took: every attempt is in
     /// `events` (with its kind, inliers, overlap and reason); this is their tally.
     pub agent_pairs: BTreeMap<String, PairAttempts>,
+    /// Every attempt and injected closure, in the order the engine applied them
+    /// ([`Engine::events`]).
     pub events: Vec<ClosureEvent>,
+    /// Every keyframe with its frame index, capture time and tracked pose, by agent then
+    /// keyframe id.
     pub keyframe_info: Vec<(KeyframeRef, KeyframeInfo)>,
 }
 
 /// The inter-agent attempts of one pair of agents (consensus.json `agent_pairs`).
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct PairAttempts {
+    /// Keyframe pairs of the two agents aligned.
     pub keyframe_attempts: usize,
+    /// Registrations of the two agents' maps.
     pub map_attempts: usize,
     /// Attempts that alignment or map registration verified.
     pub verified: usize,

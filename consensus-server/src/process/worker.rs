@@ -298,19 +298,30 @@ const PROGRESS_INTERVAL: std::time::Duration = std::time::Duration::from_millis(
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ProgressStage {
+    /// The run goes on: keyframes arrive, candidates are aligned, the pose graph is solved.
     Aligning,
+    /// The run's intake has ended: the merged map is refined (when refinement runs) and the
+    /// outputs are written.
     Refining,
+    /// Every output is written.
     Done,
 }
 
 /// OUT/consensus_progress.json: how far the consensus is, for `mac-ego3d swarm`'s progress line.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ConsensusProgress {
+    /// What the consensus is doing.
     pub stage: ProgressStage,
+    /// Keyframes the engine has received, of all agents.
     pub keyframes: usize,
+    /// Attempts (keyframe pairs and map registrations) verified so far; injected wrong closures
+    /// are not counted.
     pub closures_verified: usize,
+    /// Attempts refused so far.
     pub closures_rejected: usize,
+    /// Verified attempts between two different agents.
     pub inter_agent_closures: usize,
+    /// Keyframe candidates queued for alignment.
     pub pending_alignments: usize,
 }
 

@@ -59,6 +59,7 @@ pub use poses::consistency_cost;
 
 /// One keyframe as refinement sees it.
 pub struct RefinementView {
+    /// The keyframe the view is.
     pub id: KeyframeRef,
     /// The pose graph's pose (camera-to-world).
     pub world_from_camera: Isometry3<f64>,
@@ -73,8 +74,11 @@ pub struct RefinementView {
 /// A pose-graph edge: `camera_i_from_camera_j` as measured (by tracking or a verified closure).
 #[derive(Debug, Clone, Copy)]
 pub struct PoseEdge {
+    /// Index in [`RefinementProblem::views`] of camera i.
     pub i: usize,
+    /// Index in [`RefinementProblem::views`] of camera j.
     pub j: usize,
+    /// Maps camera j's coordinates into camera i's (metres).
     pub camera_i_from_camera_j: Isometry3<f64>,
 }
 
@@ -82,6 +86,8 @@ pub struct PoseEdge {
 pub struct RefinementProblem {
     /// The merged map in the world frame.
     pub map: GaussianCloud,
+    /// The keyframe views the map is optimised against (the engine gives every keyframe the
+    /// pose graph placed), at their pose-graph poses.
     pub views: Vec<RefinementView>,
     /// Edges between `views` (indices).
     pub edges: Vec<PoseEdge>,
@@ -92,23 +98,36 @@ pub struct RefinementProblem {
 /// consensus.json's account of a refinement.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct RefinementReport {
+    /// Iterations run, one view each.
     pub iterations: usize,
+    /// Wall-clock seconds of the refinement, from the views' preparation to the final figures
+    /// (0 when no iteration was due).
     pub seconds: f64,
     /// Stopped by `max_seconds` before `iterations` were done.
     pub stopped_by_time: bool,
+    /// Keyframe views refined against.
     pub views: usize,
+    /// Pose-graph edges of the consistency term (odometry and accepted closures).
     pub pose_edges: usize,
+    /// Gaussians of the map refinement started from (before pruning).
     pub gaussians: usize,
     /// Mean PSNR (dB) of the views before (pose-graph poses) and after (refined poses).
+    /// `None` for both when no iteration was due (empty map, no views or no iterations).
     pub psnr_views_before: Option<f64>,
+    /// After: the final map at the refined poses, those that moved too far put back.
     pub psnr_views_after: Option<f64>,
     /// Pose-consistency cost `sum |r_ij|^2` before and after.
     pub pose_consistency_before: f64,
+    /// After: at the refined poses (equal to the cost before when no iteration was due).
     pub pose_consistency_after: f64,
+    /// Whether the keyframe poses were refined (`refine_poses`); false: the map only.
     pub poses_refined: bool,
     /// Largest pose change kept (metres, degrees) and the poses put back for moving too far.
     pub max_pose_change_m: f64,
+    /// Largest rotation of a pose kept, degrees.
     pub max_pose_change_deg: f64,
+    /// Poses put back to the pose graph's for moving farther than `max_pose_change_m` or
+    /// turning more than `max_pose_change_rad`.
     pub poses_reverted: usize,
     /// Gaussians removed after the refinement (`prune_min_opacity`).
     pub pruned: usize,
@@ -116,18 +135,29 @@ pub struct RefinementReport {
 
 /// The refined map and poses.
 pub struct RefinementOutcome {
+    /// The refined map in the world frame, pruned when `prune_min_opacity` is above 0 (the input
+    /// map when no iteration was due).
     pub map: GaussianCloud,
     /// Camera-to-world of every view after refinement (the pose graph's where not moved).
     pub world_from_camera: BTreeMap<KeyframeRef, Isometry3<f64>>,
+    /// What the refinement did, for consensus.json.
     pub report: RefinementReport,
 }
 
+/// Why a refinement could not run to the end.
 #[derive(Debug, thiserror::Error)]
 pub enum RefinementError {
+    /// The render-core device failed: setting it up, a step, or a read-back.
     #[error("refinement device: {0}")]
     Gpu(#[from] GpuError),
+    /// A view's images do not hold as many pixels as its intrinsics say.
     #[error("view {view:?}: {reason}")]
-    InvalidView { view: KeyframeRef, reason: String },
+    InvalidView {
+        /// The view's keyframe.
+        view: KeyframeRef,
+        /// The sizes found and expected.
+        reason: String,
+    },
 }
 
 /// A view at refinement resolution: its camera intrinsics (sized as its target) and its target.

@@ -82,6 +82,7 @@ pub enum CrashPoint {
 }
 
 impl CrashPoint {
+    /// The point's name, as the trigger file ([`CRASH_TRIGGER_FILE`]) spells it.
     pub const fn name(self) -> &'static str {
         match self {
             CrashPoint::BeforeCommit => "before_commit",

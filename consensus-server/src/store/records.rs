@@ -56,12 +56,19 @@ impl RunIdentity {
 pub enum StoredInput {
     /// Incarnation `epoch` of an agent said hello with its run anchor and configuration hash.
     Hello {
+        /// The agent that said hello.
         agent_id: u32,
+        /// The process's incarnation: nanoseconds since the Unix epoch at its start-up.
         epoch: u64,
+        /// Identifies the frame the agent tracks in (a hash of its dataset and first frame): a
+        /// restart on other frames sends another value.
         run_anchor: u64,
+        /// Hash of the agent's configuration.
         config_hash: u64,
     },
+    /// An agent said goodbye: it is done until it says hello again.
     Goodbye {
+        /// The agent that said goodbye.
         agent_id: u32,
     },
     /// A keyframe whose descriptor and image are both there.
@@ -69,9 +76,13 @@ pub enum StoredInput {
     /// A keyframe's Gaussians, or an agent's final map
     /// (`protocol::messages::FINAL_MAP_KEYFRAME_ID`).
     Patch {
+        /// The agent that sent the patch.
         agent_id: u32,
+        /// The keyframe the Gaussians came with, or `FINAL_MAP_KEYFRAME_ID` for the final map.
         keyframe_id: u64,
+        /// The sending process's incarnation.
         epoch: u64,
+        /// The Gaussians as received, in the agent's own frame.
         records: Vec<GaussianRecord>,
     },
 }
@@ -80,16 +91,26 @@ pub enum StoredInput {
 /// that sent it.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct StoredKeyframe {
+    /// The agent that made the keyframe.
     pub agent_id: u32,
+    /// The keyframe's number on its agent.
     pub keyframe_id: u64,
+    /// The incarnation of the agent's process that sent it.
     pub epoch: u64,
+    /// Index of the keyframe's frame in its agent's input sequence.
     pub frame_index: u64,
+    /// Capture time of the frame, seconds (dataset clock).
     pub timestamp_s: f64,
+    /// The L2-normalised global descriptor.
     pub descriptor: Vec<f32>,
+    /// The pinhole camera of the images, in pixels.
     pub intrinsics: Intrinsics,
-    /// `[tx, ty, tz, qx, qy, qz, qw]` (TUM order).
+    /// The tracked pose, camera to the agent's own frame: `[tx, ty, tz, qx, qy, qz, qw]` (TUM
+    /// order).
     pub agent_from_camera: [f64; 7],
+    /// Image width, pixels (of both `rgb` and `depth_m`).
     pub width: u32,
+    /// Image height, pixels.
     pub height: u32,
     /// Row-major RGB, 3 bytes a pixel.
     pub rgb: Vec<u8>,
@@ -98,6 +119,8 @@ pub struct StoredKeyframe {
 }
 
 impl StoredKeyframe {
+    /// The keyframe of `arrival` (its Gaussians are stored apart, as patches), sent by
+    /// incarnation `epoch`.
     pub fn new(arrival: &KeyframeArrival, epoch: u64) -> Self {
         let keyframe = &arrival.keyframe;
         Self {
@@ -116,6 +139,7 @@ impl StoredKeyframe {
         }
     }
 
+    /// The keyframe's identity in the swarm.
     pub fn id(&self) -> KeyframeRef {
         KeyframeRef {
             agent_id: self.agent_id,
@@ -156,10 +180,12 @@ impl StoredKeyframe {
 /// One correction as it was sent to an agent: its frame in the world and its keyframes' poses.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StoredCorrection {
+    /// The agent the correction was sent to.
     pub agent_id: u32,
     /// The agent's corrections in the order they were sent, from 0, across the run's consensus
     /// processes.
     pub sequence: u64,
+    /// Maps the agent's own frame into the world frame (agent 0's).
     pub world_from_agent: ExactIsometry,
     /// `(keyframe id, world_from_camera)` of each of the agent's placed keyframes.
     pub world_from_camera: Vec<(u64, ExactIsometry)>,

@@ -26,6 +26,9 @@ pub struct SyntheticDataset {
 }
 
 impl SyntheticDataset {
+    /// The sequence `spec` describes, limited to the frame numbers in `range`. Builds the scene and
+    /// the whole trajectory; frames are rendered as they load. Fails when `spec` is out of range
+    /// ([`SyntheticSpec::validate`]) or `range` selects none of its frames.
     pub fn new(spec: SyntheticSpec, range: FrameRange) -> Result<Self, DatasetError> {
         spec.validate()
             .map_err(|reason| DatasetError::Invalid(format!("synthetic spec {spec}: {reason}")))?;
@@ -45,6 +48,7 @@ impl SyntheticDataset {
         })
     }
 
+    /// The spec the sequence was made from.
     pub fn spec(&self) -> &SyntheticSpec {
         &self.spec
     }

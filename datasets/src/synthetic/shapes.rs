@@ -5,6 +5,7 @@ use nalgebra::Vector3;
 
 /// Room corners in the world (room) frame, metres: 6 x 5 x 3 m, floor at z = 0.
 pub const ROOM_MIN: [f64; 3] = [-3.0, -2.5, 0.0];
+/// The room's corner opposite [`ROOM_MIN`], metres: walls at x = 3 and y = 2.5, ceiling at z = 3.
 pub const ROOM_MAX: [f64; 3] = [3.0, 2.5, 3.0];
 
 /// Intersections closer than this along the ray (in camera-z metres) are ignored, so a ray never

@@ -10,15 +10,23 @@ use serde::{Deserialize, Serialize};
 
 /// The word that selects this dataset in `--dataset` arguments and configs.
 pub const SPEC_PREFIX: &str = "synthetic";
+/// Default `agents`: three agents share the scene.
 pub const DEFAULT_AGENTS: usize = 3;
+/// Default `frames` per agent: 300 (10 s at 30 frames per second).
 pub const DEFAULT_FRAMES: usize = 300;
+/// Default `seed` (textures, object placement, trajectory jitter).
 pub const DEFAULT_SEED: u64 = 0;
+/// Default `width`: 640 pixels, a Kinect-like 640x480 image with [`DEFAULT_HEIGHT`].
 pub const DEFAULT_WIDTH: u32 = 640;
+/// Default `height`: 480 pixels.
 pub const DEFAULT_HEIGHT: u32 = 480;
 /// Limits that keep a typo from asking for terabytes or a degenerate camera.
 pub const MAX_AGENTS: usize = 64;
+/// Largest `frames` (per agent) accepted.
 pub const MAX_FRAMES: usize = 1_000_000;
+/// Smallest `width` and `height` accepted, pixels.
 pub const MIN_IMAGE_SIDE: u32 = 16;
+/// Largest `width` and `height` accepted, pixels.
 pub const MAX_IMAGE_SIDE: u32 = 8192;
 
 /// Focal length in pixels at the reference width (a Kinect-like 525 px at 640 px); other widths
@@ -43,7 +51,9 @@ pub struct SyntheticSpec {
     pub frames: usize,
     /// Seed of textures, object placement and trajectory jitter.
     pub seed: u64,
+    /// Image width in pixels (16 to 8192; default 640).
     pub width: u32,
+    /// Image height in pixels (16 to 8192; default 480).
     pub height: u32,
 }
 

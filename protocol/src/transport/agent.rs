@@ -33,6 +33,7 @@ use crate::services::Topic;
 /// [`Stamp`] and builds the [`KeyframeImageHeader`] from it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct KeyframeImageMeta {
+    /// The agent's id of the keyframe; its descriptor and patch carry the same id.
     pub keyframe_id: u64,
     /// Index of the frame in the agent's input sequence.
     pub frame_index: u64,
@@ -45,6 +46,7 @@ pub struct KeyframeImageMeta {
     pub intrinsics: Intrinsics,
     /// Image size; the pixel slice must hold exactly `width * height` pixels, row-major.
     pub width: u32,
+    /// Image height in pixels (rows).
     pub height: u32,
 }
 
@@ -137,6 +139,7 @@ impl AgentLink {
         })
     }
 
+    /// The agent id this link publishes as.
     pub fn agent_id(&self) -> u32 {
         self.agent_id
     }

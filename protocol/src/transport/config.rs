@@ -51,13 +51,17 @@ pub struct TransportConfig {
     pub full_queue_timeout: Duration,
     /// Per-consumer queue length of each topic (what happens when it is full: `full_queue`).
     pub descriptor_queue_depth: usize,
+    /// Per-consumer queue length of each agent's patch topic.
     pub patch_queue_depth: usize,
     /// Keyframe images are large (1.8 MB at 640x480) and sent once per keyframe, so a short
     /// queue suffices; each queued image also occupies a slot of the publisher's data segment.
     pub keyframe_image_queue_depth: usize,
+    /// Queue length of an agent's correction subscriber; with `NewestWins` (the default) a full
+    /// queue drops its oldest correction.
     pub correction_queue_depth: usize,
     /// Control messages are rare (a shutdown, a re-send request), so a short queue suffices.
     pub control_queue_depth: usize,
+    /// Per-consumer queue length of the lifecycle service, which all agents share.
     pub lifecycle_queue_depth: usize,
     /// Samples a receiver may hold (borrow) at once per topic.
     pub max_held_samples: usize,

@@ -47,6 +47,8 @@ const FULL_QUEUE_RETRY: Duration = Duration::from_millis(1);
 /// Result of a successful send.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SendReport {
+    /// Sequence number the sender gave the message (its stamp's `sequence`); a relay, which
+    /// forwards the original stamp, counts its own sends here instead.
     pub sequence: u64,
     /// Subscribers the sample was delivered to.
     pub recipients: usize,

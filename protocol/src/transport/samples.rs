@@ -14,6 +14,8 @@ use crate::services::Topic;
 /// A received keyframe descriptor, read in place from shared memory.
 pub struct DescriptorSample {
     pub(super) sample: Sample<Ipc, KeyframeDescriptor, ()>,
+    /// Whether it follows the previous one on its topic in order, after a gap, or opens a new
+    /// incarnation ([`Delivery`]).
     pub delivery: Delivery,
 }
 
@@ -27,14 +29,19 @@ impl std::ops::Deref for DescriptorSample {
 /// A received Gaussian patch, read in place from shared memory (no copy).
 pub struct PatchSample {
     pub(super) sample: Sample<Ipc, [GaussianRecord], PatchHeader>,
+    /// Whether it follows the previous one on its topic in order, after a gap, or opens a new
+    /// incarnation ([`Delivery`]).
     pub delivery: Delivery,
 }
 
 impl PatchSample {
+    /// Sender, keyframe id, record count and [`CoordinateFrame`](crate::messages::CoordinateFrame)
+    /// tag.
     pub fn header(&self) -> &PatchHeader {
         self.sample.user_header()
     }
 
+    /// The header's `count` records (checked on receive).
     pub fn records(&self) -> &[GaussianRecord] {
         self.sample.payload()
     }
@@ -43,10 +50,13 @@ impl PatchSample {
 /// A received keyframe RGB-D image, read in place from shared memory (no copy).
 pub struct KeyframeImageSample {
     pub(super) sample: Sample<Ipc, [RgbdPixel], KeyframeImageHeader>,
+    /// Whether it follows the previous one on its topic in order, after a gap, or opens a new
+    /// incarnation ([`Delivery`]).
     pub delivery: Delivery,
 }
 
 impl KeyframeImageSample {
+    /// Sender, keyframe, pose, intrinsics and image size.
     pub fn header(&self) -> &KeyframeImageHeader {
         self.sample.user_header()
     }
@@ -61,6 +71,8 @@ impl KeyframeImageSample {
 /// goodbye must not pin a shared-memory sample).
 pub struct LifecycleSample {
     pub(super) message: Lifecycle,
+    /// Whether it follows the previous one on its topic in order, after a gap, or opens a new
+    /// incarnation ([`Delivery`]).
     pub delivery: Delivery,
 }
 
@@ -74,14 +86,18 @@ impl std::ops::Deref for LifecycleSample {
 /// A received correction, read in place from shared memory.
 pub struct CorrectionSample {
     pub(super) sample: Sample<Ipc, [KeyframePose], CorrectionHeader>,
+    /// Whether it follows the previous one on its topic in order, after a gap, or opens a new
+    /// incarnation ([`Delivery`]).
     pub delivery: Delivery,
 }
 
 impl CorrectionSample {
+    /// Sender, target agent and the agent-world-to-world transform.
     pub fn header(&self) -> &CorrectionHeader {
         self.sample.user_header()
     }
 
+    /// The header's `count` corrected keyframe poses (checked on receive).
     pub fn poses(&self) -> &[KeyframePose] {
         self.sample.payload()
     }
@@ -90,24 +106,34 @@ impl CorrectionSample {
 /// A received control message, decoded out of shared memory (it holds heap data).
 #[derive(Debug, Clone, PartialEq)]
 pub struct ControlSample {
+    /// The frame's header, copied out of shared memory.
     pub header: ControlHeader,
+    /// The decoded message.
     pub message: ControlMessage,
+    /// Whether it follows the previous one on its topic in order, after a gap, or opens a new
+    /// incarnation ([`Delivery`]).
     pub delivery: Delivery,
 }
 
 /// Anything a consumer receives.
 pub enum Incoming {
+    /// A keyframe descriptor.
     Descriptor(DescriptorSample),
+    /// A Gaussian patch.
     Patch(PatchSample),
+    /// A keyframe RGB-D image.
     KeyframeImage(KeyframeImageSample),
+    /// A hello, heartbeat or goodbye.
     Lifecycle(LifecycleSample),
 }
 
 impl Incoming {
+    /// The sending agent, from the stamp.
     pub fn agent_id(&self) -> u32 {
         self.stamp().agent_id
     }
 
+    /// The sender's stamp (agent id, epoch, sequence).
     pub fn stamp(&self) -> Stamp {
         match self {
             Incoming::Descriptor(d) => d.stamp,
@@ -117,6 +143,7 @@ impl Incoming {
         }
     }
 
+    /// How the message follows the sender's previous one on its topic.
     pub fn delivery(&self) -> Delivery {
         match self {
             Incoming::Descriptor(d) => d.delivery,
@@ -126,6 +153,7 @@ impl Incoming {
         }
     }
 
+    /// The topic the message came on.
     pub fn topic(&self) -> Topic {
         match self {
             Incoming::Descriptor(_) => Topic::Descriptor,

@@ -16,11 +16,17 @@ pub enum Delivery {
     /// The next sequence number of the current epoch.
     InOrder,
     /// `missed` messages of the current epoch were lost before this one.
-    Gap { missed: u64 },
+    Gap {
+        /// Sequence numbers skipped since the previous message.
+        missed: u64,
+    },
     /// First message seen of a (new) incarnation; `missed` earlier messages of it were not seen
     /// (non-zero when a consumer attaches late).
     NewIncarnation {
+        /// Epoch of the previous message seen from this sender on this topic; `None` when this is
+        /// the first message seen from it.
         previous_epoch: Option<u64>,
+        /// Messages of the new incarnation not seen: its sequence numbers before this one.
         missed: u64,
     },
 }

@@ -14,13 +14,16 @@ use crate::services::Topic;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Direction {
+    /// Sent by the reporting process.
     Sent,
+    /// Received by the reporting process.
     Received,
 }
 
 /// Counters of one (agent, topic, direction).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
 pub struct TopicTraffic {
+    /// Messages sent, or received and delivered (stale and repeated ones not counted).
     pub messages: u64,
     /// Payload plus user-header bytes.
     pub bytes: u64,
@@ -32,20 +35,26 @@ pub struct TopicTraffic {
     pub full_queue_failures: u64,
     /// Received only: number of jumps in the sequence, and messages lost in them.
     pub gaps: u64,
+    /// Received only: messages lost in those gaps.
     pub missed: u64,
     /// Received only: incarnations (epochs) seen, 1 + restarts.
     pub incarnations: u64,
-    /// Received only: messages dropped for belonging to an older epoch, or repeated.
+    /// Received only: messages dropped for belonging to an older epoch.
     pub stale_dropped: u64,
+    /// Received only: repeated messages (a re-send after a full queue) dropped.
     pub duplicates_dropped: u64,
 }
 
 /// One row of a [`BandwidthReport`].
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct TrafficEntry {
+    /// The agent the messages came from or went to (an agent's link: its own id).
     pub agent_id: u32,
+    /// The topic counted.
     pub topic: Topic,
+    /// Whether this process sent or received them.
     pub direction: Direction,
+    /// The counters.
     #[serde(flatten)]
     pub traffic: TopicTraffic,
 }
@@ -55,10 +64,12 @@ pub struct TrafficEntry {
 pub struct BandwidthReport {
     /// Seconds since the link was opened.
     pub elapsed_s: f64,
+    /// One row per (agent, topic, direction) with traffic, in that order.
     pub entries: Vec<TrafficEntry>,
 }
 
 impl BandwidthReport {
+    /// The counters of one (agent, topic, direction); `None` when it had no traffic.
     pub fn get(&self, agent_id: u32, topic: Topic, direction: Direction) -> Option<&TopicTraffic> {
         self.entries
             .iter()

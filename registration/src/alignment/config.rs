@@ -73,6 +73,7 @@ pub struct AlignmentConfig {
     pub pixel_stride: usize,
     /// Neighbours per G-ICP covariance and its plane regularisation (as tracking does).
     pub covariance_neighbours: usize,
+    /// ...and the regularisation: a covariance's singular values become (1, 1, epsilon).
     pub covariance_epsilon: f64,
     /// Coarse-to-fine correspondence distances (metres, largest first; docs/method.md, The
     /// consensus: association and alignment).
@@ -82,6 +83,7 @@ pub struct AlignmentConfig {
     /// Converged when an update rotates less than this (radians) and translates less than
     /// `gicp_translation_epsilon_m`: tighter than tracking's, a loop closure is used for long.
     pub gicp_rotation_epsilon_rad: f64,
+    /// ...and translates less than this (metres).
     pub gicp_translation_epsilon_m: f64,
 
     // --- Verification ---
@@ -93,6 +95,8 @@ pub struct AlignmentConfig {
     /// Depth agreement: a point projected into the other keyframe agrees with its depth image
     /// when it lies within `depth_tolerance_m + depth_tolerance_fraction * depth` of it.
     pub depth_tolerance_m: f64,
+    /// The tolerance's part that grows with the measured depth (a fraction of it), as depth
+    /// noise does.
     pub depth_tolerance_fraction: f64,
     /// Agreeing points over agreeing plus free-space violations (a point in front of what the
     /// other camera sees) at least this fraction, in both directions.

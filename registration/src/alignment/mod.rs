@@ -37,12 +37,17 @@ use verification::DepthComparison;
 /// What alignment computes once per view, however many others it is paired with: lifted
 /// keypoints and the point cloud with G-ICP covariances.
 pub struct PreparedView {
+    /// Keypoints lifted to 3-D in the camera frame, with descriptors.
     pub features: Features,
     /// Camera-frame points with covariances: G-ICP source and target.
     pub cloud: PointTree,
 }
 
 impl PreparedView {
+    /// Extracts the features and back-projects the depth (every `config.pixel_stride`-th pixel,
+    /// up to `config.truncation_m`) into a cloud with covariances. Never fails: a cloud that
+    /// cannot be indexed is replaced by an empty one, so every alignment with the view is
+    /// rejected.
     pub fn new(
         rgb: &RgbImage,
         depth: &DepthImage,
@@ -70,25 +75,35 @@ impl PreparedView {
 /// agreement test projects the other side's points into it).
 #[derive(Clone, Copy)]
 pub struct AlignmentInput<'a> {
+    /// The view's features and cloud.
     pub prepared: &'a PreparedView,
+    /// The depth image (metres) the view was prepared from.
     pub depth: &'a DepthImage,
+    /// The view's camera.
     pub intrinsics: &'a Intrinsics,
 }
 
 /// Scores of the coarse registration.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct CoarseScores {
+    /// Keypoints of the source view lifted to 3-D.
     pub source_keypoints: usize,
+    /// Keypoints of the target view lifted to 3-D.
     pub target_keypoints: usize,
+    /// Descriptor matches between them.
     pub matches: usize,
+    /// Matches consistent with the RANSAC estimate (0 when no hypothesis could be formed).
     pub inliers: usize,
+    /// RANSAC hypotheses drawn.
     pub ransac_iterations: usize,
 }
 
 /// Scores of the refined estimate.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct RefinementScores {
+    /// G-ICP correspondence searches, summed over the coarse-to-fine stages.
     pub gicp_iterations: usize,
+    /// Whether the last G-ICP stage run converged.
     pub converged: bool,
     /// Source points with a target point within the finest correspondence distance.
     pub inlier_fraction: f64,
@@ -96,15 +111,20 @@ pub struct RefinementScores {
     pub residual_m: f64,
     /// Depth agreement of the source projected into the target, and the reverse.
     pub source_in_target: DepthCounts,
+    /// Depth agreement of the target's points projected into the source's depth image.
     pub target_in_source: DepthCounts,
 }
 
 /// [`DepthComparison`] as reported.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct DepthCounts {
+    /// Points within the depth tolerance of the other view's measured depth.
     pub agreeing: usize,
+    /// Points clearly in front of the other view's measured surface.
     pub violating: usize,
+    /// Points behind it (possibly occluded: neither for nor against).
     pub occluded: usize,
+    /// `agreeing / (agreeing + violating)`; 0 without decisive comparisons.
     pub agreement: f64,
 }
 
@@ -122,26 +142,65 @@ impl From<DepthComparison> for DepthCounts {
 /// Why an alignment was not accepted.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum RejectionReason {
+    /// Fewer descriptor matches than the coarse estimate needs inliers; RANSAC was not run.
     #[error("{found} descriptor matches, at least {required} needed")]
-    TooFewMatches { found: usize, required: usize },
+    TooFewMatches {
+        /// Descriptor matches.
+        found: usize,
+        /// `min_coarse_inliers`.
+        required: usize,
+    },
+    /// RANSAC found no estimate with enough inlier matches.
     #[error("coarse registration found {found} inlier matches, at least {required} needed")]
-    TooFewCoarseInliers { found: usize, required: usize },
+    TooFewCoarseInliers {
+        /// Inliers of the best hypothesis (0 when none could be formed).
+        found: usize,
+        /// `min_coarse_inliers`.
+        required: usize,
+    },
+    /// G-ICP gave no usable pose from the coarse estimate.
     #[error("G-ICP refinement failed: {0}")]
     RefinementFailed(RegistrationFailure),
+    /// Too few source points have a target point within the correspondence distance.
     #[error("inlier fraction {found:.3} below {required:.3}")]
-    LowInlierFraction { found: f64, required: f64 },
+    LowInlierFraction {
+        /// The refinement's inlier fraction.
+        found: f64,
+        /// `min_inlier_fraction`.
+        required: f64,
+    },
+    /// The point-to-plane residual is too large, or NaN (nothing to measure it on).
     #[error("point-to-plane residual {found_m:.4} m above {allowed_m:.4} m")]
-    HighResidual { found_m: f64, allowed_m: f64 },
+    HighResidual {
+        /// RMS point-to-plane distance, metres.
+        found_m: f64,
+        /// `max_residual_m`.
+        allowed_m: f64,
+    },
+    /// Too few decisive depth comparisons in one of the two directions to vouch for the pose.
     #[error("{comparisons} depth comparisons, at least {required} needed")]
-    TooFewDepthComparisons { comparisons: usize, required: usize },
+    TooFewDepthComparisons {
+        /// Agreeing plus violating points, the smaller of the two directions.
+        comparisons: usize,
+        /// `min_depth_comparisons`.
+        required: usize,
+    },
+    /// The views' depths contradict the pose: too small an agreement in one direction.
     #[error("depth agreement {found:.3} below {required:.3}")]
-    DepthDisagreement { found: f64, required: f64 },
+    DepthDisagreement {
+        /// The smaller agreement of the two directions.
+        found: f64,
+        /// `min_depth_agreement`.
+        required: f64,
+    },
 }
 
 /// Accepted, or rejected with the reason.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Verdict {
+    /// Every verification threshold passed.
     Accepted,
+    /// The first check that failed.
     Rejected(RejectionReason),
 }
 
@@ -155,10 +214,12 @@ pub struct Alignment {
     pub coarse: Option<CoarseScores>,
     /// `None` when refinement did not run or failed.
     pub refinement: Option<RefinementScores>,
+    /// Whether the estimate passed verification, and why not if it did not.
     pub verdict: Verdict,
 }
 
 impl Alignment {
+    /// True when the verdict is [`Verdict::Accepted`].
     pub fn is_accepted(&self) -> bool {
         self.verdict == Verdict::Accepted
     }

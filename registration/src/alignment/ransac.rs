@@ -22,6 +22,8 @@ const INLIER_REFITS: usize = 2;
 /// Result of the coarse registration.
 #[derive(Debug, Clone)]
 pub struct CoarseEstimate {
+    /// Maps source points onto their target partners: the best hypothesis, refitted to its
+    /// inliers while a refit keeps at least as many.
     pub target_from_source: Isometry3<f64>,
     /// Indices into the match list of the inliers of the final estimate.
     pub inliers: Vec<usize>,

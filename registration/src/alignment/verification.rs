@@ -22,6 +22,7 @@ use crate::alignment::AlignmentConfig;
 /// Projected comparisons of one direction of the depth check.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct DepthComparison {
+    /// Points within the tolerance of a measured depth around their projection.
     pub agreeing: usize,
     /// Points in front of the other camera's measured surface.
     pub violating: usize,
@@ -40,6 +41,7 @@ impl DepthComparison {
         }
     }
 
+    /// Comparisons that count for or against the estimate: agreeing plus violating.
     pub fn decisive(&self) -> usize {
         self.agreeing + self.violating
     }
@@ -77,8 +79,11 @@ pub fn point_to_plane_rms(
 /// (depth noise grows with depth), measured depths at or beyond `truncation_m` ignored.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DepthTolerance {
+    /// Fixed part of the tolerance, in metres.
     pub metres: f64,
+    /// Part of the tolerance proportional to the measured depth (metres per metre).
     pub fraction: f64,
+    /// Measured depths at or beyond this (metres) are not compared.
     pub truncation_m: f64,
     /// Pixels around the projection compared too: a point agrees when any of them agrees, and
     /// violates only when it lies in front of all of them. A point at an object's edge that

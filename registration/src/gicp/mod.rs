@@ -99,8 +99,12 @@ pub trait RegistrationTarget: Sync {
 /// and weights `w`, and `error = sum w r^2`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct JointSystem {
+    /// `sum J^T w J`, added to G-ICP's Hessian approximation.
     pub hessian: nalgebra::Matrix6<f64>,
+    /// `sum J^T w r`, added to G-ICP's gradient.
     pub gradient: nalgebra::Vector6<f64>,
+    /// `sum w r^2` at the linearisation pose; when not finite the system is left out of the
+    /// step.
     pub error: f64,
 }
 
@@ -160,18 +164,45 @@ impl GicpParams {
 /// Why a registration cannot be trusted. Every failure is reported; none is silently accepted.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum RegistrationFailure {
+    /// The source cloud has fewer points than a pose needs; checked before the first iteration.
     #[error("{found} source points, at least {required} needed")]
-    TooFewSourcePoints { found: usize, required: usize },
+    TooFewSourcePoints {
+        /// Points in the source cloud.
+        found: usize,
+        /// [`MIN_POINTS_FOR_A_POSE`].
+        required: usize,
+    },
+    /// The target has fewer points than a pose needs; checked before the first iteration.
     #[error("{found} target points, at least {required} needed")]
-    TooFewTargetPoints { found: usize, required: usize },
+    TooFewTargetPoints {
+        /// Points in the target ([`RegistrationTarget::target_len`]).
+        found: usize,
+        /// [`MIN_POINTS_FOR_A_POSE`].
+        required: usize,
+    },
+    /// The source cloud lacks one covariance per point.
     #[error("the source cloud has no covariances (estimate them first)")]
     MissingSourceCovariances,
+    /// Too few source points found a target point within the correspondence distance, during
+    /// the optimisation or at the final pose.
     #[error("{found} correspondences, at least {required} needed")]
-    TooFewCorrespondences { found: usize, required: usize },
+    TooFewCorrespondences {
+        /// Source points with a correspondence.
+        found: usize,
+        /// During the optimisation [`MIN_POINTS_FOR_A_POSE`]; at the final pose the larger of
+        /// that and `min_inlier_fraction` of the source points (rounded up).
+        required: usize,
+    },
+    /// The error, an update or the final pose is not finite.
     #[error("the optimisation diverged (non-finite error or update)")]
     Diverged,
+    /// `max_iterations` ran out before an update fell below both convergence thresholds. The
+    /// pose is still usable ([`RegistrationFailure::pose_is_usable`]).
     #[error("not converged after {iterations} iterations")]
-    NotConverged { iterations: usize },
+    NotConverged {
+        /// Correspondence searches performed.
+        iterations: usize,
+    },
 }
 
 impl RegistrationFailure {
@@ -190,9 +221,13 @@ pub struct RegistrationResult {
     pub target_from_source: Isometry3<f64>,
     /// Correspondence searches performed (summed over coarse-to-fine stages).
     pub iterations: usize,
+    /// Whether the optimisation converged: an accepted update fell below both thresholds of
+    /// [`GicpParams`], or no damped step lowered the error. False when it stopped early on a
+    /// failure or ran out of iterations.
     pub converged: bool,
     /// Source points with a target point within the correspondence distance at the final pose.
     pub correspondences: usize,
+    /// Points in the source cloud.
     pub source_points: usize,
     /// Fraction of source points with a target point within `overlap_distance_m` at the final pose.
     pub overlap_fraction: f64,
@@ -203,6 +238,7 @@ pub struct RegistrationResult {
 }
 
 impl RegistrationResult {
+    /// True when no failure was reported.
     pub fn is_success(&self) -> bool {
         self.failure.is_none()
     }

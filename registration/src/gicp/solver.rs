@@ -18,7 +18,9 @@ use crate::points::PointCloud;
 /// `sample_step`-th source point within the correspondence distance.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct RivalGuess {
+    /// Every `sample_step`-th source point was counted (0 counts as 1).
     pub sample_step: usize,
+    /// Counted points with a target point within the correspondence distance at the rival.
     pub matches: usize,
     /// Whether the rival wins when both guesses count the same.
     pub wins_ties: bool,

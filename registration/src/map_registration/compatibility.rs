@@ -95,10 +95,12 @@ impl CompatibilityGraph {
         Self { n, words, bits }
     }
 
+    /// Number of correspondences (vertices).
     pub fn len(&self) -> usize {
         self.n
     }
 
+    /// True when the graph has no correspondences.
     pub fn is_empty(&self) -> bool {
         self.n == 0
     }
@@ -107,6 +109,8 @@ impl CompatibilityGraph {
         &self.bits[i * self.words..(i + 1) * self.words]
     }
 
+    /// Whether correspondences `i` and `j` are joined (false for `i == j`). Both must be below
+    /// [`Self::len`].
     pub fn compatible(&self, i: usize, j: usize) -> bool {
         self.row(i)[j / 64] >> (j % 64) & 1 == 1
     }

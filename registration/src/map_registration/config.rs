@@ -119,6 +119,8 @@ pub struct MapRegistrationConfig {
     /// better than chance). Measured kappas: true poses 0.88-0.98 on the synthetic room, turned
     /// rooms 0.25-0.58 (and 0.35 for true poses on 7-Scenes, where this never applies).
     pub colour_confirmed_overlap_fraction: f64,
+    /// The colour kappa that lets an overlap of at least `colour_confirmed_overlap_fraction`
+    /// stand in for `min_overlap_fraction` (judged only over `min_colour_comparisons` points).
     pub colour_confirmed_kappa: f64,
 
     // --- Robust pruning: cliques of the compatibility graph, then RANSAC ---
@@ -157,6 +159,7 @@ pub struct MapRegistrationConfig {
     // --- G-ICP refinement ---
     /// Neighbours per G-ICP covariance and its plane regularisation (as tracking does).
     pub covariance_neighbours: usize,
+    /// ...and the regularisation: a covariance's singular values become (1, 1, epsilon).
     pub covariance_epsilon: f64,
     /// Coarse-to-fine correspondence distances (voxels, largest first). The coarse ones are
     /// multiples of the feature level's voxel; the last one, the final stage's and the
@@ -171,6 +174,7 @@ pub struct MapRegistrationConfig {
     /// Converged when an update rotates less than this (radians) and translates less than
     /// `gicp_translation_epsilon_m`.
     pub gicp_rotation_epsilon_rad: f64,
+    /// ...and translates less than this (metres). The coarse stages use ten times both.
     pub gicp_translation_epsilon_m: f64,
 
     // --- Verification ---
@@ -210,6 +214,8 @@ pub struct MapRegistrationConfig {
     /// independent (thousands of points give fractions of a millimetre), so only overlaps that
     /// leave a direction (nearly) free reach these bounds.
     pub max_rotation_sigma_rad: f64,
+    /// The translation bound (metres) of the degeneracy test above, taken at the overlap's
+    /// centre.
     pub max_translation_sigma_m: f64,
 }
 

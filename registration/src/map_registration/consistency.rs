@@ -51,14 +51,27 @@ const LOCAL_REFITS: usize = 4;
 /// Parameters of the search (lengths in metres).
 #[derive(Debug, Clone, PartialEq)]
 pub struct RansacParams {
+    /// A correspondence supports a transform that puts its source point within this distance
+    /// of its target point.
     pub inlier_distance_m: f64,
+    /// A sample is fitted only when its three pairwise distances agree between the maps within
+    /// this tolerance.
     pub edge_tolerance_m: f64,
+    /// A sample is fitted only when its source points are at least this far apart pairwise and
+    /// its triangle's height over its longest side is at least half of this (not collinear).
     pub min_sample_spread_m: f64,
+    /// Samples drawn at most.
     pub max_samples: usize,
+    /// Samples drawn at least, whatever the confidence reached.
     pub min_samples: usize,
+    /// Sampling stops (after `min_samples`) once an all-inlier sample of the best hypothesis
+    /// would have been drawn with this probability.
     pub confidence: f64,
+    /// Seed of the sampler.
     pub seed: u64,
+    /// Two transforms are distinct when their rotations differ by more than this (radians)...
     pub distinct_rotation_rad: f64,
+    /// ...or they put the centre of the source correspondences farther apart than this.
     pub distinct_translation_m: f64,
     /// The clique search over the compatibility graph (`None`: RANSAC alone).
     pub cliques: Option<CliqueParams>,
@@ -67,6 +80,7 @@ pub struct RansacParams {
 /// A transform and the correspondences it explains.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Hypothesis {
+    /// Maps source points onto their target partners (after the local least-squares refits).
     pub target_from_source: Isometry3<f64>,
     /// Indices of the supporting correspondences, ascending.
     pub inliers: Vec<u32>,
@@ -82,17 +96,21 @@ impl Hypothesis {
 /// What the search found.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Consensus {
+    /// The hypothesis with the most supporters; `None` when no clique or sample gave a fit
+    /// with at least three supporters (or there were fewer than three correspondences).
     pub best: Option<Hypothesis>,
     /// The hypothesis distinct from `best` with the most supporters that `best` does not also
     /// have; `inliers` holds only those (see the module documentation).
     pub runner_up: Option<Hypothesis>,
     /// Every hypothesis kept, best first (at most one per distinct transform, up to 32).
     pub pool: Vec<Hypothesis>,
-    /// Samples drawn, samples that passed the edge checks (and were fitted).
+    /// RANSAC samples drawn.
     pub samples: usize,
+    /// Samples that passed the edge checks and were fitted.
     pub fitted: usize,
-    /// Cliques of the compatibility graph tried, and the largest.
+    /// Cliques of the compatibility graph tried.
     pub cliques: usize,
+    /// Correspondences in the largest of them.
     pub largest_clique: usize,
 }
 

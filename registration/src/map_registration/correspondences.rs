@@ -39,7 +39,9 @@ const QUERIES_PER_TASK: usize = 64;
 /// target descriptor (indices into the descriptor lists, not the clouds).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FeatureMatch {
+    /// Index into the source map's descriptors.
     pub source: u32,
+    /// Index into the target map's descriptors.
     pub target: u32,
     /// Squared descriptor distance.
     pub distance_sq: f32,
@@ -120,7 +122,9 @@ pub type Nearest = Vec<(u32, f32)>;
 /// A query's nearest neighbour and the squared distance to its second nearest.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct NearestTwo {
+    /// Index of the nearest reference descriptor.
     pub index: u32,
+    /// Squared distance to it.
     pub distance_sq: f32,
     /// Infinite when there is no second.
     pub second_sq: f32,

@@ -47,16 +47,19 @@ const AXIS_CELLS: i64 = 1 << AXIS_BITS;
 /// Points and, optionally, one colour per point.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Cloud {
+    /// Positions in metres, in the map's frame.
     pub points: Vec<Point3<f32>>,
     /// As many as `points` when present.
     pub colours: Option<Vec<Rgb>>,
 }
 
 impl Cloud {
+    /// Number of points.
     pub fn len(&self) -> usize {
         self.points.len()
     }
 
+    /// True when the cloud has no points.
     pub fn is_empty(&self) -> bool {
         self.points.is_empty()
     }
@@ -80,13 +83,16 @@ impl Cloud {
 /// A downsampled cloud and the voxel it was made with.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Downsampled {
+    /// One centroid per occupied voxel, in the order of the voxels' integer coordinates.
     pub points: Vec<Point3<f32>>,
     /// Mean colour per voxel, when the input had colours.
     pub colours: Option<Vec<Rgb>>,
+    /// Voxel edge used (metres).
     pub voxel_m: f64,
 }
 
 impl Downsampled {
+    /// The points and colours, without the voxel size.
     pub fn into_cloud(self) -> Cloud {
         Cloud {
             points: self.points,
@@ -265,6 +271,7 @@ pub fn remove_isolated(
 /// `colour`). Plain point slices convert into it without colours.
 #[derive(Debug, Clone, Copy)]
 pub struct MapPoints<'a> {
+    /// Positions in metres, in the map's own frame.
     pub points: &'a [Point3<f32>],
     /// As many as `points` when present (see [`MapPoints::coloured`]).
     pub colours: Option<&'a [Rgb]>,

@@ -83,10 +83,12 @@ impl Neighbourhoods {
         &self.indices[self.offsets[i]..self.offsets[i + 1]]
     }
 
+    /// Number of points (rows).
     pub fn len(&self) -> usize {
         self.offsets.len() - 1
     }
 
+    /// True when there are no points.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -221,14 +223,17 @@ fn normalise_parts(h: &mut Descriptor) {
 pub struct Features {
     /// Indices (into the cloud) of the points with a descriptor, ascending.
     pub indices: Vec<u32>,
+    /// One per entry of `indices`: that point's FPFH descriptor (see the module documentation).
     pub descriptors: Vec<Descriptor>,
 }
 
 impl Features {
+    /// Points with a descriptor.
     pub fn len(&self) -> usize {
         self.indices.len()
     }
 
+    /// True when no point has a descriptor.
     pub fn is_empty(&self) -> bool {
         self.indices.is_empty()
     }

@@ -35,15 +35,20 @@ use super::MapRejection;
 /// One depth image of a map (a keyframe), placed in the map's frame.
 #[derive(Debug, Clone, Copy)]
 pub struct DepthView<'a> {
+    /// The keyframe's depth image (metres).
     pub depth: &'a DepthImage,
+    /// Its camera.
     pub intrinsics: &'a Intrinsics,
+    /// Its pose: maps the camera's coordinates into the map's frame.
     pub map_from_camera: Isometry3<f64>,
 }
 
 /// Both maps' depth views and the thresholds of the test.
 #[derive(Debug, Clone)]
 pub struct FreeSpaceCheck<'a> {
+    /// The source map's depth views, in the source map's frame.
     pub source_views: Vec<DepthView<'a>>,
+    /// The target map's depth views, in the target map's frame.
     pub target_views: Vec<DepthView<'a>>,
     /// The depth tolerances and the minimum of decisive comparisons (`[consensus.alignment]`).
     pub config: &'a AlignmentConfig,
@@ -56,8 +61,9 @@ pub struct FreeSpaceCheck<'a> {
 /// The test's counts, both ways.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct FreeSpace {
-    /// The source map in the target's views, and the reverse.
+    /// The source map's points in the target map's views, summed over the views.
     pub source_in_target: DepthComparison,
+    /// The target map's points in the source map's views, summed over the views.
     pub target_in_source: DepthComparison,
 }
 

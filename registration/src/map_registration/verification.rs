@@ -69,8 +69,12 @@ pub struct RefinementParams {
     pub coarse_distances_m: Vec<f64>,
     /// Correspondence distance of the final stage (on the refinement-level maps).
     pub fine_distance_m: f64,
+    /// Levenberg-Marquardt iterations per stage at most.
     pub max_iterations: usize,
+    /// The final stage converges when an update rotates less than this (radians)...
     pub rotation_epsilon_rad: f64,
+    /// ...and translates less than this (metres); the coarse stages use ten times both
+    /// (`COARSE_STAGE_EPSILON_FACTOR`).
     pub translation_epsilon_m: f64,
 }
 
@@ -164,13 +168,14 @@ pub struct Overlap {
     /// module documentation). Zero without overlap.
     pub information: Matrix6<f64>,
     /// Marginal standard deviations at the overlap's centre: the worst rotation direction
-    /// (radians) and the worst translation direction (metres); infinite when the overlap leaves
-    /// a direction unconstrained.
+    /// (radians)...
     pub rotation_sigma_rad: f64,
+    /// ...and the worst translation direction (metres); both infinite when the overlap leaves
+    /// a direction unconstrained.
     pub translation_sigma_m: f64,
-    /// Overlapping points compared in colour (both with a chromaticity; 0 without colours), and
-    /// how many of them agree within the tolerance.
+    /// Overlapping points compared in colour (both with a chromaticity; 0 without colours).
     pub colour_compared: usize,
+    /// How many of them agree within the tolerance.
     pub colour_agreeing: usize,
     /// Fraction of the compared points that agree when paired at random (see the module
     /// documentation); NaN when nothing was compared.
@@ -261,9 +266,13 @@ fn chance_agreement(pairs: &[([f32; 2], [f32; 2])], tolerance: f32) -> f64 {
 /// balance; `[1, 1, 1]` for none).
 #[derive(Debug, Clone, Copy)]
 pub struct ColourCheck<'a> {
+    /// Per source point, its colour.
     pub source: &'a [Rgb],
+    /// Per target point, its colour.
     pub target: &'a [Rgb],
+    /// Chromaticity distance within which two colours agree.
     pub tolerance: f32,
+    /// Per-channel gains applied to the source colours first.
     pub source_gains: [f64; 3],
 }
 

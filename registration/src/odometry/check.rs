@@ -31,9 +31,12 @@ use crate::voxel_map::VoxelMap;
 /// What the check measured of one pose.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct FrameCheck {
-    /// Map points moved into the frame and compared with its depth.
+    /// Map points moved into the frame and compared with its depth: those within the depth
+    /// tolerance of the measured depth at their pixel.
     pub agreeing: usize,
+    /// Map points clearly in front of the measured depth (the camera sees through them).
     pub violating: usize,
+    /// Map points behind the measured depth (hidden or not seen from here: no evidence).
     pub occluded: usize,
     /// `agreeing / (agreeing + violating)`; 0 without decisive comparisons.
     pub agreement: f64,
@@ -46,19 +49,31 @@ pub struct FrameCheck {
 /// Why a pose was judged wrong.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum Divergence {
+    /// Too small a fraction of the decisive comparisons agree: the map shows surfaces where
+    /// the frame sees free space.
     #[error(
         "the map disagrees with the frame's depth: {agreement:.3} of {decisive} map points agree, \
          at least {required:.3} needed"
     )]
     FreeSpaceViolated {
+        /// `agreeing / (agreeing + violating)`.
         agreement: f64,
+        /// Agreeing plus violating comparisons.
         decisive: usize,
+        /// `tracking.min_depth_agreement`.
         required: f64,
     },
+    /// Too few map points could be compared with the frame's depth (agreeing or violating) to
+    /// judge the pose.
     #[error(
         "{decisive} map points could be compared with the frame's depth, at least {required} needed"
     )]
-    TooFewComparisons { decisive: usize, required: usize },
+    TooFewComparisons {
+        /// Agreeing plus violating comparisons.
+        decisive: usize,
+        /// `tracking.min_depth_comparisons`.
+        required: usize,
+    },
 }
 
 impl FrameCheck {
@@ -124,6 +139,7 @@ impl FrameCheck {
         }
     }
 
+    /// Comparisons that count for or against the pose: agreeing plus violating.
     pub fn decisive(&self) -> usize {
         self.agreeing + self.violating
     }

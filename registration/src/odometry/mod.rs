@@ -120,6 +120,9 @@ pub struct Odometry {
 }
 
 impl Odometry {
+    /// An odometry with an empty map, waiting for its first frame (which it places at the
+    /// identity). The image alignment of recovery and relocalisation uses the tracking's pixel
+    /// stride and truncation and otherwise its defaults; the map registration, its defaults.
     pub fn new(mode: OdometryMode, tracking: &TrackingConfig, keyframes: &KeyframeConfig) -> Self {
         Self {
             mode,
@@ -154,6 +157,7 @@ impl Odometry {
         }
     }
 
+    /// What each frame is aligned against.
     pub fn mode(&self) -> OdometryMode {
         self.mode
     }
@@ -164,6 +168,7 @@ impl Odometry {
         &self.map
     }
 
+    /// Counters over the frames tracked so far.
     pub fn stats(&self) -> &OdometryStats {
         &self.stats
     }

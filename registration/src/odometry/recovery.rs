@@ -66,8 +66,11 @@ pub enum FeatureGuess {
 /// One candidate pose of a frame: the G-ICP result and its check.
 #[derive(Debug, Clone)]
 pub struct Candidate {
+    /// Where the final G-ICP started.
     pub guess: Guess,
+    /// The final G-ICP run (`target_from_source` is `world_from_camera`).
     pub result: RegistrationResult,
+    /// The depth check of the result's pose against the map.
     pub check: FrameCheck,
 }
 
@@ -80,6 +83,7 @@ impl Candidate {
             .is_none_or(|failure| failure.pose_is_usable())
     }
 
+    /// G-ICP gave a pose and the check accepted it.
     pub fn passes(&self, tracking: &TrackingConfig) -> bool {
         self.has_pose() && self.check.verdict(tracking).is_ok()
     }
@@ -87,20 +91,32 @@ impl Candidate {
 
 /// The last frame whose pose was trusted, kept for the feature guess.
 pub struct TrustedFrame {
+    /// Its colour image.
     pub rgb: RgbImage,
+    /// Its depth image (metres).
     pub depth: DepthImage,
+    /// Its camera.
     pub intrinsics: Intrinsics,
+    /// Its pose, in the frame of the map tracked against (moved into the root when a segment
+    /// is joined).
     pub world_from_camera: Isometry3<f64>,
 }
 
 /// What the guesses of one frame share.
 pub struct Recovery<'a> {
+    /// Recovery distances and iterations, and the check's thresholds.
     pub tracking: &'a TrackingConfig,
+    /// The fine G-ICP every guess ends with (the tracking parameters).
     pub fine: &'a GicpParams,
+    /// The map tracked against (world frame).
     pub map: &'a VoxelMap,
+    /// The frame's points in its camera frame, with covariances.
     pub frame: &'a PointCloud,
+    /// The frame's depth image (metres), for the check and the feature guess.
     pub depth: &'a DepthImage,
+    /// The frame's colour image; without it the feature guess is unavailable.
     pub rgb: Option<&'a RgbImage>,
+    /// The frame's camera.
     pub intrinsics: &'a Intrinsics,
 }
 

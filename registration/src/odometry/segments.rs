@@ -44,6 +44,8 @@ const THUMBNAIL_HEIGHT: u32 = 24;
 pub struct Thumbnail(Vec<f32>);
 
 impl Thumbnail {
+    /// The image's mean luma (BT.601 weights) over each cell of a 32 x 24 grid, made zero-mean
+    /// and unit-norm; all zeros for an image of one uniform brightness.
     pub fn of(rgb: &RgbImage) -> Self {
         let (width, height) = rgb.dimensions();
         let mut sums = vec![0.0f32; (THUMBNAIL_WIDTH * THUMBNAIL_HEIGHT) as usize];
@@ -69,6 +71,7 @@ impl Thumbnail {
         Self(values)
     }
 
+    /// Normalised correlation with `other`, in [-1, 1]; 0 when either image is uniform.
     pub fn similarity(&self, other: &Thumbnail) -> f32 {
         self.0.iter().zip(&other.0).map(|(a, b)| a * b).sum()
     }
@@ -77,15 +80,22 @@ impl Thumbnail {
 /// A root keyframe kept for relocalisation: its images, its pose in the root frame, and its
 /// prepared view once an alignment needed it.
 pub struct ArchivedKeyframe {
+    /// Its colour image.
     pub rgb: RgbImage,
+    /// Its depth image (metres).
     pub depth: DepthImage,
+    /// Its camera.
     pub intrinsics: Intrinsics,
+    /// Its pose in the archive's frame: the root's, or a detached segment's until the segment
+    /// is joined and its archive moved into the root ([`KeyframeArchive::transform`]).
     pub world_from_camera: Isometry3<f64>,
     thumbnail: Thumbnail,
     prepared: Option<PreparedView>,
 }
 
 impl ArchivedKeyframe {
+    /// Keeps the images and pose and computes the thumbnail; the prepared view (features) is
+    /// built only when an alignment first needs it.
     pub fn new(
         rgb: RgbImage,
         depth: DepthImage,
@@ -120,6 +130,7 @@ pub struct KeyframeArchive {
 }
 
 impl KeyframeArchive {
+    /// An empty archive that keeps at most `capacity` keyframes (0 keeps none).
     pub fn new(capacity: usize) -> Self {
         Self {
             keyframes: Vec::new(),
@@ -129,10 +140,12 @@ impl KeyframeArchive {
         }
     }
 
+    /// Keyframes kept.
     pub fn len(&self) -> usize {
         self.keyframes.len()
     }
 
+    /// True when no keyframe is kept.
     pub fn is_empty(&self) -> bool {
         self.keyframes.is_empty()
     }
@@ -231,7 +244,9 @@ impl KeyframeArchive {
 /// points) into the root frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SegmentJoin {
+    /// The segment joined.
     pub segment: SegmentId,
+    /// Maps the segment's frame to the root frame.
     pub root_from_segment: Isometry3<f64>,
     /// Which evidence gave the candidate that passed the check.
     pub evidence: JoinEvidence,

@@ -53,18 +53,23 @@ impl fmt::Display for OdometryMode {
 pub struct FrameInput<'a> {
     /// Seconds, any origin.
     pub timestamp_s: f64,
+    /// Depth in metres, invalid pixels 0 (see [`crate::points`]).
     pub depth: &'a DepthImage,
     /// Colour, for the image-feature guesses (recovery and relocalisation); without it those
     /// are geometric only.
     pub rgb: Option<&'a RgbImage>,
+    /// The depth image's camera; a colour image is expected registered to it (same size).
     pub intrinsics: &'a Intrinsics,
 }
 
 /// Why a frame was not placed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum TrackingFailure {
+    /// No registration gave a usable pose: G-ICP failed (or the frame had too few points for
+    /// any guess to run).
     #[error("{0}")]
     Registration(RegistrationFailure),
+    /// The chosen registration's pose was refused by the depth-agreement check.
     #[error("{0}")]
     Diverged(Divergence),
 }
@@ -111,7 +116,9 @@ pub enum Placement {
 pub struct TrackedFrame {
     /// In the frame [`Self::placement`] names.
     pub world_from_camera: Isometry3<f64>,
+    /// The frame `world_from_camera` maps into: the root or an unjoined segment's.
     pub placement: Placement,
+    /// How the pose was obtained (and, for a lost frame, why it could not be).
     pub outcome: TrackingOutcome,
     /// The final G-ICP run, when there was one.
     pub registration: Option<RegistrationResult>,
@@ -130,6 +137,7 @@ pub struct TrackedFrame {
     /// At a keyframe: per point of `frame_points`, whether it joined the tracking map (the
     /// trackable flag of docs/method.md, One agent: Keyframes). `None` on other frames.
     pub trackable: Option<Vec<bool>>,
+    /// Wall time spent on this frame, per stage.
     pub timings: StageTimings,
 }
 
@@ -161,7 +169,10 @@ pub struct StageTimings {
 /// Counters over a run.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
 pub struct OdometryStats {
+    /// Frames passed to [`super::Odometry::track`].
     pub frames: usize,
+    /// Frames that added at least one point to the map (frame-to-model only; a segment's first
+    /// frame included).
     pub keyframes: usize,
     /// Frames no guess placed (pose = prediction).
     pub failures: usize,

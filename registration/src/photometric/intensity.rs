@@ -6,8 +6,11 @@ use image::RgbImage;
 /// A single-channel image of intensities in [0, 1], row-major.
 #[derive(Debug, Clone, PartialEq)]
 pub struct IntensityImage {
+    /// Columns, in pixels.
     pub width: u32,
+    /// Rows, in pixels.
     pub height: u32,
+    /// `width * height` values, pixel (x, y) at `y * width + x`.
     pub data: Vec<f32>,
 }
 
@@ -43,6 +46,8 @@ impl IntensityImage {
         }
     }
 
+    /// The value at pixel (x, y). Not bounds-checked per axis: `x` must be below `width` and
+    /// `y` below `height` (an index past the data panics).
     #[inline]
     pub fn at(&self, x: u32, y: u32) -> f32 {
         self.data[y as usize * self.width as usize + x as usize]
@@ -95,8 +100,11 @@ pub struct PhotometricFrame {
     pub factor: u32,
     /// The camera at this level.
     pub intrinsics: Intrinsics,
+    /// Luma in [0, 1], binned to this level.
     pub intensity: IntensityImage,
+    /// Central-difference gradient of `intensity` along x (intensity per level pixel).
     pub gradient_x: IntensityImage,
+    /// Central-difference gradient of `intensity` along y (intensity per level pixel).
     pub gradient_y: IntensityImage,
 }
 

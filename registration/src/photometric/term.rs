@@ -77,10 +77,12 @@ impl PhotometricReference {
         Self { points }
     }
 
+    /// Number of selected reference points.
     pub fn len(&self) -> usize {
         self.points.len()
     }
 
+    /// True when no pixel was selected (the term then has nothing to compare).
     pub fn is_empty(&self) -> bool {
         self.points.is_empty()
     }
@@ -147,6 +149,9 @@ pub struct PhotometricTerm<'a> {
 }
 
 impl<'a> PhotometricTerm<'a> {
+    /// The term of `current` (the frame being tracked, at the term's level) against
+    /// `reference`; `depth` is the current frame's full-resolution depth image, used to skip
+    /// reference points occluded in it. Nothing is computed until the first linearisation.
     pub fn new(
         reference: &'a PhotometricReference,
         current: &'a PhotometricFrame,

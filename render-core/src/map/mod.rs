@@ -155,6 +155,7 @@ pub struct PruneReport {
     /// relative order, so `GaussianCloud::select(&kept)` (or the same filter on any
     /// per-Gaussian host metadata) reproduces the new order.
     pub kept: Vec<bool>,
+    /// Gaussians removed (the `false` entries of `kept`).
     pub removed: usize,
 }
 
@@ -197,6 +198,8 @@ impl DeviceMap {
         Ok(Self { gaussians, adam })
     }
 
+    /// Splits the map into its Gaussians and their Adam state ([`Self::from_parts`] joins them
+    /// again while neither is edited apart).
     pub fn into_parts(self) -> (DeviceGaussians, DeviceAdam) {
         (self.gaussians, self.adam)
     }
@@ -206,6 +209,7 @@ impl DeviceMap {
         &self.gaussians
     }
 
+    /// The Adam state (moments, step count, configuration) of the Gaussians.
     pub fn adam(&self) -> &DeviceAdam {
         &self.adam
     }
@@ -215,14 +219,18 @@ impl DeviceMap {
         &mut self.adam.config
     }
 
+    /// Number of live Gaussians.
     pub fn len(&self) -> usize {
         self.gaussians.len()
     }
 
+    /// True when the map holds no Gaussians.
     pub fn is_empty(&self) -> bool {
         self.gaussians.is_empty()
     }
 
+    /// Copies the Gaussians back to the host ([`DeviceGaussians::download`]; the Adam state
+    /// stays on the device).
     pub fn download(&self, context: &GpuContext) -> Result<GaussianCloud, GpuError> {
         self.gaussians.download(context)
     }

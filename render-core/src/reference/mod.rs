@@ -78,7 +78,9 @@ pub struct ProjectedGaussian {
     pub mean2d: [f64; 2],
     /// Inverse 2D covariance `[a, b, c]` for the matrix `[[a, b], [b, c]]`.
     pub conic: [f64; 3],
+    /// Opacity in `[0, 1]`: the sigmoid of the opacity logit.
     pub opacity: f64,
+    /// Linear RGB colour, as in the [`GaussianCloud`].
     pub colour: [f64; 3],
     /// Screen extent in pixels (3 sigma of the largest axis, rounded up).
     pub radius: f64,

@@ -8,6 +8,7 @@ use serde::Deserialize;
 
 use super::BagError;
 
+/// The name of the file in a rosbag2 folder that lists its storage files and topics.
 pub const METADATA_FILE: &str = "metadata.yaml";
 const STORAGE_EXTENSIONS: [&str; 2] = ["mcap", "db3"];
 

@@ -24,14 +24,25 @@ pub const HEAD_BYTES: usize = 256;
 /// Why a bag cannot be read. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum BagError {
+    /// The file system refused: a file or folder missing, unreadable, or not writable.
     #[error("{path}: {source}")]
     Io {
+        /// The file or folder concerned.
         path: PathBuf,
+        /// What the file system said.
         #[source]
         source: std::io::Error,
     },
+    /// A file that is not what a bag holds or is damaged past reading (not MCAP, metadata.yaml
+    /// that does not parse, an sqlite3 error, a message that reads back other than the scan
+    /// found it), or a bag being written that the MCAP writer refused.
     #[error("{path}: {reason}")]
-    Format { path: PathBuf, reason: String },
+    Format {
+        /// The file concerned.
+        path: PathBuf,
+        /// What is wrong with it.
+        reason: String,
+    },
 }
 
 impl BagError {
@@ -52,13 +63,15 @@ impl BagError {
 /// One topic of a bag.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Topic {
+    /// The topic's full name (`/camera/camera/color/image_raw`).
     pub name: String,
     /// ROS 2 type, `pkg/msg/Type`.
     pub type_name: String,
     /// Messages the scan found on it.
     pub count: usize,
-    /// Receive times of its first and last message (nanoseconds since the epoch).
+    /// Receive time of its first message, nanoseconds since the Unix epoch.
     pub first_ns: u64,
+    /// Receive time of its last message, nanoseconds since the Unix epoch.
     pub last_ns: u64,
 }
 
@@ -109,9 +122,12 @@ impl MessageRef {
 /// Where a damaged bag stopped being readable.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Damage {
+    /// The storage file where reading stopped.
     pub file: PathBuf,
     /// Messages of the whole bag read before the damage.
     pub messages_before: usize,
+    /// Where in the file and how it broke (`the file ends at byte N without MCAP's closing
+    /// records: it was cut short`).
     pub reason: String,
 }
 
@@ -234,6 +250,8 @@ impl Bag {
         &self.path
     }
 
+    /// The bag's topics, in the order the scan first met them; [`MessageRef::topic`] indexes
+    /// this. A name recorded with two types is two topics.
     pub fn topics(&self) -> &[Topic] {
         &self.topics
     }

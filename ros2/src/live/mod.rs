@@ -38,7 +38,11 @@ pub struct LiveOptions {
     /// `sensor_msgs/CompressedImage`, a depth topic ending in `/compressedDepth` or
     /// `/compressed` too (image_transport's names); any other, `sensor_msgs/Image`.
     pub colour_topic: String,
+    /// The depth topic: depth registered to colour, in the colour camera's frame
+    /// (`/robot0/camera/camera/aligned_depth_to_color/image_raw`). Its type follows its name,
+    /// as for `colour_topic`.
     pub depth_topic: String,
+    /// The colour camera's `sensor_msgs/CameraInfo` topic.
     pub camera_info_topic: String,
     /// Largest stamp difference between a colour image and its depth, seconds.
     pub pairing_tolerance_s: f64,
@@ -53,24 +57,49 @@ pub struct LiveOptions {
 /// Why a live camera could not be used.
 #[derive(Debug, thiserror::Error)]
 pub enum LiveError {
+    /// A configured topic is not a valid fully qualified ROS 2 name (`/a/b`).
     #[error("ROS 2 topic name {topic:?}: {reason}")]
-    TopicName { topic: String, reason: String },
+    TopicName {
+        /// The name as configured.
+        topic: String,
+        /// Why it is refused (no leading `/`, an empty part, a part starting with a digit).
+        reason: String,
+    },
+    /// ros2-client refused the participant, the node, a topic, a subscription or a publisher.
     #[error("joining DDS domain {domain_id}: {reason}")]
-    Dds { domain_id: u16, reason: String },
+    Dds {
+        /// The domain being joined.
+        domain_id: u16,
+        /// What failed, with ros2-client's error.
+        reason: String,
+    },
+    /// The receiving thread did not start, ended before subscribing, or stopped on an error
+    /// (polling its readers failed); the reason says which.
     #[error("the ROS 2 receiving thread stopped: {0}")]
     Receiver(String),
+    /// A sample could not be published.
     #[error("publishing on {topic}: {reason}")]
-    Publish { topic: String, reason: String },
+    Publish {
+        /// The topic published on (`/tf`, `/agent0/path`).
+        topic: String,
+        /// ros2-client's error.
+        reason: String,
+    },
 }
 
 /// A colour or depth message as it arrived: raw or compressed.
 #[derive(Debug, Clone)]
 pub enum ImageMessage {
+    /// A `sensor_msgs/Image`: the topic's name does not end in `/compressed` or
+    /// `/compressedDepth`.
     Raw(Image),
+    /// A `sensor_msgs/CompressedImage`: the topic's name ends in `/compressed` or
+    /// `/compressedDepth`.
     Compressed(CompressedImage),
 }
 
 impl ImageMessage {
+    /// The message's header: its capture stamp and the camera frame.
     pub fn header(&self) -> &Header {
         match self {
             Self::Raw(image) => &image.header,
@@ -100,7 +129,9 @@ impl ImageMessage {
 pub struct LivePair {
     /// The colour image's stamp, seconds.
     pub stamp_s: f64,
+    /// The colour message, not decoded yet ([`ImageMessage::colour`] decodes it).
     pub colour: ImageMessage,
+    /// The depth message, not decoded yet ([`ImageMessage::depth`] decodes it).
     pub depth: ImageMessage,
     /// When the second of the two arrived.
     pub received_at: Instant,
@@ -112,16 +143,22 @@ pub struct LivePair {
 /// What the subscriptions received and what became of it.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
 pub struct LiveCounts {
+    /// Colour messages taken from the DDS reader, paired or not.
     pub colour_received: u64,
+    /// Depth messages taken from the DDS reader, paired or not.
     pub depth_received: u64,
+    /// CameraInfo messages taken, counted once per wake-up of the receiving thread (only the
+    /// latest of those that arrived together is kept).
     pub camera_info_received: u64,
+    /// What the pairing made of the colour and depth messages (its fields sit beside these in
+    /// metrics.json).
     #[serde(flatten)]
     pub pairing: PairingCounts,
     /// Pairs the consumer never took: a newer pair replaced them (the consumer was slower
     /// than the camera).
     pub dropped: u64,
     /// Of `dropped`, those replaced before the consumer took its first pair (it was still
-    /// starting: an agent sets up its mapper after the camera's CameraInfo came).
+    /// starting).
     pub dropped_while_starting: u64,
     /// Samples the DDS reader could not deserialise (a wrong type on the topic).
     pub read_errors: u64,
@@ -203,6 +240,7 @@ impl LiveCamera {
         }
     }
 
+    /// The options it was connected with.
     pub fn options(&self) -> &LiveOptions {
         &self.options
     }
@@ -251,6 +289,7 @@ impl LiveCamera {
         }
     }
 
+    /// What the subscriptions received so far and what became of it.
     pub fn counts(&self) -> LiveCounts {
         self.shared.state.lock().expect("live state").counts
     }

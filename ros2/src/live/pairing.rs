@@ -52,6 +52,8 @@ enum Admission {
 }
 
 impl<C, D> Pairing<C, D> {
+    /// Empty queues; a colour and a depth message pair when their stamps differ by at most
+    /// `tolerance_s` seconds.
     pub fn new(tolerance_s: f64) -> Self {
         Self {
             tolerance_s,
@@ -62,6 +64,7 @@ impl<C, D> Pairing<C, D> {
         }
     }
 
+    /// What the pairing did with the messages so far.
     pub fn counts(&self) -> PairingCounts {
         self.counts
     }

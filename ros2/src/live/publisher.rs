@@ -74,14 +74,20 @@ impl LivePublisher {
         std::thread::sleep(LINGER);
     }
 
+    /// Publishes on `/tf` (reliable, keep last 100, volatile: a subscriber hears what is sent
+    /// after it matched).
     pub fn tf(&self, message: TfMessage) -> Result<(), LiveError> {
         sent(self.tf.publish(message), "/tf")
     }
 
+    /// Publishes on `/tf_static` (reliable, keep last 1, transient local). A late subscriber
+    /// gets only the latest message, so one message must hold every static transform.
     pub fn tf_static(&self, message: TfMessage) -> Result<(), LiveError> {
         sent(self.tf_static.publish(message), "/tf_static")
     }
 
+    /// Publishes a path on `topic` (`/agent0/path`), whose publisher is made on its first use
+    /// (reliable, keep last 1, transient local).
     pub fn path(&mut self, topic: &str, message: Path) -> Result<(), LiveError> {
         let made = made_for(
             &mut self.paths,
@@ -93,6 +99,8 @@ impl LivePublisher {
         sent(made.publish(message), topic)
     }
 
+    /// Publishes a point cloud on `topic` (`/agent0/map`), whose publisher is made on its first
+    /// use (reliable, keep last 1, transient local).
     pub fn cloud(&mut self, topic: &str, message: PointCloud2) -> Result<(), LiveError> {
         let made = made_for(
             &mut self.clouds,

@@ -308,6 +308,9 @@ pub struct AgentHostIngress {
 }
 
 impl AgentHostIngress {
+    /// Opens, for each of `local_agents`, the correction and control publishers and a notifier
+    /// on its wake-up service, as a local consumer would. Refuses an id outside `0..max_agents`
+    /// ([`TransportError::AgentIdOutOfRange`]).
     pub fn open(config: &TransportConfig, local_agents: &[u32]) -> Result<Self, TransportError> {
         config.validate()?;
         let node = create_node(&format!("mac-relay-ingress-{}", std::process::id()))?;

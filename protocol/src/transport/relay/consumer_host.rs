@@ -56,6 +56,8 @@ pub struct ConsumerHostIngress {
 }
 
 impl ConsumerHostIngress {
+    /// Opens the lifecycle publisher and the consumers' wake-up notifier. A remote agent's data
+    /// publishers are opened at its first relayed message.
     pub fn open(config: &TransportConfig) -> Result<Self, TransportError> {
         config.validate()?;
         let names = config.names();
@@ -192,7 +194,10 @@ pub enum ConsumerHostOutgoing {
     /// A correction or control message for a remote agent.
     Message(RelayedMessage),
     /// A consumer acknowledged agent `agent_id`'s goodbye (it drained the agent's data).
-    GoodbyeSeen { agent_id: u32 },
+    GoodbyeSeen {
+        /// The remote agent whose goodbye was acknowledged.
+        agent_id: u32,
+    },
 }
 
 /// Takes what the local consumers send every remote agent `0..max_agents` (as that agent
@@ -208,6 +213,8 @@ pub struct ConsumerHostEgress {
 }
 
 impl ConsumerHostEgress {
+    /// Subscribes to the correction and control topics of every agent id `0..max_agents`, and
+    /// listens on each one's wake-up service, as those agents would.
     pub fn open(config: &TransportConfig) -> Result<Self, TransportError> {
         config.validate()?;
         let node = create_node(&format!("mac-relay-egress-{}", std::process::id()))?;

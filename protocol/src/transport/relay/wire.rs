@@ -23,6 +23,7 @@ pub struct RelayedMessage {
     /// The agent the message comes from (agent -> consumers topics) or goes to (corrections,
     /// control).
     pub agent_id: u32,
+    /// The topic it was published on.
     pub topic: Topic,
     /// The stamp the original sender gave it; it crosses unchanged.
     pub stamp: Stamp,

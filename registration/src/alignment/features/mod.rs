@@ -63,8 +63,9 @@ pub type Descriptor = [u128; DESCRIPTOR_WORDS];
 /// Where a lifted keypoint was found (for diagnostics).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Keypoint {
-    /// Level-0 pixel coordinates.
+    /// Level-0 pixel coordinates: column...
     pub u: f64,
+    /// ...and row.
     pub v: f64,
     /// Pyramid level it was detected and described on.
     pub level: usize,
@@ -78,7 +79,9 @@ pub struct Keypoint {
 /// Keypoints of one keyframe with valid depth: 3-D positions in the camera frame and descriptors.
 #[derive(Debug, Clone, Default)]
 pub struct Features {
+    /// Per lifted keypoint, its 3-D position in the camera frame (metres).
     pub camera_points: Vec<Point3<f64>>,
+    /// Per lifted keypoint, parallel to `camera_points`, its BRIEF descriptor.
     pub descriptors: Vec<Descriptor>,
     /// Per lifted keypoint, parallel to `camera_points`.
     pub keypoints: Vec<Keypoint>,
@@ -88,10 +91,12 @@ pub struct Features {
 }
 
 impl Features {
+    /// Number of lifted keypoints.
     pub fn len(&self) -> usize {
         self.camera_points.len()
     }
 
+    /// True when no keypoint could be lifted.
     pub fn is_empty(&self) -> bool {
         self.camera_points.is_empty()
     }
