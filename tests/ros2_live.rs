@@ -315,12 +315,10 @@ fn real_data_live_camera_over_dds_with_faults() {
 /// Compressed images (JPEG colour, compressedDepth PNG), and a
 /// publisher that restarts part way (its stamps jump back): the agent pairs again and goes on.
 /// tum-fr1-rpy (a real Kinect with a lens to undistort, fast rotation) at 10 Hz with the
-/// recording's own stamps, depth as 32FC1 metres, the lens as CameraInfo's plumb_bob: the agent,
-/// which sets up its mapper before it subscribes, takes nearly every frame, and its ATE is within
-/// 1.5x of the paced folder run's on the same frames. Not within 5 mm: the folder reader puts
-/// TUM's depth on the Kinect's registration pinhole, which a live camera would announce on a
-/// depth CameraInfo topic, and the live input does not read one yet (bags do), so the two runs
-/// see slightly different frames from the first on (ATE 4.03 live, 5.29 cm folder in one run).
+/// recording's own stamps, depth as 32FC1 metres, the lens as CameraInfo's plumb_bob and the
+/// depth's registration pinhole on the depth's own CameraInfo: the agent, which sets up its
+/// mapper before it subscribes, takes nearly every frame, and its poses land within 5 mm (ATE)
+/// of the paced folder run on the same frames, both against the dataset's ground truth.
 #[test]
 fn real_data_live_tum_at_its_own_stamps() {
     let Some(python) = prerequisites() else {
@@ -393,7 +391,7 @@ fn real_data_live_tum_at_its_own_stamps() {
         folder_ate * 100.0
     );
     assert!(
-        live_ate < 1.5 * folder_ate,
+        (live_ate - folder_ate).abs() < 0.005,
         "live {live_ate} m, folder {folder_ate} m"
     );
 }

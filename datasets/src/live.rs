@@ -94,9 +94,15 @@ pub struct LiveTopics {
     /// The pinhole camera frames are handed over in (the recorded one, undistorted).
     intrinsics: Intrinsics,
     undistortion: Option<Undistortion>,
+    /// Depth comes pixel for pixel on the colour lens's grid (resampled with colour); false:
+    /// it is already the pinhole image `intrinsics` describes.
+    depth_on_colour_grid: bool,
     evaluation_frames: usize,
     recording: Mutex<Recording>,
 }
+
+/// How long to wait for the depth's CameraInfo once colour's came (both come with every frame).
+const DEPTH_CAMERA_INFO_WAIT: Duration = Duration::from_secs(1);
 
 /// A median stamp-to-arrival gap beyond this says the publisher's stamps are not this host's
 /// clock (a replayed recording): no latency is reported then.
@@ -122,6 +128,10 @@ impl LiveTopics {
             colour_topic: qualified(&config.colour_topic),
             depth_topic: qualified(&config.depth_topic),
             camera_info_topic: qualified(&config.camera_info_topic),
+            depth_camera_info_topic: Some(crate::rosbag::camera_info_beside(&qualified(
+                &config.depth_topic,
+            )))
+            .filter(|topic| *topic != qualified(&config.camera_info_topic)),
             pairing_tolerance_s: config.pairing_tolerance_s,
             reliable: config.reliable,
             queue_pairs: config.queue_pairs,
@@ -143,24 +153,67 @@ impl LiveTopics {
             DatasetError::Invalid(format!("{}: {reason}", options.camera_info_topic))
         };
         let recorded = intrinsics_of(&info).map_err(invalid)?;
-        let undistortion = distortion_of(&info)
+        // A depth CameraInfo with a K of its own says the depth is an ideal pinhole image with
+        // that K (a Kinect's registration), not the colour lens's grid: colour is re-projected
+        // into it, as for a bag or a folder with depth-intrinsics.txt. The driver publishes it
+        // with every frame, beside the colour one; a camera without one has depth on colour's
+        // grid (a RealSense's aligned depth, whose CameraInfo is colour's).
+        let depth_info = match &options.depth_camera_info_topic {
+            Some(_) => camera
+                .depth_camera_info(DEPTH_CAMERA_INFO_WAIT)
+                .map_err(|e| DatasetError::Invalid(format!("{spec}: {e}")))?,
+            None => None,
+        };
+        let depth_pinhole = match (&depth_info, &options.depth_camera_info_topic) {
+            (Some(depth_info), Some(topic)) if depth_info.k != info.k => Some(
+                intrinsics_of(depth_info)
+                    .map_err(|reason| DatasetError::Invalid(format!("{topic}: {reason}")))?,
+            ),
+            _ => None,
+        };
+        if let Some(k) = depth_pinhole
+            && (k.width, k.height) != (recorded.width, recorded.height)
+        {
+            return Err(DatasetError::Invalid(format!(
+                "{}: depth is {}x{}, the colour camera {}x{}",
+                options
+                    .depth_camera_info_topic
+                    .as_deref()
+                    .unwrap_or_default(),
+                k.width,
+                k.height,
+                recorded.width,
+                recorded.height
+            )));
+        }
+        let output = depth_pinhole.unwrap_or(recorded);
+        let distortion = distortion_of(&info)
             .map_err(invalid)?
-            .filter(|d: &Distortion| !d.is_zero())
-            .map(|d| Undistortion::new(recorded, d, recorded));
+            .filter(|d: &Distortion| !d.is_zero());
+        let undistortion = match (distortion, depth_pinhole) {
+            (None, None) => None,
+            (distortion, _) => Some(Undistortion::new(
+                recorded,
+                distortion.unwrap_or_default(),
+                output,
+            )),
+        };
         tracing::info!(
             namespace,
             fx = recorded.fx,
             width = recorded.width,
             height = recorded.height,
             undistorted = undistortion.is_some(),
+            depth_pinhole_fx = depth_pinhole.map(|k| k.fx),
             "live camera found"
         );
         Ok(Self {
             camera,
             namespace,
             recorded,
-            intrinsics: recorded,
+            intrinsics: output,
             undistortion,
+            depth_on_colour_grid: depth_pinhole.is_none(),
             evaluation_frames: config.evaluation_frames.max(1),
             recording: Mutex::new(Recording {
                 stamps: Vec::new(),
@@ -254,7 +307,8 @@ impl LiveTopics {
             ));
         }
         let (rgb, depth) = match &self.undistortion {
-            Some(u) => (u.rgb(&rgb)?, u.depth(&depth)?),
+            Some(u) if self.depth_on_colour_grid => (u.rgb(&rgb)?, u.depth(&depth)?),
+            Some(u) => (u.rgb(&rgb)?, depth),
             None => (rgb, depth),
         };
         Ok(Frame {

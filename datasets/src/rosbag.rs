@@ -509,13 +509,7 @@ pub fn choose_topics(bag: &Bag, config: &Ros2Config) -> Result<BagChoice, Datase
         }
     };
     let info_types = [type_names::CAMERA_INFO];
-    let sibling_info = |image_topic: &str| {
-        let base = image_topic
-            .trim_end_matches("/compressedDepth")
-            .trim_end_matches("/compressed");
-        let parent = &base[..base.rfind('/').unwrap_or(0)];
-        format!("{parent}/camera_info")
-    };
+    let sibling_info = camera_info_beside;
     let mut info_candidates = vec![config.qualified(&config.camera_info_topic)];
     if !info_candidates.contains(&sibling_info(&colour)) {
         info_candidates.push(sibling_info(&colour));
@@ -701,4 +695,14 @@ pub(crate) fn distortion_of(info: &msg::CameraInfo) -> Result<Option<Distortion>
     let distortion = Distortion::from_coefficients(coefficients);
     distortion.validate()?;
     Ok(Some(distortion))
+}
+
+/// The CameraInfo topic beside an image topic, as image_transport lays them out:
+/// `/a/b/image_raw` and `/a/b/image_raw/compressedDepth` give `/a/b/camera_info`.
+pub(crate) fn camera_info_beside(image_topic: &str) -> String {
+    let base = image_topic
+        .trim_end_matches("/compressedDepth")
+        .trim_end_matches("/compressed");
+    let parent = &base[..base.rfind('/').unwrap_or(0)];
+    format!("{parent}/camera_info")
 }

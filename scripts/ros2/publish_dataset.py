@@ -11,6 +11,8 @@ Image_). No ROS installation is needed.
       [--restart-after N] [--corrupt encoding|size|zero-stamp:EVERY] [--burst N]
 
 Frames are read as scripts/ros2/dataset_to_bag.py reads them (the same association and stamps).
+A TUM Kinect folder (freiburg1-3) also gets the depth's own CameraInfo, the Kinect's registration
+pinhole, as the bag converter writes it.
 --stamps now stamps each frame with the wall clock when it is sent (latency measurements);
 dataset keeps the recording's stamps (the ground truth can be matched). Faults for tests:
 --skip-depth-every N never sends every N-th depth image, --duplicate-every N sends every N-th
@@ -81,9 +83,13 @@ def main():
     if tum:
         frames, _ = folders.tum_frames(folder, first, end)
         depth_units = 5000.0
+        # A Kinect registers its depth into a pinhole of its own (not the colour lens): announced
+        # on the depth's CameraInfo, as the bag converter writes it.
+        depth_k = folders.ROS_DEFAULT_K if folders.freiburg_sensor(folder) else None
     else:
         frames, _ = folders.seven_scenes_frames(folder, first, end)
         depth_units = 1000.0
+        depth_k = None
     if not frames:
         sys.exit(f"{folder}: no frames in {args.frames}")
     k_file = folder / "camera-intrinsics.txt"
@@ -109,6 +115,7 @@ def main():
     colour_w = writer(colour_name, image_type)
     depth_w = writer(depth_name, image_type)
     info_w = writer(info_name, CameraInfo)
+    depth_info_w = writer(ns + folders.DEPTH_INFO, CameraInfo) if depth_k else None
 
     deadline = time.time() + 60
     while colour_w.get_publication_matched_status().current_count < args.wait_subscribers:
@@ -147,6 +154,12 @@ def main():
             k=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0], r=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
             p=[fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]))
         sent["camera_info"] += 1
+        if depth_info_w:
+            dfx, dfy, dcx, dcy = depth_k
+            depth_info_w.write(CameraInfo(
+                header=header_at(stamp), height=height, width=width, distortion_model="plumb_bob",
+                d=[0.0] * 5, k=[dfx, 0.0, dcx, 0.0, dfy, dcy, 0.0, 0.0, 1.0],
+                r=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0], p=[dfx, 0.0, dcx, 0.0, 0.0, dfy, dcy, 0.0, 0.0, 0.0, 1.0, 0.0]))
         if compressed:
             jpeg = folders.jpeg_bytes(colour_path, colour_bytes, rgb)
             colour_msg = CompressedImage(header=header_at(stamp), format="rgb8; jpeg compressed bgr8", data=jpeg)

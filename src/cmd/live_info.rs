@@ -46,6 +46,7 @@ pub fn live_info(spec: &str, config: &Ros2Config) -> anyhow::Result<LiveInfo> {
         colour_topic: wanted[0].clone(),
         depth_topic: wanted[1].clone(),
         camera_info_topic: wanted[2].clone(),
+        depth_camera_info_topic: None,
         pairing_tolerance_s: config.pairing_tolerance_s,
         reliable: config.reliable,
         queue_pairs: config.queue_pairs,

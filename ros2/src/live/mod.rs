@@ -44,6 +44,9 @@ pub struct LiveOptions {
     pub depth_topic: String,
     /// The colour camera's `sensor_msgs/CameraInfo` topic.
     pub camera_info_topic: String,
+    /// The depth image's own CameraInfo topic, when one is to be read (a camera that registers
+    /// depth into a pinhole of its own, as a Kinect does, says so there).
+    pub depth_camera_info_topic: Option<String>,
     /// Largest stamp difference between a colour image and its depth, seconds.
     pub pairing_tolerance_s: f64,
     /// Subscribe reliably: only reliable publishers match. Best effort (false) matches both
@@ -168,6 +171,7 @@ pub struct LiveCounts {
 struct State {
     pairs: VecDeque<LivePair>,
     camera_info: Option<CameraInfo>,
+    depth_camera_info: Option<CameraInfo>,
     counts: LiveCounts,
     /// The consumer has taken a pair.
     taken_any: bool,
@@ -248,6 +252,12 @@ impl LiveCamera {
     /// The latest CameraInfo, waiting up to `timeout` for the first one.
     pub fn camera_info(&self, timeout: Duration) -> Result<Option<CameraInfo>, LiveError> {
         self.wait_for(timeout, |state| state.camera_info.clone())
+    }
+
+    /// The latest depth CameraInfo (`LiveOptions::depth_camera_info_topic`), waiting up to
+    /// `timeout` for the first one; `None` when none came (or none is subscribed).
+    pub fn depth_camera_info(&self, timeout: Duration) -> Result<Option<CameraInfo>, LiveError> {
+        self.wait_for(timeout, |state| state.depth_camera_info.clone())
     }
 
     /// The oldest waiting pair (with the default queue of one, the newest pair received),
@@ -396,6 +406,7 @@ struct Subscriptions {
     colour: ImageSubscription,
     depth: ImageSubscription,
     camera_info: ros2_client::Subscription<CameraInfo>,
+    depth_camera_info: Option<ros2_client::Subscription<CameraInfo>>,
     _node: ros2_client::Node,
     _context: Context,
 }
@@ -403,6 +414,7 @@ struct Subscriptions {
 const COLOUR: Token = Token(0);
 const DEPTH: Token = Token(1);
 const CAMERA_INFO: Token = Token(2);
+const DEPTH_CAMERA_INFO: Token = Token(3);
 
 impl Subscriptions {
     fn create(options: &LiveOptions) -> Result<Self, LiveError> {
@@ -443,21 +455,23 @@ impl Subscriptions {
         };
         let colour = image(&options.colour_topic)?;
         let depth = image(&options.depth_topic)?;
-        let info_topic = node
-            .create_topic(
-                &topic_name(&options.camera_info_topic)?,
-                MessageTypeName::new("sensor_msgs", "CameraInfo"),
-                &qos,
-            )
-            .map_err(|e| dds(format!("topic {}: {e:?}", options.camera_info_topic)))?;
-        let camera_info = node
-            .create_subscription(&info_topic, Some(qos.clone()))
-            .map_err(|e| {
-                dds(format!(
-                    "subscribing to {}: {e:?}",
-                    options.camera_info_topic
-                ))
-            })?;
+        let mut info = |topic: &str| -> Result<ros2_client::Subscription<CameraInfo>, LiveError> {
+            let dds_topic = node
+                .create_topic(
+                    &topic_name(topic)?,
+                    MessageTypeName::new("sensor_msgs", "CameraInfo"),
+                    &qos,
+                )
+                .map_err(|e| dds(format!("topic {topic}: {e:?}")))?;
+            node.create_subscription(&dds_topic, Some(qos.clone()))
+                .map_err(|e| dds(format!("subscribing to {topic}: {e:?}")))
+        };
+        let camera_info = info(&options.camera_info_topic)?;
+        let depth_camera_info = options
+            .depth_camera_info_topic
+            .as_deref()
+            .map(&mut info)
+            .transpose()?;
         tracing::info!(
             domain_id = options.domain_id,
             colour = %options.colour_topic,
@@ -469,6 +483,7 @@ impl Subscriptions {
             colour,
             depth,
             camera_info,
+            depth_camera_info,
             _node: node,
             _context: context,
         })
@@ -492,6 +507,11 @@ impl Subscriptions {
         registry
             .register(&mut self.camera_info, CAMERA_INFO, Interest::READABLE)
             .map_err(poll_error)?;
+        if let Some(depth_info) = self.depth_camera_info.as_mut() {
+            registry
+                .register(depth_info, DEPTH_CAMERA_INFO, Interest::READABLE)
+                .map_err(poll_error)?;
+        }
         let mut events = Events::with_capacity(16);
         let mut pairing: Pairing<ImageMessage, ImageMessage> =
             Pairing::new(options.pairing_tolerance_s);
@@ -511,6 +531,10 @@ impl Subscriptions {
             self.colour.take_all(|m| colour.push(m), &mut read_errors);
             self.depth.take_all(|m| depth.push(m), &mut read_errors);
             take_all(&self.camera_info, |m| info = Some(m), &mut read_errors);
+            let mut depth_info = None;
+            if let Some(subscription) = &self.depth_camera_info {
+                take_all(subscription, |m| depth_info = Some(m), &mut read_errors);
+            }
             counts.colour_received = colour.len() as u64;
             counts.depth_received = depth.len() as u64;
             counts.read_errors = read_errors;
@@ -526,7 +550,10 @@ impl Subscriptions {
                 formed.extend(pairing.push_depth(stamp, message));
             }
             let mut state = shared.state.lock().expect("live state");
-            let any = !formed.is_empty() || info.is_some();
+            let any = !formed.is_empty() || info.is_some() || depth_info.is_some();
+            if let Some(depth_info) = depth_info {
+                state.depth_camera_info = Some(depth_info);
+            }
             if let Some(info) = info {
                 state.counts.camera_info_received += 1;
                 state.camera_info = Some(info);
