@@ -116,6 +116,27 @@ fn publish_and_track(
     }
 }
 
+/// The standalone agent on `frames` of the `dataset` folder, paced (every frame tracked), with
+/// `config` (default: none), into `out`: what a live run of the same frames is compared with.
+fn paced_folder_run(dataset: &Path, frames: &str, config: Option<&Path>, out: &Path) {
+    let mut command = Command::new(workspace_binary("mac-agent"));
+    command
+        .args(["--standalone", "--renders", "0", "--eval-every", "1000"])
+        .args(["--pace", "paced", "--frames", frames]);
+    if let Some(config) = config {
+        command.arg("--config").arg(config);
+    }
+    let run = command
+        .arg("--dataset")
+        .arg(dataset)
+        .arg("--out")
+        .arg(out)
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap();
+    assert!(run.status.success(), "{}", log(&run));
+}
+
 fn log(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
@@ -255,17 +276,7 @@ fn real_data_live_camera_over_dds_with_faults() {
     // The same frames replayed from the folder, paced (every frame tracked): the live run, which
     // lost a few pairs on the way and took the newest of the rest, lands within 5 mm of it.
     let folder_out = work.path().join("folder");
-    let folder = Command::new(workspace_binary("mac-agent"))
-        .args(["--standalone", "--renders", "0", "--eval-every", "1000"])
-        .args(["--pace", "paced", "--frames", "0..90"])
-        .arg("--dataset")
-        .arg(&dataset)
-        .arg("--out")
-        .arg(&folder_out)
-        .env("NO_COLOR", "1")
-        .output()
-        .unwrap();
-    assert!(folder.status.success(), "{}", log(&folder));
+    paced_folder_run(&dataset, "0..90", None, &folder_out);
     let folder_metrics: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(folder_out.join("metrics.json")).unwrap())
             .unwrap();
@@ -368,19 +379,8 @@ fn real_data_live_tum_at_its_own_stamps() {
     assert!(metrics["live"]["stamp_to_pose_ms_median"].is_null());
 
     let folder_out = work.path().join("folder");
-    let folder = Command::new(workspace_binary("mac-agent"))
-        .args(["--standalone", "--renders", "0", "--eval-every", "1000"])
-        .args(["--pace", "paced", "--frames", "0..100"])
-        .arg("--config")
-        .arg(Path::new(REPO).join("configs/tum.toml"))
-        .arg("--dataset")
-        .arg(&tum)
-        .arg("--out")
-        .arg(&folder_out)
-        .env("NO_COLOR", "1")
-        .output()
-        .unwrap();
-    assert!(folder.status.success(), "{}", log(&folder));
+    let tum_config = Path::new(REPO).join("configs/tum.toml");
+    paced_folder_run(&tum, "0..100", Some(&tum_config), &folder_out);
     let ground_truth = tum.join("groundtruth.txt");
     let live_ate = ate_m(&ground_truth, &out.join("trajectory.tum"));
     let folder_ate = ate_m(&ground_truth, &folder_out.join("trajectory.tum"));
