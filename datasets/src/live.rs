@@ -94,9 +94,6 @@ pub struct LiveTopics {
     /// The pinhole camera frames are handed over in (the recorded one, undistorted).
     intrinsics: Intrinsics,
     undistortion: Option<Undistortion>,
-    /// Depth comes pixel for pixel on the colour lens's grid (resampled with colour); false:
-    /// it is already the pinhole image `intrinsics` describes.
-    depth_on_colour_grid: bool,
     evaluation_frames: usize,
     recording: Mutex<Recording>,
 }
@@ -213,7 +210,6 @@ impl LiveTopics {
             recorded,
             intrinsics: output,
             undistortion,
-            depth_on_colour_grid: depth_pinhole.is_none(),
             evaluation_frames: config.evaluation_frames.max(1),
             recording: Mutex::new(Recording {
                 stamps: Vec::new(),
@@ -307,7 +303,9 @@ impl LiveTopics {
             ));
         }
         let (rgb, depth) = match &self.undistortion {
-            Some(u) if self.depth_on_colour_grid => (u.rgb(&rgb)?, u.depth(&depth)?),
+            // Depth on the colour lens's grid is resampled with colour; depth that is its own
+            // pinhole image (`intrinsics` differ from the recorded lens's) already is the output.
+            Some(u) if self.intrinsics == self.recorded => (u.rgb(&rgb)?, u.depth(&depth)?),
             Some(u) => (u.rgb(&rgb)?, depth),
             None => (rgb, depth),
         };
