@@ -36,6 +36,10 @@ const REFINEMENT_MAX_SECONDS: f64 = 90.0;
 /// What a merged synthetic swarm must reach: the scene is exact, so errors are the method's.
 const MAX_JOINT_ATE_M: f64 = 0.02;
 const MIN_MERGED_PSNR_DB: f64 = 25.0;
+/// At most this much lower PSNR for an agent's own map at the world poses than at its own (the
+/// joint ATE bound's worth of misplacement on this scene; a map left in the agent's own frame,
+/// not moved by its `world_from_agent`, would not line up with the frames at all).
+const MAX_PLACEMENT_LOSS_DB: f64 = 3.0;
 /// Render the merged map at every n-th frame of each agent for the PSNR.
 const RENDER_EVERY: usize = 10;
 /// Agent 1 is killed this long after it started (it has published keyframes by then).
@@ -211,6 +215,48 @@ fn real_data_swarm_of_two_agent_processes_agrees_on_one_sharp_world() {
         psnr >= MIN_MERGED_PSNR_DB,
         "merged-map PSNR {psnr} dB < {MIN_MERGED_PSNR_DB}"
     );
+    check_merge_bench(&swarm.bench_merge(RENDER_EVERY));
+}
+
+/// `bench merge` scores every agent's frames with both maps, frame by frame, and its own map at
+/// the world poses lands where its own poses put it: agent 1's map is moved into the world by
+/// its `world_from_agent` (its own frame is far from agent 0's), so the placement costs little
+/// on this exact scene.
+fn check_merge_bench(bench: &serde_json::Value) {
+    let agents = bench["agents"].as_array().expect("agents");
+    assert_eq!(agents.len(), 2, "{bench:#}");
+    for agent in agents {
+        let id = &agent["agent_id"];
+        for protocol in ["held_out", "all_frames"] {
+            let comparison = &agent[protocol];
+            let frames = comparison["per_frame"].as_array().expect("per_frame");
+            assert!(
+                !frames.is_empty(),
+                "agent {id}, {protocol}: no frame scored"
+            );
+            for frame in frames {
+                for map in ["own", "merged", "own_at_world"] {
+                    let psnr = frame[map]["psnr"].as_f64();
+                    assert!(
+                        psnr.is_some_and(f64::is_finite),
+                        "agent {id}, {protocol}, {map}: {frame:#}"
+                    );
+                }
+            }
+            let own = comparison["own"]["psnr"].as_f64().unwrap();
+            let own_at_world = comparison["own_at_world"]["psnr"].as_f64().unwrap();
+            let merged = comparison["merged"]["psnr"].as_f64().unwrap();
+            eprintln!(
+                "agent {id}, {protocol}: own {own:.2} dB, merged {merged:.2}, own at the world \
+                 poses {own_at_world:.2}"
+            );
+            assert!(
+                own_at_world >= own - MAX_PLACEMENT_LOSS_DB,
+                "agent {id}, {protocol}: own map {own:.2} dB at its own poses, \
+                 {own_at_world:.2} dB at the world's"
+            );
+        }
+    }
 }
 
 #[test]

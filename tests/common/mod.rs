@@ -326,6 +326,29 @@ impl SwarmRun {
         })
     }
 
+    /// `mac-ego3d bench merge --json` on the finished run: each agent's own map against the
+    /// merged map on its frames.
+    pub fn bench_merge(&self, every: usize) -> serde_json::Value {
+        let output = self
+            .command(env!("CARGO_BIN_EXE_mac-ego3d"))
+            .args(["bench", "merge", "--json", "--every", &every.to_string()])
+            .arg("--dir")
+            .arg(self.path())
+            .output()
+            .expect("running mac-ego3d bench merge");
+        assert!(
+            output.status.success(),
+            "bench merge failed: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        serde_json::from_slice(&output.stdout).unwrap_or_else(|e| {
+            panic!(
+                "bench merge printed no JSON ({e}): {}",
+                String::from_utf8_lossy(&output.stdout)
+            )
+        })
+    }
+
     pub fn consensus_report(&self) -> serde_json::Value {
         let text = std::fs::read_to_string(self.path().join("consensus.json")).unwrap();
         serde_json::from_str(&text).unwrap()

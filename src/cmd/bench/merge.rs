@@ -4,6 +4,13 @@
 //! consensus's agent_K.tum), under both protocols of `crate::cmd::eval::held_out` (held-out
 //! frames, which no map was optimised on, and every n-th frame). With the Gaussian counts and the
 //! joint refinement's time; a table, or JSON with `--json`; DIR/merge_bench.json either way.
+//!
+//! Beside them, the own map rendered at the world poses (`own_at_world`): what the placement
+//! alone costs. The merged map is scored at the consensus's world trajectory, the own map at the
+//! agent's map-frame one; where the two trajectories disagree (the world trajectory blends the
+//! pose graph's corrections between published keyframes, the agent's follows every keyframe's
+//! refined pose), even the own map scores lower at the world poses, whatever the merge did. Each
+//! frame's figures are in the JSON (`per_frame`).
 
 use std::path::{Path, PathBuf};
 
@@ -40,14 +47,44 @@ pub struct Comparison {
     pub frames: usize,
     pub own: QualitySummary,
     pub merged: QualitySummary,
+    /// The own map at the merged map's (world) poses: the placement's share of the difference.
+    pub own_at_world: QualitySummary,
+    /// Each frame's figures under both maps, in frame order: where the merge gains and where it
+    /// loses.
+    pub per_frame: Vec<FramePair>,
+}
+
+/// One frame scored with both maps.
+#[derive(Debug, Clone, Serialize)]
+pub struct FramePair {
+    pub frame: usize,
+    pub own: FrameQuality,
+    pub merged: FrameQuality,
+    pub own_at_world: FrameQuality,
 }
 
 impl Comparison {
-    fn of(own: &[FrameQuality], merged: &[FrameQuality]) -> Self {
+    fn of(own: &[FrameQuality], merged: &[FrameQuality], own_at_world: &[FrameQuality]) -> Self {
+        // The lists score the same positions; a frame one trajectory could not pose is left out
+        // of the pairs (`score` skips it for that trajectory only).
+        let at = |list: &[FrameQuality], frame| list.iter().find(|q| q.frame == frame).cloned();
+        let per_frame = own
+            .iter()
+            .filter_map(|own| {
+                Some(FramePair {
+                    frame: own.frame,
+                    own: own.clone(),
+                    merged: at(merged, own.frame)?,
+                    own_at_world: at(own_at_world, own.frame)?,
+                })
+            })
+            .collect();
         Self {
             frames: own.len().min(merged.len()),
             own: summary(own).unwrap_or_default(),
             merged: summary(merged).unwrap_or_default(),
+            own_at_world: summary(own_at_world).unwrap_or_default(),
+            per_frame,
         }
     }
 }
@@ -83,6 +120,29 @@ fn read_json(path: &Path) -> anyhow::Result<Value> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
+/// `own_map` moved into the world by the agent's `world_from_agent` (consensus.json).
+fn in_world(
+    own_map: &splats::GaussianCloud,
+    consensus: &Value,
+    agent_id: u32,
+) -> anyhow::Result<splats::GaussianCloud> {
+    let tum: Vec<f64> = serde_json::from_value(
+        consensus["agents"][agent_id.to_string()]["world_from_agent"].clone(),
+    )
+    .with_context(|| format!("consensus.json: agent {agent_id}'s world_from_agent"))?;
+    let tum: [f64; 7] = tum.try_into().map_err(|tum: Vec<f64>| {
+        anyhow::anyhow!(
+            "consensus.json: agent {agent_id}'s world_from_agent has {} numbers, not 7",
+            tum.len()
+        )
+    })?;
+    let world_from_agent = geometry::se3::isometry_from_tum(&tum)
+        .map_err(|e| anyhow::anyhow!("consensus.json: agent {agent_id}'s world_from_agent: {e}"))?;
+    let mut moved = own_map.clone();
+    moved.transform_rigid(&splats::RigidTransform::from(&world_from_agent));
+    Ok(moved)
 }
 
 fn load_map(path: &Path) -> anyhow::Result<splats::GaussianCloud> {
@@ -128,6 +188,8 @@ pub fn measure(
         let own_map = load_map(&dir.join(format!("agent_{id}/map.ply")))?;
         own_gaussians_sum += own_map.len();
         let own = MapRenderer::new(&own_map).context("uploading an agent's map")?;
+        let own_in_world = MapRenderer::new(&in_world(&own_map, &consensus, id)?)
+            .context("uploading an agent's map in the world")?;
         let own_poses = agent.own_map_poses.as_ref().expect("checked above");
         let compare = |protocol| -> anyhow::Result<(Comparison, Vec<FrameQuality>)> {
             let positions = agent.positions(&agents, every, protocol)?;
@@ -148,7 +210,15 @@ pub fn measure(
                 lpips.as_ref(),
                 &|_, _| None,
             )?;
-            Ok((Comparison::of(&own_q, &merged_q), merged_q))
+            let own_at_world_q = score(
+                &own_in_world,
+                agent,
+                &agent.world,
+                &positions,
+                lpips.as_ref(),
+                &|_, _| None,
+            )?;
+            Ok((Comparison::of(&own_q, &merged_q, &own_at_world_q), merged_q))
         };
         let (held_out, merged_q) = compare(Protocol::HeldOut)?;
         merged_held_out.extend(merged_q);
@@ -199,13 +269,13 @@ fn print_table(bench: &MergeBench) {
         bench.every
     );
     println!(
-        "  {:<7} {:<11} {:>6} {:>15} {:>15} {:>7} {:>15} {:>15}",
+        "  {:<7} {:<11} {:>6} {:>15} {:>15} {:>13} {:>15} {:>15}",
         "agent",
         "frames",
         "count",
         "PSNR own/merged",
         "delta dB",
-        "",
+        "own at world",
         "SSIM own/merged",
         "LPIPS own/merged"
     );
@@ -216,13 +286,13 @@ fn print_table(bench: &MergeBench) {
                 _ => "-".into(),
             };
             println!(
-                "  {:<7} {:<11} {:>6} {:>15} {:>15} {:>7} {:>15} {:>15}",
+                "  {:<7} {:<11} {:>6} {:>15} {:>15} {:>13} {:>15} {:>15}",
                 row.agent_id,
                 name,
                 c.frames,
                 format!("{} / {}", num(c.own.psnr, 2), num(c.merged.psnr, 2)),
                 delta,
-                "",
+                num(c.own_at_world.psnr, 2),
                 format!("{} / {}", num(c.own.ssim, 3), num(c.merged.ssim, 3)),
                 format!("{} / {}", num(c.own.lpips, 3), num(c.merged.lpips, 3)),
             );
