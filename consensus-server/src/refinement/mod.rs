@@ -296,7 +296,17 @@ fn optimise(
     let mut rng = ChaCha8Rng::seed_from_u64(config.random_seed);
     let mut order: Vec<usize> = Vec::new();
     let pose_warmup = (config.pose_warmup_fraction * iterations as f64).ceil() as usize;
+    // A paced refinement runs for tens of minutes on a CPU: say how far it is, ten times.
+    let progress_every = iterations.div_ceil(10).max(1);
     while report.iterations < iterations {
+        if report.iterations > 0 && report.iterations % progress_every == 0 {
+            tracing::info!(
+                done = report.iterations,
+                of = iterations,
+                seconds = format!("{:.0}", started.elapsed().as_secs_f64()),
+                "joint refinement under way"
+            );
+        }
         if started.elapsed().as_secs_f64() > config.max_seconds {
             report.stopped_by_time = true;
             tracing::warn!(
