@@ -124,5 +124,13 @@ fn the_paced_7scenes_config_differs_from_7scenes_only_in_its_paced_keys() {
     paced.consensus.t_comm = real_time.consensus.t_comm;
     paced.consensus.refinement.iterations_per_view =
         real_time.consensus.refinement.iterations_per_view;
+    assert!(
+        paced.consensus.refinement.lr_pose_translation_m
+            > real_time.consensus.refinement.lr_pose_translation_m
+    );
+    paced.consensus.refinement.lr_pose_translation_m =
+        real_time.consensus.refinement.lr_pose_translation_m;
+    paced.consensus.refinement.lr_pose_rotation_rad =
+        real_time.consensus.refinement.lr_pose_rotation_rad;
     assert_eq!(paced, real_time);
 }
