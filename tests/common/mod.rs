@@ -305,45 +305,42 @@ impl SwarmRun {
     /// `mac-ego3d eval swarm --json` over the run's outputs, rendering every `render_every`-th
     /// frame (0: no renders, trajectories only).
     pub fn evaluate(&self, render_every: usize) -> serde_json::Value {
-        let output = self
-            .command(env!("CARGO_BIN_EXE_mac-ego3d"))
-            .args(["eval", "swarm", "--json", "--renders", "0"])
-            .args(["--render-every", &render_every.to_string()])
-            .arg("--dir")
-            .arg(self.path())
-            .output()
-            .expect("running mac-ego3d eval swarm");
-        assert!(
-            output.status.success(),
-            "eval swarm failed: {}",
-            String::from_utf8_lossy(&output.stderr)
-        );
-        serde_json::from_slice(&output.stdout).unwrap_or_else(|e| {
-            panic!(
-                "eval swarm printed no JSON ({e}): {}",
-                String::from_utf8_lossy(&output.stdout)
-            )
-        })
+        let every = render_every.to_string();
+        self.mac_ego3d_json(&[
+            "eval",
+            "swarm",
+            "--json",
+            "--renders",
+            "0",
+            "--render-every",
+            &every,
+        ])
     }
 
     /// `mac-ego3d bench merge --json` on the finished run: each agent's own map against the
     /// merged map on its frames.
     pub fn bench_merge(&self, every: usize) -> serde_json::Value {
+        self.mac_ego3d_json(&["bench", "merge", "--json", "--every", &every.to_string()])
+    }
+
+    /// `mac-ego3d ARGS --dir RUN`, which must succeed and print JSON.
+    fn mac_ego3d_json(&self, args: &[&str]) -> serde_json::Value {
+        let what = args[..2].join(" ");
         let output = self
             .command(env!("CARGO_BIN_EXE_mac-ego3d"))
-            .args(["bench", "merge", "--json", "--every", &every.to_string()])
+            .args(args)
             .arg("--dir")
             .arg(self.path())
             .output()
-            .expect("running mac-ego3d bench merge");
+            .unwrap_or_else(|e| panic!("running mac-ego3d {what}: {e}"));
         assert!(
             output.status.success(),
-            "bench merge failed: {}",
+            "{what} failed: {}",
             String::from_utf8_lossy(&output.stderr)
         );
         serde_json::from_slice(&output.stdout).unwrap_or_else(|e| {
             panic!(
-                "bench merge printed no JSON ({e}): {}",
+                "{what} printed no JSON ({e}): {}",
                 String::from_utf8_lossy(&output.stdout)
             )
         })

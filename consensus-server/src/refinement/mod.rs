@@ -299,7 +299,7 @@ fn optimise(
     // A paced refinement runs for tens of minutes on a CPU: say how far it is, ten times.
     let progress_every = iterations.div_ceil(10).max(1);
     while report.iterations < iterations {
-        if report.iterations > 0 && report.iterations % progress_every == 0 {
+        if report.iterations > 0 && report.iterations.is_multiple_of(progress_every) {
             tracing::info!(
                 done = report.iterations,
                 of = iterations,

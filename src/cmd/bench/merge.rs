@@ -194,30 +194,12 @@ pub fn measure(
         let compare = |protocol| -> anyhow::Result<(Comparison, Vec<FrameQuality>)> {
             let positions = agent.positions(&agents, every, protocol)?;
             let _span = tracing::info_span!("scoring", agent = id, ?protocol).entered();
-            let own_q = score(
-                &own,
-                agent,
-                own_poses,
-                &positions,
-                lpips.as_ref(),
-                &|_, _| None,
-            )?;
-            let merged_q = score(
-                &merged,
-                agent,
-                &agent.world,
-                &positions,
-                lpips.as_ref(),
-                &|_, _| None,
-            )?;
-            let own_at_world_q = score(
-                &own_in_world,
-                agent,
-                &agent.world,
-                &positions,
-                lpips.as_ref(),
-                &|_, _| None,
-            )?;
+            let at = |map: &MapRenderer, poses| {
+                score(map, agent, poses, &positions, lpips.as_ref(), &|_, _| None)
+            };
+            let own_q = at(&own, own_poses)?;
+            let merged_q = at(&merged, &agent.world)?;
+            let own_at_world_q = at(&own_in_world, &agent.world)?;
             Ok((Comparison::of(&own_q, &merged_q, &own_at_world_q), merged_q))
         };
         let (held_out, merged_q) = compare(Protocol::HeldOut)?;
