@@ -7,10 +7,10 @@
 //!
 //! Beside them, the own map rendered at the world poses (`own_at_world`): what the placement
 //! alone costs. The merged map is scored at the consensus's world trajectory, the own map at the
-//! agent's map-frame one; where the two trajectories disagree (the world trajectory blends the
-//! pose graph's corrections between published keyframes, the agent's follows every keyframe's
-//! refined pose), even the own map scores lower at the world poses, whatever the merge did. Each
-//! frame's figures are in the JSON (`per_frame`).
+//! agent's map-frame one; where the two trajectories disagree (the pose graph places keyframes
+//! by odometry and closures, the agent fitted its map to its own photometrically refined keyframe
+//! poses), even the own map scores lower at the world poses, whatever the merge did. Each frame's
+//! figures under the three are in the JSON (`per_frame`).
 
 use std::path::{Path, PathBuf};
 
@@ -49,12 +49,12 @@ pub struct Comparison {
     pub merged: QualitySummary,
     /// The own map at the merged map's (world) poses: the placement's share of the difference.
     pub own_at_world: QualitySummary,
-    /// Each frame's figures under both maps, in frame order: where the merge gains and where it
+    /// Each frame's figures under the three, in frame order: where the merge gains and where it
     /// loses.
     pub per_frame: Vec<FramePair>,
 }
 
-/// One frame scored with both maps.
+/// One frame scored with the own map (at its own and at the world pose) and the merged map.
 #[derive(Debug, Clone, Serialize)]
 pub struct FramePair {
     pub frame: usize,
