@@ -19,6 +19,11 @@ if [[ "${XDG_RUNTIME_DIR:-}" != /* ]]; then
   trap 'rm -rf "$XDG_RUNTIME_DIR"' EXIT
 fi
 
+# The suite is one fresh build, not an edit loop: incremental compilation would only add its
+# caches (gigabytes for the optimised workspace crates) to a disk that also holds ~60 test
+# binaries. Set CARGO_INCREMENTAL=1 to keep them.
+export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"
+
 # Formatting first: it fails in seconds, the tests take minutes.
 echo "[test] cargo fmt --check"
 cargo fmt --all --check
