@@ -544,6 +544,7 @@ mod tests {
                     depth: &frame.depth,
                     rgb: Some(&frame.rgb),
                     intrinsics: &frame.intrinsics,
+                    real_time: false,
                 };
                 let expected = reference.track(input).world_from_camera;
                 let first_point = odometry.next_point_id();

@@ -49,6 +49,13 @@ pub struct TrackedPose {
     pub tracked: bool,
     /// The frame's tracking confidence (see `registration::TrackedFrame::confidence`).
     pub confidence: f64,
+    /// Wall time of the frame in the loop (tracking, keyframe hand-over, outputs), ms.
+    pub loop_ms: f64,
+    /// Of the tracking, the wide-baseline guesses' wall time (0 when the ordinary path
+    /// passed), ms.
+    pub recovery_ms: f64,
+    /// Of the tracking, the map update and relocalisation attempts, ms.
+    pub map_update_ms: f64,
 }
 
 /// Keyframes made so far, by the rule that made them.
@@ -211,8 +218,9 @@ impl<'a> AgentPipeline<'a> {
 
     /// Frame-to-model G-ICP against the trackable Gaussians (docs/method.md, Tracking). When
     /// the tracker joins a segment to the map at this frame, the segment's poses and waiting
-    /// keyframes move into the agent's frame first.
-    pub fn track(&mut self, item: &SourceFrame) -> Tracked {
+    /// keyframes move into the agent's frame first. `real_time`: the frames come from a live
+    /// camera or a sensor-paced replay (see `registration::FrameInput::real_time`).
+    pub fn track(&mut self, item: &SourceFrame, real_time: bool) -> Tracked {
         let frame = &item.frame;
         let tracker_first_point = self.odometry.next_point_id();
         let local = self.odometry.track(FrameInput {
@@ -220,6 +228,7 @@ impl<'a> AgentPipeline<'a> {
             depth: &frame.depth,
             rgb: Some(&frame.rgb),
             intrinsics: &frame.intrinsics,
+            real_time,
         });
         if self.odometry.next_point_id() > tracker_first_point {
             self.corrections
@@ -461,7 +470,8 @@ impl<'a> AgentPipeline<'a> {
 
     /// Keeps the frame's pose and its time in the loop (started at `clock`).
     pub fn record(&mut self, item: &SourceFrame, tracked: &Tracked, clock: Instant) {
-        self.tracking_ms.push(clock.elapsed().as_secs_f64() * 1e3);
+        let loop_ms = clock.elapsed().as_secs_f64() * 1e3;
+        self.tracking_ms.push(loop_ms);
         let placed = tracked.local.placement == Placement::Root
             && (tracked.local.outcome.is_tracked()
                 || tracked.local.outcome == TrackingOutcome::Initialised);
@@ -486,6 +496,9 @@ impl<'a> AgentPipeline<'a> {
             tracked: tracked.local.outcome.is_tracked()
                 || tracked.local.outcome == TrackingOutcome::Initialised,
             confidence: tracked.local.confidence(),
+            loop_ms,
+            recovery_ms: tracked.local.timings.recovery_ms,
+            map_update_ms: tracked.local.timings.map_update_ms,
         });
         self.live_view.frame(
             self.agent_id,
@@ -537,6 +550,10 @@ impl<'a> AgentPipeline<'a> {
     /// Ends the frame loop: keyframes still held for an unjoined segment are given up, and the
     /// mapper, the swarm link (when there is one) and what the outputs need are handed back.
     pub fn finish(mut self) -> (Mapper, Option<SwarmLink>, FinishedPipeline) {
+        // A real-time run may end while its segment's place is still being searched for.
+        if let Some(join) = self.odometry.finish_search() {
+            self.join_segment(&join);
+        }
         self.pending.give_up();
         let finished = FinishedPipeline {
             odometry: self.odometry,

@@ -234,6 +234,7 @@ pub(crate) fn tracking_report(run: &FinishedPipeline) -> TrackingReport {
             .filter(|p| p.placement != Placement::Root)
             .count(),
         keyframes_dropped_unjoined: run.keyframes_dropped_unjoined,
+        searches_rationed: stats.searches_rationed,
         confidence_median: median(&confidences),
         confidence_min: confidences.iter().copied().reduce(f64::min),
     }

@@ -153,6 +153,8 @@ pub fn run_agent(
     // A live camera sets its own pace (and drops what the agent cannot take).
     let mut sensor =
         (config.mapping.pace == Pace::Sensor && live_camera.is_none()).then(SensorClock::new);
+    // Frames that do not wait for the tracker: its expensive recovery work is rationed.
+    let real_time = sensor.is_some() || live_camera.is_some();
     {
         let _span = tracing::info_span!("tracking").entered();
         for item in source.by_ref() {
@@ -166,7 +168,7 @@ pub fn run_agent(
             let clock = Instant::now();
             let frame = &item.frame;
             agent.announce(frame);
-            let tracked = agent.track(&item);
+            let tracked = agent.track(&item, real_time);
             let tracked_at = clock.elapsed();
             if let Some(decision) = agent.decide_keyframe(frame, &tracked) {
                 agent.keyframe(frame, &tracked, decision);
@@ -361,8 +363,8 @@ fn finish_live_view(options: &AgentOptions, map: &GaussianCloud) -> Option<LiveV
 
 /// trajectory.tum (the estimate, in the tracked frame; lost frames, whose pose is only the
 /// prediction, left out; frames of tracking segments never joined to the map go to
-/// trajectory_segment_K.tum, each in its own frame), tracking.csv (every frame's outcome and
-/// confidence) and, when the dataset has ground truth, groundtruth.tum next to it (evo and the
+/// trajectory_segment_K.tum, each in its own frame), tracking.csv (every frame's outcome,
+/// confidence and wall times: the loop, the recovery guesses, the map update) and, when the dataset has ground truth, groundtruth.tum next to it (evo and the
 /// swarm report read these).
 fn write_trajectories(poses: &[TrackedPose], out: &Path) -> anyhow::Result<Trajectory> {
     let trajectory = Trajectory::from_pairs(
@@ -398,7 +400,10 @@ fn write_trajectories(poses: &[TrackedPose], out: &Path) -> anyhow::Result<Traje
     let csv_path = out.join("tracking.csv");
     geometry::files::write_whole(&csv_path, |file| -> std::io::Result<()> {
         let mut file = std::io::BufWriter::new(file);
-        writeln!(file, "timestamp,frame_position,segment,tracked,confidence")?;
+        writeln!(
+            file,
+            "timestamp,frame_position,segment,tracked,confidence,loop_ms,recovery_ms,map_update_ms"
+        )?;
         for p in poses {
             let segment = match p.placement {
                 Placement::Root => "root".to_string(),
@@ -406,8 +411,14 @@ fn write_trajectories(poses: &[TrackedPose], out: &Path) -> anyhow::Result<Traje
             };
             writeln!(
                 file,
-                "{:.6},{},{segment},{},{:.4}",
-                p.timestamp, p.position, p.tracked, p.confidence
+                "{:.6},{},{segment},{},{:.4},{:.1},{:.1},{:.1}",
+                p.timestamp,
+                p.position,
+                p.tracked,
+                p.confidence,
+                p.loop_ms,
+                p.recovery_ms,
+                p.map_update_ms
             )?;
         }
         file.flush()

@@ -115,6 +115,9 @@ pub struct TrackingReport {
     pub frames_unjoined: usize,
     /// Keyframes of unjoined segments, dropped from the map.
     pub keyframes_dropped_unjoined: usize,
+    /// At sensor pace: image-feature or geometry guesses and relocalisation attempts not
+    /// started because their share of the time was spent (`tracking.recovery_time_share`).
+    pub searches_rationed: usize,
     /// Median per-frame confidence (the check's depth agreement, in [0, 1]) over placed frames;
     /// `None` when no frame was placed.
     pub confidence_median: Option<f64>,
@@ -146,6 +149,7 @@ mod tests {
             depth: &frame.depth,
             rgb: Some(&frame.rgb),
             intrinsics: &frame.intrinsics,
+            real_time: false,
         });
         let tracked = Tracked {
             local: registration::TrackedFrame {

@@ -73,6 +73,15 @@ pub struct TrackingConfig {
     /// Try the FPFH registration of the frame to the map when the cheaper guesses fail (for
     /// scenes without texture; costs up to a second).
     pub recovery_geometry: bool,
+    /// At sensor pace (a live camera, or `mapping.pace = "sensor"`), the most of the wall time
+    /// the expensive recovery guesses (image features, geometry) may take over a long stretch;
+    /// 1 = no limit. Frames keep arriving during a search and each one missed widens the next
+    /// step, so failing guesses must not take the time the tracker needs to catch up with the
+    /// camera (odometry/rationing.rs). Paced and offline runs are never limited.
+    pub recovery_time_share: f64,
+    /// ...except that after a quiet stretch a search may take up to this long at once (ms):
+    /// the first stall gets every guess.
+    pub recovery_burst_ms: f64,
 
     // --- Segments and relocalisation (registration/src/odometry/segments.rs) ---
     /// Lost frames in a row after which a new segment starts. Three frames (0.1 s at 30 Hz)
@@ -84,7 +93,9 @@ pub struct TrackingConfig {
     /// segment.
     pub relocalisation_candidates: usize,
     /// Every this many keyframes of an unjoined segment whose keyframe alignments failed, its
-    /// map is registered to the root's (0: never).
+    /// map is registered to the root's (0: never). With real-time frames, whose searches run on
+    /// a thread of their own and skip the keyframes that come while one runs: every this many
+    /// searches.
     pub relocalisation_map_every: usize,
 
     /// The photometric term of the ordinary path ([`crate::photometric`]).
@@ -207,6 +218,8 @@ impl Default for TrackingConfig {
             recovery_distances_m: vec![0.2, 0.1, 0.05],
             recovery_max_iterations: 20,
             recovery_geometry: true,
+            recovery_time_share: 0.25,
+            recovery_burst_ms: 1000.0,
             max_consecutive_failures: 3,
             relocalisation_keyframes: 64,
             relocalisation_candidates: 3,
@@ -343,6 +356,13 @@ impl TrackingConfig {
             "tracking.recovery_max_iterations",
             self.recovery_max_iterations,
         )?;
+        if !(self.recovery_time_share > 0.0 && self.recovery_time_share <= 1.0) {
+            return Err((
+                "tracking.recovery_time_share",
+                format!("must be in (0, 1], got {}", self.recovery_time_share),
+            ));
+        }
+        non_negative("tracking.recovery_burst_ms", self.recovery_burst_ms)?;
         at_least_one(
             "tracking.max_consecutive_failures",
             self.max_consecutive_failures,

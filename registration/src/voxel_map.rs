@@ -55,6 +55,7 @@ struct VoxelKey {
     z: i32,
 }
 
+#[derive(Clone)]
 struct Voxel {
     key: VoxelKey,
     /// Each point's position with its slot, laid out for the query scan (see [`VoxelPoints`]).
@@ -120,6 +121,7 @@ impl ViewFrustum {
 }
 
 /// Incremental voxel hash map of points with covariances. See the module documentation.
+#[derive(Clone)]
 pub struct VoxelMap {
     voxel_size: f32,
     voxel_index_of: FxHashMap<VoxelKey, u32>,

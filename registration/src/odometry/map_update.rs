@@ -30,12 +30,12 @@ impl Odometry {
         if tracked {
             self.previous_overlap = chosen.as_ref().map(|c| c.result.overlap_fraction);
             if let Some(rgb) = input.rgb {
-                self.trusted = Some(TrustedFrame {
-                    rgb: rgb.clone(),
-                    depth: input.depth.clone(),
-                    intrinsics: *input.intrinsics,
-                    world_from_camera: *world_from_camera,
-                });
+                self.trusted = Some(TrustedFrame::new(
+                    rgb.clone(),
+                    input.depth.clone(),
+                    *input.intrinsics,
+                    *world_from_camera,
+                ));
             }
         }
         let trackable = match self.mode {
@@ -70,10 +70,12 @@ impl Odometry {
         let Some(rgb) = input.rgb else {
             return;
         };
+        let mut root_archive;
         let archive = if self.detached.is_some() {
             &mut self.segment_archive
         } else {
-            &mut self.archive
+            root_archive = super::relocalisation::lock(&self.archive);
+            &mut *root_archive
         };
         archive.offer(|| {
             ArchivedKeyframe::new(
@@ -101,11 +103,13 @@ impl Odometry {
         self.prior_doubtful = false;
         self.previous_overlap = None;
         self.world_from_previous = Some(world_from_camera);
-        self.trusted = input.rgb.map(|rgb| TrustedFrame {
-            rgb: rgb.clone(),
-            depth: input.depth.clone(),
-            intrinsics: *input.intrinsics,
-            world_from_camera,
+        self.trusted = input.rgb.map(|rgb| {
+            TrustedFrame::new(
+                rgb.clone(),
+                input.depth.clone(),
+                *input.intrinsics,
+                world_from_camera,
+            )
         });
         let trackable = match self.mode {
             OdometryMode::FrameToFrame => {

@@ -30,12 +30,14 @@
 pub mod check;
 mod map_update;
 mod prediction;
+pub mod rationing;
 pub mod recovery;
 mod relocalisation;
 pub mod segments;
 pub mod spacing;
 mod types;
 
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use geometry::camera::Intrinsics;
@@ -52,8 +54,10 @@ use crate::points::{PointCloud, points_from_depth};
 use crate::voxel_map::{MapPointId, ViewFrustum, VoxelMap};
 pub use check::{Divergence, FrameCheck};
 use prediction::{ConstantVelocity, InitialGuess, register_from_prediction};
+use rationing::RecoveryRation;
 pub use recovery::Guess;
 use recovery::{Candidate, FeatureGuess, Recovery, TrustedFrame};
+use relocalisation::{PendingSearch, SharedArchive};
 use segments::KeyframeArchive;
 pub use segments::{JoinEvidence, SegmentId, SegmentJoin};
 pub use types::{
@@ -72,7 +76,8 @@ const RELOCALISATION_MAP_POINTS: usize = 20_000;
 /// The segment being tracked while it is not joined to the root, and the root kept aside.
 struct Detached {
     segment: SegmentId,
-    root_map: VoxelMap,
+    /// Shared with a search thread while one runs (a correction then moves a copy).
+    root_map: Arc<VoxelMap>,
     /// Keyframes the segment made, for the map registration's every-few-keyframes schedule.
     keyframes: usize,
 }
@@ -104,7 +109,11 @@ pub struct Odometry {
     /// Where the previous frame's ordinary G-ICP started: this frame's tries it first.
     last_initial_guess: InitialGuess,
     trusted: Option<TrustedFrame>,
-    archive: KeyframeArchive,
+    /// The time the expensive recovery work may take at sensor pace ([`rationing`]).
+    ration: RecoveryRation,
+    archive: SharedArchive,
+    /// A relocalisation search running on its own thread (real-time frames only).
+    pending_search: Option<PendingSearch>,
     /// The segment's own archive while detached (joined into `archive` with it).
     segment_archive: KeyframeArchive,
     detached: Option<Detached>,
@@ -147,7 +156,11 @@ impl Odometry {
             stats: OdometryStats::default(),
             last_initial_guess: InitialGuess::Prediction,
             trusted: None,
-            archive: KeyframeArchive::new(tracking.relocalisation_keyframes),
+            ration: RecoveryRation::new(tracking.recovery_time_share, tracking.recovery_burst_ms),
+            archive: Arc::new(Mutex::new(KeyframeArchive::new(
+                tracking.relocalisation_keyframes,
+            ))),
+            pending_search: None,
             segment_archive: KeyframeArchive::new(tracking.relocalisation_keyframes),
             detached: None,
             next_segment: 1,
@@ -199,7 +212,7 @@ impl Odometry {
         current: &Isometry3<f64>,
     ) -> usize {
         if let Some(detached) = self.detached.as_mut() {
-            return detached.root_map.transform_points(transform_of);
+            return Arc::make_mut(&mut detached.root_map).transform_points(transform_of);
         }
         if let Some(world_from_previous) = self.world_from_previous.as_mut() {
             *world_from_previous = current * *world_from_previous;
@@ -300,6 +313,7 @@ impl Odometry {
             ),
         };
         timings.registration_ms = elapsed_ms(&clock) - timings.recovery_ms;
+        self.stats.searches_rationed = self.ration.refused();
         let (world_from_camera, outcome) = self.judge(&chosen, predicted, frame.len());
         if let TrackingOutcome::Lost(_) = outcome
             && self.mode == OdometryMode::FrameToModel
@@ -322,9 +336,11 @@ impl Odometry {
         let trackable = self.update_map(&frame, &input, &chosen, &outcome, &world_from_camera);
         let keyframe = trackable.is_some();
         let mut world_from_camera = world_from_camera;
-        let join = (keyframe && self.detached.is_some())
-            .then(|| self.relocalise(&input, frame.cloud(), &world_from_camera))
-            .flatten();
+        let join = self.collect_search().or_else(|| {
+            (keyframe && self.detached.is_some())
+                .then(|| self.relocalise(&input, frame.cloud(), &world_from_camera))
+                .flatten()
+        });
         if let Some(join) = &join {
             world_from_camera = join.root_from_segment * world_from_camera;
         }
@@ -456,10 +472,15 @@ impl Odometry {
         let mut texture_failed = true;
         if !passed(&candidates)
             && let Some(trusted) = &self.trusted
-            && let FeatureGuess::Found(candidate) = recovery.features(trusted, &self.alignment)
+            && self.may_search(input.real_time)
         {
-            texture_failed = false;
-            candidates.push(candidate);
+            let started = Instant::now();
+            let guess = recovery.features(trusted, &self.alignment);
+            self.pay_search(input.real_time, &started);
+            if let FeatureGuess::Found(candidate) = guess {
+                texture_failed = false;
+                candidates.push(candidate);
+            }
         }
         // Geometry alone only where the images could not place the frame (no texture, no
         // colour), and once per streak of lost frames: it costs up to a second, and the frames
@@ -468,7 +489,9 @@ impl Odometry {
             && texture_failed
             && self.consecutive_failures == 0
             && !passed(&candidates)
+            && self.may_search(input.real_time)
         {
+            let started = Instant::now();
             // The map around the last trusted pose (the prediction may be far off by now), then
             // the view at the prediction again for the check.
             let anchor = self
@@ -482,10 +505,24 @@ impl Odometry {
             if let Some(candidate) = recovery.geometry(&around, &self.map_registration) {
                 candidates.push(candidate);
             }
+            self.pay_search(input.real_time, &started);
         }
         timings.recovery_ms = elapsed_ms(&clock);
         tracing::debug!(ms = timings.recovery_ms, "recovery guesses done");
         recovery::choose(candidates, &self.tracking)
+    }
+
+    /// Whether an expensive guess (image features, geometry) may start: always, but for a
+    /// real-time frame when the ration is spent ([`rationing`]).
+    fn may_search(&self, real_time: bool) -> bool {
+        !real_time || self.ration.allows(Instant::now())
+    }
+
+    /// Pays the ration for a guess of a real-time frame that started at `started`.
+    fn pay_search(&self, real_time: bool, started: &Instant) {
+        if real_time {
+            self.ration.pay(elapsed_ms(started), Instant::now());
+        }
     }
 
     /// Whether `candidate` overlaps the map by `recovery_overlap_drop` less (relatively) than

@@ -22,6 +22,7 @@
 //! the ordinary path included. A stage is only run when the cheaper ones found no passing pose.
 
 use std::borrow::Cow;
+use std::sync::OnceLock;
 
 use geometry::camera::Intrinsics;
 use geometry::depth::DepthImage;
@@ -90,6 +91,9 @@ impl Candidate {
 }
 
 /// The last frame whose pose was trusted, kept for the feature guess.
+///
+/// It stays the same through a streak of lost frames, each of which may try the feature guess
+/// against it: its features and cloud are prepared on the first try and kept.
 pub struct TrustedFrame {
     /// Its colour image.
     pub rgb: RgbImage,
@@ -100,6 +104,26 @@ pub struct TrustedFrame {
     /// Its pose, in the frame of the map tracked against (moved into the root when a segment
     /// is joined).
     pub world_from_camera: Isometry3<f64>,
+    /// Its features and cloud, once a feature guess needed them.
+    prepared: OnceLock<PreparedView>,
+}
+
+impl TrustedFrame {
+    /// A frame placed at `world_from_camera`, nothing prepared yet.
+    pub fn new(
+        rgb: RgbImage,
+        depth: DepthImage,
+        intrinsics: Intrinsics,
+        world_from_camera: Isometry3<f64>,
+    ) -> Self {
+        Self {
+            rgb,
+            depth,
+            intrinsics,
+            world_from_camera,
+            prepared: OnceLock::new(),
+        }
+    }
 }
 
 /// What the guesses of one frame share.
@@ -172,10 +196,21 @@ impl Recovery<'_> {
         let Some(rgb) = self.rgb else {
             return FeatureGuess::Unavailable;
         };
-        let (current, previous) = rayon::join(
-            || PreparedView::new(rgb, self.depth, self.intrinsics, config),
-            || PreparedView::new(&trusted.rgb, &trusted.depth, &trusted.intrinsics, config),
-        );
+        let prepare_trusted =
+            || PreparedView::new(&trusted.rgb, &trusted.depth, &trusted.intrinsics, config);
+        let current = match trusted.prepared.get() {
+            Some(_) => PreparedView::new(rgb, self.depth, self.intrinsics, config),
+            None => {
+                let (current, previous) = rayon::join(
+                    || PreparedView::new(rgb, self.depth, self.intrinsics, config),
+                    prepare_trusted,
+                );
+                // Only this thread fills the cell: it was empty a moment ago.
+                let _ = trusted.prepared.set(previous);
+                current
+            }
+        };
+        let previous = trusted.prepared.get_or_init(prepare_trusted);
         let alignment = crate::alignment::align(
             AlignmentInput {
                 prepared: &current,
@@ -183,7 +218,7 @@ impl Recovery<'_> {
                 intrinsics: self.intrinsics,
             },
             AlignmentInput {
-                prepared: &previous,
+                prepared: previous,
                 depth: &trusted.depth,
                 intrinsics: &trusted.intrinsics,
             },

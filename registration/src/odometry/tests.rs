@@ -12,6 +12,7 @@ fn input(frame: &datasets::Frame) -> FrameInput<'_> {
         depth: &frame.depth,
         rgb: Some(&frame.rgb),
         intrinsics: &frame.intrinsics,
+        real_time: false,
     }
 }
 
@@ -212,7 +213,7 @@ fn track_placed(
     tracking: &TrackingConfig,
     blank: impl Fn(usize) -> bool,
 ) -> (f64, OdometryStats, usize) {
-    track_covered(spec, tracking, blank, 0.0)
+    track_covered(spec, tracking, blank, 0.0, false)
 }
 
 /// The frames of `spec` and a frame-to-model tracker with `tracking` and default keyframes.
@@ -231,12 +232,14 @@ fn frame_to_model(spec: &str, tracking: &TrackingConfig) -> (Box<dyn datasets::D
 }
 
 /// [`track_placed`] with the frames `covered` picks replaced by a flat surface at `cover_depth_m`
-/// filling the view (a hand over the lens; 0: no depth at all) in a uniform colour.
+/// filling the view (a hand over the lens; 0: no depth at all) in a uniform colour; `real_time`
+/// marks every frame real-time ([`FrameInput::real_time`]).
 fn track_covered(
     spec: &str,
     tracking: &TrackingConfig,
     covered: impl Fn(usize) -> bool,
     cover_depth_m: f32,
+    real_time: bool,
 ) -> (f64, OdometryStats, usize) {
     let (ds, mut odometry) = frame_to_model(spec, tracking);
     let mut poses: Vec<(f64, Isometry3<f64>, Placement, bool)> = Vec::new();
@@ -251,18 +254,17 @@ fn track_covered(
             odometry.track(FrameInput {
                 depth: &cover,
                 rgb: Some(&skin),
+                real_time,
                 ..input(&frame)
             })
         } else {
-            odometry.track(input(&frame))
+            odometry.track(FrameInput {
+                real_time,
+                ..input(&frame)
+            })
         };
         if let Some(join) = &tracked.join {
-            for (_, pose, placement, _) in &mut poses {
-                if let Some((moved_placement, moved)) = join.moved(*placement, pose) {
-                    *placement = moved_placement;
-                    *pose = moved;
-                }
-            }
+            move_joined(&mut poses, join);
         }
         let placed = !matches!(tracked.outcome, TrackingOutcome::Lost(_));
         poses.push((
@@ -273,6 +275,9 @@ fn track_covered(
         ));
         ground_truth.push(frame.timestamp, frame.world_from_camera_gt.unwrap());
     }
+    if let Some(join) = odometry.finish_search() {
+        move_joined(&mut poses, &join);
+    }
     let estimate = Trajectory::from_pairs(
         poses
             .iter()
@@ -281,6 +286,16 @@ fn track_covered(
     );
     let result = ate(&ground_truth, &estimate, Alignment::Se3, DEFAULT_MAX_DT).unwrap();
     (result.stats.rmse, odometry.stats().clone(), estimate.len())
+}
+
+/// Moves the recorded poses of a joined segment into the root.
+fn move_joined(poses: &mut [(f64, Isometry3<f64>, Placement, bool)], join: &SegmentJoin) {
+    for (_, pose, placement, _) in poses {
+        if let Some((moved_placement, moved)) = join.moved(*placement, pose) {
+            *placement = moved_placement;
+            *pose = moved;
+        }
+    }
 }
 
 /// Every 15th frame of the synthetic scene: steps of ~30 cm.
@@ -384,14 +399,50 @@ fn a_segment_after_the_lens_was_covered_is_joined_to_the_map() {
         pixel_stride: 3,
         ..tracking_320x240()
     };
-    let (rmse, stats, placed) = track_covered(spec, &tracking, |p| (30..37).contains(&p), 0.4);
+    let (rmse, stats, placed) =
+        track_covered(spec, &tracking, |p| (30..37).contains(&p), 0.4, false);
     assert_eq!(stats.segments_started, 2, "{stats:?}");
     assert_eq!(stats.segments_joined, 1, "{stats:?}");
+    assert_eq!(stats.searches_rationed, 0, "{stats:?}");
     assert!(placed >= 70, "{placed} of 80 frames placed, {stats:?}");
     assert!(
         rmse < 0.03,
         "ATE RMSE {rmse} m over the joined trajectory, {stats:?}"
     );
+}
+
+/// The covered lens of [`a_segment_after_the_lens_was_covered_is_joined_to_the_map`] with
+/// real-time frames and no time at all for the expensive guesses: none starts (each is counted),
+/// so the hand's frames are lost fast; the segment after it is still relocalised, by a search on
+/// a thread of its own, and joined where the camera was. With time to spare (a share of 1)
+/// nothing is rationed.
+#[test]
+fn at_sensor_pace_guesses_wait_for_their_share_and_relocalisation_runs_aside() {
+    let spec = "synthetic:agents=1,frames=240,width=320,height=240:0..240:3";
+    let covered = |p: usize| (30..37).contains(&p);
+    let starved = TrackingConfig {
+        recovery_geometry: false,
+        pixel_stride: 3,
+        recovery_burst_ms: 0.0,
+        ..tracking_320x240()
+    };
+    for (tracking, rationed) in [
+        (starved.clone(), true),
+        (
+            TrackingConfig {
+                recovery_time_share: 1.0,
+                ..starved
+            },
+            false,
+        ),
+    ] {
+        let (rmse, stats, placed) = track_covered(spec, &tracking, covered, 0.4, true);
+        assert_eq!(stats.segments_started, 2, "{stats:?}");
+        assert_eq!(stats.segments_joined, 1, "{stats:?}");
+        assert_eq!(stats.searches_rationed > 0, rationed, "{stats:?}");
+        assert!(placed >= 70, "{placed} of 80 frames placed, {stats:?}");
+        assert!(rmse < 0.03, "ATE RMSE {rmse} m, {stats:?}");
+    }
 }
 
 /// Every 10th frame of redkitchen 0..300 (steps of 7 cm median, 14 cm at most): tracked

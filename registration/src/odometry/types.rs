@@ -60,6 +60,9 @@ pub struct FrameInput<'a> {
     pub rgb: Option<&'a RgbImage>,
     /// The depth image's camera; a colour image is expected registered to it (same size).
     pub intrinsics: &'a Intrinsics,
+    /// The frame came from a live camera or a sensor-paced replay, which do not wait for the
+    /// tracker: the expensive recovery work is rationed (`recovery_time_share`).
+    pub real_time: bool,
 }
 
 /// Why a frame was not placed.
@@ -186,6 +189,9 @@ pub struct OdometryStats {
     pub segments_started: usize,
     /// Segments joined to the root by relocalisation.
     pub segments_joined: usize,
+    /// Image-feature or geometry guesses and relocalisation attempts not started at sensor
+    /// pace because their share of the time was spent (`recovery_time_share`).
+    pub searches_rationed: usize,
     /// Frames whose ordinary G-ICP started from the previous pose: the constant-velocity
     /// prediction found fewer correspondences, or there was no motion to predict.
     pub still_starts: usize,

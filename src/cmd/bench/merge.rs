@@ -20,6 +20,7 @@ use mac_agent::evaluation::{FrameQuality, MapRenderer, QualitySummary};
 use serde::Serialize;
 use serde_json::Value;
 
+use super::figures::{Figure, FigureArgs};
 use crate::cmd::eval::held_out::{AgentFrames, Protocol, score, summary};
 use crate::cmd::eval::swarm::load_lpips;
 use crate::cmd::{fmt_num, print_json};
@@ -39,6 +40,8 @@ pub struct MergeArgs {
     /// Print the JSON instead of a table (DIR/merge_bench.json is written either way).
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    figures: FigureArgs,
 }
 
 /// Own and merged map on the same frames of one agent.
@@ -235,12 +238,68 @@ pub fn run(args: &MergeArgs) -> anyhow::Result<()> {
     let path = args.dir.join("merge_bench.json");
     std::fs::write(&path, serde_json::to_string_pretty(&bench)?)
         .with_context(|| format!("writing {}", path.display()))?;
+    let label = args
+        .figures
+        .label(|| format!("swarm run {}", args.dir.display()));
+    args.figures.record(&headline_figures(&bench, &label))?;
     if args.json {
         return print_json(&bench);
     }
     print_table(&bench);
     println!("  json: {}", path.display());
     Ok(())
+}
+
+/// What `--figures` records: per agent, merged over own on its held-out frames; the merged
+/// map's quality on them; its size against the own maps'.
+fn headline_figures(bench: &MergeBench, label: &str) -> Vec<Figure> {
+    let per_agent = |value: &dyn Fn(&AgentComparison) -> Option<f64>, signed: bool| {
+        let values: Vec<String> = bench
+            .agents
+            .iter()
+            .map(|agent| match value(agent) {
+                Some(v) if signed => format!("{v:+.2}"),
+                Some(v) => format!("{v:.2}"),
+                None => "-".into(),
+            })
+            .collect();
+        values.join(" / ")
+    };
+    let gain =
+        |agent: &AgentComparison| Some(agent.held_out.merged.psnr? - agent.held_out.own.psnr?);
+    let quality = |q: &QualitySummary| {
+        let num = |v: Option<f64>, d: usize| v.map_or("-".into(), |v| format!("{v:.d$}"));
+        format!(
+            "{} / {} / {}",
+            num(q.psnr, 2),
+            num(q.ssim, 3),
+            num(q.lpips, 3)
+        )
+    };
+    let mut figures = vec![
+        Figure::text(
+            format!("{label}: merged over own map PSNR on each agent's held-out frames"),
+            per_agent(&gain, true),
+            "dB",
+        ),
+        Figure::text(
+            format!(
+                "{label}: merged map PSNR / SSIM / LPIPS on the agents' held-out frames (one per {} frames)",
+                bench.every
+            ),
+            quality(&bench.merged_held_out),
+            "",
+        ),
+    ];
+    if let Some(ratio) = bench.gaussian_ratio {
+        figures.push(Figure::number(
+            format!("{label}: merged map Gaussians over the sum of the own maps'"),
+            ratio,
+            2,
+            "x",
+        ));
+    }
+    figures
 }
 
 fn print_table(bench: &MergeBench) {

@@ -1,5 +1,7 @@
 //! `mac-ego3d bench ...`: throughput and timing benchmarks. Each prints a table, or one JSON
-//! object with `--json`. Figures are wall-clock on the machine it runs on.
+//! object with `--json`. Figures are wall-clock on the machine it runs on. `bench tracking` and
+//! `bench merge` also write their headline figures for docs/benchmarks.md with `--figures`
+//! ([`figures`]).
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -17,6 +19,7 @@ use serde::Serialize;
 
 use super::{fmt_num, print_json};
 
+mod figures;
 mod ipc;
 mod map_registration;
 mod merge;

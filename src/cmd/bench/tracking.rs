@@ -22,6 +22,7 @@ use nalgebra::Isometry3;
 use registration::{FrameInput, Odometry, OdometryMode, Placement, TrackingOutcome};
 use serde::Serialize;
 
+use super::figures::{Figure, FigureArgs};
 use crate::cmd::{fmt_num, print_json};
 use dump::{ImageDump, PointDump};
 
@@ -68,6 +69,8 @@ pub struct TrackingArgs {
     positions: Option<PathBuf>,
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    figures: FigureArgs,
 }
 
 #[derive(Serialize)]
@@ -185,6 +188,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
             depth: &frame.depth,
             rgb: Some(&frame.rgb),
             intrinsics: &frame.intrinsics,
+            real_time: false,
         });
         let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
         // The first frame only seeds the target; timing it would mix set-up into tracking.
@@ -315,11 +319,47 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         keyframes: stats.keyframes,
         map_points: odometry.map().len(),
     };
+    // The dataset's folder name (or synthetic spec), not its long description.
+    let short_name = std::path::Path::new(name)
+        .file_name()
+        .map_or(name.to_string(), |n| n.to_string_lossy().into_owned());
+    let label = args
+        .figures
+        .label(|| format!("bench tracking, {short_name} {frames}"));
+    args.figures.record(&headline_figures(&report, &label))?;
     if args.json {
         return print_json(&report);
     }
     print_report(&report);
     Ok(())
+}
+
+/// What `--figures` records: the ATE, the time per frame, and what was lost.
+fn headline_figures(report: &TrackingReport, label: &str) -> Vec<Figure> {
+    let mut figures = Vec::new();
+    if let Some(rmse) = report.ate_rmse_m {
+        figures.push(Figure::number(
+            format!("{label}: tracking ATE"),
+            rmse * 100.0,
+            2,
+            "cm",
+        ));
+    }
+    figures.push(Figure::number(
+        format!("{label}: tracking time per frame, median"),
+        report.tracking_ms_median,
+        1,
+        "ms",
+    ));
+    figures.push(Figure::text(
+        format!("{label}: frames lost / segments started / joined"),
+        format!(
+            "{} / {} / {}",
+            report.failures, report.segments_started, report.segments_joined
+        ),
+        "",
+    ));
+    figures
 }
 
 fn outcome_label(outcome: &TrackingOutcome) -> String {
