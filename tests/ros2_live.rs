@@ -521,7 +521,7 @@ fn real_data_live_swarm_of_two_robots() {
            \"$PYTHON\" \"$PUBLISHER\" --dataset \"$DATASET\" --frames $((k * 100))..$((k * 100 + 150)) \
              --namespace /robot$k --rate 10 --images compressed > \"$OUT.sent$k\" &\n\
          done\n\
-         \"$PYTHON\" \"$LISTENER\" --agent 0 --map-topic /map --idle 30 > \"$OUT.heard\" &\n\
+         \"$PYTHON\" \"$LISTENER\" --agent 0 --map-topic /map --wait-for map --idle 30 > \"$OUT.heard\" &\n\
          \"$MAC_EGO3D\" swarm --config \"$CONFIG\" --agent ros2:/robot0 --agent ros2:/robot1 \
            --out \"$OUT\"\n\
          wait\n"

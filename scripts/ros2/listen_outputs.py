@@ -1,12 +1,14 @@
 #!/usr/bin/env python3
 """Listens to what an agent publishes live over DDS (`[ros2] publish = true`), with Cyclone DDS
 as rviz2 on a stock ROS 2 would: /tf, /tf_static, /<prefix>K/path and /<prefix>K/map. Ends after
---idle seconds without a message (once something came) or --timeout seconds in all, and prints
+--idle seconds without a message (once something came, and once --wait-for's topic was heard:
+a consensus publishes its outputs only after its refinement, long after the agents' last tf) or
+--timeout seconds in all, and prints
 one JSON line: messages per topic, the last path's length and stamps, the last map's points and
 fields, the child frames seen on /tf.
 
   python scripts/ros2/listen_outputs.py --agent 0 [--prefix agent] [--domain 0] [--idle 5] \
-      [--map-topic /map]
+      [--map-topic /map] [--wait-for map]
 
 Run it in the peers' environment: python="$(scripts/peers_venv.sh)".
 """
@@ -34,6 +36,8 @@ def main():
     ap.add_argument("--domain", type=int, default=0)
     ap.add_argument("--map-topic", help="default /<prefix>K/map (the agent's); /map is the consensus's")
     ap.add_argument("--idle", type=float, default=5.0)
+    ap.add_argument("--wait-for", choices=["tf", "tf_static", "path", "map"],
+                    help="the idle end counts only once this topic was heard")
     ap.add_argument("--timeout", type=float, default=300.0)
     args = ap.parse_args()
     participant = DomainParticipant(args.domain)
@@ -71,7 +75,8 @@ def main():
         now = time.time()
         if got:
             last = now
-        elif sum(seen.values()) and now - last > args.idle:
+        elif sum(seen.values()) and (args.wait_for is None or seen[args.wait_for]) \
+                and now - last > args.idle:
             break
         time.sleep(0.02)
     out = {"messages": seen, "tf_children": sorted(children)}
