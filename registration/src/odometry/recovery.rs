@@ -90,10 +90,12 @@ impl Candidate {
     }
 }
 
-/// The last frame whose pose was trusted, kept for the feature guess.
+/// A frame whose pose was trusted, kept for image alignment: the last one, for the feature
+/// guess, and the keyframes archived for relocalisation (super::segments).
 ///
-/// It stays the same through a streak of lost frames, each of which may try the feature guess
-/// against it: its features and cloud are prepared on the first try and kept.
+/// The last one stays the same through a streak of lost frames, each of which may try the
+/// feature guess against it, and an archived keyframe may be aligned with many frames: its
+/// features and cloud are prepared on the first alignment and kept.
 pub struct TrustedFrame {
     /// Its colour image.
     pub rgb: RgbImage,
@@ -123,6 +125,17 @@ impl TrustedFrame {
             world_from_camera,
             prepared: OnceLock::new(),
         }
+    }
+
+    /// Its features and cloud (prepared with `config` on the first call).
+    pub fn prepared(&self, config: &AlignmentConfig) -> &PreparedView {
+        self.prepared
+            .get_or_init(|| PreparedView::new(&self.rgb, &self.depth, &self.intrinsics, config))
+    }
+
+    /// Whether its features and cloud are prepared already.
+    fn is_prepared(&self) -> bool {
+        self.prepared.get().is_some()
     }
 }
 
@@ -196,21 +209,12 @@ impl Recovery<'_> {
         let Some(rgb) = self.rgb else {
             return FeatureGuess::Unavailable;
         };
-        let prepare_trusted =
-            || PreparedView::new(&trusted.rgb, &trusted.depth, &trusted.intrinsics, config);
-        let current = match trusted.prepared.get() {
-            Some(_) => PreparedView::new(rgb, self.depth, self.intrinsics, config),
-            None => {
-                let (current, previous) = rayon::join(
-                    || PreparedView::new(rgb, self.depth, self.intrinsics, config),
-                    prepare_trusted,
-                );
-                // Only this thread fills the cell: it was empty a moment ago.
-                let _ = trusted.prepared.set(previous);
-                current
-            }
+        let prepare_current = || PreparedView::new(rgb, self.depth, self.intrinsics, config);
+        let (current, previous) = if trusted.is_prepared() {
+            (prepare_current(), trusted.prepared(config))
+        } else {
+            rayon::join(prepare_current, || trusted.prepared(config))
         };
-        let previous = trusted.prepared.get_or_init(prepare_trusted);
         let alignment = crate::alignment::align(
             AlignmentInput {
                 prepared: &current,

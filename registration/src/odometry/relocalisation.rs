@@ -40,8 +40,8 @@ pub(super) struct PendingSearch {
 /// The root's keyframe archive, shared with a search thread.
 pub(super) type SharedArchive = Arc<Mutex<KeyframeArchive>>;
 
-/// The archive, whether or not a search thread panicked while holding it (the prepared views it
-/// caches are built whole or not at all).
+/// The archive, whether or not a search thread panicked while holding it (a search only reads
+/// it; the prepared views it caches are built whole or not at all).
 pub(super) fn lock(archive: &SharedArchive) -> std::sync::MutexGuard<'_, KeyframeArchive> {
     archive.lock().unwrap_or_else(PoisonError::into_inner)
 }
@@ -70,7 +70,7 @@ impl JoinSearch {
     fn run(
         &self,
         root_map: &mut VoxelMap,
-        archive: &mut KeyframeArchive,
+        archive: &KeyframeArchive,
     ) -> Option<(Isometry3<f64>, JoinEvidence)> {
         let mut guesses: Vec<(Isometry3<f64>, JoinEvidence)> = Vec::new();
         if let Some(rgb) = &self.rgb {
@@ -222,7 +222,7 @@ impl Odometry {
                     // The root map stays with the tracker (corrections may move it meanwhile):
                     // the search selects views in a copy of its own.
                     let mut root_map = VoxelMap::clone(&root_map);
-                    search.run(&mut root_map, &mut lock(&archive))
+                    search.run(&mut root_map, &lock(&archive))
                 });
             match spawned {
                 Ok(handle) => self.pending_search = Some(PendingSearch { segment, handle }),
@@ -230,10 +230,7 @@ impl Odometry {
             }
             return None;
         }
-        let found = search.run(
-            Arc::make_mut(&mut detached.root_map),
-            &mut lock(&self.archive),
-        );
+        let found = search.run(Arc::make_mut(&mut detached.root_map), &lock(&self.archive));
         found.map(|(root_from_segment, evidence)| self.join(root_from_segment, evidence))
     }
 

@@ -31,6 +31,8 @@ use serde::Serialize;
 
 use crate::alignment::{AlignmentConfig, AlignmentInput, PreparedView, align};
 
+use super::recovery::TrustedFrame;
+
 /// Index of a segment: 0 is the first, counted as they start.
 pub type SegmentId = usize;
 
@@ -77,20 +79,13 @@ impl Thumbnail {
     }
 }
 
-/// A root keyframe kept for relocalisation: its images, its pose in the root frame, and its
-/// prepared view once an alignment needed it.
+/// A root keyframe kept for relocalisation: the frame (images, pose, prepared view once an
+/// alignment needed it) and its thumbnail for place recognition.
 pub struct ArchivedKeyframe {
-    /// Its colour image.
-    pub rgb: RgbImage,
-    /// Its depth image (metres).
-    pub depth: DepthImage,
-    /// Its camera.
-    pub intrinsics: Intrinsics,
-    /// Its pose in the archive's frame: the root's, or a detached segment's until the segment
+    /// Its pose is in the archive's frame: the root's, or a detached segment's until the segment
     /// is joined and its archive moved into the root ([`KeyframeArchive::transform`]).
-    pub world_from_camera: Isometry3<f64>,
+    pub frame: TrustedFrame,
     thumbnail: Thumbnail,
-    prepared: Option<PreparedView>,
 }
 
 impl ArchivedKeyframe {
@@ -104,18 +99,8 @@ impl ArchivedKeyframe {
     ) -> Self {
         Self {
             thumbnail: Thumbnail::of(&rgb),
-            rgb,
-            depth,
-            intrinsics,
-            world_from_camera,
-            prepared: None,
+            frame: TrustedFrame::new(rgb, depth, intrinsics, world_from_camera),
         }
-    }
-
-    fn prepared(&mut self, config: &AlignmentConfig) -> &PreparedView {
-        self.prepared.get_or_insert_with(|| {
-            PreparedView::new(&self.rgb, &self.depth, &self.intrinsics, config)
-        })
     }
 }
 
@@ -174,7 +159,7 @@ impl KeyframeArchive {
     /// Moves every keyframe by `transform` (a segment joined: its keyframes into the root).
     pub fn transform(&mut self, transform: &Isometry3<f64>) {
         for keyframe in &mut self.keyframes {
-            keyframe.world_from_camera = transform * keyframe.world_from_camera;
+            keyframe.frame.world_from_camera = transform * keyframe.frame.world_from_camera;
         }
     }
 
@@ -189,7 +174,7 @@ impl KeyframeArchive {
     /// (`rgb`, `depth`), from the `candidates` archived keyframes most like it whose alignment is
     /// accepted, best-looking first. Each answer is a guess for the caller's verification.
     pub fn align(
-        &mut self,
+        &self,
         rgb: &RgbImage,
         depth: &DepthImage,
         intrinsics: &Intrinsics,
@@ -210,8 +195,7 @@ impl KeyframeArchive {
         let current = PreparedView::new(rgb, depth, intrinsics, config);
         let mut guesses = Vec::new();
         for &(similarity, index) in ranked.iter().take(candidates) {
-            let keyframe = &mut self.keyframes[index];
-            keyframe.prepared(config);
+            let keyframe = &self.keyframes[index].frame;
             let alignment = align(
                 AlignmentInput {
                     prepared: &current,
@@ -219,7 +203,7 @@ impl KeyframeArchive {
                     intrinsics,
                 },
                 AlignmentInput {
-                    prepared: keyframe.prepared.as_ref().expect("prepared above"),
+                    prepared: keyframe.prepared(config),
                     depth: &keyframe.depth,
                     intrinsics: &keyframe.intrinsics,
                 },
@@ -320,7 +304,7 @@ mod tests {
         let kept: Vec<f64> = archive
             .keyframes
             .iter()
-            .map(|k| k.world_from_camera.translation.x)
+            .map(|k| k.frame.world_from_camera.translation.x)
             .collect();
         assert!(kept.len() <= 4, "{kept:?}");
         assert_eq!(
