@@ -1,6 +1,7 @@
 //! What a placed frame leaves behind: keyframe points in the map, the frame-to-frame target, the
 //! trusted frame and the keyframe archive the guesses use; and a segment's first frame.
 
+use image::RgbImage;
 use nalgebra::{Isometry3, Point3};
 use rayon::prelude::*;
 
@@ -30,12 +31,7 @@ impl Odometry {
         if tracked {
             self.previous_overlap = chosen.as_ref().map(|c| c.result.overlap_fraction);
             if let Some(rgb) = input.rgb {
-                self.trusted = Some(TrustedFrame::new(
-                    rgb.clone(),
-                    input.depth.clone(),
-                    *input.intrinsics,
-                    *world_from_camera,
-                ));
+                self.trusted = Some(trusted_frame(input, rgb, world_from_camera));
             }
         }
         let trackable = match self.mode {
@@ -77,14 +73,7 @@ impl Odometry {
             root_archive = super::relocalisation::lock(&self.archive);
             &mut *root_archive
         };
-        archive.offer(|| {
-            ArchivedKeyframe::new(
-                rgb.clone(),
-                input.depth.clone(),
-                *input.intrinsics,
-                *world_from_camera,
-            )
-        });
+        archive.offer(|| ArchivedKeyframe::of(trusted_frame(input, rgb, world_from_camera)));
     }
 
     pub(super) fn frame_target(&self, cloud: &PointCloud) -> VoxelMap {
@@ -103,14 +92,9 @@ impl Odometry {
         self.prior_doubtful = false;
         self.previous_overlap = None;
         self.world_from_previous = Some(world_from_camera);
-        self.trusted = input.rgb.map(|rgb| {
-            TrustedFrame::new(
-                rgb.clone(),
-                input.depth.clone(),
-                *input.intrinsics,
-                world_from_camera,
-            )
-        });
+        self.trusted = input
+            .rgb
+            .map(|rgb| trusted_frame(input, rgb, &world_from_camera));
         let trackable = match self.mode {
             OdometryMode::FrameToFrame => {
                 self.previous_frame = Some(self.frame_target(frame.cloud()));
@@ -180,4 +164,19 @@ impl Odometry {
         }
         added
     }
+}
+
+/// The frame of `input` (with its colour `rgb`) placed at `world_from_camera`, kept for image
+/// alignment.
+fn trusted_frame(
+    input: &FrameInput<'_>,
+    rgb: &RgbImage,
+    world_from_camera: &Isometry3<f64>,
+) -> TrustedFrame {
+    TrustedFrame::new(
+        rgb.clone(),
+        input.depth.clone(),
+        *input.intrinsics,
+        *world_from_camera,
+    )
 }

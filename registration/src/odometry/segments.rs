@@ -89,17 +89,12 @@ pub struct ArchivedKeyframe {
 }
 
 impl ArchivedKeyframe {
-    /// Keeps the images and pose and computes the thumbnail; the prepared view (features) is
-    /// built only when an alignment first needs it.
-    pub fn new(
-        rgb: RgbImage,
-        depth: DepthImage,
-        intrinsics: Intrinsics,
-        world_from_camera: Isometry3<f64>,
-    ) -> Self {
+    /// Keeps the frame and computes its thumbnail; the prepared view (features) is built only
+    /// when an alignment first needs it.
+    pub fn of(frame: TrustedFrame) -> Self {
         Self {
-            thumbnail: Thumbnail::of(&rgb),
-            frame: TrustedFrame::new(rgb, depth, intrinsics, world_from_camera),
+            thumbnail: Thumbnail::of(&frame.rgb),
+            frame,
         }
     }
 }
@@ -291,12 +286,12 @@ mod tests {
     fn the_archive_thins_evenly_when_full() {
         let mut archive = KeyframeArchive::new(4);
         let keyframe = |i: usize| {
-            ArchivedKeyframe::new(
+            ArchivedKeyframe::of(TrustedFrame::new(
                 RgbImage::new(4, 3),
                 DepthImage::new(4, 3),
                 Intrinsics::new(4.0, 4.0, 1.5, 1.0, 4, 3),
                 Isometry3::translation(i as f64, 0.0, 0.0),
-            )
+            ))
         };
         for i in 0..12 {
             archive.offer(|| keyframe(i));
