@@ -285,6 +285,10 @@ impl Odometry {
         if let Some(trusted) = self.trusted.as_mut() {
             trusted.world_from_camera = root_from_segment * trusted.world_from_camera;
         }
+        // A join found aside lands at any frame, not only at a keyframe that would renew it.
+        if let Some(reference) = self.photometric_reference.as_mut() {
+            reference.transform(&root_from_segment);
+        }
         self.stats.segments_joined += 1;
         tracing::info!(
             segment = detached.segment,
