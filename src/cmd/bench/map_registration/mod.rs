@@ -44,6 +44,7 @@ use registration::alignment::AlignmentConfig;
 use registration::map_registration::{DepthView, FreeSpaceCheck, MapPoints, register_maps_checked};
 use serde::Serialize;
 
+use super::figures::FigureArgs;
 use crate::cmd::{fmt_num, print_json};
 use crops::{CropScene, TRUE_OVERLAP_DISTANCE_M};
 use maps::{Map, MapRecipe, SplitMix, build_map, overlap_of_smaller, random_frame};
@@ -123,6 +124,8 @@ pub struct MapRegistrationArgs {
     keep_pairs: Option<PathBuf>,
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    figures: FigureArgs,
 }
 
 /// One pair to register: map B (the source, in a random frame), map A (the target, in the world
@@ -497,6 +500,11 @@ pub fn run(args: &MapRegistrationArgs) -> anyhow::Result<()> {
         summary,
         pairs: runs,
     };
+    let label = args
+        .figures
+        .label(|| format!("map registration, {}", report.data));
+    args.figures
+        .record(&report::headline_figures(&report.summary, &label))?;
     if args.json {
         return print_json(&report);
     }

@@ -6,6 +6,7 @@ use metrics::stats::median;
 use nalgebra::{Isometry3, Point3};
 use serde::Serialize;
 
+use crate::cmd::bench::figures::Figure;
 use crate::cmd::fmt_num;
 
 /// Success thresholds against ground truth.
@@ -250,4 +251,40 @@ pub fn print_summary(summaries: &[BinSummary]) {
             )
         );
     }
+}
+
+/// What `--figures` records, per method: the successes in each bin (in the order run) and the
+/// wrong transforms accepted over all pairs.
+pub fn headline_figures(summaries: &[BinSummary], label: &str) -> Vec<Figure> {
+    let mut methods: Vec<&str> = Vec::new();
+    let mut bins: Vec<&str> = Vec::new();
+    for summary in summaries {
+        if !methods.contains(&summary.method.as_str()) {
+            methods.push(&summary.method);
+        }
+        if !bins.contains(&summary.bin.as_str()) {
+            bins.push(&summary.bin);
+        }
+    }
+    let mut figures = Vec::new();
+    for method in methods {
+        let rows: Vec<&BinSummary> = summaries.iter().filter(|s| s.method == method).collect();
+        let successes: Vec<String> = rows
+            .iter()
+            .map(|s| format!("{}/{}", s.successes, s.pairs))
+            .collect();
+        figures.push(Figure::text(
+            format!("{label}: successes per bin ({}), {method}", bins.join(", ")),
+            successes.join("; "),
+            "",
+        ));
+        let pairs: usize = rows.iter().map(|s| s.pairs).sum();
+        let wrong: usize = rows.iter().map(|s| s.wrong).sum();
+        figures.push(Figure::text(
+            format!("{label}: wrong transforms accepted of {pairs} pairs, {method}"),
+            wrong.to_string(),
+            "",
+        ));
+    }
+    figures
 }
