@@ -49,7 +49,8 @@ pub struct TrackedPose {
     pub tracked: bool,
     /// The frame's tracking confidence (see `registration::TrackedFrame::confidence`).
     pub confidence: f64,
-    /// Wall time of the frame in the loop (tracking, keyframe hand-over, outputs), ms.
+    /// Wall time of the frame's pass through the loop's stages (tracking, keyframe,
+    /// corrections), ms.
     pub loop_ms: f64,
     /// Of the tracking, the wide-baseline guesses' wall time (0 when the ordinary path
     /// passed), ms.
@@ -121,9 +122,6 @@ pub struct FinishedPipeline {
     pub corrections: LocalCorrections,
     /// Every frame the loop took, in order, lost ones and those of unjoined segments included.
     pub poses: Vec<TrackedPose>,
-    /// Per frame of `poses`: wall time of its pass through the loop's stages (tracking,
-    /// keyframe, corrections), milliseconds.
-    pub tracking_ms: Vec<f64>,
     /// Per placed frame: the wall clock when its pose was placed minus the frame's stamp,
     /// milliseconds (a live camera's latency from capture to pose; meaningless for recordings,
     /// whose stamps are another day's).
@@ -153,7 +151,6 @@ pub struct AgentPipeline<'a> {
     keyframes_made: Vec<KeyframeMade>,
     frames_since_tracking_keyframe: usize,
     poses: Vec<TrackedPose>,
-    tracking_ms: Vec<f64>,
     stamp_to_pose_ms: Vec<f64>,
     agent_id: u32,
     /// Frames, keyframes, seeded points and placements for the rerun viewer (off the hot path:
@@ -196,7 +193,6 @@ impl<'a> AgentPipeline<'a> {
             keyframes_made: Vec::new(),
             frames_since_tracking_keyframe: 0,
             poses: Vec::with_capacity(frames_expected),
-            tracking_ms: Vec::with_capacity(frames_expected),
             stamp_to_pose_ms: Vec::with_capacity(frames_expected),
             agent_id,
             live_view,
@@ -471,7 +467,6 @@ impl<'a> AgentPipeline<'a> {
     /// Keeps the frame's pose and its time in the loop (started at `clock`).
     pub fn record(&mut self, item: &SourceFrame, tracked: &Tracked, clock: Instant) {
         let loop_ms = clock.elapsed().as_secs_f64() * 1e3;
-        self.tracking_ms.push(loop_ms);
         let placed = tracked.local.placement == Placement::Root
             && (tracked.local.outcome.is_tracked()
                 || tracked.local.outcome == TrackingOutcome::Initialised);
@@ -559,7 +554,6 @@ impl<'a> AgentPipeline<'a> {
             odometry: self.odometry,
             corrections: self.corrections,
             poses: self.poses,
-            tracking_ms: self.tracking_ms,
             stamp_to_pose_ms: self.stamp_to_pose_ms,
             keyframes: self.keyframes,
             keyframes_made: self.keyframes_made,

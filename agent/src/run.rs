@@ -364,8 +364,8 @@ fn finish_live_view(options: &AgentOptions, map: &GaussianCloud) -> Option<LiveV
 /// trajectory.tum (the estimate, in the tracked frame; lost frames, whose pose is only the
 /// prediction, left out; frames of tracking segments never joined to the map go to
 /// trajectory_segment_K.tum, each in its own frame), tracking.csv (every frame's outcome,
-/// confidence and wall times: the loop, the recovery guesses, the map update) and, when the dataset has ground truth, groundtruth.tum next to it (evo and the
-/// swarm report read these).
+/// confidence and wall times: the loop, the recovery guesses, the map update) and, when the
+/// dataset has ground truth, groundtruth.tum next to it (evo and the swarm report read these).
 fn write_trajectories(poses: &[TrackedPose], out: &Path) -> anyhow::Result<Trajectory> {
     let trajectory = Trajectory::from_pairs(
         poses
