@@ -197,6 +197,15 @@ pub struct MapRegistrationConfig {
     /// ...else when its residual is below this fraction of the other's with an overlap of at
     /// least this fraction of the other's. Neither: refused as tied.
     pub ambiguity_residual_ratio: f64,
+    /// When the correspondences leave distinct alternatives nearly tied and only one candidate
+    /// passes the verification (no verified rival to beat), the overlap's colours must confirm
+    /// it with at least this kappa (judged over `min_colour_comparisons` points). Passing the
+    /// geometric checks while the others fail is no evidence between the ways a symmetric room
+    /// fits itself: the turned room passes them as well as the true pose does, and only colour
+    /// tells the turns apart. 0.5: halfway between `min_colour_kappa`, which refuses colours
+    /// that merely do not contradict, and `colour_confirmed_kappa`, which vouches for a pose on
+    /// its own. Maps without colour, or an overlap of one colour, cannot confirm: refused.
+    pub ambiguity_colour_kappa: f64,
     /// A refined transform must keep this fraction of its hypothesis' supporting
     /// correspondences: fewer, G-ICP slid away from what the features say (`decision.rs`).
     pub min_support_kept: f64,
@@ -268,6 +277,7 @@ impl Default for MapRegistrationConfig {
             max_verified_hypotheses: 4,
             ambiguity_free_space_margin: 0.05,
             ambiguity_residual_ratio: 0.8,
+            ambiguity_colour_kappa: 0.5,
             min_support_kept: 0.5,
             min_overlap_fraction: 0.1,
             max_residual_m: 0.03,
@@ -404,6 +414,10 @@ impl MapRegistrationConfig {
             (
                 "consensus.map_registration.ambiguity_residual_ratio",
                 self.ambiguity_residual_ratio,
+            ),
+            (
+                "consensus.map_registration.ambiguity_colour_kappa",
+                self.ambiguity_colour_kappa,
             ),
             (
                 "consensus.map_registration.min_support_kept",

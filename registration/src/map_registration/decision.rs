@@ -15,6 +15,13 @@
 //! of the other's with an overlap at least that fraction of the other's); when none does, the
 //! registration is refused as ambiguous, with the numbers of the two that tie.
 //!
+//! One left of several distinct candidates is not chosen by elimination alone: the checks that
+//! failed the others are the ones the turned copy of a symmetric room passes as well as the
+//! true pose (7-Scenes-like rooms are boxes; the synthetic room is one exactly), so a wrong
+//! turn that passes and a true pose that drifted or overlaps too little look alike. The
+//! survivor must show colours that agree with a kappa of at least `ambiguity_colour_kappa`, or
+//! the registration is refused as unconfirmed; a later attempt with more of the maps decides.
+//!
 //! G-ICP from a hypothesis can also slide away from it: on a thin overlap, the parts of each map
 //! the other does not hold find wrong partners within the correspondence distance and pull the
 //! estimate along a direction the overlap barely constrains (7-Scenes crops of 15 % overlap:
@@ -61,8 +68,10 @@ pub(super) struct Judge<'a> {
 
 /// One candidate after refinement and verification.
 struct Judged {
-    /// Supporters of the hypothesis.
+    /// Supporters of the hypothesis...
     support: usize,
+    /// ...and its transform.
+    hypothesis: Isometry3<f64>,
     estimate: Isometry3<f64>,
     /// Supporting correspondences of the refined transform.
     support_kept: usize,
@@ -145,6 +154,7 @@ impl Judge<'_> {
         let refined = self.refine(&coarse);
         let mut judged = Judged {
             support: hypothesis.support(),
+            hypothesis: coarse,
             estimate: refined.target_from_source,
             support_kept: 0,
             gicp_iterations: refined.iterations,
@@ -259,6 +269,22 @@ pub(super) fn decide(
     scores.hypotheses_verified = judged.len();
     scores.timings.verification_ms = elapsed_ms(stage);
     let centre = judge.source_centre();
+    for (k, j) in judged.iter().enumerate() {
+        let (angle, distance) = transform_difference(&j.estimate, &judged[0].estimate, &centre);
+        tracing::debug!(
+            candidate = k,
+            support = j.support,
+            kept = j.support_kept,
+            overlap = j.overlap.as_ref().map(|o| o.fraction),
+            residual_m = j.overlap.as_ref().map(|o| o.residual_m),
+            kappa = j.overlap.as_ref().map(|o| o.colour_kappa()),
+            depth_agreement = j.free_space.as_ref().map(FreeSpace::agreement),
+            from_best_deg = angle.to_degrees(),
+            from_best_m = distance,
+            verdict = ?j.verdict,
+            "candidate verified"
+        );
+    }
     let same = |a: &Isometry3<f64>, b: &Isometry3<f64>| {
         let (angle, distance) = transform_difference(a, b, &centre);
         angle <= config.distinct_rotation_rad && distance <= config.distinct_translation_m
@@ -276,7 +302,13 @@ pub(super) fn decide(
     }
     let chosen = match passed.as_slice() {
         [] => 0,
-        [only] => *only,
+        [only] => {
+            if let Some(refusal) = unconfirmed(&judged, *only, &centre, config) {
+                fill_scores(&judged[*only], scores);
+                return refusal;
+            }
+            *only
+        }
         _ => match passed.iter().copied().find(|&a| {
             passed
                 .iter()
@@ -298,6 +330,56 @@ pub(super) fn decide(
         verdict: winner.verdict.clone(),
         information: winner.overlap.as_ref().map(|o| o.information),
     }
+}
+
+/// The refusal of `judged[only]`, the one candidate that passed, when distinct alternatives
+/// failed beside it and its colours do not confirm it (`ambiguity_colour_kappa`; see the
+/// module documentation). An alternative is distinct when neither its hypothesis nor its
+/// refined transform is the candidate's estimate.
+fn unconfirmed(
+    judged: &[Judged],
+    only: usize,
+    centre: &Point3<f64>,
+    config: &MapRegistrationConfig,
+) -> Option<Outcome> {
+    let winner = &judged[only];
+    let apart = |pose: &Isometry3<f64>| {
+        let (angle, distance) = transform_difference(pose, &winner.estimate, centre);
+        (
+            angle,
+            distance,
+            angle > config.distinct_rotation_rad || distance > config.distinct_translation_m,
+        )
+    };
+    let rivals: Vec<&Judged> = judged
+        .iter()
+        .enumerate()
+        .filter(|&(k, j)| k != only && apart(&j.hypothesis).2 && apart(&j.estimate).2)
+        .map(|(_, j)| j)
+        .collect();
+    let strongest = rivals.iter().max_by_key(|j| j.support)?;
+    let overlap = winner.overlap.as_ref()?;
+    let compared = overlap.colour_compared;
+    let kappa = overlap.colour_kappa();
+    if compared >= config.min_colour_comparisons && kappa >= config.ambiguity_colour_kappa {
+        return None;
+    }
+    let (angle, distance, _) = apart(&strongest.hypothesis);
+    Some(Outcome {
+        target_from_source: winner.estimate,
+        verdict: Err(MapRejection::Unconfirmed {
+            rivals: rivals.len(),
+            rival_support: strongest.support,
+            support: winner.support,
+            rotation_deg: angle.to_degrees(),
+            translation_m: distance,
+            kappa,
+            compared,
+            required: config.ambiguity_colour_kappa,
+            required_compared: config.min_colour_comparisons,
+        }),
+        information: None,
+    })
 }
 
 /// The refusal of two verified candidates that neither the free-space test nor geometry tells
@@ -341,5 +423,132 @@ fn fill_scores(j: &Judged, scores: &mut MapRegistrationScores) {
     if let Some(free_space) = &j.free_space {
         scores.depth_agreement = free_space.agreement();
         scores.depth_comparisons = free_space.decisive();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+    /// A candidate that passed with `compared` colours compared, `agreeing` of them agreeing
+    /// against a chance agreement of 0.2.
+    fn passed(
+        estimate: Isometry3<f64>,
+        support: usize,
+        compared: usize,
+        agreeing: usize,
+    ) -> Judged {
+        Judged {
+            support,
+            hypothesis: estimate,
+            estimate,
+            support_kept: support,
+            gicp_iterations: 5,
+            gicp_converged: true,
+            overlap: Some(Overlap {
+                overlapping: 5000,
+                fraction: 0.3,
+                residual_m: 0.004,
+                information: Matrix6::identity(),
+                rotation_sigma_rad: 1e-4,
+                translation_sigma_m: 1e-4,
+                colour_compared: compared,
+                colour_agreeing: agreeing,
+                colour_chance: 0.2,
+                colour_gains: [1.0; 3],
+            }),
+            free_space: None,
+            verdict: Ok(()),
+        }
+    }
+
+    /// A candidate whose G-ICP slid from `hypothesis` to `estimate`.
+    fn drifted(hypothesis: Isometry3<f64>, estimate: Isometry3<f64>, support: usize) -> Judged {
+        Judged {
+            hypothesis,
+            estimate,
+            support_kept: 1,
+            overlap: None,
+            verdict: Err(MapRejection::RefinementDrifted {
+                kept: 1,
+                support,
+                required: support / 2,
+                rotation_deg: 5.0,
+                translation_m: 0.3,
+            }),
+            ..passed(estimate, support, 0, 0)
+        }
+    }
+
+    fn turned(degrees: f64) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::new(4.0, 0.0, 0.0),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), degrees.to_radians()),
+        )
+    }
+
+    /// Kappa with a chance agreement of 0.2: (a - 0.2) / 0.8.
+    fn agreeing_for_kappa(kappa: f64, compared: usize) -> usize {
+        ((kappa * 0.8 + 0.2) * compared as f64).round() as usize
+    }
+
+    #[test]
+    fn a_lone_survivor_of_distinct_candidates_needs_colour_that_confirms_it() {
+        let config = MapRegistrationConfig::default();
+        let centre = Point3::origin();
+        let truth = turned(0.0);
+        let turn = turned(180.0);
+        let weak = agreeing_for_kappa(0.33, 1000);
+        let strong = agreeing_for_kappa(0.68, 1000);
+        // The better supported true pose drifted, its 180-degree turn passed with weak colour.
+        let judged = [drifted(truth, truth, 22), passed(turn, 19, 1000, weak)];
+        let refusal = unconfirmed(&judged, 1, &centre, &config).expect("refused");
+        match refusal.verdict {
+            Err(MapRejection::Unconfirmed {
+                rivals: 1,
+                rival_support: 22,
+                support: 19,
+                rotation_deg,
+                kappa,
+                ..
+            }) => {
+                assert!((rotation_deg - 180.0).abs() < 1e-6, "{rotation_deg}");
+                assert!((kappa - 0.33).abs() < 0.01, "{kappa}");
+            }
+            other => panic!("{other:?}"),
+        }
+        // Colours that agree well confirm it.
+        let judged = [drifted(truth, truth, 22), passed(turn, 19, 1000, strong)];
+        assert!(unconfirmed(&judged, 1, &centre, &config).is_none());
+        // So few points compared that colour cannot judge: refused whatever they show.
+        let judged = [drifted(truth, truth, 22), passed(turn, 19, 50, 50)];
+        assert!(unconfirmed(&judged, 1, &centre, &config).is_some());
+        // No colour at all: refused.
+        let judged = [drifted(truth, truth, 22), passed(turn, 19, 0, 0)];
+        assert!(unconfirmed(&judged, 1, &centre, &config).is_some());
+    }
+
+    #[test]
+    fn candidates_that_reach_the_survivors_transform_are_not_rivals() {
+        let config = MapRegistrationConfig::default();
+        let centre = Point3::origin();
+        let truth = turned(0.0);
+        let nearby = turned(3.0);
+        // Another hypothesis that refined onto the survivor's transform but kept too few
+        // supporters, and one whose hypothesis is the survivor's transform: neither is an
+        // alternative, so weak colour is enough (as it is without any alternative).
+        let judged = [
+            passed(truth, 30, 1000, agreeing_for_kappa(0.3, 1000)),
+            drifted(turned(90.0), nearby, 25),
+            drifted(nearby, turned(90.0), 24),
+        ];
+        assert!(unconfirmed(&judged, 0, &centre, &config).is_none());
+        // A distinct one makes the same survivor unconfirmed.
+        let judged = [
+            passed(truth, 30, 1000, agreeing_for_kappa(0.3, 1000)),
+            drifted(turned(90.0), turned(95.0), 25),
+        ];
+        assert!(unconfirmed(&judged, 0, &centre, &config).is_some());
     }
 }

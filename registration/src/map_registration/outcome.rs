@@ -88,6 +88,33 @@ pub enum MapRejection {
         /// test.
         depth_agreements: [f64; 2],
     },
+    /// The correspondences left distinct alternatives nearly tied, only this candidate passed
+    /// the verification, and the overlap's colours do not confirm it: geometry that passes
+    /// while the alternatives fail does not choose between symmetric fits.
+    #[error(
+        "unconfirmed: {rivals} distinct alternative(s) near in support failed the verification beside it (the strongest {rival_support} supporters against {support}, {rotation_deg:.1} degrees and {translation_m:.2} m away), and colour does not confirm it: kappa {kappa:.3} of {compared} points compared, at least {required:.3} over {required_compared} needed"
+    )]
+    Unconfirmed {
+        /// Distinct alternatives verified beside it (all failed).
+        rivals: usize,
+        /// Supporters of the best supported of them...
+        rival_support: usize,
+        /// ...and of the accepted candidate.
+        support: usize,
+        /// Rotation between that alternative's hypothesis and the candidate's estimate
+        /// (degrees)...
+        rotation_deg: f64,
+        /// ...and the distance between where they put the fine source map's centre (metres).
+        translation_m: f64,
+        /// The candidate's colour kappa (NaN without colour, or when the colours cannot tell).
+        kappa: f64,
+        /// Overlapping points compared in colour.
+        compared: usize,
+        /// `ambiguity_colour_kappa`.
+        required: f64,
+        /// `min_colour_comparisons`.
+        required_compared: usize,
+    },
     /// G-ICP from the hypothesis gave no usable pose; the estimate is the hypothesis.
     #[error("G-ICP refinement failed: {0}")]
     RefinementFailed(RegistrationFailure),
