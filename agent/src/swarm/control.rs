@@ -124,22 +124,10 @@ impl SwarmLink {
     }
 
     /// Publishes again, oldest first, every delivered keyframe still held here (in memory or
-    /// in the spool) for which `arrived(id)` is false; reports those no longer held. Returns
-    /// how many went out again.
+    /// in the spool) for which `arrived(id)` is false; reports those no longer held (the
+    /// consensus said it lacks them). Returns how many went out again.
     pub(super) fn publish_again_unless(&mut self, arrived: impl Fn(u64) -> bool) -> usize {
-        let (mut lacking, kept): (VecDeque<WireKeyframe>, VecDeque<WireKeyframe>) =
-            std::mem::take(&mut self.published)
-                .into_iter()
-                .partition(|wire| !arrived(wire.descriptor.keyframe_id));
-        self.published = kept;
-        // Older ones from the spool, oldest first, ahead of the in-memory ones.
-        for wire in self.spooled_lacking(&arrived).into_iter().rev() {
-            lacking.push_front(wire);
-        }
-        let resent: BTreeSet<u64> = lacking
-            .iter()
-            .map(|wire| wire.descriptor.keyframe_id)
-            .collect();
+        let resent = self.publish_again_held_unless(&arrived);
         let unrecoverable: Vec<u64> = self
             .summary
             .keyframes_published_ids
@@ -155,12 +143,34 @@ impl SwarmLink {
             );
             self.summary.keyframes_unrecoverable.extend(unrecoverable);
         }
+        resent.len()
+    }
+
+    /// Publishes again, oldest first, every delivered keyframe still held here (in memory or
+    /// in the spool) for which `arrived(id)` is false. Returns their ids.
+    pub(super) fn publish_again_held_unless(
+        &mut self,
+        arrived: &impl Fn(u64) -> bool,
+    ) -> BTreeSet<u64> {
+        let (mut lacking, kept): (VecDeque<WireKeyframe>, VecDeque<WireKeyframe>) =
+            std::mem::take(&mut self.published)
+                .into_iter()
+                .partition(|wire| !arrived(wire.descriptor.keyframe_id));
+        self.published = kept;
+        // Older ones from the spool, oldest first, ahead of the in-memory ones.
+        for wire in self.spooled_lacking(arrived).into_iter().rev() {
+            lacking.push_front(wire);
+        }
+        let resent: BTreeSet<u64> = lacking
+            .iter()
+            .map(|wire| wire.descriptor.keyframe_id)
+            .collect();
         for wire in lacking {
             self.summary.keyframes_resent += 1;
             // Control messages are only read with the link up.
             self.send_or_enqueue(wire, true);
         }
-        resent.len()
+        resent
     }
 
     /// The spooled keyframes for which `arrived(id)` is false, oldest first (they stay

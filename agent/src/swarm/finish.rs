@@ -54,6 +54,7 @@ impl SwarmLink {
         // without keyframes this agent delivered to its previous process.
         self.answer_control_messages();
         self.flush_queue(true);
+        self.publish_again_unconfirmed_at_end();
         if !self.queue.is_empty() {
             tracing::warn!(
                 keyframes = self.queue.len(),
@@ -71,6 +72,26 @@ impl SwarmLink {
             tracing::warn!("{error:#}");
         }
         summary
+    }
+
+    /// Every delivered keyframe the consensus has not confirmed goes out again before the
+    /// goodbye (repeats are dropped there). A consensus restarted near the end of this run says
+    /// what it lacks (`ConsensusResumed`) before it reads anything of this agent, but that can
+    /// reach this agent after its last look at the control topic, or die with a consensus
+    /// killed again; the goodbye would then end this agent's part of the run without keyframes
+    /// it delivered to the previous process. What is no longer held here is not reported as
+    /// lost: unconfirmed is not missing.
+    fn publish_again_unconfirmed_at_end(&mut self) {
+        let confirmed = self.confirmed.clone();
+        let resent = self.publish_again_held_unless(&|id| confirmed.contains(&id));
+        self.summary.keyframes_resent_at_end = resent.len();
+        if !resent.is_empty() {
+            tracing::info!(
+                keyframes = ?resent,
+                "end of run: keyframes the consensus has not confirmed published again"
+            );
+            self.flush_queue(true);
+        }
     }
 
     pub(super) fn send_final_map(&mut self, final_map: &GaussianCloud) {

@@ -105,8 +105,12 @@ pub struct SwarmSummary {
     pub undelivered_at_end: usize,
     /// The consensus's requests to publish a keyframe again (it arrived incomplete there).
     pub resend_requests: usize,
-    /// Keyframes published again: on request, or after the consensus resumed or lost messages.
+    /// Keyframes published again: on request, after the consensus resumed or lost messages,
+    /// and at the end of the run those it had not confirmed.
     pub keyframes_resent: usize,
+    /// Of those, published again at the end of the run because the consensus had not
+    /// confirmed them (see `SwarmLink::finish`).
+    pub keyframes_resent_at_end: usize,
     /// Requests for keyframes this agent no longer held (`[consensus.resend] agent_keeps`).
     pub resend_unavailable: usize,
     /// Ids of the keyframes delivered to the consensus, ascending.

@@ -349,3 +349,67 @@ fn a_keyframe_whose_send_fails_goes_out_to_the_consensus_that_comes_back() {
     );
     assert_eq!(swarm.status().queued_keyframes, 0);
 }
+
+/// A consensus restarted near the end of the run can tell this agent what it lacks too late
+/// (after the agent's last look at its control topic): every keyframe it has not confirmed
+/// goes out again before the final map and the goodbye; a confirmed one does not.
+#[test]
+fn at_the_end_keyframes_the_consensus_has_not_confirmed_go_out_again_before_the_goodbye() {
+    use protocol::messages::{FINAL_MAP_KEYFRAME_ID, LifecycleKind};
+    use protocol::transport::{ConsumerLink, Incoming};
+
+    let mut transport =
+        TransportConfig::with_namespace(format!("end-resend-{}", std::process::id()));
+    transport.delivery_timeout = Duration::from_secs(3);
+    let mut first = ConsumerLink::open(&transport).unwrap();
+    let mut config = Config::default();
+    config.consensus.t_comm = 1;
+    let mut swarm = SwarmLink::connect(0, &transport, &config, LinkPlan::always_up()).unwrap();
+    let intrinsics = Intrinsics::new(40.0, 40.0, 16.0, 12.0, 32, 24);
+    swarm.announce(&intrinsics, run_anchor("synthetic", 0, 0.0));
+    let mut delivered = Received::default();
+    for keyframe_id in 1..=3 {
+        swarm.on_keyframe(small_keyframe(keyframe_id, intrinsics));
+        after_frame(&mut swarm);
+        delivered
+            .descriptors
+            .extend(received_keyframes(&mut first).descriptors);
+    }
+    assert_eq!(delivered.descriptors, [1, 2, 3]);
+    // The first consensus confirms keyframe 1 (a correction places it), then dies.
+    let pose = protocol::messages::KeyframePose {
+        keyframe_id: 1,
+        camera_to_world: Pose::IDENTITY,
+    };
+    first.send_correction(0, Pose::IDENTITY, &[pose]).unwrap();
+    after_frame(&mut swarm);
+    drop(first);
+
+    // Its successor is up before the agent ends; what it would say on resuming never arrives.
+    let (ready, attached) = std::sync::mpsc::channel();
+    let successor = std::thread::spawn(move || {
+        let mut consumer = ConsumerLink::open(&transport).unwrap();
+        ready.send(()).unwrap();
+        let (mut keyframes, mut patches, mut goodbye) = (Vec::new(), Vec::new(), false);
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        while !goodbye && std::time::Instant::now() < deadline {
+            match consumer.recv_timeout(Duration::from_millis(100)).unwrap() {
+                Some(Incoming::Descriptor(d)) => keyframes.push(d.keyframe_id),
+                Some(Incoming::Patch(p)) => patches.push(p.header().keyframe_id),
+                Some(Incoming::Lifecycle(l)) => {
+                    goodbye |= matches!(l.kind(), Ok(LifecycleKind::Goodbye));
+                }
+                Some(Incoming::KeyframeImage(_)) | None => {}
+            }
+        }
+        (keyframes, patches, goodbye)
+    });
+    attached.recv().unwrap();
+    let summary = swarm.finish(&small_keyframe(9, intrinsics).gaussians);
+    let (keyframes, patches, goodbye) = successor.join().unwrap();
+    assert!(goodbye, "the successor heard the goodbye");
+    assert_eq!(keyframes, [2, 3], "the unconfirmed keyframes, again");
+    assert_eq!(patches, [2, 3, FINAL_MAP_KEYFRAME_ID]);
+    assert_eq!(summary.keyframes_resent_at_end, 2);
+    assert!(summary.keyframes_unrecoverable.is_empty());
+}
