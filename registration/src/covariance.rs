@@ -399,7 +399,10 @@ impl GridIndex {
 
     /// Fills `found` with the k nearest neighbours of point `index` within `radius` cells and
     /// returns true when the answer is certified exact by `certificate_per_metre`.
-    #[allow(clippy::too_many_arguments)]
+    #[allow(
+        clippy::too_many_arguments,
+        reason = "the inner neighbour search: its inputs and the reused output buffer"
+    )]
     fn nearest_in_window(
         &self,
         index: usize,

@@ -37,7 +37,10 @@ impl GpuRenderer {
     /// other key's low `key_bits` bits reach the culled key's (depth keys stay at or below
     /// LARGEST_VISIBLE_DEPTH_KEY), with an odd number of passes (the culled keys stay in the
     /// first pass's output buffer). Returns which buffer (0 or 1) holds the sorted result.
-    #[allow(clippy::too_many_arguments)]
+    #[allow(
+        clippy::too_many_arguments,
+        reason = "a GPU launch: the encoder, both ping-pong buffer pairs and the sort's sizes"
+    )]
     pub(crate) fn radix_sort(
         &self,
         context: &GpuContext,

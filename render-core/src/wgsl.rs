@@ -38,7 +38,7 @@ pub(crate) struct StructLayout {
     pub(crate) name: &'static str,
     pub(crate) fields: &'static [FieldLayout],
     /// Rust `size_of` (checked against naga's layout in the tests).
-    #[cfg_attr(not(test), allow(dead_code))]
+    #[cfg_attr(not(test), allow(dead_code, reason = "read by the layout tests only"))]
     pub(crate) size: usize,
 }
 
@@ -46,7 +46,7 @@ pub(crate) struct FieldLayout {
     pub(crate) name: &'static str,
     pub(crate) wgsl_type: &'static str,
     /// Rust `offset_of` (checked against naga's layout in the tests).
-    #[cfg_attr(not(test), allow(dead_code))]
+    #[cfg_attr(not(test), allow(dead_code, reason = "read by the layout tests only"))]
     pub(crate) offset: usize,
     pub(crate) docs: &'static [&'static str],
 }

@@ -5,7 +5,7 @@
 //! The agent and consensus binaries belong to other packages of the workspace; `cargo test
 //! --workspace` (the README's test command) builds them next to `mac-ego3d`.
 
-#![allow(dead_code)] // each test file uses its own part
+#![allow(dead_code, reason = "each test file uses its own part")]
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command};

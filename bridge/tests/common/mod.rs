@@ -1,5 +1,5 @@
 //! Helpers shared by the bridge's integration tests.
-#![allow(dead_code)]
+#![allow(dead_code, reason = "each test binary uses a different subset")]
 
 use std::path::Path;
 use std::process::{Child, Command};

@@ -1,7 +1,7 @@
 //! Helpers shared by the protocol crate's integration tests: unique namespaces and a handle on a
 //! spawned `protocol-peer` process whose stdout lines can be awaited.
 
-#![allow(dead_code)] // each test binary uses a different subset
+#![allow(dead_code, reason = "each test binary uses a different subset")]
 
 use std::io::{BufRead, BufReader, Read};
 use std::process::{Child, Command, ExitStatus, Stdio};

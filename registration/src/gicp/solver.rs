@@ -191,7 +191,10 @@ fn check_inputs<T: RegistrationTarget + ?Sized>(
 /// fraction of a millimetre, so a fresh search would count the same correspondences (small_gicp
 /// reports its last linearisation's figures likewise) and costs a sixth of a frame's tracking.
 /// Otherwise a fresh search at the final pose.
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "the solver's state at its end, handed over once"
+)]
 fn finish<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,

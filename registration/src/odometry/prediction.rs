@@ -72,7 +72,10 @@ impl ConstantVelocity {
 /// constant-velocity model (`use_velocity` false, or no motion yet) it starts from the previous
 /// pose. `term` (the photometric term) is minimised with G-ICP in whichever run gives the
 /// result. Returns the result and the guess it started from.
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "one registration's inputs, each used once; a struct would only rename them"
+)]
 pub fn register_from_prediction<T: RegistrationTarget + ?Sized>(
     source: &PointCloud,
     target: &T,

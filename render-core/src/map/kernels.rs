@@ -114,7 +114,10 @@ pub(super) fn grow_buffers<const N: usize>(
 
 /// Encodes the compaction of one per-Gaussian buffer into a fresh buffer of `capacity`
 /// Gaussians, using the inclusive scan of the keep flags.
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "a GPU launch: its buffers and sizes"
+)]
 pub(super) fn compact_buffer(
     context: &GpuContext,
     kernels: &MapKernels,

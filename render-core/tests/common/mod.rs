@@ -1,5 +1,5 @@
 //! Shared scenes and the shared wgpu context for the integration tests.
-#![allow(dead_code)]
+#![allow(dead_code, reason = "each test binary uses a different subset")]
 
 use std::sync::OnceLock;
 

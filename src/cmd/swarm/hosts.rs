@@ -39,7 +39,6 @@ impl SimulatedHosts {
     /// Hosts for a swarm of `agents` writing into `out`: a free port on 127.0.0.1 for the
     /// consensus host, and (TLS) a new CA and host certificates in `out/certs` (an earlier run's
     /// are replaced).
-    #[allow(clippy::too_many_arguments)]
     pub fn prepare(
         script: PathBuf,
         binaries: &Path,

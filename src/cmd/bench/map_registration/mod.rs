@@ -143,7 +143,7 @@ struct BenchPair {
 
 impl BenchPair {
     /// Map B moved into the random frame of `seed`, with another white balance.
-    #[allow(clippy::too_many_arguments)]
+    #[allow(clippy::too_many_arguments, reason = "a bench pair's fields")]
     fn new(
         bin: String,
         name: String,

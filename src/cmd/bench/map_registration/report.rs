@@ -47,7 +47,7 @@ pub struct MethodRun {
 impl MethodRun {
     /// A run of `method` whose estimate is `estimate` (`None`: it could not run; `reason` says
     /// why), judged against `truth`.
-    #[allow(clippy::too_many_arguments)]
+    #[allow(clippy::too_many_arguments, reason = "a method run's figures")]
     pub fn judged(
         method: &str,
         estimate: Option<Isometry3<f64>>,
