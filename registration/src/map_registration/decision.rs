@@ -285,10 +285,7 @@ pub(super) fn decide(
             "candidate verified"
         );
     }
-    let same = |a: &Isometry3<f64>, b: &Isometry3<f64>| {
-        let (angle, distance) = transform_difference(a, b, &centre);
-        angle <= config.distinct_rotation_rad && distance <= config.distinct_translation_m
-    };
+    let same = |a: &Isometry3<f64>, b: &Isometry3<f64>| same_transform(a, b, &centre, config);
     // The verified candidates, one per refined transform (the better supported first).
     let mut passed: Vec<usize> = Vec::new();
     for (k, j) in judged.iter().enumerate() {
@@ -332,6 +329,18 @@ pub(super) fn decide(
     }
 }
 
+/// Whether two transforms are one (`distinct_rotation_rad`, `distinct_translation_m` apart at
+/// most, compared at `centre`).
+fn same_transform(
+    a: &Isometry3<f64>,
+    b: &Isometry3<f64>,
+    centre: &Point3<f64>,
+    config: &MapRegistrationConfig,
+) -> bool {
+    let (angle, distance) = transform_difference(a, b, centre);
+    angle <= config.distinct_rotation_rad && distance <= config.distinct_translation_m
+}
+
 /// The refusal of `judged[only]`, the one candidate that passed, when distinct alternatives
 /// failed beside it and its colours do not confirm it (`ambiguity_colour_kappa`; see the
 /// module documentation). An alternative is distinct when neither its hypothesis nor its
@@ -343,18 +352,11 @@ fn unconfirmed(
     config: &MapRegistrationConfig,
 ) -> Option<Outcome> {
     let winner = &judged[only];
-    let apart = |pose: &Isometry3<f64>| {
-        let (angle, distance) = transform_difference(pose, &winner.estimate, centre);
-        (
-            angle,
-            distance,
-            angle > config.distinct_rotation_rad || distance > config.distinct_translation_m,
-        )
-    };
+    let apart = |pose: &Isometry3<f64>| !same_transform(pose, &winner.estimate, centre, config);
     let rivals: Vec<&Judged> = judged
         .iter()
         .enumerate()
-        .filter(|&(k, j)| k != only && apart(&j.hypothesis).2 && apart(&j.estimate).2)
+        .filter(|&(k, j)| k != only && apart(&j.hypothesis) && apart(&j.estimate))
         .map(|(_, j)| j)
         .collect();
     let strongest = rivals.iter().max_by_key(|j| j.support)?;
@@ -364,7 +366,7 @@ fn unconfirmed(
     if compared >= config.min_colour_comparisons && kappa >= config.ambiguity_colour_kappa {
         return None;
     }
-    let (angle, distance, _) = apart(&strongest.hypothesis);
+    let (angle, distance) = transform_difference(&strongest.hypothesis, &winner.estimate, centre);
     Some(Outcome {
         target_from_source: winner.estimate,
         verdict: Err(MapRejection::Unconfirmed {
