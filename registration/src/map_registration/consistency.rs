@@ -126,6 +126,19 @@ pub fn transform_difference(
     (angle, distance)
 }
 
+/// Whether two transforms are one: rotations at most `rotation_rad` apart and `centre` put at
+/// most `translation_m` apart (the module documentation's distinct transforms, negated).
+pub fn same_transform(
+    a: &Isometry3<f64>,
+    b: &Isometry3<f64>,
+    centre: &Point3<f64>,
+    rotation_rad: f64,
+    translation_m: f64,
+) -> bool {
+    let (angle, distance) = transform_difference(a, b, centre);
+    angle <= rotation_rad && distance <= translation_m
+}
+
 /// The search over correspondences `source[k] <-> target[k]`.
 struct Search<'a> {
     source: &'a [Point3<f64>],
@@ -174,8 +187,13 @@ impl Search<'_> {
     }
 
     fn same_transform(&self, a: &Isometry3<f64>, b: &Isometry3<f64>) -> bool {
-        let (angle, distance) = transform_difference(a, b, &self.centre);
-        angle <= self.params.distinct_rotation_rad && distance <= self.params.distinct_translation_m
+        same_transform(
+            a,
+            b,
+            &self.centre,
+            self.params.distinct_rotation_rad,
+            self.params.distinct_translation_m,
+        )
     }
 
     /// Whether a hypothesis of this support could change the pool.

@@ -33,7 +33,7 @@ use std::time::Instant;
 
 use nalgebra::{Isometry3, Matrix6, Point3};
 
-use super::consistency::{Hypothesis, transform_difference};
+use super::consistency::{self, Hypothesis, transform_difference};
 use super::free_space::{FreeSpace, FreeSpaceCheck};
 use super::maps::{FineView, PreparedMap};
 use super::verification::{ColourCheck, Overlap, RefinementParams, measure_overlap, refine};
@@ -329,16 +329,20 @@ pub(super) fn decide(
     }
 }
 
-/// Whether two transforms are one (`distinct_rotation_rad`, `distinct_translation_m` apart at
-/// most, compared at `centre`).
+/// Whether two transforms are one (the correspondences' `distinct_*` thresholds, at `centre`).
 fn same_transform(
     a: &Isometry3<f64>,
     b: &Isometry3<f64>,
     centre: &Point3<f64>,
     config: &MapRegistrationConfig,
 ) -> bool {
-    let (angle, distance) = transform_difference(a, b, centre);
-    angle <= config.distinct_rotation_rad && distance <= config.distinct_translation_m
+    consistency::same_transform(
+        a,
+        b,
+        centre,
+        config.distinct_rotation_rad,
+        config.distinct_translation_m,
+    )
 }
 
 /// The refusal of `judged[only]`, the one candidate that passed, when distinct alternatives
