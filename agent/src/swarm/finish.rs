@@ -149,10 +149,15 @@ impl SwarmLink {
     }
 
     /// Every keyframe the consensus has not confirmed, published again (repeats are dropped
-    /// there), then the final map: what a consensus reached again needs before a goodbye.
+    /// there), then the final map: what a consensus reached again needs before a goodbye. As
+    /// at the end of the run, what is no longer held here is not reported as lost: the
+    /// consensus has not said it lacks it, only not yet confirmed it (a consensus that lacks
+    /// it says so with `ConsensusResumed` or `MessagesLost`, and that report counts it).
     fn publish_again_before_goodbye(&mut self, final_map: &GaussianCloud) {
         let confirmed = self.confirmed.clone();
-        let resent = self.publish_again_unless(|id| confirmed.contains(&id));
+        let resent = self
+            .publish_again_held_unless(&|id| confirmed.contains(&id))
+            .len();
         tracing::warn!(
             publishing_again = resent,
             "the consensus is reachable again: publishing again what it has not confirmed, the \
