@@ -237,7 +237,10 @@ pub fn run_agent(
     )?;
     // The consensus reads trajectory.tum once this agent has said goodbye, so that goes first;
     // the evaluation below takes a while and needs nothing from the swarm.
-    let swarm_summary = swarm.map(|link| link.finish(&outcome.realtime_map_at_tracked_poses()));
+    // The map goes in the frame it was fitted in (its keyframes at their refined poses with
+    // `refine_keyframe_poses`): moving each Gaussian back to its keyframe's tracked pose tears
+    // surfaces seen from several keyframes (docs/method.md, The consensus: joint refinement).
+    let swarm_summary = swarm.map(|link| link.finish(&outcome.realtime_map));
     // The latest placement the consensus sent, one that arrived while the link finished
     // included: the recording ends with this agent's map in the world frame.
     if let Some(world_from_agent) = swarm_summary

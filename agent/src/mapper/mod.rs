@@ -21,7 +21,6 @@
 //! `state.rs` holds the mapping thread's state (keyframes on the device, commands, corrections,
 //! the map's download), `iteration.rs` one Adam iteration and the keyframe pose step.
 
-use std::borrow::Cow;
 use std::sync::Arc;
 use std::sync::atomic::AtomicUsize;
 use std::thread::JoinHandle;
@@ -133,46 +132,10 @@ impl MappingStats {
 pub struct MappingOutcome {
     /// The map when the stream ended (real-time mapping only).
     pub realtime_map: GaussianCloud,
-    /// `refine_keyframe_poses` only: how `realtime_map` moves from where the pose refinement
-    /// put the keyframe cameras back to their tracked poses (see
-    /// [`MappingOutcome::realtime_map_at_tracked_poses`]).
-    pub tracked_pose_moves: Option<TrackedPoseMoves>,
     /// Counters of real-time mapping (while the frames came in).
     pub realtime: MappingStats,
     /// After the optional refinement pass.
     pub refined: Option<(GaussianCloud, MappingStats)>,
-}
-
-impl MappingOutcome {
-    /// `realtime_map` as the consensus is sent it: moved back to the tracked keyframe poses
-    /// when the mapper refined them, since the consensus places the map with the tracked
-    /// keyframes it knows; otherwise `realtime_map` itself. Built on demand: only a swarm agent
-    /// needs the moved copy.
-    pub fn realtime_map_at_tracked_poses(&self) -> Cow<'_, GaussianCloud> {
-        match &self.tracked_pose_moves {
-            Some(moves) => Cow::Owned(moves.apply(&self.realtime_map)),
-            None => Cow::Borrowed(&self.realtime_map),
-        }
-    }
-}
-
-/// Moves a map from refined keyframe cameras back to tracked ones: each Gaussian by its
-/// seeding keyframe's tracked `world_from_camera` times its refined `camera_from_world`.
-pub struct TrackedPoseMoves {
-    /// Per Gaussian of the map it was made for: its seeding keyframe's id.
-    keyframe_of: Vec<u32>,
-    /// Per keyframe id.
-    moves: Vec<RigidTransform>,
-}
-
-impl TrackedPoseMoves {
-    /// A copy of `map` with each Gaussian moved by its seeding keyframe's move. `map` must be
-    /// the map these moves were made for (the same Gaussians in the same order).
-    pub fn apply(&self, map: &GaussianCloud) -> GaussianCloud {
-        let mut moved = map.clone();
-        moved.transform_groups(&self.keyframe_of, &self.moves);
-        moved
-    }
 }
 
 /// Why the mapping thread could not start or did not finish.

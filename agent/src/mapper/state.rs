@@ -23,10 +23,7 @@ use render_core::training::{DeviceTarget, LossWeights, TargetImage, TrainingKern
 use render_core::types::{Camera, RasterConfig};
 use splats::{GaussianCloud, RigidTransform};
 
-use super::{
-    Command, MapperError, MapperProgress, MappingKeyframe, MappingOutcome, MappingStats,
-    TrackedPoseMoves,
-};
+use super::{Command, MapperError, MapperProgress, MappingKeyframe, MappingOutcome, MappingStats};
 
 /// A keyframe kept for optimisation, at mapping resolution; its target lives on the device
 /// (uploaded once, not every iteration).
@@ -164,7 +161,6 @@ impl MapperState {
         self.stats.keyframe_pose_corrections = self.keyframe_pose_corrections();
         let realtime = std::mem::take(&mut self.stats);
         let realtime_map = self.download()?;
-        let tracked_pose_moves = self.tracked_pose_moves();
         tracing::info!(
             iterations = realtime.iterations,
             per_second = format!("{:.2}", realtime.iterations_per_second()),
@@ -193,7 +189,6 @@ impl MapperState {
         };
         Ok(MappingOutcome {
             realtime_map,
-            tracked_pose_moves,
             realtime,
             refined,
         })
@@ -209,31 +204,6 @@ impl MapperState {
             let tracked = Isometry3::from(&keyframe.tracked_camera_from_world).inverse();
             (keyframe.timestamp_s, correction(&refined, &tracked))
         }))
-    }
-
-    /// `refine_keyframe_poses` only: `map` (downloaded from this state's map, so in its order)
-    /// with each Gaussian moved by its seeding keyframe's tracked pose times its refined pose's
-    /// inverse, so that the map seen from the tracked pose looks as it did from the refined
-    /// one. Each Gaussian moves with the keyframe that seeded it, as a consensus correction
-    /// moves it; where keyframes refined differently see the same Gaussian, that is an
-    /// approximation, which the consensus's joint refinement (poses and map) fits further.
-    pub(super) fn tracked_pose_moves(&self) -> Option<TrackedPoseMoves> {
-        if !self.config.refine_keyframe_poses {
-            return None;
-        }
-        let ids = self.keyframes.iter().map(|keyframe| keyframe.keyframe_id);
-        let mut moves = vec![RigidTransform::IDENTITY; ids.max().map_or(0, |id| id + 1)];
-        for keyframe in &self.keyframes {
-            // tracked world_from_camera * refined camera_from_world.
-            moves[keyframe.keyframe_id] = keyframe
-                .tracked_camera_from_world
-                .inverse()
-                .compose(&keyframe.camera.camera_from_world);
-        }
-        Some(TrackedPoseMoves {
-            keyframe_of: self.keyframe_of.clone(),
-            moves,
-        })
     }
 
     /// `simulated_iteration_delay_ms` of extra wall time per iteration.

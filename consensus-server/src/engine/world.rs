@@ -159,18 +159,41 @@ impl Engine {
         })
     }
 
-    /// Replaces the pose graph's keyframe poses by refined ones (and their corrections, which the
-    /// world trajectories blend).
+    /// Replaces the pose graph's poses of the keyframes in `refined` (the joint refinement's
+    /// views) and moves every other placed keyframe of their agents along: by the views' moves
+    /// (`refined * before^-1`, in the world frame) blended to its time, as a correction is
+    /// blended to a frame's time. A keyframe whose image never reached the consensus is no view;
+    /// left where the pose graph put it, it would pull the world trajectory of the frames around
+    /// it back towards the poses the map was not refined at. An agent with no view moves
+    /// nothing.
     pub fn apply_refined_poses(&mut self, refined: &BTreeMap<KeyframeRef, Isometry3<f64>>) {
         let Some(solution) = self.solution.as_mut() else {
             return;
         };
+        let mut moves: BTreeMap<u32, Vec<(f64, Isometry3<f64>)>> = BTreeMap::new();
         for (id, world_from_camera) in refined {
-            let Some(info) = self.info.get(id) else {
+            let (Some(info), Some(before)) =
+                (self.info.get(id), solution.world_from_camera.get(id))
+            else {
                 continue;
             };
-            if let Some(stored) = solution.world_from_camera.get_mut(id) {
-                *stored = *world_from_camera;
+            moves
+                .entry(id.agent_id)
+                .or_default()
+                .push((info.timestamp_s, world_from_camera * before.inverse()));
+        }
+        for (agent_id, anchors) in moves {
+            let field = CorrectionField::from_anchors(anchors);
+            for (id, world_from_camera) in
+                solution.world_from_camera.range_mut(agent_range(agent_id))
+            {
+                let Some(info) = self.info.get(id) else {
+                    continue;
+                };
+                *world_from_camera = match refined.get(id) {
+                    Some(refined) => *refined,
+                    None => field.at(info.timestamp_s) * *world_from_camera,
+                };
                 solution.corrections.insert(
                     *id,
                     correction(world_from_camera, &isometry_from_info(info)),
@@ -268,6 +291,69 @@ mod tests {
             gnc_steps: 0,
         });
         engine
+    }
+
+    /// Agent 0 with keyframes 0, 1, 2 at times 0, 1, 2 s, tracked and placed at x = 0, 1, 2 m.
+    fn three_keyframes() -> Engine {
+        let mut engine = Engine::new(ConsensusConfig::default());
+        let mut world_from_camera = BTreeMap::new();
+        let mut corrections = BTreeMap::new();
+        for k in 0..3u64 {
+            let id = KeyframeRef {
+                agent_id: 0,
+                keyframe_id: k,
+            };
+            let pose = Isometry3::translation(k as f64, 0.0, 0.0);
+            engine.info.insert(
+                id,
+                KeyframeInfo {
+                    frame_index: k * 10,
+                    timestamp_s: k as f64,
+                    agent_from_camera: geometry::se3::isometry_to_tum(&pose),
+                },
+            );
+            world_from_camera.insert(id, pose);
+            corrections.insert(id, Isometry3::identity());
+        }
+        engine.solution = Some(PoseGraphSolution {
+            world_from_agent: [(0, Some(Isometry3::identity()))].into(),
+            world_from_camera,
+            corrections,
+            loops: Vec::new(),
+            gnc_steps: 0,
+        });
+        engine
+    }
+
+    #[test]
+    fn keyframes_that_are_no_view_move_with_the_views_around_them() {
+        let mut engine = three_keyframes();
+        let id = |keyframe_id| KeyframeRef {
+            agent_id: 0,
+            keyframe_id,
+        };
+        // Views 0 and 2 refined 2 cm and 4 cm along y; keyframe 1 had no image.
+        let refined: BTreeMap<KeyframeRef, Isometry3<f64>> = [
+            (id(0), Isometry3::translation(0.0, 0.02, 0.0)),
+            (id(2), Isometry3::translation(2.0, 0.04, 0.0)),
+        ]
+        .into();
+        engine.apply_refined_poses(&refined);
+        let solution = engine.solution.as_ref().unwrap();
+        let middle = solution.world_from_camera[&id(1)];
+        assert!(
+            (middle.translation.vector - nalgebra::Vector3::new(1.0, 0.03, 0.0)).norm() < 1e-12,
+            "half way between the views' moves: {middle:?}"
+        );
+        assert_eq!(solution.world_from_camera[&id(2)], refined[&id(2)]);
+        let tracked = Isometry3::translation(1.0, 0.0, 0.0);
+        assert!(
+            (solution.corrections[&id(1)] * tracked)
+                .translation
+                .vector
+                .relative_eq(&middle.translation.vector, 1e-12, 1e-12),
+            "the correction follows the pose"
+        );
     }
 
     #[test]
