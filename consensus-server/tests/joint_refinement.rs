@@ -250,3 +250,53 @@ fn gaussians_the_refinement_leaves_transparent_are_pruned() {
     assert_eq!(outcome.map.len(), visible + FADED - outcome.report.pruned);
     assert!(outcome.map.means.iter().all(|m| m[1] < 49.0));
 }
+
+/// `poses_first_fraction`: the first iterations step the poses alone. Here all of them do: the
+/// map comes back as it went in, bit for bit, while the poses (all but the anchor's) moved.
+#[test]
+fn in_the_poses_first_phase_only_the_poses_move() {
+    let frames = frames();
+    let error = Isometry3::from_parts(
+        Translation3::new(0.01, 0.0, 0.0),
+        UnitQuaternion::identity(),
+    );
+    let truth: Vec<Isometry3<f64>> = frames
+        .iter()
+        .map(|f| f.world_from_camera_gt.unwrap())
+        .collect();
+    let start: Vec<Isometry3<f64>> = (0..frames.len())
+        .map(|k| if k == 1 { truth[k] * error } else { truth[k] })
+        .collect();
+    let views: Vec<RefinementView> = frames
+        .iter()
+        .enumerate()
+        .map(|(k, f)| view(k, f, start[k]))
+        .collect();
+    let mut config = config(40, true);
+    config.refinement.poses_first_fraction = 1.0;
+    let map = map_from_views(&frames, 0.0);
+    let outcome = refine(
+        RefinementProblem {
+            map: map.clone(),
+            views,
+            edges: Vec::new(),
+            anchor: Some(0),
+        },
+        &config,
+    )
+    .unwrap();
+    assert_eq!(outcome.report.iterations, 40);
+    assert_eq!(outcome.map, map, "the map holds while the poses go first");
+    for (k, pose) in start.iter().enumerate() {
+        let id = KeyframeRef {
+            agent_id: (k % 2) as u32,
+            keyframe_id: k as u64,
+        };
+        let refined = outcome.world_from_camera[&id];
+        if k == 0 {
+            assert_eq!(refined, *pose, "the anchor never moves");
+        } else {
+            assert_ne!(refined, *pose, "view {k} took pose steps");
+        }
+    }
+}

@@ -47,6 +47,13 @@ pub struct RefinementConfig {
     /// a blurred map points nowhere useful (on the synthetic swarm, refining poses from the first
     /// iteration moved exact poses by up to 1.1 cm and 0.5 degrees).
     pub pose_warmup_fraction: f64,
+    /// The first this fraction of the iterations (or of the time bound) moves the poses only,
+    /// the map held as the agents sent it (default 0: none). Each agent's map fits its own final
+    /// keyframe poses, and the pose graph's lie a centimetre or two from those: poses that reach
+    /// their maps first are not paid for by a map refitted to the wrong poses. The map-only
+    /// warm-up (`pose_warmup_fraction`) then runs until its own fraction, counted from the first
+    /// iteration, and both move after it.
+    pub poses_first_fraction: f64,
     /// Adam step sizes of the pose (metres and radians per step; an Adam step is about this
     /// size whatever the gradient's scale): 0.2 mm and 0.01 degrees.
     pub lr_pose_translation_m: f64,
@@ -84,6 +91,7 @@ impl Default for RefinementConfig {
             lr_rotations: 0.0,
             refine_poses: true,
             pose_warmup_fraction: 0.5,
+            poses_first_fraction: 0.0,
             lr_pose_translation_m: 2e-4,
             lr_pose_rotation_rad: 2e-4,
             max_pose_change_m: 0.05,
@@ -114,6 +122,10 @@ impl RefinementConfig {
         fraction(
             "consensus.refinement.pose_warmup_fraction",
             self.pose_warmup_fraction,
+        )?;
+        fraction(
+            "consensus.refinement.poses_first_fraction",
+            self.poses_first_fraction,
         )?;
         positive(
             "consensus.refinement.lr_final_fraction",

@@ -106,12 +106,14 @@ impl<'v> MapTrainer<'v> {
 
     /// Iteration `iteration` of the map on `view` seen from `world_from_camera`: render (checking
     /// the tile pairs on the view's first visit and every [`CHECK_PAIRS_EVERY`] iterations),
-    /// loss, backward and an Adam step. Returns the gradients (the pose's among them).
+    /// loss, backward and, with `step_map`, an Adam step of the map. Returns the gradients (the
+    /// pose's among them).
     pub fn step(
         &mut self,
         view: usize,
         world_from_camera: &Isometry3<f64>,
         iteration: usize,
+        step_map: bool,
     ) -> Result<DeviceGradients, GpuError> {
         let (context, renderer) = (&self.context, &self.renderer);
         let camera = self.views[view].camera(world_from_camera);
@@ -168,7 +170,9 @@ impl<'v> MapTrainer<'v> {
                 );
             }
         }
-        self.map.adam_step(context, &self.kernels, &gradients)?;
+        if step_map {
+            self.map.adam_step(context, &self.kernels, &gradients)?;
+        }
         Ok(gradients)
     }
 

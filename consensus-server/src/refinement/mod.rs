@@ -282,8 +282,9 @@ pub fn refine(
 
 /// The optimisation loop: one view per iteration, every view once per pass in a shuffled order,
 /// until `iterations` (`iterations_per_view` per view, at most `max_iterations`) are done or
-/// `max_seconds` have passed. Every iteration steps the map; once
-/// the warm-up is over, every view's pose but the `anchor`'s steps too.
+/// `max_seconds` have passed. The first `poses_first_fraction` of them step the poses alone;
+/// then every iteration steps the map, and once the warm-up is over every view's pose but the
+/// `anchor`'s steps too.
 fn optimise(
     trainer: &mut MapTrainer<'_>,
     poses: &mut PoseRefinement<'_>,
@@ -296,6 +297,7 @@ fn optimise(
     let mut rng = ChaCha8Rng::seed_from_u64(config.random_seed);
     let mut order: Vec<usize> = Vec::new();
     let pose_warmup = (config.pose_warmup_fraction * iterations as f64).ceil() as usize;
+    let poses_first = (config.poses_first_fraction * iterations as f64).ceil() as usize;
     // A paced refinement runs for tens of minutes on a CPU: say how far it is, ten times.
     let progress_every = iterations.div_ceil(10).max(1);
     while report.iterations < iterations {
@@ -325,9 +327,14 @@ fn optimise(
             let progress = report.iterations as f64 / iterations as f64;
             trainer.scale_learning_rates(config.lr_final_fraction.powf(progress));
         }
-        let gradients = trainer.step(view, &poses.poses[view], report.iterations)?;
-        let pose_time = report.iterations >= pose_warmup
-            || started.elapsed().as_secs_f64() >= config.pose_warmup_fraction * config.max_seconds;
+        let elapsed = started.elapsed().as_secs_f64();
+        let poses_alone = config.refine_poses
+            && report.iterations < poses_first
+            && elapsed < config.poses_first_fraction * config.max_seconds;
+        let gradients = trainer.step(view, &poses.poses[view], report.iterations, !poses_alone)?;
+        let pose_time = poses_alone
+            || report.iterations >= pose_warmup
+            || elapsed >= config.pose_warmup_fraction * config.max_seconds;
         if config.refine_poses && pose_time && Some(view) != anchor {
             let photometric = gradients
                 .read_pose(&trainer.context)?
