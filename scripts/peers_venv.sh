@@ -49,11 +49,19 @@ if [[ "${1:-}" == "--relock" ]]; then
   exit 0
 fi
 
+# Tests call this script from several threads at once: one installs (libusb
+# with apt, then the venv), the others wait for it.
+mkdir -p "$(dirname "$venv")"
+exec 9>"$venv.install-lock"
+flock 9
+
 if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then
   if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null 2>&1; then
     log "installing libusb-1.0-0 (open3d's wheel links it)"
-    apt-get install -y -qq libusb-1.0-0 >/dev/null 2>&1 ||
-      { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq libusb-1.0-0 >/dev/null 2>&1; } ||
+    # Another apt (set-up, another project) may hold the package lock: wait for it.
+    apt=(apt-get -o DPkg::Lock::Timeout=300)
+    "${apt[@]}" install -y -qq libusb-1.0-0 >/dev/null 2>&1 ||
+      { "${apt[@]}" update -qq >/dev/null 2>&1 && "${apt[@]}" install -y -qq libusb-1.0-0 >/dev/null 2>&1; } ||
       fail "could not install libusb-1.0-0 with apt"
   else
     fail "open3d needs libusb-1.0-0: sudo apt-get install libusb-1.0-0" 2
@@ -61,10 +69,6 @@ if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then
 fi
 
 pins="$(sha256sum "$lock" | cut -d' ' -f1)"
-# Tests call this script from several threads at once: one installs, the others wait for it.
-mkdir -p "$(dirname "$venv")"
-exec 9>"$venv.install-lock"
-flock 9
 if [[ "$(cat "$venv/.lock-sha256" 2>/dev/null)" != "$pins" ]] || ! "$venv/bin/python" -c 'import numpy' 2>/dev/null; then
   log "installing the pinned peers into $venv (once; ~400 MB)"
   rm -rf "$venv"
