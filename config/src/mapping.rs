@@ -75,9 +75,9 @@ pub struct MappingConfig {
     /// Optimise each keyframe's pose with the map, photometrically, as the consensus's joint
     /// refinement does (docs/method.md, One agent: Map optimisation). The first keyframe stays
     /// (it fixes the map's frame). The tracked trajectory is not changed; the agent's evaluation
-    /// renders each frame where the refinement of its neighbouring keyframes moved it; the
-    /// final map a swarm agent sends is moved back to the tracked keyframe poses the consensus
-    /// knows.
+    /// renders each frame where the refinement of its neighbouring keyframes moved it. A swarm
+    /// agent sends its final map as fitted, at the refined poses; the consensus, which knows the
+    /// tracked ones, closes the gap in its joint refinement.
     pub refine_keyframe_poses: bool,
     /// Adam step sizes of a keyframe pose (metres and radians per step).
     pub lr_pose_translation_m: f64,
