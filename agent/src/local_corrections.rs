@@ -544,6 +544,7 @@ mod tests {
                     depth: &frame.depth,
                     rgb: Some(&frame.rgb),
                     intrinsics: &frame.intrinsics,
+                    colour_offset_s: frame.colour_offset_s,
                     real_time: false,
                 };
                 let expected = reference.track(input).world_from_camera;

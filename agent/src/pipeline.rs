@@ -224,6 +224,7 @@ impl<'a> AgentPipeline<'a> {
             depth: &frame.depth,
             rgb: Some(&frame.rgb),
             intrinsics: &frame.intrinsics,
+            colour_offset_s: frame.colour_offset_s,
             real_time,
         });
         if self.odometry.next_point_id() > tracker_first_point {

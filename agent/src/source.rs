@@ -361,6 +361,7 @@ mod tests {
             depth,
             world_from_camera_gt: Some(Isometry3::identity()),
             ground_truth_error: None,
+            colour_offset_s: 0.0,
             intrinsics: Intrinsics::new(10.0, 10.0, 3.5, 2.5, w, h),
         }
     }

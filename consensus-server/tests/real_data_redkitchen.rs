@@ -68,6 +68,7 @@ fn track(agent_id: u32, dir: &str, range: &str) -> TrackedAgent {
             depth: &frame.depth,
             rgb: Some(&frame.rgb),
             intrinsics: &frame.intrinsics,
+            colour_offset_s: frame.colour_offset_s,
             real_time: false,
         });
         tracked.frames.push((

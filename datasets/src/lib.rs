@@ -59,6 +59,12 @@ pub struct Frame {
     /// The camera of `rgb` (and of `depth` in frames from [`open`]). For frames [`open`]
     /// undistorts, it is the pinhole they were resampled into, not the recorded lens.
     pub intrinsics: Intrinsics,
+    /// When the colour image was taken, relative to the depth image (seconds, colour stamp
+    /// minus depth stamp): sensors that stream colour and depth separately (a Kinect through
+    /// OpenNI, TUM's recordings, ROS 2 topics) pair images up to a frame period apart, and in a
+    /// fast turn the two then see the scene from poses a degree apart. 0 where the two are taken
+    /// together or the source does not say (7-Scenes, Replica, the synthetic scene).
+    pub colour_offset_s: f64,
 }
 
 /// A source of frames with random access. Implementations are cheap to share between threads:

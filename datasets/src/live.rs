@@ -316,6 +316,7 @@ impl LiveTopics {
             depth,
             world_from_camera_gt: None,
             ground_truth_error: None,
+            colour_offset_s: 0.0,
             intrinsics: self.intrinsics,
         })
     }

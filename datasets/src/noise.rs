@@ -127,6 +127,7 @@ mod tests {
             depth,
             world_from_camera_gt: None,
             ground_truth_error: None,
+            colour_offset_s: 0.0,
             intrinsics: Intrinsics::new(50.0, 50.0, 31.5, 31.5, w, h),
         }
     }

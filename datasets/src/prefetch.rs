@@ -159,6 +159,7 @@ mod tests {
                 depth: DepthImage::new(2, 2),
                 world_from_camera_gt: None,
                 ground_truth_error: None,
+                colour_offset_s: 0.0,
                 intrinsics: self.intrinsics(),
             })
         }

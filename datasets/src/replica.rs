@@ -153,6 +153,7 @@ impl Dataset for Replica {
             depth,
             world_from_camera_gt: self.ground_truth(position)?,
             ground_truth_error: None,
+            colour_offset_s: 0.0,
             intrinsics: self.intrinsics,
         })
     }

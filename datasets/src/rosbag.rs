@@ -182,6 +182,8 @@ pub struct BagChoice {
 struct Pair {
     number: usize,
     stamp: f64,
+    /// The paired depth image's stamp.
+    depth_stamp: f64,
     colour: usize,
     depth: usize,
     world_from_camera_gt: Option<Isometry3<f64>>,
@@ -273,6 +275,7 @@ impl RosBag {
             pairs.push(Pair {
                 number: pairs.len(),
                 stamp: *stamp,
+                depth_stamp: depth_stamps[d],
                 colour: *colour_message,
                 depth: depth[d].2,
                 world_from_camera_gt: gt,
@@ -442,6 +445,7 @@ impl Dataset for RosBag {
             depth,
             world_from_camera_gt: pair.world_from_camera_gt,
             ground_truth_error: None,
+            colour_offset_s: pair.stamp - pair.depth_stamp,
             intrinsics: self.intrinsics,
         })
     }

@@ -259,6 +259,7 @@ impl Dataset for SevenScenes {
             depth,
             world_from_camera_gt,
             ground_truth_error,
+            colour_offset_s: 0.0,
             intrinsics: self.intrinsics,
         })
     }
@@ -347,6 +348,7 @@ mod tests {
             depth,
             world_from_camera_gt: Some(Isometry3::translation(0.1 * index as f64, 0.0, 1.0)),
             ground_truth_error: None,
+            colour_offset_s: 0.0,
             intrinsics: Intrinsics::new(5.0, 5.0, 1.5, 1.0, 4, 3),
         }
     }

@@ -2,7 +2,8 @@
 //! `groundtruth.txt` (`t tx ty tz qx qy qz qw`), depth PNG u16 with metres = raw / 5000.
 //! Colour and depth are associated by nearest timestamp, ground truth likewise; frames without a
 //! depth image within [`MAX_ASSOCIATION_DT`] are left out. The frame number is the row of the
-//! association (0, 1, 2, ...), the timestamp the colour image's.
+//! association (0, 1, 2, ...), the timestamp the colour image's; how far the depth image's lies
+//! from it is the frame's `colour_offset_s`.
 //!
 //! Intrinsics: the calibrated pinhole of the Freiburg sensor named in the folder name
 //! (`freiburg1/2/3`), else the ROS default; `camera-intrinsics.txt` (3x3 K) overrides both.
@@ -77,6 +78,8 @@ pub const ROS_DEFAULT: Intrinsics = Intrinsics {
 
 struct TumFrame {
     timestamp: f64,
+    /// The paired depth image's timestamp.
+    depth_timestamp: f64,
     rgb: PathBuf,
     depth: PathBuf,
     world_from_camera_gt: Option<Isometry3<f64>>,
@@ -196,6 +199,7 @@ impl Tum {
                 number,
                 TumFrame {
                     timestamp: t,
+                    depth_timestamp: depth_stamps[d],
                     rgb: rgb_path,
                     depth: depth[d].1.clone(),
                     world_from_camera_gt: pose,
@@ -265,6 +269,7 @@ impl Dataset for Tum {
             depth,
             world_from_camera_gt: f.world_from_camera_gt,
             ground_truth_error: None,
+            colour_offset_s: f.timestamp - f.depth_timestamp,
             intrinsics: self.intrinsics,
         })
     }
@@ -308,6 +313,12 @@ mod tests {
         assert_eq!(ds.timestamp(2), 100.099);
         let f = ds.load(0).unwrap();
         assert_eq!(f.depth.data[0], 1.0);
+        // The colour image was stamped 4 ms before its depth image.
+        assert!(
+            (f.colour_offset_s + 0.004).abs() < 1e-9,
+            "{}",
+            f.colour_offset_s
+        );
         assert_eq!(f.world_from_camera_gt.unwrap().translation.vector.x, 1.0);
         assert_eq!(
             ds.ground_truth(2).unwrap().unwrap().translation.vector.x,

@@ -137,6 +137,16 @@ pub struct PhotometricConfig {
     pub max_depth_spread_fraction: f64,
     /// Which placed frame the current one is compared with (see [`PhotometricReferenceFrame`]).
     pub reference: PhotometricReferenceFrame,
+    /// Compare each colour image from where the camera was when it was taken: a frame whose
+    /// colour and depth images are stamped apart (`colour_offset_s`, TUM's lists and ROS 2 bags)
+    /// has its colour camera moved by the camera's motion over that time (the reference's at
+    /// the velocity of the step that placed it, the current frame's at the velocity the pose
+    /// tried implies). False (the default) compares it from the depth image's pose, as if both
+    /// were taken together. With ground-truth poses the model is right (on tum-fr1-rpy it lowers
+    /// the median photometric residual between frames two apart from 0.069 to 0.040), but in
+    /// tracking it did not help: across weights and frame strides it was as often worse as
+    /// better, with more frames sent to recovery (docs/benchmarks.md), so it stays off.
+    pub model_colour_offset: bool,
 }
 
 /// The frame the photometric term compares the current one with.
@@ -164,6 +174,7 @@ impl Default for PhotometricConfig {
             occlusion_m: 0.05,
             max_depth_spread_fraction: 0.03,
             reference: PhotometricReferenceFrame::default(),
+            model_colour_offset: false,
         }
     }
 }

@@ -89,6 +89,7 @@ impl Dataset for SyntheticDataset {
             depth,
             world_from_camera_gt: Some(pose),
             ground_truth_error: None,
+            colour_offset_s: 0.0,
             intrinsics: self.intrinsics,
         })
     }

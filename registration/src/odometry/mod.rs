@@ -49,7 +49,7 @@ use crate::config::{KeyframeConfig, PhotometricReferenceFrame, TrackingConfig};
 use crate::gicp::{GicpParams, JointTerm, MIN_POINTS_FOR_A_POSE, RegistrationFailure};
 use crate::kdtree::PointTree;
 use crate::map_registration::MapRegistrationConfig;
-use crate::photometric::{PhotometricFrame, PhotometricReference, PhotometricTerm};
+use crate::photometric::{ColourMotion, PhotometricFrame, PhotometricReference, PhotometricTerm};
 use crate::points::{PointCloud, points_from_depth};
 use crate::voxel_map::{MapPointId, ViewFrustum, VoxelMap};
 pub use check::{Divergence, FrameCheck};
@@ -99,6 +99,11 @@ pub struct Odometry {
     velocity: ConstantVelocity,
     /// Timestamp of the previous frame.
     previous_timestamp_s: Option<f64>,
+    /// Depth timestamp of the previous frame.
+    previous_depth_timestamp_s: Option<f64>,
+    /// Seconds between the previous frame's depth image and the current one's, when both are
+    /// stamped.
+    depth_since_previous_s: Option<f64>,
     /// Overlap fraction of the previous placed frame (the drop trigger of the recovery).
     previous_overlap: Option<f64>,
     /// The previous frame needed a wide-baseline guess or was lost: the prior is doubtful.
@@ -149,6 +154,8 @@ impl Odometry {
             world_from_previous: None,
             velocity: ConstantVelocity::default(),
             previous_timestamp_s: None,
+            previous_depth_timestamp_s: None,
+            depth_since_previous_s: None,
             previous_overlap: None,
             prior_doubtful: false,
             consecutive_failures: 0,
@@ -283,6 +290,15 @@ impl Odometry {
             .previous_timestamp_s
             .replace(input.timestamp_s)
             .map(|previous| input.timestamp_s - previous)
+            .filter(|span| span.is_finite() && *span > 0.0);
+        // The poses are the depth images': the colour's motion is scaled by the time between
+        // them (a frame's stamp is its colour image's; colour and depth may be up to a frame
+        // interval apart, differently in each frame).
+        let depth_timestamp_s = input.timestamp_s - input.colour_offset_s;
+        self.depth_since_previous_s = self
+            .previous_depth_timestamp_s
+            .replace(depth_timestamp_s)
+            .map(|previous| depth_timestamp_s - previous)
             .filter(|span| span.is_finite() && *span > 0.0);
         if !self.spacing_checked && !frame.is_empty() {
             self.fit_distances_to_spacing(frame.cloud(), input.intrinsics);
@@ -548,12 +564,16 @@ impl Odometry {
             photometric
                 .zip(self.photometric_reference.as_ref())
                 .map(|(current, reference)| {
-                    PhotometricTerm::new(
+                    let term = PhotometricTerm::new(
                         reference,
                         current,
                         input.depth,
                         &self.tracking.photometric,
-                    )
+                    );
+                    match self.colour_motion(input, world_from_previous) {
+                        Some(motion) => term.with_colour_motion(motion),
+                        None => term,
+                    }
                 });
         let register = |params: &GicpParams, term: Option<&mut dyn JointTerm>| {
             register_from_prediction(
@@ -617,6 +637,26 @@ impl Odometry {
         PhotometricFrame::new(input.rgb?, input.intrinsics, config.level)
     }
 
+    /// How the current frame's colour camera moves with the pose tried, when its colour image
+    /// was taken apart from its depth image and the offset is modelled.
+    fn colour_motion(
+        &self,
+        input: &FrameInput<'_>,
+        world_from_previous: &Isometry3<f64>,
+    ) -> Option<ColourMotion> {
+        let offset_s = input.colour_offset_s;
+        if !self.tracking.photometric.model_colour_offset
+            || offset_s == 0.0
+            || !offset_s.is_finite()
+        {
+            return None;
+        }
+        self.depth_since_previous_s.map(|span_s| ColourMotion {
+            world_from_previous: *world_from_previous,
+            steps: offset_s / span_s,
+        })
+    }
+
     /// The placed frame becomes the photometric term's reference (none without images).
     fn note_photometric_reference(
         &mut self,
@@ -624,9 +664,22 @@ impl Odometry {
         input: &FrameInput<'_>,
         world_from_camera: &Isometry3<f64>,
     ) {
+        // The reference's colour camera a moment before or after its depth camera, at the
+        // velocity of the step that placed it: in a fast turn a colour image 10 ms off its depth
+        // image sees the scene a degree turned, as much as the term otherwise resolves.
+        let colour_from_depth = if self.tracking.photometric.model_colour_offset {
+            // The step's motion over the time between its depth images.
+            let step = ConstantVelocity {
+                span_s: self.depth_since_previous_s,
+                ..self.velocity
+            };
+            step.now_from_later(input.colour_offset_s).inverse()
+        } else {
+            Isometry3::identity()
+        };
         self.photometric_reference = frame.map(|frame| {
             PhotometricReference::select(
-                &frame,
+                &frame.with_colour_from_depth(colour_from_depth),
                 input.depth,
                 world_from_camera,
                 &self.tracking.photometric,

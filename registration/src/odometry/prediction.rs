@@ -52,6 +52,25 @@ impl ConstantVelocity {
         if (ratio - 1.0).abs() < 1e-6 {
             return self.motion;
         }
+        self.scaled(ratio)
+    }
+
+    /// The camera `offset_s` seconds later (earlier when negative) seen from the camera now, at
+    /// this velocity: `now_from_later`. The identity for a zero offset, or when the velocity's
+    /// span is unknown (there is no time to scale by).
+    pub fn now_from_later(&self, offset_s: f64) -> Isometry3<f64> {
+        match self.span_s {
+            Some(span_s) if offset_s != 0.0 && offset_s.is_finite() => {
+                // The motion is `previous_from_current` over `span_s`: at a constant velocity
+                // it is also `now_from_later` over the same span.
+                self.scaled(offset_s / span_s)
+            }
+            _ => Isometry3::identity(),
+        }
+    }
+
+    /// The motion with its rotation angle and translation times `ratio` (negative: reversed).
+    fn scaled(&self, ratio: f64) -> Isometry3<f64> {
         let rotation = self.motion.rotation.powf(ratio);
         Isometry3::from_parts((self.motion.translation.vector * ratio).into(), rotation)
     }
@@ -149,5 +168,31 @@ mod tests {
         assert!((three.translation.vector - 3.0 * step.translation.vector).norm() < 1e-12);
         let half = velocity.over(Some(0.5 / 30.0));
         assert!((half.rotation.angle() - 0.01).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_camera_a_moment_away_follows_the_velocity_both_ways() {
+        let step = Isometry3::from_parts(
+            Translation3::new(0.03, 0.0, -0.01),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 0.03),
+        );
+        let unknown_span = ConstantVelocity {
+            motion: step,
+            span_s: None,
+        };
+        assert_eq!(unknown_span.now_from_later(0.01), Isometry3::identity());
+        let velocity = ConstantVelocity {
+            motion: step,
+            span_s: Some(0.03),
+        };
+        assert_eq!(velocity.now_from_later(0.0), Isometry3::identity());
+        // A third of the span later: a third of the step; as much earlier: its inverse.
+        let later = velocity.now_from_later(0.01);
+        assert!((later.rotation.angle() - 0.01).abs() < 1e-12);
+        assert!((later.translation.vector - step.translation.vector / 3.0).norm() < 1e-12);
+        let earlier = velocity.now_from_later(-0.01);
+        assert!((earlier * later).rotation.angle() < 1e-12);
+        // Translation and rotation scale apart (first order), so the two cancel to first order only.
+        assert!((earlier * later).translation.vector.norm() < 1e-3);
     }
 }

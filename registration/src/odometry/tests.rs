@@ -12,6 +12,7 @@ fn input(frame: &datasets::Frame) -> FrameInput<'_> {
         depth: &frame.depth,
         rgb: Some(&frame.rgb),
         intrinsics: &frame.intrinsics,
+        colour_offset_s: frame.colour_offset_s,
         real_time: false,
     }
 }

@@ -60,6 +60,10 @@ pub struct FrameInput<'a> {
     pub rgb: Option<&'a RgbImage>,
     /// The depth image's camera; a colour image is expected registered to it (same size).
     pub intrinsics: &'a Intrinsics,
+    /// When the colour image was taken relative to the depth image (seconds, colour minus
+    /// depth; `datasets::Frame::colour_offset_s`): the photometric term compares the colour
+    /// image from the pose the camera had then, predicted by the constant-velocity motion.
+    pub colour_offset_s: f64,
     /// The frame came from a live camera or a sensor-paced replay, which do not wait for the
     /// tracker: the expensive recovery work is rationed (`recovery_time_share`).
     pub real_time: bool,

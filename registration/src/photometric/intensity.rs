@@ -2,6 +2,7 @@
 
 use geometry::camera::Intrinsics;
 use image::RgbImage;
+use nalgebra::Isometry3;
 
 /// A single-channel image of intensities in [0, 1], row-major.
 #[derive(Debug, Clone, PartialEq)]
@@ -106,6 +107,11 @@ pub struct PhotometricFrame {
     pub gradient_x: IntensityImage,
     /// Central-difference gradient of `intensity` along y (intensity per level pixel).
     pub gradient_y: IntensityImage,
+    /// The colour camera when the colour image was taken, seen from the depth camera when the
+    /// depth image was (`colour_from_depth`; the identity for images taken together): the term
+    /// lifts and projects points with the depth image's pose and samples intensities where the
+    /// colour camera saw them.
+    pub colour_from_depth: Isometry3<f64>,
 }
 
 impl PhotometricFrame {
@@ -124,7 +130,14 @@ impl PhotometricFrame {
             intensity,
             gradient_x,
             gradient_y,
+            colour_from_depth: Isometry3::identity(),
         })
+    }
+
+    /// The frame with its colour image taken from `colour_from_depth` (see the field).
+    pub fn with_colour_from_depth(mut self, colour_from_depth: Isometry3<f64>) -> Self {
+        self.colour_from_depth = colour_from_depth;
+        self
     }
 
     /// Intensity and gradient at a pixel of this level (bilinear), if inside.

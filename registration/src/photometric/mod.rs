@@ -26,4 +26,4 @@ mod term;
 mod tests;
 
 pub use intensity::{IntensityImage, PhotometricFrame};
-pub use term::{PhotometricReference, PhotometricTerm};
+pub use term::{ColourMotion, PhotometricReference, PhotometricTerm};

@@ -34,8 +34,10 @@ impl PhotometricReference {
     /// Selects `frame`'s pixels with an intensity gradient of at least `config.min_gradient`
     /// whose depth block (the full-resolution pixels the level pixel bins) is valid, nearer than
     /// `truncation_m` and spreads by at most `config.max_depth_spread_fraction` of its mean;
-    /// lifts them with that mean to the world at `world_from_camera`, evenly thinned to
-    /// `config.max_points`.
+    /// lifts them with that mean to the world at `world_from_camera` (the depth image's pose),
+    /// evenly thinned to `config.max_points`. Each point's intensity is the colour image's where
+    /// the colour camera saw it ([`PhotometricFrame::colour_from_depth`]); points it saw outside
+    /// its image are left out.
     pub fn select(
         frame: &PhotometricFrame,
         depth: &DepthImage,
@@ -50,6 +52,8 @@ impl PhotometricReference {
         if depth.width < w * f || depth.height < h * f {
             return Self::default();
         }
+        let colour_from_depth =
+            (frame.colour_from_depth != Isometry3::identity()).then_some(frame.colour_from_depth);
         for y in 1..h.saturating_sub(1) {
             for x in 1..w.saturating_sub(1) {
                 let (gx, gy) = (frame.gradient_x.at(x, y), frame.gradient_y.at(x, y));
@@ -60,9 +64,22 @@ impl PhotometricReference {
                     continue;
                 };
                 let camera = frame.intrinsics.back_project(f64::from(x), f64::from(y), z);
+                let intensity = match &colour_from_depth {
+                    None => frame.intensity.at(x, y),
+                    Some(colour_from_depth) => {
+                        let Some(pixel) = frame.intrinsics.project(&(colour_from_depth * camera))
+                        else {
+                            continue;
+                        };
+                        let Some(intensity) = frame.intensity.bilinear(pixel.x, pixel.y) else {
+                            continue;
+                        };
+                        intensity
+                    }
+                };
                 candidates.push(ReferencePoint {
                     world: (world_from_camera * camera).coords,
-                    intensity: frame.intensity.at(x, y),
+                    intensity,
                 });
             }
         }
@@ -123,8 +140,11 @@ fn block_depth(
 
 /// One reference point seen from the current pose.
 struct Projection {
-    /// The point in the current camera.
+    /// The point in the current depth camera (the pose being estimated).
     camera: Vector3<f64>,
+    /// The point in the current colour camera (`camera` where colour and depth were taken
+    /// together).
+    colour_camera: Vector3<f64>,
     /// Current intensity and gradient (level pixels) at its projection.
     intensity: f64,
     gradient: (f64, f64),
@@ -146,6 +166,46 @@ pub struct PhotometricTerm<'a> {
     /// Brightness `(a, b)`: the reference's intensities as the current image sees them.
     brightness: (f64, f64),
     used: usize,
+    /// The current frame's `colour_from_depth` as (rotation, translation), `None` for the
+    /// identity (colour and depth taken together), unless `colour_motion` moves it with the pose.
+    colour_from_depth: Option<(Matrix3<f64>, Vector3<f64>)>,
+    colour_motion: Option<ColourMotion>,
+}
+
+/// Where the current frame's colour camera is while its depth camera's pose is estimated: its
+/// colour image was taken `steps` frame intervals after its depth image (negative: before), and
+/// the camera moves at the velocity the pose tried implies, from the previous frame's pose.
+/// Better than the previous step's velocity where the motion turns (a camera rolled back and
+/// forth), at no cost: the term is relinearised at every pose anyway.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ColourMotion {
+    /// The previous frame's pose.
+    pub world_from_previous: Isometry3<f64>,
+    /// The colour-to-depth offset over the time since the previous frame.
+    pub steps: f64,
+}
+
+impl ColourMotion {
+    /// `colour_from_depth` for the depth camera at `world_from_camera`.
+    pub fn colour_from_depth(&self, world_from_camera: &Isometry3<f64>) -> Isometry3<f64> {
+        // `previous_from_current` over one interval; at a constant velocity also `now_from_later`.
+        let motion = self.world_from_previous.inverse() * world_from_camera;
+        let now_from_later = Isometry3::from_parts(
+            (motion.translation.vector * self.steps).into(),
+            motion.rotation.powf(self.steps),
+        );
+        now_from_later.inverse()
+    }
+}
+
+/// An isometry as (rotation matrix, translation), `None` for the identity.
+fn matrix_parts(transform: &Isometry3<f64>) -> Option<(Matrix3<f64>, Vector3<f64>)> {
+    (*transform != Isometry3::identity()).then(|| {
+        (
+            transform.rotation.to_rotation_matrix().into_inner(),
+            transform.translation.vector,
+        )
+    })
 }
 
 impl<'a> PhotometricTerm<'a> {
@@ -167,6 +227,23 @@ impl<'a> PhotometricTerm<'a> {
             costs: vec![0.0; reference.len()],
             brightness: (1.0, 0.0),
             used: 0,
+            colour_from_depth: matrix_parts(&current.colour_from_depth),
+            colour_motion: None,
+        }
+    }
+
+    /// The term with the current colour camera moving with the pose tried (see
+    /// [`ColourMotion`]) instead of the frame's fixed `colour_from_depth`.
+    pub fn with_colour_motion(mut self, motion: ColourMotion) -> Self {
+        self.colour_motion = Some(motion);
+        self
+    }
+
+    /// The current frame's `colour_from_depth` at `pose` (see [`Self::colour_from_depth`]).
+    fn colour_parts(&self, pose: &Isometry3<f64>) -> Option<(Matrix3<f64>, Vector3<f64>)> {
+        match &self.colour_motion {
+            Some(motion) => matrix_parts(&motion.colour_from_depth(pose)),
+            None => self.colour_from_depth,
         }
     }
 
@@ -184,19 +261,23 @@ impl<'a> PhotometricTerm<'a> {
     fn project(
         &self,
         camera_from_world: &(Matrix3<f64>, Vector3<f64>),
+        colour_from_depth: Option<&(Matrix3<f64>, Vector3<f64>)>,
         point: &ReferencePoint,
     ) -> Option<Projection> {
         let camera = camera_from_world.0 * point.world + camera_from_world.1;
-        if camera.z <= 0.0 {
-            return None;
-        }
+        let colour_camera = match colour_from_depth {
+            Some(colour_from_depth) => colour_from_depth.0 * camera + colour_from_depth.1,
+            None => camera,
+        };
         let k = &self.current.intrinsics;
-        let (u, v) = (
-            k.fx * camera.x / camera.z + k.cx,
-            k.fy * camera.y / camera.z + k.cy,
-        );
-        let (intensity, gx, gy) = self.current.sample(u, v)?;
-        // The full-resolution depth pixel nearest the level pixel's projection.
+        let pixel = k.project(&colour_camera.into())?;
+        let (intensity, gx, gy) = self.current.sample(pixel.x, pixel.y)?;
+        // The full-resolution depth pixel nearest the level pixel's projection, in the depth
+        // image's camera.
+        let (u, v) = match colour_from_depth {
+            Some(_) => k.project(&camera.into()).map(|p| (p.x, p.y))?,
+            None => (pixel.x, pixel.y),
+        };
         let f = f64::from(self.current.factor);
         let (du, dv) = (((u + 0.5) * f - 0.5).round(), ((v + 0.5) * f - 0.5).round());
         if du >= 0.0
@@ -214,6 +295,7 @@ impl<'a> PhotometricTerm<'a> {
         }
         Some(Projection {
             camera,
+            colour_camera,
             intensity: f64::from(intensity),
             gradient: (f64::from(gx), f64::from(gy)),
         })
@@ -271,11 +353,13 @@ fn camera_from_world(pose: &Isometry3<f64>) -> (Matrix3<f64>, Vector3<f64>) {
 impl JointTerm for PhotometricTerm<'_> {
     fn linearize(&mut self, pose: &Isometry3<f64>) -> JointSystem {
         let parts = camera_from_world(pose);
+        // Held fixed in the Jacobian: it moves with the pose a fraction `steps` as much.
+        let colour = self.colour_parts(pose);
         let projections: Vec<Option<Projection>> = self
             .reference
             .points
             .iter()
-            .map(|point| self.project(&parts, point))
+            .map(|point| self.project(&parts, colour.as_ref(), point))
             .collect();
         let pairs: Vec<(f64, f64)> = projections
             .iter()
@@ -310,7 +394,14 @@ impl JointTerm for PhotometricTerm<'_> {
                 } else {
                     huber / r.abs()
                 };
-            let jacobian = residual_jacobian(&p.camera, p.gradient, (k.fx, k.fy));
+            let colour_rotation = colour.as_ref().map(|(rotation, _)| rotation);
+            let jacobian = residual_jacobian(
+                &p.camera,
+                &p.colour_camera,
+                colour_rotation,
+                p.gradient,
+                (k.fx, k.fy),
+            );
             system.hessian += jacobian.transpose() * jacobian * weight;
             system.gradient += jacobian.transpose() * (weight * r);
             self.weights[i] = weight;
@@ -323,13 +414,14 @@ impl JointTerm for PhotometricTerm<'_> {
 
     fn evaluate(&self, pose: &Isometry3<f64>) -> f64 {
         let parts = camera_from_world(pose);
+        let colour = self.colour_parts(pose);
         let mut error = 0.0;
         for (i, point) in self.reference.points.iter().enumerate() {
             let weight = self.weights[i];
             if weight == 0.0 {
                 continue;
             }
-            error += match self.project(&parts, point) {
+            error += match self.project(&parts, colour.as_ref(), point) {
                 Some(p) => {
                     let r = self.residual(&p, point);
                     weight * r * r
@@ -341,19 +433,32 @@ impl JointTerm for PhotometricTerm<'_> {
     }
 }
 
-/// `dr/d(omega, v)` of a residual `I(pi(c)) - const` for `c = T^-1 q` under the right
-/// perturbation `T <- T (Exp(omega), v)`: then `c <- c - omega x c - v`, so `dc/d(omega, v) =
-/// [[c]x, -I]`, chained with the pinhole's `dpi/dc` and the image gradient.
+/// `dr/d(omega, v)` of a residual `I(pi(A c)) - const` for `c = T^-1 q` (`camera`) and the
+/// colour camera's point `A c` (`colour_camera`; `A` = colour_from_depth, whose rotation is
+/// `colour_rotation`, `None` for the identity) under the right perturbation `T <- T (Exp(omega),
+/// v)`: then `c <- c - omega x c - v`, so `d(A c)/d(omega, v) = R_A [[c]x, -I]`, chained with
+/// the pinhole's `dpi/dc` at `A c` and the image gradient.
 pub(super) fn residual_jacobian(
     camera: &Vector3<f64>,
+    colour_camera: &Vector3<f64>,
+    colour_rotation: Option<&Matrix3<f64>>,
     gradient: (f64, f64),
     (fx, fy): (f64, f64),
 ) -> RowVector6<f64> {
-    let inverse_z = 1.0 / camera.z;
-    // grad I^T dpi/dc, a row of three.
+    let inverse_z = 1.0 / colour_camera.z;
+    // grad I^T dpi/dc at the colour camera's point, a row of three.
     let gu = gradient.0 * fx * inverse_z;
     let gv = gradient.1 * fy * inverse_z;
-    let d_camera = Vector3::new(gu, gv, -(gu * camera.x + gv * camera.y) * inverse_z);
+    let d_colour = Vector3::new(
+        gu,
+        gv,
+        -(gu * colour_camera.x + gv * colour_camera.y) * inverse_z,
+    );
+    // Back in the depth camera: a^T R_A = (R_A^T a)^T.
+    let d_camera = match colour_rotation {
+        Some(rotation) => rotation.transpose() * d_colour,
+        None => d_colour,
+    };
     // a^T [c]x = (a x c)^T (the scalar triple product).
     let rotation = d_camera.cross(camera);
     RowVector6::new(

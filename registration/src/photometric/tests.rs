@@ -68,8 +68,9 @@ fn distance_m(a: &Isometry3<f64>, b: &Isometry3<f64>) -> f64 {
     (a.translation.vector - b.translation.vector).norm()
 }
 
-#[test]
-fn the_residual_jacobian_matches_finite_differences() {
+/// The residual Jacobian against central differences, the colour camera at `colour_from_depth`
+/// from the depth camera whose pose is perturbed.
+fn check_residual_jacobian(colour_from_depth: &Isometry3<f64>) {
     // A smooth image I(u, v) given analytically, so its gradient is exact.
     let image = |u: f64, v: f64| (0.05 * u).sin() + (0.03 * v + 0.02 * u).cos();
     let gradient = |u: f64, v: f64| {
@@ -81,20 +82,29 @@ fn the_residual_jacobian_matches_finite_differences() {
     let k = camera();
     let world = Vector3::new(0.3, -0.2, 1.7);
     let pose = truth();
-    // I(pi(T^-1 q)) under the right perturbation T (Exp(omega), v).
+    // I(pi(A T^-1 q)) under the right perturbation T (Exp(omega), v).
     let residual = |delta: &Vector6<f64>| {
         let perturbed = pose
             * Isometry3::new(
                 delta.fixed_rows::<3>(3).into_owned(),
                 delta.fixed_rows::<3>(0).into_owned(),
             );
-        let c = perturbed.inverse() * nalgebra::Point3::from(world);
+        let c = colour_from_depth * perturbed.inverse() * nalgebra::Point3::from(world);
         let pixel = k.project(&c).unwrap();
         image(pixel.x, pixel.y)
     };
     let c = (pose.inverse() * nalgebra::Point3::from(world)).coords;
-    let pixel = k.project(&nalgebra::Point3::from(c)).unwrap();
-    let jacobian = term::residual_jacobian(&c, gradient(pixel.x, pixel.y), (k.fx, k.fy));
+    let colour_c = (colour_from_depth * nalgebra::Point3::from(c)).coords;
+    let pixel = k.project(&nalgebra::Point3::from(colour_c)).unwrap();
+    let rotation = colour_from_depth.rotation.to_rotation_matrix().into_inner();
+    let colour_rotation = (*colour_from_depth != Isometry3::identity()).then_some(&rotation);
+    let jacobian = term::residual_jacobian(
+        &c,
+        &colour_c,
+        colour_rotation,
+        gradient(pixel.x, pixel.y),
+        (k.fx, k.fy),
+    );
     let step = 1e-6;
     for axis in 0..6 {
         let mut delta = Vector6::zeros();
@@ -106,6 +116,16 @@ fn the_residual_jacobian_matches_finite_differences() {
             jacobian[axis]
         );
     }
+}
+
+#[test]
+fn the_residual_jacobian_matches_finite_differences() {
+    check_residual_jacobian(&Isometry3::identity());
+    // Colour taken in a fast turn, a degree and a centimetre away from the depth camera.
+    check_residual_jacobian(&Isometry3::from_parts(
+        Translation3::new(0.01, -0.004, 0.002),
+        UnitQuaternion::from_scaled_axis(Vector3::new(0.004, 0.017, -0.006)),
+    ));
 }
 
 #[test]
@@ -305,4 +325,60 @@ fn occluded_flat_and_edge_pixels_are_not_used() {
     assert_eq!(system.error, 0.0);
     // Colour of another size than the depth camera's: no frame.
     assert!(PhotometricFrame::new(&RgbImage::new(640, 480), &k, 1).is_none());
+}
+
+#[test]
+fn colour_taken_apart_from_depth_is_compared_where_the_colour_camera_was() {
+    // Each frame's colour image taken from a pose of its own near its depth image's: a turn of
+    // 0.9 and 0.6 degrees (a camera turning 60-90 degrees a second, colour 10 ms off depth, as
+    // in TUM's Kinect recordings).
+    let reference_depth_from_colour = Isometry3::from_parts(
+        Translation3::new(0.0, 0.002, 0.0),
+        UnitQuaternion::from_scaled_axis(Vector3::new(0.016, 0.0, 0.0)),
+    );
+    let current_depth_from_colour = Isometry3::from_parts(
+        Translation3::new(-0.003, 0.0, 0.0),
+        UnitQuaternion::from_scaled_axis(Vector3::new(0.0, -0.01, 0.004)),
+    );
+    let (reference_rgb, _) = render(&reference_depth_from_colour, 1.0, 0.0);
+    let (_, reference_depth) = render(&Isometry3::identity(), 1.0, 0.0);
+    let (current_rgb, _) = render(&(truth() * current_depth_from_colour), 1.0, 0.0);
+    let (_, current_depth) = render(&truth(), 1.0, 0.0);
+    let config = config(1);
+    let estimate = |reference_colour_from_depth: Isometry3<f64>,
+                    current_colour_from_depth: Isometry3<f64>| {
+        let reference_frame = PhotometricFrame::new(&reference_rgb, &camera(), 1)
+            .unwrap()
+            .with_colour_from_depth(reference_colour_from_depth);
+        let reference = PhotometricReference::select(
+            &reference_frame,
+            &reference_depth,
+            &Isometry3::identity(),
+            &config,
+            10.0,
+        );
+        let current = PhotometricFrame::new(&current_rgb, &camera(), 1)
+            .unwrap()
+            .with_colour_from_depth(current_colour_from_depth);
+        let mut term = PhotometricTerm::new(&reference, &current, &current_depth, &config);
+        solve_photometric(&mut term, 30)
+    };
+    let modelled = estimate(
+        reference_depth_from_colour.inverse(),
+        current_depth_from_colour.inverse(),
+    );
+    assert!(
+        angle_deg(&modelled, &truth()) < 0.05 && distance_m(&modelled, &truth()) < 0.003,
+        "offsets modelled: {:.3} deg, {:.4} m off",
+        angle_deg(&modelled, &truth()),
+        distance_m(&modelled, &truth())
+    );
+    // Ignored, the term places the depth camera where the colour images agree: off by the
+    // difference of the two offsets.
+    let ignored = estimate(Isometry3::identity(), Isometry3::identity());
+    assert!(
+        angle_deg(&ignored, &truth()) > 0.3,
+        "offsets ignored: {:.3} deg off",
+        angle_deg(&ignored, &truth())
+    );
 }

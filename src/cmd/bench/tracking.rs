@@ -188,6 +188,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
             depth: &frame.depth,
             rgb: Some(&frame.rgb),
             intrinsics: &frame.intrinsics,
+            colour_offset_s: frame.colour_offset_s,
             real_time: false,
         });
         let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
