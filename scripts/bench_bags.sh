@@ -2,10 +2,14 @@
 # Bag read throughput: a range of a dataset folder written as rosbag2 bags by the rosbags package
 # (scripts/ros2/dataset_to_bag.py) in MCAP and sqlite3 storage, raw and compressed, then read by
 # `mac-ego3d bench readers` (frames/s decoded sequentially on one thread, and by the agent's
-# prefetching source), beside the folder itself. Prints a table, then JSON.
+# prefetching source), beside the folder itself. Prints a table, then JSON. --figures writes
+# each source's one-thread throughput into a docs/figures file through `mac-ego3d bench
+# record-figures` (--figures-label: what the run is, default the dataset's folder name and frames).
 #
 #   scripts/bench_bags.sh [--bin target/debug/mac-ego3d] [--dataset DIR] [--frames 0..300]
 #                         [--workers 2] [--out DIR]
+#                         [--figures FILE --figures-section HEADING [--figures-label TEXT]
+#                          [--machine TEXT]]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bin=target/debug/mac-ego3d
@@ -13,7 +17,21 @@ dataset="${MAC_EGO3D_SHARED:-../shared}/datasets/7scenes-redkitchen"
 frames=0..300
 workers=2
 out=""
+figures=""
+figures_section=""
+figures_label=""
+machine=""
+# The command as the figures table shows it: without the figure options themselves.
+shown=()
 while (($#)); do
+  case "$1" in
+    --figures) figures="$2"; shift 2; continue ;;
+    --figures-section) figures_section="$2"; shift 2; continue ;;
+    --figures-label) figures_label="$2"; shift 2; continue ;;
+    --machine) machine="$2"; shift 2; continue ;;
+  esac
+  shown+=("$1")
+  (($# > 1)) && shown+=("$2")
   case "$1" in
     --bin) bin="$2"; shift 2 ;;
     --dataset) dataset="$2"; shift 2 ;;
@@ -23,6 +41,7 @@ while (($#)); do
     *) echo "unknown option $1" >&2; exit 2 ;;
   esac
 done
+[[ -z "$figures" || -n "$figures_section" ]] || { echo "--figures needs --figures-section HEADING" >&2; exit 2; }
 [[ -x "$bin" ]] || { echo "$bin is missing: build it with scripts/build.sh or cargo build" >&2; exit 1; }
 python="$(scripts/peers_venv.sh)" || exit $?
 if [[ -z "$out" ]]; then
@@ -51,7 +70,9 @@ for storage in mcap sqlite3; do
   done
 done
 
-printf '%s\n' "${results[@]}" | FRAMES="$frames" python3 -c "$(cat <<'PY'
+figures_input="$(mktemp "${TMPDIR:-/tmp}/mac-ego3d-bag-figures.XXXXXX")"
+printf '%s\n' "${results[@]}" | FRAMES="$frames" FIGURES_INPUT="$figures_input" \
+  LABEL="${figures_label:-$(basename "$dataset") $frames}" python3 -c "$(cat <<'PY'
 import json, os, sys
 rows = [json.loads(line) for line in sys.stdin]
 first = rows[0]["readers"]
@@ -63,5 +84,18 @@ for r in rows:
     print(f"{r['name']:<8} {r['storage']:<8} {r['images']:<12} {size:>8} "
           f"{m['sequential_fps']:>13.1f} {m['prefetch_fps']:>13.1f}")
 print(json.dumps({"frames": os.environ["FRAMES"], "rows": rows}, indent=2))
+figures = [{
+    "name": f"ROS 2 bag read throughput, {os.environ['LABEL']}, "
+            + (f"{r['storage'].upper() if r['storage'] == 'mcap' else r['storage']} {r['images']}"
+               if r["name"] == "bag" else "the dataset folder")
+            + ", 1 thread",
+    "value": r["readers"]["sequential_fps"], "decimals": 1, "unit": "frames/s"} for r in rows]
+with open(os.environ["FIGURES_INPUT"], "w", encoding="utf-8") as out:
+    json.dump(figures, out, indent=2)
 PY
 )"
+if [[ -n "$figures" ]]; then
+  "$bin" bench record-figures --from "$figures_input" --command "scripts/bench_bags.sh ${shown[*]}" \
+    --figures "$figures" --figures-section "$figures_section" ${machine:+--machine "$machine"}
+fi
+rm -f "$figures_input"

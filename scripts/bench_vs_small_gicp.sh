@@ -6,6 +6,7 @@
 #   scripts/bench_vs_small_gicp.sh [--frames 0..300[:STEP]] [--threads 2] [--voxels 0.05,0.02]
 #       [--repeats 5] [--omp-wait-policy passive] [--no-open3d] [--dataset DIR] [--gt TUM]
 #       [--config FILE] [--out DIR] [--json FILE] [--bin MAC_EGO3D]
+#       [--figures FILE --figures-section HEADING [--figures-label TEXT] [--machine TEXT]]
 #
 # Same input: a first, untimed run of ours writes every frame's points as our tracker
 # back-projected them (`bench tracking --dump-points`: same depth frames, pixel stride, truncation
@@ -24,6 +25,9 @@
 # than 10 cm against --gt) and those of them it did not flag, stage medians) and writes it as JSON
 # to --json (default
 # OUT/summary.json). Every run's files stay in --out (default: a new folder under $TMPDIR).
+# --figures writes the headline figures (our ATE; each peer's ATE and our time over its) into a
+# docs/figures file through `mac-ego3d bench record-figures`, as the bench commands' --figures
+# do (--figures-label: what the run is, default the dataset's folder name and frames).
 #
 # small_gicp and numpy come from the peers' virtual environment (scripts/peers_venv.sh: pinned,
 # hash-checked PyPI wheels, outside the repository). Without PyPI the script says so and exits 3.
@@ -35,7 +39,7 @@ source scripts/vulkan_env.sh
 repo="$(pwd)"
 
 fail() { echo "[vs-small_gicp] $1" >&2; exit "${2:-1}"; }
-usage() { sed -n '2,31p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,35p' "$0" | sed 's/^# \{0,1\}//'; }
 
 shared="${MAC_EGO3D_SHARED:-../shared}"
 frames=0..300
@@ -50,8 +54,23 @@ config=configs/7scenes.toml
 out=""
 json=""
 bin=""
-command_line="scripts/bench_vs_small_gicp.sh $*"
+figures=""
+figures_section=""
+figures_label=""
+machine=""
+# The command as the figures table shows it: without the figure options themselves.
+shown=()
 while (($#)); do
+  case "$1" in
+    --figures) figures="$2"; shift 2; continue ;;
+    --figures-section) figures_section="$2"; shift 2; continue ;;
+    --figures-label) figures_label="$2"; shift 2; continue ;;
+    --machine) machine="$2"; shift 2; continue ;;
+  esac
+  shown+=("$1")
+  if [[ "$1" != --no-open3d && "$1" != -h && "$1" != --help ]] && (($# > 1)); then
+    shown+=("$2")
+  fi
   case "$1" in
     --frames) frames="$2"; shift 2 ;;
     --threads) threads="$2"; shift 2 ;;
@@ -69,6 +88,8 @@ while (($#)); do
     *) usage >&2; fail "unknown argument: $1" 2 ;;
   esac
 done
+command_line="scripts/bench_vs_small_gicp.sh ${shown[*]}"
+[[ -z "$figures" || -n "$figures_section" ]] || fail "--figures needs --figures-section HEADING" 2
 [[ "$threads" =~ ^[1-9][0-9]*$ ]] || fail "--threads $threads: not a positive integer" 2
 [[ "$repeats" =~ ^[1-9][0-9]*$ ]] || fail "--repeats $repeats: not a positive integer" 2
 [[ "$omp_wait_policy" == active || "$omp_wait_policy" == passive ]] ||
@@ -144,5 +165,10 @@ print(json.dumps(context))
 PYTHON
 )"
 echo "[vs-small_gicp] load (1, 5, 15 min) before $load_before, after $load_after" >&2
-python3 scripts/small_gicp_odometry.py report --runs "$out/runs" --gt "$gt" --json "$json" --context "$context"
+python3 scripts/small_gicp_odometry.py report --runs "$out/runs" --gt "$gt" --json "$json" --context "$context" \
+  --figures "$out/figures.json" --label "${figures_label:-$(basename "$dataset") $frames}"
 echo "[vs-small_gicp] JSON: $json" >&2
+if [[ -n "$figures" ]]; then
+  "$bin" bench record-figures --from "$out/figures.json" --command "$command_line" \
+    --figures "$figures" --figures-section "$figures_section" ${machine:+--machine "$machine"}
+fi

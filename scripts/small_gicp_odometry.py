@@ -458,9 +458,41 @@ def table(summary):
     return "\n".join(lines)
 
 
+def peer_name(config):
+    """A tracker's configuration as the figures table names it."""
+    if config.startswith("small_gicp-voxel"):
+        voxel_cm = float(config[len("small_gicp-voxel"):]) * 100
+        return f"small_gicp ({voxel_cm:g} cm voxels)"
+    return {"open3d": "Open3D RGB-D odometry"}.get(config, config)
+
+
+def headline_figures(summary, label):
+    """The run's figures for docs/figures (`mac-ego3d bench record-figures --from`): our ATE, and
+    per peer its ATE and our time over its, medians over the repeats."""
+    ours = summary[OURS]
+    repeats = ours["repeats"]
+    figures = [{"name": f"tracking ATE, {label} (median of {repeats})",
+                "value": ours["ate_rmse_m"] * 100, "decimals": 2, "unit": "cm"}]
+    for config, row in summary.items():
+        if config == OURS:
+            continue
+        peer = peer_name(config)
+        if row.get("ate_rmse_m") is not None:
+            figures.append({"name": f"tracking ATE of {peer}, {label} (median of {row['repeats']})",
+                            "value": row["ate_rmse_m"] * 100, "decimals": 2, "unit": "cm"})
+        if row.get("ours_over_this_ms_median"):
+            figures.append({"name": f"tracking time of ours / {peer}, {label} (medians of {repeats})",
+                            "value": row["ours_over_this_ms_median"], "decimals": 2, "unit": ""})
+    return figures
+
+
 def report(args):
     summary = summarise(args.runs, args.gt)
     print(table(summary))
+    if args.figures:
+        with open(args.figures, "w", encoding="utf-8") as out:
+            json.dump(headline_figures(summary, args.label), out, indent=2)
+            out.write("\n")
     if args.json:
         document = {"context": json.loads(args.context) if args.context else {}, "trackers": summary}
         with open(args.json, "w", encoding="utf-8") as out:
@@ -505,6 +537,8 @@ def main(argv=None):
     r.add_argument("--json", help="write the summary here")
     r.add_argument("--gt", help="ground truth (TUM) to count real and reported failures against")
     r.add_argument("--context", help="JSON object stored as the summary's context")
+    r.add_argument("--figures", help="write the headline figures here (bench record-figures' input)")
+    r.add_argument("--label", default="", help="what the run is, in the figures' names")
     args = parser.parse_args(argv)
     try:
         {"track": track, "open3d": open3d_track, "report": report}[args.command](args)

@@ -169,6 +169,7 @@ fn report_tabulates_medians_over_repeats_and_the_ratio_to_each_configuration() {
     run("small_gicp-voxel0.05-r2", 7.0, 19.0, 0.031);
     run("small_gicp-voxel0.05-r3", 50.0, 60.0, 0.031);
     let json = dir.path().join("summary.json");
+    let figures_input = dir.path().join("figures-input.json");
     let table = succeeded(&python(&[
         DRIVER,
         "report",
@@ -178,6 +179,10 @@ fn report_tabulates_medians_over_repeats_and_the_ratio_to_each_configuration() {
         json.to_str().unwrap(),
         "--context",
         r#"{"frames": "0..300"}"#,
+        "--figures",
+        figures_input.to_str().unwrap(),
+        "--label",
+        "redkitchen 0..300",
     ]));
     assert!(
         table.lines().nth(1).unwrap().starts_with("ours "),
@@ -198,6 +203,70 @@ fn report_tabulates_medians_over_repeats_and_the_ratio_to_each_configuration() {
     assert_eq!(theirs["tracking_ms_median_spread"][1], 50.0);
     assert_eq!(theirs["ours_over_this_ms_median"], 10.0 / 8.0);
     assert_eq!(theirs["ours_over_this_ms_p90"], 14.0 / 20.0);
+
+    // The headline figures, written into a docs/figures file by `bench record-figures`.
+    let figures = dir.path().join("10_tracking.json");
+    let out = Command::new(env!("CARGO_BIN_EXE_mac-ego3d"))
+        .args([
+            "bench",
+            "record-figures",
+            "--from",
+            figures_input.to_str().unwrap(),
+            "--command",
+            "scripts/bench_vs_small_gicp.sh --frames 0..300 --repeats 3",
+            "--figures",
+            figures.to_str().unwrap(),
+            "--figures-section",
+            "2026-12-07: a test",
+            "--machine",
+            "a test machine",
+        ])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .unwrap();
+    succeeded(&out);
+    let written: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&figures).unwrap()).unwrap();
+    let rows: Vec<(String, String, String)> = written
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|row| {
+            assert_eq!(
+                row["command"],
+                "scripts/bench_vs_small_gicp.sh --frames 0..300 --repeats 3"
+            );
+            assert_eq!(row["machine"], "a test machine");
+            assert_eq!(row["source_section"], "2026-12-07: a test");
+            (
+                row["name"].as_str().unwrap().to_string(),
+                row["value"].to_string(),
+                row["unit"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect();
+    let expected = [
+        ("tracking ATE, redkitchen 0..300 (median of 3)", "2.1", "cm"),
+        (
+            "tracking ATE of small_gicp (5 cm voxels), redkitchen 0..300 (median of 3)",
+            "3.1",
+            "cm",
+        ),
+        (
+            "tracking time of ours / small_gicp (5 cm voxels), redkitchen 0..300 (medians of 3)",
+            "1.25",
+            "",
+        ),
+    ];
+    assert_eq!(rows.len(), expected.len(), "{rows:?}");
+    for ((name, value, unit), (want_name, want_value, want_unit)) in rows.iter().zip(expected) {
+        assert_eq!((name.as_str(), unit.as_str()), (want_name, want_unit));
+        // Written with two decimals ("2.10"), read back as the number.
+        assert_eq!(
+            value.parse::<f64>().unwrap(),
+            want_value.parse::<f64>().unwrap()
+        );
+    }
 
     // A run without its ATE is an error naming the missing file.
     std::fs::remove_file(runs.join("ours-r2.ate.json")).unwrap();

@@ -112,8 +112,10 @@ pub struct PhotometricConfig {
     /// Weight of a squared intensity residual (intensities in [0, 1]) against G-ICP's cost;
     /// 0 (the default) turns the term off. 0.3 is the weight measured in docs/benchmarks.md: it
     /// helps paced replays of fast rotation (tum-fr1-rpy) but costs accuracy at sensor pace,
-    /// where dropped frames make larger steps, so it is off until it is gated on them. G-ICP's cost per point is a Mahalanobis distance in its normalised
-    /// covariances (eigenvalues 1, 1, `covariance_epsilon`): a point 1 cm off the surface costs
+    /// where dropped frames make larger steps, so it is off until it is gated on them
+    /// (configs/tum.toml turns it on: on fr1/rpy it helped at sensor pace as well). G-ICP's
+    /// cost per point is a Mahalanobis distance in its normalised covariances (eigenvalues 1,
+    /// 1, `covariance_epsilon`): a point 1 cm off the surface costs
     /// about 0.05, as much as an intensity residual of 0.05 / sqrt(weight).
     pub weight: f64,
     /// Pyramid level the images are compared at (each level halves the resolution: 1 is

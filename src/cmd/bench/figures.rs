@@ -2,7 +2,8 @@
 //! written as entries of a docs/figures/*.json file (the fields scripts/figures.py checks), with
 //! the command, commit, machine and date filled in, so that docs/benchmarks.md's "Current
 //! figures" table is generated from what a bench measured rather than copied by hand. Run
-//! `python3 scripts/figures.py` afterwards to rewrite the table.
+//! `python3 scripts/figures.py` afterwards to rewrite the table. `bench record-figures` does
+//! the same for the figures a script measured (the peer comparisons in shell and Python).
 
 use std::path::{Path, PathBuf};
 
@@ -38,7 +39,7 @@ pub struct Figure {
     /// The figure, rounded to the decimals that mean something.
     pub value: FigureValue,
     /// Its unit ("cm", "ms", "dB"; "" for none).
-    pub unit: &'static str,
+    pub unit: String,
 }
 
 /// A figure's value: a number (rounded to `decimals`) or a short text ("20/20/16/4").
@@ -50,20 +51,29 @@ pub enum FigureValue {
 
 impl Figure {
     /// A number rounded to `decimals`.
-    pub fn number(name: impl Into<String>, value: f64, decimals: u32, unit: &'static str) -> Self {
+    pub fn number(
+        name: impl Into<String>,
+        value: f64,
+        decimals: u32,
+        unit: impl Into<String>,
+    ) -> Self {
         Self {
             name: name.into(),
             value: FigureValue::Number { value, decimals },
-            unit,
+            unit: unit.into(),
         }
     }
 
     /// A short text.
-    pub fn text(name: impl Into<String>, value: impl Into<String>, unit: &'static str) -> Self {
+    pub fn text(
+        name: impl Into<String>,
+        value: impl Into<String>,
+        unit: impl Into<String>,
+    ) -> Self {
         Self {
             name: name.into(),
             value: FigureValue::Text(value.into()),
-            unit,
+            unit: unit.into(),
         }
     }
 }
@@ -86,11 +96,16 @@ impl FigureArgs {
     /// Writes `figures` into `--figures` when it was given (nothing otherwise); a figure whose
     /// value is not finite is refused with its name, since the table cannot show it.
     pub fn record(&self, figures: &[Figure]) -> anyhow::Result<()> {
+        self.record_as(command_line(std::env::args().collect()), figures)
+    }
+
+    /// [`Self::record`] with the command that measured the figures given (`command`).
+    fn record_as(&self, command: String, figures: &[Figure]) -> anyhow::Result<()> {
         let (Some(path), Some(section)) = (&self.figures, &self.figures_section) else {
             return Ok(());
         };
         let provenance = Provenance {
-            command: command_line(std::env::args().collect()),
+            command,
             commit: commit()?,
             machine: match &self.machine {
                 Some(machine) => machine.clone(),
@@ -106,6 +121,84 @@ impl FigureArgs {
         );
         Ok(())
     }
+}
+
+/// `mac-ego3d bench record-figures`: headline figures a script measured, written into a
+/// docs/figures file as the bench commands' `--figures` writes theirs.
+#[derive(Args, Debug)]
+pub struct RecordFiguresArgs {
+    /// The figures: a JSON list of objects with `name`, `value` (a number, or a short text such
+    /// as "20/20/16/4"), `unit` ("" for none) and, for numbers, `decimals` (what the rounding
+    /// keeps). With --figures-label, each name starts with it.
+    #[arg(long, value_name = "FILE")]
+    pub from: PathBuf,
+    /// The command that measured them, as the table shows it (the script's own command line).
+    #[arg(long, value_name = "TEXT")]
+    pub command: String,
+    #[command(flatten)]
+    pub figures: FigureArgs,
+}
+
+/// Runs `bench record-figures`.
+pub fn run_record(args: &RecordFiguresArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        args.figures.figures.is_some(),
+        "record-figures writes into --figures FILE (with --figures-section HEADING)"
+    );
+    let text = std::fs::read_to_string(&args.from)
+        .with_context(|| format!("reading {}", args.from.display()))?;
+    let mut figures = parse_figures(&text)
+        .with_context(|| format!("{}: not a list of figures", args.from.display()))?;
+    if let Some(label) = &args.figures.figures_label {
+        for figure in &mut figures {
+            figure.name = format!("{label}: {}", figure.name);
+        }
+    }
+    args.figures
+        .record_as(shared_as_variable(&args.command), &figures)
+}
+
+/// The figures of `record-figures`' input (see [`RecordFiguresArgs::from`]); an error names the
+/// entry and field at fault.
+fn parse_figures(text: &str) -> anyhow::Result<Vec<Figure>> {
+    let entries: Vec<serde_json::Value> = serde_json::from_str(text)?;
+    anyhow::ensure!(!entries.is_empty(), "no figures in the list");
+    entries
+        .iter()
+        .enumerate()
+        .map(|(index, entry)| {
+            let field = |name: &str| {
+                entry
+                    .get(name)
+                    .with_context(|| format!("figure {index}: no field {name:?}"))
+            };
+            let name = field("name")?
+                .as_str()
+                .with_context(|| format!("figure {index}: \"name\" is not a text"))?;
+            let unit = match entry.get("unit") {
+                None => String::new(),
+                Some(unit) => unit
+                    .as_str()
+                    .with_context(|| format!("figure {index} ({name}): \"unit\" is not a text"))?
+                    .to_string(),
+            };
+            Ok(match field("value")? {
+                serde_json::Value::String(text) => Figure::text(name, text.clone(), unit),
+                value => {
+                    let number = value.as_f64().with_context(|| {
+                        format!("figure {index} ({name}): \"value\" is neither a number nor a text")
+                    })?;
+                    let decimals = field("decimals")?
+                        .as_u64()
+                        .filter(|d| *d <= 6)
+                        .with_context(|| {
+                            format!("figure {index} ({name}): \"decimals\" is not 0-6")
+                        })?;
+                    Figure::number(name, number, decimals as u32, unit)
+                }
+            })
+        })
+        .collect()
 }
 
 /// Writes `figures` as the JSON file at `path` (replacing it): a list of objects with
@@ -134,7 +227,7 @@ pub fn write_figures(
         let fields = [
             ("name", quote(&figure.name)),
             ("value", value),
-            ("unit", quote(figure.unit)),
+            ("unit", quote(&figure.unit)),
             ("command", quote(&provenance.command)),
             ("commit", quote(&provenance.commit)),
             ("machine", quote(&provenance.machine)),
@@ -154,8 +247,6 @@ pub fn write_figures(
 /// The command as the table shows it: the program's file name and its arguments, the shared
 /// data folder written as `$MAC_EGO3D_SHARED`, and the figure options themselves left out.
 pub fn command_line(args: Vec<String>) -> String {
-    let shared = datasets::shared_data::shared_dir();
-    let shared = shared.to_string_lossy();
     let mut words = Vec::new();
     let mut args = args.into_iter();
     if let Some(program) = args.next() {
@@ -179,11 +270,7 @@ pub fn command_line(args: Vec<String>) -> String {
         if own.iter().any(|o| arg.starts_with(&format!("{o}="))) {
             continue;
         }
-        let arg = if shared.is_empty() {
-            arg
-        } else {
-            arg.replace(shared.as_ref(), "$MAC_EGO3D_SHARED")
-        };
+        let arg = shared_as_variable(&arg);
         words.push(if arg.contains(' ') {
             format!("'{arg}'")
         } else {
@@ -191,6 +278,18 @@ pub fn command_line(args: Vec<String>) -> String {
         });
     }
     words.join(" ")
+}
+
+/// `text` with the shared data folder written as `$MAC_EGO3D_SHARED`: the table's commands
+/// hold on any machine.
+fn shared_as_variable(text: &str) -> String {
+    let shared = datasets::shared_data::shared_dir();
+    let shared = shared.to_string_lossy();
+    if shared.is_empty() {
+        text.to_string()
+    } else {
+        text.replace(shared.as_ref(), "$MAC_EGO3D_SHARED")
+    }
 }
 
 /// The checked-out commit (7 digits), noting uncommitted changes to tracked files.
@@ -294,6 +393,27 @@ mod tests {
         ];
         let line = command_line(args.iter().map(|s| s.to_string()).collect());
         assert_eq!(line, "mac-ego3d bench merge --dir 'my run' --json");
+    }
+
+    #[test]
+    fn a_scripts_figures_are_read_with_their_decimals_and_bad_entries_are_named() {
+        let figures = parse_figures(
+            r#"[{"name": "ATE", "value": 2.904, "decimals": 2, "unit": "cm"},
+                {"name": "successes", "value": "20/20"}]"#,
+        )
+        .unwrap();
+        assert_eq!(figures[0], Figure::number("ATE", 2.904, 2, "cm"));
+        assert_eq!(figures[1], Figure::text("successes", "20/20", ""));
+        let error = |text: &str| format!("{:#}", parse_figures(text).unwrap_err());
+        assert!(error("[]").contains("no figures"));
+        assert!(error(r#"[{"value": 1, "decimals": 1}]"#).contains("figure 0: no field \"name\""));
+        let missing = error(r#"[{"name": "a", "value": "x"}, {"name": "ratio", "value": 1.5}]"#);
+        assert!(
+            missing.contains("figure 1: no field \"decimals\""),
+            "{missing}"
+        );
+        let wrong = error(r#"[{"name": "ratio", "value": [1], "decimals": 2}]"#);
+        assert!(wrong.contains("figure 0 (ratio)"), "{wrong}");
     }
 
     #[test]

@@ -1,7 +1,7 @@
 //! `mac-ego3d bench ...`: throughput and timing benchmarks. Each prints a table, or one JSON
 //! object with `--json`. Figures are wall-clock on the machine it runs on. `bench tracking` and
 //! `bench merge` also write their headline figures for docs/benchmarks.md with `--figures`
-//! ([`figures`]).
+//! ([`figures`]); `bench record-figures` writes those of the peer-comparison scripts.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -45,6 +45,9 @@ pub enum BenchCommand {
     /// Peer process of `bench ipc` (started by it).
     #[command(hide = true)]
     IpcPeer(ipc::IpcPeerArgs),
+    /// Write the headline figures a script measured into a docs/figures file (as the benches'
+    /// own --figures do): the peer comparisons in shell and Python call it.
+    RecordFigures(figures::RecordFiguresArgs),
 }
 
 #[derive(Args)]
@@ -281,5 +284,6 @@ pub fn run(command: &BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Merge(a) => merge::run(a),
         BenchCommand::Ipc(a) => ipc::run(a),
         BenchCommand::IpcPeer(a) => ipc::run_peer(a),
+        BenchCommand::RecordFigures(a) => figures::run_record(a),
     }
 }
