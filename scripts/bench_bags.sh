@@ -17,21 +17,11 @@ dataset="${MAC_EGO3D_SHARED:-../shared}/datasets/7scenes-redkitchen"
 frames=0..300
 workers=2
 out=""
-figures=""
-figures_section=""
-figures_label=""
-machine=""
-# The command as the figures table shows it: without the figure options themselves.
-shown=()
+source scripts/figure_options.sh
+take_figure_options "$@" || exit 2
+set -- "${figure_rest[@]}"
+command_line="scripts/bench_bags.sh $*"
 while (($#)); do
-  case "$1" in
-    --figures) figures="$2"; shift 2; continue ;;
-    --figures-section) figures_section="$2"; shift 2; continue ;;
-    --figures-label) figures_label="$2"; shift 2; continue ;;
-    --machine) machine="$2"; shift 2; continue ;;
-  esac
-  shown+=("$1")
-  (($# > 1)) && shown+=("$2")
   case "$1" in
     --bin) bin="$2"; shift 2 ;;
     --dataset) dataset="$2"; shift 2 ;;
@@ -41,7 +31,6 @@ while (($#)); do
     *) echo "unknown option $1" >&2; exit 2 ;;
   esac
 done
-[[ -z "$figures" || -n "$figures_section" ]] || { echo "--figures needs --figures-section HEADING" >&2; exit 2; }
 [[ -x "$bin" ]] || { echo "$bin is missing: build it with scripts/build.sh or cargo build" >&2; exit 1; }
 python="$(scripts/peers_venv.sh)" || exit $?
 if [[ -z "$out" ]]; then
@@ -94,8 +83,5 @@ with open(os.environ["FIGURES_INPUT"], "w", encoding="utf-8") as out:
     json.dump(figures, out, indent=2)
 PY
 )"
-if [[ -n "$figures" ]]; then
-  "$bin" bench record-figures --from "$figures_input" --command "scripts/bench_bags.sh ${shown[*]}" \
-    --figures "$figures" --figures-section "$figures_section" ${machine:+--machine "$machine"}
-fi
+record_figures "$bin" "$figures_input" "$command_line"
 rm -f "$figures_input"

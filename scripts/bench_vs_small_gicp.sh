@@ -54,23 +54,11 @@ config=configs/7scenes.toml
 out=""
 json=""
 bin=""
-figures=""
-figures_section=""
-figures_label=""
-machine=""
-# The command as the figures table shows it: without the figure options themselves.
-shown=()
+source scripts/figure_options.sh
+take_figure_options "$@" || exit 2
+set -- "${figure_rest[@]}"
+command_line="scripts/bench_vs_small_gicp.sh $*"
 while (($#)); do
-  case "$1" in
-    --figures) figures="$2"; shift 2; continue ;;
-    --figures-section) figures_section="$2"; shift 2; continue ;;
-    --figures-label) figures_label="$2"; shift 2; continue ;;
-    --machine) machine="$2"; shift 2; continue ;;
-  esac
-  shown+=("$1")
-  if [[ "$1" != --no-open3d && "$1" != -h && "$1" != --help ]] && (($# > 1)); then
-    shown+=("$2")
-  fi
   case "$1" in
     --frames) frames="$2"; shift 2 ;;
     --threads) threads="$2"; shift 2 ;;
@@ -88,8 +76,6 @@ while (($#)); do
     *) usage >&2; fail "unknown argument: $1" 2 ;;
   esac
 done
-command_line="scripts/bench_vs_small_gicp.sh ${shown[*]}"
-[[ -z "$figures" || -n "$figures_section" ]] || fail "--figures needs --figures-section HEADING" 2
 [[ "$threads" =~ ^[1-9][0-9]*$ ]] || fail "--threads $threads: not a positive integer" 2
 [[ "$repeats" =~ ^[1-9][0-9]*$ ]] || fail "--repeats $repeats: not a positive integer" 2
 [[ "$omp_wait_policy" == active || "$omp_wait_policy" == passive ]] ||
@@ -168,7 +154,4 @@ echo "[vs-small_gicp] load (1, 5, 15 min) before $load_before, after $load_after
 python3 scripts/small_gicp_odometry.py report --runs "$out/runs" --gt "$gt" --json "$json" --context "$context" \
   --figures "$out/figures.json" --label "${figures_label:-$(basename "$dataset") $frames}"
 echo "[vs-small_gicp] JSON: $json" >&2
-if [[ -n "$figures" ]]; then
-  "$bin" bench record-figures --from "$out/figures.json" --command "$command_line" \
-    --figures "$figures" --figures-section "$figures_section" ${machine:+--machine "$machine"}
-fi
+record_figures "$bin" "$out/figures.json" "$command_line"
