@@ -7,11 +7,16 @@
 # per minute of the camera's run), the transport latency (stamp to arrival), the hand-over
 # (arrival to frame, decoding included), the latency from stamp to the frame's pose (median and
 # 99th percentile), tracking time, and the agent's CPU seconds per frame taken. Prints a table,
-# then JSON. Needs root (network namespaces) and the peers' venv.
+# then JSON. Needs root (network namespaces) and the peers' venv. --figures writes per case the
+# frames taken of pairs received, the stamp-to-pose latency of the worse agent and the pairs
+# dropped per minute into a docs/figures file through `mac-ego3d bench record-figures`
+# (--figures-label: what the run is, default the dataset's folder name and frames).
 #
 #   scripts/bench_live.sh [--bin-dir target/debug] [--dataset DIR] [--frames 0..300]
 #                         [--config configs/7scenes.toml] [--cases compressed@30,raw@10]
 #                         [--agents 1] [--out DIR]
+#                         [--figures FILE --figures-section HEADING [--figures-label TEXT]
+#                          [--machine TEXT]]
 #
 # With --agents N, N cameras publish the same frames under /bench0.../bench{N-1} at once and
 # N agents take them on the same machine (as N robots' agents on one host would).
@@ -28,6 +33,10 @@ config=configs/7scenes.toml
 cases=compressed@30,raw@10
 agents=1
 out=""
+source scripts/figure_options.sh
+take_figure_options "$@" || exit 2
+set -- "${figure_rest[@]}"
+command_line="scripts/bench_live.sh $*"
 while (($#)); do
   case "$1" in
     --bin-dir) bin_dir="$2"; shift 2 ;;
@@ -92,9 +101,9 @@ EOF
     "$python" "$dataset" "$frames" "$rate" "$images" "$dir" "$bin_dir" "$agents"
 done
 
-python3 - "$out" "$agents" "${case_list[@]}" <<'EOF'
+python3 - "$out" "$agents" "${figures_label:-$(basename "$dataset") $frames}" "${case_list[@]}" <<'EOF'
 import json, sys
-out, agents, cases = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
+out, agents, label, cases = sys.argv[1], int(sys.argv[2]), sys.argv[3], sys.argv[4:]
 rows = []
 for case in cases:
     images, rate = case.split("@")
@@ -134,4 +143,23 @@ for r in rows:
           f"{f(r['stamp_to_pose_ms'])} ({f(r['stamp_to_pose_ms_p99'])}) | {f(r['tracking_ms'])} | {f(r['fps'])} | "
           f"{f(r['cpu_s_per_frame'], 3)} | {f(r['psnr'], 2)} |")
 print(json.dumps(rows))
+# The headline figures (bench record-figures' input): per case, over its agents.
+figures = []
+for case in cases:
+    of_case = [r for r in rows if r["case"] == case]
+    images, rate = case.split("@")
+    what = f"live ROS 2 input, {len(of_case)} agent(s) ({images}, {rate} Hz, {label})"
+    figures.append({"name": f"{what}: frames taken of pairs received, each agent",
+                    "value": " / ".join(f"{r['taken']} of {r['paired']}" for r in of_case), "unit": ""})
+    latencies = [r for r in of_case if r["stamp_to_pose_ms"] is not None]
+    if latencies:
+        worse = max(latencies, key=lambda r: r["stamp_to_pose_ms"])
+        figures.append({"name": f"{what}: stamp to pose, median (p99), worse agent",
+                        "value": f"{worse['stamp_to_pose_ms']:.1f} ({f(worse['stamp_to_pose_ms_p99'])})",
+                        "unit": "ms"})
+    figures.append({"name": f"{what}: pairs dropped per minute after each agent's first frame",
+                    "value": " / ".join(f"{r['dropped_per_min']:.1f}" for r in of_case), "unit": ""})
+with open(f"{out}/figures.json", "w", encoding="utf-8") as handle:
+    json.dump(figures, handle, indent=2)
 EOF
+record_figures "$bin_dir/mac-ego3d" "$out/figures.json" "$command_line"
