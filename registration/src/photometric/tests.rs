@@ -60,6 +60,21 @@ fn config(level: u32) -> PhotometricConfig {
     }
 }
 
+/// `rgb`'s textured points at `level`, lifted by `depth` at the identity pose (10 m truncation),
+/// its colour camera at `colour_from_depth`.
+fn reference_at_origin(
+    rgb: &RgbImage,
+    depth: &DepthImage,
+    level: u32,
+    config: &PhotometricConfig,
+    colour_from_depth: Isometry3<f64>,
+) -> PhotometricReference {
+    let frame = PhotometricFrame::new(rgb, &camera(), level)
+        .unwrap()
+        .with_colour_from_depth(colour_from_depth);
+    PhotometricReference::select(&frame, depth, &Isometry3::identity(), config, 10.0)
+}
+
 fn angle_deg(a: &Isometry3<f64>, b: &Isometry3<f64>) -> f64 {
     (a.inverse() * b).rotation.angle().to_degrees()
 }
@@ -138,13 +153,12 @@ fn the_gradient_matches_finite_differences_of_the_cost() {
         huber_threshold: 10.0,
         ..config(1)
     };
-    let reference_frame = PhotometricFrame::new(&reference_rgb, &camera(), 1).unwrap();
-    let reference = PhotometricReference::select(
-        &reference_frame,
+    let reference = reference_at_origin(
+        &reference_rgb,
         &reference_depth,
-        &Isometry3::identity(),
+        1,
         &config,
-        10.0,
+        Isometry3::identity(),
     );
     assert!(reference.len() > 1000, "{} points", reference.len());
     let current = PhotometricFrame::new(&current_rgb, &camera(), 1).unwrap();
@@ -208,13 +222,12 @@ fn the_term_alone_recovers_a_motion_over_a_textured_plane_despite_an_exposure_ch
     let (current_rgb, current_depth) = render(&truth(), 1.15, 0.04);
     for level in [0, 1] {
         let config = config(level);
-        let reference_frame = PhotometricFrame::new(&reference_rgb, &camera(), level).unwrap();
-        let reference = PhotometricReference::select(
-            &reference_frame,
+        let reference = reference_at_origin(
+            &reference_rgb,
             &reference_depth,
-            &Isometry3::identity(),
+            level,
             &config,
-            10.0,
+            Isometry3::identity(),
         );
         let current = PhotometricFrame::new(&current_rgb, &camera(), level).unwrap();
         let mut term = PhotometricTerm::new(&reference, &current, &current_depth, &config);
@@ -258,13 +271,12 @@ fn with_the_term_gicp_recovers_the_motion_along_a_plane_it_cannot_see_alone() {
         "G-ICP alone found the in-plane turn: the scene is not degenerate"
     );
     let config = config(1);
-    let reference_frame = PhotometricFrame::new(&reference_rgb, &k, 1).unwrap();
-    let reference = PhotometricReference::select(
-        &reference_frame,
+    let reference = reference_at_origin(
+        &reference_rgb,
         &reference_depth,
-        &Isometry3::identity(),
+        1,
         &config,
-        10.0,
+        Isometry3::identity(),
     );
     let current = PhotometricFrame::new(&current_rgb, &k, 1).unwrap();
     let mut term = PhotometricTerm::new(&reference, &current, &current_depth, &config);
@@ -347,15 +359,12 @@ fn colour_taken_apart_from_depth_is_compared_where_the_colour_camera_was() {
     let config = config(1);
     let estimate = |reference_colour_from_depth: Isometry3<f64>,
                     current_colour_from_depth: Isometry3<f64>| {
-        let reference_frame = PhotometricFrame::new(&reference_rgb, &camera(), 1)
-            .unwrap()
-            .with_colour_from_depth(reference_colour_from_depth);
-        let reference = PhotometricReference::select(
-            &reference_frame,
+        let reference = reference_at_origin(
+            &reference_rgb,
             &reference_depth,
-            &Isometry3::identity(),
+            1,
             &config,
-            10.0,
+            reference_colour_from_depth,
         );
         let current = PhotometricFrame::new(&current_rgb, &camera(), 1)
             .unwrap()
